@@ -1,0 +1,353 @@
+"""The mean-free-path map: the one core API the node, the bag replay and the CLI call."""
+
+from __future__ import annotations
+
+import math
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from mfp_mapper import model
+from mfp_mapper.store import BLOCK_EDGE, BlockStore, VoxelArrays
+from mfp_mapper.traversal import MAX_VOXEL_INDEX, pack_keys, visit_bounds, walk_rays
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass
+class IntegrationSummary:
+    """What one ``Mapper.integrate`` call did with its rays."""
+
+    rays_in: int = 0
+    rays_used: int = 0
+    rays_truncated: int = 0
+    """Rays longer than max_range: walked up to max_range, with no return."""
+    dropped: dict[str, int] = field(default_factory=dict)
+    """Rays not used, by reason: nonfinite, below_min_range, out_of_bounds."""
+    voxels_touched: int = 0
+    """Voxel updates (a voxel crossed by k rays counts k times)."""
+    new_voxels: int = 0
+    blocks_touched: int = 0
+    seconds: float = 0.0
+
+
+@dataclass
+class VoxelStats:
+    """Statistics of a set of voxels, with the model's estimates computed on demand."""
+
+    ijk: NDArray[np.int32]
+    centers: FloatArray
+    s: FloatArray
+    n: FloatArray
+    t_last: FloatArray
+    observed: NDArray[np.bool_]
+    resolution: float
+
+    def __len__(self) -> int:
+        return int(self.s.shape[0])
+
+    @property
+    def most_likely_doo(self) -> FloatArray:
+        return model.most_likely_doo(self.s, self.n)
+
+    @property
+    def mean_doo(self) -> FloatArray:
+        return model.mean_doo(self.s, self.n)
+
+    @property
+    def std(self) -> FloatArray:
+        return model.std_doo(self.s, self.n)
+
+    @property
+    def hit_probability(self) -> FloatArray:
+        """Probability that a ray crossing one voxel edge of this voxel is reflected."""
+        return model.hit_probability(self.s, self.n, self.resolution)
+
+    @property
+    def mean_free_path(self) -> FloatArray:
+        return model.mean_free_path(self.s, self.n)
+
+    def select(self, mask: NDArray[np.bool_] | NDArray[np.intp]) -> VoxelStats:
+        """The subset of voxels picked by a boolean mask or index array."""
+        values = {f.name: getattr(self, f.name) for f in fields(self)}
+        return VoxelStats(**{k: (v if k == "resolution" else v[mask]) for k, v in values.items()})
+
+
+class Mapper:
+    """A degree-of-occupancy voxel map built from lidar rays (Berquin & Zell 2021).
+
+    ``integrate`` adds rays; ``query`` and ``voxels`` read the map; ``save``/``load`` keep
+    it in an .npz file (see ``mfp_mapper.mapfile``). Not thread-safe: callers that share a
+    Mapper between threads hold a lock around every call.
+    """
+
+    def __init__(
+        self,
+        resolution: float = 0.1,
+        *,
+        max_range: float = 100.0,
+        min_range: float = 0.0,
+        decay_time: float = math.inf,
+        frame_id: str = "map",
+        threads: int = 1,
+        max_voxels: int | None = None,
+        keep_radius: float | None = None,
+    ) -> None:
+        if not (math.isfinite(resolution) and resolution > 0):
+            raise ValueError(f"resolution must be a positive number of metres, got {resolution}")
+        if not max_range > min_range >= 0:
+            raise ValueError(f"need max_range > min_range >= 0, got {max_range}, {min_range}")
+        if not decay_time > 0:
+            raise ValueError(f"decay_time must be > 0 seconds (inf = static), got {decay_time}")
+        if threads < 1:
+            raise ValueError(f"threads must be >= 1, got {threads}")
+        if max_voxels is not None and max_voxels < 1:
+            raise ValueError(f"max_voxels must be >= 1 or None, got {max_voxels}")
+        if keep_radius is not None and not keep_radius > 0:
+            raise ValueError(f"keep_radius must be > 0 metres or None, got {keep_radius}")
+        self.resolution = float(resolution)
+        self.max_range = float(max_range)
+        self.min_range = float(min_range)
+        self.decay_time = float(decay_time)
+        self.frame_id = frame_id
+        self.threads = int(threads)
+        self.max_voxels = max_voxels
+        self.keep_radius = keep_radius
+        self.last_stamp: float | None = None
+        self.last_origin: FloatArray | None = None
+        self.version = 0
+        self._store = BlockStore(shards=_shard_count(self.threads))
+        self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
+
+    # --- writing ----------------------------------------------------------------------
+
+    def integrate(self, points: ArrayLike, origins: ArrayLike, stamp: float) -> IntegrationSummary:
+        """Add one scan: rays from ``origins`` ((3,) or (N, 3)) to ``points`` (N, 3), map frame.
+
+        Each point is a first return, unless the ray is longer than ``max_range``: then it
+        is walked up to ``max_range`` and carries no return. Rays shorter than
+        ``min_range`` and rays with NaN/Inf are dropped and counted.
+        """
+        t0 = time.perf_counter()
+        pts = np.asarray(points, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise ValueError(f"points must have shape (N, 3), got {pts.shape}")
+        org = np.asarray(origins, dtype=np.float64)
+        if org.shape == (3,):
+            org = np.broadcast_to(org, pts.shape)
+        elif org.shape != pts.shape:
+            raise ValueError(f"origins must have shape (3,) or {pts.shape}, got {org.shape}")
+        if not math.isfinite(stamp):
+            raise ValueError(f"stamp must be finite seconds, got {stamp}")
+        rays = self._prepare_rays(pts, org)
+        summary = IntegrationSummary(rays_in=pts.shape[0], dropped=rays.dropped)
+        summary.rays_used = rays.count
+        summary.rays_truncated = int(np.count_nonzero(~rays.has_return))
+        if rays.count:
+            visits, touched, new = self._walk_and_merge(rays, float(stamp))
+            summary.voxels_touched, summary.blocks_touched, summary.new_voxels = visits, touched, new
+            self.last_stamp = float(stamp) if self.last_stamp is None else max(self.last_stamp, stamp)
+            self.last_origin = rays.origins_m.mean(axis=0)
+            self._enforce_memory_bound()
+            self.version += 1
+        summary.seconds = time.perf_counter() - t0
+        return summary
+
+    def _prepare_rays(self, pts: FloatArray, org: FloatArray) -> _Rays:
+        delta = pts - org
+        length = np.sqrt(np.einsum("ij,ij->i", delta, delta))
+        finite = np.isfinite(length) & np.isfinite(org).all(axis=1)
+        long_enough = finite & (length >= self.min_range) & (length > 0)
+        truncated = long_enough & (length > self.max_range)
+        scale = np.where(truncated, self.max_range / np.where(long_enough, length, 1.0), 1.0)
+        ends = org + delta * scale[:, None]
+        inv = 1.0 / self.resolution
+        with np.errstate(invalid="ignore"):
+            in_bounds = (np.abs(org * inv) < MAX_VOXEL_INDEX - 2).all(axis=1) & (
+                np.abs(ends * inv) < MAX_VOXEL_INDEX - 2
+            ).all(axis=1)
+        use = long_enough & in_bounds
+        dropped = {
+            "nonfinite": int(np.count_nonzero(~finite)),
+            "below_min_range": int(np.count_nonzero(finite & ~long_enough)),
+            "out_of_bounds": int(np.count_nonzero(long_enough & ~in_bounds)),
+        }
+        return _Rays(
+            origins_m=org[use],
+            origins_vox=np.ascontiguousarray(org[use] * inv),
+            ends_vox=np.ascontiguousarray(ends[use] * inv),
+            lengths=np.minimum(length[use], self.max_range),
+            has_return=~truncated[use],
+            dropped=dropped,
+        )
+
+    def _walk_and_merge(self, rays: _Rays, stamp: float) -> tuple[int, int, int]:
+        bounds = visit_bounds(rays.origins_vox, rays.ends_vox)
+        chunks = np.array_split(np.arange(rays.count), min(self.threads, rays.count))
+        starts = np.concatenate([[0], np.cumsum(bounds)])
+        keys = np.empty(int(starts[-1]), dtype=np.int64)
+        chords = np.empty(int(starts[-1]), dtype=np.float32)
+        hits = np.empty(rays.count, dtype=np.int64)
+
+        def walk(chunk: NDArray[np.intp]) -> tuple[int, int]:
+            first, last = int(chunk[0]), int(chunk[-1]) + 1
+            return walk_rays(
+                rays.origins_vox, rays.ends_vox, rays.lengths, rays.has_return,
+                first, last, keys, chords, hits, int(starts[first]), first,
+            )
+
+        counts = self._map(walk, chunks)
+        ranges = np.array([[starts[c[0]], starts[c[0]] + k] for c, (k, _) in zip(chunks, counts, strict=True)])
+        hit_ranges = np.array([[c[0], c[0] + h] for c, (_, h) in zip(chunks, counts, strict=True)])
+        shard_groups = np.array_split(np.arange(len(self._store.shards)), len(chunks))
+
+        def merge(group: NDArray[np.intp]) -> int:
+            return self._store.merge(
+                keys, chords, hits, ranges, hit_ranges, stamp, self.decay_time, list(group)
+            )
+
+        touched = sum(self._map(merge, shard_groups))
+        new = self._store.finish_scan()
+        return int(sum(k for k, _ in counts)), touched, new
+
+    def _map(self, fn, items):  # type: ignore[no-untyped-def]
+        if self._pool is None or len(items) == 1:
+            return [fn(item) for item in items]
+        return list(self._pool.map(fn, items))
+
+    def _enforce_memory_bound(self) -> None:
+        """Evict far blocks: beyond ``keep_radius`` of the latest sensor position, then the
+        farthest blocks until the map holds at most 90% of ``max_voxels``."""
+        if self.last_origin is None:
+            return
+        center = self.last_origin / (self.resolution * BLOCK_EDGE) - 0.5
+        if self.keep_radius is not None:
+            radius_blocks = self.keep_radius / (self.resolution * BLOCK_EDGE)
+
+            def within(block_ijk: NDArray[np.int32], _t: FloatArray) -> NDArray[np.bool_]:
+                return np.linalg.norm(block_ijk - center, axis=1) <= radius_blocks
+
+            self._store.evict(within)
+        if self.max_voxels is not None and self._store.num_voxels > self.max_voxels:
+            target = int(0.9 * self.max_voxels)
+            while self._store.num_voxels > target:
+                dist = np.concatenate(
+                    [np.linalg.norm(sh.block_ijk[: sh.used] - center, axis=1) for sh in self._store.shards]
+                )
+                cut = np.quantile(dist, 1.0 - min(0.5, 1.0 - target / self._store.num_voxels))
+
+                def nearer(block_ijk: NDArray[np.int32], _t: FloatArray, cut: float = cut) -> NDArray[np.bool_]:
+                    return np.linalg.norm(block_ijk - center, axis=1) < cut
+
+                if self._store.evict(nearer) == 0:
+                    break
+
+    def reset(self) -> None:
+        """Forget every voxel (parameters stay)."""
+        self._store = BlockStore(shards=len(self._store.shards))
+        self.last_stamp = None
+        self.last_origin = None
+        self.version += 1
+
+    # --- reading ----------------------------------------------------------------------
+
+    def voxel_index(self, points: ArrayLike) -> NDArray[np.int64]:
+        """floor(point / resolution): the map-file voxel index of each point."""
+        return np.floor(np.asarray(points, dtype=np.float64) / self.resolution).astype(np.int64)
+
+    def query(self, points: ArrayLike, stamp: float | None = None) -> VoxelStats:
+        """Statistics of the voxel containing each point, decayed to ``stamp`` when given."""
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        ijk = self.voxel_index(np.where(np.isfinite(pts), pts, 0.0))
+        valid = np.isfinite(pts).all(axis=1) & (np.abs(ijk) < MAX_VOXEL_INDEX).all(axis=1)
+        raw = self._store.lookup(pack_keys(np.where(valid[:, None], ijk, 0)))
+        raw.ijk = ijk.astype(np.int32)
+        for arr in (raw.s, raw.n):
+            arr[~valid] = 0.0
+        raw.t_last[~valid] = -np.inf
+        return self._stats(raw, stamp)
+
+    def voxels(self, stamp: float | None = None) -> VoxelStats:
+        """Every observed voxel, decayed to ``stamp`` when given."""
+        return self._stats(self._store.export(), stamp)
+
+    def _stats(self, raw: VoxelArrays, stamp: float | None) -> VoxelStats:
+        s, n = raw.s, raw.n
+        if stamp is not None and math.isfinite(self.decay_time):
+            seen = np.isfinite(raw.t_last)
+            dt = np.where(seen, stamp - np.where(seen, raw.t_last, 0.0), 0.0)
+            s, n = model.decay(s, n, dt, self.decay_time)
+        return VoxelStats(
+            ijk=raw.ijk,
+            centers=(raw.ijk + 0.5) * self.resolution,
+            s=s,
+            n=n,
+            t_last=raw.t_last,
+            observed=model.observed(s, n),
+            resolution=self.resolution,
+        )
+
+    @property
+    def num_voxels(self) -> int:
+        return self._store.num_voxels
+
+    @property
+    def num_blocks(self) -> int:
+        return self._store.num_blocks
+
+    @property
+    def memory_bytes(self) -> int:
+        return self._store.nbytes
+
+    # --- files ------------------------------------------------------------------------
+
+    def save(self, path: str | Path) -> None:
+        """Write the map to an .npz file atomically (see ``mfp_mapper.mapfile``)."""
+        from mfp_mapper.mapfile import write_map
+
+        write_map(path, self)
+
+    @classmethod
+    def load(cls, path: str | Path, **overrides: object) -> Mapper:
+        """Read a map written by ``save``; keyword arguments override stored settings."""
+        from mfp_mapper.mapfile import read_map
+
+        return read_map(path, **overrides)
+
+    def _assign(self, voxels: VoxelArrays) -> None:
+        """Replace the statistics of the given voxels (used when loading a map)."""
+        self._store.assign(voxels, self.decay_time)
+        finite_t = voxels.t_last[np.isfinite(voxels.t_last)]
+        self.last_stamp = float(finite_t.max()) if finite_t.size else None
+        self.version += 1
+
+    def close(self) -> None:
+        """Stop the worker threads (the map stays readable)."""
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
+
+
+@dataclass
+class _Rays:
+    origins_m: FloatArray
+    origins_vox: FloatArray
+    ends_vox: FloatArray
+    lengths: FloatArray
+    has_return: NDArray[np.bool_]
+    dropped: dict[str, int]
+
+    @property
+    def count(self) -> int:
+        return int(self.lengths.shape[0])
+
+
+def _shard_count(threads: int) -> int:
+    shards = 1
+    while shards < threads:
+        shards *= 2
+    return shards
