@@ -12,8 +12,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from mfp_mapper import model
-from mfp_mapper.store import BLOCK_EDGE, BlockStore, VoxelArrays
-from mfp_mapper.traversal import MAX_VOXEL_INDEX, pack_keys, visit_bounds, walk_rays
+from mfp_mapper.store import BLOCK_EDGE, MAX_VOXEL_INDEX, BlockStore, VoxelArrays
+from mfp_mapper.traversal import walk_into_shard
 
 FloatArray = NDArray[np.float64]
 
@@ -165,10 +165,12 @@ class Mapper:
         truncated = long_enough & (length > self.max_range)
         scale = np.where(truncated, self.max_range / np.where(long_enough, length, 1.0), 1.0)
         ends = org + delta * scale[:, None]
-        inv = 1.0 / self.resolution
+        # voxel units, divided exactly as voxel_index does, so a return lands in floor(p / res)
+        org_vox = org / self.resolution
+        ends_vox = ends / self.resolution
         with np.errstate(invalid="ignore"):
-            in_bounds = (np.abs(org * inv) < MAX_VOXEL_INDEX - 2).all(axis=1) & (
-                np.abs(ends * inv) < MAX_VOXEL_INDEX - 2
+            in_bounds = (np.abs(org_vox) < MAX_VOXEL_INDEX).all(axis=1) & (
+                np.abs(ends_vox) < MAX_VOXEL_INDEX
             ).all(axis=1)
         use = long_enough & in_bounds
         dropped = {
@@ -178,46 +180,32 @@ class Mapper:
         }
         return _Rays(
             origins_m=org[use],
-            origins_vox=np.ascontiguousarray(org[use] * inv),
-            ends_vox=np.ascontiguousarray(ends[use] * inv),
+            origins_vox=np.ascontiguousarray(org_vox[use]),
+            ends_vox=np.ascontiguousarray(ends_vox[use]),
             lengths=np.minimum(length[use], self.max_range),
             has_return=~truncated[use],
             dropped=dropped,
         )
 
     def _walk_and_merge(self, rays: _Rays, stamp: float) -> tuple[int, int, int]:
-        bounds = visit_bounds(rays.origins_vox, rays.ends_vox)
-        chunks = np.array_split(np.arange(rays.count), min(self.threads, rays.count))
-        starts = np.concatenate([[0], np.cumsum(bounds)])
-        keys = np.empty(int(starts[-1]), dtype=np.int64)
-        chords = np.empty(int(starts[-1]), dtype=np.float32)
-        hits = np.empty(rays.count, dtype=np.int64)
+        """Walk the rays into the store, one thread per group of shards."""
+        store = self._store
+        scan_id = store.begin_scan()
+        groups = np.array_split(np.arange(len(store.shards)), self.threads)
 
-        def walk(chunk: NDArray[np.intp]) -> tuple[int, int]:
-            first, last = int(chunk[0]), int(chunk[-1]) + 1
-            return walk_rays(
-                rays.origins_vox, rays.ends_vox, rays.lengths, rays.has_return,
-                first, last, keys, chords, hits, int(starts[first]), first,
-            )
+        def walk(shard_ids: NDArray[np.intp]) -> None:
+            for sid in shard_ids:
+                walk_into_shard(
+                    rays.origins_vox, rays.ends_vox, rays.lengths, rays.has_return,
+                    store.shards[sid], int(sid), store.shard_mask, scan_id, stamp, self.decay_time,
+                )
 
-        counts = self._map(walk, chunks)
-        ranges = np.array([[starts[c[0]], starts[c[0]] + k] for c, (k, _) in zip(chunks, counts, strict=True)])
-        hit_ranges = np.array([[c[0], c[0] + h] for c, (_, h) in zip(chunks, counts, strict=True)])
-        shard_groups = np.array_split(np.arange(len(self._store.shards)), len(chunks))
-
-        def merge(group: NDArray[np.intp]) -> int:
-            return self._store.merge(
-                keys, chords, hits, ranges, hit_ranges, stamp, self.decay_time, list(group)
-            )
-
-        touched = sum(self._map(merge, shard_groups))
-        new = self._store.finish_scan()
-        return int(sum(k for k, _ in counts)), touched, new
-
-    def _map(self, fn, items):  # type: ignore[no-untyped-def]
-        if self._pool is None or len(items) == 1:
-            return [fn(item) for item in items]
-        return list(self._pool.map(fn, items))
+        if self._pool is None:
+            walk(groups[0])
+        else:
+            list(self._pool.map(walk, groups))
+        new, touched, updates = store.finish_scan()
+        return updates, touched, new
 
     def _enforce_memory_bound(self) -> None:
         """Evict far blocks: beyond ``keep_radius`` of the latest sensor position, then the
@@ -264,7 +252,7 @@ class Mapper:
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         ijk = self.voxel_index(np.where(np.isfinite(pts), pts, 0.0))
         valid = np.isfinite(pts).all(axis=1) & (np.abs(ijk) < MAX_VOXEL_INDEX).all(axis=1)
-        raw = self._store.lookup(pack_keys(np.where(valid[:, None], ijk, 0)))
+        raw = self._store.lookup(np.where(valid[:, None], ijk, 0))
         raw.ijk = ijk.astype(np.int32)
         for arr in (raw.s, raw.n):
             arr[~valid] = 0.0

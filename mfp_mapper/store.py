@@ -5,7 +5,8 @@ Layout (chosen for speed and memory, see ANCHORS.md):
 * Voxels live in dense blocks of ``BLOCK_EDGE**3``; a ray stays in one block for several
   steps, so most updates are an array index into the block the walk is already in.
 * Blocks are found through open-addressing hash tables, split into ``shards`` by block
-  parity so that several threads can merge one scan's contributions without locks.
+  parity; each thread of an integration writes only to its own shards, so threads need
+  no locks and every voxel sums its rays in the same order whatever the thread count.
 * ``s`` and ``n`` are float32, side by side (8 bytes a voxel), and the voxels of a block
   are in Morton order, so one 64-byte cache line holds a 2x2x2 cube of voxels: a ray
   crossing it finds its next voxel in the same line. Each block keeps the time ``t`` its
@@ -14,7 +15,7 @@ Layout (chosen for speed and memory, see ANCHORS.md):
   a voxel's ``t_last`` is its block's ``t``.
 * A voxel is *observed* when ``s > 0`` or ``n > 0``.
 
-Per scan, every contribution is summed into the store: sums, never deduplication.
+Every ray's contribution is summed into the store: sums, never deduplication.
 """
 
 from __future__ import annotations
@@ -27,7 +28,6 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
-from mfp_mapper.traversal import KEY_BITS, KEY_MASK, KEY_OFFSET
 
 BLOCK_BITS = 3
 BLOCK_EDGE = 1 << BLOCK_BITS
@@ -35,19 +35,18 @@ BLOCK_VOXELS = BLOCK_EDGE**3
 _LOCAL_MASK = BLOCK_EDGE - 1
 _EMPTY = -1
 _HASH_MULT = np.uint64(0x9E3779B97F4A7C15)
+_KEY_BITS = 21
+_KEY_OFFSET = 1 << (_KEY_BITS - 1)
+MAX_VOXEL_INDEX = (_KEY_OFFSET << BLOCK_BITS) - BLOCK_EDGE
+"""Largest |voxel index| the store can hold (block indices are packed in 21 bits each)."""
 
-# merge status codes
-MERGE_DONE = 0
-MERGE_FULL = 1
+@nb.njit(inline="always", cache=True)
+def block_key(bx: int, by: int, bz: int) -> int:
+    return ((bx + _KEY_OFFSET) << (2 * _KEY_BITS)) | ((by + _KEY_OFFSET) << _KEY_BITS) | (bz + _KEY_OFFSET)
 
 
 @nb.njit(inline="always", cache=True)
-def _block_key(bx: int, by: int, bz: int) -> int:
-    return ((bx + KEY_OFFSET) << (2 * KEY_BITS)) | ((by + KEY_OFFSET) << KEY_BITS) | (bz + KEY_OFFSET)
-
-
-@nb.njit(inline="always", cache=True)
-def _shard_of(bx: int, by: int, bz: int, shard_mask: int) -> int:
+def shard_of(bx: int, by: int, bz: int, shard_mask: int) -> int:
     return (bx + by + bz) & shard_mask
 
 
@@ -87,7 +86,7 @@ def _spread_bits(v: int) -> int:
 
 
 @nb.njit(inline="always", cache=True)
-def _local_index(vx: int, vy: int, vz: int) -> int:
+def local_index(vx: int, vy: int, vz: int) -> int:
     """Morton (z-order) index of a voxel inside its block."""
     return (
         (_spread_bits(vx & _LOCAL_MASK) << 2)
@@ -96,16 +95,11 @@ def _local_index(vx: int, vy: int, vz: int) -> int:
     )
 
 
-@nb.njit(cache=True, nogil=True)
-def _merge_shard(
-    keys: NDArray[np.int64],
-    chords: NDArray[np.float32],
-    hits: NDArray[np.int64],
-    ranges: NDArray[np.int64],
-    hit_ranges: NDArray[np.int64],
-    progress: NDArray[np.int64],
-    shard: int,
-    shard_mask: int,
+@nb.njit(inline="always", cache=True)
+def open_block(
+    bx: int,
+    by: int,
+    bz: int,
     table_keys: NDArray[np.int64],
     table_blocks: NDArray[np.int32],
     block_ijk: NDArray[np.int32],
@@ -117,73 +111,38 @@ def _merge_shard(
     stamp: float,
     decay_time: float,
 ) -> int:
-    """Sum one scan's contributions that fall in ``shard`` into its blocks.
+    """The block (bx, by, bz), created if new, ready to take the scan ``scan_id`` at ``stamp``.
 
-    ``ranges``/``hit_ranges`` are (chunks, 2) [start, stop) regions of the contribution
-    arrays, taken in order; ``progress`` = [phase, chunk, index] lets a call that ran out of
-    block capacity (returns MERGE_FULL) resume after the caller grew the arrays.
-    ``counters`` = [blocks used, new voxels, blocks touched this scan].
+    The first time a scan opens a block, the block is decayed to ``stamp`` (when
+    ``decay_time`` is finite). Returns -1 when a new block is needed and there is no room:
+    the caller grows the shard and calls again. ``counters`` = [blocks used, new voxels,
+    blocks touched this scan, voxel updates this scan].
     """
-    decays = math.isfinite(decay_time)
-    capacity = block_sn.shape[0]
-    max_blocks_for_table = table_keys.shape[0] // 2
-    cached_key = -1
-    cached_block = -1
-    for phase in range(progress[0], 2):
-        regions = ranges if phase == 0 else hit_ranges
-        source = keys if phase == 0 else hits
-        first_chunk = progress[1] if phase == progress[0] else 0
-        for c in range(first_chunk, regions.shape[0]):
-            start = progress[2] if (phase == progress[0] and c == progress[1]) else regions[c, 0]
-            for j in range(start, regions[c, 1]):
-                key = source[j]
-                vx = ((key >> (2 * KEY_BITS)) & KEY_MASK) - KEY_OFFSET
-                vy = ((key >> KEY_BITS) & KEY_MASK) - KEY_OFFSET
-                vz = (key & KEY_MASK) - KEY_OFFSET
-                bx = vx >> BLOCK_BITS
-                by = vy >> BLOCK_BITS
-                bz = vz >> BLOCK_BITS
-                if _shard_of(bx, by, bz, shard_mask) != shard:
-                    continue
-                bkey = _block_key(bx, by, bz)
-                if bkey != cached_key:
-                    block = _find(table_keys, table_blocks, bkey)
-                    if block < 0:
-                        used = counters[0]
-                        if used >= capacity or used >= max_blocks_for_table:
-                            progress[0] = phase
-                            progress[1] = c
-                            progress[2] = j
-                            return MERGE_FULL
-                        block = used
-                        counters[0] = used + 1
-                        _insert(table_keys, table_blocks, bkey, block)
-                        block_ijk[block, 0] = bx
-                        block_ijk[block, 1] = by
-                        block_ijk[block, 2] = bz
-                        block_t[block] = stamp
-                        block_scan[block] = scan_id
-                        counters[2] += 1
-                    elif block_scan[block] != scan_id:
-                        if decays:
-                            f = np.float32(math.exp(-abs(stamp - block_t[block]) / decay_time))
-                            for i in range(BLOCK_VOXELS):
-                                block_sn[block, i, 0] *= f
-                                block_sn[block, i, 1] *= f
-                        block_t[block] = stamp
-                        block_scan[block] = scan_id
-                        counters[2] += 1
-                    cached_key = bkey
-                    cached_block = block
-                local = _local_index(vx, vy, vz)
-                if block_sn[cached_block, local, 0] == 0.0 and block_sn[cached_block, local, 1] == 0.0:
-                    counters[1] += 1
-                if phase == 0:
-                    block_sn[cached_block, local, 0] += chords[j]
-                else:
-                    block_sn[cached_block, local, 1] += 1.0
-    progress[0] = 2
-    return MERGE_DONE
+    bkey = block_key(bx, by, bz)
+    block = _find(table_keys, table_blocks, bkey)
+    if block < 0:
+        used = counters[0]
+        if used >= block_sn.shape[0] or 2 * used >= table_keys.shape[0]:
+            return -1
+        block = used
+        counters[0] = used + 1
+        _insert(table_keys, table_blocks, bkey, block)
+        block_ijk[block, 0] = bx
+        block_ijk[block, 1] = by
+        block_ijk[block, 2] = bz
+        block_t[block] = stamp
+        block_scan[block] = scan_id
+        counters[2] += 1
+    elif block_scan[block] != scan_id:
+        if math.isfinite(decay_time):
+            f = np.float32(math.exp(-abs(stamp - block_t[block]) / decay_time))
+            for i in range(BLOCK_VOXELS):
+                block_sn[block, i, 0] *= f
+                block_sn[block, i, 1] *= f
+        block_t[block] = stamp
+        block_scan[block] = scan_id
+        counters[2] += 1
+    return block
 
 
 @nb.njit(cache=True, nogil=True)
@@ -200,42 +159,34 @@ def _assign_shard(
     block_ijk: NDArray[np.int32],
     block_sn: NDArray[np.float32],
     block_t: NDArray[np.float64],
+    block_scan: NDArray[np.int64],
     counters: NDArray[np.int64],
 ) -> int:
-    """Set voxels (all referring to their block's time ``t``) from ``start`` on.
+    """Set voxels of ``shard`` (each at its block's time ``t``) from index ``start`` on.
 
     Returns the index reached: ``len(ijk)`` when done, less when the blocks ran out.
     """
-    capacity = block_sn.shape[0]
-    max_blocks_for_table = table_keys.shape[0] // 2
     for j in range(start, ijk.shape[0]):
         bx = ijk[j, 0] >> BLOCK_BITS
         by = ijk[j, 1] >> BLOCK_BITS
         bz = ijk[j, 2] >> BLOCK_BITS
-        if _shard_of(bx, by, bz, shard_mask) != shard:
+        if shard_of(bx, by, bz, shard_mask) != shard:
             continue
-        bkey = _block_key(bx, by, bz)
-        block = _find(table_keys, table_blocks, bkey)
+        block = open_block(
+            bx, by, bz, table_keys, table_blocks, block_ijk, block_sn, block_t, block_scan,
+            counters, -1, t[j], math.inf,
+        )
         if block < 0:
-            used = counters[0]
-            if used >= capacity or used >= max_blocks_for_table:
-                return j
-            block = used
-            counters[0] = used + 1
-            _insert(table_keys, table_blocks, bkey, block)
-            block_ijk[block, 0] = bx
-            block_ijk[block, 1] = by
-            block_ijk[block, 2] = bz
-        local = _local_index(ijk[j, 0], ijk[j, 1], ijk[j, 2])
+            return j
+        local = local_index(ijk[j, 0], ijk[j, 1], ijk[j, 2])
         block_sn[block, local, 0] = s[j]
         block_sn[block, local, 1] = n[j]
-        block_t[block] = t[j]
     return ijk.shape[0]
 
 
 @nb.njit(cache=True, nogil=True)
 def _lookup(
-    keys: NDArray[np.int64],
+    ijk: NDArray[np.int64],
     shard_mask: int,
     tables_keys: tuple[NDArray[np.int64], ...],
     tables_blocks: tuple[NDArray[np.int32], ...],
@@ -243,26 +194,22 @@ def _lookup(
     out_block: NDArray[np.int64],
     out_local: NDArray[np.int64],
 ) -> None:
-    """For each voxel key: its shard, block number (-1 when absent) and index in the block."""
-    for j in range(keys.shape[0]):
-        key = keys[j]
-        vx = ((key >> (2 * KEY_BITS)) & KEY_MASK) - KEY_OFFSET
-        vy = ((key >> KEY_BITS) & KEY_MASK) - KEY_OFFSET
-        vz = (key & KEY_MASK) - KEY_OFFSET
-        bx = vx >> BLOCK_BITS
-        by = vy >> BLOCK_BITS
-        bz = vz >> BLOCK_BITS
-        shard = _shard_of(bx, by, bz, shard_mask)
+    """For each voxel index: its shard, block number (-1 when absent) and index in the block."""
+    for j in range(ijk.shape[0]):
+        bx = ijk[j, 0] >> BLOCK_BITS
+        by = ijk[j, 1] >> BLOCK_BITS
+        bz = ijk[j, 2] >> BLOCK_BITS
+        shard = shard_of(bx, by, bz, shard_mask)
         out_shard[j] = shard
-        out_block[j] = _find(tables_keys[shard], tables_blocks[shard], _block_key(bx, by, bz))
-        out_local[j] = _local_index(vx, vy, vz)
+        out_block[j] = _find(tables_keys[shard], tables_blocks[shard], block_key(bx, by, bz))
+        out_local[j] = local_index(ijk[j, 0], ijk[j, 1], ijk[j, 2])
 
 
 @nb.njit(cache=True, nogil=True)
 def _rebuild_table(block_ijk: NDArray[np.int32], used: int, table_keys: NDArray[np.int64], table_blocks: NDArray[np.int32]) -> None:
     table_keys[:] = _EMPTY
     for b in range(used):
-        _insert(table_keys, table_blocks, _block_key(block_ijk[b, 0], block_ijk[b, 1], block_ijk[b, 2]), b)
+        _insert(table_keys, table_blocks, block_key(block_ijk[b, 0], block_ijk[b, 1], block_ijk[b, 2]), b)
 
 
 def _local_offsets() -> NDArray[np.int32]:
@@ -270,7 +217,7 @@ def _local_offsets() -> NDArray[np.int32]:
     for x in range(BLOCK_EDGE):
         for y in range(BLOCK_EDGE):
             for z in range(BLOCK_EDGE):
-                offsets[_local_index(x, y, z)] = (x, y, z)
+                offsets[local_index(x, y, z)] = (x, y, z)
     return offsets
 
 
@@ -295,8 +242,8 @@ class VoxelArrays:
 class Shard:
     """One hash table and the blocks it indexes."""
 
-    def __init__(self, block_capacity: int = 256) -> None:
-        self.counters = np.zeros(3, dtype=np.int64)
+    def __init__(self, block_capacity: int = 1024) -> None:
+        self.counters = np.zeros(4, dtype=np.int64)
         self._allocate(block_capacity)
 
     def _allocate(self, capacity: int) -> None:
@@ -311,15 +258,23 @@ class Shard:
     def used(self) -> int:
         return int(self.counters[0])
 
-    def grow(self) -> None:
-        """Double the block capacity (and the table), keeping every block."""
+    def grow(self, min_free: int = 0) -> None:
+        """Grow the block capacity by half (or more, for ``min_free``), keeping every block.
+
+        The block arrays are resized in place (realloc, which the C library does without a
+        copy for large arrays); the table is rebuilt at twice the new capacity.
+        """
         used = self.used
-        old = (self.block_ijk, self.block_sn, self.block_t, self.block_scan)
-        self._allocate(max(self.block_sn.shape[0] * 3 // 2, 256))
-        for new, prev in zip(
-            (self.block_ijk, self.block_sn, self.block_t, self.block_scan), old, strict=True
-        ):
-            new[:used] = prev[:used]
+        capacity = max(self.block_sn.shape[0] * 3 // 2, used + min_free)
+        self.block_ijk.resize((capacity, 3), refcheck=False)
+        self.block_sn.resize((capacity, BLOCK_VOXELS, 2), refcheck=False)
+        old_t, old_scan = self.block_t, self.block_scan
+        self.block_t = np.full(capacity, -np.inf)
+        self.block_scan = np.full(capacity, -1, dtype=np.int64)
+        self.block_t[:used] = old_t[:used]
+        self.block_scan[:used] = old_scan[:used]
+        self.table_keys = np.full(_next_pow2(2 * capacity), _EMPTY, dtype=np.int64)
+        self.table_blocks = np.zeros(self.table_keys.shape[0], dtype=np.int32)
         _rebuild_table(self.block_ijk, used, self.table_keys, self.table_blocks)
 
     def keep_blocks(self, keep: NDArray[np.bool_]) -> int:
@@ -347,7 +302,7 @@ def _next_pow2(x: int) -> int:
 
 
 class BlockStore:
-    """All shards together: the map's memory, with merge, lookup and export."""
+    """All shards together: the map's memory, with lookup, export, loading and eviction."""
 
     def __init__(self, shards: int = 1) -> None:
         if shards < 1 or shards & (shards - 1):
@@ -357,44 +312,20 @@ class BlockStore:
         self.num_voxels = 0
         self._scan_id = 0
 
-    def merge(
-        self,
-        keys: NDArray[np.int64],
-        chords: NDArray[np.float32],
-        hits: NDArray[np.int64],
-        ranges: NDArray[np.int64],
-        hit_ranges: NDArray[np.int64],
-        stamp: float,
-        decay_time: float,
-        shard_ids: range | list[int],
-    ) -> int:
-        """Add one scan's contributions to the given shards; returns blocks touched."""
-        touched = 0
-        for sid in shard_ids:
-            shard = self.shards[sid]
-            shard.counters[1:] = 0
-            progress = np.zeros(3, dtype=np.int64)
-            while (
-                _merge_shard(
-                    keys, chords, hits, ranges, hit_ranges, progress, sid, self.shard_mask,
-                    shard.table_keys, shard.table_blocks, shard.block_ijk, shard.block_sn,
-                    shard.block_t, shard.block_scan, shard.counters,
-                    self._scan_id, stamp, decay_time,
-                )
-                == MERGE_FULL
-            ):
-                shard.grow()
-            touched += int(shard.counters[2])
-        return touched
-
-    def finish_scan(self) -> int:
-        """Close the scan merged into every shard; returns the voxels it observed first."""
-        new = sum(int(sh.counters[1]) for sh in self.shards)
+    def begin_scan(self) -> int:
+        """Start a scan: clears the per-scan counters; returns the scan's id."""
         for sh in self.shards:
             sh.counters[1:] = 0
+        return self._scan_id
+
+    def finish_scan(self) -> tuple[int, int, int]:
+        """Close the scan; returns (voxels observed for the first time, blocks touched,
+        voxel updates)."""
+        totals = np.sum([sh.counters[1:] for sh in self.shards], axis=0)
+        new, touched, updates = (int(x) for x in totals)
         self.num_voxels += new
         self._scan_id += 1
-        return new
+        return new, touched, updates
 
     def assign(self, voxels: VoxelArrays, decay_time: float) -> None:
         """Set the given voxels (replacing any statistics they had), e.g. from a map file.
@@ -415,7 +346,7 @@ class BlockStore:
             start = 0
             while (start := _assign_shard(
                 ijk, s, n, t, start, sid, self.shard_mask, sh.table_keys, sh.table_blocks,
-                sh.block_ijk, sh.block_sn, sh.block_t, sh.counters,
+                sh.block_ijk, sh.block_sn, sh.block_t, sh.block_scan, sh.counters,
             )) < ijk.shape[0]:
                 sh.grow()
         self.num_voxels = sum(
@@ -423,14 +354,14 @@ class BlockStore:
             for sh in self.shards
         )
 
-    def lookup(self, keys: NDArray[np.int64]) -> VoxelArrays:
-        """Statistics of the voxels with these keys (zeros and t_last=-inf when absent)."""
-        count = keys.shape[0]
+    def lookup(self, ijk: NDArray[np.int64]) -> VoxelArrays:
+        """Statistics of these voxels (zeros and t_last=-inf where never observed)."""
+        count = ijk.shape[0]
         shard_of = np.empty(count, dtype=np.int64)
         block = np.empty(count, dtype=np.int64)
         local = np.empty(count, dtype=np.int64)
         _lookup(
-            keys, self.shard_mask, tuple(sh.table_keys for sh in self.shards),
+            ijk, self.shard_mask, tuple(sh.table_keys for sh in self.shards),
             tuple(sh.table_blocks for sh in self.shards), shard_of, block, local,
         )
         s = np.zeros(count)
@@ -442,7 +373,7 @@ class BlockStore:
             s[sel] = sh.block_sn[b, li, 0]
             n[sel] = sh.block_sn[b, li, 1]
             t[sel] = sh.block_t[b]
-        return VoxelArrays(np.empty((count, 3), dtype=np.int32), s, n, t)
+        return VoxelArrays(ijk.astype(np.int32), s, n, t)
 
     def export(self) -> VoxelArrays:
         """Every observed voxel."""

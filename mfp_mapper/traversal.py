@@ -1,12 +1,14 @@
-"""Exact voxel traversal (Amanatides & Woo) of lidar rays, compiled with numba.
+"""Exact voxel traversal (Amanatides & Woo) of lidar rays into the block store, with numba.
 
-A ray runs from its origin to its end point (the first return, or the point where it was
-cut at ``max_range``). The walk emits one *contribution* per voxel crossed: the voxel's
-packed index and the chord length in metres the ray travelled inside it. The chords of a
-ray add up to its length. A ray that ends with a return also emits its end voxel once more
-as a *hit*; the chord from the entry to the return point is already among its crossings.
+A ray runs from its origin to its end point: its first return, or the point where it was
+cut at ``max_range``. Every voxel it crosses gets ``s += chord`` — the exact length in
+metres of the ray inside that voxel, so a ray's chords add up to its length — and a ray
+that ends in a return gives its end voxel ``n += 1`` (the chord from where it entered that
+voxel up to the return point is its last chord).
 
-Voxel index = floor(coordinate / resolution), packed into one int64 key by ``pack_key``.
+Walk and store update run in one pass: a ray stays in an 8x8x8 block for several steps,
+so most updates index the block the walk is already in. Several threads each walk all
+the rays and update only the blocks of their own shards.
 """
 
 from __future__ import annotations
@@ -15,64 +17,91 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
-KEY_BITS = 21
-KEY_OFFSET = 1 << (KEY_BITS - 1)
-KEY_MASK = (1 << KEY_BITS) - 1
-MAX_VOXEL_INDEX = KEY_OFFSET - 1
-"""Largest |voxel index| a key can hold (about 104 km at 0.1 m)."""
+from mfp_mapper.store import BLOCK_BITS, Shard, block_key, local_index, open_block, shard_of
+
+
+def block_bounds(origins_vox: NDArray[np.float64], ends_vox: NDArray[np.float64]) -> NDArray[np.int64]:
+    """Upper bound of the blocks each ray can create: Manhattan block distance plus slack."""
+    lo = np.floor(origins_vox).astype(np.int64) >> BLOCK_BITS
+    hi = np.floor(ends_vox).astype(np.int64) >> BLOCK_BITS
+    return np.abs(hi - lo).sum(axis=1) + 2
+
+
+_CACHE_BITS = 4
+_CACHE_MASK = (1 << _CACHE_BITS) - 1
+_CACHE_SIZE = 1 << (3 * _CACHE_BITS)
 
 
 @nb.njit(inline="always", cache=True)
-def pack_key(vx: int, vy: int, vz: int) -> int:
-    """One int64 key from a voxel index (each component within +-MAX_VOXEL_INDEX)."""
-    return ((vx + KEY_OFFSET) << (2 * KEY_BITS)) | ((vy + KEY_OFFSET) << KEY_BITS) | (vz + KEY_OFFSET)
-
-
-@nb.njit(inline="always", cache=True)
-def unpack_key(key: int) -> tuple[int, int, int]:
-    """The voxel index packed in ``key``."""
-    return (
-        ((key >> (2 * KEY_BITS)) & KEY_MASK) - KEY_OFFSET,
-        ((key >> KEY_BITS) & KEY_MASK) - KEY_OFFSET,
-        (key & KEY_MASK) - KEY_OFFSET,
+def _cached_block(
+    bx: int,
+    by: int,
+    bz: int,
+    shard: int,
+    shard_mask: int,
+    cache_keys: NDArray[np.int64],
+    cache_blocks: NDArray[np.int64],
+    table_keys: NDArray[np.int64],
+    table_blocks: NDArray[np.int32],
+    block_ijk: NDArray[np.int32],
+    block_sn: NDArray[np.float32],
+    block_t: NDArray[np.float64],
+    block_scan: NDArray[np.int64],
+    counters: NDArray[np.int64],
+    scan_id: int,
+    stamp: float,
+    decay_time: float,
+) -> int:
+    """``open_block`` through the per-call cache; -1 for a block of another shard."""
+    if shard_of(bx, by, bz, shard_mask) != shard:
+        return -1
+    slot = ((bx & _CACHE_MASK) << (2 * _CACHE_BITS)) | ((by & _CACHE_MASK) << _CACHE_BITS) | (bz & _CACHE_MASK)
+    key = block_key(bx, by, bz)
+    if cache_keys[slot] == key:
+        return cache_blocks[slot]
+    block = open_block(
+        bx, by, bz, table_keys, table_blocks, block_ijk, block_sn, block_t, block_scan,
+        counters, scan_id, stamp, decay_time,
     )
-
-
-def pack_keys(ijk: NDArray[np.int64]) -> NDArray[np.int64]:
-    """Vectorised ``pack_key`` for an (N, 3) integer array."""
-    v = ijk.astype(np.int64) + KEY_OFFSET
-    return (v[:, 0] << (2 * KEY_BITS)) | (v[:, 1] << KEY_BITS) | v[:, 2]
-
-
-def visit_bounds(origins_vox: NDArray[np.float64], ends_vox: NDArray[np.float64]) -> NDArray[np.int64]:
-    """Upper bound of the voxels each ray visits: the Manhattan voxel distance plus slack."""
-    delta = np.abs(np.floor(ends_vox) - np.floor(origins_vox)).sum(axis=1)
-    return delta.astype(np.int64) + 4
+    cache_keys[slot] = key
+    cache_blocks[slot] = block
+    return block
 
 
 @nb.njit(cache=True, nogil=True)
-def walk_rays(
+def _walk_into_shard(
     origins_vox: NDArray[np.float64],
     ends_vox: NDArray[np.float64],
     lengths: NDArray[np.float64],
     has_return: NDArray[np.bool_],
+    room_needed: NDArray[np.int64],
     first: int,
-    last: int,
-    out_keys: NDArray[np.int64],
-    out_chords: NDArray[np.float32],
-    out_hits: NDArray[np.int64],
-    out_start: int,
-    hit_start: int,
-) -> tuple[int, int]:
-    """Walk rays ``first..last-1`` and write their contributions from ``out_start`` on.
+    shard: int,
+    shard_mask: int,
+    table_keys: NDArray[np.int64],
+    table_blocks: NDArray[np.int32],
+    block_ijk: NDArray[np.int32],
+    block_sn: NDArray[np.float32],
+    block_t: NDArray[np.float64],
+    block_scan: NDArray[np.int64],
+    counters: NDArray[np.int64],
+    scan_id: int,
+    stamp: float,
+    decay_time: float,
+) -> int:
+    """Walk rays ``first..`` (voxel units), adding their chords and returns to ``shard``.
 
-    Coordinates are in voxel units (metres / resolution); ``lengths`` are the rays' lengths
-    in metres. Returns (number of crossings written, number of hits written). The caller
-    sizes ``out_*`` with ``visit_bounds``.
+    Before each ray, checks there is room for the blocks it may create; returns the index
+    of the first ray not walked (the caller grows the shard and calls again), or N.
     """
-    k = out_start
-    h = hit_start
-    for r in range(first, last):
+    capacity = min(block_sn.shape[0], table_keys.shape[0] // 2)
+    # blocks already opened in this call, direct-mapped by their low index bits: neighbouring
+    # rays cross the same blocks, and this small table stays in cache where the hash does not
+    cache_keys = np.full(_CACHE_SIZE, -1, dtype=np.int64)
+    cache_blocks = np.empty(_CACHE_SIZE, dtype=np.int64)
+    for r in range(first, lengths.shape[0]):
+        if counters[0] + room_needed[r] > capacity:
+            return r
         ox = origins_vox[r, 0]
         oy = origins_vox[r, 1]
         oz = origins_vox[r, 2]
@@ -86,44 +115,45 @@ def walk_rays(
         ex = int(np.floor(ends_vox[r, 0]))
         ey = int(np.floor(ends_vox[r, 1]))
         ez = int(np.floor(ends_vox[r, 2]))
-        # ray parameter t in [0, 1]; t_max: where the next face on each axis is crossed
+        # ray parameter t in [0, 1]; t_max_*: where the next face on that axis is crossed
         step_x = 1 if dx > 0 else -1
         step_y = 1 if dy > 0 else -1
         step_z = 1 if dz > 0 else -1
-        if dx != 0.0:
-            t_max_x = ((vx + (1 if dx > 0 else 0)) - ox) / dx
-            t_delta_x = abs(1.0 / dx)
-        else:
-            t_max_x = np.inf
-            t_delta_x = np.inf
-        if dy != 0.0:
-            t_max_y = ((vy + (1 if dy > 0 else 0)) - oy) / dy
-            t_delta_y = abs(1.0 / dy)
-        else:
-            t_max_y = np.inf
-            t_delta_y = np.inf
-        if dz != 0.0:
-            t_max_z = ((vz + (1 if dz > 0 else 0)) - oz) / dz
-            t_delta_z = abs(1.0 / dz)
-        else:
-            t_max_z = np.inf
-            t_delta_z = np.inf
-        budget = abs(ex - vx) + abs(ey - vy) + abs(ez - vz) + 3
+        t_max_x = ((vx + (dx > 0)) - ox) / dx if dx != 0.0 else np.inf
+        t_max_y = ((vy + (dy > 0)) - oy) / dy if dy != 0.0 else np.inf
+        t_max_z = ((vz + (dz > 0)) - oz) / dz if dz != 0.0 else np.inf
+        t_delta_x = abs(1.0 / dx) if dx != 0.0 else np.inf
+        t_delta_y = abs(1.0 / dy) if dy != 0.0 else np.inf
+        t_delta_z = abs(1.0 / dz) if dz != 0.0 else np.inf
+        steps_left = abs(ex - vx) + abs(ey - vy) + abs(ez - vz) + 2
         t_prev = 0.0
+        bx = vx >> BLOCK_BITS
+        by = vy >> BLOCK_BITS
+        bz = vz >> BLOCK_BITS
+        block = _cached_block(
+            bx, by, bz, shard, shard_mask, cache_keys, cache_blocks, table_keys, table_blocks,
+            block_ijk, block_sn, block_t, block_scan, counters, scan_id, stamp, decay_time,
+        )
         while True:
-            t_next = min(t_max_x, t_max_y, t_max_z)
-            final = t_next >= 1.0 or (vx == ex and vy == ey and vz == ez) or budget <= 1
-            if final:
-                t_next = 1.0
-            chord = (t_next - t_prev) * length
-            if chord > 0.0:
-                out_keys[k] = pack_key(vx, vy, vz)
-                out_chords[k] = chord
-                k += 1
+            # the end voxel (floor of the end point) takes the rest of the ray and the return;
+            # an end point exactly on a face gets a zero chord there, still with its return
+            final = (vx == ex and vy == ey and vz == ez) or steps_left <= 1
+            t_next = 1.0 if final else min(t_max_x, t_max_y, t_max_z, 1.0)
+            if block >= 0:
+                chord = (t_next - t_prev) * length
+                hit = final and has_return[r]
+                if chord > 0.0 or hit:
+                    local = local_index(vx, vy, vz)
+                    if block_sn[block, local, 0] == 0.0 and block_sn[block, local, 1] == 0.0:
+                        counters[1] += 1
+                    block_sn[block, local, 0] += chord
+                    if hit:
+                        block_sn[block, local, 1] += 1.0
+                    counters[3] += 1
             if final:
                 break
             t_prev = t_next
-            budget -= 1
+            steps_left -= 1
             if t_max_x <= t_max_y and t_max_x <= t_max_z:
                 vx += step_x
                 t_max_x += t_delta_x
@@ -133,7 +163,42 @@ def walk_rays(
             else:
                 vz += step_z
                 t_max_z += t_delta_z
-        if has_return[r]:
-            out_hits[h] = pack_key(vx, vy, vz)
-            h += 1
-    return k - out_start, h - hit_start
+            if (vx >> BLOCK_BITS) != bx or (vy >> BLOCK_BITS) != by or (vz >> BLOCK_BITS) != bz:
+                bx = vx >> BLOCK_BITS
+                by = vy >> BLOCK_BITS
+                bz = vz >> BLOCK_BITS
+                block = _cached_block(
+                    bx, by, bz, shard, shard_mask, cache_keys, cache_blocks, table_keys,
+                    table_blocks, block_ijk, block_sn, block_t, block_scan, counters, scan_id,
+                    stamp, decay_time,
+                )
+    return lengths.shape[0]
+
+
+def walk_into_shard(
+    origins_vox: NDArray[np.float64],
+    ends_vox: NDArray[np.float64],
+    lengths: NDArray[np.float64],
+    has_return: NDArray[np.bool_],
+    shard: Shard,
+    shard_id: int,
+    shard_mask: int,
+    scan_id: int,
+    stamp: float,
+    decay_time: float,
+) -> None:
+    """Add every ray's contribution that falls in one shard, growing the shard as needed.
+
+    Coordinates are in voxel units (metres / resolution); ``lengths`` in metres.
+    """
+    room = block_bounds(origins_vox, ends_vox)
+    first = 0
+    while True:
+        first = _walk_into_shard(
+            origins_vox, ends_vox, lengths, has_return, room, first, shard_id, shard_mask,
+            shard.table_keys, shard.table_blocks, shard.block_ijk, shard.block_sn, shard.block_t,
+            shard.block_scan, shard.counters, scan_id, stamp, decay_time,
+        )
+        if first >= lengths.shape[0]:
+            return
+        shard.grow(min_free=int(room[first]))

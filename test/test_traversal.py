@@ -1,0 +1,135 @@
+"""The ray walk against an independent brute force: exact chord lengths of a segment in boxes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mfp_mapper import Mapper
+
+RES = 0.25
+
+
+def brute_force_chords(origin: np.ndarray, end: np.ndarray, res: float) -> dict[tuple[int, int, int], float]:
+    """Chord length of the segment in every voxel of its bounding box (slab clipping)."""
+    lo = np.floor(np.minimum(origin, end) / res).astype(int) - 1
+    hi = np.floor(np.maximum(origin, end) / res).astype(int) + 1
+    grid = np.stack(
+        np.meshgrid(*[np.arange(a, b + 1) for a, b in zip(lo, hi, strict=True)], indexing="ij"), -1
+    ).reshape(-1, 3)
+    d = end - origin
+    length = float(np.linalg.norm(d))
+    t_in = np.zeros(len(grid))
+    t_out = np.ones(len(grid))
+    for axis in range(3):
+        box_lo, box_hi = grid[:, axis] * res, (grid[:, axis] + 1) * res
+        if d[axis] == 0.0:
+            inside = (origin[axis] >= box_lo) & (origin[axis] < box_hi)
+            t_out = np.where(inside, t_out, -1.0)
+            continue
+        with np.errstate(over="ignore"):  # a tiny direction component: the slab is at infinity
+            t1, t2 = (box_lo - origin[axis]) / d[axis], (box_hi - origin[axis]) / d[axis]
+        t_in = np.maximum(t_in, np.minimum(t1, t2))
+        t_out = np.minimum(t_out, np.maximum(t1, t2))
+    chord = np.clip(t_out - t_in, 0.0, None) * length
+    keep = chord > 0
+    return {tuple(v): c for v, c in zip(grid[keep].tolist(), chord[keep], strict=True)}
+
+
+def map_chords(mapper: Mapper) -> tuple[dict[tuple[int, int, int], float], dict[tuple[int, int, int], float]]:
+    vox = mapper.voxels()
+    s = {tuple(v): c for v, c in zip(vox.ijk.tolist(), vox.s, strict=True) if c > 0}
+    n = {tuple(v): c for v, c in zip(vox.ijk.tolist(), vox.n, strict=True) if c > 0}
+    return s, n
+
+
+def assert_walk_matches(origin: np.ndarray, end: np.ndarray, has_return: bool = True) -> None:
+    mapper = Mapper(RES, max_range=1e4)
+    summary = mapper.integrate(end[None, :], origin, stamp=0.0)
+    assert summary.rays_used == 1
+    s, n = map_chords(mapper)
+    expected = brute_force_chords(origin, end, RES)
+    tol = 1e-5 * max(1.0, float(np.linalg.norm(end - origin)))
+    # every voxel with a chord longer than the tolerance is found, with that chord (float32)
+    for voxel, chord in expected.items():
+        if chord > tol:
+            assert s.get(voxel, 0.0) == pytest.approx(chord, rel=1e-5, abs=tol), voxel
+    for voxel, chord in s.items():
+        assert expected.get(voxel, 0.0) == pytest.approx(chord, rel=1e-5, abs=tol), voxel
+    assert sum(s.values()) == pytest.approx(float(np.linalg.norm(end - origin)), rel=1e-5)
+    if has_return:
+        assert list(n.values()) == [1.0]
+        (hit_voxel,) = n
+        assert hit_voxel == tuple(np.floor(end / RES).astype(int).tolist())
+
+
+coord = st.floats(-30.0, 30.0, allow_nan=False, allow_infinity=False)
+point = st.tuples(coord, coord, coord).map(np.array)
+
+
+@settings(max_examples=150, deadline=None)
+@given(origin=point, offset=st.tuples(*[st.floats(-6.0, 6.0)] * 3).map(np.array))
+def test_random_rays_match_brute_force(origin: np.ndarray, offset: np.ndarray) -> None:
+    if np.linalg.norm(offset) < 1e-6:
+        return
+    assert_walk_matches(origin, origin + offset)
+
+
+@pytest.mark.parametrize(
+    ("origin", "end"),
+    [
+        ((0.1, 0.1, 0.1), (3.1, 0.1, 0.1)),  # axis-aligned +x
+        ((0.1, 0.1, 0.1), (0.1, -3.1, 0.1)),  # axis-aligned -y, into negative indices
+        ((0.0, 0.0, 0.0), (2.0, 0.0, 0.0)),  # along voxel edges, on a corner
+        ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0)),  # through voxel corners exactly
+        ((-0.5, -0.5, -0.5), (-2.0, -2.0, -2.0)),  # corners, negative coordinates
+        ((0.25, 0.3, 0.4), (0.75, 0.3, 0.4)),  # starting and ending on faces
+        ((-1e3, 2e3, 5.0), (-1e3 + 40.0, 2e3 - 25.0, 9.0)),  # far from the origin of the map
+    ],
+)
+def test_rays_along_edges_and_through_corners(origin: tuple, end: tuple) -> None:
+    o, e = np.array(origin, dtype=float), np.array(end, dtype=float)
+    mapper = Mapper(RES, max_range=1e4)
+    mapper.integrate(e[None, :], o, stamp=0.0)
+    vox = mapper.voxels()
+    length = float(np.linalg.norm(e - o))
+    assert vox.s.sum() == pytest.approx(length, rel=1e-5)
+    assert vox.n.sum() == 1.0
+    # every voxel given a chord is touched by the segment (closed boxes), at floor(x / res)
+    expected = brute_force_chords(o, e, RES)
+    closed = {v for v in expected}
+    for v, s in zip(vox.ijk.tolist(), vox.s, strict=True):
+        if s > 0:
+            assert tuple(v) in closed or _touches(o, e, np.array(v)), v
+
+
+def _touches(o: np.ndarray, e: np.ndarray, voxel: np.ndarray) -> bool:
+    samples = o + np.linspace(0.0, 1.0, 2001)[:, None] * (e - o)
+    lo, hi = voxel * RES - 1e-9, (voxel + 1) * RES + 1e-9
+    return bool(((samples >= lo) & (samples <= hi)).all(axis=1).any())
+
+
+def test_axis_aligned_ray_visits_exactly_the_floor_voxels() -> None:
+    mapper = Mapper(RES)
+    mapper.integrate(np.array([[3.1, 0.1, 0.1]]), np.array([0.1, 0.1, 0.1]), stamp=0.0)
+    vox = mapper.voxels()
+    order = np.argsort(vox.ijk[:, 0])
+    assert vox.ijk[order].tolist() == [[i, 0, 0] for i in range(0, 13)]
+    assert vox.s[order][0] == pytest.approx(0.15, rel=1e-6)
+    assert vox.s[order][1:-1] == pytest.approx(np.full(11, 0.25), rel=1e-6)
+    assert vox.s[order][-1] == pytest.approx(0.1, rel=1e-5)
+    assert vox.n[order].tolist() == [0.0] * 12 + [1.0]
+
+
+def test_zero_length_ray_is_dropped_and_very_long_ray_is_cut_at_max_range() -> None:
+    mapper = Mapper(0.1, max_range=50.0)
+    origin = np.array([0.05, 0.05, 0.05])
+    summary = mapper.integrate(np.array([origin, [1e5, 0.05, 0.05]]), origin, stamp=0.0)
+    assert summary.dropped["below_min_range"] == 1
+    assert summary.rays_used == 1 and summary.rays_truncated == 1
+    vox = mapper.voxels()
+    assert vox.s.sum() == pytest.approx(50.0, rel=1e-6)
+    assert vox.n.sum() == 0.0  # a ray cut at max_range carries no return
+    assert vox.ijk[:, 0].max() == 500  # 0.05 + 50 m = 50.05 m -> voxel 500
