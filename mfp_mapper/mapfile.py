@@ -135,8 +135,8 @@ def _validate(path: Path, a: dict[str, np.ndarray]) -> None:
     for key in ("s", "n"):
         if not (np.isfinite(a[key]).all() and (a[key] >= 0).all()):
             raise MapFileError(path, f"{key} holds negative, NaN or infinite values")
-    if np.isnan(a["t_last"]).any():
-        raise MapFileError(path, "t_last holds NaN")
+    if not np.isfinite(a["t_last"]).all():
+        raise MapFileError(path, "t_last holds NaN or infinite values (seconds expected)")
     for key in ("resolution", "decay_time"):
         if a[key].shape != () or not np.issubdtype(a[key].dtype, np.number):
             raise MapFileError(path, f"{key} must be a number")
