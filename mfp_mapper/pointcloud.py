@@ -1,0 +1,272 @@
+"""sensor_msgs/PointCloud2 parsing and packing with numpy only (no sensor_msgs_py).
+
+Messages are duck-typed: anything with ``header.stamp``, ``height``, ``width``, ``fields``
+(``name``, ``offset``, ``datatype``, ``count``), ``is_bigendian``, ``point_step``,
+``row_step`` and a bytes-like ``data`` works — rclpy messages (``array.array``), rosbags
+messages (``numpy.uint8`` array) and plain ``bytes``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+INT8 = 1
+UINT8 = 2
+INT16 = 3
+UINT16 = 4
+INT32 = 5
+UINT32 = 6
+FLOAT32 = 7
+FLOAT64 = 8
+
+POINTFIELD_DTYPES: dict[int, str] = {
+    INT8: "i1",
+    UINT8: "u1",
+    INT16: "i2",
+    UINT16: "u2",
+    INT32: "i4",
+    UINT32: "u4",
+    FLOAT32: "f4",
+    FLOAT64: "f8",
+}
+"""PointField datatype constant -> numpy type code (without byte order)."""
+
+TIME_FIELDS = ("t", "time", "time_stamp", "timestamp")
+"""Per-point time fields recognised, in order of preference.
+
+Float fields hold seconds, integer fields nanoseconds. Float values above
+``ABSOLUTE_SECONDS_THRESHOLD`` are absolute seconds (Hesai ``timestamp``), above
+``ABSOLUTE_NANOSECONDS_THRESHOLD`` absolute nanoseconds; both are made relative to the
+header stamp.
+"""
+ABSOLUTE_SECONDS_THRESHOLD = 1e6
+ABSOLUTE_NANOSECONDS_THRESHOLD = 1e15
+
+_NS = 1e-9
+
+
+class CloudFormatError(ValueError):
+    """The message does not describe a parsable point cloud."""
+
+
+class _Field(Protocol):
+    name: str
+    offset: int
+    datatype: int
+    count: int
+
+
+@dataclass(frozen=True)
+class FieldSpec:
+    """One PointField: ``name`` at byte ``offset`` of each point, ``count`` values."""
+
+    name: str
+    offset: int
+    datatype: int
+    count: int = 1
+
+
+@dataclass
+class ParsedCloud:
+    """Valid points of one cloud in the sensor frame.
+
+    ``time_offset`` is in seconds relative to the header stamp; ``dropped`` counts the
+    points removed: ``"nonfinite"`` (NaN/Inf coordinate or time), ``"zero_range"``
+    (x = y = z = 0, the usual "no return" marker).
+    """
+
+    xyz: NDArray[np.float64]
+    time_offset: NDArray[np.float64] | None
+    intensity: NDArray[np.float32] | None
+    points_in: int
+    dropped: dict[str, int] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.xyz.shape[0])
+
+
+@dataclass(frozen=True)
+class PackedCloud:
+    """Field list and little-endian bytes of an unorganized cloud (height 1)."""
+
+    fields: list[FieldSpec]
+    data: bytes
+    point_step: int
+    width: int
+
+    @property
+    def row_step(self) -> int:
+        return self.point_step * self.width
+
+
+def stamp_seconds(header_stamp: Any) -> float:
+    """Seconds of a ``builtin_interfaces/Time`` (``sec``, ``nanosec``) or of a number."""
+    if hasattr(header_stamp, "sec"):
+        return float(header_stamp.sec) + float(header_stamp.nanosec) * _NS
+    return float(header_stamp)
+
+
+def parse_pointcloud2(msg: Any, header_stamp: float | None = None) -> ParsedCloud:
+    """Parse a PointCloud2 message into finite, non-zero-range points.
+
+    ``header_stamp`` (seconds) makes absolute per-point times relative; it defaults to
+    ``msg.header.stamp``. Raises CloudFormatError when the layout is inconsistent.
+    """
+    records = _checked_records(msg)
+    xyz = _xyz(records)
+    time_offset = _time_offset(records, msg, header_stamp)
+    names = records.dtype.names or ()
+    intensity = (
+        records["intensity"].reshape(-1).astype(np.float32) if "intensity" in names else None
+    )
+    return _drop_invalid(xyz, time_offset, intensity)
+
+
+def read_xyz(msg: Any) -> NDArray[np.float64]:
+    """Every point of the message as (N, 3) float64, in order, NaN and zeros kept.
+
+    Same layout checks as :func:`parse_pointcloud2` (for query clouds answered point by point).
+    """
+    return _xyz(_checked_records(msg))
+
+
+def _checked_records(msg: Any) -> NDArray[np.void]:
+    fields: dict[str, _Field] = {}
+    for f in msg.fields:
+        fields.setdefault(f.name, f)
+    _check_fields(fields, int(msg.point_step))
+    return _records(msg, fields)
+
+
+def _xyz(records: NDArray[np.void]) -> NDArray[np.float64]:
+    xyz = np.empty((records.size, 3), dtype=np.float64)
+    for axis, name in enumerate("xyz"):
+        xyz[:, axis] = records[name].reshape(-1)
+    return xyz
+
+
+def _check_fields(fields: Mapping[str, _Field], point_step: int) -> None:
+    missing = [name for name in "xyz" if name not in fields]
+    if missing:
+        raise CloudFormatError(
+            f"point cloud has no field {', '.join(missing)}: expected x, y and z "
+            f"(fields present: {', '.join(fields) or 'none'})"
+        )
+    for f in fields.values():
+        if f.datatype not in POINTFIELD_DTYPES:
+            raise CloudFormatError(
+                f"field {f.name!r} has unknown datatype {f.datatype}: expected 1 (INT8) "
+                "to 8 (FLOAT64)"
+            )
+        end = f.offset + np.dtype(POINTFIELD_DTYPES[f.datatype]).itemsize * max(f.count, 1)
+        if end > point_step:
+            raise CloudFormatError(
+                f"field {f.name!r} ends at byte {end} but point_step is {point_step}: "
+                "every field must fit inside one point"
+            )
+    for name in ("x", "y", "z", "intensity", *TIME_FIELDS):
+        if name in fields and fields[name].count > 1:
+            raise CloudFormatError(f"field {name!r} has count {fields[name].count}: expected 1")
+
+
+def _records(msg: Any, fields: Mapping[str, _Field]) -> NDArray[np.void]:
+    """Zero-copy (height, width) structured view of the fields this module uses."""
+    height, width = int(msg.height), int(msg.width)
+    point_step, row_step = int(msg.point_step), int(msg.row_step)
+    if row_step < width * point_step:
+        raise CloudFormatError(
+            f"row_step {row_step} is smaller than width * point_step = {width * point_step}"
+        )
+    raw = _as_uint8(msg.data)
+    if raw.size < height * row_step:
+        raise CloudFormatError(
+            f"data holds {raw.size} bytes but height * row_step = {height * row_step} "
+            f"(height {height}, row_step {row_step}) were expected"
+        )
+    order = ">" if msg.is_bigendian else "<"
+    used = [name for name in ("x", "y", "z", "intensity", *TIME_FIELDS) if name in fields]
+    dtype = np.dtype(
+        {
+            "names": used,
+            "formats": [order + POINTFIELD_DTYPES[fields[n].datatype] for n in used],
+            "offsets": [fields[n].offset for n in used],
+            "itemsize": point_step,
+        }
+    )
+    if height * width == 0:
+        return np.empty((height, width), dtype=dtype)
+    return np.ndarray((height, width), dtype=dtype, buffer=raw, strides=(row_step, point_step))
+
+
+def _as_uint8(data: Any) -> NDArray[np.uint8]:
+    if isinstance(data, np.ndarray):
+        return np.ascontiguousarray(data).view(np.uint8).reshape(-1)
+    try:
+        return np.frombuffer(data, dtype=np.uint8)
+    except TypeError:  # a sequence of ints
+        return np.asarray(data, dtype=np.uint8)
+
+
+def _time_offset(
+    records: NDArray[np.void], msg: Any, header_stamp: float | None
+) -> NDArray[np.float64] | None:
+    names = records.dtype.names or ()
+    name = next((n for n in TIME_FIELDS if n in names), None)
+    if name is None:
+        return None
+    column = records[name].reshape(-1)
+    values = column.astype(np.float64)
+    if column.dtype.kind in "iu":
+        return values * _NS
+    finite = values[np.isfinite(values)]
+    peak = float(np.abs(finite).max()) if finite.size else 0.0
+    if peak <= ABSOLUTE_SECONDS_THRESHOLD:
+        return values
+    stamp = stamp_seconds(msg.header.stamp) if header_stamp is None else header_stamp
+    if peak > ABSOLUTE_NANOSECONDS_THRESHOLD:
+        return (values - stamp * 1e9) * _NS
+    return values - stamp
+
+
+def _drop_invalid(
+    xyz: NDArray[np.float64],
+    time_offset: NDArray[np.float64] | None,
+    intensity: NDArray[np.float32] | None,
+) -> ParsedCloud:
+    finite = np.isfinite(xyz).all(axis=1)
+    if time_offset is not None:
+        finite &= np.isfinite(time_offset)
+    zero = (xyz[:, 0] == 0.0) & (xyz[:, 1] == 0.0) & (xyz[:, 2] == 0.0)
+    keep = finite & ~zero
+    points_in = int(xyz.shape[0])
+    dropped = {"nonfinite": points_in - int(finite.sum()), "zero_range": int((finite & zero).sum())}
+    if dropped["nonfinite"] == 0 and dropped["zero_range"] == 0:
+        return ParsedCloud(xyz, time_offset, intensity, points_in, dropped)
+    return ParsedCloud(
+        xyz[keep],
+        None if time_offset is None else time_offset[keep],
+        None if intensity is None else intensity[keep],
+        points_in,
+        dropped,
+    )
+
+
+def pack_cloud(columns: Mapping[str, Sequence[float] | NDArray[Any]]) -> PackedCloud:
+    """Pack equal-length 1-D columns as consecutive little-endian float32 fields."""
+    if not columns:
+        raise ValueError("pack_cloud needs at least one column")
+    arrays = {name: np.asarray(values, dtype="<f4") for name, values in columns.items()}
+    shapes = {name: a.shape for name, a in arrays.items()}
+    width = next(iter(arrays.values())).shape[0]
+    if any(shape != (width,) for shape in shapes.values()):
+        raise ValueError(f"pack_cloud columns must be 1-D and of equal length, got {shapes}")
+    packed = np.empty(width, dtype=[(name, "<f4") for name in arrays])
+    for name, values in arrays.items():
+        packed[name] = values
+    fields = [FieldSpec(name, 4 * i, FLOAT32, 1) for i, name in enumerate(arrays)]
+    return PackedCloud(fields, packed.tobytes(), 4 * len(fields), width)
