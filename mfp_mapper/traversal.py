@@ -30,42 +30,8 @@ def block_bounds(origins_vox: NDArray[np.float64], ends_vox: NDArray[np.float64]
 _CACHE_BITS = 4
 _CACHE_MASK = (1 << _CACHE_BITS) - 1
 _CACHE_SIZE = 1 << (3 * _CACHE_BITS)
-
-
-@nb.njit(inline="always", cache=True)
-def _cached_block(
-    bx: int,
-    by: int,
-    bz: int,
-    shard: int,
-    shard_mask: int,
-    cache_keys: NDArray[np.int64],
-    cache_blocks: NDArray[np.int64],
-    table_keys: NDArray[np.int64],
-    table_blocks: NDArray[np.int32],
-    block_ijk: NDArray[np.int32],
-    block_sn: NDArray[np.float32],
-    block_t: NDArray[np.float64],
-    block_scan: NDArray[np.int64],
-    counters: NDArray[np.int64],
-    scan_id: int,
-    stamp: float,
-    decay_time: float,
-) -> int:
-    """``open_block`` through the per-call cache; -1 for a block of another shard."""
-    if shard_of(bx, by, bz, shard_mask) != shard:
-        return -1
-    slot = ((bx & _CACHE_MASK) << (2 * _CACHE_BITS)) | ((by & _CACHE_MASK) << _CACHE_BITS) | (bz & _CACHE_MASK)
-    key = block_key(bx, by, bz)
-    if cache_keys[slot] == key:
-        return cache_blocks[slot]
-    block = open_block(
-        bx, by, bz, table_keys, table_blocks, block_ijk, block_sn, block_t, block_scan,
-        counters, scan_id, stamp, decay_time,
-    )
-    cache_keys[slot] = key
-    cache_blocks[slot] = block
-    return block
+_BATCH_VISITS = 2048
+"""Voxel visits gathered (from several rays) before they are applied to the blocks."""
 
 
 @nb.njit(cache=True, nogil=True)
@@ -91,17 +57,31 @@ def _walk_into_shard(
 ) -> int:
     """Walk rays ``first..`` (voxel units), adding their chords and returns to ``shard``.
 
+    Rays are walked in batches: the walk records each visit (block, voxel, chord, return)
+    in a buffer; the buffer is then applied in two passes, one that only loads the voxels'
+    cache lines (independent loads, so their memory latencies overlap) and one that adds.
     Before each ray, checks there is room for the blocks it may create; returns the index
     of the first ray not walked (the caller grows the shard and calls again), or N.
     """
     capacity = min(block_sn.shape[0], table_keys.shape[0] // 2)
-    # blocks already opened in this call, direct-mapped by their low index bits: neighbouring
-    # rays cross the same blocks, and this small table stays in cache where the hash does not
+    # blocks opened in this call, direct-mapped by their low index bits: neighbouring rays
+    # cross the same blocks, and this small table stays in cache where the hash does not
     cache_keys = np.full(_CACHE_SIZE, -1, dtype=np.int64)
     cache_blocks = np.empty(_CACHE_SIZE, dtype=np.int64)
+    longest = 0
     for r in range(first, lengths.shape[0]):
-        if counters[0] + room_needed[r] > capacity:
-            return r
+        longest = max(longest, _visit_bound(origins_vox[r], ends_vox[r]))
+    visit_block = np.empty(_BATCH_VISITS + longest, dtype=np.int64)
+    visit_local = np.empty(_BATCH_VISITS + longest, dtype=np.int64)
+    visit_chord = np.empty(_BATCH_VISITS + longest, dtype=np.float32)
+    visit_return = np.empty(_BATCH_VISITS + longest, dtype=np.float32)
+    count = 0
+    for r in range(first, lengths.shape[0] + 1):
+        if count >= _BATCH_VISITS or r == lengths.shape[0] or counters[0] + room_needed[r] > capacity:
+            _apply_visits(block_sn, visit_block, visit_local, visit_chord, visit_return, count, counters)
+            count = 0
+            if r == lengths.shape[0] or counters[0] + room_needed[r] > capacity:
+                return r
         ox = origins_vox[r, 0]
         oy = origins_vox[r, 1]
         oz = origins_vox[r, 2]
@@ -127,29 +107,45 @@ def _walk_into_shard(
         t_delta_z = abs(1.0 / dz) if dz != 0.0 else np.inf
         steps_left = abs(ex - vx) + abs(ey - vy) + abs(ez - vz) + 2
         t_prev = 0.0
-        bx = vx >> BLOCK_BITS
-        by = vy >> BLOCK_BITS
-        bz = vz >> BLOCK_BITS
-        block = _cached_block(
-            bx, by, bz, shard, shard_mask, cache_keys, cache_blocks, table_keys, table_blocks,
-            block_ijk, block_sn, block_t, block_scan, counters, scan_id, stamp, decay_time,
-        )
+        bx = by = bz = 0
+        block = -1
+        new_block = True
         while True:
+            if new_block:
+                # written out here, not called: a call with array arguments costs more than
+                # the whole step (reference counting of every array)
+                bx = vx >> BLOCK_BITS
+                by = vy >> BLOCK_BITS
+                bz = vz >> BLOCK_BITS
+                block = -1
+                if shard_of(bx, by, bz, shard_mask) == shard:
+                    slot = (
+                        ((bx & _CACHE_MASK) << (2 * _CACHE_BITS))
+                        | ((by & _CACHE_MASK) << _CACHE_BITS)
+                        | (bz & _CACHE_MASK)
+                    )
+                    key = block_key(bx, by, bz)
+                    if cache_keys[slot] == key:
+                        block = cache_blocks[slot]
+                    else:
+                        block = open_block(
+                            bx, by, bz, table_keys, table_blocks, block_ijk, block_sn, block_t,
+                            block_scan, counters, scan_id, stamp, decay_time,
+                        )
+                        cache_keys[slot] = key
+                        cache_blocks[slot] = block
             # the end voxel (floor of the end point) takes the rest of the ray and the return;
             # an end point exactly on a face gets a zero chord there, still with its return
             final = (vx == ex and vy == ey and vz == ez) or steps_left <= 1
             t_next = 1.0 if final else min(t_max_x, t_max_y, t_max_z, 1.0)
-            if block >= 0:
-                chord = (t_next - t_prev) * length
-                hit = final and has_return[r]
-                if chord > 0.0 or hit:
-                    local = local_index(vx, vy, vz)
-                    if block_sn[block, local, 0] == 0.0 and block_sn[block, local, 1] == 0.0:
-                        counters[1] += 1
-                    block_sn[block, local, 0] += chord
-                    if hit:
-                        block_sn[block, local, 1] += 1.0
-                    counters[3] += 1
+            chord = (t_next - t_prev) * length
+            returns = final and has_return[r]
+            if block >= 0 and (chord > 0.0 or returns):
+                visit_block[count] = block
+                visit_local[count] = local_index(vx, vy, vz)
+                visit_chord[count] = chord
+                visit_return[count] = 1.0 if returns else 0.0
+                count += 1
             if final:
                 break
             t_prev = t_next
@@ -163,16 +159,47 @@ def _walk_into_shard(
             else:
                 vz += step_z
                 t_max_z += t_delta_z
-            if (vx >> BLOCK_BITS) != bx or (vy >> BLOCK_BITS) != by or (vz >> BLOCK_BITS) != bz:
-                bx = vx >> BLOCK_BITS
-                by = vy >> BLOCK_BITS
-                bz = vz >> BLOCK_BITS
-                block = _cached_block(
-                    bx, by, bz, shard, shard_mask, cache_keys, cache_blocks, table_keys,
-                    table_blocks, block_ijk, block_sn, block_t, block_scan, counters, scan_id,
-                    stamp, decay_time,
-                )
+            new_block = (vx >> BLOCK_BITS) != bx or (vy >> BLOCK_BITS) != by or (vz >> BLOCK_BITS) != bz
     return lengths.shape[0]
+
+
+@nb.njit(inline="always", cache=True)
+def _visit_bound(origin: NDArray[np.float64], end: NDArray[np.float64]) -> int:
+    """Most voxels a walk from ``origin`` to ``end`` (voxel units) can visit."""
+    return (
+        abs(int(np.floor(end[0])) - int(np.floor(origin[0])))
+        + abs(int(np.floor(end[1])) - int(np.floor(origin[1])))
+        + abs(int(np.floor(end[2])) - int(np.floor(origin[2])))
+        + 2
+    )
+
+
+@nb.njit(cache=True, nogil=True)
+def _apply_visits(
+    block_sn: NDArray[np.float32],
+    visit_block: NDArray[np.int64],
+    visit_local: NDArray[np.int64],
+    visit_chord: NDArray[np.float32],
+    visit_return: NDArray[np.float32],
+    count: int,
+    counters: NDArray[np.int64],
+) -> None:
+    """Add the buffered visits, in order, to their voxels: s += chord, n += return."""
+    # first only load every visited cache line: the loads do not depend on each other, so
+    # the processor keeps many misses in flight; the additions then find the lines in cache
+    touch = np.float32(0.0)
+    for i in range(count):
+        touch += block_sn[visit_block[i], visit_local[i], 1]
+    new = 0
+    for i in range(count):
+        b = visit_block[i]
+        v = visit_local[i]
+        if block_sn[b, v, 0] == 0.0 and block_sn[b, v, 1] == 0.0:
+            new += 1
+        block_sn[b, v, 0] += visit_chord[i]
+        block_sn[b, v, 1] += visit_return[i]
+    counters[1] += new
+    counters[3] += count + (touch < 0.0)  # touch is never negative; using it keeps the loads
 
 
 def walk_into_shard(

@@ -27,7 +27,10 @@ def test_round_trip_keeps_every_voxel(mapper: Mapper, tmp_path: Path) -> None:
     mapper.save(path)
     loaded = Mapper.load(path)
     assert (loaded.resolution, loaded.decay_time, loaded.frame_id, loaded.max_range) == (
-        0.2, 30.0, "odom", 40.0,
+        0.2,
+        30.0,
+        "odom",
+        40.0,
     )
     a, b = mapper.voxels(), loaded.voxels()
     order_a, order_b = np.lexsort(a.ijk.T), np.lexsort(b.ijk.T)
@@ -63,7 +66,9 @@ def test_static_map_round_trips_infinite_decay_time(tmp_path: Path) -> None:
     assert math.isinf(Mapper.load(tmp_path / "static.npz").decay_time)
 
 
-def test_save_is_atomic_and_leaves_no_temporary_file(mapper: Mapper, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_save_is_atomic_and_leaves_no_temporary_file(
+    mapper: Mapper, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     path = tmp_path / "map.npz"
     mapper.save(path)
     before = path.read_bytes()
@@ -113,7 +118,9 @@ def test_minimal_foreign_writer_is_accepted(tmp_path: Path) -> None:
         ({"t_last": np.array([np.nan, 0.0])}, "t_last"),
     ],
 )
-def test_invalid_contents_name_the_file_and_the_problem(tmp_path: Path, change: dict, message: str) -> None:
+def test_invalid_contents_name_the_file_and_the_problem(
+    tmp_path: Path, change: dict, message: str
+) -> None:
     path = _write_npz(tmp_path / "bad.npz", **{**_valid_arrays(), **change})
     with pytest.raises(MapFileError, match=message) as err:
         Mapper.load(path)

@@ -35,7 +35,7 @@ def test_model_md_vectors(
 
 def test_unknown_voxel_reports_the_uniform_prior() -> None:
     assert model.std_doo(0.0, 0.0) == pytest.approx(model.UNKNOWN_STD)
-    assert model.UNKNOWN_STD == pytest.approx(0.288675, abs=1e-6)
+    assert pytest.approx(0.288675, abs=1e-6) == model.UNKNOWN_STD
 
 
 def test_return_on_a_face_with_zero_length_is_fully_occupied_without_division_error() -> None:

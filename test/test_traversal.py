@@ -12,7 +12,9 @@ from mfp_mapper import Mapper
 RES = 0.25
 
 
-def brute_force_chords(origin: np.ndarray, end: np.ndarray, res: float) -> dict[tuple[int, int, int], float]:
+def brute_force_chords(
+    origin: np.ndarray, end: np.ndarray, res: float
+) -> dict[tuple[int, int, int], float]:
     """Chord length of the segment in every voxel of its bounding box (slab clipping)."""
     lo = np.floor(np.minimum(origin, end) / res).astype(int) - 1
     hi = np.floor(np.maximum(origin, end) / res).astype(int) + 1
@@ -38,7 +40,9 @@ def brute_force_chords(origin: np.ndarray, end: np.ndarray, res: float) -> dict[
     return {tuple(v): c for v, c in zip(grid[keep].tolist(), chord[keep], strict=True)}
 
 
-def map_chords(mapper: Mapper) -> tuple[dict[tuple[int, int, int], float], dict[tuple[int, int, int], float]]:
+def map_chords(
+    mapper: Mapper,
+) -> tuple[dict[tuple[int, int, int], float], dict[tuple[int, int, int], float]]:
     vox = mapper.voxels()
     s = {tuple(v): c for v, c in zip(vox.ijk.tolist(), vox.s, strict=True) if c > 0}
     n = {tuple(v): c for v, c in zip(vox.ijk.tolist(), vox.n, strict=True) if c > 0}
