@@ -107,13 +107,19 @@ def start_time() -> dict:
 def run_child(args: list[str], env: dict[str, str] | None = None) -> dict:
     out = subprocess.run(
         [sys.executable, __file__, "--child", *args],
-        check=True, capture_output=True, text=True, env=env, cwd=ROOT,
+        check=True,
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=ROOT,
     )
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--quick", action="store_true", help="0.2 m only, fewer repetitions")
     parser.add_argument("--resolutions", type=float, nargs="+", default=None)
     parser.add_argument("--no-octomap", action="store_true", help="skip the baseline (no ratios)")
@@ -134,7 +140,12 @@ def main() -> None:
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
     resolutions = args.resolutions or ([0.2] if args.quick else [0.4, 0.2, 0.1])
     print("scene: VLP-16 pattern, 16 x 1800 rays, 11 scans (ANCHORS.md); one process per row")
-    print(f"{'res':>5} {'mapper':<18} {'seconds':>8} {'rays/s':>10} {'x OctoMap':>9} {'peak MB':>8} {'voxels':>11} {'B/voxel':>8}")
+    row = "{:>5} {:<18} {:>8} {:>10} {:>9} {:>8} {:>11} {:>8}"
+    print(
+        row.format(
+            "res", "mapper", "seconds", "rays/s", "x OctoMap", "peak MB", "voxels", "B/voxel"
+        )
+    )
     scenes = [("anchors", resolutions)]
     vlp32 = NEBULA / "velodyne_vlp32_1713492677464078412.pcd"
     if vlp32.exists():
@@ -143,24 +154,49 @@ def main() -> None:
         if scene != "anchors":
             print(f"real frame: {scene}")
         for res in scene_res:
-            base = None if args.no_octomap else run_child(["insert", "octomap", scene, str(res), "1"], env)
+            base = (
+                None
+                if args.no_octomap
+                else run_child(["insert", "octomap", scene, str(res), "1"], env)
+            )
             rows = [("OctoMap (1 thread)", base)] if base else []
             for threads in (1, 2):
-                rows.append((f"mfp_mapper ({threads} thr)", run_child(["insert", "mfp", scene, str(res), str(threads)], env)))
+                rows.append(
+                    (
+                        f"mfp_mapper ({threads} thr)",
+                        run_child(["insert", "mfp", scene, str(res), str(threads)], env),
+                    )
+                )
             for name, r in rows:
                 rate = r["rays"] / r["seconds"]
-                ratio = f"{base['seconds'] / r['seconds']:9.1f}" if base else f"{'-':>9}"
+                ratio = f"{base['seconds'] / r['seconds']:.1f}" if base else "-"
                 per_voxel = 1e6 * r["peak_mb"] / max(r["voxels"], 1)
-                print(f"{res:5.2f} {name:<18} {r['seconds']:8.3f} {rate:10.0f} {ratio} {r['peak_mb']:8.0f} {r['voxels']:11d} {per_voxel:8.1f}")
+                print(
+                    row.format(
+                        f"{res:.2f}",
+                        name,
+                        f"{r['seconds']:.3f}",
+                        f"{rate:.0f}",
+                        ratio,
+                        f"{r['peak_mb']:.0f}",
+                        r["voxels"],
+                        f"{per_voxel:.1f}",
+                    )
+                )
     repeats = "5" if args.quick else "20"
     for threads in (1, 2):
         lat = run_child(["latency", "0.1", str(threads), repeats], env)
-        print(f"one VLP-16 scan ({lat['rays']} rays, 30 m, 0.1 m), {threads} thread(s): median {lat['median_ms']:.1f} ms")
+        print(
+            f"one VLP-16 scan ({lat['rays']} rays, 30 m, 0.1 m), {threads} thread(s): "
+            f"median {lat['median_ms']:.1f} ms"
+        )
     with tempfile.TemporaryDirectory() as cache:
         cold_env = {**env, "NUMBA_CACHE_DIR": cache}
         cold = run_child(["start"], cold_env)["seconds"]
         warm = run_child(["start"], cold_env)["seconds"]
-    print(f"start to first integrated scan: cold (empty numba cache) {cold:.2f} s, warm {warm:.2f} s")
+    print(
+        f"start to first integrated scan: cold (empty numba cache) {cold:.2f} s, warm {warm:.2f} s"
+    )
 
 
 if __name__ == "__main__":

@@ -69,7 +69,7 @@ def write_map(path: str | Path, mapper: Mapper) -> None:
     fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
     try:
         with os.fdopen(fd, "wb") as tmp:
-            np.savez_compressed(tmp, **arrays)  # type: ignore[arg-type]
+            np.savez_compressed(tmp, **arrays)
             tmp.flush()
             os.fsync(tmp.fileno())
         os.replace(tmp_name, target)
@@ -93,7 +93,9 @@ def read_map(path: str | Path, **overrides: object) -> Mapper:
             settings[key] = float(arrays[key])
     settings.update(overrides)
     if settings["resolution"] != float(arrays["resolution"]):
-        raise MapFileError(path, f"stored resolution {float(arrays['resolution'])} cannot be changed")
+        raise MapFileError(
+            path, f"stored resolution {float(arrays['resolution'])} cannot be changed"
+        )
     try:
         mapper = Mapper(**settings)  # type: ignore[arg-type]
     except ValueError as err:
@@ -114,7 +116,9 @@ def _read_arrays(path: Path) -> dict[str, np.ndarray]:
     except MapFileError:
         raise
     except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as err:
-        raise MapFileError(path, f"unreadable or truncated map file ({type(err).__name__}: {err})") from err
+        raise MapFileError(
+            path, f"unreadable or truncated map file ({type(err).__name__}: {err})"
+        ) from err
     _validate(path, arrays)
     return arrays
 
@@ -123,15 +127,21 @@ def _validate(path: Path, a: dict[str, np.ndarray]) -> None:
     if "format" in a and str(a["format"]) != FORMAT_NAME:
         raise MapFileError(path, f"format is {str(a['format'])!r}, expected {FORMAT_NAME!r}")
     if "version" in a and int(a["version"]) > FORMAT_VERSION:
-        raise MapFileError(path, f"file format version {int(a['version'])} is newer than {FORMAT_VERSION}")
+        raise MapFileError(
+            path, f"file format version {int(a['version'])} is newer than {FORMAT_VERSION}"
+        )
     ijk = a["ijk"]
     if ijk.ndim != 2 or ijk.shape[1] != 3 or not np.issubdtype(ijk.dtype, np.integer):
-        raise MapFileError(path, f"ijk must be an integer (N, 3) array, got {ijk.dtype} {ijk.shape}")
+        raise MapFileError(
+            path, f"ijk must be an integer (N, 3) array, got {ijk.dtype} {ijk.shape}"
+        )
     count = ijk.shape[0]
     for key in ("s", "n", "t_last"):
         arr = a[key]
         if arr.shape != (count,) or not np.issubdtype(arr.dtype, np.floating):
-            raise MapFileError(path, f"{key} must be a float array of length {count}, got {arr.dtype} {arr.shape}")
+            raise MapFileError(
+                path, f"{key} must be a float array of length {count}, got {arr.dtype} {arr.shape}"
+            )
     for key in ("s", "n"):
         if not (np.isfinite(a[key]).all() and (a[key] >= 0).all()):
             raise MapFileError(path, f"{key} holds negative, NaN or infinite values")

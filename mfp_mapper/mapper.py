@@ -149,8 +149,14 @@ class Mapper:
         summary.rays_truncated = int(np.count_nonzero(~rays.has_return))
         if rays.count:
             visits, touched, new = self._walk_and_merge(rays, float(stamp))
-            summary.voxels_touched, summary.blocks_touched, summary.new_voxels = visits, touched, new
-            self.last_stamp = float(stamp) if self.last_stamp is None else max(self.last_stamp, stamp)
+            summary.voxels_touched, summary.blocks_touched, summary.new_voxels = (
+                visits,
+                touched,
+                new,
+            )
+            self.last_stamp = (
+                float(stamp) if self.last_stamp is None else max(self.last_stamp, stamp)
+            )
             self.last_origin = rays.origins_m.mean(axis=0)
             self._enforce_memory_bound()
             self.version += 1
@@ -196,8 +202,16 @@ class Mapper:
         def walk(shard_ids: NDArray[np.intp]) -> None:
             for sid in shard_ids:
                 walk_into_shard(
-                    rays.origins_vox, rays.ends_vox, rays.lengths, rays.has_return,
-                    store.shards[sid], int(sid), store.shard_mask, scan_id, stamp, self.decay_time,
+                    rays.origins_vox,
+                    rays.ends_vox,
+                    rays.lengths,
+                    rays.has_return,
+                    store.shards[sid],
+                    int(sid),
+                    store.shard_mask,
+                    scan_id,
+                    stamp,
+                    self.decay_time,
                 )
 
         if self._pool is None:
@@ -224,11 +238,16 @@ class Mapper:
             target = int(0.9 * self.max_voxels)
             while self._store.num_voxels > target:
                 dist = np.concatenate(
-                    [np.linalg.norm(sh.block_ijk[: sh.used] - center, axis=1) for sh in self._store.shards]
+                    [
+                        np.linalg.norm(sh.block_ijk[: sh.used] - center, axis=1)
+                        for sh in self._store.shards
+                    ]
                 )
                 cut = np.quantile(dist, 1.0 - min(0.5, 1.0 - target / self._store.num_voxels))
 
-                def nearer(block_ijk: NDArray[np.int32], _t: FloatArray, cut: float = cut) -> NDArray[np.bool_]:
+                def nearer(
+                    block_ijk: NDArray[np.int32], _t: FloatArray, cut: float = cut
+                ) -> NDArray[np.bool_]:
                     return np.linalg.norm(block_ijk - center, axis=1) < cut
 
                 if self._store.evict(nearer) == 0:
@@ -250,9 +269,12 @@ class Mapper:
     def query(self, points: ArrayLike, stamp: float | None = None) -> VoxelStats:
         """Statistics of the voxel containing each point, decayed to ``stamp`` when given."""
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        ijk = self.voxel_index(np.where(np.isfinite(pts), pts, 0.0))
-        valid = np.isfinite(pts).all(axis=1) & (np.abs(ijk) < MAX_VOXEL_INDEX).all(axis=1)
-        raw = self._store.lookup(np.where(valid[:, None], ijk, 0))
+        with np.errstate(invalid="ignore"):
+            valid: NDArray[np.bool_] = np.all(
+                np.abs(pts / self.resolution) < MAX_VOXEL_INDEX, axis=1
+            )
+        ijk = self.voxel_index(np.where(valid[:, None], pts, 0.0))
+        raw = self._store.lookup(ijk)
         raw.ijk = ijk.astype(np.int32)
         for arr in (raw.s, raw.n):
             arr[~valid] = 0.0
@@ -271,7 +293,7 @@ class Mapper:
             s, n = model.decay(s, n, dt, self.decay_time)
         return VoxelStats(
             ijk=raw.ijk,
-            centers=(raw.ijk + 0.5) * self.resolution,
+            centers=(raw.ijk + 0.5).astype(np.float64) * self.resolution,
             s=s,
             n=n,
             t_last=raw.t_last,

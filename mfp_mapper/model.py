@@ -93,14 +93,17 @@ def decay_factor(dt: ArrayLike, decay_time: float) -> FloatArray:
     return np.exp(-dt_arr / decay_time)
 
 
-def decay(s: ArrayLike, n: ArrayLike, dt: ArrayLike, decay_time: float) -> tuple[FloatArray, FloatArray]:
-    """Statistics after ``dt`` seconds of exponential forgetting with time constant ``decay_time``."""
+def decay(
+    s: ArrayLike, n: ArrayLike, dt: ArrayLike, decay_time: float
+) -> tuple[FloatArray, FloatArray]:
+    """Statistics after ``dt`` seconds of exponential forgetting (time constant ``decay_time``)."""
     f = decay_factor(dt, decay_time)
     s_arr, n_arr = _stats(s, n)
     return s_arr * f, n_arr * f
 
 
 # --- Gamma credible intervals, without scipy ---------------------------------------------
+
 
 def _regularized_gamma_p(a: FloatArray, x: FloatArray) -> FloatArray:
     """Regularised lower incomplete gamma P(a, x), series / continued fraction (vectorised)."""
@@ -165,7 +168,9 @@ def gamma_quantile(shape: ArrayLike, rate: ArrayLike, q: float) -> FloatArray:
     return 0.5 * (lo + hi) / r
 
 
-def extinction_interval(s: ArrayLike, n: ArrayLike, level: float = 0.9) -> tuple[FloatArray, FloatArray]:
+def extinction_interval(
+    s: ArrayLike, n: ArrayLike, level: float = 0.9
+) -> tuple[FloatArray, FloatArray]:
     """Central credible interval of the extinction u = -log m (returns per metre)."""
     if not 0.0 < level < 1.0:
         raise ValueError(f"credible level must lie in (0, 1), got {level}")

@@ -28,7 +28,6 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
-
 BLOCK_BITS = 3
 BLOCK_EDGE = 1 << BLOCK_BITS
 BLOCK_VOXELS = BLOCK_EDGE**3
@@ -40,9 +39,14 @@ _KEY_OFFSET = 1 << (_KEY_BITS - 1)
 MAX_VOXEL_INDEX = (_KEY_OFFSET << BLOCK_BITS) - BLOCK_EDGE
 """Largest |voxel index| the store can hold (block indices are packed in 21 bits each)."""
 
+
 @nb.njit(inline="always", cache=True)
 def block_key(bx: int, by: int, bz: int) -> int:
-    return ((bx + _KEY_OFFSET) << (2 * _KEY_BITS)) | ((by + _KEY_OFFSET) << _KEY_BITS) | (bz + _KEY_OFFSET)
+    return (
+        ((bx + _KEY_OFFSET) << (2 * _KEY_BITS))
+        | ((by + _KEY_OFFSET) << _KEY_BITS)
+        | (bz + _KEY_OFFSET)
+    )
 
 
 @nb.njit(inline="always", cache=True)
@@ -70,7 +74,9 @@ def _find(table_keys: NDArray[np.int64], table_blocks: NDArray[np.int32], key: i
 
 
 @nb.njit(inline="always", cache=True)
-def _insert(table_keys: NDArray[np.int64], table_blocks: NDArray[np.int32], key: int, block: int) -> None:
+def _insert(
+    table_keys: NDArray[np.int64], table_blocks: NDArray[np.int32], key: int, block: int
+) -> None:
     mask = table_keys.shape[0] - 1
     i = _slot_index(key, mask)
     while table_keys[i] != _EMPTY:
@@ -173,8 +179,19 @@ def _assign_shard(
         if shard_of(bx, by, bz, shard_mask) != shard:
             continue
         block = open_block(
-            bx, by, bz, table_keys, table_blocks, block_ijk, block_sn, block_t, block_scan,
-            counters, -1, t[j], math.inf,
+            bx,
+            by,
+            bz,
+            table_keys,
+            table_blocks,
+            block_ijk,
+            block_sn,
+            block_t,
+            block_scan,
+            counters,
+            -1,
+            t[j],
+            math.inf,
         )
         if block < 0:
             return j
@@ -206,10 +223,20 @@ def _lookup(
 
 
 @nb.njit(cache=True, nogil=True)
-def _rebuild_table(block_ijk: NDArray[np.int32], used: int, table_keys: NDArray[np.int64], table_blocks: NDArray[np.int32]) -> None:
+def _rebuild_table(
+    block_ijk: NDArray[np.int32],
+    used: int,
+    table_keys: NDArray[np.int64],
+    table_blocks: NDArray[np.int32],
+) -> None:
     table_keys[:] = _EMPTY
     for b in range(used):
-        _insert(table_keys, table_blocks, block_key(block_ijk[b, 0], block_ijk[b, 1], block_ijk[b, 2]), b)
+        _insert(
+            table_keys,
+            table_blocks,
+            block_key(block_ijk[b, 0], block_ijk[b, 1], block_ijk[b, 2]),
+            b,
+        )
 
 
 def _local_offsets() -> NDArray[np.int32]:
@@ -344,14 +371,27 @@ class BlockStore:
         s, n = voxels.s * f, voxels.n * f
         for sid, sh in enumerate(self.shards):
             start = 0
-            while (start := _assign_shard(
-                ijk, s, n, t, start, sid, self.shard_mask, sh.table_keys, sh.table_blocks,
-                sh.block_ijk, sh.block_sn, sh.block_t, sh.block_scan, sh.counters,
-            )) < ijk.shape[0]:
+            while (
+                start := _assign_shard(
+                    ijk,
+                    s,
+                    n,
+                    t,
+                    start,
+                    sid,
+                    self.shard_mask,
+                    sh.table_keys,
+                    sh.table_blocks,
+                    sh.block_ijk,
+                    sh.block_sn,
+                    sh.block_t,
+                    sh.block_scan,
+                    sh.counters,
+                )
+            ) < ijk.shape[0]:
                 sh.grow()
         self.num_voxels = sum(
-            int(np.count_nonzero((sh.block_sn[: sh.used] > 0).any(axis=-1)))
-            for sh in self.shards
+            int(np.count_nonzero((sh.block_sn[: sh.used] > 0).any(axis=-1))) for sh in self.shards
         )
 
     def lookup(self, ijk: NDArray[np.int64]) -> VoxelArrays:
@@ -361,8 +401,13 @@ class BlockStore:
         block = np.empty(count, dtype=np.int64)
         local = np.empty(count, dtype=np.int64)
         _lookup(
-            ijk, self.shard_mask, tuple(sh.table_keys for sh in self.shards),
-            tuple(sh.table_blocks for sh in self.shards), shard_of, block, local,
+            ijk,
+            self.shard_mask,
+            tuple(sh.table_keys for sh in self.shards),
+            tuple(sh.table_blocks for sh in self.shards),
+            shard_of,
+            block,
+            local,
         )
         s = np.zeros(count)
         n = np.zeros(count)

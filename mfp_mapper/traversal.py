@@ -20,7 +20,9 @@ from numpy.typing import NDArray
 from mfp_mapper.store import BLOCK_BITS, Shard, block_key, local_index, open_block, shard_of
 
 
-def block_bounds(origins_vox: NDArray[np.float64], ends_vox: NDArray[np.float64]) -> NDArray[np.int64]:
+def block_bounds(
+    origins_vox: NDArray[np.float64], ends_vox: NDArray[np.float64]
+) -> NDArray[np.int64]:
     """Upper bound of the blocks each ray can create: Manhattan block distance plus slack."""
     lo = np.floor(origins_vox).astype(np.int64) >> BLOCK_BITS
     hi = np.floor(ends_vox).astype(np.int64) >> BLOCK_BITS
@@ -77,8 +79,14 @@ def _walk_into_shard(
     visit_return = np.empty(_BATCH_VISITS + longest, dtype=np.float32)
     count = 0
     for r in range(first, lengths.shape[0] + 1):
-        if count >= _BATCH_VISITS or r == lengths.shape[0] or counters[0] + room_needed[r] > capacity:
-            _apply_visits(block_sn, visit_block, visit_local, visit_chord, visit_return, count, counters)
+        if (
+            count >= _BATCH_VISITS
+            or r == lengths.shape[0]
+            or counters[0] + room_needed[r] > capacity
+        ):
+            _apply_visits(
+                block_sn, visit_block, visit_local, visit_chord, visit_return, count, counters
+            )
             count = 0
             if r == lengths.shape[0] or counters[0] + room_needed[r] > capacity:
                 return r
@@ -129,8 +137,19 @@ def _walk_into_shard(
                         block = cache_blocks[slot]
                     else:
                         block = open_block(
-                            bx, by, bz, table_keys, table_blocks, block_ijk, block_sn, block_t,
-                            block_scan, counters, scan_id, stamp, decay_time,
+                            bx,
+                            by,
+                            bz,
+                            table_keys,
+                            table_blocks,
+                            block_ijk,
+                            block_sn,
+                            block_t,
+                            block_scan,
+                            counters,
+                            scan_id,
+                            stamp,
+                            decay_time,
                         )
                         cache_keys[slot] = key
                         cache_blocks[slot] = block
@@ -159,7 +178,9 @@ def _walk_into_shard(
             else:
                 vz += step_z
                 t_max_z += t_delta_z
-            new_block = (vx >> BLOCK_BITS) != bx or (vy >> BLOCK_BITS) != by or (vz >> BLOCK_BITS) != bz
+            new_block = (
+                (vx >> BLOCK_BITS) != bx or (vy >> BLOCK_BITS) != by or (vz >> BLOCK_BITS) != bz
+            )
     return lengths.shape[0]
 
 
@@ -222,9 +243,24 @@ def walk_into_shard(
     first = 0
     while True:
         first = _walk_into_shard(
-            origins_vox, ends_vox, lengths, has_return, room, first, shard_id, shard_mask,
-            shard.table_keys, shard.table_blocks, shard.block_ijk, shard.block_sn, shard.block_t,
-            shard.block_scan, shard.counters, scan_id, stamp, decay_time,
+            origins_vox,
+            ends_vox,
+            lengths,
+            has_return,
+            room,
+            first,
+            shard_id,
+            shard_mask,
+            shard.table_keys,
+            shard.table_blocks,
+            shard.block_ijk,
+            shard.block_sn,
+            shard.block_t,
+            shard.block_scan,
+            shard.counters,
+            scan_id,
+            stamp,
+            decay_time,
         )
         if first >= lengths.shape[0]:
             return
