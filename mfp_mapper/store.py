@@ -20,7 +20,9 @@ Every ray's contribution is summed into the store: sums, never deduplication.
 
 from __future__ import annotations
 
+import contextlib
 import math
+import mmap
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -36,6 +38,8 @@ _EMPTY = -1
 _HASH_MULT = np.uint64(0x9E3779B97F4A7C15)
 _KEY_BITS = 21
 _KEY_OFFSET = 1 << (_KEY_BITS - 1)
+RESERVED_BLOCKS = 1 << 18
+"""Blocks (4 KiB each) of address space a shard reserves up front: 1 GiB, not resident."""
 MAX_VOXEL_INDEX = (_KEY_OFFSET << BLOCK_BITS) - BLOCK_EDGE
 """Largest |voxel index| the store can hold (block indices are packed in 21 bits each)."""
 
@@ -128,7 +132,7 @@ def open_block(
     block = _find(table_keys, table_blocks, bkey)
     if block < 0:
         used = counters[0]
-        if used >= block_sn.shape[0] or 2 * used >= table_keys.shape[0]:
+        if used >= block_t.shape[0] or 2 * used >= table_keys.shape[0]:
             return -1
         block = used
         counters[0] = used + 1
@@ -267,42 +271,48 @@ class VoxelArrays:
 
 
 class Shard:
-    """One hash table and the blocks it indexes."""
+    """One hash table and the blocks it indexes.
+
+    The voxel statistics live in one region reserved for ``RESERVED_BLOCKS`` blocks: its
+    pages become memory only when a block is first written, so growing the map does not
+    copy it (until a map outgrows the reservation; then it doubles, with one copy).
+    """
 
     def __init__(self, block_capacity: int = 1024) -> None:
         self.counters = np.zeros(4, dtype=np.int64)
-        self._allocate(block_capacity)
+        self.block_sn = _zeros_on_huge_pages((RESERVED_BLOCKS, BLOCK_VOXELS, 2))
+        self._resize_index(block_capacity)
 
-    def _allocate(self, capacity: int) -> None:
+    def _resize_index(self, capacity: int) -> None:
+        """Size the per-block arrays and the hash table for ``capacity`` blocks."""
+        used = self.used
+        old = [getattr(self, name, None) for name in ("block_ijk", "block_t", "block_scan")]
         self.block_ijk = np.zeros((capacity, 3), dtype=np.int32)
-        self.block_sn = np.zeros((capacity, BLOCK_VOXELS, 2), dtype=np.float32)
         self.block_t = np.full(capacity, -np.inf)
         self.block_scan = np.full(capacity, -1, dtype=np.int64)
+        for new, prev in zip((self.block_ijk, self.block_t, self.block_scan), old, strict=True):
+            if prev is not None:
+                new[:used] = prev[:used]
+        if capacity > self.block_sn.shape[0]:
+            reserve = max(capacity, 2 * self.block_sn.shape[0])
+            region = _zeros_on_huge_pages((reserve, BLOCK_VOXELS, 2))
+            region[:used] = self.block_sn[:used]
+            self.block_sn = region
         self.table_keys = np.full(_next_pow2(2 * capacity), _EMPTY, dtype=np.int64)
         self.table_blocks = np.zeros(self.table_keys.shape[0], dtype=np.int32)
+        _rebuild_table(self.block_ijk, used, self.table_keys, self.table_blocks)
+
+    @property
+    def capacity(self) -> int:
+        return int(self.block_t.shape[0])
 
     @property
     def used(self) -> int:
         return int(self.counters[0])
 
     def grow(self, min_free: int = 0) -> None:
-        """Grow the block capacity by half (or more, for ``min_free``), keeping every block.
-
-        The block arrays are resized in place (realloc, which the C library does without a
-        copy for large arrays); the table is rebuilt at twice the new capacity.
-        """
-        used = self.used
-        capacity = max(self.block_sn.shape[0] * 3 // 2, used + min_free)
-        self.block_ijk.resize((capacity, 3), refcheck=False)
-        self.block_sn.resize((capacity, BLOCK_VOXELS, 2), refcheck=False)
-        old_t, old_scan = self.block_t, self.block_scan
-        self.block_t = np.full(capacity, -np.inf)
-        self.block_scan = np.full(capacity, -1, dtype=np.int64)
-        self.block_t[:used] = old_t[:used]
-        self.block_scan[:used] = old_scan[:used]
-        self.table_keys = np.full(_next_pow2(2 * capacity), _EMPTY, dtype=np.int64)
-        self.table_blocks = np.zeros(self.table_keys.shape[0], dtype=np.int32)
-        _rebuild_table(self.block_ijk, used, self.table_keys, self.table_blocks)
+        """Double the block capacity (or more, for ``min_free``), keeping every block."""
+        self._resize_index(max(2 * self.capacity, self.used + min_free))
 
     def keep_blocks(self, keep: NDArray[np.bool_]) -> int:
         """Drop the blocks where ``keep`` (over used blocks) is False; returns voxels dropped."""
@@ -320,8 +330,29 @@ class Shard:
 
     @property
     def nbytes(self) -> int:
-        arrays = (self.block_ijk, self.block_sn, self.block_t, self.block_scan)
-        return sum(a.nbytes for a in arrays) + self.table_keys.nbytes + self.table_blocks.nbytes
+        """Memory in use: the blocks' statistics up to the most ever held, and the index."""
+        self._high_water = max(getattr(self, "_high_water", 0), self.used)
+        index = (self.block_ijk, self.block_t, self.block_scan, self.table_keys, self.table_blocks)
+        return self._high_water * self.block_sn[0].nbytes + sum(a.nbytes for a in index)
+
+
+def _zeros_on_huge_pages(shape: tuple[int, ...]) -> NDArray[np.float32]:
+    """A zeroed float32 array in fresh anonymous memory, advised to use huge pages.
+
+    Pages are zeroed by the kernel when first touched, so unused capacity costs no time
+    and no resident memory. With 4 KiB pages every 4 KiB block would be its own page and
+    the far-field updates of a scan would miss the TLB one after another.
+    """
+    nbytes = int(np.prod(shape)) * 4
+    try:
+        flags = mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS | getattr(mmap, "MAP_NORESERVE", 0)
+        region = mmap.mmap(-1, max(nbytes, 1), flags=flags)
+    except (OSError, AttributeError, ValueError):  # no anonymous mmap here: plain memory
+        return np.zeros(shape, dtype=np.float32)
+    if hasattr(region, "madvise") and hasattr(mmap, "MADV_HUGEPAGE"):
+        with contextlib.suppress(OSError):
+            region.madvise(mmap.MADV_HUGEPAGE)
+    return np.frombuffer(region, dtype=np.float32, count=int(np.prod(shape))).reshape(shape)
 
 
 def _next_pow2(x: int) -> int:

@@ -65,7 +65,7 @@ def _walk_into_shard(
     Before each ray, checks there is room for the blocks it may create; returns the index
     of the first ray not walked (the caller grows the shard and calls again), or N.
     """
-    capacity = min(block_sn.shape[0], table_keys.shape[0] // 2)
+    capacity = min(block_t.shape[0], table_keys.shape[0] // 2)
     # blocks opened in this call, direct-mapped by their low index bits: neighbouring rays
     # cross the same blocks, and this small table stays in cache where the hash does not
     cache_keys = np.full(_CACHE_SIZE, -1, dtype=np.int64)
