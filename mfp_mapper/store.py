@@ -286,13 +286,14 @@ class Shard:
     def _resize_index(self, capacity: int) -> None:
         """Size the per-block arrays and the hash table for ``capacity`` blocks."""
         used = self.used
-        old = [getattr(self, name, None) for name in ("block_ijk", "block_t", "block_scan")]
-        self.block_ijk = np.zeros((capacity, 3), dtype=np.int32)
-        self.block_t = np.full(capacity, -np.inf)
-        self.block_scan = np.full(capacity, -1, dtype=np.int64)
-        for new, prev in zip((self.block_ijk, self.block_t, self.block_scan), old, strict=True):
-            if prev is not None:
-                new[:used] = prev[:used]
+        block_ijk = np.zeros((capacity, 3), dtype=np.int32)
+        block_t = np.full(capacity, -np.inf)
+        block_scan = np.full(capacity, -1, dtype=np.int64)
+        if used:
+            block_ijk[:used] = self.block_ijk[:used]
+            block_t[:used] = self.block_t[:used]
+            block_scan[:used] = self.block_scan[:used]
+        self.block_ijk, self.block_t, self.block_scan = block_ijk, block_t, block_scan
         if capacity > self.block_sn.shape[0]:
             reserve = max(capacity, 2 * self.block_sn.shape[0])
             region = _zeros_on_huge_pages((reserve, BLOCK_VOXELS, 2))
