@@ -281,6 +281,9 @@ class Shard:
     def __init__(self, block_capacity: int = 1024) -> None:
         self.counters = np.zeros(4, dtype=np.int64)
         self.block_sn = _zeros_on_huge_pages((RESERVED_BLOCKS, BLOCK_VOXELS, 2))
+        self.block_ijk: NDArray[np.int32] = np.zeros((0, 3), dtype=np.int32)
+        self.block_t: NDArray[np.float64] = np.zeros(0)
+        self.block_scan: NDArray[np.int64] = np.zeros(0, dtype=np.int64)
         self._resize_index(block_capacity)
 
     def _resize_index(self, capacity: int) -> None:
