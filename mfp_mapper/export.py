@@ -10,12 +10,11 @@ fields; Open3D reads the points.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from mfp_mapper.atomic import atomic_output
 from mfp_mapper.mapper import Mapper, VoxelStats
 
 PLY_PROPERTIES = ("x", "y", "z", "degree_of_occupancy", "std", "mean_free_path", "n", "s")
@@ -57,7 +56,8 @@ def export_ply(
         f"resolution {mapper.resolution}",
         "mean_free_path NaN = infinite (no return seen)",
     )
-    _write_atomic(Path(path), ply_bytes(stats, comments))
+    with atomic_output(path) as f:
+        f.write(ply_bytes(stats, comments))
     return len(stats)
 
 
@@ -89,17 +89,3 @@ def read_ply(path: str | Path) -> dict[str, np.ndarray]:
         data, dtype=np.dtype(fields), count=count, offset=end + len("end_header\n")
     )
     return {name: body[name] for name, _ in fields}
-
-
-def _write_atomic(path: Path, payload: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(payload)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise

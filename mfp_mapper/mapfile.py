@@ -21,14 +21,13 @@ half-written map.
 
 from __future__ import annotations
 
-import os
-import tempfile
 import zipfile
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from mfp_mapper.atomic import atomic_output
 from mfp_mapper.store import VoxelArrays
 
 if TYPE_CHECKING:
@@ -65,17 +64,8 @@ def write_map(path: str | Path, mapper: Mapper) -> None:
         "format": np.str_(FORMAT_NAME),
         "version": np.int64(FORMAT_VERSION),
     }
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    try:
-        with os.fdopen(fd, "wb") as tmp:
-            np.savez_compressed(tmp, **arrays)
-            tmp.flush()
-            os.fsync(tmp.fileno())
-        os.replace(tmp_name, target)
-    except BaseException:
-        Path(tmp_name).unlink(missing_ok=True)
-        raise
+    with atomic_output(target) as tmp:
+        np.savez_compressed(tmp, **arrays)
 
 
 def read_map(path: str | Path, **overrides: object) -> Mapper:
