@@ -103,17 +103,19 @@ def _walk_into_shard(
         ex = int(np.floor(ends_vox[r, 0]))
         ey = int(np.floor(ends_vox[r, 1]))
         ez = int(np.floor(ends_vox[r, 2]))
-        # ray parameter t in [0, 1]; t_max_*: where the next face on that axis is crossed
-        step_x = 1 if dx > 0 else -1
-        step_y = 1 if dy > 0 else -1
-        step_z = 1 if dz > 0 else -1
-        t_max_x = ((vx + (dx > 0)) - ox) / dx if dx != 0.0 else np.inf
-        t_max_y = ((vy + (dy > 0)) - oy) / dy if dy != 0.0 else np.inf
-        t_max_z = ((vz + (dz > 0)) - oz) / dz if dz != 0.0 else np.inf
-        t_delta_x = abs(1.0 / dx) if dx != 0.0 else np.inf
-        t_delta_y = abs(1.0 / dy) if dy != 0.0 else np.inf
-        t_delta_z = abs(1.0 / dz) if dz != 0.0 else np.inf
-        steps_left = abs(ex - vx) + abs(ey - vy) + abs(ez - vz) + 2
+        # ray parameter t in [0, 1]; t_max_*: where the next face on that axis is crossed.
+        # An axis already at the end voxel's index is never stepped again (t_max = inf), so
+        # the walk takes exactly `steps` steps and ends in floor(end), whatever the rounding.
+        step_x = 1 if ex > vx else -1
+        step_y = 1 if ey > vy else -1
+        step_z = 1 if ez > vz else -1
+        t_max_x = ((vx + (dx > 0)) - ox) / dx if ex != vx else np.inf
+        t_max_y = ((vy + (dy > 0)) - oy) / dy if ey != vy else np.inf
+        t_max_z = ((vz + (dz > 0)) - oz) / dz if ez != vz else np.inf
+        t_delta_x = abs(1.0 / dx) if ex != vx else 0.0
+        t_delta_y = abs(1.0 / dy) if ey != vy else 0.0
+        t_delta_z = abs(1.0 / dz) if ez != vz else 0.0
+        steps = abs(ex - vx) + abs(ey - vy) + abs(ez - vz)
         t_prev = 0.0
         bx = by = bz = 0
         block = -1
@@ -153,9 +155,9 @@ def _walk_into_shard(
                         )
                         cache_keys[slot] = key
                         cache_blocks[slot] = block
-            # the end voxel (floor of the end point) takes the rest of the ray and the return;
-            # an end point exactly on a face gets a zero chord there, still with its return
-            final = (vx == ex and vy == ey and vz == ez) or steps_left <= 1
+            # the end voxel takes the rest of the ray and the return; an end point exactly
+            # on a face gets a zero chord there, still with its return
+            final = steps == 0
             t_next = 1.0 if final else min(t_max_x, t_max_y, t_max_z, 1.0)
             chord = (t_next - t_prev) * length
             returns = final and has_return[r]
@@ -168,16 +170,16 @@ def _walk_into_shard(
             if final:
                 break
             t_prev = t_next
-            steps_left -= 1
+            steps -= 1
             if t_max_x <= t_max_y and t_max_x <= t_max_z:
                 vx += step_x
-                t_max_x += t_delta_x
+                t_max_x = t_max_x + t_delta_x if vx != ex else np.inf
             elif t_max_y <= t_max_z:
                 vy += step_y
-                t_max_y += t_delta_y
+                t_max_y = t_max_y + t_delta_y if vy != ey else np.inf
             else:
                 vz += step_z
-                t_max_z += t_delta_z
+                t_max_z = t_max_z + t_delta_z if vz != ez else np.inf
             new_block = (
                 (vx >> BLOCK_BITS) != bx or (vy >> BLOCK_BITS) != by or (vz >> BLOCK_BITS) != bz
             )
