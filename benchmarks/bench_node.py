@@ -1,0 +1,243 @@
+"""End-to-end benchmark of the ROS 2 node: lidar streams through real DDS on loopback.
+
+    .venv/bin/python benchmarks/bench_node.py                 # both streams, 15 s each
+    .venv/bin/python benchmarks/bench_node.py --stream vlp16 --duration 30
+
+The node runs in its own process (``python -m mfp_mapper.node``); this process is the
+driver: odometry at 50 Hz and one de-skewable sweep every 0.1 s, stamped with the wall
+clock at the start of the sweep, from a robot driving and turning through
+``synthetic.BoxWorld``. A subscriber to ``~/degree_of_occupancy`` makes the node publish
+its cloud (1 Hz), so publishing is part of the bill. Figures come from the node's
+``~/status`` (its own counters) and from /proc for the node's total CPU:
+
+- latency: node clock when ``Mapper.integrate`` returned minus the cloud's header stamp
+  (includes the 0.1 s sweep the de-skew has to wait odometry for, and DDS transport);
+- rate: clouds integrated / clouds sent, rays per second;
+- integration CPU: CPU time of the integration thread (parse, place, integrate) over
+  wall time, as a share of one core; node CPU: the whole node process.
+
+Streams: VLP-16 (16 x 1800 = 28.8k points, 0.1 m) and an OS1-128-like lidar
+(128 x 1024 = 131k points, 0.2 m, elevations -22.5..22.5 deg).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "test"))
+sys.path.insert(0, str(ROOT))
+
+from ros_helpers import (  # noqa: E402
+    Feeder,
+    NodeProcess,
+    Trajectory,
+    cloud_from_columns,
+    odom_msg,
+    set_ros_env,
+    simulate_scan,
+)
+
+from mfp_mapper.synthetic import BoxWorld, scan_directions  # noqa: E402
+
+STREAMS: dict[str, dict[str, Any]] = {
+    "vlp16": {
+        "elevations": np.arange(-15.0, 16.0, 2.0),
+        "azimuths": 1800,
+        "resolution": 0.1,
+        "time_field": "time",
+    },
+    "os1-128": {
+        "elevations": np.linspace(-22.5, 22.5, 128),
+        "azimuths": 1024,
+        "resolution": 0.2,
+        "time_field": "t",
+    },
+}
+SCAN_PERIOD = 0.1
+ODOM_PERIOD = 0.02
+LIDAR_HEIGHT = 1.8
+
+
+def _cpu_seconds(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _precompute(stream: dict[str, Any], n_scans: int) -> tuple[Trajectory, list[dict]]:
+    """Sweeps of a loop of ``n_scans`` (relative times); the yaw turns once per loop."""
+    traj = Trajectory(0.0, velocity=(1.0, 0.2, 0.0), yaw_rate=2 * np.pi / (n_scans * SCAN_PERIOD))
+    dirs = scan_directions(stream["elevations"], stream["azimuths"])
+    world = BoxWorld()
+    scans = []
+    for k in range(n_scans):
+        xyz, offsets = simulate_scan(
+            world, dirs, stream["azimuths"], traj, k * SCAN_PERIOD, LIDAR_HEIGHT, SCAN_PERIOD
+        )
+        cols: dict[str, np.ndarray] = {a: xyz[:, i].astype(np.float32) for i, a in enumerate("xyz")}
+        cols["intensity"] = np.full(len(xyz), 20.0, np.float32)
+        if stream["time_field"] == "t":
+            cols["t"] = np.round(offsets * 1e9).astype(np.uint32)
+        else:
+            cols["time"] = offsets.astype(np.float32)
+        scans.append(cols)
+    return traj, scans
+
+
+def run_stream(name: str, duration: float, n_scans: int, workdir: Path) -> dict[str, Any]:
+
+    stream = STREAMS[name]
+    print(f"[{name}] precomputing {n_scans} sweeps ...", flush=True)
+    traj, scans = _precompute(stream, n_scans)
+    points = int(np.mean([len(s["x"]) for s in scans]))
+    domain = int(os.environ["ROS_DOMAIN_ID"])
+    node = NodeProcess(
+        domain,
+        {
+            "resolution": stream["resolution"],
+            "sensor_model.max_range": 100.0,
+            "publish_rate": 1.0,
+            "status_period": 1.0,
+            "lidar.translation": [0.0, 0.0, LIDAR_HEIGHT],
+            "odom_wait": 1.0,
+        },
+        workdir / f"{name}.log",
+    )
+    feeder = Feeder()
+    try:
+        if not feeder.wait_connected(30.0):
+            raise RuntimeError(f"node not discovered:\n{node.log()[-2000:]}")
+        feeder.wait(lambda: feeder.status is not None, 10.0)
+        cpu0, before = _cpu_seconds(node.pid), dict(feeder.status or {})
+        if os.environ.get("BENCH_DEBUG"):
+            (workdir / "node.pid").write_text(str(node.pid))
+        start = time.time()
+        next_odom, next_scan, sent, k = start, start, 0, 0
+        loop = n_scans * SCAN_PERIOD
+        while time.time() - start < duration:
+            now = time.time()
+            if now >= next_odom:
+                rel = (now - start) % loop
+                feeder.odom_pub.publish(odom_msg(now, traj.position(rel), float(traj.yaw(rel))))
+                next_odom += ODOM_PERIOD
+            if now >= next_scan:
+                cols = scans[k % n_scans]
+                stamp = start + k * SCAN_PERIOD
+                feeder.cloud_pub.publish(cloud_from_columns(cols, "lidar", stamp))
+                sent += 1
+                k += 1
+                next_scan += SCAN_PERIOD
+            feeder.spin(max(0.0, min(next_odom, next_scan) - time.time()))
+        # keep odometry flowing until the node has drained its queue
+        drain_end = time.time() + 3.0
+        while time.time() < drain_end:
+            now = time.time()
+            rel = (now - start) % loop
+            feeder.odom_pub.publish(odom_msg(now, traj.position(rel), float(traj.yaw(rel))))
+            feeder.spin(ODOM_PERIOD)
+            st = feeder.status or {}
+            done = st.get("clouds_integrated", 0) + sum(st.get("clouds_dropped", {}).values())
+            if st.get("queued", 1) == 0 and done - _done(before) >= sent:
+                break
+        wall = time.time() - start
+        cpu_node = _cpu_seconds(node.pid) - cpu0
+        feeder.wait(lambda: (feeder.status or {}).get("uptime_s", 0) > before["uptime_s"] + 1, 3)
+        after = dict(feeder.status or {})
+        if os.environ.get("BENCH_DEBUG"):
+            print(json.dumps(after), node.log()[-3000:], sep="\n")
+    finally:
+        feeder.destroy()
+        node.stop()
+    return _report(name, stream, points, sent, duration, wall, cpu_node, before, after)
+
+
+def _done(status: dict[str, Any]) -> int:
+    return status.get("clouds_integrated", 0) + sum(status.get("clouds_dropped", {}).values())
+
+
+def _report(
+    name: str,
+    stream: dict[str, Any],
+    points: int,
+    sent: int,
+    duration: float,
+    wall: float,
+    cpu_node: float,
+    before: dict[str, Any],
+    after: dict[str, Any],
+) -> dict[str, Any]:
+    integrated = after["clouds_integrated"] - before["clouds_integrated"]
+    drops = {
+        k: v - before["clouds_dropped"].get(k, 0)
+        for k, v in after["clouds_dropped"].items()
+        if v - before["clouds_dropped"].get(k, 0)
+    }
+    cpu_int = after["integration_cpu_s"] - before["integration_cpu_s"]
+    pub_n = after["publish_count"] - before["publish_count"]
+    pub_s = after["publish_total_s"] - before["publish_total_s"]
+    result = {
+        "stream": name,
+        "resolution_m": stream["resolution"],
+        "points_per_scan": points,
+        "clouds_sent": sent,
+        "clouds_integrated": integrated,
+        "clouds_dropped": drops,
+        "rate_hz": round(integrated / duration, 2),
+        "rays_per_s": round((after["rays_used"] - before["rays_used"]) / duration),
+        "latency_mean_s": after["latency_mean_s"],
+        "latency_max_s": after["latency_max_s"],
+        "integration_cpu_share_of_one_core": round(cpu_int / duration, 3),
+        "integration_cpu_per_scan_ms": round(1000 * cpu_int / max(integrated, 1), 1),
+        "node_cpu_share_of_one_core": round(cpu_node / wall, 3),
+        "publish_ms_mean": round(1000 * pub_s / pub_n, 1) if pub_n else None,
+        "published_voxels": after["published_voxels"],
+        "voxels": after["voxels"],
+        "memory_mb": round(after["memory_bytes"] / 1e6, 1),
+    }
+    print(json.dumps(result, indent=2), flush=True)
+    return result
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--stream", choices=[*STREAMS, "all"], default="all")
+    parser.add_argument("--duration", type=float, default=15.0, help="seconds per stream")
+    parser.add_argument("--scans", type=int, default=20, help="distinct sweeps in the loop")
+    parser.add_argument("--logs", type=Path, help="keep the node logs in this directory")
+    args = parser.parse_args()
+    import rclpy
+
+    domain = os.getpid() % 90 + 10
+    set_ros_env(domain)
+    rclpy.init(domain_id=domain)
+    results = []
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            logs = args.logs or Path(tmp)
+            logs.mkdir(parents=True, exist_ok=True)
+            for name in STREAMS if args.stream == "all" else [args.stream]:
+                results.append(run_stream(name, args.duration, args.scans, logs))
+    finally:
+        rclpy.try_shutdown()
+    print("\nstream      res   pts/scan  rate(Hz)  latency mean/max (s)  integ. CPU  node CPU")
+    for r in results:
+        print(
+            f"{r['stream']:<10} {r['resolution_m']:>4}  {r['points_per_scan']:>8}  "
+            f"{r['rate_hz']:>8}  {r['latency_mean_s']:.3f} / {r['latency_max_s']:.3f}"
+            f"          {100 * r['integration_cpu_share_of_one_core']:>5.0f}%    "
+            f"{100 * r['node_cpu_share_of_one_core']:>5.0f}%"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
