@@ -281,9 +281,39 @@ class Mapper:
         raw.t_last[~valid] = -np.inf
         return self._stats(raw, stamp)
 
-    def voxels(self, stamp: float | None = None) -> VoxelStats:
-        """Every observed voxel, decayed to ``stamp`` when given."""
-        return self._stats(self._store.export(), stamp)
+    def voxels(
+        self,
+        stamp: float | None = None,
+        *,
+        min_doo: float = 0.0,
+        min_evidence: float = 0.0,
+        bounds: tuple[ArrayLike, ArrayLike] | None = None,
+    ) -> VoxelStats:
+        """Observed voxels, decayed to ``stamp`` when given.
+
+        Filters, applied in compiled code before any array of the whole map is built:
+        ``min_doo`` (most likely degree of occupancy), ``min_evidence`` (metres of rays, s,
+        after decay) and ``bounds`` = (lower corner, upper corner) in metres, map frame, on
+        voxel centres (use +-inf for an open side).
+        """
+        if not 0.0 <= min_doo < 1.0:
+            raise ValueError(f"min_doo must lie in [0, 1), got {min_doo}")
+        lo = hi = None
+        if bounds is not None:
+            with np.errstate(invalid="ignore", over="ignore"):
+                lo_m, hi_m = (
+                    np.asarray(b, dtype=np.float64) / self.resolution - 0.5 for b in bounds
+                )
+                lo = np.ceil(np.clip(lo_m, -MAX_VOXEL_INDEX - 1, MAX_VOXEL_INDEX + 1)).astype(
+                    np.int64
+                )
+                hi = np.floor(np.clip(hi_m, -MAX_VOXEL_INDEX - 1, MAX_VOXEL_INDEX + 1)).astype(
+                    np.int64
+                )
+        stats = self._stats(self._store.export(-math.log1p(-min_doo), lo, hi), stamp)
+        if min_evidence > 0.0:
+            stats = stats.select(stats.s >= min_evidence)
+        return stats
 
     def _stats(self, raw: VoxelArrays, stamp: float | None) -> VoxelStats:
         s, n = raw.s, raw.n

@@ -30,6 +30,7 @@ import numpy as np
 import rclpy
 import rclpy.exceptions
 import rclpy.time
+import rclpy.utilities
 from builtin_interfaces.msg import Time as TimeMsg
 from nav_msgs.msg import OccupancyGrid, Odometry
 from nav_msgs.srv import GetMap
@@ -59,6 +60,7 @@ from mfp_mapper.pointcloud import (
     ParsedCloud,
     pack_cloud,
     parse_pointcloud2,
+    read_xyz,
     stamp_seconds,
 )
 from mfp_mapper.poses import Extrinsic, PoseBuffer, PoseUnavailable, cloud_to_map, rpy_to_quaternion
@@ -113,22 +115,6 @@ def cloud_msg(packed: PackedCloud, frame_id: str, stamp: Any) -> PointCloud2:
     msg.data = packed.data
     msg.is_dense = True
     return msg
-
-
-def read_query_points(msg: PointCloud2) -> np.ndarray:
-    """Every point of a query cloud, in order (NaN and (0, 0, 0) kept), as (N, 3).
-
-    ``parse_pointcloud2`` drops invalid and zero-range points, which a query must keep to
-    answer point for point; this reuses its layout checks and zero-copy record view.
-    """
-    from mfp_mapper import pointcloud as pc
-
-    fields: dict[str, Any] = {}
-    for f in msg.fields:
-        fields.setdefault(f.name, f)
-    pc._check_fields(fields, int(msg.point_step))
-    records = pc._records(msg, fields)
-    return np.stack([records[a].reshape(-1).astype(np.float64) for a in "xyz"], axis=1)
 
 
 def _tracked(callback: Callable[..., Any]) -> Callable[..., Any]:
@@ -566,23 +552,29 @@ class MfpMapperNode(Node):
             version = self.mapper.version
             if version == self._published_version:
                 return
+            if not (self.cfg.frame_id or self._odom_frame or self.mapper.num_voxels):
+                return  # an empty map in a frame not known yet: nothing worth latching
             t0 = time.perf_counter()
-            vox = self.mapper.voxels()
+            robot = self._robot_position
+            radius = self.cfg.publish_radius
+            window = None
+            if radius > 0.0 and robot is not None:
+                window = (np.asarray(robot) - radius, np.asarray(robot) + radius)
+            vox = self.mapper.voxels(
+                min_doo=min(self.cfg.min_degree_of_occupancy, MAX_FILTER_DOO),
+                min_evidence=self.cfg.min_evidence,
+                bounds=window,
+            )
             stamp = self.mapper.last_stamp
-        doo = vox.most_likely_doo
-        keep = vox.observed & (doo >= self.cfg.min_degree_of_occupancy)
-        if self.cfg.min_evidence > 0.0:
-            keep &= vox.s >= self.cfg.min_evidence
-        robot = self._robot_position
-        if self.cfg.publish_radius > 0.0 and robot is not None:
-            d2 = np.sum((vox.centers - robot) ** 2, axis=1)
-            keep &= d2 <= self.cfg.publish_radius**2
+        keep = vox.observed
+        if window is not None:
+            keep &= np.sum((vox.centers - robot) ** 2, axis=1) <= radius**2
         sel = vox.select(keep)
         xyz = {a: sel.centers[:, k] for k, a in enumerate("xyz")}
         header_stamp = _stamp_msg(stamp) if stamp is not None else self.get_clock().now().to_msg()
         frame = self.map_frame
         doo_msg = cloud_msg(
-            pack_cloud({**xyz, "degree_of_occupancy": doo[keep]}), frame, header_stamp
+            pack_cloud({**xyz, "degree_of_occupancy": sel.most_likely_doo}), frame, header_stamp
         )
         std_msg = cloud_msg(pack_cloud({**xyz, "std": sel.std}), frame, header_stamp)
         self._doo_pub.publish(doo_msg)
@@ -608,7 +600,7 @@ class MfpMapperNode(Node):
             )
             return
         try:
-            points = read_query_points(msg)
+            points = read_xyz(msg)
         except CloudFormatError as err:
             self._warn_throttled("query_bad", f"malformed hit_probability query: {err}", error=True)
             return
@@ -629,11 +621,11 @@ class MfpMapperNode(Node):
 
     @_tracked
     def _on_get_map(self, request: GetMap.Request, response: GetMap.Response) -> GetMap.Response:
+        zmin, zmax = self.cfg.occupancy_min_z, self.cfg.occupancy_max_z
         with self._map_lock:
-            vox = self.mapper.voxels()
+            vox = self.mapper.voxels(bounds=((-np.inf, -np.inf, zmin), (np.inf, np.inf, zmax)))
             res = self.mapper.resolution
             stamp = self.mapper.last_stamp
-        zmin, zmax = self.cfg.occupancy_min_z, self.cfg.occupancy_max_z
         band = vox.observed & band_mask(vox.ijk, res, zmin, zmax)
         prob = np.zeros(len(vox))
         prob[band] = model.hit_probability(vox.s[band], vox.n[band], res)
@@ -773,8 +765,32 @@ class MfpMapperNode(Node):
         self.mapper.close()
 
 
+MAX_FILTER_DOO = 1.0 - 1e-9
+"""min_degree_of_occupancy 1 keeps only voxels whose most likely DoO rounds to 1."""
+
+
+def usage() -> str:
+    """What ``--help`` prints: how to start the node and its parameters with defaults."""
+    from mfp_mapper.node_params import SPECS
+
+    lines = [
+        "usage: ros2 run mfp_mapper mfp_mapper [--ros-args -p NAME:=VALUE ... "
+        "--params-file config/mfp_mapper.yaml]",
+        "",
+        "Degree-of-occupancy mapping node (cloud_in: PointCloud2, odom: Odometry).",
+        "Parameters:",
+    ]
+    for spec in SPECS.values():
+        lines.append(f"  {spec.name} (default {spec.default!r}): {spec.description}")
+    return "\n".join(lines)
+
+
 def main(args: list[str] | None = None) -> int:
     """Entry point of ``ros2 run mfp_mapper mfp_mapper`` and ``python -m mfp_mapper.node``."""
+    own_args = rclpy.utilities.remove_ros_args(args if args is not None else sys.argv)[1:]
+    if any(a in ("-h", "--help") for a in own_args):
+        print(usage())
+        return 0
     rclpy.init(args=args)
     node: MfpMapperNode | None = None
     executor: MultiThreadedExecutor | None = None

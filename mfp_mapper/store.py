@@ -227,6 +227,88 @@ def _lookup(
 
 
 @nb.njit(cache=True, nogil=True)
+def _select_voxels(
+    block_ijk: NDArray[np.int32],
+    block_sn: NDArray[np.float32],
+    used: int,
+    min_extinction: float,
+    lo: NDArray[np.int64],
+    hi: NDArray[np.int64],
+    keep: NDArray[np.bool_],
+) -> int:
+    """Mark observed voxels with n >= min_extinction * s inside [lo, hi]; returns the count.
+
+    Whole blocks outside the bounds are skipped without reading their voxels.
+    """
+    count = 0
+    for b in range(used):
+        base_x = np.int64(block_ijk[b, 0]) * BLOCK_EDGE
+        base_y = np.int64(block_ijk[b, 1]) * BLOCK_EDGE
+        base_z = np.int64(block_ijk[b, 2]) * BLOCK_EDGE
+        if (
+            base_x + BLOCK_EDGE <= lo[0]
+            or base_x > hi[0]
+            or base_y + BLOCK_EDGE <= lo[1]
+            or base_y > hi[1]
+            or base_z + BLOCK_EDGE <= lo[2]
+            or base_z > hi[2]
+        ):
+            continue
+        inside = (
+            base_x >= lo[0]
+            and base_x + BLOCK_EDGE - 1 <= hi[0]
+            and base_y >= lo[1]
+            and base_y + BLOCK_EDGE - 1 <= hi[1]
+            and base_z >= lo[2]
+            and base_z + BLOCK_EDGE - 1 <= hi[2]
+        )
+        for i in range(BLOCK_VOXELS):
+            s = block_sn[b, i, 0]
+            n = block_sn[b, i, 1]
+            if (s > 0.0 or n > 0.0) and n >= min_extinction * s:
+                if not inside:
+                    x = base_x + _unspread_bits(i >> 2)
+                    y = base_y + _unspread_bits(i >> 1)
+                    z = base_z + _unspread_bits(i)
+                    if x < lo[0] or x > hi[0] or y < lo[1] or y > hi[1] or z < lo[2] or z > hi[2]:
+                        continue
+                keep[b, i] = True
+                count += 1
+    return count
+
+
+@nb.njit(cache=True, nogil=True)
+def _gather_voxels(
+    block_ijk: NDArray[np.int32],
+    block_sn: NDArray[np.float32],
+    block_t: NDArray[np.float64],
+    keep: NDArray[np.bool_],
+    ijk: NDArray[np.int32],
+    s: NDArray[np.float64],
+    n: NDArray[np.float64],
+    t_last: NDArray[np.float64],
+) -> None:
+    """Write the voxels marked in ``keep`` (blocks x voxels) to the output arrays, in order."""
+    j = 0
+    for b in range(keep.shape[0]):
+        for i in range(BLOCK_VOXELS):
+            if keep[b, i]:
+                ijk[j, 0] = block_ijk[b, 0] * BLOCK_EDGE + _unspread_bits(i >> 2)
+                ijk[j, 1] = block_ijk[b, 1] * BLOCK_EDGE + _unspread_bits(i >> 1)
+                ijk[j, 2] = block_ijk[b, 2] * BLOCK_EDGE + _unspread_bits(i)
+                s[j] = block_sn[b, i, 0]
+                n[j] = block_sn[b, i, 1]
+                t_last[j] = block_t[b]
+                j += 1
+
+
+@nb.njit(inline="always", cache=True)
+def _unspread_bits(v: int) -> int:
+    """Inverse of ``_spread_bits``: bits 0, 3, 6 of ``v`` gathered into bits 0, 1, 2."""
+    return (v & 1) | ((v >> 2) & 2) | ((v >> 4) & 4)
+
+
+@nb.njit(cache=True, nogil=True)
 def _rebuild_table(
     block_ijk: NDArray[np.int32],
     used: int,
@@ -455,28 +537,41 @@ class BlockStore:
             t[sel] = sh.block_t[b]
         return VoxelArrays(ijk.astype(np.int32), s, n, t)
 
-    def export(self) -> VoxelArrays:
-        """Every observed voxel."""
-        parts = []
+    def export(
+        self,
+        min_extinction: float = 0.0,
+        lo: NDArray[np.int64] | None = None,
+        hi: NDArray[np.int64] | None = None,
+    ) -> VoxelArrays:
+        """Observed voxels with n >= min_extinction * s and index within [lo, hi]."""
+        lo_ = np.full(3, -MAX_VOXEL_INDEX - 1, dtype=np.int64) if lo is None else lo
+        hi_ = np.full(3, MAX_VOXEL_INDEX + 1, dtype=np.int64) if hi is None else hi
+        keeps, counts = [], []
         for sh in self.shards:
-            used = sh.used
-            obs = (sh.block_sn[:used] > 0).any(axis=-1)
-            b, li = np.nonzero(obs)
-            ijk = sh.block_ijk[b] * BLOCK_EDGE + LOCAL_OFFSETS[li]
-            parts.append(
-                VoxelArrays(
-                    ijk.astype(np.int32),
-                    sh.block_sn[b, li, 0].astype(np.float64),
-                    sh.block_sn[b, li, 1].astype(np.float64),
-                    sh.block_t[b],
-                )
+            keep = np.zeros((sh.used, BLOCK_VOXELS), dtype=np.bool_)
+            counts.append(
+                _select_voxels(sh.block_ijk, sh.block_sn, sh.used, min_extinction, lo_, hi_, keep)
             )
-        return VoxelArrays(
-            np.concatenate([p.ijk for p in parts]).reshape(-1, 3),
-            np.concatenate([p.s for p in parts]),
-            np.concatenate([p.n for p in parts]),
-            np.concatenate([p.t_last for p in parts]),
+            keeps.append(keep)
+        total = sum(counts)
+        out = VoxelArrays(
+            np.empty((total, 3), dtype=np.int32), np.empty(total), np.empty(total), np.empty(total)
         )
+        start = 0
+        for sh, keep, count in zip(self.shards, keeps, counts, strict=True):
+            part = slice(start, start + count)
+            _gather_voxels(
+                sh.block_ijk,
+                sh.block_sn,
+                sh.block_t,
+                keep,
+                out.ijk[part],
+                out.s[part],
+                out.n[part],
+                out.t_last[part],
+            )
+            start += count
+        return out
 
     def evict(self, keep_block: BlockPredicate) -> int:
         """Drop the blocks the predicate rejects; returns the number of voxels dropped."""

@@ -169,3 +169,23 @@ def test_memory_is_reported() -> None:
     points, origin = anchors_scene(n_scans=1, azimuths=100)[0]
     mapper.integrate(points, origin, 0.0)
     assert mapper.memory_bytes >= mapper.num_blocks * 512 * 8
+
+
+def test_filtered_export_equals_filtering_the_full_export() -> None:
+    mapper = Mapper(0.2)
+    for k, (points, origin) in enumerate(anchors_scene(n_scans=2, azimuths=300)):
+        mapper.integrate(points, origin, float(k))
+    full = mapper.voxels()
+    lo, hi = np.array([-3.0, -np.inf, 0.5]), np.array([12.3, 4.0, 2.0])
+    got = mapper.voxels(min_doo=0.3, min_evidence=0.05, bounds=(lo, hi))
+    keep = (
+        (full.most_likely_doo >= 0.3 - 1e-9)
+        & (full.s >= 0.05)
+        & np.all((full.centers >= lo) & (full.centers <= hi), axis=1)
+    )
+    assert 0 < len(got) < len(full)
+    expected = {tuple(v) for v in full.ijk[keep].tolist()}
+    assert {tuple(v) for v in got.ijk.tolist()} == expected
+    assert (got.most_likely_doo >= 0.3 - 1e-9).all()
+    with pytest.raises(ValueError, match="min_doo"):
+        mapper.voxels(min_doo=1.0)
