@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -13,7 +14,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from mfp_mapper import model
 from mfp_mapper.store import BLOCK_EDGE, MAX_VOXEL_INDEX, BlockStore, VoxelArrays
-from mfp_mapper.traversal import walk_into_shard
+from mfp_mapper.traversal import Mailbox, Rays, integrate_rays
 
 FloatArray = NDArray[np.float64]
 
@@ -122,6 +123,7 @@ class Mapper:
         self.version = 0
         self._store = BlockStore(shards=_shard_count(self.threads))
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
+        self._mailboxes = [Mailbox() for _ in self._store.shards]
 
     # --- writing ----------------------------------------------------------------------
 
@@ -143,27 +145,35 @@ class Mapper:
             raise ValueError(f"origins must have shape (3,) or {pts.shape}, got {org.shape}")
         if not math.isfinite(stamp):
             raise ValueError(f"stamp must be finite seconds, got {stamp}")
-        rays = self._prepare_rays(pts, org)
-        summary = IntegrationSummary(rays_in=pts.shape[0], dropped=rays.dropped)
-        summary.rays_used = rays.count
+        rays, dropped = self._prepare_rays(pts, org)
+        summary = IntegrationSummary(rays_in=pts.shape[0], dropped=dropped)
+        summary.rays_used = len(rays)
         summary.rays_truncated = int(np.count_nonzero(~rays.has_return))
-        if rays.count:
-            visits, touched, new = self._walk_and_merge(rays, float(stamp))
-            summary.voxels_touched, summary.blocks_touched, summary.new_voxels = (
-                visits,
-                touched,
-                new,
+        if len(rays):
+            scan_id = self._store.begin_scan()
+            integrate_rays(
+                self._store,
+                rays,
+                scan_id,
+                stamp,
+                self.decay_time,
+                self._mailboxes,
+                self._run_parallel,
+            )
+            summary.new_voxels, summary.blocks_touched, summary.voxels_touched = (
+                self._store.finish_scan()
             )
             self.last_stamp = (
                 float(stamp) if self.last_stamp is None else max(self.last_stamp, stamp)
             )
-            self.last_origin = rays.origins_m.mean(axis=0)
+            self.last_origin = rays.origins_vox.mean(axis=0) * self.resolution
             self._enforce_memory_bound()
             self.version += 1
         summary.seconds = time.perf_counter() - t0
         return summary
 
-    def _prepare_rays(self, pts: FloatArray, org: FloatArray) -> _Rays:
+    def _prepare_rays(self, pts: FloatArray, org: FloatArray) -> tuple[Rays, dict[str, int]]:
+        """The usable rays in voxel units, and how many were dropped for which reason."""
         delta = pts - org
         length = np.sqrt(np.einsum("ij,ij->i", delta, delta))
         finite = np.isfinite(length) & np.isfinite(org).all(axis=1)
@@ -184,42 +194,20 @@ class Mapper:
             "below_min_range": int(np.count_nonzero(finite & ~long_enough)),
             "out_of_bounds": int(np.count_nonzero(long_enough & ~in_bounds)),
         }
-        return _Rays(
-            origins_m=org[use],
+        rays = Rays(
             origins_vox=np.ascontiguousarray(org_vox[use]),
             ends_vox=np.ascontiguousarray(ends_vox[use]),
             lengths=np.minimum(length[use], self.max_range),
             has_return=~truncated[use],
-            dropped=dropped,
         )
+        return rays, dropped
 
-    def _walk_and_merge(self, rays: _Rays, stamp: float) -> tuple[int, int, int]:
-        """Walk the rays into the store, one thread per group of shards."""
-        store = self._store
-        scan_id = store.begin_scan()
-        groups = np.array_split(np.arange(len(store.shards)), self.threads)
-
-        def walk(shard_ids: NDArray[np.intp]) -> None:
-            for sid in shard_ids:
-                walk_into_shard(
-                    rays.origins_vox,
-                    rays.ends_vox,
-                    rays.lengths,
-                    rays.has_return,
-                    store.shards[sid],
-                    int(sid),
-                    store.shard_mask,
-                    scan_id,
-                    stamp,
-                    self.decay_time,
-                )
-
-        if self._pool is None:
-            walk(groups[0])
+    def _run_parallel(self, fn: Callable[[int], None], items: Sequence[int]) -> None:
+        if self._pool is None or len(items) == 1:
+            for item in items:
+                fn(item)
         else:
-            list(self._pool.map(walk, groups))
-        new, touched, updates = store.finish_scan()
-        return updates, touched, new
+            list(self._pool.map(fn, items))
 
     def _enforce_memory_bound(self) -> None:
         """Evict far blocks: beyond ``keep_radius`` of the latest sensor position, then the
@@ -370,20 +358,6 @@ class Mapper:
         if self._pool is not None:
             self._pool.shutdown()
             self._pool = None
-
-
-@dataclass
-class _Rays:
-    origins_m: FloatArray
-    origins_vox: FloatArray
-    ends_vox: FloatArray
-    lengths: FloatArray
-    has_return: NDArray[np.bool_]
-    dropped: dict[str, int]
-
-    @property
-    def count(self) -> int:
-        return int(self.lengths.shape[0])
 
 
 def _shard_count(threads: int) -> int:

@@ -54,6 +54,17 @@ def block_key(bx: int, by: int, bz: int) -> int:
 
 
 @nb.njit(inline="always", cache=True)
+def block_of_key(key: int) -> tuple[int, int, int]:
+    """The block index packed in ``key`` by ``block_key``."""
+    mask = (1 << _KEY_BITS) - 1
+    return (
+        ((key >> (2 * _KEY_BITS)) & mask) - _KEY_OFFSET,
+        ((key >> _KEY_BITS) & mask) - _KEY_OFFSET,
+        (key & mask) - _KEY_OFFSET,
+    )
+
+
+@nb.njit(inline="always", cache=True)
 def shard_of(bx: int, by: int, bz: int, shard_mask: int) -> int:
     return (bx + by + bz) & shard_mask
 

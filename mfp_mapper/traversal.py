@@ -6,18 +6,119 @@ metres of the ray inside that voxel, so a ray's chords add up to its length — 
 that ends in a return gives its end voxel ``n += 1`` (the chord from where it entered that
 voxel up to the return point is its last chord).
 
-Walk and store update run in one pass: a ray stays in an 8x8x8 block for several steps,
-so most updates index the block the walk is already in. Several threads each walk all
-the rays and update only the blocks of their own shards.
+Threads: the store has one shard per thread, and a thread alone writes to its shard. Each
+thread walks its share of the rays; visits to its own blocks are applied at once, visits
+to another shard's blocks go to the thread's mailbox. When every thread has walked, each
+applies the mailboxes' visits to its shard. With one thread there is no mailbox traffic.
+
+Visits are applied in batches: one pass only loads the visited cache lines (the loads do
+not depend on each other, so their memory latencies overlap), a second pass adds.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
-from mfp_mapper.store import BLOCK_BITS, Shard, block_key, local_index, open_block, shard_of
+from mfp_mapper.store import (
+    BLOCK_BITS,
+    BlockStore,
+    Shard,
+    block_key,
+    block_of_key,
+    local_index,
+    open_block,
+    shard_of,
+)
+
+_CACHE_BITS = 4
+_CACHE_MASK = (1 << _CACHE_BITS) - 1
+_CACHE_SIZE = 1 << (3 * _CACHE_BITS)
+_BATCH_VISITS = 2048
+"""Voxel visits gathered (from several rays) before they are applied to the blocks."""
+_RAYS_PER_CHUNK = 256
+"""Rays are dealt to threads in chunks of neighbours, so each thread's rays stay coherent."""
+
+
+@dataclass
+class Rays:
+    """Rays in voxel units (metres / resolution), with their lengths in metres."""
+
+    origins_vox: NDArray[np.float64]
+    ends_vox: NDArray[np.float64]
+    lengths: NDArray[np.float64]
+    has_return: NDArray[np.bool_]
+
+    def __len__(self) -> int:
+        return int(self.lengths.shape[0])
+
+    def subset(self, index: NDArray[np.intp]) -> Rays:
+        return Rays(
+            np.ascontiguousarray(self.origins_vox[index]),
+            np.ascontiguousarray(self.ends_vox[index]),
+            self.lengths[index],
+            self.has_return[index],
+        )
+
+
+class Mailbox:
+    """Visits a thread made to blocks of other shards: block key, voxel, chord, return."""
+
+    def __init__(self, capacity: int = 1 << 16) -> None:
+        self.count = np.zeros(1, dtype=np.int64)
+        self.block = np.empty(capacity, dtype=np.int64)
+        self.local = np.empty(capacity, dtype=np.int16)
+        self.chord = np.empty(capacity, dtype=np.float32)
+        self.returns = np.empty(capacity, dtype=np.float32)
+
+    def grow(self, min_free: int) -> None:
+        used = int(self.count[0])
+        capacity = max(2 * self.block.shape[0], used + min_free)
+        for name in ("block", "local", "chord", "returns"):
+            old = getattr(self, name)
+            new = np.empty(capacity, dtype=old.dtype)
+            new[:used] = old[:used]
+            setattr(self, name, new)
+
+
+def integrate_rays(
+    store: BlockStore,
+    rays: Rays,
+    scan_id: int,
+    stamp: float,
+    decay_time: float,
+    mailboxes: Sequence[Mailbox],
+    run_parallel: Callable[[Callable[[int], None], Sequence[int]], object],
+) -> None:
+    """Add every ray's chords and returns to the store (scan ``scan_id`` at ``stamp``), one
+    thread per shard, each with its ``mailboxes`` entry (kept between scans, so their
+    memory is reused). ``run_parallel(fn, items)`` calls ``fn`` on every item, in parallel."""
+    threads = len(store.shards)
+    if threads == 1:
+        parts = [rays]
+    else:
+        owner = (np.arange(len(rays)) // _RAYS_PER_CHUNK) % threads
+        parts = [rays.subset(np.flatnonzero(owner == k)) for k in range(threads)]
+    for mail in mailboxes:
+        mail.count[0] = 0
+
+    def walk(k: int) -> None:
+        _walk_part(
+            parts[k], store.shards[k], k, store.shard_mask, mailboxes[k], scan_id, stamp, decay_time
+        )
+
+    def deliver(k: int) -> None:
+        for sender, mail in enumerate(mailboxes):
+            if sender != k:
+                _deliver(mail, store.shards[k], k, store.shard_mask, scan_id, stamp, decay_time)
+
+    run_parallel(walk, range(threads))
+    if threads > 1:
+        run_parallel(deliver, range(threads))
 
 
 def block_bounds(
@@ -29,20 +130,70 @@ def block_bounds(
     return np.abs(hi - lo).sum(axis=1) + 2
 
 
-_CACHE_BITS = 4
-_CACHE_MASK = (1 << _CACHE_BITS) - 1
-_CACHE_SIZE = 1 << (3 * _CACHE_BITS)
-_BATCH_VISITS = 2048
-"""Voxel visits gathered (from several rays) before they are applied to the blocks."""
+def visit_bounds(
+    origins_vox: NDArray[np.float64], ends_vox: NDArray[np.float64]
+) -> NDArray[np.int64]:
+    """Upper bound of the voxels each ray visits: Manhattan voxel distance plus one."""
+    return np.abs(np.floor(ends_vox) - np.floor(origins_vox)).sum(axis=1).astype(np.int64) + 1
+
+
+def _walk_part(
+    rays: Rays,
+    shard: Shard,
+    shard_id: int,
+    shard_mask: int,
+    mail: Mailbox,
+    scan_id: int,
+    stamp: float,
+    decay_time: float,
+) -> None:
+    """Walk ``rays`` into ``shard`` (and ``mail``), growing either when it runs out of room."""
+    room = block_bounds(rays.origins_vox, rays.ends_vox)
+    visits = visit_bounds(rays.origins_vox, rays.ends_vox)
+    first = 0
+    while first < len(rays):
+        first = _walk_rays(
+            rays.origins_vox, rays.ends_vox, rays.lengths, rays.has_return, room, visits, first,
+            shard_id, shard_mask, shard.table_keys, shard.table_blocks, shard.block_ijk,
+            shard.block_sn, shard.block_t, shard.block_scan, shard.counters, scan_id, stamp,
+            decay_time, mail.block, mail.local, mail.chord, mail.returns, mail.count,
+        )  # fmt: skip
+        if first < len(rays):
+            if mail.count[0] + visits[first] > mail.block.shape[0]:
+                mail.grow(int(visits[first]))
+            else:
+                shard.grow(min_free=int(room[first]))
+
+
+def _deliver(
+    mail: Mailbox,
+    shard: Shard,
+    shard_id: int,
+    shard_mask: int,
+    scan_id: int,
+    stamp: float,
+    decay_time: float,
+) -> None:
+    """Apply the visits in ``mail`` that belong to ``shard``, growing it as needed."""
+    start, stop = 0, int(mail.count[0])
+    while start < stop:
+        start = _apply_mail(
+            mail.block, mail.local, mail.chord, mail.returns, start, stop, shard_id, shard_mask,
+            shard.table_keys, shard.table_blocks, shard.block_ijk, shard.block_sn, shard.block_t,
+            shard.block_scan, shard.counters, scan_id, stamp, decay_time,
+        )  # fmt: skip
+        if start < stop:
+            shard.grow(min_free=1024)
 
 
 @nb.njit(cache=True, nogil=True)
-def _walk_into_shard(
+def _walk_rays(
     origins_vox: NDArray[np.float64],
     ends_vox: NDArray[np.float64],
     lengths: NDArray[np.float64],
     has_return: NDArray[np.bool_],
     room_needed: NDArray[np.int64],
+    visits_needed: NDArray[np.int64],
     first: int,
     shard: int,
     shard_mask: int,
@@ -56,14 +207,17 @@ def _walk_into_shard(
     scan_id: int,
     stamp: float,
     decay_time: float,
+    mail_block: NDArray[np.int64],
+    mail_local: NDArray[np.int16],
+    mail_chord: NDArray[np.float32],
+    mail_return: NDArray[np.float32],
+    mail_count: NDArray[np.int64],
 ) -> int:
-    """Walk rays ``first..`` (voxel units), adding their chords and returns to ``shard``.
+    """Walk rays ``first..`` (voxel units): visits to ``shard`` are added to its blocks,
+    visits to other shards are appended to the mailbox.
 
-    Rays are walked in batches: the walk records each visit (block, voxel, chord, return)
-    in a buffer; the buffer is then applied in two passes, one that only loads the voxels'
-    cache lines (independent loads, so their memory latencies overlap) and one that adds.
-    Before each ray, checks there is room for the blocks it may create; returns the index
-    of the first ray not walked (the caller grows the shard and calls again), or N.
+    Before each ray, checks there is room for the blocks and mail it may create; returns
+    the index of the first ray not walked (the caller grows and calls again), or N.
     """
     capacity = min(block_t.shape[0], table_keys.shape[0] // 2)
     # blocks opened in this call, direct-mapped by their low index bits: neighbouring rays
@@ -72,23 +226,26 @@ def _walk_into_shard(
     cache_blocks = np.empty(_CACHE_SIZE, dtype=np.int64)
     longest = 0
     for r in range(first, lengths.shape[0]):
-        longest = max(longest, _visit_bound(origins_vox[r], ends_vox[r]))
+        longest = max(longest, visits_needed[r])
     visit_block = np.empty(_BATCH_VISITS + longest, dtype=np.int64)
     visit_local = np.empty(_BATCH_VISITS + longest, dtype=np.int64)
     visit_chord = np.empty(_BATCH_VISITS + longest, dtype=np.float32)
     visit_return = np.empty(_BATCH_VISITS + longest, dtype=np.float32)
     count = 0
+    mail = mail_count[0]
     for r in range(first, lengths.shape[0] + 1):
-        if (
-            count >= _BATCH_VISITS
-            or r == lengths.shape[0]
+        stop = (
+            r == lengths.shape[0]
             or counters[0] + room_needed[r] > capacity
-        ):
+            or mail + visits_needed[r] > mail_block.shape[0]
+        )
+        if count >= _BATCH_VISITS or stop:
             _apply_visits(
                 block_sn, visit_block, visit_local, visit_chord, visit_return, count, counters
             )
             count = 0
-            if r == lengths.shape[0] or counters[0] + room_needed[r] > capacity:
+            if stop:
+                mail_count[0] = mail
                 return r
         ox = origins_vox[r, 0]
         oy = origins_vox[r, 1]
@@ -119,6 +276,7 @@ def _walk_into_shard(
         t_prev = 0.0
         bx = by = bz = 0
         block = -1
+        key = -1
         new_block = True
         while True:
             if new_block:
@@ -127,6 +285,7 @@ def _walk_into_shard(
                 bx = vx >> BLOCK_BITS
                 by = vy >> BLOCK_BITS
                 bz = vz >> BLOCK_BITS
+                key = block_key(bx, by, bz)
                 block = -1
                 if shard_of(bx, by, bz, shard_mask) == shard:
                     slot = (
@@ -134,25 +293,13 @@ def _walk_into_shard(
                         | ((by & _CACHE_MASK) << _CACHE_BITS)
                         | (bz & _CACHE_MASK)
                     )
-                    key = block_key(bx, by, bz)
                     if cache_keys[slot] == key:
                         block = cache_blocks[slot]
                     else:
                         block = open_block(
-                            bx,
-                            by,
-                            bz,
-                            table_keys,
-                            table_blocks,
-                            block_ijk,
-                            block_sn,
-                            block_t,
-                            block_scan,
-                            counters,
-                            scan_id,
-                            stamp,
-                            decay_time,
-                        )
+                            bx, by, bz, table_keys, table_blocks, block_ijk, block_sn, block_t,
+                            block_scan, counters, scan_id, stamp, decay_time,
+                        )  # fmt: skip
                         cache_keys[slot] = key
                         cache_blocks[slot] = block
             # the end voxel takes the rest of the ray and the return; an end point exactly
@@ -160,13 +307,20 @@ def _walk_into_shard(
             final = steps == 0
             t_next = 1.0 if final else min(t_max_x, t_max_y, t_max_z, 1.0)
             chord = (t_next - t_prev) * length
-            returns = final and has_return[r]
-            if block >= 0 and (chord > 0.0 or returns):
-                visit_block[count] = block
-                visit_local[count] = local_index(vx, vy, vz)
-                visit_chord[count] = chord
-                visit_return[count] = 1.0 if returns else 0.0
-                count += 1
+            returns = 1.0 if final and has_return[r] else 0.0
+            if chord > 0.0 or returns > 0.0:
+                if block >= 0:
+                    visit_block[count] = block
+                    visit_local[count] = local_index(vx, vy, vz)
+                    visit_chord[count] = chord
+                    visit_return[count] = returns
+                    count += 1
+                else:
+                    mail_block[mail] = key
+                    mail_local[mail] = local_index(vx, vy, vz)
+                    mail_chord[mail] = chord
+                    mail_return[mail] = returns
+                    mail += 1
             if final:
                 break
             t_prev = t_next
@@ -183,18 +337,90 @@ def _walk_into_shard(
             new_block = (
                 (vx >> BLOCK_BITS) != bx or (vy >> BLOCK_BITS) != by or (vz >> BLOCK_BITS) != bz
             )
+    mail_count[0] = mail
     return lengths.shape[0]
 
 
-@nb.njit(inline="always", cache=True)
-def _visit_bound(origin: NDArray[np.float64], end: NDArray[np.float64]) -> int:
-    """Most voxels a walk from ``origin`` to ``end`` (voxel units) can visit."""
-    return (
-        abs(int(np.floor(end[0])) - int(np.floor(origin[0])))
-        + abs(int(np.floor(end[1])) - int(np.floor(origin[1])))
-        + abs(int(np.floor(end[2])) - int(np.floor(origin[2])))
-        + 2
-    )
+@nb.njit(cache=True, nogil=True)
+def _apply_mail(
+    mail_block: NDArray[np.int64],
+    mail_local: NDArray[np.int16],
+    mail_chord: NDArray[np.float32],
+    mail_return: NDArray[np.float32],
+    start: int,
+    stop: int,
+    shard: int,
+    shard_mask: int,
+    table_keys: NDArray[np.int64],
+    table_blocks: NDArray[np.int32],
+    block_ijk: NDArray[np.int32],
+    block_sn: NDArray[np.float32],
+    block_t: NDArray[np.float64],
+    block_scan: NDArray[np.int64],
+    counters: NDArray[np.int64],
+    scan_id: int,
+    stamp: float,
+    decay_time: float,
+) -> int:
+    """Apply mailbox entries ``start..stop`` that belong to ``shard``, in order.
+
+    Returns ``stop``, or the first entry whose new block found no room (the caller grows
+    the shard and calls again from there).
+    """
+    cache_keys = np.full(_CACHE_SIZE, -1, dtype=np.int64)
+    cache_blocks = np.empty(_CACHE_SIZE, dtype=np.int64)
+    visit_block = np.empty(_BATCH_VISITS, dtype=np.int64)
+    visit_local = np.empty(_BATCH_VISITS, dtype=np.int64)
+    visit_chord = np.empty(_BATCH_VISITS, dtype=np.float32)
+    visit_return = np.empty(_BATCH_VISITS, dtype=np.float32)
+    count = 0
+    last_key = -1
+    block = -1
+    for j in range(start, stop):
+        if count == _BATCH_VISITS:
+            _apply_visits(
+                block_sn, visit_block, visit_local, visit_chord, visit_return, count, counters
+            )
+            count = 0
+        key = mail_block[j]
+        if key != last_key:
+            bx, by, bz = block_of_key(key)
+            block = -1
+            if shard_of(bx, by, bz, shard_mask) == shard:
+                slot = (
+                    ((bx & _CACHE_MASK) << (2 * _CACHE_BITS))
+                    | ((by & _CACHE_MASK) << _CACHE_BITS)
+                    | (bz & _CACHE_MASK)
+                )
+                if cache_keys[slot] == key:
+                    block = cache_blocks[slot]
+                else:
+                    block = open_block(
+                        bx, by, bz, table_keys, table_blocks, block_ijk, block_sn, block_t,
+                        block_scan, counters, scan_id, stamp, decay_time,
+                    )  # fmt: skip
+                    cache_keys[slot] = key
+                    cache_blocks[slot] = block
+                if block < 0:
+                    _apply_visits(
+                        block_sn,
+                        visit_block,
+                        visit_local,
+                        visit_chord,
+                        visit_return,
+                        count,
+                        counters,
+                    )
+                    return j
+            last_key = key
+        if block >= 0:
+            visit_block[count] = block
+            visit_local[count] = mail_local[j]
+            visit_chord[count] = mail_chord[j]
+            visit_return[count] = mail_return[j]
+            count += 1
+    _apply_visits(block_sn, visit_block, visit_local, visit_chord, visit_return, count, counters)
+    return stop
 
 
 @nb.njit(cache=True, nogil=True)
@@ -223,47 +449,3 @@ def _apply_visits(
         block_sn[b, v, 1] += visit_return[i]
     counters[1] += new
     counters[3] += count + (touch < 0.0)  # touch is never negative; using it keeps the loads
-
-
-def walk_into_shard(
-    origins_vox: NDArray[np.float64],
-    ends_vox: NDArray[np.float64],
-    lengths: NDArray[np.float64],
-    has_return: NDArray[np.bool_],
-    shard: Shard,
-    shard_id: int,
-    shard_mask: int,
-    scan_id: int,
-    stamp: float,
-    decay_time: float,
-) -> None:
-    """Add every ray's contribution that falls in one shard, growing the shard as needed.
-
-    Coordinates are in voxel units (metres / resolution); ``lengths`` in metres.
-    """
-    room = block_bounds(origins_vox, ends_vox)
-    first = 0
-    while True:
-        first = _walk_into_shard(
-            origins_vox,
-            ends_vox,
-            lengths,
-            has_return,
-            room,
-            first,
-            shard_id,
-            shard_mask,
-            shard.table_keys,
-            shard.table_blocks,
-            shard.block_ijk,
-            shard.block_sn,
-            shard.block_t,
-            shard.block_scan,
-            shard.counters,
-            scan_id,
-            stamp,
-            decay_time,
-        )
-        if first >= lengths.shape[0]:
-            return
-        shard.grow(min_free=int(room[first]))

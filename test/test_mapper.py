@@ -65,7 +65,8 @@ def _sorted(mapper: Mapper) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 @pytest.mark.parametrize("decay_time", [math.inf, 2.0])
-def test_two_threads_give_exactly_the_statistics_of_one(decay_time: float) -> None:
+def test_two_threads_give_the_statistics_of_one(decay_time: float) -> None:
+    """Same voxels, same return counts, chord sums equal up to the order of float additions."""
     scans = anchors_scene(n_scans=3, azimuths=300)
     maps = [Mapper(0.1, threads=t, decay_time=decay_time) for t in (1, 2)]
     for k, (points, origin) in enumerate(scans):
@@ -74,7 +75,8 @@ def test_two_threads_give_exactly_the_statistics_of_one(decay_time: float) -> No
         assert summaries[0].new_voxels == summaries[1].new_voxels
     (ijk1, s1, n1), (ijk2, s2, n2) = (_sorted(m) for m in maps)
     assert np.array_equal(ijk1, ijk2)
-    assert np.array_equal(s1, s2) and np.array_equal(n1, n2)
+    assert s2 == pytest.approx(s1, rel=1e-5, abs=1e-6)
+    assert n2 == pytest.approx(n1, rel=1e-6)
     assert maps[0].num_voxels == maps[1].num_voxels == len(s1)
     maps[1].close()
 
