@@ -38,7 +38,7 @@ from mfp_mapper.store import (
 _CACHE_BITS = 4
 _CACHE_MASK = (1 << _CACHE_BITS) - 1
 _CACHE_SIZE = 1 << (3 * _CACHE_BITS)
-_BATCH_VISITS = 2048
+_BATCH_VISITS = 8192
 """Voxel visits gathered (from several rays) before they are applied to the blocks."""
 _RAYS_PER_CHUNK = 256
 """Rays are dealt to threads in chunks of neighbours, so each thread's rays stay coherent."""
@@ -74,6 +74,11 @@ class Mailbox:
         self.local = np.empty(capacity, dtype=np.int16)
         self.chord = np.empty(capacity, dtype=np.float32)
         self.returns = np.empty(capacity, dtype=np.float32)
+
+    def reserve(self, capacity: int) -> None:
+        """Make room for ``capacity`` entries in all."""
+        if capacity > self.block.shape[0]:
+            self.grow(capacity - int(self.count[0]))
 
     def grow(self, min_free: int) -> None:
         used = int(self.count[0])
@@ -150,6 +155,8 @@ def _walk_part(
     """Walk ``rays`` into ``shard`` (and ``mail``), growing either when it runs out of room."""
     room = block_bounds(rays.origins_vox, rays.ends_vox)
     visits = visit_bounds(rays.origins_vox, rays.ends_vox)
+    if shard_mask:  # room for the worst case up front: pages are committed only when written
+        mail.reserve(int(visits.sum()))
     first = 0
     while first < len(rays):
         first = _walk_rays(
