@@ -11,8 +11,8 @@ thread walks its share of the rays; visits to its own blocks are applied at once
 to another shard's blocks go to the thread's mailbox. When every thread has walked, each
 applies the mailboxes' visits to its shard. With one thread there is no mailbox traffic.
 
-Visits are applied in batches: one pass only loads the visited cache lines (the loads do
-not depend on each other, so their memory latencies overlap), a second pass adds.
+Visits are applied in batches: one pass only prefetches the visited cache lines (so their
+memory latencies overlap), a second pass adds.
 """
 
 from __future__ import annotations
@@ -22,6 +22,10 @@ from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
+from llvmlite import ir
+from numba import types
+from numba.core import cgutils
+from numba.extending import intrinsic
 from numpy.typing import NDArray
 
 from mfp_mapper.store import (
@@ -34,6 +38,59 @@ from mfp_mapper.store import (
     open_block,
     shard_of,
 )
+
+
+@intrinsic
+def _prefetch_voxel(typingctx, array, block, voxel):  # type: ignore[no-untyped-def]
+    """Ask the processor to start loading the cache line of ``array[block, voxel]``.
+
+    A prefetch does not wait for the line (a load would hold its place in the processor's
+    window until the line arrives), so many misses are in flight at once.
+    """
+    sig = types.void(array, block, voxel)
+
+    def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
+        array_type = signature.args[0]
+        ary = context.make_array(array_type)(context, builder, args[0])
+        index = [
+            context.cast(builder, a, t, types.intp)
+            for a, t in zip(args[1:], signature.args[1:], strict=True)
+        ]
+        pointer = cgutils.get_item_pointer2(
+            context, builder, data=ary.data, shape=cgutils.unpack_tuple(builder, ary.shape),
+            strides=cgutils.unpack_tuple(builder, ary.strides), layout=array_type.layout,
+            inds=[*index, context.get_constant(types.intp, 0)], wraparound=False,
+        )  # fmt: skip
+        byte_pointer = ir.IntType(8).as_pointer()
+        i32 = ir.IntType(32)
+        prefetch = builder.module.declare_intrinsic(
+            "llvm.prefetch",
+            [byte_pointer],
+            ir.FunctionType(ir.VoidType(), [byte_pointer, i32, i32, i32]),
+        )
+        # write access, high temporal locality, data cache
+        builder.call(prefetch, [builder.bitcast(pointer, byte_pointer), i32(1), i32(3), i32(1)])
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+def _prefetch_compiles() -> bool:
+    """Whether this numba/llvmlite turns ``_prefetch_voxel`` into a prefetch instruction."""
+    try:
+
+        @nb.njit
+        def probe(array: NDArray[np.float32]) -> None:
+            _prefetch_voxel(array, 0, 0)  # type: ignore[call-arg]
+
+        probe(np.zeros((1, 1, 2), dtype=np.float32))
+    except Exception:  # noqa: BLE001 - any failure means: use plain loads instead
+        return False
+    return True
+
+
+_PREFETCH = _prefetch_compiles()
+
 
 _CACHE_BITS = 4
 _CACHE_MASK = (1 << _CACHE_BITS) - 1
@@ -441,11 +498,15 @@ def _apply_visits(
     counters: NDArray[np.int64],
 ) -> None:
     """Add the buffered visits, in order, to their voxels: s += chord, n += return."""
-    # first only load every visited cache line: the loads do not depend on each other, so
-    # the processor keeps many misses in flight; the additions then find the lines in cache
+    # first only fetch every visited cache line, so that many misses are in flight at once;
+    # the additions then find the lines in cache. Without a prefetch instruction: plain
+    # loads, which do not depend on each other either
     touch = np.float32(0.0)
     for i in range(count):
-        touch += block_sn[visit_block[i], visit_local[i], 1]
+        if _PREFETCH:
+            _prefetch_voxel(block_sn, visit_block[i], visit_local[i])  # type: ignore[call-arg]
+        else:
+            touch += block_sn[visit_block[i], visit_local[i], 1]
     new = 0
     for i in range(count):
         b = visit_block[i]
