@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 
 from mfp_mapper.store import (
     BLOCK_BITS,
+    BLOCK_VOXELS,
     BlockStore,
     Shard,
     block_key,
@@ -41,13 +42,13 @@ from mfp_mapper.store import (
 
 
 @intrinsic
-def _prefetch_voxel(typingctx, array, block, voxel):  # type: ignore[no-untyped-def]
-    """Ask the processor to start loading the cache line of ``array[block, voxel]``.
+def _prefetch_voxel(typingctx, array, index):  # type: ignore[no-untyped-def]
+    """Ask the processor to start loading the cache line of ``array[index]`` (a row).
 
     A prefetch does not wait for the line (a load would hold its place in the processor's
     window until the line arrives), so many misses are in flight at once.
     """
-    sig = types.void(array, block, voxel)
+    sig = types.void(array, index)
 
     def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
         array_type = signature.args[0]
@@ -81,9 +82,9 @@ def _prefetch_compiles() -> bool:
 
         @nb.njit
         def probe(array: NDArray[np.float32]) -> None:
-            _prefetch_voxel(array, 0, 0)  # type: ignore[call-arg]
+            _prefetch_voxel(array, 0)  # type: ignore[call-arg]
 
-        probe(np.zeros((1, 1, 2), dtype=np.float32))
+        probe(np.zeros((1, 2), dtype=np.float32))
     except Exception:  # noqa: BLE001 - any failure means: use plain loads instead
         return False
     return True
@@ -291,8 +292,7 @@ def _walk_rays(
     longest = 0
     for r in range(first, lengths.shape[0]):
         longest = max(longest, visits_needed[r])
-    visit_block = np.empty(_BATCH_VISITS + longest, dtype=np.int64)
-    visit_local = np.empty(_BATCH_VISITS + longest, dtype=np.int64)
+    visit_voxel = np.empty(_BATCH_VISITS + longest, dtype=np.int64)
     visit_chord = np.empty(_BATCH_VISITS + longest, dtype=np.float32)
     visit_return = np.empty(_BATCH_VISITS + longest, dtype=np.float32)
     count = 0
@@ -304,9 +304,7 @@ def _walk_rays(
             or mail + visits_needed[r] > mail_block.shape[0]
         )
         if count >= _BATCH_VISITS or stop:
-            _apply_visits(
-                block_sn, visit_block, visit_local, visit_chord, visit_return, count, counters
-            )
+            _apply_visits(block_sn, visit_voxel, visit_chord, visit_return, count, counters)
             count = 0
             if stop:
                 mail_count[0] = mail
@@ -374,8 +372,7 @@ def _walk_rays(
             returns = 1.0 if final and has_return[r] else 0.0
             if chord > 0.0 or returns > 0.0:
                 if block >= 0:
-                    visit_block[count] = block
-                    visit_local[count] = local_index(vx, vy, vz)
+                    visit_voxel[count] = block * BLOCK_VOXELS + local_index(vx, vy, vz)
                     visit_chord[count] = chord
                     visit_return[count] = returns
                     count += 1
@@ -433,8 +430,7 @@ def _apply_mail(
     """
     cache_keys = np.full(_CACHE_SIZE, -1, dtype=np.int64)
     cache_blocks = np.empty(_CACHE_SIZE, dtype=np.int64)
-    visit_block = np.empty(_BATCH_VISITS, dtype=np.int64)
-    visit_local = np.empty(_BATCH_VISITS, dtype=np.int64)
+    visit_voxel = np.empty(_BATCH_VISITS, dtype=np.int64)
     visit_chord = np.empty(_BATCH_VISITS, dtype=np.float32)
     visit_return = np.empty(_BATCH_VISITS, dtype=np.float32)
     count = 0
@@ -442,9 +438,7 @@ def _apply_mail(
     block = -1
     for j in range(start, stop):
         if count == _BATCH_VISITS:
-            _apply_visits(
-                block_sn, visit_block, visit_local, visit_chord, visit_return, count, counters
-            )
+            _apply_visits(block_sn, visit_voxel, visit_chord, visit_return, count, counters)
             count = 0
         key = mail_block[j]
         if key != last_key:
@@ -468,8 +462,7 @@ def _apply_mail(
                 if block < 0:
                     _apply_visits(
                         block_sn,
-                        visit_block,
-                        visit_local,
+                        visit_voxel,
                         visit_chord,
                         visit_return,
                         count,
@@ -478,42 +471,43 @@ def _apply_mail(
                     return j
             last_key = key
         if block >= 0:
-            visit_block[count] = block
-            visit_local[count] = mail_local[j]
+            visit_voxel[count] = block * BLOCK_VOXELS + mail_local[j]
             visit_chord[count] = mail_chord[j]
             visit_return[count] = mail_return[j]
             count += 1
-    _apply_visits(block_sn, visit_block, visit_local, visit_chord, visit_return, count, counters)
+    _apply_visits(block_sn, visit_voxel, visit_chord, visit_return, count, counters)
     return stop
 
 
 @nb.njit(cache=True, nogil=True)
 def _apply_visits(
     block_sn: NDArray[np.float32],
-    visit_block: NDArray[np.int64],
-    visit_local: NDArray[np.int64],
+    visit_voxel: NDArray[np.int64],
     visit_chord: NDArray[np.float32],
     visit_return: NDArray[np.float32],
     count: int,
     counters: NDArray[np.int64],
 ) -> None:
-    """Add the buffered visits, in order, to their voxels: s += chord, n += return."""
+    """Add the buffered visits, in order, to their voxels: s += chord, n += return.
+
+    ``visit_voxel`` holds ``block * BLOCK_VOXELS + index in block``.
+    """
+    sn = block_sn.reshape((-1, 2))
     # first only fetch every visited cache line, so that many misses are in flight at once;
     # the additions then find the lines in cache. Without a prefetch instruction: plain
     # loads, which do not depend on each other either
     touch = np.float32(0.0)
     for i in range(count):
         if _PREFETCH:
-            _prefetch_voxel(block_sn, visit_block[i], visit_local[i])  # type: ignore[call-arg]
+            _prefetch_voxel(sn, visit_voxel[i])  # type: ignore[call-arg]
         else:
-            touch += block_sn[visit_block[i], visit_local[i], 1]
+            touch += sn[visit_voxel[i], 1]
     new = 0
     for i in range(count):
-        b = visit_block[i]
-        v = visit_local[i]
-        if block_sn[b, v, 0] == 0.0 and block_sn[b, v, 1] == 0.0:
+        v = visit_voxel[i]
+        if sn[v, 0] == 0.0 and sn[v, 1] == 0.0:
             new += 1
-        block_sn[b, v, 0] += visit_chord[i]
-        block_sn[b, v, 1] += visit_return[i]
+        sn[v, 0] += visit_chord[i]
+        sn[v, 1] += visit_return[i]
     counters[1] += new
     counters[3] += count + (touch < 0.0)  # touch is never negative; using it keeps the loads
