@@ -93,6 +93,9 @@ def _prefetch_compiles() -> bool:
 _PREFETCH = _prefetch_compiles()
 
 
+_LOCAL_MASK = (1 << BLOCK_BITS) - 1
+_SPREAD = np.array([local_index(0, 0, z) for z in range(1 << BLOCK_BITS)], dtype=np.int64)
+"""Morton bits of an index in a block along one axis (z; y is this << 1, x this << 2)."""
 _CACHE_BITS = 4
 _CACHE_MASK = (1 << _CACHE_BITS) - 1
 _CACHE_SIZE = 1 << (3 * _CACHE_BITS)
@@ -336,6 +339,14 @@ def _walk_rays(
         t_delta_z = abs(1.0 / dz) if ez != vz else 0.0
         steps = abs(ex - vx) + abs(ey - vy) + abs(ez - vz)
         t_prev = 0.0
+        # the voxel's index in its block (Morton order), kept per axis as the walk steps;
+        # stepping along an axis enters a new block when that axis' index in the block wraps
+        morton_x = _SPREAD[vx & _LOCAL_MASK] << 2
+        morton_y = _SPREAD[vy & _LOCAL_MASK] << 1
+        morton_z = _SPREAD[vz & _LOCAL_MASK]
+        wrap_x = 0 if step_x > 0 else _LOCAL_MASK
+        wrap_y = 0 if step_y > 0 else _LOCAL_MASK
+        wrap_z = 0 if step_z > 0 else _LOCAL_MASK
         bx = by = bz = 0
         block = -1
         key = -1
@@ -372,13 +383,13 @@ def _walk_rays(
             returns = 1.0 if final and has_return[r] else 0.0
             if chord > 0.0 or returns > 0.0:
                 if block >= 0:
-                    visit_voxel[count] = block * BLOCK_VOXELS + local_index(vx, vy, vz)
+                    visit_voxel[count] = block * BLOCK_VOXELS + (morton_x | morton_y | morton_z)
                     visit_chord[count] = chord
                     visit_return[count] = returns
                     count += 1
                 else:
                     mail_block[mail] = key
-                    mail_local[mail] = local_index(vx, vy, vz)
+                    mail_local[mail] = morton_x | morton_y | morton_z
                     mail_chord[mail] = chord
                     mail_return[mail] = returns
                     mail += 1
@@ -389,15 +400,21 @@ def _walk_rays(
             if t_max_x <= t_max_y and t_max_x <= t_max_z:
                 vx += step_x
                 t_max_x = t_max_x + t_delta_x if vx != ex else np.inf
+                local = vx & _LOCAL_MASK
+                morton_x = _SPREAD[local] << 2
+                new_block = local == wrap_x
             elif t_max_y <= t_max_z:
                 vy += step_y
                 t_max_y = t_max_y + t_delta_y if vy != ey else np.inf
+                local = vy & _LOCAL_MASK
+                morton_y = _SPREAD[local] << 1
+                new_block = local == wrap_y
             else:
                 vz += step_z
                 t_max_z = t_max_z + t_delta_z if vz != ez else np.inf
-            new_block = (
-                (vx >> BLOCK_BITS) != bx or (vy >> BLOCK_BITS) != by or (vz >> BLOCK_BITS) != bz
-            )
+                local = vz & _LOCAL_MASK
+                morton_z = _SPREAD[local]
+                new_block = local == wrap_z
     mail_count[0] = mail
     return lengths.shape[0]
 
