@@ -131,10 +131,10 @@ class Mailbox:
 
     def __init__(self, capacity: int = 1 << 16) -> None:
         self.count = np.zeros(1, dtype=np.int64)
-        self.block = np.empty(capacity, dtype=np.int64)
-        self.local = np.empty(capacity, dtype=np.int16)
-        self.chord = np.empty(capacity, dtype=np.float32)
-        self.returns = np.empty(capacity, dtype=np.float32)
+        self.block = np.zeros(capacity, dtype=np.int64)
+        self.local = np.zeros(capacity, dtype=np.int16)
+        self.chord = np.zeros(capacity, dtype=np.float32)
+        self.returns = np.zeros(capacity, dtype=np.float32)
 
     def reserve(self, capacity: int) -> None:
         """Make room for ``capacity`` entries in all."""
@@ -146,7 +146,7 @@ class Mailbox:
         capacity = max(2 * self.block.shape[0], used + min_free)
         for name in ("block", "local", "chord", "returns"):
             old = getattr(self, name)
-            new = np.empty(capacity, dtype=old.dtype)
+            new = np.zeros(capacity, dtype=old.dtype)
             new[:used] = old[:used]
             setattr(self, name, new)
 
