@@ -241,18 +241,24 @@ def _lookup(
 def _select_voxels(
     block_ijk: NDArray[np.int32],
     block_sn: NDArray[np.float32],
+    block_hit: NDArray[np.bool_],
     used: int,
     min_extinction: float,
     lo: NDArray[np.int64],
     hi: NDArray[np.int64],
     keep: NDArray[np.bool_],
+    kept_per_block: NDArray[np.int64],
 ) -> int:
     """Mark observed voxels with n >= min_extinction * s inside [lo, hi]; returns the count.
+    ``kept_per_block`` receives how many voxels each block contributes.
 
-    Whole blocks outside the bounds are skipped without reading their voxels.
+    Whole blocks outside the bounds, or without a return when one is needed, are skipped
+    without reading their voxels.
     """
     count = 0
     for b in range(used):
+        if min_extinction > 0.0 and not block_hit[b]:
+            continue  # no return in the block: no voxel has n >= min_extinction * s > 0
         base_x = np.int64(block_ijk[b, 0]) * BLOCK_EDGE
         base_y = np.int64(block_ijk[b, 1]) * BLOCK_EDGE
         base_z = np.int64(block_ijk[b, 2]) * BLOCK_EDGE
@@ -284,6 +290,7 @@ def _select_voxels(
                     if x < lo[0] or x > hi[0] or y < lo[1] or y > hi[1] or z < lo[2] or z > hi[2]:
                         continue
                 keep[b, i] = True
+                kept_per_block[b] += 1
                 count += 1
     return count
 
@@ -294,6 +301,7 @@ def _gather_voxels(
     block_sn: NDArray[np.float32],
     block_t: NDArray[np.float64],
     keep: NDArray[np.bool_],
+    kept_per_block: NDArray[np.int64],
     ijk: NDArray[np.int32],
     s: NDArray[np.float64],
     n: NDArray[np.float64],
@@ -302,6 +310,8 @@ def _gather_voxels(
     """Write the voxels marked in ``keep`` (blocks x voxels) to the output arrays, in order."""
     j = 0
     for b in range(keep.shape[0]):
+        if kept_per_block[b] == 0:
+            continue
         for i in range(BLOCK_VOXELS):
             if keep[b, i]:
                 ijk[j, 0] = block_ijk[b, 0] * BLOCK_EDGE + _unspread_bits(i >> 2)
@@ -377,6 +387,7 @@ class Shard:
         self.block_ijk: NDArray[np.int32] = np.zeros((0, 3), dtype=np.int32)
         self.block_t: NDArray[np.float64] = np.zeros(0)
         self.block_scan: NDArray[np.int64] = np.zeros(0, dtype=np.int64)
+        self.block_hit: NDArray[np.bool_] = np.zeros(0, dtype=np.bool_)
         self._resize_index(block_capacity)
 
     def _resize_index(self, capacity: int) -> None:
@@ -385,11 +396,14 @@ class Shard:
         block_ijk = np.zeros((capacity, 3), dtype=np.int32)
         block_t = np.full(capacity, -np.inf)
         block_scan = np.full(capacity, -1, dtype=np.int64)
+        block_hit = np.zeros(capacity, dtype=np.bool_)
         if used:
             block_ijk[:used] = self.block_ijk[:used]
             block_t[:used] = self.block_t[:used]
             block_scan[:used] = self.block_scan[:used]
+            block_hit[:used] = self.block_hit[:used]
         self.block_ijk, self.block_t, self.block_scan = block_ijk, block_t, block_scan
+        self.block_hit = block_hit
         if capacity > self.block_sn.shape[0]:
             reserve = max(capacity, 2 * self.block_sn.shape[0])
             region = _zeros_on_huge_pages((reserve, BLOCK_VOXELS, 2))
@@ -416,11 +430,12 @@ class Shard:
         used = self.used
         dropped = int(np.count_nonzero((self.block_sn[:used][~keep] > 0).any(axis=-1)))
         kept = int(np.count_nonzero(keep))
-        for arr in (self.block_ijk, self.block_sn, self.block_t, self.block_scan):
+        for arr in (self.block_ijk, self.block_sn, self.block_t, self.block_scan, self.block_hit):
             arr[:kept] = arr[:used][keep]
         self.block_sn[kept:used] = 0.0
         self.block_t[kept:used] = -np.inf
         self.block_scan[kept:used] = -1
+        self.block_hit[kept:used] = False
         self.counters[0] = kept
         _rebuild_table(self.block_ijk, kept, self.table_keys, self.table_blocks)
         return dropped
@@ -429,7 +444,10 @@ class Shard:
     def nbytes(self) -> int:
         """Memory in use: the blocks' statistics up to the most ever held, and the index."""
         self._high_water = max(getattr(self, "_high_water", 0), self.used)
-        index = (self.block_ijk, self.block_t, self.block_scan, self.table_keys, self.table_blocks)
+        index = (
+            self.block_ijk, self.block_t, self.block_scan, self.block_hit, self.table_keys,
+            self.table_blocks,
+        )  # fmt: skip
         return self._high_water * self.block_sn[0].nbytes + sum(a.nbytes for a in index)
 
 
@@ -518,6 +536,8 @@ class BlockStore:
                 )
             ) < ijk.shape[0]:
                 sh.grow()
+        for sh in self.shards:
+            sh.block_hit[: sh.used] = (sh.block_sn[: sh.used, :, 1] > 0).any(axis=1)
         self.num_voxels = sum(
             int(np.count_nonzero((sh.block_sn[: sh.used] > 0).any(axis=-1))) for sh in self.shards
         )
@@ -557,30 +577,26 @@ class BlockStore:
         """Observed voxels with n >= min_extinction * s and index within [lo, hi]."""
         lo_ = np.full(3, -MAX_VOXEL_INDEX - 1, dtype=np.int64) if lo is None else lo
         hi_ = np.full(3, MAX_VOXEL_INDEX + 1, dtype=np.int64) if hi is None else hi
-        keeps, counts = [], []
+        selections = []
         for sh in self.shards:
             keep = np.zeros((sh.used, BLOCK_VOXELS), dtype=np.bool_)
-            counts.append(
-                _select_voxels(sh.block_ijk, sh.block_sn, sh.used, min_extinction, lo_, hi_, keep)
-            )
-            keeps.append(keep)
-        total = sum(counts)
+            per_block = np.zeros(sh.used, dtype=np.int64)
+            count = _select_voxels(
+                sh.block_ijk, sh.block_sn, sh.block_hit, sh.used, min_extinction, lo_, hi_, keep,
+                per_block,
+            )  # fmt: skip
+            selections.append((keep, per_block, count))
+        total = sum(count for _, _, count in selections)
         out = VoxelArrays(
             np.empty((total, 3), dtype=np.int32), np.empty(total), np.empty(total), np.empty(total)
         )
         start = 0
-        for sh, keep, count in zip(self.shards, keeps, counts, strict=True):
+        for sh, (keep, per_block, count) in zip(self.shards, selections, strict=True):
             part = slice(start, start + count)
             _gather_voxels(
-                sh.block_ijk,
-                sh.block_sn,
-                sh.block_t,
-                keep,
-                out.ijk[part],
-                out.s[part],
-                out.n[part],
-                out.t_last[part],
-            )
+                sh.block_ijk, sh.block_sn, sh.block_t, keep, per_block,
+                out.ijk[part], out.s[part], out.n[part], out.t_last[part],
+            )  # fmt: skip
             start += count
         return out
 

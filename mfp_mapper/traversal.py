@@ -223,8 +223,9 @@ def _walk_part(
         first = _walk_rays(
             rays.origins_vox, rays.ends_vox, rays.lengths, rays.has_return, room, visits, first,
             shard_id, shard_mask, shard.table_keys, shard.table_blocks, shard.block_ijk,
-            shard.block_sn, shard.block_t, shard.block_scan, shard.counters, scan_id, stamp,
-            decay_time, mail.block, mail.local, mail.chord, mail.returns, mail.count,
+            shard.block_sn, shard.block_t, shard.block_scan, shard.block_hit, shard.counters,
+            scan_id, stamp, decay_time, mail.block, mail.local, mail.chord, mail.returns,
+            mail.count,
         )  # fmt: skip
         if first < len(rays):
             if mail.count[0] + visits[first] > mail.block.shape[0]:
@@ -248,7 +249,7 @@ def _deliver(
         start = _apply_mail(
             mail.block, mail.local, mail.chord, mail.returns, start, stop, shard_id, shard_mask,
             shard.table_keys, shard.table_blocks, shard.block_ijk, shard.block_sn, shard.block_t,
-            shard.block_scan, shard.counters, scan_id, stamp, decay_time,
+            shard.block_scan, shard.block_hit, shard.counters, scan_id, stamp, decay_time,
         )  # fmt: skip
         if start < stop:
             shard.grow(min_free=1024)
@@ -271,6 +272,7 @@ def _walk_rays(
     block_sn: NDArray[np.float32],
     block_t: NDArray[np.float64],
     block_scan: NDArray[np.int64],
+    block_hit: NDArray[np.bool_],
     counters: NDArray[np.int64],
     scan_id: int,
     stamp: float,
@@ -307,7 +309,9 @@ def _walk_rays(
             or mail + visits_needed[r] > mail_block.shape[0]
         )
         if count >= _BATCH_VISITS or stop:
-            _apply_visits(block_sn, visit_voxel, visit_chord, visit_return, count, counters)
+            _apply_visits(
+                block_sn, block_hit, visit_voxel, visit_chord, visit_return, count, counters
+            )
             count = 0
             if stop:
                 mail_count[0] = mail
@@ -435,6 +439,7 @@ def _apply_mail(
     block_sn: NDArray[np.float32],
     block_t: NDArray[np.float64],
     block_scan: NDArray[np.int64],
+    block_hit: NDArray[np.bool_],
     counters: NDArray[np.int64],
     scan_id: int,
     stamp: float,
@@ -455,7 +460,9 @@ def _apply_mail(
     block = -1
     for j in range(start, stop):
         if count == _BATCH_VISITS:
-            _apply_visits(block_sn, visit_voxel, visit_chord, visit_return, count, counters)
+            _apply_visits(
+                block_sn, block_hit, visit_voxel, visit_chord, visit_return, count, counters
+            )
             count = 0
         key = mail_block[j]
         if key != last_key:
@@ -479,6 +486,7 @@ def _apply_mail(
                 if block < 0:
                     _apply_visits(
                         block_sn,
+                        block_hit,
                         visit_voxel,
                         visit_chord,
                         visit_return,
@@ -492,20 +500,22 @@ def _apply_mail(
             visit_chord[count] = mail_chord[j]
             visit_return[count] = mail_return[j]
             count += 1
-    _apply_visits(block_sn, visit_voxel, visit_chord, visit_return, count, counters)
+    _apply_visits(block_sn, block_hit, visit_voxel, visit_chord, visit_return, count, counters)
     return stop
 
 
 @nb.njit(cache=True, nogil=True)
 def _apply_visits(
     block_sn: NDArray[np.float32],
+    block_hit: NDArray[np.bool_],
     visit_voxel: NDArray[np.int64],
     visit_chord: NDArray[np.float32],
     visit_return: NDArray[np.float32],
     count: int,
     counters: NDArray[np.int64],
 ) -> None:
-    """Add the buffered visits, in order, to their voxels: s += chord, n += return.
+    """Add the buffered visits, in order, to their voxels: s += chord, n += return (and
+    mark the blocks that hold a return).
 
     ``visit_voxel`` holds ``block * BLOCK_VOXELS + index in block``.
     """
@@ -525,6 +535,8 @@ def _apply_visits(
         if sn[v, 0] == 0.0 and sn[v, 1] == 0.0:
             new += 1
         sn[v, 0] += visit_chord[i]
-        sn[v, 1] += visit_return[i]
+        if visit_return[i] > 0.0:
+            sn[v, 1] += visit_return[i]
+            block_hit[v // BLOCK_VOXELS] = True
     counters[1] += new
     counters[3] += count + (touch < 0.0)  # touch is never negative; using it keeps the loads
