@@ -121,13 +121,7 @@ def open_block(
     bx: int,
     by: int,
     bz: int,
-    table_keys: NDArray[np.int64],
-    table_blocks: NDArray[np.int32],
-    block_ijk: NDArray[np.int32],
-    block_sn: NDArray[np.float32],
-    block_t: NDArray[np.float64],
-    block_scan: NDArray[np.int64],
-    counters: NDArray[np.int64],
+    shard_arrays: ShardArrays,
     scan_id: int,
     stamp: float,
     decay_time: float,
@@ -136,9 +130,9 @@ def open_block(
 
     The first time a scan opens a block, the block is decayed to ``stamp`` (when
     ``decay_time`` is finite). Returns -1 when a new block is needed and there is no room:
-    the caller grows the shard and calls again. ``counters`` = [blocks used, new voxels,
-    blocks touched this scan, voxel updates this scan].
+    the caller grows the shard and calls again.
     """
+    table_keys, table_blocks, block_ijk, block_sn, block_t, block_scan, _, counters = shard_arrays
     bkey = block_key(bx, by, bz)
     block = _find(table_keys, table_blocks, bkey)
     if block < 0:
@@ -175,39 +169,20 @@ def _assign_shard(
     start: int,
     shard: int,
     shard_mask: int,
-    table_keys: NDArray[np.int64],
-    table_blocks: NDArray[np.int32],
-    block_ijk: NDArray[np.int32],
-    block_sn: NDArray[np.float32],
-    block_t: NDArray[np.float64],
-    block_scan: NDArray[np.int64],
-    counters: NDArray[np.int64],
+    shard_arrays: ShardArrays,
 ) -> int:
     """Set voxels of ``shard`` (each at its block's time ``t``) from index ``start`` on.
 
     Returns the index reached: ``len(ijk)`` when done, less when the blocks ran out.
     """
+    block_sn = shard_arrays[3]
     for j in range(start, ijk.shape[0]):
         bx = ijk[j, 0] >> BLOCK_BITS
         by = ijk[j, 1] >> BLOCK_BITS
         bz = ijk[j, 2] >> BLOCK_BITS
         if shard_of(bx, by, bz, shard_mask) != shard:
             continue
-        block = open_block(
-            bx,
-            by,
-            bz,
-            table_keys,
-            table_blocks,
-            block_ijk,
-            block_sn,
-            block_t,
-            block_scan,
-            counters,
-            -1,
-            t[j],
-            math.inf,
-        )
+        block = open_block(bx, by, bz, shard_arrays, -1, t[j], math.inf)
         if block < 0:
             return j
         local = local_index(ijk[j, 0], ijk[j, 1], ijk[j, 2])
@@ -359,6 +334,18 @@ LOCAL_OFFSETS = _local_offsets()
 """(BLOCK_VOXELS, 3) offset of each in-block index from the block's first voxel."""
 
 
+ShardArrays = tuple[
+    NDArray[np.int64],  # table_keys: block keys of the open-addressing hash (-1 = empty)
+    NDArray[np.int32],  # table_blocks: block number of each table entry
+    NDArray[np.int32],  # block_ijk (B, 3): block index
+    NDArray[np.float32],  # block_sn (B, 512, 2): s and n of every voxel
+    NDArray[np.float64],  # block_t (B,): time the block's statistics refer to
+    NDArray[np.int64],  # block_scan (B,): last scan that opened the block
+    NDArray[np.bool_],  # block_hit (B,): the block holds a return
+    NDArray[np.int64],  # counters: blocks used, new voxels, blocks touched, voxel updates
+]
+"""A shard's arrays, as compiled kernels take them."""
+
 BlockPredicate = Callable[[NDArray[np.int32], NDArray[np.float64]], NDArray[np.bool_]]
 """Given used blocks' index (B, 3) and time (B,), which blocks to keep."""
 
@@ -412,6 +399,13 @@ class Shard:
         self.table_keys = np.full(_next_pow2(2 * capacity), _EMPTY, dtype=np.int64)
         self.table_blocks = np.zeros(self.table_keys.shape[0], dtype=np.int32)
         _rebuild_table(self.block_ijk, used, self.table_keys, self.table_blocks)
+
+    def arrays(self) -> ShardArrays:
+        """The arrays the compiled kernels work on (valid until the shard grows)."""
+        return (
+            self.table_keys, self.table_blocks, self.block_ijk, self.block_sn, self.block_t,
+            self.block_scan, self.block_hit, self.counters,
+        )  # fmt: skip
 
     @property
     def capacity(self) -> int:
@@ -518,22 +512,7 @@ class BlockStore:
         for sid, sh in enumerate(self.shards):
             start = 0
             while (
-                start := _assign_shard(
-                    ijk,
-                    s,
-                    n,
-                    t,
-                    start,
-                    sid,
-                    self.shard_mask,
-                    sh.table_keys,
-                    sh.table_blocks,
-                    sh.block_ijk,
-                    sh.block_sn,
-                    sh.block_t,
-                    sh.block_scan,
-                    sh.counters,
-                )
+                start := _assign_shard(ijk, s, n, t, start, sid, self.shard_mask, sh.arrays())
             ) < ijk.shape[0]:
                 sh.grow()
         for sh in self.shards:

@@ -33,6 +33,7 @@ from mfp_mapper.store import (
     BLOCK_VOXELS,
     BlockStore,
     Shard,
+    ShardArrays,
     block_key,
     block_of_key,
     local_index,
@@ -222,10 +223,8 @@ def _walk_part(
     while first < len(rays):
         first = _walk_rays(
             rays.origins_vox, rays.ends_vox, rays.lengths, rays.has_return, room, visits, first,
-            shard_id, shard_mask, shard.table_keys, shard.table_blocks, shard.block_ijk,
-            shard.block_sn, shard.block_t, shard.block_scan, shard.block_hit, shard.counters,
-            scan_id, stamp, decay_time, mail.block, mail.local, mail.chord, mail.returns,
-            mail.count,
+            shard_id, shard_mask, shard.arrays(), scan_id, stamp, decay_time, mail.block,
+            mail.local, mail.chord, mail.returns, mail.count,
         )  # fmt: skip
         if first < len(rays):
             if mail.count[0] + visits[first] > mail.block.shape[0]:
@@ -248,8 +247,7 @@ def _deliver(
     while start < stop:
         start = _apply_mail(
             mail.block, mail.local, mail.chord, mail.returns, start, stop, shard_id, shard_mask,
-            shard.table_keys, shard.table_blocks, shard.block_ijk, shard.block_sn, shard.block_t,
-            shard.block_scan, shard.block_hit, shard.counters, scan_id, stamp, decay_time,
+            shard.arrays(), scan_id, stamp, decay_time,
         )  # fmt: skip
         if start < stop:
             shard.grow(min_free=1024)
@@ -266,14 +264,7 @@ def _walk_rays(
     first: int,
     shard: int,
     shard_mask: int,
-    table_keys: NDArray[np.int64],
-    table_blocks: NDArray[np.int32],
-    block_ijk: NDArray[np.int32],
-    block_sn: NDArray[np.float32],
-    block_t: NDArray[np.float64],
-    block_scan: NDArray[np.int64],
-    block_hit: NDArray[np.bool_],
-    counters: NDArray[np.int64],
+    shard_arrays: ShardArrays,
     scan_id: int,
     stamp: float,
     decay_time: float,
@@ -289,6 +280,7 @@ def _walk_rays(
     Before each ray, checks there is room for the blocks and mail it may create; returns
     the index of the first ray not walked (the caller grows and calls again), or N.
     """
+    table_keys, _, _, block_sn, block_t, _, block_hit, counters = shard_arrays
     capacity = min(block_t.shape[0], table_keys.shape[0] // 2)
     # blocks opened in this call, direct-mapped by their low index bits: neighbouring rays
     # cross the same blocks, and this small table stays in cache where the hash does not
@@ -373,10 +365,7 @@ def _walk_rays(
                     if cache_keys[slot] == key:
                         block = cache_blocks[slot]
                     else:
-                        block = open_block(
-                            bx, by, bz, table_keys, table_blocks, block_ijk, block_sn, block_t,
-                            block_scan, counters, scan_id, stamp, decay_time,
-                        )  # fmt: skip
+                        block = open_block(bx, by, bz, shard_arrays, scan_id, stamp, decay_time)
                         cache_keys[slot] = key
                         cache_blocks[slot] = block
             # the end voxel takes the rest of the ray and the return; an end point exactly
@@ -433,14 +422,7 @@ def _apply_mail(
     stop: int,
     shard: int,
     shard_mask: int,
-    table_keys: NDArray[np.int64],
-    table_blocks: NDArray[np.int32],
-    block_ijk: NDArray[np.int32],
-    block_sn: NDArray[np.float32],
-    block_t: NDArray[np.float64],
-    block_scan: NDArray[np.int64],
-    block_hit: NDArray[np.bool_],
-    counters: NDArray[np.int64],
+    shard_arrays: ShardArrays,
     scan_id: int,
     stamp: float,
     decay_time: float,
@@ -450,6 +432,7 @@ def _apply_mail(
     Returns ``stop``, or the first entry whose new block found no room (the caller grows
     the shard and calls again from there).
     """
+    block_sn, block_hit, counters = shard_arrays[3], shard_arrays[6], shard_arrays[7]
     cache_keys = np.full(_CACHE_SIZE, -1, dtype=np.int64)
     cache_blocks = np.empty(_CACHE_SIZE, dtype=np.int64)
     visit_voxel = np.empty(_BATCH_VISITS, dtype=np.int64)
@@ -477,10 +460,7 @@ def _apply_mail(
                 if cache_keys[slot] == key:
                     block = cache_blocks[slot]
                 else:
-                    block = open_block(
-                        bx, by, bz, table_keys, table_blocks, block_ijk, block_sn, block_t,
-                        block_scan, counters, scan_id, stamp, decay_time,
-                    )  # fmt: skip
+                    block = open_block(bx, by, bz, shard_arrays, scan_id, stamp, decay_time)
                     cache_keys[slot] = key
                     cache_blocks[slot] = block
                 if block < 0:
