@@ -368,46 +368,63 @@ def _walk_rays(
                         block = open_block(bx, by, bz, shard_arrays, scan_id, stamp, decay_time)
                         cache_keys[slot] = key
                         cache_blocks[slot] = block
-            # the end voxel takes the rest of the ray and the return; an end point exactly
-            # on a face gets a zero chord there, still with its return
-            final = steps == 0
-            t_next = 1.0 if final else min(t_max_x, t_max_y, t_max_z, 1.0)
+            if steps == 0:
+                break
+            # leave the voxel through its nearest face; its chord ends there
+            local = morton_x | morton_y | morton_z
+            if t_max_x <= t_max_y and t_max_x <= t_max_z:
+                t_next = t_max_x
+                vx += step_x
+                t_max_x = t_max_x + t_delta_x if vx != ex else np.inf
+                axis_local = vx & _LOCAL_MASK
+                morton_x = _SPREAD[axis_local] << 2
+                new_block = axis_local == wrap_x
+            elif t_max_y <= t_max_z:
+                t_next = t_max_y
+                vy += step_y
+                t_max_y = t_max_y + t_delta_y if vy != ey else np.inf
+                axis_local = vy & _LOCAL_MASK
+                morton_y = _SPREAD[axis_local] << 1
+                new_block = axis_local == wrap_y
+            else:
+                t_next = t_max_z
+                vz += step_z
+                t_max_z = t_max_z + t_delta_z if vz != ez else np.inf
+                axis_local = vz & _LOCAL_MASK
+                morton_z = _SPREAD[axis_local]
+                new_block = axis_local == wrap_z
+            t_next = min(t_next, 1.0)
             chord = (t_next - t_prev) * length
-            returns = 1.0 if final and has_return[r] else 0.0
-            if chord > 0.0 or returns > 0.0:
+            t_prev = t_next
+            steps -= 1
+            if chord > 0.0:
                 if block >= 0:
-                    visit_voxel[count] = block * BLOCK_VOXELS + (morton_x | morton_y | morton_z)
+                    visit_voxel[count] = block * BLOCK_VOXELS + local
                     visit_chord[count] = chord
-                    visit_return[count] = returns
+                    visit_return[count] = 0.0
                     count += 1
                 else:
                     mail_block[mail] = key
-                    mail_local[mail] = morton_x | morton_y | morton_z
+                    mail_local[mail] = local
                     mail_chord[mail] = chord
-                    mail_return[mail] = returns
+                    mail_return[mail] = 0.0
                     mail += 1
-            if final:
-                break
-            t_prev = t_next
-            steps -= 1
-            if t_max_x <= t_max_y and t_max_x <= t_max_z:
-                vx += step_x
-                t_max_x = t_max_x + t_delta_x if vx != ex else np.inf
-                local = vx & _LOCAL_MASK
-                morton_x = _SPREAD[local] << 2
-                new_block = local == wrap_x
-            elif t_max_y <= t_max_z:
-                vy += step_y
-                t_max_y = t_max_y + t_delta_y if vy != ey else np.inf
-                local = vy & _LOCAL_MASK
-                morton_y = _SPREAD[local] << 1
-                new_block = local == wrap_y
+        # the end voxel takes the rest of the ray and the return; an end point exactly on a
+        # face gets a zero chord there, still with its return
+        chord = (1.0 - t_prev) * length
+        returns = 1.0 if has_return[r] else 0.0
+        if chord > 0.0 or returns > 0.0:
+            if block >= 0:
+                visit_voxel[count] = block * BLOCK_VOXELS + (morton_x | morton_y | morton_z)
+                visit_chord[count] = chord
+                visit_return[count] = returns
+                count += 1
             else:
-                vz += step_z
-                t_max_z = t_max_z + t_delta_z if vz != ez else np.inf
-                local = vz & _LOCAL_MASK
-                morton_z = _SPREAD[local]
-                new_block = local == wrap_z
+                mail_block[mail] = key
+                mail_local[mail] = morton_x | morton_y | morton_z
+                mail_chord[mail] = chord
+                mail_return[mail] = returns
+                mail += 1
     mail_count[0] = mail
     return lengths.shape[0]
 
