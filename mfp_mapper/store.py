@@ -321,19 +321,6 @@ def _rebuild_table(
         )
 
 
-def _local_offsets() -> NDArray[np.int32]:
-    offsets = np.zeros((BLOCK_VOXELS, 3), dtype=np.int32)
-    for x in range(BLOCK_EDGE):
-        for y in range(BLOCK_EDGE):
-            for z in range(BLOCK_EDGE):
-                offsets[local_index(x, y, z)] = (x, y, z)
-    return offsets
-
-
-LOCAL_OFFSETS = _local_offsets()
-"""(BLOCK_VOXELS, 3) offset of each in-block index from the block's first voxel."""
-
-
 ShardArrays = tuple[
     NDArray[np.int64],  # table_keys: block keys of the open-addressing hash (-1 = empty)
     NDArray[np.int32],  # table_blocks: block number of each table entry
