@@ -244,6 +244,7 @@ class MfpMapperNode(Node):
         )
         self._doo_pub = self.create_publisher(PointCloud2, "~/degree_of_occupancy", map_qos)
         self._std_pub = self.create_publisher(PointCloud2, "~/std", map_qos)
+        self._grid_pub = self.create_publisher(OccupancyGrid, "~/projected_map", map_qos)
         status_qos = QoSProfile(
             depth=1,
             reliability=ReliabilityPolicy.RELIABLE,
@@ -544,7 +545,11 @@ class MfpMapperNode(Node):
 
     @_tracked
     def _publish_map_clouds(self) -> None:
-        if self._doo_pub.get_subscription_count() + self._std_pub.get_subscription_count() == 0:
+        want_clouds = (
+            self._doo_pub.get_subscription_count() + self._std_pub.get_subscription_count()
+        )
+        want_grid = self._grid_pub.get_subscription_count()
+        if not (want_clouds or want_grid):
             return  # nobody listens: publish when someone does (latched, so they get it)
         if time.monotonic() < self._publish_not_before:
             return  # the last publication was slow: keep publishing under PUBLISH_DUTY
@@ -555,6 +560,21 @@ class MfpMapperNode(Node):
             if not (self.cfg.frame_id or self._odom_frame or self.mapper.num_voxels):
                 return  # an empty map in a frame not known yet: nothing worth latching
             t0 = time.perf_counter()
+        if want_grid:
+            self._grid_pub.publish(self._hit_probability_grid())
+        if want_clouds:
+            self._publish_clouds()
+        self._published_version = version
+        dt = time.perf_counter() - t0
+        self._publish_not_before = time.monotonic() + dt * (1.0 / PUBLISH_DUTY - 1.0)
+        c = self._counters
+        c.publish_seconds += dt
+        c.publish_count += 1
+        c.publish_last_seconds = dt
+
+    def _publish_clouds(self) -> None:
+        """Publish the degree-of-occupancy and std clouds of the filtered voxels."""
+        with self._map_lock:
             robot = self._robot_position
             radius = self.cfg.publish_radius
             window = None
@@ -579,14 +599,7 @@ class MfpMapperNode(Node):
         std_msg = cloud_msg(pack_cloud({**xyz, "std": sel.std}), frame, header_stamp)
         self._doo_pub.publish(doo_msg)
         self._std_pub.publish(std_msg)
-        self._published_version = version
-        dt = time.perf_counter() - t0
-        self._publish_not_before = time.monotonic() + dt * (1.0 / PUBLISH_DUTY - 1.0)
-        c = self._counters
-        c.publish_seconds += dt
-        c.publish_count += 1
-        c.publish_last_seconds = dt
-        c.published_voxels = len(sel)
+        self._counters.published_voxels = len(sel)
 
     @_tracked
     def _on_query(self, msg: PointCloud2) -> None:
@@ -621,6 +634,13 @@ class MfpMapperNode(Node):
 
     @_tracked
     def _on_get_map(self, request: GetMap.Request, response: GetMap.Response) -> GetMap.Response:
+        response.map = self._hit_probability_grid()
+        self._counters.maps_served += 1
+        return response
+
+    def _hit_probability_grid(self) -> OccupancyGrid:
+        """The 2D hit-probability grid of the height band (``~/hit_probability_map``,
+        ``~/projected_map``)."""
         zmin, zmax = self.cfg.occupancy_min_z, self.cfg.occupancy_max_z
         with self._map_lock:
             vox = self.mapper.voxels(bounds=((-np.inf, -np.inf, zmin), (np.inf, np.inf, zmax)))
@@ -649,9 +669,7 @@ class MfpMapperNode(Node):
         out.info.origin.position.z = float(zmin)
         out.info.origin.orientation.w = 1.0
         out.data = array.array("b", grid.data.tobytes())
-        response.map = out
-        self._counters.maps_served += 1
-        return response
+        return out
 
     @_tracked
     def _on_save(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:

@@ -284,7 +284,7 @@ class Feeder:
 
     def __init__(self, node_name: str = "mfp_mapper", feeder_name: str = "feeder") -> None:
         import rclpy
-        from nav_msgs.msg import Odometry
+        from nav_msgs.msg import OccupancyGrid, Odometry
         from nav_msgs.srv import GetMap
         from rclpy.qos import (
             DurabilityPolicy,
@@ -314,6 +314,7 @@ class Feeder:
         self.status: dict[str, Any] | None = None
         self.doo: Any = None
         self.std: Any = None
+        self.projected: Any = None
         self.results: list[Any] = []
         self.node.create_subscription(String, f"{ns}/status", self._on_status, latched)
         self.node.create_subscription(
@@ -324,6 +325,9 @@ class Feeder:
         )
         self.node.create_subscription(
             PointCloud2, f"{ns}/hit_probability/result", self.results.append, reliable
+        )
+        self.node.create_subscription(
+            OccupancyGrid, f"{ns}/projected_map", lambda m: setattr(self, "projected", m), latched
         )
         self.get_map = self.node.create_client(GetMap, f"{ns}/hit_probability_map")
         self.save = self.node.create_client(Trigger, f"{ns}/save_map")

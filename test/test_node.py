@@ -265,6 +265,23 @@ def test_hit_probability_map_service(sim: Sim, feeder: Feeder) -> None:
     assert _cell(grid, origin, res, 6.0, 4.0) == -1  # inside the box: never observed
 
 
+def test_projected_map_topic_is_the_service_grid(sim: Sim, feeder: Feeder) -> None:
+    """~/projected_map (latched, what Nav2's static layer subscribes to) = the GetMap grid."""
+    from nav_msgs.srv import GetMap
+
+    served = feeder.call(feeder.get_map, GetMap.Request()).map
+    assert feeder.wait(
+        lambda: (
+            feeder.projected is not None
+            and feeder.projected.info.width == served.info.width
+            and feeder.projected.info.height == served.info.height
+        ),
+        15.0,
+    )
+    assert feeder.projected.header.frame_id == "odom"
+    assert list(feeder.projected.data) == list(served.data)
+
+
 def test_hit_probability_query_topic(sim: Sim, feeder: Feeder) -> None:
     points = np.array(
         [[4.9, 4.0, 1.0], [5.1, 4.0, 1.0], [8.0, -2.0, 1.7], [100.0, 100.0, 100.0], [0, 0, 0]],
