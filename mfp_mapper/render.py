@@ -95,6 +95,20 @@ def _max_per_cell(
     return top.reshape(shape), oth.reshape(shape)
 
 
+def _draw_grid(ax: Any, grid: np.ndarray, extent: Any, vmax: float, cmap: str) -> Any:
+    """Show a 2D grid (x along the first axis), NaN cells in grey; returns the image."""
+    return ax.imshow(
+        np.ma.masked_invalid(grid.T),
+        origin="lower",
+        extent=extent,
+        cmap=_pyplot().get_cmap(cmap).with_extremes(bad="0.82"),
+        vmin=0.0,
+        vmax=vmax,
+        interpolation="nearest",
+        aspect="equal",
+    )
+
+
 def _image(
     plt: Any,
     grid: NDArray[np.float64],
@@ -108,17 +122,7 @@ def _image(
     cmap: str = "viridis",
 ) -> Path:
     fig, ax = plt.subplots(figsize=(7.5, 5.5), dpi=110)
-    cm = plt.get_cmap(cmap).with_extremes(bad="0.82")
-    im = ax.imshow(
-        np.ma.masked_invalid(grid.T),
-        origin="lower",
-        extent=extent,
-        cmap=cm,
-        vmin=0.0,
-        vmax=vmax,
-        interpolation="nearest",
-        aspect="equal",
-    )
+    im = _draw_grid(ax, grid, extent, vmax, cmap)
     ax.set_title(title, fontsize=10)
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
@@ -211,17 +215,7 @@ def render_map(
             (axes[0], sdoo, "most likely degree of occupancy", 1.0, "viridis"),
             (axes[1], sstd, "posterior std", float(model.UNKNOWN_STD), "magma"),
         ):
-            cm = plt.get_cmap(cmap).with_extremes(bad="0.82")
-            im = ax.imshow(
-                np.ma.masked_invalid(grid.T),
-                origin="lower",
-                extent=ext2,
-                cmap=cm,
-                vmin=0,
-                vmax=vmax,
-                interpolation="nearest",
-                aspect="equal",
-            )
+            im = _draw_grid(ax, grid, ext2, vmax, cmap)
             ax.set_title(f"Vertical slice y = {slice_y:.2f} m: {title}", fontsize=10)
             ax.set_ylabel("z [m]")
             fig.colorbar(im, ax=ax, fraction=0.03, pad=0.02)
