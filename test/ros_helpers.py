@@ -19,6 +19,8 @@ from typing import Any
 
 import numpy as np
 
+from mfp_mapper.pointcloud import POINTFIELD_DTYPES
+
 ROOT = Path(__file__).resolve().parents[1]
 PARAMS_FILE = ROOT / "config" / "mfp_mapper.yaml"
 
@@ -27,16 +29,7 @@ UINT32 = 6
 UINT16 = 4
 UINT8 = 2
 FLOAT64 = 8
-_NUMPY_TO_DATATYPE = {
-    np.dtype("int8"): 1,
-    np.dtype("uint8"): 2,
-    np.dtype("int16"): 3,
-    np.dtype("uint16"): 4,
-    np.dtype("int32"): 5,
-    np.dtype("uint32"): 6,
-    np.dtype("float32"): 7,
-    np.dtype("float64"): 8,
-}
+_NUMPY_TO_DATATYPE = {np.dtype(code): datatype for datatype, code in POINTFIELD_DTYPES.items()}
 
 
 def domain_id() -> int:
