@@ -105,13 +105,13 @@ def decay(
 # --- Gamma credible intervals, without scipy ---------------------------------------------
 
 
-def _regularized_gamma_p(a: FloatArray, x: FloatArray) -> FloatArray:
-    """Regularised lower incomplete gamma P(a, x), series / continued fraction (vectorised)."""
-    a = np.asarray(a, dtype=np.float64)
-    x = np.asarray(x, dtype=np.float64)
-    a, x = np.broadcast_arrays(a, x)
+def _regularized_gamma_p(a: FloatArray, x: FloatArray, log_gamma_a: FloatArray) -> FloatArray:
+    """Regularised lower incomplete gamma P(a, x), series / continued fraction (vectorised).
+
+    ``log_gamma_a`` = log Gamma(a), passed in so that a search over x computes it once.
+    """
     out = np.zeros(a.shape)
-    log_prefix = np.where(x > 0, -x + a * np.log(np.where(x > 0, x, 1.0)), -np.inf) - _lgamma(a)
+    log_prefix = np.where(x > 0, -x + a * np.log(np.where(x > 0, x, 1.0)), -np.inf) - log_gamma_a
     series = x < a + 1.0
     # series: P = e^{-x} x^a / Gamma(a) * sum x^k / (a (a+1) ... (a+k))
     if np.any(series):
@@ -158,11 +158,12 @@ def gamma_quantile(shape: ArrayLike, rate: ArrayLike, q: float) -> FloatArray:
     a = np.asarray(shape, dtype=np.float64)
     r = np.asarray(rate, dtype=np.float64)
     a, r = np.broadcast_arrays(a, r)
+    log_gamma_a = _lgamma(a)
     lo = np.zeros(a.shape)
     hi = np.maximum(a + 20.0 * np.sqrt(a) + 40.0, 1.0)
     for _ in range(80):
         mid = 0.5 * (lo + hi)
-        below = _regularized_gamma_p(a, mid) < q
+        below = _regularized_gamma_p(a, mid, log_gamma_a) < q
         lo = np.where(below, mid, lo)
         hi = np.where(below, hi, mid)
     return 0.5 * (lo + hi) / r
