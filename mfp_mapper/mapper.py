@@ -214,32 +214,12 @@ class Mapper:
         farthest blocks until the map holds at most 90% of ``max_voxels``."""
         if self.last_origin is None:
             return
-        center = self.last_origin / (self.resolution * BLOCK_EDGE) - 0.5
+        block_size = self.resolution * BLOCK_EDGE
+        center = self.last_origin / block_size
         if self.keep_radius is not None:
-            radius_blocks = self.keep_radius / (self.resolution * BLOCK_EDGE)
-
-            def within(block_ijk: NDArray[np.int32], _t: FloatArray) -> NDArray[np.bool_]:
-                return np.linalg.norm(block_ijk - center, axis=1) <= radius_blocks
-
-            self._store.evict(within)
+            self._store.evict_beyond(center, self.keep_radius / block_size)
         if self.max_voxels is not None and self._store.num_voxels > self.max_voxels:
-            target = int(0.9 * self.max_voxels)
-            while self._store.num_voxels > target:
-                dist = np.concatenate(
-                    [
-                        np.linalg.norm(sh.block_ijk[: sh.used] - center, axis=1)
-                        for sh in self._store.shards
-                    ]
-                )
-                cut = np.quantile(dist, 1.0 - min(0.5, 1.0 - target / self._store.num_voxels))
-
-                def nearer(
-                    block_ijk: NDArray[np.int32], _t: FloatArray, cut: float = cut
-                ) -> NDArray[np.bool_]:
-                    return np.linalg.norm(block_ijk - center, axis=1) < cut
-
-                if self._store.evict(nearer) == 0:
-                    break
+            self._store.evict_farthest(center, int(0.9 * self.max_voxels))
 
     def reset(self) -> None:
         """Forget every voxel (parameters stay)."""

@@ -23,7 +23,6 @@ from __future__ import annotations
 import contextlib
 import math
 import mmap
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numba as nb
@@ -333,9 +332,6 @@ ShardArrays = tuple[
 ]
 """A shard's arrays, as compiled kernels take them."""
 
-BlockPredicate = Callable[[NDArray[np.int32], NDArray[np.float64]], NDArray[np.bool_]]
-"""Given used blocks' index (B, 3) and time (B,), which blocks to keep."""
-
 
 @dataclass
 class VoxelArrays:
@@ -362,6 +358,7 @@ class Shard:
         self.block_t: NDArray[np.float64] = np.zeros(0)
         self.block_scan: NDArray[np.int64] = np.zeros(0, dtype=np.int64)
         self.block_hit: NDArray[np.bool_] = np.zeros(0, dtype=np.bool_)
+        self._high_water = 0  # most blocks ever used: their pages stay resident
         self._resize_index(block_capacity)
 
     def _resize_index(self, capacity: int) -> None:
@@ -406,6 +403,10 @@ class Shard:
         """Double the block capacity (or more, for ``min_free``), keeping every block."""
         self._resize_index(max(2 * self.capacity, self.used + min_free))
 
+    def block_distances(self, center: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Distance (block units) from ``center`` to the centre of every used block."""
+        return np.linalg.norm(self.block_ijk[: self.used] + 0.5 - center, axis=1)
+
     def keep_blocks(self, keep: NDArray[np.bool_]) -> int:
         """Drop the blocks where ``keep`` (over used blocks) is False; returns voxels dropped."""
         used = self.used
@@ -424,7 +425,7 @@ class Shard:
     @property
     def nbytes(self) -> int:
         """Memory in use: the blocks' statistics up to the most ever held, and the index."""
-        self._high_water = max(getattr(self, "_high_water", 0), self.used)
+        self._high_water = max(self._high_water, self.used)
         index = (
             self.block_ijk, self.block_t, self.block_scan, self.block_hit, self.table_keys,
             self.table_blocks,
@@ -566,16 +567,25 @@ class BlockStore:
             start += count
         return out
 
-    def evict(self, keep_block: BlockPredicate) -> int:
-        """Drop the blocks the predicate rejects; returns the number of voxels dropped."""
+    def evict_beyond(self, center: NDArray[np.float64], radius: float) -> int:
+        """Drop the blocks whose centre is farther than ``radius`` from ``center`` (both in
+        block units); returns the number of voxels dropped."""
         dropped = 0
         for sh in self.shards:
-            used = sh.used
-            keep = keep_block(sh.block_ijk[:used], sh.block_t[:used])
+            keep = sh.block_distances(center) <= radius
             if not keep.all():
                 dropped += sh.keep_blocks(keep)
         self.num_voxels -= dropped
         return dropped
+
+    def evict_farthest(self, center: NDArray[np.float64], max_voxels: int) -> None:
+        """Drop the blocks farthest from ``center`` (block units) until at most
+        ``max_voxels`` voxels remain (at most half of the blocks per round)."""
+        while self.num_voxels > max_voxels:
+            distances = np.concatenate([sh.block_distances(center) for sh in self.shards])
+            share_to_drop = min(0.5, 1.0 - max_voxels / self.num_voxels)
+            if self.evict_beyond(center, float(np.quantile(distances, 1.0 - share_to_drop))) == 0:
+                return
 
     @property
     def num_blocks(self) -> int:
