@@ -36,6 +36,14 @@ class CliError(Exception):
     """A failure to report on stderr with exit status 1."""
 
 
+def _unit_interval(text: str) -> float:
+    """An argparse type: a number in [0, 1)."""
+    value = float(text)
+    if not 0.0 <= value < 1.0:
+        raise argparse.ArgumentTypeError(f"must lie in [0, 1), got {text}")
+    return value
+
+
 def _err(text: str) -> None:
     print(f"mfp-mapper: error: {text}", file=sys.stderr)
 
@@ -138,7 +146,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, help="PLY file to write")
     p.add_argument(
         "--min-doo",
-        type=float,
+        type=_unit_interval,
         default=0.0,
         help="only voxels with most likely degree of occupancy >= this",
     )

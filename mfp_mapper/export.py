@@ -21,12 +21,6 @@ PLY_PROPERTIES = ("x", "y", "z", "degree_of_occupancy", "std", "mean_free_path",
 PLY_DTYPE = np.dtype([(name, "<f4") for name in PLY_PROPERTIES])
 
 
-def select_voxels(stats: VoxelStats, min_doo: float = 0.0, min_evidence: float = 0.0) -> VoxelStats:
-    """Observed voxels with most likely DoO >= ``min_doo`` and s >= ``min_evidence``."""
-    keep = stats.observed & (stats.most_likely_doo >= min_doo) & (stats.s >= min_evidence)
-    return stats.select(keep)
-
-
 def ply_bytes(stats: VoxelStats, comments: tuple[str, ...] = ()) -> bytes:
     """The PLY file (header + binary body) of these voxels."""
     rec = np.empty(len(stats), dtype=PLY_DTYPE)
@@ -48,8 +42,9 @@ def ply_bytes(stats: VoxelStats, comments: tuple[str, ...] = ()) -> bytes:
 def export_ply(
     mapper: Mapper, path: str | Path, min_doo: float = 0.0, min_evidence: float = 0.0
 ) -> int:
-    """Write the observed voxels of ``mapper`` to ``path`` atomically; return how many."""
-    stats = select_voxels(mapper.voxels(), min_doo, min_evidence)
+    """Write the observed voxels of ``mapper`` with most likely DoO >= ``min_doo`` and
+    s >= ``min_evidence`` to ``path`` atomically; return how many."""
+    stats = mapper.voxels(min_doo=min_doo, min_evidence=min_evidence)
     comments = (
         "mfp_mapper voxel map (Berquin & Zell 2021 mean-free-path model)",
         f"frame_id {mapper.frame_id}",
