@@ -29,6 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mfp_mapper.mapper import Mapper
+from mfp_mapper.node_params import NO_LIMIT_Z
 from mfp_mapper.pointcloud import CloudFormatError, parse_pointcloud2, stamp_seconds
 from mfp_mapper.poses import (
     Extrinsic,
@@ -37,6 +38,7 @@ from mfp_mapper.poses import (
     cloud_to_map,
     quaternion_to_matrix,
     rpy_to_quaternion,
+    z_band,
 )
 
 FloatArray = NDArray[np.float64]
@@ -44,7 +46,6 @@ FloatArray = NDArray[np.float64]
 CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 ODOM_TYPE = "nav_msgs/msg/Odometry"
 TF_TYPE = "tf2_msgs/msg/TFMessage"
-NO_LIMIT_Z = 1.0e6
 
 
 class ReplayError(RuntimeError):
@@ -677,7 +678,10 @@ def _replay(
             except PoseUnavailable as err:
                 skipped[f"no_pose_{err.reason}"] += 1
                 continue
-            points, origins = _z_band(points, origins, opts, dropped)
+            points, origins, outside = z_band(
+                points, origins, opts.point_cloud_min_z, opts.point_cloud_max_z
+            )
+            dropped["z_band"] += outside
             t_core = time.perf_counter()
             result = mapper.integrate(points, origins, stamp)
             summary.seconds_core += time.perf_counter() - t_core
@@ -706,16 +710,6 @@ def _replay(
             + (f"; first bad cloud: {bad_example}" if bad_example else "")
         )
     return ReplayResult(mapper, summary)
-
-
-def _z_band(
-    points: FloatArray, origins: FloatArray, opts: ReplayOptions, dropped: Counter[str]
-) -> tuple[FloatArray, FloatArray]:
-    if opts.point_cloud_min_z <= -NO_LIMIT_Z and opts.point_cloud_max_z >= NO_LIMIT_Z:
-        return points, origins
-    keep = (points[:, 2] >= opts.point_cloud_min_z) & (points[:, 2] <= opts.point_cloud_max_z)
-    dropped["z_band"] += int(np.count_nonzero(~keep))
-    return points[keep], (origins[keep] if origins.ndim == 2 else origins)
 
 
 def _nothing_mapped(

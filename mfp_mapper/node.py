@@ -63,7 +63,14 @@ from mfp_mapper.pointcloud import (
     read_xyz,
     stamp_seconds,
 )
-from mfp_mapper.poses import Extrinsic, PoseBuffer, PoseUnavailable, cloud_to_map, rpy_to_quaternion
+from mfp_mapper.poses import (
+    Extrinsic,
+    PoseBuffer,
+    PoseUnavailable,
+    cloud_to_map,
+    rpy_to_quaternion,
+    z_band,
+)
 
 try:  # optional: not installable from PyPI
     import tf2_ros  # type: ignore[import-not-found]
@@ -492,7 +499,11 @@ class MfpMapperNode(Node):
         except PoseUnavailable as err:
             self._drop(err.reason, str(err))
             return True
-        points, origins = self._z_filter(points, origins)
+        points, origins, outside = z_band(
+            points, origins, self.cfg.point_cloud_min_z, self.cfg.point_cloud_max_z
+        )
+        if outside:
+            self._count_points({"z_band": outside})
         with self._map_lock:
             summary = self.mapper.integrate(points, origins, item.stamp)
         now = self.get_clock().now().nanoseconds * 1e-9
@@ -517,15 +528,6 @@ class MfpMapperNode(Node):
     def _count_points(self, dropped: dict[str, int]) -> None:
         with self._cv:
             self._counters.points_dropped.update({k: v for k, v in dropped.items() if v})
-
-    def _z_filter(self, points: np.ndarray, origins: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        lo, hi = self.cfg.point_cloud_min_z, self.cfg.point_cloud_max_z
-        z = points[:, 2]
-        keep = (z >= lo) & (z <= hi)
-        if keep.all():
-            return points, origins
-        self._count_points({"z_filter": int(keep.size - keep.sum())})
-        return points[keep], (origins[keep] if origins.ndim == 2 else origins)
 
     def _extrinsic(self, cloud_frame: str) -> Extrinsic:
         if cloud_frame and cloud_frame == self._odom_child:

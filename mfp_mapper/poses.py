@@ -317,3 +317,18 @@ def _time_bins(offsets: FloatArray, resolution: float) -> tuple[FloatArray, NDAr
     else:
         bins, inverse = np.unique(keys, return_inverse=True)
     return np.clip(start + bins * resolution, start, stop), inverse.reshape(-1)
+
+
+def z_band(
+    points: FloatArray, origins: FloatArray, lo: float, hi: float
+) -> tuple[FloatArray, FloatArray, int]:
+    """Keep the rays whose end point's z (map frame) lies in [lo, hi]; returns the kept
+    points, their origins ((3,) stays (3,)) and how many rays were dropped."""
+    keep = (points[:, 2] >= lo) & (points[:, 2] <= hi)
+    if keep.all():
+        return points, origins, 0
+    return (
+        points[keep],
+        (origins[keep] if origins.ndim == 2 else origins),
+        int(keep.size - keep.sum()),
+    )
