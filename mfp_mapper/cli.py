@@ -17,6 +17,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from mfp_mapper.atomic import write_text_atomic
+
 EPILOG = """\
 examples:
   mfp-mapper demo                     # simulate, map, draw, evaluate -> ./example_output
@@ -283,7 +285,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     print(summary.format())
     print(f"map          {out} ({result.mapper.num_voxels:,} voxels, {opts.resolution:g} m)")
     if args.summary_json:
-        Path(args.summary_json).write_text(json.dumps(_jsonable(vars(summary)), indent=2) + "\n")
+        write_text_atomic(args.summary_json, json.dumps(_jsonable(vars(summary)), indent=2) + "\n")
     return 0
 
 
@@ -446,7 +448,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     ev = evaluate_map(mapper, truth, args.level, args.min_evidence)
     print(ev.format())
     if args.json:
-        Path(args.json).write_text(json.dumps(_jsonable(ev.to_json()), indent=2) + "\n")
+        write_text_atomic(args.json, json.dumps(_jsonable(ev.to_json()), indent=2) + "\n")
     return 0
 
 
@@ -486,7 +488,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print(f"wrote {ply} ({count:,} voxels with DoO >= 0.05, for CloudCompare/Open3D)")
     print("== 4/4 evaluate against the ground truth")
     ev = evaluate_map(result.mapper, sim.truth)
-    (out / "evaluation.json").write_text(json.dumps(_jsonable(ev.to_json()), indent=2) + "\n")
+    write_text_atomic(out / "evaluation.json", json.dumps(_jsonable(ev.to_json()), indent=2) + "\n")
     print(ev.format())
     print()
     print("what it found:")

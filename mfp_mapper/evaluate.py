@@ -179,7 +179,7 @@ def _free_air(mapper: Mapper, scene: dict[str, Any]) -> FreeAirResult:
         bhi = np.asarray(box["hi"], dtype=np.float64) + r
         touches = np.all(hi_v > blo, axis=1) & np.all(lo_v < bhi, axis=1)
         free &= ~touches
-    sel = vox.select(free & vox.observed)
+    sel = vox.select(free)
     return FreeAirResult(
         voxels_observed=len(sel),
         voxels_with_returns=int(np.count_nonzero(sel.n > 0)),

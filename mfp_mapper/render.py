@@ -44,7 +44,6 @@ class RenderResult:
     files: list[Path] = field(default_factory=list)
     band: tuple[float, float] = (math.nan, math.nan)
     slice_y: float = math.nan
-    voxels: int = 0
 
 
 def ground_height(stats: VoxelStats) -> float | None:
@@ -146,8 +145,7 @@ def render_map(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     stats = mapper.voxels(stamp)
-    stats = stats.select(stats.observed)
-    result = RenderResult(voxels=len(stats))
+    result = RenderResult()
     if len(stats) == 0:
         raise ValueError("the map has no observed voxel: nothing to draw")
     r = mapper.resolution

@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from mfp_mapper.atomic import write_text_atomic
 from mfp_mapper.pointcloud import FLOAT32, UINT16, FieldSpec
 from mfp_mapper.poses import quaternion_to_matrix, rpy_to_quaternion
 from mfp_mapper.synthetic import VLP16_ELEVATIONS_DEG, scan_directions
@@ -174,20 +175,6 @@ class Scene:
             "solids": [asdict(s) for s in self.solids],
             "media": [{**asdict(m), "mean_free_path": 1.0 / m.extinction} for m in self.media],
         }
-
-    @classmethod
-    def from_json(cls, data: dict[str, Any]) -> Scene:
-        return cls(
-            room_lo=tuple(data["room_lo"]),
-            room_hi=tuple(data["room_hi"]),
-            enclosed=bool(data.get("enclosed", True)),
-            wall_height=float(data.get("wall_height", 2.0)),
-            solids=tuple(Solid(s["name"], tuple(s["lo"]), tuple(s["hi"])) for s in data["solids"]),
-            media=tuple(
-                Medium(m["name"], tuple(m["lo"]), tuple(m["hi"]), float(m["extinction"]))
-                for m in data["media"]
-            ),
-        )
 
 
 def _slab(o: FloatArray, d: FloatArray, lo: FloatArray, hi: FloatArray) -> tuple[FloatArray, ...]:
@@ -415,7 +402,6 @@ class BagSink:
     def __init__(self, path: Path, fmt: str) -> None:
         from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-        self.fmt = fmt
         self.ros1 = fmt == "ros1"
         if self.ros1:
             from rosbags.rosbag1 import Writer as Writer1
@@ -654,7 +640,7 @@ def simulate(
         raise
     truth = _truth(cfg, storage, cloud_frame, totals)
     truth_file = truth_path_for(bag)
-    truth_file.write_text(json.dumps(truth, indent=2) + "\n")
+    write_text_atomic(truth_file, json.dumps(truth, indent=2) + "\n")
     return SimulationResult(bag, truth_file, truth)
 
 
