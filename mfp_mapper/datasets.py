@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import csv
 import re
-import sys
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -14,14 +13,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from mfp_mapper.pointcloud import POINTFIELD_DTYPES, FieldSpec
+from mfp_mapper.pointcloud import FieldSpec, point_fields
 
 _PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8"} | {
     (kind, size): f"{kind.lower()}{size}" for kind in "IU" for size in (1, 2, 4, 8)
 }
-_DATATYPES = {np.dtype(code): datatype for datatype, code in POINTFIELD_DTYPES.items()}
 _SCAN_NAME = re.compile(r"cloud_(\d+)_(\d+)\.vtk$")
-_NATIVE_ORDER = "<" if sys.byteorder == "little" else ">"
 _ODOMETRY_COLUMNS = (
     "header.stamp.sec",
     "header.stamp.nanosec",
@@ -234,7 +231,7 @@ def cloud_message(
     if records.ndim not in (1, 2) or not records.dtype.names:
         raise ValueError("cloud_message needs a 1-D or 2-D structured array")
     height, width = (1, records.shape[0]) if records.ndim == 1 else records.shape
-    fields, big_endian = _point_fields(records.dtype)
+    fields, big_endian = point_fields(records.dtype)
     sec = int(np.floor(stamp))
     return CloudMessage(
         header=Header(Time(sec, round((stamp - sec) * 1e9)), frame_id),
@@ -258,19 +255,3 @@ def cloud_message_from_columns(
     for name, values in arrays.items():
         records[name] = values
     return cloud_message(records, stamp, frame_id)
-
-
-def _point_fields(dtype: np.dtype[np.void]) -> tuple[list[FieldSpec], bool]:
-    fields, orders = [], set()
-    for name in dtype.names or ():
-        subtype, offset = dtype.fields[name][:2]  # type: ignore[index]
-        base = subtype.base
-        datatype = _DATATYPES.get(np.dtype(f"{base.kind}{base.itemsize}"))
-        if datatype is None:
-            raise ValueError(f"field {name!r} of dtype {base} has no PointField datatype")
-        fields.append(FieldSpec(name, offset, datatype, max(int(np.prod(subtype.shape)), 1)))
-        if base.itemsize > 1:
-            orders.add(base.byteorder if base.byteorder != "=" else _NATIVE_ORDER)
-    if len(orders) > 1:
-        raise ValueError(f"fields mix byte orders {sorted(orders)}: PointCloud2 has one")
-    return fields, orders == {">"}

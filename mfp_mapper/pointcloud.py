@@ -8,6 +8,7 @@ messages (``numpy.uint8`` array) and plain ``bytes``.
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -35,6 +36,9 @@ POINTFIELD_DTYPES: dict[int, str] = {
     FLOAT64: "f8",
 }
 """PointField datatype constant -> numpy type code (without byte order)."""
+
+_DATATYPE_OF = {np.dtype(code): datatype for datatype, code in POINTFIELD_DTYPES.items()}
+_NATIVE_ORDER = "<" if sys.byteorder == "little" else ">"
 
 TIME_FIELDS = ("t", "time", "time_stamp", "timestamp")
 """Per-point time fields recognised, in order of preference.
@@ -270,3 +274,21 @@ def pack_cloud(columns: Mapping[str, Sequence[float] | NDArray[Any]]) -> PackedC
         packed[name] = values
     fields = [FieldSpec(name, 4 * i, FLOAT32, 1) for i, name in enumerate(arrays)]
     return PackedCloud(fields, packed.tobytes(), 4 * len(fields), width)
+
+
+def point_fields(dtype: np.dtype[np.void]) -> tuple[list[FieldSpec], bool]:
+    """The PointField list of a numpy record type (offsets as laid out), and whether it is
+    big endian. Raises ValueError for types PointCloud2 cannot hold."""
+    fields, orders = [], set()
+    for name in dtype.names or ():
+        subtype, offset = dtype.fields[name][:2]  # type: ignore[index]
+        base = subtype.base
+        datatype = _DATATYPE_OF.get(np.dtype(f"{base.kind}{base.itemsize}"))
+        if datatype is None:
+            raise ValueError(f"field {name!r} of dtype {base} has no PointField datatype")
+        fields.append(FieldSpec(name, offset, datatype, max(int(np.prod(subtype.shape)), 1)))
+        if base.itemsize > 1:
+            orders.add(base.byteorder if base.byteorder != "=" else _NATIVE_ORDER)
+    if len(orders) > 1:
+        raise ValueError(f"fields mix byte orders {sorted(orders)}: PointCloud2 has one")
+    return fields, orders == {">"}

@@ -33,7 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mfp_mapper.atomic import write_text_atomic
-from mfp_mapper.pointcloud import FLOAT32, UINT16, FieldSpec
+from mfp_mapper.pointcloud import FieldSpec, point_fields
 from mfp_mapper.poses import quaternion_to_matrix, rpy_to_quaternion
 from mfp_mapper.synthetic import VLP16_ELEVATIONS_DEG, scan_directions
 
@@ -372,14 +372,7 @@ VELODYNE_DTYPE = np.dtype(
         "itemsize": 22,
     }
 )
-VELODYNE_FIELDS = (
-    FieldSpec("x", 0, FLOAT32),
-    FieldSpec("y", 4, FLOAT32),
-    FieldSpec("z", 8, FLOAT32),
-    FieldSpec("intensity", 12, FLOAT32),
-    FieldSpec("ring", 16, UINT16),
-    FieldSpec("time", 18, FLOAT32),
-)
+VELODYNE_FIELDS = tuple(point_fields(VELODYNE_DTYPE)[0])
 
 
 def bag_format_for(path: Path, fmt: str | None) -> str:
@@ -529,7 +522,7 @@ class BagSink:
             is_bigendian=False,
             point_step=point_step,
             row_step=point_step * int(records.size),
-            data=np.frombuffer(records.tobytes(), dtype=np.uint8),
+            data=records.view(np.uint8),
             is_dense=True,
         )
 
