@@ -49,9 +49,14 @@ class MapFileError(ValueError):
 
 def write_map(path: str | Path, mapper: Mapper) -> None:
     """Write ``mapper`` to ``path`` (.npz) atomically."""
-    target = Path(path)
+    write_map_arrays(path, map_arrays(mapper))
+
+
+def map_arrays(mapper: Mapper) -> dict[str, np.ndarray]:
+    """The arrays of the map file: a snapshot, independent of the mapper afterwards (so a
+    caller can take it under a lock and compress and write it outside)."""
     voxels = mapper.voxels()
-    arrays = {
+    return {
         "ijk": voxels.ijk.astype(np.int32),
         "s": voxels.s.astype(np.float64),
         "n": voxels.n.astype(np.float64),
@@ -64,7 +69,11 @@ def write_map(path: str | Path, mapper: Mapper) -> None:
         "format": np.str_(FORMAT_NAME),
         "version": np.int64(FORMAT_VERSION),
     }
-    with atomic_output(target) as tmp:
+
+
+def write_map_arrays(path: str | Path, arrays: dict[str, np.ndarray]) -> None:
+    """Write ``map_arrays`` output to ``path`` (.npz) atomically."""
+    with atomic_output(path) as tmp:
         np.savez_compressed(tmp, **arrays)
 
 

@@ -49,11 +49,10 @@ from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import String
 from std_srvs.srv import Empty, Trigger
 
-from mfp_mapper import model
-from mfp_mapper.gridmap import band_mask, hit_probability_grid
-from mfp_mapper.mapfile import MapFileError
+from mfp_mapper.gridmap import hit_probability_grid
+from mfp_mapper.mapfile import MapFileError, map_arrays, write_map_arrays
 from mfp_mapper.mapper import Mapper
-from mfp_mapper.node_params import SPECS, NodeConfig, attr_name, declare_parameters
+from mfp_mapper.node_params import SPECS, NodeConfig, declare_parameters
 from mfp_mapper.pointcloud import (
     CloudFormatError,
     PackedCloud,
@@ -91,13 +90,6 @@ DROP_REASONS = (
 PUBLISH_DUTY = 0.1
 """Largest share of wall time the map clouds may take: after a publication that took
 ``dt`` seconds, the next one waits at least ``dt * (1 / PUBLISH_DUTY - 1)``."""
-RESULT_FIELDS = (
-    "hit_probability",
-    "degree_of_occupancy",
-    "std",
-    "mean_free_path",
-    "observed",
-)
 
 
 def _stamp_msg(seconds: float) -> TimeMsg:
@@ -338,9 +330,7 @@ class MfpMapperNode(Node):
             new = NodeConfig.from_values(values)
         except (ValueError, TypeError) as err:
             return SetParametersResult(successful=False, reason=str(err))
-        for p in params:
-            if p.name in SPECS:
-                setattr(self.cfg, attr_name(p.name), getattr(new, attr_name(p.name)))
+        self.cfg = new  # one assignment: a reader never sees half of a change
         self._published_version = None  # republish with the new filter
         return SetParametersResult(successful=True)
 
@@ -588,10 +578,9 @@ class MfpMapperNode(Node):
                 bounds=window,
             )
             stamp = self.mapper.last_stamp
-        keep = vox.observed
+        sel = vox
         if window is not None:
-            keep &= np.sum((vox.centers - robot) ** 2, axis=1) <= radius**2
-        sel = vox.select(keep)
+            sel = vox.select(np.sum((vox.centers - robot) ** 2, axis=1) <= radius**2)
         xyz = {a: sel.centers[:, k] for k, a in enumerate("xyz")}
         header_stamp = _stamp_msg(stamp) if stamp is not None else self.get_clock().now().to_msg()
         frame = self.map_frame
@@ -643,19 +632,29 @@ class MfpMapperNode(Node):
     def _hit_probability_grid(self) -> OccupancyGrid:
         """The 2D hit-probability grid of the height band (``~/hit_probability_map``,
         ``~/projected_map``)."""
-        zmin, zmax = self.cfg.occupancy_min_z, self.cfg.occupancy_max_z
-        with self._map_lock:
-            vox = self.mapper.voxels(bounds=((-np.inf, -np.inf, zmin), (np.inf, np.inf, zmax)))
-            res = self.mapper.resolution
-            stamp = self.mapper.last_stamp
-        band = vox.observed & band_mask(vox.ijk, res, zmin, zmax)
-        prob = np.zeros(len(vox))
-        prob[band] = model.hit_probability(vox.s[band], vox.n[band], res)
-        radius = self.cfg.hit_probability_map_radius
+        cfg = self.cfg
+        zmin, zmax = cfg.occupancy_min_z, cfg.occupancy_max_z
+        radius = cfg.hit_probability_map_radius
         robot = self._robot_position
         center = (float(robot[0]), float(robot[1])) if robot is not None and radius > 0 else None
+        lo, hi = [-np.inf, -np.inf, zmin], [np.inf, np.inf, zmax]
+        if center is not None:  # export only the window (the grid crops it exactly)
+            margin = radius + self.mapper.resolution
+            lo[:2] = [center[0] - margin, center[1] - margin]
+            hi[:2] = [center[0] + margin, center[1] + margin]
+        with self._map_lock:
+            vox = self.mapper.voxels(bounds=(lo, hi))
+            res = self.mapper.resolution
+            stamp = self.mapper.last_stamp
         grid = hit_probability_grid(
-            vox.ijk, prob, vox.observed, res, zmin, zmax, center=center, radius=radius
+            vox.ijk,
+            vox.hit_probability,
+            vox.observed,
+            res,
+            zmin,
+            zmax,
+            center=center,
+            radius=radius,
         )
         out = OccupancyGrid()
         out.header.frame_id = self.map_frame
@@ -683,10 +682,11 @@ class MfpMapperNode(Node):
         if not path:
             return False, "parameter map_path is empty: nowhere to save"
         try:
-            with self._map_lock:
+            with self._map_lock:  # snapshot only: compressing and writing run unlocked
                 self.mapper.frame_id = self.map_frame
-                self.mapper.save(path)
-                count = self.mapper.num_voxels
+                arrays = map_arrays(self.mapper)
+            write_map_arrays(path, arrays)
+            count = len(arrays["s"])
         except (OSError, ValueError, MapFileError) as err:
             self.get_logger().error(f"saving the map to {path!r} failed: {err}")
             return False, f"saving to {path!r} failed: {err}"
@@ -791,8 +791,6 @@ MAX_FILTER_DOO = 1.0 - 1e-9
 
 def usage() -> str:
     """What ``--help`` prints: how to start the node and its parameters with defaults."""
-    from mfp_mapper.node_params import SPECS
-
     lines = [
         "usage: ros2 run mfp_mapper mfp_mapper [--ros-args -p NAME:=VALUE ... "
         "--params-file config/mfp_mapper.yaml]",
