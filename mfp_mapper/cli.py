@@ -39,10 +39,10 @@ class CliError(Exception):
 
 
 def _unit_interval(text: str) -> float:
-    """An argparse type: a number in [0, 1)."""
+    """An argparse type: a number in [0, 1]."""
     value = float(text)
-    if not 0.0 <= value < 1.0:
-        raise argparse.ArgumentTypeError(f"must lie in [0, 1), got {text}")
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"must lie in [0, 1], got {text}")
     return value
 
 

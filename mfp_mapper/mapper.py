@@ -264,8 +264,8 @@ class Mapper:
         after decay) and ``bounds`` = (lower corner, upper corner) in metres, map frame, on
         voxel centres (use +-inf for an open side).
         """
-        if not 0.0 <= min_doo < 1.0:
-            raise ValueError(f"min_doo must lie in [0, 1), got {min_doo}")
+        if not 0.0 <= min_doo <= 1.0:
+            raise ValueError(f"min_doo must lie in [0, 1], got {min_doo}")
         lo = hi = None
         if bounds is not None:
             with np.errstate(invalid="ignore", over="ignore"):
@@ -278,7 +278,8 @@ class Mapper:
                 hi = np.floor(np.clip(hi_m, -MAX_VOXEL_INDEX - 1, MAX_VOXEL_INDEX + 1)).astype(
                     np.int64
                 )
-        stats = self._stats(self._store.export(-math.log1p(-min_doo), lo, hi), stamp)
+        min_extinction = math.inf if min_doo >= 1.0 else -math.log1p(-min_doo)
+        stats = self._stats(self._store.export(min_extinction, lo, hi), stamp)
         if min_evidence > 0.0:
             stats = stats.select(stats.s >= min_evidence)
         return stats

@@ -573,7 +573,7 @@ class MfpMapperNode(Node):
             if radius > 0.0 and robot is not None:
                 window = (np.asarray(robot) - radius, np.asarray(robot) + radius)
             vox = self.mapper.voxels(
-                min_doo=min(self.cfg.min_degree_of_occupancy, MAX_FILTER_DOO),
+                min_doo=self.cfg.min_degree_of_occupancy,
                 min_evidence=self.cfg.min_evidence,
                 bounds=window,
             )
@@ -783,10 +783,6 @@ class MfpMapperNode(Node):
             else:
                 self.save_map()
         self.mapper.close()
-
-
-MAX_FILTER_DOO = 1.0 - 1e-9
-"""min_degree_of_occupancy 1 keeps only voxels whose most likely DoO rounds to 1."""
 
 
 def usage() -> str:

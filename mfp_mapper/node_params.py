@@ -228,37 +228,38 @@ SPECS: dict[str, ParamSpec] = {p.name: p for p in PARAMS}
 
 @dataclass
 class NodeConfig:
-    """Validated parameter values (attribute = parameter name with '.' -> '_')."""
+    """Validated parameter values (attribute = parameter name with '.' -> '_'); the
+    defaults are those of ``PARAMS`` (see ``from_values``)."""
 
-    resolution: float = 0.1
-    frame_id: str = ""
-    base_frame_id: str = ""
-    decay_time: float = 0.0
-    threads: int = 1
-    max_voxels: int = 0
-    sensor_model_max_range: float = 100.0
-    sensor_model_min_range: float = 0.0
-    point_cloud_min_z: float = -NO_LIMIT_Z
-    point_cloud_max_z: float = NO_LIMIT_Z
-    lidar_translation: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    lidar_rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    use_tf: bool = False
-    deskew: bool = True
-    cloud_queue_size: int = 5
-    odom_wait: float = 1.0
-    odom_buffer: float = 10.0
-    odom_max_gap: float = 0.5
-    latch: bool = True
-    publish_rate: float = 1.0
-    min_degree_of_occupancy: float = 0.1
-    min_evidence: float = 0.0
-    publish_radius: float = 0.0
-    occupancy_min_z: float = 0.1
-    occupancy_max_z: float = 2.0
-    hit_probability_map_radius: float = 0.0
-    map_path: str = ""
-    save_on_shutdown: bool = False
-    status_period: float = 10.0
+    resolution: float
+    frame_id: str
+    base_frame_id: str
+    decay_time: float
+    threads: int
+    max_voxels: int
+    sensor_model_max_range: float
+    sensor_model_min_range: float
+    point_cloud_min_z: float
+    point_cloud_max_z: float
+    lidar_translation: tuple[float, float, float]
+    lidar_rpy: tuple[float, float, float]
+    use_tf: bool
+    deskew: bool
+    cloud_queue_size: int
+    odom_wait: float
+    odom_buffer: float
+    odom_max_gap: float
+    latch: bool
+    publish_rate: float
+    min_degree_of_occupancy: float
+    min_evidence: float
+    publish_radius: float
+    occupancy_min_z: float
+    occupancy_max_z: float
+    hit_probability_map_radius: float
+    map_path: str
+    save_on_shutdown: bool
+    status_period: float
 
     @property
     def max_range(self) -> float:
@@ -273,9 +274,10 @@ class NodeConfig:
 
     @classmethod
     def from_values(cls, values: dict[str, Any]) -> NodeConfig:
-        """Build from parameter values keyed by parameter name; raise ValueError if invalid."""
+        """Build from parameter values keyed by parameter name (the others take their
+        defaults); raise ValueError if invalid."""
         kwargs: dict[str, Any] = {}
-        for name, value in values.items():
+        for name, value in {**defaults(), **values}.items():
             if name not in SPECS:
                 raise ValueError(f"unknown parameter {name!r}")
             kwargs[attr_name(name)] = value

@@ -256,7 +256,8 @@ def _select_voxels(
         for i in range(BLOCK_VOXELS):
             s = block_sn[b, i, 0]
             n = block_sn[b, i, 1]
-            if (s > 0.0 or n > 0.0) and n >= min_extinction * s:
+            # s == 0 < n: a return on a face, most likely DoO 1 (kept by any threshold)
+            if (s > 0.0 and n >= min_extinction * s) or (s == 0.0 and n > 0.0):
                 if not inside:
                     x = base_x + _unspread_bits(i >> 2)
                     y = base_y + _unspread_bits(i >> 1)

@@ -189,5 +189,6 @@ def test_filtered_export_equals_filtering_the_full_export() -> None:
     expected = {tuple(v) for v in full.ijk[keep].tolist()}
     assert {tuple(v) for v in got.ijk.tolist()} == expected
     assert (got.most_likely_doo >= 0.3 - 1e-9).all()
+    assert (mapper.voxels(min_doo=1.0).most_likely_doo == 1.0).all()
     with pytest.raises(ValueError, match="min_doo"):
-        mapper.voxels(min_doo=1.0)
+        mapper.voxels(min_doo=1.5)
