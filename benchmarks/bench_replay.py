@@ -30,36 +30,17 @@ sys.path.insert(0, str(ROOT))
 
 
 def extract(bag: Path, out: Path) -> int:
-    """De-skewed map-frame points and one origin per cloud, via the replay's own code."""
-    from mfp_mapper.bag_replay import (
-        ReplayOptions,
-        _extrinsic_for,
-        _odometry_poses,
-        _Transforms,
-        open_reader,
-        resolve_bag_path,
-    )
-    from mfp_mapper.pointcloud import parse_pointcloud2, stamp_seconds
-    from mfp_mapper.poses import cloud_to_map
+    """De-skewed map-frame points and one origin per cloud, placed by the replay itself."""
+    from mfp_mapper.bag_replay import ReplayOptions, replay
 
-    path = resolve_bag_path(bag)
-    reader = open_reader(path)
-    opts = ReplayOptions()
-    tfs = _Transforms()
-    static = [c for c in reader.connections if c.topic == "/tf_static"]
-    for conn, _, raw in reader.messages(connections=static):
-        tfs.add(reader.deserialize(raw, conn.msgtype), static=True)
-    poses = _odometry_poses(reader, "/odom", opts)
-    clouds = [c for c in reader.connections if c.msgtype == "sensor_msgs/msg/PointCloud2"]
     arrays: dict[str, np.ndarray] = {}
-    for k, (conn, _, raw) in enumerate(reader.messages(connections=clouds)):
-        msg = reader.deserialize(raw, conn.msgtype)
-        cloud = parse_pointcloud2(msg)
-        ext, _ = _extrinsic_for(msg.header.frame_id, poses.body, tfs, opts)
-        points, origins = cloud_to_map(cloud, stamp_seconds(msg.header.stamp), poses.buffer, ext)
+
+    def keep(_stamp: float, points: np.ndarray, origins: np.ndarray) -> None:
+        k = len(arrays) // 2
         arrays[f"p{k}"] = points
         arrays[f"o{k}"] = np.asarray(origins).reshape(-1, 3).mean(axis=0)
-    reader.close()
+
+    replay(bag, ReplayOptions(), progress=False, on_scan=keep)
     np.savez(out, **arrays)
     return len(arrays) // 2
 

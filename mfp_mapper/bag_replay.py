@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 
 from mfp_mapper.mapper import Mapper
 from mfp_mapper.node_params import NO_LIMIT_Z
-from mfp_mapper.pointcloud import CloudFormatError, parse_pointcloud2, stamp_seconds
+from mfp_mapper.pointcloud import parse_pointcloud2, stamp_seconds
 from mfp_mapper.poses import (
     Extrinsic,
     PoseBuffer,
@@ -551,6 +551,10 @@ def _tf_poses(cloud_frame: str, tfs: _Transforms, opts: ReplayOptions) -> _Poses
 # --- the replay -------------------------------------------------------------------------------
 
 
+ScanCallback = Callable[[float, FloatArray, FloatArray], None]
+"""Called with (stamp, points (N, 3), origins (3,) or (N, 3)) for every placed cloud."""
+
+
 @dataclass
 class ReplayResult:
     mapper: Mapper
@@ -562,13 +566,18 @@ def replay(
     opts: ReplayOptions | None = None,
     progress: bool | Progress = True,
     log: Callable[[str], None] | None = None,
+    on_scan: ScanCallback | None = None,
 ) -> ReplayResult:
-    """Map every cloud of ``bag``; ReplayError (with the reason) when it cannot be done."""
+    """Map every cloud of ``bag``; ReplayError (with the reason) when it cannot be done.
+
+    ``on_scan(stamp, points, origins)`` sees every placed cloud (map frame) just before it
+    is integrated, e.g. to feed the same rays to another mapper.
+    """
     opts = opts or ReplayOptions()
     path = resolve_bag_path(bag)
     reader = open_reader(path)
     try:
-        return _replay(reader, path, opts, progress, log)
+        return _replay(reader, path, opts, progress, log, on_scan)
     finally:
         reader.close()
 
@@ -579,8 +588,9 @@ def _replay(
     opts: ReplayOptions,
     progress: bool | Progress,
     log: Callable[[str], None] | None,
+    on_scan: ScanCallback | None,
 ) -> ReplayResult:
-    summary = ReplaySummary(bag=str(path), deskew=False)
+    summary = ReplaySummary(bag=str(path))
     cloud_topic = _pick_topic(reader, CLOUD_TYPE, opts.cloud_topic, "PointCloud2", "--cloud-topic")
     if cloud_topic is None:
         listing = ", ".join(sorted({f"{c.topic} ({c.msgtype})" for c in reader.connections}))
@@ -648,7 +658,6 @@ def _replay(
     )
     skipped: Counter[str] = Counter()
     dropped: Counter[str] = Counter()
-    stamps: list[float] = []
     bad_example = ""
     cloud_span = [math.inf, -math.inf]
     t_loop = time.perf_counter()
@@ -659,7 +668,7 @@ def _replay(
             try:
                 msg = reader.deserialize(raw, conn.msgtype)
                 cloud = parse_pointcloud2(msg)
-            except (CloudFormatError, Exception) as err:  # a damaged message: skip, count
+            except Exception as err:  # a damaged message (CloudFormatError or worse): skip, count
                 skipped["bad_cloud"] += 1
                 bad_example = bad_example or f"{type(err).__name__}: {err}"
                 continue
@@ -682,6 +691,8 @@ def _replay(
                 points, origins, opts.point_cloud_min_z, opts.point_cloud_max_z
             )
             dropped["z_band"] += outside
+            if on_scan is not None:
+                on_scan(stamp, points, origins)
             t_core = time.perf_counter()
             result = mapper.integrate(points, origins, stamp)
             summary.seconds_core += time.perf_counter() - t_core
@@ -689,7 +700,10 @@ def _replay(
             summary.rays_used += result.rays_used
             summary.rays_truncated += result.rays_truncated
             dropped.update(result.dropped)
-            stamps.append(stamp)
+            if summary.first_stamp is None or summary.last_stamp is None:
+                summary.first_stamp = summary.last_stamp = stamp
+            summary.first_stamp = min(summary.first_stamp, stamp)
+            summary.last_stamp = max(summary.last_stamp, stamp)
             bar.update(done, summary.rays_used)
         bar.update(summary.scans_used + sum(skipped.values()), summary.rays_used, force=True)
     finally:
@@ -699,8 +713,6 @@ def _replay(
     summary.voxels = mapper.num_voxels
     summary.memory_bytes = mapper.memory_bytes
     summary.seconds = time.perf_counter() - t_loop
-    if stamps:
-        summary.first_stamp, summary.last_stamp = min(stamps), max(stamps)
     if summary.scans_used == 0:
         raise ReplayError(_nothing_mapped(summary, poses, bad_example, cloud_span))
     if skipped and log is not None:

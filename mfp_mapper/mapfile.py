@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import zipfile
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -71,7 +71,7 @@ def map_arrays(mapper: Mapper) -> dict[str, np.ndarray]:
     }
 
 
-def write_map_arrays(path: str | Path, arrays: dict[str, np.ndarray]) -> None:
+def write_map_arrays(path: str | Path, arrays: dict[str, Any]) -> None:
     """Write ``map_arrays`` output to ``path`` (.npz) atomically."""
     with atomic_output(path) as tmp:
         np.savez_compressed(tmp, **arrays)
