@@ -79,10 +79,12 @@ def run_child(kind: str, data: Path, resolution: float, max_range: float) -> dic
 
 
 def main() -> int:
+    from mfp_mapper.simulate import BAG_FORMATS
+
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--scans", type=int, default=120)
     ap.add_argument("--resolution", type=float, default=0.2)
-    ap.add_argument("--format", choices=("mcap", "sqlite3", "ros1"), default="mcap")
+    ap.add_argument("--format", choices=BAG_FORMATS, default="mcap")
     ap.add_argument("--octomap", action="store_true", help="also OctoMap on the same clouds")
     ap.add_argument("--max-range", type=float, default=100.0)
     ap.add_argument("--bag", help="replay this bag instead of simulating the example")

@@ -65,6 +65,8 @@ def _nonneg_int(text: str) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from mfp_mapper.simulate import BAG_FORMATS, PRESETS
+
     parser = argparse.ArgumentParser(
         prog="mfp-mapper",
         description="Offline tools of mfp_mapper, the mean-free-path lidar mapper: replay "
@@ -115,12 +117,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("out_bag", help="bag to write: a directory (ROS 2) or NAME.bag (ROS 1)")
     p.add_argument(
         "--format",
-        choices=("mcap", "sqlite3", "ros1"),
+        choices=BAG_FORMATS,
         help="storage (default: ros1 for *.bag, else mcap)",
     )
     p.add_argument(
         "--scene",
-        choices=("demo", "small", "open"),
+        choices=PRESETS,
         default="demo",
         help="demo: the example hall; small: one cube of medium (tests); open: "
         "small without ceiling (rays escape: shows the bias)",
@@ -209,7 +211,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--resolution", type=_positive, default=0.2, help="voxel edge (default 0.2)")
     p.add_argument("--scans", type=_nonneg_int, default=120, help="rotations (default 120)")
-    p.add_argument("--format", choices=("mcap", "sqlite3", "ros1"), default="mcap")
+    p.add_argument("--format", choices=BAG_FORMATS, default="mcap")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     return parser
@@ -420,7 +422,10 @@ def cmd_query(args: argparse.Namespace) -> int:
         x, y, z = row["point"]
         head = f"({x:.2f}, {y:.2f}, {z:.2f}) voxel {tuple(row['voxel'])}: "
         if not row["observed"]:
-            print(head + "unknown (never observed; prior DoO 0.5, std 0.289)")
+            print(
+                head + f"unknown (never observed; prior DoO {model.UNKNOWN_DOO:g}, "
+                f"std {model.UNKNOWN_STD:.3f})"
+            )
             continue
         mfp = row["mean_free_path"]
         print(
