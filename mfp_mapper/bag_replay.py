@@ -37,7 +37,6 @@ from mfp_mapper.poses import (
     PoseUnavailable,
     cloud_to_map,
     quaternion_to_matrix,
-    rpy_to_quaternion,
     z_band,
 )
 
@@ -90,7 +89,7 @@ def options_from_yaml(path: str | Path) -> dict[str, Any]:
     """
     import yaml  # type: ignore[import-untyped]
 
-    from mfp_mapper.node_params import SPECS
+    from mfp_mapper.node_params import SPECS, NodeConfig
 
     p = Path(path)
     try:
@@ -107,35 +106,26 @@ def options_from_yaml(path: str | Path) -> dict[str, Any]:
     unknown = sorted(k for k in flat if k not in SPECS)
     if unknown:
         raise ReplayError(f"{p}: unknown parameter(s) {', '.join(unknown)}")
-    out: dict[str, Any] = {}
     try:
-        if "resolution" in flat:
-            out["resolution"] = float(flat["resolution"])
-        if "sensor_model.max_range" in flat:
-            r = float(flat["sensor_model.max_range"])
-            out["max_range"] = math.inf if r <= 0 else r
-        if "sensor_model.min_range" in flat:
-            out["min_range"] = float(flat["sensor_model.min_range"])
-        if "decay_time" in flat:
-            d = float(flat["decay_time"])
-            out["decay_time"] = math.inf if d <= 0 else d
-        if "threads" in flat:
-            out["threads"] = int(flat["threads"])
-        if "max_voxels" in flat:
-            out["max_voxels"] = int(flat["max_voxels"]) or None
-        if "deskew" in flat:
-            out["deskew"] = bool(flat["deskew"])
-        if "odom_max_gap" in flat:
-            out["max_gap"] = float(flat["odom_max_gap"])
-        for name in ("point_cloud_min_z", "point_cloud_max_z"):
-            if name in flat:
-                out[name] = float(flat[name])
-        if "lidar.translation" in flat or "lidar.rpy" in flat:
-            out["config_extrinsic"] = make_extrinsic(
-                flat.get("lidar.translation", [0.0, 0.0, 0.0]), flat.get("lidar.rpy", [0, 0, 0])
-            )
+        cfg = NodeConfig.from_values(flat)  # the node's own checks, ranges included
     except (TypeError, ValueError) as err:
         raise ReplayError(f"{p}: {err}") from None
+    core = cfg.mapper_settings()
+    fields_of = {  # parameter -> (ReplayOptions field, value)
+        "resolution": ("resolution", cfg.resolution),
+        "sensor_model.max_range": ("max_range", core["max_range"]),
+        "sensor_model.min_range": ("min_range", core["min_range"]),
+        "decay_time": ("decay_time", core["decay_time"]),
+        "threads": ("threads", core["threads"]),
+        "max_voxels": ("max_voxels", core["max_voxels"]),
+        "deskew": ("deskew", cfg.deskew),
+        "odom_max_gap": ("max_gap", cfg.odom_max_gap),
+        "point_cloud_min_z": ("point_cloud_min_z", cfg.point_cloud_min_z),
+        "point_cloud_max_z": ("point_cloud_max_z", cfg.point_cloud_max_z),
+    }
+    out = {field: value for name, (field, value) in fields_of.items() if name in flat}
+    if "lidar.translation" in flat or "lidar.rpy" in flat:
+        out["config_extrinsic"] = cfg.extrinsic()
     return out
 
 
@@ -154,15 +144,6 @@ def _flatten(tree: dict[str, Any], prefix: str, out: dict[str, Any]) -> None:
             _flatten(value, name + ".", out)
         else:
             out[name] = value
-
-
-def make_extrinsic(translation: Any, rpy: Any) -> Extrinsic:
-    """Extrinsic from [x, y, z] (m) and [roll, pitch, yaw] (rad)."""
-    t = [float(v) for v in translation]
-    r = [float(v) for v in rpy]
-    if len(t) != 3 or len(r) != 3:
-        raise ValueError(f"extrinsic needs 3 + 3 numbers, got {t} and {r}")
-    return Extrinsic(np.array(t), rpy_to_quaternion(*r))
 
 
 # --- summary and progress ---------------------------------------------------------------------

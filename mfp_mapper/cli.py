@@ -241,7 +241,8 @@ def _check_writable(path: Path) -> None:
 
 
 def replay_options(args: argparse.Namespace) -> Any:
-    from mfp_mapper.bag_replay import ReplayOptions, make_extrinsic, options_from_yaml
+    from mfp_mapper.bag_replay import ReplayOptions, options_from_yaml
+    from mfp_mapper.poses import Extrinsic
 
     values: dict[str, Any] = options_from_yaml(args.config) if args.config else {}
     if args.resolution is not None:
@@ -255,7 +256,7 @@ def replay_options(args: argparse.Namespace) -> Any:
     if args.threads is not None:
         values["threads"] = args.threads
     if args.extrinsic is not None:
-        values["extrinsic"] = make_extrinsic(args.extrinsic[:3], args.extrinsic[3:])
+        values["extrinsic"] = Extrinsic.from_xyz_rpy(args.extrinsic[:3], args.extrinsic[3:])
     if args.max_gap is not None:
         values["max_gap"] = args.max_gap
     values.update(

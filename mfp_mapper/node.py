@@ -67,7 +67,6 @@ from mfp_mapper.poses import (
     PoseBuffer,
     PoseUnavailable,
     cloud_to_map,
-    rpy_to_quaternion,
     z_band,
 )
 
@@ -197,8 +196,7 @@ class MfpMapperNode(Node):
         self._odom_frame: str | None = None
         self._odom_child: str | None = None
         self._robot_position: np.ndarray | None = None
-        q = rpy_to_quaternion(*self.cfg.lidar_rpy)
-        self._param_extrinsic = Extrinsic(np.array(self.cfg.lidar_translation), q)
+        self._param_extrinsic = self.cfg.extrinsic()
         self._identity = Extrinsic()
         self.mapper = self._initial_mapper()
         self._published_version: int | None = None
@@ -281,20 +279,11 @@ class MfpMapperNode(Node):
 
     # --- set-up ----------------------------------------------------------------------------
 
-    def _core_settings(self) -> dict[str, Any]:
-        return {
-            "max_range": self.cfg.max_range,
-            "min_range": self.cfg.sensor_model_min_range,
-            "decay_time": self.cfg.decay,
-            "threads": self.cfg.threads,
-            "max_voxels": self.cfg.max_voxels or None,
-        }
-
     def _initial_mapper(self) -> Mapper:
         path = self.cfg.map_path
         if path and os.path.exists(path):
             try:
-                mapper = Mapper.load(path, **self._core_settings())
+                mapper = Mapper.load(path, **self.cfg.mapper_settings())
             except (MapFileError, ValueError, OSError) as err:
                 self._load_failed = True
                 self.get_logger().error(
@@ -314,7 +303,7 @@ class MfpMapperNode(Node):
                 )
                 return mapper
         return Mapper(
-            self.cfg.resolution, frame_id=self.cfg.frame_id or "map", **self._core_settings()
+            self.cfg.resolution, frame_id=self.cfg.frame_id or "map", **self.cfg.mapper_settings()
         )
 
     def _on_set_parameters(self, params: list[Any]) -> SetParametersResult:

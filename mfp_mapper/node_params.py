@@ -13,6 +13,8 @@ import math
 from dataclasses import dataclass, fields
 from typing import Any
 
+from mfp_mapper.poses import Extrinsic
+
 NO_LIMIT_Z = 1.0e6
 """The "no limit" value of the z band parameters (metres)."""
 
@@ -271,6 +273,20 @@ class NodeConfig:
     def decay(self) -> float:
         """``decay_time`` for the core: inf for a static map."""
         return math.inf if self.decay_time <= 0.0 else self.decay_time
+
+    def mapper_settings(self) -> dict[str, Any]:
+        """Keyword arguments of ``Mapper`` (besides resolution and frame) these values give."""
+        return {
+            "max_range": self.max_range,
+            "min_range": self.sensor_model_min_range,
+            "decay_time": self.decay,
+            "threads": self.threads,
+            "max_voxels": self.max_voxels or None,
+        }
+
+    def extrinsic(self) -> Extrinsic:
+        """The lidar pose in the odometry child frame (``lidar.translation``, ``lidar.rpy``)."""
+        return Extrinsic.from_xyz_rpy(self.lidar_translation, self.lidar_rpy)
 
     @classmethod
     def from_values(cls, values: dict[str, Any]) -> NodeConfig:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from bisect import bisect_left
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -108,6 +109,15 @@ class Extrinsic:
             raise ValueError(f"extrinsic translation must be 3 finite values, got {translation}")
         object.__setattr__(self, "translation", translation)
         object.__setattr__(self, "quaternion", normalize_quaternion(self.quaternion))
+
+    @classmethod
+    def from_xyz_rpy(cls, translation: Any, rpy: Any) -> Extrinsic:
+        """From [x, y, z] (m) and fixed-axis [roll, pitch, yaw] (rad)."""
+        t = [float(v) for v in translation]
+        r = [float(v) for v in rpy]
+        if len(t) != 3 or len(r) != 3:
+            raise ValueError(f"extrinsic needs 3 + 3 numbers, got {t} and {r}")
+        return cls(np.array(t), rpy_to_quaternion(*r))
 
     @property
     def rotation(self) -> FloatArray:

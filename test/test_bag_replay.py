@@ -13,11 +13,10 @@ from mfp_mapper.bag_replay import (
     Progress,
     ReplayError,
     ReplayOptions,
-    make_extrinsic,
     options_from_yaml,
     replay,
 )
-from mfp_mapper.poses import rpy_to_quaternion
+from mfp_mapper.poses import Extrinsic, rpy_to_quaternion
 from mfp_mapper.simulate import VELODYNE_DTYPE, VELODYNE_FIELDS, BagSink, preset, simulate
 
 SMALL = replace(preset("small"), scans=6, azimuths=240)
@@ -90,13 +89,13 @@ def test_poses_from_the_tf_chain(bags, reference) -> None:  # type: ignore[no-un
 
 def test_extrinsic_from_tf_static_matters(bags, reference) -> None:  # type: ignore[no-untyped-def]
     # the bag's /tf_static holds the true mount; a wrong one given explicitly moves the map
-    wrong = make_extrinsic([0.0, 0.0, 1.0], [0.0, 0.0, 0.0])
+    wrong = Extrinsic.from_xyz_rpy([0.0, 0.0, 1.0], [0.0, 0.0, 0.0])
     ijk, _, summary = _stats(bags["mcap"], extrinsic=wrong)
     assert summary.extrinsic_source == "given on the command line"
     assert ijk.shape != reference[0].shape or not np.array_equal(ijk, reference[0])
     # the true one given explicitly reproduces the /tf_static map
     t, rpy = SMALL.lidar_translation, SMALL.lidar_rpy
-    ijk2, sn2, _ = _stats(bags["no_static"], extrinsic=make_extrinsic(t, rpy))
+    ijk2, sn2, _ = _stats(bags["no_static"], extrinsic=Extrinsic.from_xyz_rpy(t, rpy))
     np.testing.assert_array_equal(ijk2, reference[0])
     np.testing.assert_allclose(sn2, reference[1], rtol=1e-6, atol=1e-6)
 
