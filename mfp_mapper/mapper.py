@@ -14,7 +14,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from mfp_mapper import model
 from mfp_mapper.store import BLOCK_EDGE, MAX_VOXEL_INDEX, BlockStore, VoxelArrays
-from mfp_mapper.traversal import Mailbox, Rays, integrate_rays
+from mfp_mapper.traversal import Mailbox, integrate_rays, prepare_rays
 
 FloatArray = NDArray[np.float64]
 
@@ -139,13 +139,11 @@ class Mapper:
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise ValueError(f"points must have shape (N, 3), got {pts.shape}")
         org = np.asarray(origins, dtype=np.float64)
-        if org.shape == (3,):
-            org = np.broadcast_to(org, pts.shape)
-        elif org.shape != pts.shape:
+        if org.shape != (3,) and org.shape != pts.shape:
             raise ValueError(f"origins must have shape (3,) or {pts.shape}, got {org.shape}")
         if not math.isfinite(stamp):
             raise ValueError(f"stamp must be finite seconds, got {stamp}")
-        rays, dropped = self._prepare_rays(pts, org)
+        rays, dropped = prepare_rays(pts, org, self.resolution, self.min_range, self.max_range)
         summary = IntegrationSummary(rays_in=pts.shape[0], dropped=dropped)
         summary.rays_used = len(rays)
         summary.rays_truncated = int(np.count_nonzero(~rays.has_return))
@@ -171,36 +169,6 @@ class Mapper:
             self.version += 1
         summary.seconds = time.perf_counter() - t0
         return summary
-
-    def _prepare_rays(self, pts: FloatArray, org: FloatArray) -> tuple[Rays, dict[str, int]]:
-        """The usable rays in voxel units, and how many were dropped for which reason."""
-        delta = pts - org
-        length = np.sqrt(np.einsum("ij,ij->i", delta, delta))
-        finite = np.isfinite(length) & np.isfinite(org).all(axis=1)
-        long_enough = finite & (length >= self.min_range) & (length > 0)
-        truncated = long_enough & (length > self.max_range)
-        scale = np.where(truncated, self.max_range / np.where(long_enough, length, 1.0), 1.0)
-        ends = org + delta * scale[:, None]
-        # voxel units, divided exactly as voxel_index does, so a return lands in floor(p / res)
-        org_vox = org / self.resolution
-        ends_vox = ends / self.resolution
-        with np.errstate(invalid="ignore"):
-            in_bounds = (np.abs(org_vox) < MAX_VOXEL_INDEX).all(axis=1) & (
-                np.abs(ends_vox) < MAX_VOXEL_INDEX
-            ).all(axis=1)
-        use = long_enough & in_bounds
-        dropped = {
-            "nonfinite": int(np.count_nonzero(~finite)),
-            "below_min_range": int(np.count_nonzero(finite & ~long_enough)),
-            "out_of_bounds": int(np.count_nonzero(long_enough & ~in_bounds)),
-        }
-        rays = Rays(
-            origins_vox=np.ascontiguousarray(org_vox[use]),
-            ends_vox=np.ascontiguousarray(ends_vox[use]),
-            lengths=np.minimum(length[use], self.max_range),
-            has_return=~truncated[use],
-        )
-        return rays, dropped
 
     def _run_parallel(self, fn: Callable[[int], None], items: Sequence[int]) -> None:
         if self._pool is None or len(items) == 1:

@@ -17,6 +17,7 @@ memory latencies overlap), a second pass adds.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -31,6 +32,7 @@ from numpy.typing import NDArray
 from mfp_mapper.store import (
     BLOCK_BITS,
     BLOCK_VOXELS,
+    MAX_VOXEL_INDEX,
     BlockStore,
     Shard,
     ShardArrays,
@@ -125,6 +127,88 @@ class Rays:
             self.lengths[index],
             self.has_return[index],
         )
+
+
+def prepare_rays(
+    points: NDArray[np.float64],
+    origins: NDArray[np.float64],
+    resolution: float,
+    min_range: float,
+    max_range: float,
+) -> tuple[Rays, dict[str, int]]:
+    """The usable rays in voxel units, and how many were dropped for which reason.
+
+    ``origins`` is one origin (3,) or one per point (N, 3). A ray longer than ``max_range``
+    is cut there and carries no return; NaN/Inf, shorter than ``min_range`` (or zero), and
+    reaching beyond the indexable range are dropped.
+    """
+    count = points.shape[0]
+    out = Rays(
+        np.empty((count, 3)), np.empty((count, 3)), np.empty(count), np.empty(count, dtype=np.bool_)
+    )
+    drops = np.zeros(3, dtype=np.int64)
+    used = _prepare_rays(
+        points, np.atleast_2d(origins), resolution, min_range, max_range, MAX_VOXEL_INDEX,
+        out.origins_vox, out.ends_vox, out.lengths, out.has_return, drops,
+    )  # fmt: skip
+    dropped = {
+        "nonfinite": int(drops[0]),
+        "below_min_range": int(drops[1]),
+        "out_of_bounds": int(drops[2]),
+    }
+    rays = Rays(
+        out.origins_vox[:used], out.ends_vox[:used], out.lengths[:used], out.has_return[:used]
+    )
+    return rays, dropped
+
+
+@nb.njit(cache=True, nogil=True)
+def _prepare_rays(
+    points: NDArray[np.float64],
+    origins: NDArray[np.float64],
+    resolution: float,
+    min_range: float,
+    max_range: float,
+    max_index: float,
+    origins_vox: NDArray[np.float64],
+    ends_vox: NDArray[np.float64],
+    lengths: NDArray[np.float64],
+    has_return: NDArray[np.bool_],
+    drops: NDArray[np.int64],
+) -> int:
+    """One pass over the points: fill the first rays of the outputs, count the drops
+    ([nonfinite, below_min_range, out_of_bounds]); returns how many rays are usable."""
+    k = 0
+    per_point = origins.shape[0] > 1
+    for i in range(points.shape[0]):
+        o = i if per_point else 0
+        dx = points[i, 0] - origins[o, 0]
+        dy = points[i, 1] - origins[o, 1]
+        dz = points[i, 2] - origins[o, 2]
+        length = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if not math.isfinite(length):  # NaN or Inf in the point or its origin
+            drops[0] += 1
+            continue
+        if length < min_range or length == 0.0:
+            drops[1] += 1
+            continue
+        reach = min(length, max_range)
+        scale = reach / length
+        inside = True
+        for axis, d in ((0, dx), (1, dy), (2, dz)):
+            o_vox = origins[o, axis] / resolution
+            # the end, divided exactly as Mapper.voxel_index does: a return lands in floor(p/res)
+            e_vox = (points[i, axis] if scale == 1.0 else origins[o, axis] + d * scale) / resolution
+            inside = inside and abs(o_vox) < max_index and abs(e_vox) < max_index
+            origins_vox[k, axis] = o_vox
+            ends_vox[k, axis] = e_vox
+        if not inside:
+            drops[2] += 1
+            continue
+        lengths[k] = reach
+        has_return[k] = length <= max_range
+        k += 1
+    return k
 
 
 class Mailbox:
