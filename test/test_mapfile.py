@@ -6,6 +6,7 @@ import io
 import math
 import zipfile
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -73,12 +74,19 @@ def test_save_is_atomic_and_leaves_no_temporary_file(
     mapper.save(path)
     before = path.read_bytes()
 
-    def fail(*_args: object, **_kwargs: object) -> None:
-        raise OSError("disk full")
+    write_array = np.lib.format.write_array
+    written: list[str] = []
 
-    monkeypatch.setattr(np, "savez_compressed", fail)
+    def fail_on_third_array(member: Any, array: np.ndarray, **kwargs: Any) -> None:
+        written.append(array.dtype.str)
+        if len(written) == 3:
+            raise OSError("disk full")
+        write_array(member, array, **kwargs)
+
+    monkeypatch.setattr(np.lib.format, "write_array", fail_on_third_array)
     with pytest.raises(OSError, match="disk full"):
         mapper.save(path)
+    assert len(written) == 3  # failed part way, with arrays already in the archive
     assert path.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["map.npz"]
 
