@@ -184,11 +184,14 @@ def _report(
     cpu_int = after["integration_cpu_s"] - before["integration_cpu_s"]
     pub_n = after["publish_count"] - before["publish_count"]
     pub_s = after["publish_total_s"] - before["publish_total_s"]
+    pub_locked = after["publish_locked_total_s"] - before["publish_locked_total_s"]
     result = {
         "stream": name,
         "resolution_m": stream["resolution"],
         "points_per_scan": points,
         "clouds_sent": sent,
+        "clouds_received": after["clouds_in"] - before["clouds_in"],
+        "clouds_lost_in_transport": after["clouds_lost"] - before["clouds_lost"],
         "clouds_integrated": integrated,
         "clouds_dropped": drops,
         "rate_hz": round(integrated / duration, 2),
@@ -198,7 +201,9 @@ def _report(
         "integration_cpu_share_of_one_core": round(cpu_int / duration, 3),
         "integration_cpu_per_scan_ms": round(1000 * cpu_int / max(integrated, 1), 1),
         "node_cpu_share_of_one_core": round(cpu_node / wall, 3),
+        "publications": pub_n,
         "publish_ms_mean": round(1000 * pub_s / pub_n, 1) if pub_n else None,
+        "publish_map_locked_ms_mean": round(1000 * pub_locked / pub_n, 1) if pub_n else None,
         "published_voxels": after["published_voxels"],
         "voxels": after["voxels"],
         "memory_mb": round(after["memory_bytes"] / 1e6, 1),

@@ -16,10 +16,15 @@ The grid is row-major, row ``r`` = y index, column ``c`` = x index, cell ``(r, c
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+from mfp_mapper.model import hit_probability_one
+from mfp_mapper.store import BLOCK_EDGE, BLOCK_VOXELS, local_coords
 
 UNKNOWN = -1
 
@@ -118,3 +123,135 @@ def hit_probability_grid(
     np.maximum.at(out, flat, percent.astype(np.int16))
     data = out.astype(np.int8).reshape(height, width)
     return HitGrid(data, resolution, (i0 * resolution, j0 * resolution))
+
+
+BlockArrays = tuple[NDArray[np.int32], NDArray[np.float32], int]
+"""A store shard as the projection reads it: block indices, (s, n) per voxel, blocks used."""
+
+
+def band_grid(
+    shards: Sequence[BlockArrays],
+    resolution: float,
+    z_min: float,
+    z_max: float,
+    lo: NDArray[np.int64],
+    hi: NDArray[np.int64],
+    *,
+    center: tuple[float, float] | None = None,
+    radius: float = 0.0,
+) -> HitGrid:
+    """``hit_probability_grid`` of the observed voxels with index in ``[lo, hi]``, computed
+    in one compiled pass over the store's blocks (no per-voxel arrays of the map).
+
+    The grid spans the window around ``center`` (``radius > 0``), else the (x, y) extent of
+    the observed voxels in ``[lo, hi]``; cells take the voxels whose centre is in the band.
+    """
+    if resolution <= 0.0:
+        raise ValueError(f"resolution must be positive, got {resolution}")
+    if not z_min < z_max:
+        raise ValueError(f"empty height band [{z_min}, {z_max}]")
+    if center is not None and radius > 0.0:
+        i0 = math.floor((center[0] - radius) / resolution)
+        j0 = math.floor((center[1] - radius) / resolution)
+        i1 = math.floor((center[0] + radius) / resolution)
+        j1 = math.floor((center[1] + radius) / resolution)
+    else:
+        extent = np.array([np.iinfo(np.int64).max] * 2 + [np.iinfo(np.int64).min] * 2)
+        for block_ijk, block_sn, used in shards:
+            _observed_extent(block_ijk, block_sn, used, lo, hi, extent)
+        if extent[0] > extent[2]:
+            return HitGrid(np.zeros((0, 0), np.int8), resolution, (0.0, 0.0))
+        i0, j0, i1, j1 = (int(v) for v in extent)
+    cells = np.full((j1 - j0 + 1, i1 - i0 + 1), UNKNOWN, dtype=np.int8)
+    for block_ijk, block_sn, used in shards:
+        _band_max_percent(
+            block_ijk, block_sn, used, lo, hi, resolution, z_min, z_max, i0, j0, cells
+        )
+    return HitGrid(cells, resolution, (i0 * resolution, j0 * resolution))
+
+
+@nb.njit(inline="always", cache=True)
+def _block_outside(bx: int, by: int, bz: int, lo: NDArray[np.int64], hi: NDArray[np.int64]) -> bool:
+    return (
+        bx + BLOCK_EDGE <= lo[0]
+        or bx > hi[0]
+        or by + BLOCK_EDGE <= lo[1]
+        or by > hi[1]
+        or bz + BLOCK_EDGE <= lo[2]
+        or bz > hi[2]
+    )
+
+
+@nb.njit(cache=True, nogil=True)
+def _observed_extent(
+    block_ijk: NDArray[np.int32],
+    block_sn: NDArray[np.float32],
+    used: int,
+    lo: NDArray[np.int64],
+    hi: NDArray[np.int64],
+    extent: NDArray[np.int64],
+) -> None:
+    """Widen ``extent`` [i_min, j_min, i_max, j_max] to the observed voxels in [lo, hi]."""
+    for b in range(used):
+        bx = np.int64(block_ijk[b, 0]) * BLOCK_EDGE
+        by = np.int64(block_ijk[b, 1]) * BLOCK_EDGE
+        bz = np.int64(block_ijk[b, 2]) * BLOCK_EDGE
+        if _block_outside(bx, by, bz, lo, hi):
+            continue
+        for v in range(BLOCK_VOXELS):
+            if block_sn[b, v, 0] > 0.0 or block_sn[b, v, 1] > 0.0:
+                dx, dy, dz = local_coords(v)
+                x, y, z = bx + dx, by + dy, bz + dz
+                if lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1] and lo[2] <= z <= hi[2]:
+                    extent[0] = min(extent[0], x)
+                    extent[1] = min(extent[1], y)
+                    extent[2] = max(extent[2], x)
+                    extent[3] = max(extent[3], y)
+
+
+@nb.njit(cache=True, nogil=True)
+def _band_max_percent(
+    block_ijk: NDArray[np.int32],
+    block_sn: NDArray[np.float32],
+    used: int,
+    lo: NDArray[np.int64],
+    hi: NDArray[np.int64],
+    resolution: float,
+    z_min: float,
+    z_max: float,
+    i0: int,
+    j0: int,
+    cells: NDArray[np.int8],
+) -> None:
+    """Raise each cell of ``cells`` (row j - j0, column i - i0) to round(100 p_hit) of the
+    observed voxels in [lo, hi] whose centre height lies in [z_min, z_max]."""
+    height, width = cells.shape
+    for b in range(used):
+        bx = np.int64(block_ijk[b, 0]) * BLOCK_EDGE
+        by = np.int64(block_ijk[b, 1]) * BLOCK_EDGE
+        bz = np.int64(block_ijk[b, 2]) * BLOCK_EDGE
+        if (
+            _block_outside(bx, by, bz, lo, hi)
+            or bx + BLOCK_EDGE <= i0
+            or bx >= i0 + width
+            or by + BLOCK_EDGE <= j0
+            or by >= j0 + height
+        ):
+            continue
+        for v in range(BLOCK_VOXELS):
+            s = np.float64(block_sn[b, v, 0])
+            n = np.float64(block_sn[b, v, 1])
+            if not (s > 0.0 or n > 0.0):
+                continue
+            dx, dy, dz = local_coords(v)
+            x, y, z = bx + dx, by + dy, bz + dz
+            if not (lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1] and lo[2] <= z <= hi[2]):
+                continue
+            zc = (np.float64(z) + 0.5) * resolution
+            col, row = x - i0, y - j0
+            if zc < z_min or zc > z_max or not (0 <= col < width and 0 <= row < height):
+                continue
+            p = min(max(hit_probability_one(s, n, resolution), 0.0), 1.0)
+            percent = np.int8(np.rint(100.0 * p))
+            if percent > cells[row, col]:
+                cells[row, col] = percent

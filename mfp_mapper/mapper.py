@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from mfp_mapper import model
+from mfp_mapper.gridmap import HitGrid, band_grid
 from mfp_mapper.store import BLOCK_EDGE, MAX_VOXEL_INDEX, BlockStore, VoxelArrays
 from mfp_mapper.traversal import Mailbox, integrate_rays, prepare_rays
 
@@ -234,23 +235,46 @@ class Mapper:
         """
         if not 0.0 <= min_doo <= 1.0:
             raise ValueError(f"min_doo must lie in [0, 1], got {min_doo}")
-        lo = hi = None
-        if bounds is not None:
-            with np.errstate(invalid="ignore", over="ignore"):
-                lo_m, hi_m = (
-                    np.asarray(b, dtype=np.float64) / self.resolution - 0.5 for b in bounds
-                )
-                lo = np.ceil(np.clip(lo_m, -MAX_VOXEL_INDEX - 1, MAX_VOXEL_INDEX + 1)).astype(
-                    np.int64
-                )
-                hi = np.floor(np.clip(hi_m, -MAX_VOXEL_INDEX - 1, MAX_VOXEL_INDEX + 1)).astype(
-                    np.int64
-                )
+        lo, hi = self._index_bounds(bounds) if bounds is not None else (None, None)
         min_extinction = math.inf if min_doo >= 1.0 else -math.log1p(-min_doo)
         stats = self._stats(self._store.export(min_extinction, lo, hi), stamp)
         if min_evidence > 0.0:
             stats = stats.select(stats.s >= min_evidence)
         return stats
+
+    def _index_bounds(
+        self, bounds: tuple[ArrayLike, ArrayLike]
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """The voxel index range whose centres lie in ``bounds`` (metres, +-inf allowed)."""
+        with np.errstate(invalid="ignore", over="ignore"):
+            lo_m, hi_m = (np.asarray(b, dtype=np.float64) / self.resolution - 0.5 for b in bounds)
+            lo = np.ceil(np.clip(lo_m, -MAX_VOXEL_INDEX - 1, MAX_VOXEL_INDEX + 1))
+            hi = np.floor(np.clip(hi_m, -MAX_VOXEL_INDEX - 1, MAX_VOXEL_INDEX + 1))
+        return lo.astype(np.int64), hi.astype(np.int64)
+
+    def hit_probability_grid(
+        self,
+        z_min: float,
+        z_max: float,
+        *,
+        center: tuple[float, float] | None = None,
+        radius: float = 0.0,
+    ) -> HitGrid:
+        """The height band ``[z_min, z_max]`` projected onto a 2D grid (``gridmap``): per
+        cell ``round(100 p)``, ``p`` the largest hit probability of a voxel edge in the
+        column, -1 where never observed; the square of half side ``radius`` around
+        ``center``, or the extent of the observed band. Statistics at their last update
+        (no decay to a later stamp), read straight from the blocks."""
+        lo_m, hi_m = [-math.inf, -math.inf, z_min], [math.inf, math.inf, z_max]
+        if center is not None and radius > 0.0:  # only the blocks near the window are read
+            margin = radius + self.resolution
+            lo_m[:2] = [center[0] - margin, center[1] - margin]
+            hi_m[:2] = [center[0] + margin, center[1] + margin]
+        lo, hi = self._index_bounds((lo_m, hi_m))
+        shards = [(sh.block_ijk, sh.block_sn, sh.used) for sh in self._store.shards]
+        return band_grid(
+            shards, self.resolution, z_min, z_max, lo, hi, center=center, radius=radius
+        )
 
     def _stats(self, raw: VoxelArrays, stamp: float | None) -> VoxelStats:
         s, n = raw.s, raw.n

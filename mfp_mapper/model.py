@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 
+import numba as nb
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -66,11 +67,22 @@ def std_doo(s: ArrayLike, n: ArrayLike) -> FloatArray:
 
 
 def hit_probability(s: ArrayLike, n: ArrayLike, length: ArrayLike) -> FloatArray:
-    """Probability that a ray travelling ``length`` metres in the voxel is reflected (Eq. 34).
+    """Probability that a ray travelling ``length`` metres in the voxel is reflected (Eq. 34),
+    ``1 - E[m^length]``.
 
     With ``length`` = the voxel edge this is the cell's p_hit (Eq. 31-33).
     """
-    return -np.expm1(np.log(moment_m(s, n, length)))
+    s_arr, n_arr = _stats(s, n)
+    z_arr = np.asarray(length, dtype=np.float64)
+    return -np.expm1((n_arr + 1.0) * (np.log1p(s_arr) - np.log(s_arr + 1.0 + z_arr)))
+
+
+@nb.njit(cache=True)
+def hit_probability_one(s: float, n: float, length: float) -> float:
+    """``hit_probability`` of one voxel, for compiled kernels (the same expression)."""
+    s = max(s, 0.0)
+    n = max(n, 0.0)
+    return -math.expm1((n + 1.0) * (math.log1p(s) - math.log(s + 1.0 + length)))
 
 
 def path_pass_probability(s: ArrayLike, n: ArrayLike, lengths: ArrayLike) -> FloatArray:

@@ -5,15 +5,18 @@ Thin wiring around the ROS-free core: parsing (``mfp_mapper.pointcloud``), poses
 (``mfp_mapper.gridmap``). Run it with ``python -m mfp_mapper.node --ros-args ...`` or
 ``ros2 run mfp_mapper mfp_mapper``; parameters are in ``mfp_mapper.node_params``.
 
-Threads: subscription callbacks only queue clouds and store poses; a worker thread parses
-each cloud, waits (bounded) until odometry covers its stamp, places it with the pose
-interpolated at its stamp and integrates it. One lock guards the Mapper for integration,
-publishing, queries and services.
+Threads: one executor thread runs every ROS callback (rclpy's multi-threaded executor
+costs about half a core in overhead); subscription callbacks only queue clouds and store
+poses. A worker thread parses each cloud, waits (bounded) until odometry covers its stamp,
+places it with the pose interpolated at its stamp and integrates it; ``~/save_map`` writes
+in a thread of its own. One lock guards the Mapper for integration, publishing, queries and
+services.
 """
 
 from __future__ import annotations
 
 import array
+import contextlib
 import functools
 import json
 import math
@@ -22,13 +25,14 @@ import sys
 import threading
 import time
 from collections import Counter, deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import rclpy
 import rclpy.exceptions
+import rclpy.task
 import rclpy.time
 import rclpy.utilities
 from builtin_interfaces.msg import Time as TimeMsg
@@ -36,7 +40,8 @@ from nav_msgs.msg import OccupancyGrid, Odometry
 from nav_msgs.srv import GetMap
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import (
     DurabilityPolicy,
@@ -49,7 +54,6 @@ from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import String
 from std_srvs.srv import Empty, Trigger
 
-from mfp_mapper.gridmap import hit_probability_grid
 from mfp_mapper.mapfile import MapFileError, map_arrays, write_map_arrays
 from mfp_mapper.mapper import Mapper
 from mfp_mapper.node_params import SPECS, NodeConfig, declare_parameters
@@ -150,6 +154,7 @@ class _Pending:
 @dataclass
 class _Counters:
     clouds_in: int = 0
+    clouds_lost: int = 0  # reported lost by the middleware (never received)
     clouds_integrated: int = 0
     dropped: Counter = field(default_factory=Counter)  # clouds, by reason
     points_dropped: Counter = field(default_factory=Counter)  # points/rays, by reason
@@ -163,7 +168,8 @@ class _Counters:
     latency_sum: float = 0.0
     latency_max: float = 0.0
     latency_last: float = float("nan")
-    publish_seconds: float = 0.0
+    publish_seconds: float = 0.0  # building and sending, without waiting for the map lock
+    publish_locked_seconds: float = 0.0  # of which the map lock was held (integration waits)
     publish_count: int = 0
     publish_last_seconds: float = 0.0
     published_voxels: int = 0
@@ -201,6 +207,7 @@ class MfpMapperNode(Node):
         self.mapper = self._initial_mapper()
         self._published_version: int | None = None
         self._publish_not_before = 0.0
+        self._publish_due = False  # set by the publish timer, served by the worker
 
         self._tf_buffer = None
         if self.cfg.use_tf:
@@ -214,23 +221,17 @@ class MfpMapperNode(Node):
                 self._tf_listener = tf2_ros.TransformListener(self._tf_buffer, self)
 
         # --- ROS interfaces ----------------------------------------------------------------
-        input_group = MutuallyExclusiveCallbackGroup()
-        odom_group = MutuallyExclusiveCallbackGroup()
-        service_group = MutuallyExclusiveCallbackGroup()
-        timer_group = MutuallyExclusiveCallbackGroup()
         self.create_subscription(
             PointCloud2,
             "cloud_in",
             self._on_cloud,
             qos_profile_sensor_data,
-            callback_group=input_group,
+            event_callbacks=SubscriptionEventCallbacks(message_lost=self._on_clouds_lost),
         )
         odom_qos = QoSProfile(
             history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.BEST_EFFORT
         )
-        self.create_subscription(
-            Odometry, "odom", self._on_odom, odom_qos, callback_group=odom_group
-        )
+        self.create_subscription(Odometry, "odom", self._on_odom, odom_qos)
         map_qos = QoSProfile(
             history=HistoryPolicy.KEEP_LAST,
             depth=1,
@@ -249,25 +250,22 @@ class MfpMapperNode(Node):
         )
         self._status_pub = self.create_publisher(String, "~/status", status_qos)
         self._result_pub = self.create_publisher(PointCloud2, "~/hit_probability/result", 10)
-        self.create_subscription(
-            PointCloud2,
-            "~/hit_probability/query",
-            self._on_query,
-            10,
-            callback_group=service_group,
-        )
+        self.create_subscription(PointCloud2, "~/hit_probability/query", self._on_query, 10)
+        self.create_service(GetMap, "~/hit_probability_map", self._on_get_map)
+        # its own callback group: while a save runs in the background, its pending call must
+        # not hold the default group (which every other callback is in)
         self.create_service(
-            GetMap, "~/hit_probability_map", self._on_get_map, callback_group=service_group
+            Trigger, "~/save_map", self._on_save, callback_group=MutuallyExclusiveCallbackGroup()
         )
-        self.create_service(Trigger, "~/save_map", self._on_save, callback_group=service_group)
-        self.create_service(Empty, "~/reset", self._on_reset, callback_group=service_group)
+        self.create_service(Empty, "~/reset", self._on_reset)
+        # wakes the executor when a background save finishes (its service call resumes)
+        self._wake = self.create_guard_condition(lambda: None)
+        self._save_lock = threading.Lock()
         if self.cfg.publish_rate > 0.0:
-            self.create_timer(
-                1.0 / self.cfg.publish_rate, self._publish_map_clouds, callback_group=timer_group
-            )
+            self.create_timer(1.0 / self.cfg.publish_rate, self._on_publish_timer)
         self._status_window = (time.monotonic(), 0, 0.0, 0.0)
         if self.cfg.status_period > 0.0:
-            self.create_timer(self.cfg.status_period, self._on_status, callback_group=timer_group)
+            self.create_timer(self.cfg.status_period, self._on_status)
 
         self._worker = threading.Thread(target=self._work, name="mfp_integration", daemon=True)
         self._worker.start()
@@ -353,6 +351,16 @@ class MfpMapperNode(Node):
             self._queue.append(item)
             self._cv.notify_all()
 
+    def _on_clouds_lost(self, info: Any) -> None:
+        """The middleware reports clouds that never reached this node (transport losses)."""
+        with self._cv:
+            self._counters.clouds_lost += info.total_count_change
+        self._warn_throttled(
+            "clouds_lost",
+            f"{info.total_count_change} cloud(s) lost in transport before reaching the node "
+            f"[{self._counters.clouds_lost} so far]",
+        )
+
     @_tracked
     def _on_odom(self, msg: Odometry) -> None:
         frame = msg.header.frame_id
@@ -416,15 +424,28 @@ class MfpMapperNode(Node):
             self._drop_locked(reason, detail)
 
     def _work(self) -> None:
+        """The worker: integrates queued clouds in order and publishes the map clouds when
+        the timer asks (between scans, so publishing never waits for the map lock and the
+        executor never blocks on it)."""
         current: _Pending | None = None
         while not self._stop.is_set():
-            if current is None:
-                with self._cv:
-                    while not self._queue and not self._stop.is_set():
-                        self._cv.wait(0.5)
-                    if self._stop.is_set():
-                        return
+            with self._cv:
+                while not (
+                    current is not None or self._queue or self._publish_due or self._stop.is_set()
+                ):
+                    self._cv.wait(0.5)
+                if self._stop.is_set():
+                    return
+                publish, self._publish_due = self._publish_due, False
+                if current is None and self._queue:
                     current = self._queue.popleft()
+            if publish:
+                try:
+                    self._publish_map_clouds()
+                except Exception as err:  # a failed publication must not stop the worker
+                    self._warn_throttled("publish", f"publishing the map failed: {err!r}")
+            if current is None:
+                continue
             try:
                 done = self._process(current)
             except Exception as err:  # keep the node alive whatever a message holds
@@ -525,6 +546,11 @@ class MfpMapperNode(Node):
     # --- outputs ---------------------------------------------------------------------------
 
     @_tracked
+    def _on_publish_timer(self) -> None:
+        with self._cv:
+            self._publish_due = True
+            self._cv.notify_all()
+
     def _publish_map_clouds(self) -> None:
         want_clouds = (
             self._doo_pub.get_subscription_count() + self._std_pub.get_subscription_count()
@@ -540,22 +566,37 @@ class MfpMapperNode(Node):
                 return
             if not (self.cfg.frame_id or self._odom_frame or self.mapper.num_voxels):
                 return  # an empty map in a frame not known yet: nothing worth latching
-            t0 = time.perf_counter()
+        t0 = time.perf_counter()
+        lock_times = [0.0, 0.0]  # waited for, held
         if want_grid:
-            self._grid_pub.publish(self._hit_probability_grid())
+            self._grid_pub.publish(self._hit_probability_grid(lock_times))
         if want_clouds:
-            self._publish_clouds()
+            self._publish_clouds(lock_times)
         self._published_version = version
-        dt = time.perf_counter() - t0
+        dt = time.perf_counter() - t0 - lock_times[0]
         self._publish_not_before = time.monotonic() + dt * (1.0 / PUBLISH_DUTY - 1.0)
         c = self._counters
         c.publish_seconds += dt
+        c.publish_locked_seconds += lock_times[1]
         c.publish_count += 1
         c.publish_last_seconds = dt
 
-    def _publish_clouds(self) -> None:
-        """Publish the degree-of-occupancy and std clouds of the filtered voxels."""
+    @contextlib.contextmanager
+    def _timed_map_lock(self, times: list[float] | None) -> Iterator[None]:
+        """The map lock; adds the seconds waited for it and held to ``times`` (if given)."""
+        t0 = time.perf_counter()
         with self._map_lock:
+            t1 = time.perf_counter()
+            try:
+                yield
+            finally:
+                if times is not None:
+                    times[0] += t1 - t0
+                    times[1] += time.perf_counter() - t1
+
+    def _publish_clouds(self, lock_times: list[float]) -> None:
+        """Publish the degree-of-occupancy and std clouds of the filtered voxels."""
+        with self._timed_map_lock(lock_times):
             robot = self._robot_position
             radius = self.cfg.publish_radius
             window = None
@@ -618,33 +659,20 @@ class MfpMapperNode(Node):
         self._counters.maps_served += 1
         return response
 
-    def _hit_probability_grid(self) -> OccupancyGrid:
+    def _hit_probability_grid(self, lock_times: list[float] | None = None) -> OccupancyGrid:
         """The 2D hit-probability grid of the height band (``~/hit_probability_map``,
-        ``~/projected_map``)."""
+        ``~/projected_map``); ``lock_times`` as in ``_timed_map_lock``."""
         cfg = self.cfg
-        zmin, zmax = cfg.occupancy_min_z, cfg.occupancy_max_z
+        zmin = cfg.occupancy_min_z
         radius = cfg.hit_probability_map_radius
         robot = self._robot_position
         center = (float(robot[0]), float(robot[1])) if robot is not None and radius > 0 else None
-        lo, hi = [-np.inf, -np.inf, zmin], [np.inf, np.inf, zmax]
-        if center is not None:  # export only the window (the grid crops it exactly)
-            margin = radius + self.mapper.resolution
-            lo[:2] = [center[0] - margin, center[1] - margin]
-            hi[:2] = [center[0] + margin, center[1] + margin]
-        with self._map_lock:
-            vox = self.mapper.voxels(bounds=(lo, hi))
+        with self._timed_map_lock(lock_times):
+            grid = self.mapper.hit_probability_grid(
+                zmin, cfg.occupancy_max_z, center=center, radius=radius
+            )
             res = self.mapper.resolution
             stamp = self.mapper.last_stamp
-        grid = hit_probability_grid(
-            vox.ijk,
-            vox.hit_probability,
-            vox.observed,
-            res,
-            zmin,
-            zmax,
-            center=center,
-            radius=radius,
-        )
         out = OccupancyGrid()
         out.header.frame_id = self.map_frame
         out.header.stamp = (
@@ -661,20 +689,44 @@ class MfpMapperNode(Node):
         out.data = array.array("b", grid.data.tobytes())
         return out
 
-    @_tracked
-    def _on_save(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        response.success, response.message = self.save_map()
+    async def _on_save(
+        self, request: Trigger.Request, response: Trigger.Response
+    ) -> Trigger.Response:
+        """Save in a background thread: writing a large map takes seconds, and meanwhile
+        the executor keeps taking odometry and clouds (this call resumes when it is done)."""
+        done = rclpy.task.Future()
+
+        def save() -> None:
+            try:
+                done.set_result(self.save_map())
+            except BaseException as err:  # noqa: BLE001 - handed to the awaiting service call
+                done.set_exception(err)
+            finally:
+                with self._inflight_cv:
+                    self._inflight -= 1
+                    self._inflight_cv.notify_all()
+                self._wake.trigger()
+
+        with self._inflight_cv:  # close() waits for the save, not for this call
+            if self._closing:
+                response.success, response.message = False, "node is shutting down"
+                return response
+            self._inflight += 1
+        threading.Thread(target=save, name="mfp_save_map", daemon=True).start()
+        response.success, response.message = await done
         return response
 
     def save_map(self) -> tuple[bool, str]:
+        """Write the map to ``map_path`` (one save at a time); returns (success, message)."""
         path = self.cfg.map_path
         if not path:
             return False, "parameter map_path is empty: nowhere to save"
         try:
-            with self._map_lock:  # snapshot only: compressing and writing run unlocked
-                self.mapper.frame_id = self.map_frame
-                arrays = map_arrays(self.mapper)
-            write_map_arrays(path, arrays)
+            with self._save_lock:
+                with self._map_lock:  # snapshot only: compressing and writing run unlocked
+                    self.mapper.frame_id = self.map_frame
+                    arrays = map_arrays(self.mapper)
+                write_map_arrays(path, arrays)
             count = len(arrays["s"])
         except (OSError, ValueError, MapFileError) as err:
             self.get_logger().error(f"saving the map to {path!r} failed: {err}")
@@ -716,6 +768,7 @@ class MfpMapperNode(Node):
             "uptime_s": round(now - self._started, 3),
             "map_frame": self.map_frame,
             "clouds_in": c.clouds_in,
+            "clouds_lost": c.clouds_lost,
             "clouds_integrated": c.clouds_integrated,
             "clouds_dropped": dict(c.dropped),
             "points_dropped": dict(c.points_dropped),
@@ -738,6 +791,7 @@ class MfpMapperNode(Node):
             "publish_count": c.publish_count,
             "publish_last_s": round(c.publish_last_seconds, 5),
             "publish_total_s": round(c.publish_seconds, 4),
+            "publish_locked_total_s": round(c.publish_locked_seconds, 4),
             "published_voxels": c.published_voxels,
             "queries": c.queries,
             "maps_served": c.maps_served,
@@ -796,11 +850,11 @@ def main(args: list[str] | None = None) -> int:
         return 0
     rclpy.init(args=args)
     node: MfpMapperNode | None = None
-    executor: MultiThreadedExecutor | None = None
+    executor: SingleThreadedExecutor | None = None
     code = 0
     try:
         node = MfpMapperNode()
-        executor = MultiThreadedExecutor(num_threads=4)
+        executor = SingleThreadedExecutor()
         executor.add_node(node)
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):

@@ -304,6 +304,13 @@ def _unspread_bits(v: int) -> int:
     return (v & 1) | ((v >> 2) & 2) | ((v >> 4) & 4)
 
 
+@nb.njit(inline="always", cache=True)
+def local_coords(i: int) -> tuple[int, int, int]:
+    """Offsets (x, y, z) in its block of the voxel with Morton index ``i`` (``local_index``
+    inverted)."""
+    return _unspread_bits(i >> 2), _unspread_bits(i >> 1), _unspread_bits(i)
+
+
 @nb.njit(cache=True, nogil=True)
 def _rebuild_table(
     block_ijk: NDArray[np.int32],

@@ -78,3 +78,36 @@ def test_projection_of_a_real_map_sees_the_box_and_free_space() -> None:
     assert 0 <= free <= 20 and free < face / 2
     assert grid.value_at(6.5, 4.5) == UNKNOWN  # inside the box
     assert grid.data.min() >= -1 and grid.data.max() <= 100
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_mapper_grid_equals_the_projection_of_exported_voxels(threads: int) -> None:
+    """Mapper.hit_probability_grid reads the blocks directly; it must give exactly the grid
+    of the reference projection of the exported voxels, whole-map and windowed."""
+    res, z_min, z_max = 0.2, 0.3, 2.0
+    mapper = Mapper(res, max_range=30.0, threads=threads)
+    world = BoxWorld()
+    dirs = scan_directions(azimuths=360)
+    for k in range(3):
+        origin = np.array([0.5 * k, -0.3 * k, 1.8])
+        rng = world.cast(origin, dirs)
+        keep = np.isfinite(rng) & (rng < 30.0)
+        mapper.integrate(origin + dirs[keep] * rng[keep, None], origin, float(k))
+    band = ([-np.inf, -np.inf, z_min], [np.inf, np.inf, z_max])
+    vox = mapper.voxels(bounds=band)
+    reference = hit_probability_grid(vox.ijk, vox.hit_probability, vox.observed, res, z_min, z_max)
+    grid = mapper.hit_probability_grid(z_min, z_max)
+    assert grid.data.shape == reference.data.shape and grid.origin == reference.origin
+    assert np.array_equal(grid.data, reference.data)
+    assert (grid.data >= 0).sum() > 1000 and grid.data.max() > 50  # a real, varied map
+
+    center, radius = (3.3, -1.1), 4.0
+    windowed = mapper.hit_probability_grid(z_min, z_max, center=center, radius=radius)
+    ref_windowed = hit_probability_grid(
+        vox.ijk, vox.hit_probability, vox.observed, res, z_min, z_max, center=center, radius=radius
+    )
+    assert windowed.origin == ref_windowed.origin
+    assert np.array_equal(windowed.data, ref_windowed.data)
+
+    empty = Mapper(res).hit_probability_grid(z_min, z_max)
+    assert empty.data.shape == (0, 0)

@@ -113,3 +113,13 @@ def test_classic_occupancy_vectors() -> None:
     assert model.classic_occupancy(10, 0) == pytest.approx(0.999805, abs=1e-6)
     assert model.classic_occupancy(10, 40) == pytest.approx(0.000361, abs=1e-6)
     assert model.classic_occupancy(10, 20) > 0.5 > model.classic_occupancy(10, 21)
+
+
+def test_compiled_hit_probability_is_the_vectorised_one() -> None:
+    rng = np.random.default_rng(3)
+    s = np.concatenate([[0.0, 0.0, 1e-6], rng.exponential(3.0, 200)])
+    n = np.concatenate([[0.0, 2.0, 0.0], rng.poisson(2.0, 200).astype(float)])
+    for length in (0.05, 0.2, 1.0):
+        compiled = [model.hit_probability_one(a, b, length) for a, b in zip(s, n, strict=True)]
+        # numba's and numpy's log1p/log may differ in the last bits
+        np.testing.assert_allclose(compiled, model.hit_probability(s, n, length), rtol=1e-13)

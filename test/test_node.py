@@ -453,3 +453,63 @@ def test_save_load_reset(
     info = feeder.call(feeder.get_map, GetMap.Request()).map.info
     assert (info.width, info.height) == (0, 0)
     assert node.alive()
+
+
+def test_a_slow_save_does_not_stall_odometry(
+    ros_domain: int, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """~/save_map writes in the background: while a (held) write is in progress the node,
+    spun like ``main`` does, keeps taking odometry; the call then answers with success."""
+    import threading
+
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from std_srvs.srv import Trigger
+
+    import mfp_mapper.node as node_module
+
+    started, release = threading.Event(), threading.Event()
+    write = node_module.write_map_arrays
+
+    def held_write(path: Any, arrays: Any) -> None:
+        started.set()
+        release.wait(30.0)
+        write(path, arrays)
+
+    monkeypatch.setattr(node_module, "write_map_arrays", held_write)
+    path = tmp_path / "slow.npz"
+    mapper_node = node_module.MfpMapperNode(
+        cli_args=["--ros-args", "-r", "__node:=mfp_slow_save"],
+        parameter_overrides=[
+            Parameter("map_path", value=str(path)),
+            Parameter("publish_rate", value=0.0),
+        ],
+    )
+    executor = SingleThreadedExecutor()
+    executor.add_node(mapper_node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    f = Feeder(node_name="mfp_slow_save", feeder_name="feeder_slow_save")
+    try:
+        assert f.wait(
+            lambda: f.save.service_is_ready() and f.odom_pub.get_subscription_count() > 0, 30.0
+        )
+        pending = f.save.call_async(Trigger.Request())
+        assert f.wait(started.is_set, 10.0), "the save never started"
+        for k in range(10):
+            f.odom_pub.publish(odom_msg(T0 + 0.05 * k, np.zeros(3), 0.0))
+        assert f.wait(lambda: mapper_node._counters.odom_in == 10, 10.0), (
+            f"odometry taken during the save: {mapper_node._counters.odom_in} of 10"
+        )
+        assert not pending.done()
+        release.set()
+        assert f.wait(pending.done, 20.0), "the save call never answered"
+        assert pending.result().success, pending.result().message
+        assert path.is_file()
+    finally:
+        release.set()
+        f.destroy()
+        executor.shutdown(timeout_sec=5.0)
+        mapper_node.close()
+        mapper_node.destroy_node()
+        spinner.join(timeout=5.0)
