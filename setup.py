@@ -24,8 +24,11 @@ data_files = [
     ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
     (f"share/{PACKAGE}", ["package.xml"]),
 ]
-for _dest, _pattern in (("config", "config/*.yaml"), ("launch", "launch/*.launch.py")):
-    _found = _files(_pattern)
+for _dest, _patterns in (
+    ("config", ("config/*.yaml", "config/*.xml")),
+    ("launch", ("launch/*.launch.py",)),
+):
+    _found = [f for pattern in _patterns for f in _files(pattern)]
     if _found:
         data_files.append((f"share/{PACKAGE}/{_dest}", _found))
 

@@ -61,7 +61,7 @@ class HitGrid:
         return UNKNOWN
 
 
-def band_mask(ijk: NDArray[np.int32], resolution: float, z_min: float, z_max: float) -> NDArray:
+def band_mask(ijk: NDArray[np.integer], resolution: float, z_min: float, z_max: float) -> NDArray:
     """Voxels whose centre height ``(k + 0.5) res`` lies in ``[z_min, z_max]``."""
     zc = (np.asarray(ijk)[:, 2].astype(np.float64) + 0.5) * resolution
     return (zc >= z_min) & (zc <= z_max)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -20,6 +21,13 @@ from mfp_mapper.traversal import Mailbox, integrate_rays, prepare_rays
 FloatArray = NDArray[np.float64]
 
 
+def _cpu_of(fn: Callable[[int], None], item: int) -> float:
+    """Run ``fn(item)``; the CPU seconds this thread spent on it."""
+    cpu0 = time.thread_time()
+    fn(item)
+    return time.thread_time() - cpu0
+
+
 @dataclass
 class IntegrationSummary:
     """What one ``Mapper.integrate`` call did with its rays."""
@@ -35,6 +43,8 @@ class IntegrationSummary:
     new_voxels: int = 0
     blocks_touched: int = 0
     seconds: float = 0.0
+    cpu_seconds: float = 0.0
+    """CPU time of the call, the core's worker threads included."""
 
 
 @dataclass
@@ -124,6 +134,7 @@ class Mapper:
         self.version = 0
         self._store = BlockStore(shards=_shard_count(self.threads))
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
+        self._worker_cpu = 0.0  # CPU seconds of the pool threads in the current integrate()
         self._mailboxes = [Mailbox() for _ in self._store.shards]
 
     # --- writing ----------------------------------------------------------------------
@@ -135,7 +146,8 @@ class Mapper:
         is walked up to ``max_range`` and carries no return. Rays shorter than
         ``min_range`` and rays with NaN/Inf are dropped and counted.
         """
-        t0 = time.perf_counter()
+        t0, cpu0 = time.perf_counter(), time.thread_time()
+        self._worker_cpu = 0.0
         pts = np.asarray(points, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise ValueError(f"points must have shape (N, 3), got {pts.shape}")
@@ -169,6 +181,7 @@ class Mapper:
             self._enforce_memory_bound()
             self.version += 1
         summary.seconds = time.perf_counter() - t0
+        summary.cpu_seconds = time.thread_time() - cpu0 + self._worker_cpu
         return summary
 
     def _run_parallel(self, fn: Callable[[int], None], items: Sequence[int]) -> None:
@@ -176,7 +189,7 @@ class Mapper:
             for item in items:
                 fn(item)
         else:
-            list(self._pool.map(fn, items))
+            self._worker_cpu += sum(self._pool.map(functools.partial(_cpu_of, fn), items))
 
     def _enforce_memory_bound(self) -> None:
         """Evict far blocks: beyond ``keep_radius`` of the latest sensor position, then the

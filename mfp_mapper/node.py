@@ -504,8 +504,10 @@ class MfpMapperNode(Node):
         )
         if outside:
             self._count_points({"z_band": outside})
+        own_cpu = time.thread_time()
         with self._map_lock:
             summary = self.mapper.integrate(points, origins, item.stamp)
+        own_cpu = time.thread_time() - own_cpu
         now = self.get_clock().now().nanoseconds * 1e-9
         latency = now - item.stamp
         with self._cv:
@@ -518,6 +520,7 @@ class MfpMapperNode(Node):
             c.latency_last = latency
             c.latency_sum += latency
             c.latency_max = max(c.latency_max, latency)
+            c.integration_cpu += max(summary.cpu_seconds - own_cpu, 0.0)  # the core's threads
         self._add_time(cpu0, wall0)
         return True
 

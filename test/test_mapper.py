@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 import pytest
@@ -192,3 +193,17 @@ def test_filtered_export_equals_filtering_the_full_export() -> None:
     assert (mapper.voxels(min_doo=1.0).most_likely_doo == 1.0).all()
     with pytest.raises(ValueError, match="min_doo"):
         mapper.voxels(min_doo=1.5)
+
+
+def test_integration_cpu_counts_the_worker_threads() -> None:
+    points, origin = anchors_scene(n_scans=1)[0]
+    one = Mapper(0.2).integrate(points, origin, 0.0)
+    assert one.cpu_seconds > 0.0
+    mapper = Mapper(0.2, threads=2)
+    cpu0 = time.thread_time()
+    two = mapper.integrate(points, origin, 0.0)
+    caller = time.thread_time() - cpu0
+    mapper.close()
+    # the walk runs on the pool threads: their CPU is in the summary, not in the caller's
+    assert two.cpu_seconds > 2.0 * caller
+    assert two.cpu_seconds > 0.5 * one.cpu_seconds

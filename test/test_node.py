@@ -513,3 +513,30 @@ def test_a_slow_save_does_not_stall_odometry(
         mapper_node.close()
         mapper_node.destroy_node()
         spinner.join(timeout=5.0)
+
+
+def test_large_data_dds_profile_loads(tmp_path: Path) -> None:
+    """config/fastdds_large_data.xml parses in the middleware (Fast DDS prints XMLPARSER
+    errors and falls back to its defaults for a broken profile)."""
+    import subprocess
+    import sys
+
+    from ros_helpers import ROOT, ros_env
+
+    profile = ROOT / "config" / "fastdds_large_data.xml"
+    env = {**ros_env(domain_id()), "FASTRTPS_DEFAULT_PROFILES_FILE": str(profile)}
+    code = "import rclpy; rclpy.init(); rclpy.create_node('profile_check'); print('participant up')"
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60
+    )
+    log = out.stdout + out.stderr  # Fast DDS logs to stdout
+    assert out.returncode == 0 and "participant up" in log, log
+    assert "XMLPARSER" not in log and "Error" not in log, log
+
+    broken = tmp_path / "broken.xml"
+    broken.write_text(profile.read_text().replace("33554432", "a lot"))
+    env["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(broken)
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60
+    )
+    assert "XMLPARSER" in out.stdout + out.stderr  # the check above sees a broken profile

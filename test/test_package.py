@@ -119,9 +119,15 @@ def test_setup_data_files(setup_kwargs: dict[str, Any]) -> None:
     assert data["share/ament_index/resource_index/packages"] == [marker]
     assert (ROOT / marker).is_file() and (ROOT / marker).stat().st_size == 0
     assert data[f"share/{PKG}"] == ["package.xml"]
-    for sub, pattern in (("config", "*.yaml"), ("launch", "*.launch.py")):
-        on_disk = sorted(f"{sub}/{p.name}" for p in (ROOT / sub).glob(pattern))
+    for sub, patterns in (("config", ("*.yaml", "*.xml")), ("launch", ("*.launch.py",))):
+        on_disk = sorted(
+            f"{sub}/{p.name}" for pattern in patterns for p in (ROOT / sub).glob(pattern)
+        )
         assert sorted(data.get(f"share/{PKG}/{sub}", [])) == on_disk
+    assert (
+        f"share/{PKG}/config" in data
+        and "config/fastdds_large_data.xml" in data[f"share/{PKG}/config"]
+    )
     for files in data.values():
         for f in files:
             assert (ROOT / f).is_file(), f
