@@ -491,11 +491,12 @@ class MfpMapperNode(Node):
                 )
             return True
         extrinsic = self._extrinsic(item.msg.header.frame_id)
+        with self._pose_lock:  # de-skew from a copy: odometry keeps arriving meanwhile
+            poses = self.poses.snapshot()
         try:
-            with self._pose_lock:
-                points, origins = cloud_to_map(
-                    item.cloud, item.stamp, self.poses, extrinsic, deskew=self.cfg.deskew
-                )
+            points, origins = cloud_to_map(
+                item.cloud, item.stamp, poses, extrinsic, deskew=self.cfg.deskew
+            )
         except PoseUnavailable as err:
             self._drop(err.reason, str(err))
             return True

@@ -184,6 +184,16 @@ class PoseBuffer:
         self._arrays = None
         return True
 
+    def snapshot(self) -> PoseBuffer:
+        """A copy that later ``add`` calls leave unchanged (cheap: the interpolation arrays
+        are shared, never modified in place), to interpolate from outside a lock."""
+        copy = PoseBuffer(self.max_age, self.max_gap)
+        copy._stamps = list(self._stamps)
+        copy._positions = list(self._positions)
+        copy._quaternions = list(self._quaternions)
+        copy._arrays = self._arrays
+        return copy
+
     def _prune(self) -> None:
         """Drop poses older than max_age, keeping one at or before the cut-off."""
         drop = bisect_left(self._stamps, self._stamps[-1] - self.max_age) - 1

@@ -139,6 +139,21 @@ def test_interpolation_against_hand_computed_values() -> None:
     np.testing.assert_allclose(rotations[2], rot_z(math.pi / 2), atol=1e-12)
 
 
+def test_snapshot_is_unchanged_by_later_poses() -> None:
+    buffer = PoseBuffer(max_age=1.0, max_gap=2.0)
+    buffer.add(T0, [0.0, 0.0, 0.0], yaw_quaternion(0.0))
+    buffer.add(T0 + 1.0, [2.0, 0.0, 0.0], yaw_quaternion(0.0))
+    buffer.interpolate([T0 + 0.5])  # builds the arrays the snapshot shares
+    snap = buffer.snapshot()
+    buffer.add(T0 + 1.5, [9.0, 9.0, 9.0], yaw_quaternion(1.0))
+    buffer.add(T0 + 2.5, [9.0, 9.0, 9.0], yaw_quaternion(1.0))  # prunes T0 from the buffer
+    assert (snap.earliest_stamp, snap.latest_stamp) == (T0, T0 + 1.0)
+    np.testing.assert_allclose(snap.interpolate([T0 + 0.5])[0], [[1.0, 0.0, 0.0]])
+    with pytest.raises(PoseUnavailable):
+        snap.interpolate([T0 + 1.2])
+    np.testing.assert_allclose(buffer.interpolate([T0 + 2.0])[0], [[9.0, 9.0, 9.0]])
+
+
 def test_sign_flipped_quaternions_interpolate_the_short_way() -> None:
     buffer = PoseBuffer()
     buffer.add(T0, np.zeros(3), yaw_quaternion(0.1))
