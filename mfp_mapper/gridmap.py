@@ -67,6 +67,18 @@ def band_mask(ijk: NDArray[np.integer], resolution: float, z_min: float, z_max: 
     return (zc >= z_min) & (zc <= z_max)
 
 
+def _window_cells(
+    center: tuple[float, float], radius: float, resolution: float
+) -> tuple[int, int, int, int]:
+    """First and last cell indices (i0, j0, i1, j1) of the square of half side ``radius``."""
+    return (
+        math.floor((center[0] - radius) / resolution),
+        math.floor((center[1] - radius) / resolution),
+        math.floor((center[0] + radius) / resolution),
+        math.floor((center[1] + radius) / resolution),
+    )
+
+
 def hit_probability_grid(
     ijk: ArrayLike,
     hit_probability: ArrayLike,
@@ -96,10 +108,7 @@ def hit_probability_grid(
         raise ValueError("ijk, hit_probability and observed differ in length")
 
     if center is not None and radius > 0.0:
-        i0 = math.floor((center[0] - radius) / resolution)
-        j0 = math.floor((center[1] - radius) / resolution)
-        i1 = math.floor((center[0] + radius) / resolution)
-        j1 = math.floor((center[1] + radius) / resolution)
+        i0, j0, i1, j1 = _window_cells(center, radius, resolution)
     elif obs.any():
         seen = ijk_arr[obs]
         i0, j0 = (int(v) for v in seen[:, :2].min(axis=0))
@@ -151,10 +160,7 @@ def band_grid(
     if not z_min < z_max:
         raise ValueError(f"empty height band [{z_min}, {z_max}]")
     if center is not None and radius > 0.0:
-        i0 = math.floor((center[0] - radius) / resolution)
-        j0 = math.floor((center[1] - radius) / resolution)
-        i1 = math.floor((center[0] + radius) / resolution)
-        j1 = math.floor((center[1] + radius) / resolution)
+        i0, j0, i1, j1 = _window_cells(center, radius, resolution)
     else:
         extent = np.array([np.iinfo(np.int64).max] * 2 + [np.iinfo(np.int64).min] * 2)
         for block_ijk, block_sn, used in shards:
