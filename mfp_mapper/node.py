@@ -703,8 +703,9 @@ class MfpMapperNode(Node):
         def save() -> None:
             try:
                 done.set_result(self.save_map())
-            except BaseException as err:  # noqa: BLE001 - handed to the awaiting service call
-                done.set_exception(err)
+            except Exception as err:  # an unexpected failure answers the call, never kills spin
+                self.get_logger().error(f"saving the map failed: {err!r}")
+                done.set_result((False, f"saving failed: {err!r}"))
             finally:
                 with self._inflight_cv:
                     self._inflight -= 1

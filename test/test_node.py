@@ -506,6 +506,14 @@ def test_a_slow_save_does_not_stall_odometry(
         assert f.wait(pending.done, 20.0), "the save call never answered"
         assert pending.result().success, pending.result().message
         assert path.is_file()
+
+        def broken_write(path: Any, arrays: Any) -> None:
+            raise RuntimeError("unexpected")
+
+        monkeypatch.setattr(node_module, "write_map_arrays", broken_write)
+        failed = f.call(f.save, Trigger.Request())  # answered, and the node keeps spinning
+        assert not failed.success and "unexpected" in failed.message
+        assert spinner.is_alive()
     finally:
         release.set()
         f.destroy()
