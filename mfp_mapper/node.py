@@ -6,11 +6,11 @@ Thin wiring around the ROS-free core: parsing (``mfp_mapper.pointcloud``), poses
 ``ros2 run mfp_mapper mfp_mapper``; parameters are in ``mfp_mapper.node_params``.
 
 Threads: one executor thread runs every ROS callback (rclpy's multi-threaded executor
-costs about half a core in overhead); subscription callbacks only queue clouds and store
+cost about 70% of a core in overhead); subscription callbacks only queue clouds and store
 poses. A worker thread parses each cloud, waits (bounded) until odometry covers its stamp,
-places it with the pose interpolated at its stamp and integrates it; ``~/save_map`` writes
-in a thread of its own. One lock guards the Mapper for integration, publishing, queries and
-services.
+places it with the pose interpolated at its stamp and integrates it, and publishes the map
+clouds between scans when the publish timer asks; ``~/save_map`` writes in a thread of its
+own. One lock guards the Mapper for integration, publishing, queries and services.
 """
 
 from __future__ import annotations
