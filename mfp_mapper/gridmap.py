@@ -24,7 +24,15 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from mfp_mapper.model import hit_probability_one
-from mfp_mapper.store import BLOCK_EDGE, BLOCK_VOXELS, local_coords
+from mfp_mapper.store import (
+    BLOCK_EDGE,
+    BLOCK_VOXELS,
+    IndexBox,
+    block_origin,
+    block_outside,
+    local_coords,
+    voxel_inside,
+)
 
 UNKNOWN = -1
 
@@ -79,6 +87,13 @@ def _window_cells(
     )
 
 
+def _check_band(resolution: float, z_min: float, z_max: float) -> None:
+    if resolution <= 0.0:
+        raise ValueError(f"resolution must be positive, got {resolution}")
+    if not z_min < z_max:
+        raise ValueError(f"empty height band [{z_min}, {z_max}]")
+
+
 def hit_probability_grid(
     ijk: ArrayLike,
     hit_probability: ArrayLike,
@@ -96,11 +111,12 @@ def hit_probability_grid(
     reflected. With ``center`` and ``radius > 0`` the grid is the square of half side
     ``radius`` around ``center`` (fixed size, whatever is mapped); otherwise it spans the
     (x, y) extent of all observed voxels given (0 x 0 when there are none).
+
+    For any set of voxels, e.g. ``Mapper.voxels(stamp)`` decayed to a stamp; the live map's
+    band is faster through ``Mapper.hit_probability_grid`` (``band_grid``), which gives the
+    same grid from the blocks.
     """
-    if resolution <= 0.0:
-        raise ValueError(f"resolution must be positive, got {resolution}")
-    if not z_min < z_max:
-        raise ValueError(f"empty height band [{z_min}, {z_max}]")
+    _check_band(resolution, z_min, z_max)
     ijk_arr = np.asarray(ijk, dtype=np.int64).reshape(-1, 3)
     prob = np.asarray(hit_probability, dtype=np.float64).reshape(-1)
     obs = np.asarray(observed, dtype=bool).reshape(-1)
@@ -143,8 +159,8 @@ def band_grid(
     resolution: float,
     z_min: float,
     z_max: float,
-    lo: NDArray[np.int64],
-    hi: NDArray[np.int64],
+    lo: IndexBox,
+    hi: IndexBox,
     *,
     center: tuple[float, float] | None = None,
     radius: float = 0.0,
@@ -155,10 +171,7 @@ def band_grid(
     The grid spans the window around ``center`` (``radius > 0``), else the (x, y) extent of
     the observed voxels in ``[lo, hi]``; cells take the voxels whose centre is in the band.
     """
-    if resolution <= 0.0:
-        raise ValueError(f"resolution must be positive, got {resolution}")
-    if not z_min < z_max:
-        raise ValueError(f"empty height band [{z_min}, {z_max}]")
+    _check_band(resolution, z_min, z_max)
     if center is not None and radius > 0.0:
         i0, j0, i1, j1 = _window_cells(center, radius, resolution)
     else:
@@ -176,39 +189,25 @@ def band_grid(
     return HitGrid(cells, resolution, (i0 * resolution, j0 * resolution))
 
 
-@nb.njit(inline="always", cache=True)
-def _block_outside(bx: int, by: int, bz: int, lo: NDArray[np.int64], hi: NDArray[np.int64]) -> bool:
-    return (
-        bx + BLOCK_EDGE <= lo[0]
-        or bx > hi[0]
-        or by + BLOCK_EDGE <= lo[1]
-        or by > hi[1]
-        or bz + BLOCK_EDGE <= lo[2]
-        or bz > hi[2]
-    )
-
-
 @nb.njit(cache=True, nogil=True)
 def _observed_extent(
     block_ijk: NDArray[np.int32],
     block_sn: NDArray[np.float32],
     used: int,
-    lo: NDArray[np.int64],
-    hi: NDArray[np.int64],
+    lo: IndexBox,
+    hi: IndexBox,
     extent: NDArray[np.int64],
 ) -> None:
     """Widen ``extent`` [i_min, j_min, i_max, j_max] to the observed voxels in [lo, hi]."""
     for b in range(used):
-        bx = np.int64(block_ijk[b, 0]) * BLOCK_EDGE
-        by = np.int64(block_ijk[b, 1]) * BLOCK_EDGE
-        bz = np.int64(block_ijk[b, 2]) * BLOCK_EDGE
-        if _block_outside(bx, by, bz, lo, hi):
+        bx, by, bz = block_origin(block_ijk, b)
+        if block_outside(bx, by, bz, lo, hi):
             continue
         for v in range(BLOCK_VOXELS):
             if block_sn[b, v, 0] > 0.0 or block_sn[b, v, 1] > 0.0:
                 dx, dy, dz = local_coords(v)
                 x, y, z = bx + dx, by + dy, bz + dz
-                if lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1] and lo[2] <= z <= hi[2]:
+                if voxel_inside(x, y, z, lo, hi):
                     extent[0] = min(extent[0], x)
                     extent[1] = min(extent[1], y)
                     extent[2] = max(extent[2], x)
@@ -220,8 +219,8 @@ def _band_max_percent(
     block_ijk: NDArray[np.int32],
     block_sn: NDArray[np.float32],
     used: int,
-    lo: NDArray[np.int64],
-    hi: NDArray[np.int64],
+    lo: IndexBox,
+    hi: IndexBox,
     resolution: float,
     z_min: float,
     z_max: float,
@@ -233,11 +232,9 @@ def _band_max_percent(
     observed voxels in [lo, hi] whose centre height lies in [z_min, z_max]."""
     height, width = cells.shape
     for b in range(used):
-        bx = np.int64(block_ijk[b, 0]) * BLOCK_EDGE
-        by = np.int64(block_ijk[b, 1]) * BLOCK_EDGE
-        bz = np.int64(block_ijk[b, 2]) * BLOCK_EDGE
+        bx, by, bz = block_origin(block_ijk, b)
         if (
-            _block_outside(bx, by, bz, lo, hi)
+            block_outside(bx, by, bz, lo, hi)
             or bx + BLOCK_EDGE <= i0
             or bx >= i0 + width
             or by + BLOCK_EDGE <= j0
@@ -251,7 +248,7 @@ def _band_max_percent(
                 continue
             dx, dy, dz = local_coords(v)
             x, y, z = bx + dx, by + dy, bz + dz
-            if not (lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1] and lo[2] <= z <= hi[2]):
+            if not voxel_inside(x, y, z, lo, hi):
                 continue
             zc = (np.float64(z) + 0.5) * resolution
             col, row = x - i0, y - j0

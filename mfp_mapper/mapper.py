@@ -15,7 +15,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from mfp_mapper import model
 from mfp_mapper.gridmap import HitGrid, band_grid
-from mfp_mapper.store import BLOCK_EDGE, MAX_VOXEL_INDEX, BlockStore, VoxelArrays
+from mfp_mapper.store import BLOCK_EDGE, MAX_VOXEL_INDEX, BlockStore, VoxelArrays, index_box
 from mfp_mapper.traversal import Mailbox, integrate_rays, prepare_rays
 
 FloatArray = NDArray[np.float64]
@@ -286,7 +286,14 @@ class Mapper:
         lo, hi = self._index_bounds((lo_m, hi_m))
         shards = [(sh.block_ijk, sh.block_sn, sh.used) for sh in self._store.shards]
         return band_grid(
-            shards, self.resolution, z_min, z_max, lo, hi, center=center, radius=radius
+            shards,
+            self.resolution,
+            z_min,
+            z_max,
+            index_box(lo),
+            index_box(hi),
+            center=center,
+            radius=radius,
         )
 
     def _stats(self, raw: VoxelArrays, stamp: float | None) -> VoxelStats:

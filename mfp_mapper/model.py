@@ -35,11 +35,16 @@ def observed(s: ArrayLike, n: ArrayLike) -> NDArray[np.bool_]:
     return (s_arr > 0.0) | (n_arr > 0.0)
 
 
-def moment_m(s: ArrayLike, n: ArrayLike, z: ArrayLike) -> FloatArray:
-    """E[m^z] = ((s+1)/(s+1+z))^(n+1) (Eq. 26)."""
+def _log_moment(s: ArrayLike, n: ArrayLike, z: ArrayLike) -> FloatArray:
+    """log E[m^z] = (n+1) (log(s+1) - log(s+1+z)) (Eq. 26)."""
     s_arr, n_arr = _stats(s, n)
     z_arr = np.asarray(z, dtype=np.float64)
-    return np.exp((n_arr + 1.0) * (np.log1p(s_arr) - np.log(s_arr + 1.0 + z_arr)))
+    return (n_arr + 1.0) * (np.log1p(s_arr) - np.log(s_arr + 1.0 + z_arr))
+
+
+def moment_m(s: ArrayLike, n: ArrayLike, z: ArrayLike) -> FloatArray:
+    """E[m^z] = ((s+1)/(s+1+z))^(n+1) (Eq. 26)."""
+    return np.exp(_log_moment(s, n, z))
 
 
 def most_likely_doo(s: ArrayLike, n: ArrayLike) -> FloatArray:
@@ -72,9 +77,7 @@ def hit_probability(s: ArrayLike, n: ArrayLike, length: ArrayLike) -> FloatArray
 
     With ``length`` = the voxel edge this is the cell's p_hit (Eq. 31-33).
     """
-    s_arr, n_arr = _stats(s, n)
-    z_arr = np.asarray(length, dtype=np.float64)
-    return -np.expm1((n_arr + 1.0) * (np.log1p(s_arr) - np.log(s_arr + 1.0 + z_arr)))
+    return -np.expm1(_log_moment(s, n, length))
 
 
 @nb.njit(cache=True)

@@ -126,16 +126,12 @@ def _tracked(callback: Callable[..., Any]) -> Callable[..., Any]:
 
     @functools.wraps(callback)
     def wrapper(self: MfpMapperNode, *args: Any) -> Any:
-        with self._inflight_cv:
-            if self._closing:
-                return args[-1] if len(args) == 2 else None  # a service returns its response
-            self._inflight += 1
+        if not self._begin_work():
+            return args[-1] if len(args) == 2 else None  # a service returns its response
         try:
             return callback(self, *args)
         finally:
-            with self._inflight_cv:
-                self._inflight -= 1
-                self._inflight_cv.notify_all()
+            self._end_work()
 
     return wrapper
 
@@ -707,16 +703,12 @@ class MfpMapperNode(Node):
                 self.get_logger().error(f"saving the map failed: {err!r}")
                 done.set_result((False, f"saving failed: {err!r}"))
             finally:
-                with self._inflight_cv:
-                    self._inflight -= 1
-                    self._inflight_cv.notify_all()
+                self._end_work()
                 self._wake.trigger()
 
-        with self._inflight_cv:  # close() waits for the save, not for this call
-            if self._closing:
-                response.success, response.message = False, "node is shutting down"
-                return response
-            self._inflight += 1
+        if not self._begin_work():  # close() waits for the save thread, not for this call
+            response.success, response.message = False, "node is shutting down"
+            return response
         threading.Thread(target=save, name="mfp_save_map", daemon=True).start()
         response.success, response.message = await done
         return response
@@ -813,6 +805,19 @@ class MfpMapperNode(Node):
             f"{100 * s['integration_cpu_share']:.0f}%"
         )
         self._status_pub.publish(String(data=json.dumps(s)))
+
+    def _begin_work(self) -> bool:
+        """Count work in flight that close() must wait for; False once the node closes."""
+        with self._inflight_cv:
+            if self._closing:
+                return False
+            self._inflight += 1
+            return True
+
+    def _end_work(self) -> None:
+        with self._inflight_cv:
+            self._inflight -= 1
+            self._inflight_cv.notify_all()
 
     def close(self) -> None:
         """Stop the worker; save the map when save_on_shutdown (not over an unreadable file)."""

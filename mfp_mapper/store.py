@@ -42,6 +42,15 @@ RESERVED_BLOCKS = 1 << 18
 MAX_VOXEL_INDEX = (_KEY_OFFSET << BLOCK_BITS) - BLOCK_EDGE
 """Largest |voxel index| the store can hold (block indices are packed in 21 bits each)."""
 
+IndexBox = tuple[int, int, int]
+"""A corner of an inclusive voxel index range, as kernels take it: a tuple, not an array
+(numba reference-counts array arguments on every call, even of inlined helpers)."""
+
+
+def index_box(corner: NDArray[np.int64] | tuple[int, int, int]) -> IndexBox:
+    x, y, z = (int(v) for v in corner)
+    return x, y, z
+
 
 @nb.njit(inline="always", cache=True)
 def block_key(bx: int, by: int, bz: int) -> int:
@@ -218,8 +227,8 @@ def _select_voxels(
     block_hit: NDArray[np.bool_],
     used: int,
     min_extinction: float,
-    lo: NDArray[np.int64],
-    hi: NDArray[np.int64],
+    lo: IndexBox,
+    hi: IndexBox,
     keep: NDArray[np.bool_],
     kept_per_block: NDArray[np.int64],
 ) -> int:
@@ -233,25 +242,12 @@ def _select_voxels(
     for b in range(used):
         if min_extinction > 0.0 and not block_hit[b]:
             continue  # no return in the block: no voxel has n >= min_extinction * s > 0
-        base_x = np.int64(block_ijk[b, 0]) * BLOCK_EDGE
-        base_y = np.int64(block_ijk[b, 1]) * BLOCK_EDGE
-        base_z = np.int64(block_ijk[b, 2]) * BLOCK_EDGE
-        if (
-            base_x + BLOCK_EDGE <= lo[0]
-            or base_x > hi[0]
-            or base_y + BLOCK_EDGE <= lo[1]
-            or base_y > hi[1]
-            or base_z + BLOCK_EDGE <= lo[2]
-            or base_z > hi[2]
-        ):
+        x0, y0, z0 = block_origin(block_ijk, b)
+        if block_outside(x0, y0, z0, lo, hi):
             continue
-        inside = (
-            base_x >= lo[0]
-            and base_x + BLOCK_EDGE - 1 <= hi[0]
-            and base_y >= lo[1]
-            and base_y + BLOCK_EDGE - 1 <= hi[1]
-            and base_z >= lo[2]
-            and base_z + BLOCK_EDGE - 1 <= hi[2]
+        last = BLOCK_EDGE - 1
+        inside = voxel_inside(x0, y0, z0, lo, hi) and voxel_inside(
+            x0 + last, y0 + last, z0 + last, lo, hi
         )
         for i in range(BLOCK_VOXELS):
             s = block_sn[b, i, 0]
@@ -259,10 +255,8 @@ def _select_voxels(
             # s == 0 < n: a return on a face, most likely DoO 1 (kept by any threshold)
             if (s > 0.0 and n >= min_extinction * s) or (s == 0.0 and n > 0.0):
                 if not inside:
-                    x = base_x + _unspread_bits(i >> 2)
-                    y = base_y + _unspread_bits(i >> 1)
-                    z = base_z + _unspread_bits(i)
-                    if x < lo[0] or x > hi[0] or y < lo[1] or y > hi[1] or z < lo[2] or z > hi[2]:
+                    dx, dy, dz = local_coords(i)
+                    if not voxel_inside(x0 + dx, y0 + dy, z0 + dz, lo, hi):
                         continue
                 keep[b, i] = True
                 kept_per_block[b] += 1
@@ -289,9 +283,11 @@ def _gather_voxels(
             continue
         for i in range(BLOCK_VOXELS):
             if keep[b, i]:
-                ijk[j, 0] = block_ijk[b, 0] * BLOCK_EDGE + _unspread_bits(i >> 2)
-                ijk[j, 1] = block_ijk[b, 1] * BLOCK_EDGE + _unspread_bits(i >> 1)
-                ijk[j, 2] = block_ijk[b, 2] * BLOCK_EDGE + _unspread_bits(i)
+                x0, y0, z0 = block_origin(block_ijk, b)
+                dx, dy, dz = local_coords(i)
+                ijk[j, 0] = x0 + dx
+                ijk[j, 1] = y0 + dy
+                ijk[j, 2] = z0 + dz
                 s[j] = block_sn[b, i, 0]
                 n[j] = block_sn[b, i, 1]
                 t_last[j] = block_t[b]
@@ -309,6 +305,35 @@ def local_coords(i: int) -> tuple[int, int, int]:
     """Offsets (x, y, z) in its block of the voxel with Morton index ``i`` (``local_index``
     inverted)."""
     return _unspread_bits(i >> 2), _unspread_bits(i >> 1), _unspread_bits(i)
+
+
+@nb.njit(inline="always", cache=True)
+def block_origin(block_ijk: NDArray[np.int32], b: int) -> tuple[int, int, int]:
+    """Voxel index of the first voxel (lowest corner) of block ``b``."""
+    return (
+        np.int64(block_ijk[b, 0]) * BLOCK_EDGE,
+        np.int64(block_ijk[b, 1]) * BLOCK_EDGE,
+        np.int64(block_ijk[b, 2]) * BLOCK_EDGE,
+    )
+
+
+@nb.njit(inline="always", cache=True)
+def block_outside(x0: int, y0: int, z0: int, lo: IndexBox, hi: IndexBox) -> bool:
+    """Whether the block at voxel index (x0, y0, z0) lies wholly outside [lo, hi]."""
+    return (
+        x0 + BLOCK_EDGE <= lo[0]
+        or x0 > hi[0]
+        or y0 + BLOCK_EDGE <= lo[1]
+        or y0 > hi[1]
+        or z0 + BLOCK_EDGE <= lo[2]
+        or z0 > hi[2]
+    )
+
+
+@nb.njit(inline="always", cache=True)
+def voxel_inside(x: int, y: int, z: int, lo: IndexBox, hi: IndexBox) -> bool:
+    """Whether voxel index (x, y, z) lies in [lo, hi] (inclusive)."""
+    return lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1] and lo[2] <= z <= hi[2]
 
 
 @nb.njit(cache=True, nogil=True)
@@ -550,8 +575,8 @@ class BlockStore:
         hi: NDArray[np.int64] | None = None,
     ) -> VoxelArrays:
         """Observed voxels with n >= min_extinction * s and index within [lo, hi]."""
-        lo_ = np.full(3, -MAX_VOXEL_INDEX - 1, dtype=np.int64) if lo is None else lo
-        hi_ = np.full(3, MAX_VOXEL_INDEX + 1, dtype=np.int64) if hi is None else hi
+        lo_ = index_box(np.full(3, -MAX_VOXEL_INDEX - 1) if lo is None else lo)
+        hi_ = index_box(np.full(3, MAX_VOXEL_INDEX + 1) if hi is None else hi)
         selections = []
         for sh in self.shards:
             keep = np.zeros((sh.used, BLOCK_VOXELS), dtype=np.bool_)
