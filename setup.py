@@ -50,7 +50,7 @@ setup(
     tests_require=["pytest"],
     entry_points={
         "console_scripts": [
-            "mfp_mapper = mfp_mapper.node:main",
+            "mfp_mapper = mfp_mapper.ros.node:main",
             "mfp-mapper = mfp_mapper.cli:main",
         ],
     },

@@ -23,6 +23,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 NEBULA = ROOT.parent / "shared" / "data" / "nebula_frames"
+sys.path[:0] = [str(ROOT), str(ROOT / "test")]  # the package and the test scenes
 
 
 def _rss_kib(field: str) -> int:
@@ -33,11 +34,11 @@ def _rss_kib(field: str) -> int:
 
 
 def _scene(name: str) -> list[tuple[np.ndarray, np.ndarray]]:
-    from mfp_mapper.synthetic import anchors_scene
+    from box_world import anchors_scene
 
     if name == "anchors":
         return anchors_scene()
-    from mfp_mapper.datasets import read_pcd
+    from mfp_mapper.offline.scan_files import read_pcd
 
     cols = read_pcd(NEBULA / name)
     points = np.stack([cols["x"], cols["y"], cols["z"]], axis=1).astype(np.float64)
@@ -90,8 +91,9 @@ def child(kind: str, scene: str, resolution: float, threads: int, max_range: flo
 
 def scan_latency(resolution: float, threads: int, repeats: int) -> dict:
     """Median time of one VLP-16 scan (28.8k rays, 30 m max range) after warm-up."""
+    from box_world import anchors_scene
+
     from mfp_mapper import Mapper
-    from mfp_mapper.synthetic import anchors_scene
 
     scans = anchors_scene(n_scans=repeats + 2)
     mapper = Mapper(resolution, threads=threads, max_range=30.0)
@@ -107,8 +109,9 @@ def scan_latency(resolution: float, threads: int, repeats: int) -> dict:
 def start_time() -> dict:
     """Seconds from interpreter start to the first integrated scan (run as a fresh process)."""
     t0 = time.perf_counter()
+    from box_world import anchors_scene
+
     from mfp_mapper import Mapper
-    from mfp_mapper.synthetic import anchors_scene
 
     points, origin = anchors_scene(n_scans=1)[0]
     Mapper(0.1).integrate(points, origin, 0.0)

@@ -3,7 +3,7 @@
     .venv/bin/python benchmarks/bench_node.py                 # both streams, 15 s each
     .venv/bin/python benchmarks/bench_node.py --stream vlp16 --duration 30
 
-The node runs in its own process (``python -m mfp_mapper.node``); this process is the
+The node runs in its own process (``python -m mfp_mapper.ros.node``); this process is the
 driver: odometry at 50 Hz and one de-skewable sweep every 0.1 s, stamped with the wall
 clock at the start of the sweep, from a robot driving and turning through
 ``synthetic.BoxWorld``. Subscribers to ``~/degree_of_occupancy`` and ``~/projected_map``
@@ -38,9 +38,10 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 DDS_PROFILE = ROOT / "config" / "fastdds_large_data.xml"
-sys.path.insert(0, str(ROOT / "test"))
+sys.path[:0] = [str(ROOT / "test"), str(ROOT / "test" / "ros")]
 sys.path.insert(0, str(ROOT))
 
+from box_world import BoxWorld  # noqa: E402
 from ros_helpers import (  # noqa: E402
     Feeder,
     NodeProcess,
@@ -51,7 +52,7 @@ from ros_helpers import (  # noqa: E402
     simulate_scan,
 )
 
-from mfp_mapper.synthetic import BoxWorld, scan_directions  # noqa: E402
+from mfp_mapper.offline.scan_pattern import scan_directions  # noqa: E402
 
 STREAMS: dict[str, dict[str, Any]] = {
     "vlp16": {

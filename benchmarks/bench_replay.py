@@ -31,7 +31,7 @@ sys.path.insert(0, str(ROOT))
 
 def extract(bag: Path, out: Path) -> int:
     """De-skewed map-frame points and one origin per cloud, placed by the replay itself."""
-    from mfp_mapper.bag_replay import ReplayOptions, replay
+    from mfp_mapper.offline.replay import ReplayOptions, replay
 
     arrays: dict[str, np.ndarray] = {}
 
@@ -59,7 +59,7 @@ def child(kind: str, data: Path, resolution: float, max_range: float) -> dict:
             tree.insertPointCloud(points, origin, maxrange=max_range)
         seconds = time.perf_counter() - t0
         return {"kind": kind, "rays": rays, "seconds": seconds, "nodes": int(tree.size())}
-    from mfp_mapper.mapper import Mapper
+    from mfp_mapper.core.mapper import Mapper
 
     warm = Mapper(resolution, max_range=max_range)
     warm.integrate(scans[0][0][:1000], scans[0][1], 0.0)  # compile / load the numba cache
@@ -79,7 +79,7 @@ def run_child(kind: str, data: Path, resolution: float, max_range: float) -> dic
 
 
 def main() -> int:
-    from mfp_mapper.simulate import BAG_FORMATS
+    from mfp_mapper.offline.simulate import BAG_FORMATS
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--scans", type=int, default=120)
@@ -95,9 +95,9 @@ def main() -> int:
         print(json.dumps(child(args.child, Path(args.data), args.resolution, args.max_range)))
         return 0
 
-    from mfp_mapper.bag_replay import ReplayOptions, replay
-    from mfp_mapper.mapper import Mapper
-    from mfp_mapper.simulate import preset, simulate
+    from mfp_mapper.core.mapper import Mapper
+    from mfp_mapper.offline.replay import ReplayOptions, replay
+    from mfp_mapper.offline.simulate import preset, simulate
 
     with tempfile.TemporaryDirectory() as tmp:
         if args.bag:

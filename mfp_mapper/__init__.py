@@ -1,7 +1,33 @@
-"""mfp_mapper: lidar mapping with the mean-free-path (degree of occupancy) model."""
+"""mfp_mapper: lidar mapping with the mean-free-path (degree of occupancy) model.
 
-from mfp_mapper.mapfile import MapFileError
-from mfp_mapper.mapper import IntegrationSummary, Mapper, VoxelStats
+The public API (``Mapper``, ``VoxelStats``, ``IntegrationSummary``, ``MapFileError``) is
+imported lazily, so ``import mfp_mapper`` and ``mfp-mapper --help`` do not load numba.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from mfp_mapper.core.mapfile import MapFileError
+    from mfp_mapper.core.mapper import IntegrationSummary, Mapper, VoxelStats
 
 __all__ = ["IntegrationSummary", "MapFileError", "Mapper", "VoxelStats"]
-__version__ = "0.1.0"
+__version__ = "0.2.0"
+
+_LAZY = {
+    "IntegrationSummary": "mfp_mapper.core.mapper",
+    "Mapper": "mfp_mapper.core.mapper",
+    "VoxelStats": "mfp_mapper.core.mapper",
+    "MapFileError": "mfp_mapper.core.mapfile",
+}
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'mfp_mapper' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value

@@ -17,7 +17,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from mfp_mapper.atomic import write_text_atomic
+from mfp_mapper.core.atomic import write_text_atomic
 
 EPILOG = """\
 examples:
@@ -65,7 +65,7 @@ def _nonneg_int(text: str) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from mfp_mapper.simulate import BAG_FORMATS, PRESETS
+    from mfp_mapper.offline.simulate import BAG_FORMATS, PRESETS
 
     parser = argparse.ArgumentParser(
         prog="mfp-mapper",
@@ -221,8 +221,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _load_map(path: str) -> Any:
-    from mfp_mapper.mapfile import MapFileError
-    from mfp_mapper.mapper import Mapper
+    from mfp_mapper.core.mapfile import MapFileError
+    from mfp_mapper.core.mapper import Mapper
 
     try:
         return Mapper.load(path)
@@ -241,8 +241,8 @@ def _check_writable(path: Path) -> None:
 
 
 def replay_options(args: argparse.Namespace) -> Any:
-    from mfp_mapper.bag_replay import ReplayOptions, options_from_yaml
-    from mfp_mapper.poses import Extrinsic
+    from mfp_mapper.offline.replay import ReplayOptions, options_from_yaml
+    from mfp_mapper.sensing.poses import Extrinsic
 
     values: dict[str, Any] = options_from_yaml(args.config) if args.config else {}
     if args.resolution is not None:
@@ -272,7 +272,7 @@ def replay_options(args: argparse.Namespace) -> Any:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from mfp_mapper.bag_replay import ReplayError, replay
+    from mfp_mapper.offline.replay import ReplayError, replay
 
     out = Path(args.output)
     _check_writable(out)
@@ -309,7 +309,7 @@ def _jsonable(value: Any) -> Any:
 
 
 def _sim_config(args: argparse.Namespace) -> Any:
-    from mfp_mapper.simulate import preset
+    from mfp_mapper.offline.simulate import preset
 
     cfg = preset(args.scene)
     changes: dict[str, Any] = {"seed": args.seed}
@@ -330,7 +330,7 @@ def _sim_config(args: argparse.Namespace) -> Any:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from mfp_mapper.simulate import SimulationError, simulate
+    from mfp_mapper.offline.simulate import SimulationError, simulate
 
     try:
         result = simulate(args.out_bag, _sim_config(args), args.format, overwrite=args.overwrite)
@@ -357,7 +357,7 @@ def _print_simulation(result: Any) -> None:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from mfp_mapper.export import export_ply
+    from mfp_mapper.offline.export import export_ply
 
     mapper = _load_map(args.map)
     out = Path(args.output)
@@ -368,7 +368,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    from mfp_mapper.render import render_map
+    from mfp_mapper.offline.render import render_map
 
     mapper = _load_map(args.map)
     try:
@@ -381,7 +381,7 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_plot_convergence(args: argparse.Namespace) -> int:
-    from mfp_mapper.render import plot_convergence
+    from mfp_mapper.offline.render import plot_convergence
 
     print(f"wrote {plot_convergence(args.output, args.returns, args.passes)}")
     return 0
@@ -390,7 +390,7 @@ def cmd_plot_convergence(args: argparse.Namespace) -> int:
 def cmd_query(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from mfp_mapper import model
+    from mfp_mapper.core import model
 
     if len(args.coords) % 3:
         raise CliError(f"query needs X Y Z triples, got {len(args.coords)} numbers")
@@ -441,8 +441,8 @@ def cmd_query(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from mfp_mapper.evaluate import evaluate_map
-    from mfp_mapper.simulate import SimulationError, load_truth
+    from mfp_mapper.offline.evaluate import evaluate_map
+    from mfp_mapper.offline.simulate import SimulationError, load_truth
 
     if not 0 < args.level < 1:
         raise CliError(f"--level must lie in (0, 1), got {args.level}")
@@ -459,11 +459,11 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from mfp_mapper.bag_replay import ReplayError, ReplayOptions, replay
-    from mfp_mapper.evaluate import evaluate_map
-    from mfp_mapper.export import export_ply
-    from mfp_mapper.render import plot_convergence, render_map
-    from mfp_mapper.simulate import preset, simulate
+    from mfp_mapper.offline.evaluate import evaluate_map
+    from mfp_mapper.offline.export import export_ply
+    from mfp_mapper.offline.render import plot_convergence, render_map
+    from mfp_mapper.offline.replay import ReplayError, ReplayOptions, replay
+    from mfp_mapper.offline.simulate import preset, simulate
 
     t0 = time.perf_counter()
     out = Path(args.output)

@@ -107,7 +107,7 @@ check_exe() { # check_exe NAME MODULE: installed where `ros2 run` looks; `--help
         problems+=("'lib/$PKG/$1 --help' exited $rc")
     fi
 }
-check_exe mfp_mapper mfp_mapper.node
+check_exe mfp_mapper mfp_mapper.ros.node
 check_exe mfp-mapper mfp_mapper.cli
 
 if ((${#problems[@]})); then

@@ -1,0 +1,260 @@
+"""The 2D hit-probability map: a height band of the 3D map projected onto a grid (no ROS).
+
+A cell of the grid holds ``round(100 * p)``, where ``p`` is the probability that a
+horizontal ray crossing the cell's column at some height in the band ``[z_min, z_max]`` is
+reflected there: the largest per-voxel hit probability (Eq. 31-34, a ray crossing one voxel
+edge) among the observed voxels of the column whose centre lies in the band (centre
+inclusion, as octomap_server's ``occupancy_min_z``/``occupancy_max_z``). The largest, because a
+ray at the worst height is the one a planar robot must fear, as octomap_server's projected
+map marks a cell occupied when any voxel of the band is. Cells whose band holds no observed
+voxel are ``-1`` (unknown), the OccupancyGrid convention.
+
+The grid is row-major, row ``r`` = y index, column ``c`` = x index, cell ``(r, c)`` covering
+``[x0 + c * res, x0 + (c + 1) * res) x [y0 + r * res, y0 + (r + 1) * res)``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from mfp_mapper.core.model import hit_probability_one
+from mfp_mapper.core.store import (
+    BLOCK_EDGE,
+    BLOCK_VOXELS,
+    IndexBox,
+    block_origin,
+    block_outside,
+    local_coords,
+    voxel_inside,
+)
+
+UNKNOWN = -1
+
+
+@dataclass(frozen=True)
+class HitGrid:
+    """A 2D grid of hit probabilities in percent (int8, -1 unknown)."""
+
+    data: NDArray[np.int8]
+    """(height, width), row-major: ``data[row = y, col = x]``."""
+    resolution: float
+    origin: tuple[float, float]
+    """Map-frame (x, y) of the corner of cell (0, 0)."""
+
+    @property
+    def width(self) -> int:
+        return int(self.data.shape[1])
+
+    @property
+    def height(self) -> int:
+        return int(self.data.shape[0])
+
+    def cell_of(self, x: float, y: float) -> tuple[int, int]:
+        """(row, col) of the cell containing map point (x, y); may be outside the grid."""
+        col = math.floor((x - self.origin[0]) / self.resolution + 1e-9)
+        row = math.floor((y - self.origin[1]) / self.resolution + 1e-9)
+        return row, col
+
+    def value_at(self, x: float, y: float) -> int:
+        """The cell value at map point (x, y); -1 outside the grid."""
+        row, col = self.cell_of(x, y)
+        if 0 <= row < self.height and 0 <= col < self.width:
+            return int(self.data[row, col])
+        return UNKNOWN
+
+
+def band_mask(ijk: NDArray[np.integer], resolution: float, z_min: float, z_max: float) -> NDArray:
+    """Voxels whose centre height ``(k + 0.5) res`` lies in ``[z_min, z_max]``."""
+    zc = (np.asarray(ijk)[:, 2].astype(np.float64) + 0.5) * resolution
+    return (zc >= z_min) & (zc <= z_max)
+
+
+def _window_cells(
+    center: tuple[float, float], radius: float, resolution: float
+) -> tuple[int, int, int, int]:
+    """First and last cell indices (i0, j0, i1, j1) of the square of half side ``radius``."""
+    return (
+        math.floor((center[0] - radius) / resolution),
+        math.floor((center[1] - radius) / resolution),
+        math.floor((center[0] + radius) / resolution),
+        math.floor((center[1] + radius) / resolution),
+    )
+
+
+def _check_band(resolution: float, z_min: float, z_max: float) -> None:
+    if resolution <= 0.0:
+        raise ValueError(f"resolution must be positive, got {resolution}")
+    if not z_min < z_max:
+        raise ValueError(f"empty height band [{z_min}, {z_max}]")
+
+
+def hit_probability_grid(
+    ijk: ArrayLike,
+    hit_probability: ArrayLike,
+    observed: ArrayLike,
+    resolution: float,
+    z_min: float,
+    z_max: float,
+    *,
+    center: tuple[float, float] | None = None,
+    radius: float = 0.0,
+) -> HitGrid:
+    """Project voxels (integer indices ``ijk`` = floor(centre / resolution)) onto a grid.
+
+    ``hit_probability``: per-voxel probability that a ray crossing one voxel edge is
+    reflected. With ``center`` and ``radius > 0`` the grid is the square of half side
+    ``radius`` around ``center`` (fixed size, whatever is mapped); otherwise it spans the
+    (x, y) extent of all observed voxels given (0 x 0 when there are none).
+
+    For any set of voxels, e.g. ``Mapper.voxels(stamp)`` decayed to a stamp; the live map's
+    band is faster through ``Mapper.hit_probability_grid`` (``band_grid``), which gives the
+    same grid from the blocks.
+    """
+    _check_band(resolution, z_min, z_max)
+    ijk_arr = np.asarray(ijk, dtype=np.int64).reshape(-1, 3)
+    prob = np.asarray(hit_probability, dtype=np.float64).reshape(-1)
+    obs = np.asarray(observed, dtype=bool).reshape(-1)
+    if not (len(ijk_arr) == len(prob) == len(obs)):
+        raise ValueError("ijk, hit_probability and observed differ in length")
+
+    if center is not None and radius > 0.0:
+        i0, j0, i1, j1 = _window_cells(center, radius, resolution)
+    elif obs.any():
+        seen = ijk_arr[obs]
+        i0, j0 = (int(v) for v in seen[:, :2].min(axis=0))
+        i1, j1 = (int(v) for v in seen[:, :2].max(axis=0))
+    else:
+        return HitGrid(np.zeros((0, 0), np.int8), resolution, (0.0, 0.0))
+    width, height = i1 - i0 + 1, j1 - j0 + 1
+
+    i, j = ijk_arr[:, 0], ijk_arr[:, 1]
+    sel = (
+        obs
+        & band_mask(ijk_arr, resolution, z_min, z_max)
+        & (i >= i0)
+        & (i <= i1)
+        & (j >= j0)
+        & (j <= j1)
+    )
+    percent = np.rint(100.0 * np.clip(np.nan_to_num(prob[sel], nan=1.0), 0.0, 1.0))
+    flat = (j[sel] - j0) * width + (i[sel] - i0)
+    out = np.full(width * height, UNKNOWN, dtype=np.int16)
+    np.maximum.at(out, flat, percent.astype(np.int16))
+    data = out.astype(np.int8).reshape(height, width)
+    return HitGrid(data, resolution, (i0 * resolution, j0 * resolution))
+
+
+BlockArrays = tuple[NDArray[np.int32], NDArray[np.float32], int]
+"""A store shard as the projection reads it: block indices, (s, n) per voxel, blocks used."""
+
+
+def band_grid(
+    shards: Sequence[BlockArrays],
+    resolution: float,
+    z_min: float,
+    z_max: float,
+    lo: IndexBox,
+    hi: IndexBox,
+    *,
+    center: tuple[float, float] | None = None,
+    radius: float = 0.0,
+) -> HitGrid:
+    """``hit_probability_grid`` of the observed voxels with index in ``[lo, hi]``, computed
+    in one compiled pass over the store's blocks (no per-voxel arrays of the map).
+
+    The grid spans the window around ``center`` (``radius > 0``), else the (x, y) extent of
+    the observed voxels in ``[lo, hi]``; cells take the voxels whose centre is in the band.
+    """
+    _check_band(resolution, z_min, z_max)
+    if center is not None and radius > 0.0:
+        i0, j0, i1, j1 = _window_cells(center, radius, resolution)
+    else:
+        extent = np.array([np.iinfo(np.int64).max] * 2 + [np.iinfo(np.int64).min] * 2)
+        for block_ijk, block_sn, used in shards:
+            _observed_extent(block_ijk, block_sn, used, lo, hi, extent)
+        if extent[0] > extent[2]:
+            return HitGrid(np.zeros((0, 0), np.int8), resolution, (0.0, 0.0))
+        i0, j0, i1, j1 = (int(v) for v in extent)
+    cells = np.full((j1 - j0 + 1, i1 - i0 + 1), UNKNOWN, dtype=np.int8)
+    for block_ijk, block_sn, used in shards:
+        _band_max_percent(
+            block_ijk, block_sn, used, lo, hi, resolution, z_min, z_max, i0, j0, cells
+        )
+    return HitGrid(cells, resolution, (i0 * resolution, j0 * resolution))
+
+
+@nb.njit(cache=True, nogil=True)
+def _observed_extent(
+    block_ijk: NDArray[np.int32],
+    block_sn: NDArray[np.float32],
+    used: int,
+    lo: IndexBox,
+    hi: IndexBox,
+    extent: NDArray[np.int64],
+) -> None:
+    """Widen ``extent`` [i_min, j_min, i_max, j_max] to the observed voxels in [lo, hi]."""
+    for b in range(used):
+        bx, by, bz = block_origin(block_ijk, b)
+        if block_outside(bx, by, bz, lo, hi):
+            continue
+        for v in range(BLOCK_VOXELS):
+            if block_sn[b, v, 0] > 0.0 or block_sn[b, v, 1] > 0.0:
+                dx, dy, dz = local_coords(v)
+                x, y, z = bx + dx, by + dy, bz + dz
+                if voxel_inside(x, y, z, lo, hi):
+                    extent[0] = min(extent[0], x)
+                    extent[1] = min(extent[1], y)
+                    extent[2] = max(extent[2], x)
+                    extent[3] = max(extent[3], y)
+
+
+@nb.njit(cache=True, nogil=True)
+def _band_max_percent(
+    block_ijk: NDArray[np.int32],
+    block_sn: NDArray[np.float32],
+    used: int,
+    lo: IndexBox,
+    hi: IndexBox,
+    resolution: float,
+    z_min: float,
+    z_max: float,
+    i0: int,
+    j0: int,
+    cells: NDArray[np.int8],
+) -> None:
+    """Raise each cell of ``cells`` (row j - j0, column i - i0) to round(100 p_hit) of the
+    observed voxels in [lo, hi] whose centre height lies in [z_min, z_max]."""
+    height, width = cells.shape
+    for b in range(used):
+        bx, by, bz = block_origin(block_ijk, b)
+        if (
+            block_outside(bx, by, bz, lo, hi)
+            or bx + BLOCK_EDGE <= i0
+            or bx >= i0 + width
+            or by + BLOCK_EDGE <= j0
+            or by >= j0 + height
+        ):
+            continue
+        for v in range(BLOCK_VOXELS):
+            s = np.float64(block_sn[b, v, 0])
+            n = np.float64(block_sn[b, v, 1])
+            if not (s > 0.0 or n > 0.0):
+                continue
+            dx, dy, dz = local_coords(v)
+            x, y, z = bx + dx, by + dy, bz + dz
+            if not voxel_inside(x, y, z, lo, hi):
+                continue
+            zc = (np.float64(z) + 0.5) * resolution
+            col, row = x - i0, y - j0
+            if zc < z_min or zc > z_max or not (0 <= col < width and 0 <= row < height):
+                continue
+            p = min(max(hit_probability_one(s, n, resolution), 0.0), 1.0)
+            percent = np.int8(np.rint(100.0 * p))
+            if percent > cells[row, col]:
+                cells[row, col] = percent

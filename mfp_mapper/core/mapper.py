@@ -1,0 +1,360 @@
+"""The mean-free-path map: the one core API the node, the bag replay and the CLI call."""
+
+from __future__ import annotations
+
+import functools
+import math
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from mfp_mapper.core import model
+from mfp_mapper.core.gridmap import HitGrid, band_grid
+from mfp_mapper.core.store import BLOCK_EDGE, MAX_VOXEL_INDEX, BlockStore, VoxelArrays, index_box
+from mfp_mapper.core.traversal import Mailbox, integrate_rays, prepare_rays
+
+FloatArray = NDArray[np.float64]
+
+
+def _cpu_of(fn: Callable[[int], None], item: int) -> float:
+    """Run ``fn(item)``; the CPU seconds this thread spent on it."""
+    cpu0 = time.thread_time()
+    fn(item)
+    return time.thread_time() - cpu0
+
+
+@dataclass
+class IntegrationSummary:
+    """What one ``Mapper.integrate`` call did with its rays."""
+
+    rays_in: int = 0
+    rays_used: int = 0
+    rays_truncated: int = 0
+    """Rays longer than max_range: walked up to max_range, with no return."""
+    dropped: dict[str, int] = field(default_factory=dict)
+    """Rays not used, by reason: nonfinite, below_min_range, out_of_bounds."""
+    voxels_touched: int = 0
+    """Voxel updates (a voxel crossed by k rays counts k times)."""
+    new_voxels: int = 0
+    blocks_touched: int = 0
+    seconds: float = 0.0
+    cpu_seconds: float = 0.0
+    """CPU time of the call, the core's worker threads included."""
+
+
+@dataclass
+class VoxelStats:
+    """Statistics of a set of voxels, with the model's estimates computed on demand."""
+
+    ijk: NDArray[np.int32]
+    centers: FloatArray
+    s: FloatArray
+    n: FloatArray
+    t_last: FloatArray
+    observed: NDArray[np.bool_]
+    resolution: float
+
+    def __len__(self) -> int:
+        return int(self.s.shape[0])
+
+    @property
+    def most_likely_doo(self) -> FloatArray:
+        return model.most_likely_doo(self.s, self.n)
+
+    @property
+    def mean_doo(self) -> FloatArray:
+        return model.mean_doo(self.s, self.n)
+
+    @property
+    def std(self) -> FloatArray:
+        return model.std_doo(self.s, self.n)
+
+    @property
+    def hit_probability(self) -> FloatArray:
+        """Probability that a ray crossing one voxel edge of this voxel is reflected."""
+        return model.hit_probability(self.s, self.n, self.resolution)
+
+    @property
+    def mean_free_path(self) -> FloatArray:
+        return model.mean_free_path(self.s, self.n)
+
+    def select(self, mask: NDArray[np.bool_] | NDArray[np.intp]) -> VoxelStats:
+        """The subset of voxels picked by a boolean mask or index array."""
+        values = {f.name: getattr(self, f.name) for f in fields(self)}
+        return VoxelStats(**{k: (v if k == "resolution" else v[mask]) for k, v in values.items()})
+
+
+class Mapper:
+    """A degree-of-occupancy voxel map built from lidar rays (Berquin & Zell 2021).
+
+    ``integrate`` adds rays; ``query`` and ``voxels`` read the map; ``save``/``load`` keep
+    it in an .npz file (see ``mfp_mapper.core.mapfile``). Not thread-safe: callers that share a
+    Mapper between threads hold a lock around every call.
+    """
+
+    def __init__(
+        self,
+        resolution: float = 0.1,
+        *,
+        max_range: float = 100.0,
+        min_range: float = 0.0,
+        decay_time: float = math.inf,
+        frame_id: str = "map",
+        threads: int = 1,
+        max_voxels: int | None = None,
+        keep_radius: float | None = None,
+    ) -> None:
+        if not (math.isfinite(resolution) and resolution > 0):
+            raise ValueError(f"resolution must be a positive number of metres, got {resolution}")
+        if not max_range > min_range >= 0:
+            raise ValueError(f"need max_range > min_range >= 0, got {max_range}, {min_range}")
+        if not decay_time > 0:
+            raise ValueError(f"decay_time must be > 0 seconds (inf = static), got {decay_time}")
+        if threads < 1:
+            raise ValueError(f"threads must be >= 1, got {threads}")
+        if max_voxels is not None and max_voxels < 1:
+            raise ValueError(f"max_voxels must be >= 1 or None, got {max_voxels}")
+        if keep_radius is not None and not keep_radius > 0:
+            raise ValueError(f"keep_radius must be > 0 metres or None, got {keep_radius}")
+        self.resolution = float(resolution)
+        self.max_range = float(max_range)
+        self.min_range = float(min_range)
+        self.decay_time = float(decay_time)
+        self.frame_id = frame_id
+        self.threads = int(threads)
+        self.max_voxels = max_voxels
+        self.keep_radius = keep_radius
+        self.last_stamp: float | None = None
+        self.last_origin: FloatArray | None = None
+        self.version = 0
+        self._store = BlockStore(shards=_shard_count(self.threads))
+        self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
+        self._worker_cpu = 0.0  # CPU seconds of the pool threads in the current integrate()
+        self._mailboxes = [Mailbox() for _ in self._store.shards]
+
+    # --- writing ----------------------------------------------------------------------
+
+    def integrate(self, points: ArrayLike, origins: ArrayLike, stamp: float) -> IntegrationSummary:
+        """Add one scan: rays from ``origins`` ((3,) or (N, 3)) to ``points`` (N, 3), map frame.
+
+        Each point is a first return, unless the ray is longer than ``max_range``: then it
+        is walked up to ``max_range`` and carries no return. Rays shorter than
+        ``min_range`` and rays with NaN/Inf are dropped and counted.
+        """
+        t0, cpu0 = time.perf_counter(), time.thread_time()
+        self._worker_cpu = 0.0
+        pts = np.asarray(points, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise ValueError(f"points must have shape (N, 3), got {pts.shape}")
+        org = np.asarray(origins, dtype=np.float64)
+        if org.shape != (3,) and org.shape != pts.shape:
+            raise ValueError(f"origins must have shape (3,) or {pts.shape}, got {org.shape}")
+        if not math.isfinite(stamp):
+            raise ValueError(f"stamp must be finite seconds, got {stamp}")
+        rays, dropped = prepare_rays(pts, org, self.resolution, self.min_range, self.max_range)
+        summary = IntegrationSummary(rays_in=pts.shape[0], dropped=dropped)
+        summary.rays_used = len(rays)
+        summary.rays_truncated = int(np.count_nonzero(~rays.has_return))
+        if len(rays):
+            scan_id = self._store.begin_scan()
+            integrate_rays(
+                self._store,
+                rays,
+                scan_id,
+                stamp,
+                self.decay_time,
+                self._mailboxes,
+                self._run_parallel,
+            )
+            summary.new_voxels, summary.blocks_touched, summary.voxels_touched = (
+                self._store.finish_scan()
+            )
+            self.last_stamp = (
+                float(stamp) if self.last_stamp is None else max(self.last_stamp, stamp)
+            )
+            self.last_origin = rays.origins_vox.mean(axis=0) * self.resolution
+            self._enforce_memory_bound()
+            self.version += 1
+        summary.seconds = time.perf_counter() - t0
+        summary.cpu_seconds = time.thread_time() - cpu0 + self._worker_cpu
+        return summary
+
+    def _run_parallel(self, fn: Callable[[int], None], items: Sequence[int]) -> None:
+        if self._pool is None or len(items) == 1:
+            for item in items:
+                fn(item)
+        else:
+            self._worker_cpu += sum(self._pool.map(functools.partial(_cpu_of, fn), items))
+
+    def _enforce_memory_bound(self) -> None:
+        """Evict far blocks: beyond ``keep_radius`` of the latest sensor position, then the
+        farthest blocks until the map holds at most 90% of ``max_voxels``."""
+        if self.last_origin is None:
+            return
+        block_size = self.resolution * BLOCK_EDGE
+        center = self.last_origin / block_size
+        if self.keep_radius is not None:
+            self._store.evict_beyond(center, self.keep_radius / block_size)
+        if self.max_voxels is not None and self._store.num_voxels > self.max_voxels:
+            self._store.evict_farthest(center, int(0.9 * self.max_voxels))
+
+    def reset(self) -> None:
+        """Forget every voxel (parameters stay)."""
+        self._store = BlockStore(shards=len(self._store.shards))
+        self.last_stamp = None
+        self.last_origin = None
+        self.version += 1
+
+    # --- reading ----------------------------------------------------------------------
+
+    def voxel_index(self, points: ArrayLike) -> NDArray[np.int64]:
+        """floor(point / resolution): the map-file voxel index of each point."""
+        return np.floor(np.asarray(points, dtype=np.float64) / self.resolution).astype(np.int64)
+
+    def query(self, points: ArrayLike, stamp: float | None = None) -> VoxelStats:
+        """Statistics of the voxel containing each point, decayed to ``stamp`` when given."""
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        with np.errstate(invalid="ignore"):
+            valid: NDArray[np.bool_] = np.all(
+                np.abs(pts / self.resolution) < MAX_VOXEL_INDEX, axis=1
+            )
+        ijk = self.voxel_index(np.where(valid[:, None], pts, 0.0))
+        raw = self._store.lookup(ijk)
+        raw.ijk = ijk.astype(np.int32)
+        for arr in (raw.s, raw.n):
+            arr[~valid] = 0.0
+        raw.t_last[~valid] = -np.inf
+        return self._stats(raw, stamp)
+
+    def voxels(
+        self,
+        stamp: float | None = None,
+        *,
+        min_doo: float = 0.0,
+        min_evidence: float = 0.0,
+        bounds: tuple[ArrayLike, ArrayLike] | None = None,
+    ) -> VoxelStats:
+        """Observed voxels, decayed to ``stamp`` when given.
+
+        Filters, applied in compiled code before any array of the whole map is built:
+        ``min_doo`` (most likely degree of occupancy), ``min_evidence`` (metres of rays, s,
+        after decay) and ``bounds`` = (lower corner, upper corner) in metres, map frame, on
+        voxel centres (use +-inf for an open side).
+        """
+        if not 0.0 <= min_doo <= 1.0:
+            raise ValueError(f"min_doo must lie in [0, 1], got {min_doo}")
+        lo, hi = self._index_bounds(bounds) if bounds is not None else (None, None)
+        min_extinction = math.inf if min_doo >= 1.0 else -math.log1p(-min_doo)
+        stats = self._stats(self._store.export(min_extinction, lo, hi), stamp)
+        if min_evidence > 0.0:
+            stats = stats.select(stats.s >= min_evidence)
+        return stats
+
+    def _index_bounds(
+        self, bounds: tuple[ArrayLike, ArrayLike]
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """The voxel index range whose centres lie in ``bounds`` (metres, +-inf allowed)."""
+        with np.errstate(invalid="ignore", over="ignore"):
+            lo_m, hi_m = (np.asarray(b, dtype=np.float64) / self.resolution - 0.5 for b in bounds)
+            lo = np.ceil(np.clip(lo_m, -MAX_VOXEL_INDEX - 1, MAX_VOXEL_INDEX + 1))
+            hi = np.floor(np.clip(hi_m, -MAX_VOXEL_INDEX - 1, MAX_VOXEL_INDEX + 1))
+        return lo.astype(np.int64), hi.astype(np.int64)
+
+    def hit_probability_grid(
+        self,
+        z_min: float,
+        z_max: float,
+        *,
+        center: tuple[float, float] | None = None,
+        radius: float = 0.0,
+    ) -> HitGrid:
+        """The height band ``[z_min, z_max]`` projected onto a 2D grid (``gridmap``): per
+        cell ``round(100 p)``, ``p`` the largest hit probability of a voxel edge in the
+        column, -1 where never observed; the square of half side ``radius`` around
+        ``center``, or the extent of the observed band. Statistics at their last update
+        (no decay to a later stamp), read straight from the blocks."""
+        lo_m, hi_m = [-math.inf, -math.inf, z_min], [math.inf, math.inf, z_max]
+        if center is not None and radius > 0.0:  # only the blocks near the window are read
+            margin = radius + self.resolution
+            lo_m[:2] = [center[0] - margin, center[1] - margin]
+            hi_m[:2] = [center[0] + margin, center[1] + margin]
+        lo, hi = self._index_bounds((lo_m, hi_m))
+        shards = [(sh.block_ijk, sh.block_sn, sh.used) for sh in self._store.shards]
+        return band_grid(
+            shards,
+            self.resolution,
+            z_min,
+            z_max,
+            index_box(lo),
+            index_box(hi),
+            center=center,
+            radius=radius,
+        )
+
+    def _stats(self, raw: VoxelArrays, stamp: float | None) -> VoxelStats:
+        s, n = raw.s, raw.n
+        if stamp is not None and math.isfinite(self.decay_time):
+            seen = np.isfinite(raw.t_last)
+            dt = np.where(seen, stamp - np.where(seen, raw.t_last, 0.0), 0.0)
+            s, n = model.decay(s, n, dt, self.decay_time)
+        return VoxelStats(
+            ijk=raw.ijk,
+            centers=(raw.ijk + 0.5).astype(np.float64) * self.resolution,
+            s=s,
+            n=n,
+            t_last=raw.t_last,
+            observed=model.observed(s, n),
+            resolution=self.resolution,
+        )
+
+    @property
+    def num_voxels(self) -> int:
+        return self._store.num_voxels
+
+    @property
+    def num_blocks(self) -> int:
+        return self._store.num_blocks
+
+    @property
+    def memory_bytes(self) -> int:
+        return self._store.nbytes
+
+    # --- files ------------------------------------------------------------------------
+
+    def save(self, path: str | Path) -> None:
+        """Write the map to an .npz file atomically (see ``mfp_mapper.core.mapfile``)."""
+        from mfp_mapper.core.mapfile import write_map
+
+        write_map(path, self)
+
+    @classmethod
+    def load(cls, path: str | Path, **overrides: object) -> Mapper:
+        """Read a map written by ``save``; keyword arguments override stored settings."""
+        from mfp_mapper.core.mapfile import read_map
+
+        return read_map(path, **overrides)
+
+    def _assign(self, voxels: VoxelArrays) -> None:
+        """Replace the statistics of the given voxels (used when loading a map)."""
+        self._store.assign(voxels, self.decay_time)
+        finite_t = voxels.t_last[np.isfinite(voxels.t_last)]
+        self.last_stamp = float(finite_t.max()) if finite_t.size else None
+        self.version += 1
+
+    def close(self) -> None:
+        """Stop the worker threads (the map stays readable)."""
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
+
+
+def _shard_count(threads: int) -> int:
+    shards = 1
+    while shards < threads:
+        shards *= 2
+    return shards

@@ -1,0 +1,623 @@
+"""Exact voxel traversal (Amanatides & Woo) of lidar rays into the block store, with numba.
+
+A ray runs from its origin to its end point: its first return, or the point where it was
+cut at ``max_range``. Every voxel it crosses gets ``s += chord`` — the exact length in
+metres of the ray inside that voxel, so a ray's chords add up to its length — and a ray
+that ends in a return gives its end voxel ``n += 1`` (the chord from where it entered that
+voxel up to the return point is its last chord).
+
+Threads: the store has one shard per thread, and a thread alone writes to its shard. Each
+thread walks its share of the rays; visits to its own blocks are applied at once, visits
+to another shard's blocks go to the thread's mailbox. When every thread has walked, each
+applies the mailboxes' visits to its shard. With one thread there is no mailbox traffic.
+
+Visits are applied in batches: one pass only prefetches the visited cache lines (so their
+memory latencies overlap), a second pass adds.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+from llvmlite import ir
+from numba import types
+from numba.core import cgutils
+from numba.extending import intrinsic
+from numpy.typing import NDArray
+
+from mfp_mapper.core.store import (
+    BLOCK_BITS,
+    BLOCK_VOXELS,
+    MAX_VOXEL_INDEX,
+    BlockStore,
+    Shard,
+    ShardArrays,
+    block_key,
+    block_of_key,
+    local_index,
+    open_block,
+    shard_of,
+)
+
+
+@intrinsic
+def _prefetch_voxel(typingctx, array, index):  # type: ignore[no-untyped-def]
+    """Ask the processor to start loading the cache line of ``array[index]`` (a row).
+
+    A prefetch does not wait for the line (a load would hold its place in the processor's
+    window until the line arrives), so many misses are in flight at once.
+    """
+    sig = types.void(array, index)
+
+    def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
+        array_type = signature.args[0]
+        ary = context.make_array(array_type)(context, builder, args[0])
+        index = [
+            context.cast(builder, a, t, types.intp)
+            for a, t in zip(args[1:], signature.args[1:], strict=True)
+        ]
+        pointer = cgutils.get_item_pointer2(
+            context, builder, data=ary.data, shape=cgutils.unpack_tuple(builder, ary.shape),
+            strides=cgutils.unpack_tuple(builder, ary.strides), layout=array_type.layout,
+            inds=[*index, context.get_constant(types.intp, 0)], wraparound=False,
+        )  # fmt: skip
+        byte_pointer = ir.IntType(8).as_pointer()
+        i32 = ir.IntType(32)
+        prefetch = builder.module.declare_intrinsic(
+            "llvm.prefetch",
+            [byte_pointer],
+            ir.FunctionType(ir.VoidType(), [byte_pointer, i32, i32, i32]),
+        )
+        # write access, high temporal locality, data cache
+        builder.call(prefetch, [builder.bitcast(pointer, byte_pointer), i32(1), i32(3), i32(1)])
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+def _prefetch_compiles() -> bool:
+    """Whether this numba/llvmlite turns ``_prefetch_voxel`` into a prefetch instruction."""
+    try:
+
+        @nb.njit
+        def probe(array: NDArray[np.float32]) -> None:
+            _prefetch_voxel(array, 0)  # type: ignore[call-arg]
+
+        probe(np.zeros((1, 2), dtype=np.float32))
+    except Exception:  # noqa: BLE001 - any failure means: use plain loads instead
+        return False
+    return True
+
+
+_PREFETCH = _prefetch_compiles()
+
+
+_LOCAL_MASK = (1 << BLOCK_BITS) - 1
+_SPREAD = np.array([local_index(0, 0, z) for z in range(1 << BLOCK_BITS)], dtype=np.int64)
+"""Morton bits of an index in a block along one axis (z; y is this << 1, x this << 2)."""
+_CACHE_BITS = 4
+_CACHE_MASK = (1 << _CACHE_BITS) - 1
+_CACHE_SIZE = 1 << (3 * _CACHE_BITS)
+_BATCH_VISITS = 8192
+"""Voxel visits gathered (from several rays) before they are applied to the blocks."""
+_RAYS_PER_CHUNK = 256
+"""Rays are dealt to threads in chunks of neighbours, so each thread's rays stay coherent."""
+
+
+@dataclass
+class Rays:
+    """Rays in voxel units (metres / resolution), with their lengths in metres."""
+
+    origins_vox: NDArray[np.float64]
+    ends_vox: NDArray[np.float64]
+    lengths: NDArray[np.float64]
+    has_return: NDArray[np.bool_]
+
+    def __len__(self) -> int:
+        return int(self.lengths.shape[0])
+
+    def subset(self, index: NDArray[np.intp]) -> Rays:
+        return Rays(
+            np.ascontiguousarray(self.origins_vox[index]),
+            np.ascontiguousarray(self.ends_vox[index]),
+            self.lengths[index],
+            self.has_return[index],
+        )
+
+
+def prepare_rays(
+    points: NDArray[np.float64],
+    origins: NDArray[np.float64],
+    resolution: float,
+    min_range: float,
+    max_range: float,
+) -> tuple[Rays, dict[str, int]]:
+    """The usable rays in voxel units, and how many were dropped for which reason.
+
+    ``origins`` is one origin (3,) or one per point (N, 3). A ray longer than ``max_range``
+    is cut there and carries no return; NaN/Inf, shorter than ``min_range`` (or zero), and
+    reaching beyond the indexable range are dropped.
+    """
+    count = points.shape[0]
+    out = Rays(
+        np.empty((count, 3)), np.empty((count, 3)), np.empty(count), np.empty(count, dtype=np.bool_)
+    )
+    drops = np.zeros(3, dtype=np.int64)
+    used = _prepare_rays(
+        points, np.atleast_2d(origins), resolution, min_range, max_range, MAX_VOXEL_INDEX,
+        out.origins_vox, out.ends_vox, out.lengths, out.has_return, drops,
+    )  # fmt: skip
+    dropped = {
+        "nonfinite": int(drops[0]),
+        "below_min_range": int(drops[1]),
+        "out_of_bounds": int(drops[2]),
+    }
+    rays = Rays(
+        out.origins_vox[:used], out.ends_vox[:used], out.lengths[:used], out.has_return[:used]
+    )
+    return rays, dropped
+
+
+@nb.njit(cache=True, nogil=True)
+def _prepare_rays(
+    points: NDArray[np.float64],
+    origins: NDArray[np.float64],
+    resolution: float,
+    min_range: float,
+    max_range: float,
+    max_index: float,
+    origins_vox: NDArray[np.float64],
+    ends_vox: NDArray[np.float64],
+    lengths: NDArray[np.float64],
+    has_return: NDArray[np.bool_],
+    drops: NDArray[np.int64],
+) -> int:
+    """One pass over the points: fill the first rays of the outputs, count the drops
+    ([nonfinite, below_min_range, out_of_bounds]); returns how many rays are usable."""
+    k = 0
+    per_point = origins.shape[0] > 1
+    for i in range(points.shape[0]):
+        o = i if per_point else 0
+        dx = points[i, 0] - origins[o, 0]
+        dy = points[i, 1] - origins[o, 1]
+        dz = points[i, 2] - origins[o, 2]
+        length = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if not math.isfinite(length):  # NaN or Inf in the point or its origin
+            drops[0] += 1
+            continue
+        if length < min_range or length == 0.0:
+            drops[1] += 1
+            continue
+        reach = min(length, max_range)
+        scale = reach / length
+        inside = True
+        for axis, d in ((0, dx), (1, dy), (2, dz)):
+            o_vox = origins[o, axis] / resolution
+            # the end, divided exactly as Mapper.voxel_index does: a return lands in floor(p/res)
+            e_vox = (points[i, axis] if scale == 1.0 else origins[o, axis] + d * scale) / resolution
+            inside = inside and abs(o_vox) < max_index and abs(e_vox) < max_index
+            origins_vox[k, axis] = o_vox
+            ends_vox[k, axis] = e_vox
+        if not inside:
+            drops[2] += 1
+            continue
+        lengths[k] = reach
+        has_return[k] = length <= max_range
+        k += 1
+    return k
+
+
+class Mailbox:
+    """Visits a thread made to blocks of other shards: block key, voxel, chord, return."""
+
+    def __init__(self, capacity: int = 1 << 16) -> None:
+        self.count = np.zeros(1, dtype=np.int64)
+        self.block = np.zeros(capacity, dtype=np.int64)
+        self.local = np.zeros(capacity, dtype=np.int16)
+        self.chord = np.zeros(capacity, dtype=np.float32)
+        self.returns = np.zeros(capacity, dtype=np.float32)
+
+    def reserve(self, capacity: int) -> None:
+        """Make room for ``capacity`` entries in all."""
+        if capacity > self.block.shape[0]:
+            self.grow(capacity - int(self.count[0]))
+
+    def grow(self, min_free: int) -> None:
+        used = int(self.count[0])
+        capacity = max(2 * self.block.shape[0], used + min_free)
+        for name in ("block", "local", "chord", "returns"):
+            old = getattr(self, name)
+            new = np.zeros(capacity, dtype=old.dtype)
+            new[:used] = old[:used]
+            setattr(self, name, new)
+
+
+def integrate_rays(
+    store: BlockStore,
+    rays: Rays,
+    scan_id: int,
+    stamp: float,
+    decay_time: float,
+    mailboxes: Sequence[Mailbox],
+    run_parallel: Callable[[Callable[[int], None], Sequence[int]], object],
+) -> None:
+    """Add every ray's chords and returns to the store (scan ``scan_id`` at ``stamp``), one
+    thread per shard, each with its ``mailboxes`` entry (kept between scans, so their
+    memory is reused). ``run_parallel(fn, items)`` calls ``fn`` on every item, in parallel."""
+    threads = len(store.shards)
+    if threads == 1:
+        parts = [rays]
+    else:
+        owner = (np.arange(len(rays)) // _RAYS_PER_CHUNK) % threads
+        parts = [rays.subset(np.flatnonzero(owner == k)) for k in range(threads)]
+    for mail in mailboxes:
+        mail.count[0] = 0
+
+    def walk(k: int) -> None:
+        _walk_part(
+            parts[k], store.shards[k], k, store.shard_mask, mailboxes[k], scan_id, stamp, decay_time
+        )
+
+    def deliver(k: int) -> None:
+        for sender, mail in enumerate(mailboxes):
+            if sender != k:
+                _deliver(mail, store.shards[k], k, store.shard_mask, scan_id, stamp, decay_time)
+
+    run_parallel(walk, range(threads))
+    if threads > 1:
+        run_parallel(deliver, range(threads))
+
+
+def block_bounds(
+    origins_vox: NDArray[np.float64], ends_vox: NDArray[np.float64]
+) -> NDArray[np.int64]:
+    """Upper bound of the blocks each ray can create: Manhattan block distance plus slack."""
+    lo = np.floor(origins_vox).astype(np.int64) >> BLOCK_BITS
+    hi = np.floor(ends_vox).astype(np.int64) >> BLOCK_BITS
+    return np.abs(hi - lo).sum(axis=1) + 2
+
+
+def visit_bounds(
+    origins_vox: NDArray[np.float64], ends_vox: NDArray[np.float64]
+) -> NDArray[np.int64]:
+    """Upper bound of the voxels each ray visits: Manhattan voxel distance plus one."""
+    return np.abs(np.floor(ends_vox) - np.floor(origins_vox)).sum(axis=1).astype(np.int64) + 1
+
+
+def _walk_part(
+    rays: Rays,
+    shard: Shard,
+    shard_id: int,
+    shard_mask: int,
+    mail: Mailbox,
+    scan_id: int,
+    stamp: float,
+    decay_time: float,
+) -> None:
+    """Walk ``rays`` into ``shard`` (and ``mail``), growing either when it runs out of room."""
+    room = block_bounds(rays.origins_vox, rays.ends_vox)
+    visits = visit_bounds(rays.origins_vox, rays.ends_vox)
+    if shard_mask:  # room for the worst case up front: pages are committed only when written
+        mail.reserve(int(visits.sum()))
+    first = 0
+    while first < len(rays):
+        first = _walk_rays(
+            rays.origins_vox, rays.ends_vox, rays.lengths, rays.has_return, room, visits, first,
+            shard_id, shard_mask, shard.arrays(), scan_id, stamp, decay_time, mail.block,
+            mail.local, mail.chord, mail.returns, mail.count,
+        )  # fmt: skip
+        if first < len(rays):
+            if mail.count[0] + visits[first] > mail.block.shape[0]:
+                mail.grow(int(visits[first]))
+            else:
+                shard.grow(min_free=int(room[first]))
+
+
+def _deliver(
+    mail: Mailbox,
+    shard: Shard,
+    shard_id: int,
+    shard_mask: int,
+    scan_id: int,
+    stamp: float,
+    decay_time: float,
+) -> None:
+    """Apply the visits in ``mail`` that belong to ``shard``, growing it as needed."""
+    start, stop = 0, int(mail.count[0])
+    while start < stop:
+        start = _apply_mail(
+            mail.block, mail.local, mail.chord, mail.returns, start, stop, shard_id, shard_mask,
+            shard.arrays(), scan_id, stamp, decay_time,
+        )  # fmt: skip
+        if start < stop:
+            shard.grow(min_free=1024)
+
+
+@nb.njit(cache=True, nogil=True)
+def _walk_rays(
+    origins_vox: NDArray[np.float64],
+    ends_vox: NDArray[np.float64],
+    lengths: NDArray[np.float64],
+    has_return: NDArray[np.bool_],
+    room_needed: NDArray[np.int64],
+    visits_needed: NDArray[np.int64],
+    first: int,
+    shard: int,
+    shard_mask: int,
+    shard_arrays: ShardArrays,
+    scan_id: int,
+    stamp: float,
+    decay_time: float,
+    mail_block: NDArray[np.int64],
+    mail_local: NDArray[np.int16],
+    mail_chord: NDArray[np.float32],
+    mail_return: NDArray[np.float32],
+    mail_count: NDArray[np.int64],
+) -> int:
+    """Walk rays ``first..`` (voxel units): visits to ``shard`` are added to its blocks,
+    visits to other shards are appended to the mailbox.
+
+    Before each ray, checks there is room for the blocks and mail it may create; returns
+    the index of the first ray not walked (the caller grows and calls again), or N.
+    """
+    table_keys, _, _, block_sn, block_t, _, block_hit, counters = shard_arrays
+    capacity = min(block_t.shape[0], table_keys.shape[0] // 2)
+    # blocks opened in this call, direct-mapped by their low index bits: neighbouring rays
+    # cross the same blocks, and this small table stays in cache where the hash does not
+    cache_keys = np.full(_CACHE_SIZE, -1, dtype=np.int64)
+    cache_blocks = np.empty(_CACHE_SIZE, dtype=np.int64)
+    longest = 0
+    for r in range(first, lengths.shape[0]):
+        longest = max(longest, visits_needed[r])
+    visit_voxel = np.empty(_BATCH_VISITS + longest, dtype=np.int64)
+    visit_chord = np.empty(_BATCH_VISITS + longest, dtype=np.float32)
+    visit_return = np.empty(_BATCH_VISITS + longest, dtype=np.float32)
+    count = 0
+    mail = mail_count[0]
+    for r in range(first, lengths.shape[0] + 1):
+        stop = (
+            r == lengths.shape[0]
+            or counters[0] + room_needed[r] > capacity
+            or mail + visits_needed[r] > mail_block.shape[0]
+        )
+        if count >= _BATCH_VISITS or stop:
+            _apply_visits(
+                block_sn, block_hit, visit_voxel, visit_chord, visit_return, count, counters
+            )
+            count = 0
+            if stop:
+                mail_count[0] = mail
+                return r
+        ox = origins_vox[r, 0]
+        oy = origins_vox[r, 1]
+        oz = origins_vox[r, 2]
+        dx = ends_vox[r, 0] - ox
+        dy = ends_vox[r, 1] - oy
+        dz = ends_vox[r, 2] - oz
+        length = lengths[r]
+        vx = int(np.floor(ox))
+        vy = int(np.floor(oy))
+        vz = int(np.floor(oz))
+        ex = int(np.floor(ends_vox[r, 0]))
+        ey = int(np.floor(ends_vox[r, 1]))
+        ez = int(np.floor(ends_vox[r, 2]))
+        # ray parameter t in [0, 1]; t_max_*: where the next face on that axis is crossed.
+        # An axis already at the end voxel's index is never stepped again (t_max = inf), so
+        # the walk takes exactly `steps` steps and ends in floor(end), whatever the rounding.
+        step_x = 1 if ex > vx else -1
+        step_y = 1 if ey > vy else -1
+        step_z = 1 if ez > vz else -1
+        t_max_x = ((vx + (dx > 0)) - ox) / dx if ex != vx else np.inf
+        t_max_y = ((vy + (dy > 0)) - oy) / dy if ey != vy else np.inf
+        t_max_z = ((vz + (dz > 0)) - oz) / dz if ez != vz else np.inf
+        t_delta_x = abs(1.0 / dx) if ex != vx else 0.0
+        t_delta_y = abs(1.0 / dy) if ey != vy else 0.0
+        t_delta_z = abs(1.0 / dz) if ez != vz else 0.0
+        steps = abs(ex - vx) + abs(ey - vy) + abs(ez - vz)
+        t_prev = 0.0
+        # the voxel's index in its block (Morton order), kept per axis as the walk steps;
+        # stepping along an axis enters a new block when that axis' index in the block wraps
+        morton_x = _SPREAD[vx & _LOCAL_MASK] << 2
+        morton_y = _SPREAD[vy & _LOCAL_MASK] << 1
+        morton_z = _SPREAD[vz & _LOCAL_MASK]
+        wrap_x = 0 if step_x > 0 else _LOCAL_MASK
+        wrap_y = 0 if step_y > 0 else _LOCAL_MASK
+        wrap_z = 0 if step_z > 0 else _LOCAL_MASK
+        bx = by = bz = 0
+        block = -1
+        key = -1
+        new_block = True
+        while True:
+            if new_block:
+                # written out here, not called: a call with array arguments costs more than
+                # the whole step (reference counting of every array)
+                bx = vx >> BLOCK_BITS
+                by = vy >> BLOCK_BITS
+                bz = vz >> BLOCK_BITS
+                key = block_key(bx, by, bz)
+                block = -1
+                if shard_of(bx, by, bz, shard_mask) == shard:
+                    slot = (
+                        ((bx & _CACHE_MASK) << (2 * _CACHE_BITS))
+                        | ((by & _CACHE_MASK) << _CACHE_BITS)
+                        | (bz & _CACHE_MASK)
+                    )
+                    if cache_keys[slot] == key:
+                        block = cache_blocks[slot]
+                    else:
+                        block = open_block(bx, by, bz, shard_arrays, scan_id, stamp, decay_time)
+                        cache_keys[slot] = key
+                        cache_blocks[slot] = block
+            if steps == 0:
+                break
+            # leave the voxel through its nearest face; its chord ends there
+            local = morton_x | morton_y | morton_z
+            if t_max_x <= t_max_y and t_max_x <= t_max_z:
+                t_next = t_max_x
+                vx += step_x
+                t_max_x = t_max_x + t_delta_x if vx != ex else np.inf
+                axis_local = vx & _LOCAL_MASK
+                morton_x = _SPREAD[axis_local] << 2
+                new_block = axis_local == wrap_x
+            elif t_max_y <= t_max_z:
+                t_next = t_max_y
+                vy += step_y
+                t_max_y = t_max_y + t_delta_y if vy != ey else np.inf
+                axis_local = vy & _LOCAL_MASK
+                morton_y = _SPREAD[axis_local] << 1
+                new_block = axis_local == wrap_y
+            else:
+                t_next = t_max_z
+                vz += step_z
+                t_max_z = t_max_z + t_delta_z if vz != ez else np.inf
+                axis_local = vz & _LOCAL_MASK
+                morton_z = _SPREAD[axis_local]
+                new_block = axis_local == wrap_z
+            t_next = min(t_next, 1.0)
+            chord = (t_next - t_prev) * length
+            t_prev = t_next
+            steps -= 1
+            if chord > 0.0:
+                if block >= 0:
+                    visit_voxel[count] = block * BLOCK_VOXELS + local
+                    visit_chord[count] = chord
+                    visit_return[count] = 0.0
+                    count += 1
+                else:
+                    mail_block[mail] = key
+                    mail_local[mail] = local
+                    mail_chord[mail] = chord
+                    mail_return[mail] = 0.0
+                    mail += 1
+        # the end voxel takes the rest of the ray and the return; an end point exactly on a
+        # face gets a zero chord there, still with its return
+        chord = (1.0 - t_prev) * length
+        returns = 1.0 if has_return[r] else 0.0
+        if chord > 0.0 or returns > 0.0:
+            if block >= 0:
+                visit_voxel[count] = block * BLOCK_VOXELS + (morton_x | morton_y | morton_z)
+                visit_chord[count] = chord
+                visit_return[count] = returns
+                count += 1
+            else:
+                mail_block[mail] = key
+                mail_local[mail] = morton_x | morton_y | morton_z
+                mail_chord[mail] = chord
+                mail_return[mail] = returns
+                mail += 1
+    mail_count[0] = mail
+    return lengths.shape[0]
+
+
+@nb.njit(cache=True, nogil=True)
+def _apply_mail(
+    mail_block: NDArray[np.int64],
+    mail_local: NDArray[np.int16],
+    mail_chord: NDArray[np.float32],
+    mail_return: NDArray[np.float32],
+    start: int,
+    stop: int,
+    shard: int,
+    shard_mask: int,
+    shard_arrays: ShardArrays,
+    scan_id: int,
+    stamp: float,
+    decay_time: float,
+) -> int:
+    """Apply mailbox entries ``start..stop`` that belong to ``shard``, in order.
+
+    Returns ``stop``, or the first entry whose new block found no room (the caller grows
+    the shard and calls again from there).
+    """
+    block_sn, block_hit, counters = shard_arrays[3], shard_arrays[6], shard_arrays[7]
+    cache_keys = np.full(_CACHE_SIZE, -1, dtype=np.int64)
+    cache_blocks = np.empty(_CACHE_SIZE, dtype=np.int64)
+    visit_voxel = np.empty(_BATCH_VISITS, dtype=np.int64)
+    visit_chord = np.empty(_BATCH_VISITS, dtype=np.float32)
+    visit_return = np.empty(_BATCH_VISITS, dtype=np.float32)
+    count = 0
+    last_key = -1
+    block = -1
+    for j in range(start, stop):
+        if count == _BATCH_VISITS:
+            _apply_visits(
+                block_sn, block_hit, visit_voxel, visit_chord, visit_return, count, counters
+            )
+            count = 0
+        key = mail_block[j]
+        if key != last_key:
+            bx, by, bz = block_of_key(key)
+            block = -1
+            if shard_of(bx, by, bz, shard_mask) == shard:
+                slot = (
+                    ((bx & _CACHE_MASK) << (2 * _CACHE_BITS))
+                    | ((by & _CACHE_MASK) << _CACHE_BITS)
+                    | (bz & _CACHE_MASK)
+                )
+                if cache_keys[slot] == key:
+                    block = cache_blocks[slot]
+                else:
+                    block = open_block(bx, by, bz, shard_arrays, scan_id, stamp, decay_time)
+                    cache_keys[slot] = key
+                    cache_blocks[slot] = block
+                if block < 0:
+                    _apply_visits(
+                        block_sn,
+                        block_hit,
+                        visit_voxel,
+                        visit_chord,
+                        visit_return,
+                        count,
+                        counters,
+                    )
+                    return j
+            last_key = key
+        if block >= 0:
+            visit_voxel[count] = block * BLOCK_VOXELS + mail_local[j]
+            visit_chord[count] = mail_chord[j]
+            visit_return[count] = mail_return[j]
+            count += 1
+    _apply_visits(block_sn, block_hit, visit_voxel, visit_chord, visit_return, count, counters)
+    return stop
+
+
+@nb.njit(cache=True, nogil=True)
+def _apply_visits(
+    block_sn: NDArray[np.float32],
+    block_hit: NDArray[np.bool_],
+    visit_voxel: NDArray[np.int64],
+    visit_chord: NDArray[np.float32],
+    visit_return: NDArray[np.float32],
+    count: int,
+    counters: NDArray[np.int64],
+) -> None:
+    """Add the buffered visits, in order, to their voxels: s += chord, n += return (and
+    mark the blocks that hold a return).
+
+    ``visit_voxel`` holds ``block * BLOCK_VOXELS + index in block``.
+    """
+    sn = block_sn.reshape((-1, 2))
+    # first only fetch every visited cache line, so that many misses are in flight at once;
+    # the additions then find the lines in cache. Without a prefetch instruction: plain
+    # loads, which do not depend on each other either
+    touch = np.float32(0.0)
+    for i in range(count):
+        if _PREFETCH:
+            _prefetch_voxel(sn, visit_voxel[i])  # type: ignore[call-arg]
+        else:
+            touch += sn[visit_voxel[i], 1]
+    new = 0
+    for i in range(count):
+        v = visit_voxel[i]
+        if sn[v, 0] == 0.0 and sn[v, 1] == 0.0:
+            new += 1
+        sn[v, 0] += visit_chord[i]
+        if visit_return[i] > 0.0:
+            sn[v, 1] += visit_return[i]
+            block_hit[v // BLOCK_VOXELS] = True
+    counters[1] += new
+    counters[3] += count + (touch < 0.0)  # touch is never negative; using it keeps the loads

@@ -1,0 +1,1 @@
+"""Offline tools without a ROS graph: bag replay, simulation, render, evaluate, export."""

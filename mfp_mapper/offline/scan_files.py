@@ -1,0 +1,257 @@
+"""Readers for the shared lidar data (PCD frames, VTK scans, odometry CSV) and a
+PointCloud2-like message builder so real field layouts can go through the parser."""
+
+from __future__ import annotations
+
+import csv
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mfp_mapper.sensing.pointcloud import FieldSpec, point_fields
+
+_PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8"} | {
+    (kind, size): f"{kind.lower()}{size}" for kind in "IU" for size in (1, 2, 4, 8)
+}
+_SCAN_NAME = re.compile(r"cloud_(\d+)_(\d+)\.vtk$")
+_ODOMETRY_COLUMNS = (
+    "header.stamp.sec",
+    "header.stamp.nanosec",
+    *(f"pose.pose.position.{axis}" for axis in "xyz"),
+    *(f"pose.pose.orientation.{axis}" for axis in "xyzw"),
+)
+
+ODOMETRY_DTYPE = np.dtype([("stamp", "f8"), ("position", "f8", (3,)), ("quaternion", "f8", (4,))])
+"""Rows of :func:`read_odometry_csv`: stamp seconds, position xyz, quaternion xyzw."""
+
+
+class DatasetFormatError(ValueError):
+    """A data file is malformed or uses an unsupported variant."""
+
+
+@dataclass
+class Time:
+    sec: int = 0
+    nanosec: int = 0
+
+
+@dataclass
+class Header:
+    stamp: Time = field(default_factory=Time)
+    frame_id: str = "sensor"
+
+
+@dataclass
+class CloudMessage:
+    """The PointCloud2 attributes :func:`mfp_mapper.sensing.pointcloud.parse_pointcloud2` reads."""
+
+    header: Header
+    height: int
+    width: int
+    fields: list[FieldSpec]
+    is_bigendian: bool
+    point_step: int
+    row_step: int
+    data: bytes
+    is_dense: bool = False
+
+
+def read_pcd(path: str | Path) -> dict[str, NDArray[np.generic]]:
+    """Columns of a PCD file (``DATA binary`` or ``ascii``), in header order.
+
+    Fields with COUNT > 1 give (N, COUNT) columns; PCL padding fields named ``_`` are
+    skipped.
+    """
+    path = Path(path)
+    header, body = _split_pcd_header(path.read_bytes(), path)
+    dtype = _pcd_dtype(header, path)
+    points = _pcd_int(header, "POINTS", path)
+    encoding = header["DATA"][0].lower() if header["DATA"] else ""
+    if encoding == "binary":
+        if len(body) < points * dtype.itemsize:
+            raise DatasetFormatError(
+                f"{path}: truncated, {len(body)} bytes of data for {points} points of "
+                f"{dtype.itemsize} bytes ({points * dtype.itemsize} expected)"
+            )
+        records = np.frombuffer(body, dtype=dtype, count=points)
+    elif encoding == "ascii":
+        records = _pcd_ascii_records(body, dtype, points, path)
+    else:
+        raise DatasetFormatError(f"{path}: DATA {encoding!r} is not supported (binary or ascii)")
+    return {name: records[name].copy() for name in dtype.names or () if not name.startswith("_")}
+
+
+def _split_pcd_header(raw: bytes, path: Path) -> tuple[dict[str, list[str]], bytes]:
+    header: dict[str, list[str]] = {}
+    position = 0
+    while position < len(raw):
+        end = raw.find(b"\n", position)
+        end = len(raw) if end < 0 else end
+        line = raw[position:end].decode("ascii", errors="replace").strip()
+        position = end + 1
+        if not line or line.startswith("#"):
+            continue
+        key, *values = line.split()
+        header[key.upper()] = values
+        if key.upper() == "DATA":
+            return header, raw[position:]
+    raise DatasetFormatError(f"{path}: not a PCD file (no DATA line in the header)")
+
+
+def _pcd_dtype(header: Mapping[str, list[str]], path: Path) -> np.dtype[np.void]:
+    """Packed little-endian record dtype; padding fields ``_`` become ``_<index>``."""
+    for key in ("FIELDS", "SIZE", "TYPE"):
+        if key not in header:
+            raise DatasetFormatError(f"{path}: PCD header has no {key} line")
+    names, sizes, kinds = header["FIELDS"], header["SIZE"], header["TYPE"]
+    counts = header.get("COUNT", ["1"] * len(names))
+    if not len(names) == len(sizes) == len(kinds) == len(counts):
+        raise DatasetFormatError(
+            f"{path}: FIELDS, SIZE, TYPE and COUNT need one entry per field, got "
+            f"{len(names)}, {len(sizes)}, {len(kinds)}, {len(counts)}"
+        )
+    formats: list[str | tuple[str, tuple[int]]] = []
+    for name, size, kind, count in zip(names, sizes, kinds, counts, strict=True):
+        code = _PCD_TYPES.get((kind.upper(), int(size))) if size.isdigit() else None
+        if code is None or not count.isdigit() or int(count) < 1:
+            raise DatasetFormatError(
+                f"{path}: field {name!r} has unsupported TYPE {kind} SIZE {size} COUNT {count}"
+            )
+        formats.append(("<" + code, (int(count),)) if int(count) > 1 else "<" + code)
+    unique = [f"_{i}" if name == "_" else name for i, name in enumerate(names)]
+    return np.dtype({"names": unique, "formats": formats})
+
+
+def _pcd_int(header: Mapping[str, list[str]], key: str, path: Path) -> int:
+    try:
+        return int(header[key][0])
+    except (KeyError, IndexError, ValueError):
+        raise DatasetFormatError(f"{path}: PCD header needs an integer {key} line") from None
+
+
+def _pcd_ascii_records(
+    body: bytes, dtype: np.dtype[np.void], points: int, path: Path
+) -> NDArray[np.void]:
+    names = dtype.names or ()
+    widths = [int(np.prod(dtype[name].shape)) for name in names]
+    try:
+        values = np.array(body.split(), dtype=np.float64)
+    except ValueError as error:
+        raise DatasetFormatError(f"{path}: non-numeric ascii data ({error})") from None
+    if values.size != points * sum(widths):
+        raise DatasetFormatError(
+            f"{path}: {values.size} ascii values, expected {points} points x {sum(widths)}"
+        )
+    flat = values.reshape(points, sum(widths))
+    records = np.empty(points, dtype=dtype)
+    starts = np.cumsum([0, *widths])
+    for name, start, width in zip(names, starts, widths, strict=False):
+        records[name] = flat[:, start : start + width].reshape(records[name].shape)
+    return records
+
+
+def read_vtk_points(path: str | Path) -> NDArray[np.float64]:
+    """The (N, 3) ``POINTS`` of an ASCII legacy VTK POLYDATA file."""
+    path = Path(path)
+    lines = path.read_text(encoding="ascii", errors="replace").splitlines()
+    if len(lines) < 5 or not lines[0].startswith("# vtk DataFile"):
+        raise DatasetFormatError(f"{path}: not a legacy VTK file (no '# vtk DataFile' line)")
+    if lines[2].strip().upper() != "ASCII":
+        raise DatasetFormatError(f"{path}: only ASCII VTK is supported, file says {lines[2]!r}")
+    if lines[3].split()[1:2] != ["POLYDATA"]:
+        raise DatasetFormatError(f"{path}: expected DATASET POLYDATA, got {lines[3]!r}")
+    row = next((i for i, line in enumerate(lines) if line.startswith("POINTS")), None)
+    if row is None:
+        raise DatasetFormatError(f"{path}: no POINTS section")
+    try:
+        count = int(lines[row].split()[1])
+    except (IndexError, ValueError):
+        raise DatasetFormatError(f"{path}: bad POINTS line {lines[row]!r}") from None
+    tokens: list[str] = []
+    for line in lines[row + 1 :]:
+        if len(tokens) >= 3 * count:
+            break
+        tokens.extend(line.split())
+    try:
+        values = np.array(tokens[: 3 * count], dtype=np.float64)
+    except ValueError as error:
+        raise DatasetFormatError(f"{path}: non-numeric POINTS data ({error})") from None
+    if values.size != 3 * count:
+        raise DatasetFormatError(f"{path}: POINTS {count} but only {values.size} values")
+    return values.reshape(count, 3)
+
+
+def list_vtk_scans(directory: str | Path) -> list[tuple[float, Path]]:
+    """``(stamp seconds, path)`` of every ``cloud_<sec>_<nanosec>.vtk``, in time order.
+
+    The nanoseconds are not zero-padded, so sorting by file name would be wrong.
+    """
+    scans = []
+    for path in Path(directory).glob("cloud_*.vtk"):
+        match = _SCAN_NAME.search(path.name)
+        if match:
+            scans.append((int(match[1]) + int(match[2]) * 1e-9, path))
+    return sorted(scans)
+
+
+def read_odometry_csv(path: str | Path) -> NDArray[np.void]:
+    """nav_msgs/Odometry rows (columns named like the message fields) as ODOMETRY_DTYPE."""
+    path = Path(path)
+    with path.open(newline="") as stream:
+        reader = csv.DictReader(stream)
+        missing = [c for c in _ODOMETRY_COLUMNS if c not in (reader.fieldnames or [])]
+        if missing:
+            raise DatasetFormatError(f"{path}: missing odometry columns {', '.join(missing)}")
+        try:
+            rows = [[float(row[c]) for c in _ODOMETRY_COLUMNS] for row in reader]
+        except (TypeError, ValueError) as error:
+            line = reader.line_num
+            raise DatasetFormatError(f"{path}:{line}: bad odometry value ({error})") from None
+    values = np.array(rows, dtype=np.float64).reshape(-1, len(_ODOMETRY_COLUMNS))
+    odometry = np.empty(len(values), dtype=ODOMETRY_DTYPE)
+    odometry["stamp"] = values[:, 0] + values[:, 1] * 1e-9
+    odometry["position"] = values[:, 2:5]
+    odometry["quaternion"] = values[:, 5:9]
+    return odometry
+
+
+def cloud_message(
+    records: NDArray[Any], stamp: float = 0.0, frame_id: str = "sensor"
+) -> CloudMessage:
+    """A PointCloud2-like message holding structured ``records`` ((N,) or (height, width)).
+
+    The dtype's field offsets, itemsize and byte order become the message layout, so any
+    driver layout (padding, big-endian, float64) can be reproduced with numpy.
+    """
+    if records.ndim not in (1, 2) or not records.dtype.names:
+        raise ValueError("cloud_message needs a 1-D or 2-D structured array")
+    height, width = (1, records.shape[0]) if records.ndim == 1 else records.shape
+    fields, big_endian = point_fields(records.dtype)
+    sec = int(np.floor(stamp))
+    return CloudMessage(
+        header=Header(Time(sec, round((stamp - sec) * 1e9)), frame_id),
+        height=height,
+        width=width,
+        fields=fields,
+        is_bigendian=big_endian,
+        point_step=records.dtype.itemsize,
+        row_step=records.dtype.itemsize * width,
+        data=np.ascontiguousarray(records).tobytes(),
+    )
+
+
+def cloud_message_from_columns(
+    columns: Mapping[str, NDArray[np.generic]], stamp: float = 0.0, frame_id: str = "sensor"
+) -> CloudMessage:
+    """A message with ``columns`` packed in order, keeping their dtypes (e.g. a PCD frame)."""
+    arrays = {name: np.asarray(values) for name, values in columns.items()}
+    dtype = np.dtype([(name, a.dtype.newbyteorder("<"), a.shape[1:]) for name, a in arrays.items()])
+    records = np.empty(len(next(iter(arrays.values()))), dtype=dtype)
+    for name, values in arrays.items():
+        records[name] = values
+    return cloud_message(records, stamp, frame_id)

@@ -1,0 +1,354 @@
+"""Odometry pose buffer, interpolation, sensor extrinsic and de-skew into the map frame.
+
+Quaternions are ``(x, y, z, w)`` like ROS; rotations act on column vectors.
+"""
+
+from __future__ import annotations
+
+from bisect import bisect_left
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from mfp_mapper.sensing.pointcloud import ParsedCloud
+
+FloatArray = NDArray[np.float64]
+
+IDENTITY_QUATERNION = (0.0, 0.0, 0.0, 1.0)
+DESKEW_TIME_RESOLUTION = 1e-5
+"""Seconds within which de-skewed points share one interpolated pose (10 µs)."""
+_DENSE_BINS_LIMIT = 1 << 22
+_SLERP_LINEAR_BELOW = 1e-9
+"""sin(angle) under which slerp falls back to normalised linear interpolation."""
+
+
+class PoseUnavailable(Exception):
+    """No pose can be given for a stamp; ``reason`` says why.
+
+    ``"no_poses"``: the buffer is empty. ``"too_new"``: after the latest pose (wait for
+    odometry). ``"too_old"``: before the earliest kept pose (never coverable). ``"gap"``:
+    the bracketing poses are more than ``max_gap`` apart.
+    """
+
+    REASONS = ("no_poses", "too_new", "too_old", "gap")
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+def normalize_quaternion(q: ArrayLike) -> FloatArray:
+    """Unit quaternion(s) along the last axis; ValueError on zero or non-finite input."""
+    arr = np.asarray(q, dtype=np.float64)
+    if arr.shape[-1:] != (4,):
+        raise ValueError(f"quaternion must have 4 components (x, y, z, w), got shape {arr.shape}")
+    norm = np.linalg.norm(arr, axis=-1, keepdims=True)
+    if not np.all(np.isfinite(norm)) or np.any(norm < 1e-12):
+        raise ValueError(f"quaternion must be finite and non-zero, got {arr.tolist()}")
+    return arr / norm
+
+
+def quaternion_to_matrix(q: ArrayLike) -> FloatArray:
+    """Rotation matrix (..., 3, 3) of unit quaternion(s) (..., 4) in xyzw order."""
+    x, y, z, w = np.moveaxis(np.asarray(q, dtype=np.float64), -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def rpy_to_quaternion(roll: float, pitch: float, yaw: float) -> FloatArray:
+    """Quaternion (xyzw) of the fixed-axis rotation Rz(yaw) @ Ry(pitch) @ Rx(roll) (ROS RPY)."""
+    cr, sr = np.cos(roll / 2), np.sin(roll / 2)
+    cp, sp = np.cos(pitch / 2), np.sin(pitch / 2)
+    cy, sy = np.cos(yaw / 2), np.sin(yaw / 2)
+    return np.array(
+        [
+            sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+            cr * cp * cy + sr * sp * sy,
+        ]
+    )
+
+
+def slerp(q0: ArrayLike, q1: ArrayLike, alpha: ArrayLike) -> FloatArray:
+    """Spherical interpolation of unit quaternions (broadcast), shortest path."""
+    a = np.asarray(q0, dtype=np.float64)
+    b = np.asarray(q1, dtype=np.float64)
+    t = np.asarray(alpha, dtype=np.float64)[..., None]
+    dot = np.sum(a * b, axis=-1, keepdims=True)
+    b = np.where(dot < 0.0, -b, b)
+    dot = np.minimum(np.abs(dot), 1.0)
+    angle = np.arccos(dot)
+    sin_angle = np.sin(angle)
+    linear = sin_angle < _SLERP_LINEAR_BELOW
+    safe_sin = np.where(linear, 1.0, sin_angle)
+    w0 = np.where(linear, 1.0 - t, np.sin((1.0 - t) * angle) / safe_sin)
+    w1 = np.where(linear, t, np.sin(t * angle) / safe_sin)
+    q = w0 * a + w1 * b
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+@dataclass(frozen=True, eq=False)
+class Extrinsic:
+    """Pose of the sensor frame in the odometry child frame: p_child = R p_sensor + t."""
+
+    translation: FloatArray = field(default_factory=lambda: np.zeros(3))
+    quaternion: FloatArray = field(default_factory=lambda: np.array(IDENTITY_QUATERNION))
+
+    def __post_init__(self) -> None:
+        translation = np.asarray(self.translation, dtype=np.float64)
+        if translation.shape != (3,) or not np.all(np.isfinite(translation)):
+            raise ValueError(f"extrinsic translation must be 3 finite values, got {translation}")
+        object.__setattr__(self, "translation", translation)
+        object.__setattr__(self, "quaternion", normalize_quaternion(self.quaternion))
+
+    @classmethod
+    def from_xyz_rpy(cls, translation: Any, rpy: Any) -> Extrinsic:
+        """From [x, y, z] (m) and fixed-axis [roll, pitch, yaw] (rad)."""
+        t = [float(v) for v in translation]
+        r = [float(v) for v in rpy]
+        if len(t) != 3 or len(r) != 3:
+            raise ValueError(f"extrinsic needs 3 + 3 numbers, got {t} and {r}")
+        return cls(np.array(t), rpy_to_quaternion(*r))
+
+    @property
+    def rotation(self) -> FloatArray:
+        return quaternion_to_matrix(self.quaternion)
+
+
+class PoseBuffer:
+    """Time-ordered odometry poses of the last ``max_age`` seconds, interpolated on demand.
+
+    Poses must arrive in increasing stamp order; others are rejected and counted in
+    ``rejected["out_of_order"]`` (non-finite ones in ``rejected["invalid"]``).
+    """
+
+    def __init__(self, max_age: float = 10.0, max_gap: float = 0.5) -> None:
+        if not max_age > 0.0 or not max_gap > 0.0:
+            raise ValueError(f"max_age and max_gap must be > 0, got {max_age}, {max_gap}")
+        self.max_age = float(max_age)
+        self.max_gap = float(max_gap)
+        self.rejected = {"out_of_order": 0, "invalid": 0}
+        self._stamps: list[float] = []
+        self._positions: list[FloatArray] = []
+        self._quaternions: list[FloatArray] = []
+        self._arrays: tuple[FloatArray, FloatArray, FloatArray] | None = None
+
+    def __len__(self) -> int:
+        return len(self._stamps)
+
+    @property
+    def latest_stamp(self) -> float | None:
+        return self._stamps[-1] if self._stamps else None
+
+    @property
+    def earliest_stamp(self) -> float | None:
+        return self._stamps[0] if self._stamps else None
+
+    def clear(self) -> None:
+        """Forget every pose (e.g. after the clock jumped back); counters are kept."""
+        self._stamps.clear()
+        self._positions.clear()
+        self._quaternions.clear()
+        self._arrays = None
+
+    def add(self, stamp: float, position: ArrayLike, quaternion_xyzw: ArrayLike) -> bool:
+        """Append a pose; False (and counted) if not newer than the latest or not finite."""
+        pos = np.asarray(position, dtype=np.float64)
+        quat = _unit_quaternion_or_none(quaternion_xyzw)
+        if (
+            quat is None
+            or not np.isfinite(stamp)
+            or pos.shape != (3,)
+            or not np.all(np.isfinite(pos))
+        ):
+            self.rejected["invalid"] += 1
+            return False
+        if self._stamps and stamp <= self._stamps[-1]:
+            self.rejected["out_of_order"] += 1
+            return False
+        if self._quaternions and np.dot(self._quaternions[-1], quat) < 0.0:
+            quat = -quat  # same rotation, keeps consecutive quaternions on one hemisphere
+        self._stamps.append(float(stamp))
+        self._positions.append(pos)
+        self._quaternions.append(quat)
+        self._prune()
+        self._arrays = None
+        return True
+
+    def snapshot(self) -> PoseBuffer:
+        """A copy that later ``add`` calls leave unchanged (cheap: the interpolation arrays
+        are shared, never modified in place), to interpolate from outside a lock."""
+        copy = PoseBuffer(self.max_age, self.max_gap)
+        copy._stamps = list(self._stamps)
+        copy._positions = list(self._positions)
+        copy._quaternions = list(self._quaternions)
+        copy._arrays = self._arrays
+        return copy
+
+    def _prune(self) -> None:
+        """Drop poses older than max_age, keeping one at or before the cut-off."""
+        drop = bisect_left(self._stamps, self._stamps[-1] - self.max_age) - 1
+        if drop > 0:
+            del self._stamps[:drop], self._positions[:drop], self._quaternions[:drop]
+
+    def interpolate(self, stamps: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """Positions (N, 3) and rotation matrices (N, 3, 3) at ``stamps`` (N,)."""
+        positions, quaternions = self.interpolate_quaternions(stamps)
+        return positions, quaternion_to_matrix(quaternions)
+
+    def interpolate_quaternions(self, stamps: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """Positions (N, 3) (linear) and quaternions (N, 4) (slerp) at ``stamps`` (N,).
+
+        Raises PoseUnavailable when any stamp cannot be covered.
+        """
+        times = np.asarray(stamps, dtype=np.float64).reshape(-1)
+        pose_stamps, positions, quaternions = self._as_arrays()
+        self._check_range(times, pose_stamps)
+        if pose_stamps.size == 1:
+            return np.repeat(positions, times.size, 0), np.repeat(quaternions, times.size, 0)
+        hi = np.clip(np.searchsorted(pose_stamps, times, side="right"), 1, pose_stamps.size - 1)
+        lo = hi - 1
+        span = pose_stamps[hi] - pose_stamps[lo]
+        alpha = np.clip((times - pose_stamps[lo]) / span, 0.0, 1.0)
+        self._check_gaps(times, span, alpha, pose_stamps[lo])
+        position = positions[lo] + alpha[:, None] * (positions[hi] - positions[lo])
+        return position, slerp(quaternions[lo], quaternions[hi], alpha)
+
+    def _as_arrays(self) -> tuple[FloatArray, FloatArray, FloatArray]:
+        if not self._stamps:
+            raise PoseUnavailable("no_poses", "no odometry pose received yet")
+        if self._arrays is None:
+            self._arrays = (
+                np.array(self._stamps),
+                np.array(self._positions),
+                np.array(self._quaternions),
+            )
+        return self._arrays
+
+    def _check_range(self, times: FloatArray, pose_stamps: FloatArray) -> None:
+        if times.size == 0:
+            return
+        newest, oldest = float(times.max()), float(times.min())
+        if newest > pose_stamps[-1]:
+            raise PoseUnavailable(
+                "too_new",
+                f"stamp {newest:.6f} is {newest - pose_stamps[-1]:.6f} s after the latest "
+                f"pose ({pose_stamps[-1]:.6f})",
+            )
+        if oldest < pose_stamps[0]:
+            raise PoseUnavailable(
+                "too_old",
+                f"stamp {oldest:.6f} is {pose_stamps[0] - oldest:.6f} s before the earliest "
+                f"kept pose ({pose_stamps[0]:.6f})",
+            )
+
+    def _check_gaps(
+        self, times: FloatArray, span: FloatArray, alpha: FloatArray, start: FloatArray
+    ) -> None:
+        inside = (alpha > 0.0) & (alpha < 1.0)
+        gaps = inside & (span > self.max_gap)
+        if np.any(gaps):
+            first = int(np.argmax(gaps))
+            raise PoseUnavailable(
+                "gap",
+                f"stamp {times[first]:.6f} falls between poses {span[first]:.3f} s apart "
+                f"(from {start[first]:.6f}), more than max_gap {self.max_gap} s",
+            )
+
+
+def _unit_quaternion_or_none(q: ArrayLike) -> FloatArray | None:
+    try:
+        return normalize_quaternion(q)
+    except ValueError:
+        return None
+
+
+def cloud_to_map(
+    cloud: ParsedCloud,
+    stamp: float,
+    buffer: PoseBuffer,
+    extrinsic: Extrinsic,
+    deskew: bool = True,
+    time_resolution: float = DESKEW_TIME_RESOLUTION,
+) -> tuple[FloatArray, FloatArray]:
+    """Points of ``cloud`` in the map frame, and the sensor origin(s) they were seen from.
+
+    ``p_map = R_odom (R_ext p + t_ext) + t_odom``. With ``deskew`` and per-point times, each
+    point uses the pose at ``stamp + time_offset`` (offsets closer than ``time_resolution``
+    share one pose; 0 for exact) and origins are (N, 3); otherwise one pose at ``stamp``
+    and one origin (3,). Raises PoseUnavailable.
+    """
+    if deskew and cloud.time_offset is not None and len(cloud) > 0:
+        offsets, bin_of_point = _time_bins(cloud.time_offset, time_resolution)
+        rotations, origins = _sensor_poses(buffer, stamp + offsets, extrinsic)
+        return _transform_binned(cloud.xyz, rotations, origins, bin_of_point), origins[bin_of_point]
+    rotations, origins = _sensor_poses(buffer, np.array([stamp]), extrinsic)
+    return cloud.xyz @ rotations[0].T + origins[0], origins[0]
+
+
+def _sensor_poses(
+    buffer: PoseBuffer, stamps: FloatArray, extrinsic: Extrinsic
+) -> tuple[FloatArray, FloatArray]:
+    """Sensor-to-map rotations (N, 3, 3) and sensor origins in the map (N, 3) at ``stamps``."""
+    positions, odom_rotations = buffer.interpolate(stamps)
+    origins = odom_rotations @ extrinsic.translation + positions
+    return odom_rotations @ extrinsic.rotation, origins
+
+
+def _transform_binned(
+    points: FloatArray, rotations: FloatArray, translations: FloatArray, bins: NDArray[np.intp]
+) -> FloatArray:
+    """``rotations[bins[k]] @ points[k] + translations[bins[k]]`` for every k, gathering
+    scalars per matrix element (much faster than gathering (N, 3, 3) matrices)."""
+    x, y, z = np.ascontiguousarray(points.T)
+    elements = np.ascontiguousarray(rotations.reshape(-1, 9).T)
+    offsets = np.ascontiguousarray(translations.T)
+    out = np.empty((points.shape[0], 3), dtype=np.float64)
+    for row in range(3):
+        r0, r1, r2 = elements[3 * row : 3 * row + 3]
+        out[:, row] = r0[bins] * x + r1[bins] * y + r2[bins] * z + offsets[row][bins]
+    return out
+
+
+def _time_bins(offsets: FloatArray, resolution: float) -> tuple[FloatArray, NDArray[np.intp]]:
+    """Representative offsets (U,) and each offset's index into them.
+
+    Offsets are rounded to multiples of ``resolution`` from the smallest one (exact
+    unique values when ``resolution`` is 0); representatives stay within the offsets' range.
+    """
+    if resolution <= 0.0:
+        unique, inverse = np.unique(offsets, return_inverse=True)
+        return unique, inverse.reshape(-1)
+    start, stop = float(offsets.min()), float(offsets.max())
+    keys = np.rint((offsets - start) / resolution).astype(np.intp)
+    if keys.max() < _DENSE_BINS_LIMIT:
+        occupied = np.zeros(int(keys.max()) + 1, dtype=bool)
+        occupied[keys] = True
+        bins, inverse = np.flatnonzero(occupied), (np.cumsum(occupied) - 1)[keys]
+    else:
+        bins, inverse = np.unique(keys, return_inverse=True)
+    return np.clip(start + bins * resolution, start, stop), inverse.reshape(-1)
+
+
+def z_band(
+    points: FloatArray, origins: FloatArray, lo: float, hi: float
+) -> tuple[FloatArray, FloatArray, int]:
+    """Keep the rays whose end point's z (map frame) lies in [lo, hi]; returns the kept
+    points, their origins ((3,) stays (3,)) and how many rays were dropped."""
+    keep = (points[:, 2] >= lo) & (points[:, 2] <= hi)
+    if keep.all():
+        return points, origins, 0
+    return (
+        points[keep],
+        (origins[keep] if origins.ndim == 2 else origins),
+        int(keep.size - keep.sum()),
+    )

@@ -1,0 +1,115 @@
+"""The 2D hit-probability projection (mfp_mapper.core.gridmap), without ROS."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from box_world import BoxWorld
+
+from mfp_mapper import Mapper
+from mfp_mapper.core import model
+from mfp_mapper.core.gridmap import UNKNOWN, band_mask, hit_probability_grid
+from mfp_mapper.offline.scan_pattern import scan_directions
+
+
+def test_band_uses_voxel_centres() -> None:
+    ijk = np.array([[0, 0, -1], [0, 0, 0], [0, 0, 1], [0, 0, 9], [0, 0, 10]])
+    # res 0.2: centres -0.1, 0.1, 0.3, 1.9, 2.1
+    assert band_mask(ijk, 0.2, 0.1, 2.0).tolist() == [False, True, True, True, False]
+
+
+def test_max_over_band_unknown_elsewhere_and_layout() -> None:
+    res = 0.5
+    ijk = np.array(
+        [
+            [2, 1, 1],  # in band, p 0.3
+            [2, 1, 2],  # in band, p 0.8: the column keeps the max
+            [2, 1, 9],  # above the band: ignored
+            [0, 0, 1],  # in band, p 0.004 -> 0
+            [3, 3, 1],  # not observed: unknown
+        ]
+    )
+    prob = np.array([0.3, 0.8, 1.0, 0.004, 0.9])
+    observed = np.array([True, True, True, True, False])
+    grid = hit_probability_grid(ijk, prob, observed, res, 0.2, 1.5)
+    # extent of the observed voxels: i 0..2, j 0..1
+    assert (grid.width, grid.height) == (3, 2)
+    assert grid.origin == (0.0, 0.0)
+    assert grid.data.dtype == np.int8
+    assert grid.data[1, 2] == 80  # row = j, col = i
+    assert grid.data[0, 0] == 0
+    assert grid.value_at(1.2, 0.7) == 80
+    assert (grid.data == UNKNOWN).sum() == 4
+    assert grid.value_at(100.0, 0.0) == UNKNOWN
+
+
+def test_window_around_robot_has_fixed_size_and_origin() -> None:
+    ijk = np.array([[10, -4, 2]])
+    grid = hit_probability_grid(ijk, [0.5], [True], 0.25, 0.0, 2.0, center=(2.6, -1.0), radius=1.0)
+    # floor((2.6-1)/0.25)=6 .. floor(3.6/0.25)=14 -> 9 columns; j -8..0 -> 9 rows
+    assert (grid.width, grid.height) == (9, 9)
+    assert grid.origin == pytest.approx((1.5, -2.0))
+    assert grid.value_at(2.6, -0.9) == 50
+    assert (grid.data == UNKNOWN).sum() == 80
+
+
+def test_empty_inputs() -> None:
+    grid = hit_probability_grid(np.zeros((0, 3), int), [], [], 0.1, 0.0, 1.0)
+    assert (grid.width, grid.height) == (0, 0)
+    with pytest.raises(ValueError):
+        hit_probability_grid(np.zeros((0, 3), int), [], [], 0.1, 1.0, 1.0)
+
+
+def test_projection_of_a_real_map_sees_the_box_and_free_space() -> None:
+    res = 0.2
+    mapper = Mapper(res, max_range=30.0)
+    world = BoxWorld()
+    dirs = scan_directions(azimuths=360)
+    for k in range(3):
+        origin = np.array([0.5 * k, 0.0, 1.8])
+        rng = world.cast(origin, dirs)
+        keep = np.isfinite(rng) & (rng < 30.0)
+        mapper.integrate(origin + dirs[keep] * rng[keep, None], origin, float(k))
+    vox = mapper.voxels()
+    prob = model.hit_probability(vox.s, vox.n, res)
+    grid = hit_probability_grid(vox.ijk, prob, vox.observed, res, 0.3, 2.0)
+    # the face x = 5 of the box (5..7, 3..5, height 3): one of the two cells at the face
+    face = max(grid.value_at(4.9, 4.0), grid.value_at(5.1, 4.0))
+    assert face >= 30
+    free = grid.value_at(2.0, 0.5)  # crossed by rays, never a return
+    assert 0 <= free <= 20 and free < face / 2
+    assert grid.value_at(6.5, 4.5) == UNKNOWN  # inside the box
+    assert grid.data.min() >= -1 and grid.data.max() <= 100
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_mapper_grid_equals_the_projection_of_exported_voxels(threads: int) -> None:
+    """Mapper.hit_probability_grid reads the blocks directly; it must give exactly the grid
+    of the reference projection of the exported voxels, whole-map and windowed."""
+    res, z_min, z_max = 0.2, 0.3, 2.0
+    mapper = Mapper(res, max_range=30.0, threads=threads)
+    world = BoxWorld()
+    dirs = scan_directions(azimuths=360)
+    for k in range(3):
+        origin = np.array([0.5 * k, -0.3 * k, 1.8])
+        rng = world.cast(origin, dirs)
+        keep = np.isfinite(rng) & (rng < 30.0)
+        mapper.integrate(origin + dirs[keep] * rng[keep, None], origin, float(k))
+    band = ([-np.inf, -np.inf, z_min], [np.inf, np.inf, z_max])
+    vox = mapper.voxels(bounds=band)
+    reference = hit_probability_grid(vox.ijk, vox.hit_probability, vox.observed, res, z_min, z_max)
+    grid = mapper.hit_probability_grid(z_min, z_max)
+    assert grid.data.shape == reference.data.shape and grid.origin == reference.origin
+    assert np.array_equal(grid.data, reference.data)
+    assert (grid.data >= 0).sum() > 1000 and grid.data.max() > 50  # a real, varied map
+
+    center, radius = (3.3, -1.1), 4.0
+    windowed = mapper.hit_probability_grid(z_min, z_max, center=center, radius=radius)
+    ref_windowed = hit_probability_grid(
+        vox.ijk, vox.hit_probability, vox.observed, res, z_min, z_max, center=center, radius=radius
+    )
+    assert windowed.origin == ref_windowed.origin
+    assert np.array_equal(windowed.data, ref_windowed.data)
+
+    empty = Mapper(res).hit_probability_grid(z_min, z_max)
+    assert empty.data.shape == (0, 0)

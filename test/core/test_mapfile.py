@@ -1,0 +1,170 @@
+"""The map file contract: round trip, atomic writes, and clear errors on bad files."""
+
+from __future__ import annotations
+
+import io
+import math
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from box_world import anchors_scene
+
+from mfp_mapper import MapFileError, Mapper
+
+
+@pytest.fixture(scope="module")
+def mapper() -> Mapper:
+    m = Mapper(0.2, decay_time=30.0, frame_id="odom", max_range=40.0)
+    for k, (points, origin) in enumerate(anchors_scene(n_scans=2, azimuths=300)):
+        m.integrate(points, origin, 100.0 + k)
+    return m
+
+
+def test_round_trip_keeps_every_voxel(mapper: Mapper, tmp_path: Path) -> None:
+    path = tmp_path / "map.npz"
+    mapper.save(path)
+    loaded = Mapper.load(path)
+    assert (loaded.resolution, loaded.decay_time, loaded.frame_id, loaded.max_range) == (
+        0.2,
+        30.0,
+        "odom",
+        40.0,
+    )
+    a, b = mapper.voxels(), loaded.voxels()
+    order_a, order_b = np.lexsort(a.ijk.T), np.lexsort(b.ijk.T)
+    assert np.array_equal(a.ijk[order_a], b.ijk[order_b])
+    assert np.array_equal(a.s[order_a], b.s[order_b])
+    assert np.array_equal(a.n[order_a], b.n[order_b])
+    assert np.array_equal(a.t_last[order_a], b.t_last[order_b])
+    assert loaded.num_voxels == mapper.num_voxels
+    assert loaded.last_stamp == 101.0
+    # a loaded map keeps integrating
+    points, origin = anchors_scene(n_scans=1, azimuths=50)[0]
+    loaded.integrate(points, origin, 102.0)
+
+
+def test_file_holds_the_documented_arrays(mapper: Mapper, tmp_path: Path) -> None:
+    path = tmp_path / "map.npz"
+    mapper.save(path)
+    with np.load(path, allow_pickle=False) as f:
+        assert f["ijk"].dtype == np.int32 and f["ijk"].shape == (mapper.num_voxels, 3)
+        for key in ("s", "n", "t_last"):
+            assert f[key].dtype == np.float64 and f[key].shape == (mapper.num_voxels,)
+        assert float(f["resolution"]) == 0.2 and str(f["frame_id"]) == "odom"
+        assert float(f["decay_time"]) == 30.0
+        # ijk is floor(coordinate / resolution): the voxel centre maps back onto it
+        centers = (f["ijk"] + 0.5) * float(f["resolution"])
+        assert np.array_equal(np.floor(centers / 0.2).astype(np.int32), f["ijk"])
+
+
+def test_static_map_round_trips_infinite_decay_time(tmp_path: Path) -> None:
+    m = Mapper(0.5)
+    m.integrate(np.array([[3.0, 0.2, 0.2]]), np.zeros(3), 1.0)
+    m.save(tmp_path / "static.npz")
+    assert math.isinf(Mapper.load(tmp_path / "static.npz").decay_time)
+
+
+def test_save_is_atomic_and_leaves_no_temporary_file(
+    mapper: Mapper, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = tmp_path / "map.npz"
+    mapper.save(path)
+    before = path.read_bytes()
+
+    write_array = np.lib.format.write_array
+    written: list[str] = []
+
+    def fail_on_third_array(member: Any, array: np.ndarray, **kwargs: Any) -> None:
+        written.append(array.dtype.str)
+        if len(written) == 3:
+            raise OSError("disk full")
+        write_array(member, array, **kwargs)
+
+    monkeypatch.setattr(np.lib.format, "write_array", fail_on_third_array)
+    with pytest.raises(OSError, match="disk full"):
+        mapper.save(path)
+    assert len(written) == 3  # failed part way, with arrays already in the archive
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["map.npz"]
+
+
+def _write_npz(path: Path, **arrays: np.ndarray) -> Path:
+    np.savez(path, **arrays)
+    return path
+
+
+def _valid_arrays() -> dict[str, np.ndarray]:
+    return {
+        "ijk": np.array([[0, 0, 0], [1, 0, 0]], dtype=np.int32),
+        "s": np.array([1.0, 2.0]),
+        "n": np.array([0.0, 1.0]),
+        "t_last": np.array([0.0, 0.0]),
+        "resolution": np.float64(0.1),
+        "decay_time": np.float64(np.inf),
+        "frame_id": np.str_("map"),
+    }
+
+
+def test_minimal_foreign_writer_is_accepted(tmp_path: Path) -> None:
+    loaded = Mapper.load(_write_npz(tmp_path / "ok.npz", **_valid_arrays()))
+    q = loaded.query(np.array([[0.15, 0.05, 0.05]]))
+    assert q.s[0] == 2.0 and q.n[0] == 1.0
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"s": np.array([1.0, -2.0])}, "negative, NaN or infinite"),
+        ({"n": np.array([np.nan, 1.0])}, "negative, NaN or infinite"),
+        ({"ijk": np.zeros((2, 2), dtype=np.int32)}, r"integer \(N, 3\)"),
+        ({"s": np.array([1.0])}, "float array of length 2"),
+        ({"resolution": np.float64(-1.0)}, "resolution must be positive"),
+        ({"ijk": np.zeros((2, 3), dtype=np.int32)}, "more than once"),
+        ({"t_last": np.array([np.nan, 0.0])}, "t_last"),
+    ],
+)
+def test_invalid_contents_name_the_file_and_the_problem(
+    tmp_path: Path, change: dict, message: str
+) -> None:
+    path = _write_npz(tmp_path / "bad.npz", **{**_valid_arrays(), **change})
+    with pytest.raises(MapFileError, match=message) as err:
+        Mapper.load(path)
+    assert str(path) in str(err.value)
+
+
+def test_missing_keys_say_it_is_not_a_map(tmp_path: Path) -> None:
+    arrays = _valid_arrays()
+    del arrays["s"], arrays["frame_id"]
+    with pytest.raises(MapFileError, match="not an mfp_mapper map: missing s, frame_id"):
+        Mapper.load(_write_npz(tmp_path / "foreign.npz", **arrays))
+
+
+def test_truncated_and_garbage_files_are_reported(mapper: Mapper, tmp_path: Path) -> None:
+    path = tmp_path / "map.npz"
+    mapper.save(path)
+    truncated = tmp_path / "truncated.npz"
+    truncated.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    with pytest.raises(MapFileError, match="unreadable or truncated"):
+        Mapper.load(truncated)
+    garbage = tmp_path / "garbage.npz"
+    garbage.write_bytes(b"not a map at all" * 10)
+    with pytest.raises(MapFileError, match="unreadable or truncated"):
+        Mapper.load(garbage)
+    with pytest.raises(MapFileError, match="no such file"):
+        Mapper.load(tmp_path / "absent.npz")
+
+
+def test_pickled_objects_are_never_loaded(tmp_path: Path) -> None:
+    arrays = _valid_arrays()
+    arrays["frame_id"] = np.array([{"evil": "object"}], dtype=object)
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    path = tmp_path / "pickle.npz"
+    path.write_bytes(buf.getvalue())
+    with zipfile.ZipFile(path) as z:
+        assert "frame_id.npy" in z.namelist()
+    with pytest.raises(MapFileError, match="unreadable or truncated"):
+        Mapper.load(path)

@@ -1,0 +1,221 @@
+"""Packaging: package.xml, setup.py/setup.cfg, requirements, scripts, and a real colcon build."""
+
+from __future__ import annotations
+
+import ast
+import configparser
+import importlib.util
+import os
+import re
+import runpy
+import shutil
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+PKG = "mfp_mapper"
+
+EXEC_DEPENDS = {
+    "rclpy",
+    "sensor_msgs",
+    "nav_msgs",
+    "geometry_msgs",
+    "std_msgs",
+    "std_srvs",
+    "visualization_msgs",
+    "python3-numpy",
+    "python3-numba",
+    "python3-matplotlib",
+}
+CONSOLE_SCRIPTS = {
+    "mfp_mapper": "mfp_mapper.ros.node:main",
+    "mfp-mapper": "mfp_mapper.cli:main",
+}
+
+
+@pytest.fixture(scope="module")
+def package_xml() -> ET.Element:
+    return ET.parse(ROOT / "package.xml").getroot()
+
+
+@pytest.fixture(scope="module")
+def setup_kwargs() -> dict[str, Any]:
+    """The keyword arguments setup.py passes to setuptools.setup (without running it)."""
+    import setuptools
+
+    captured: dict[str, Any] = {}
+    real_setup = setuptools.setup
+    setuptools.setup = lambda **kw: captured.update(kw)
+    cwd = os.getcwd()
+    try:
+        os.chdir(ROOT)
+        runpy.run_path(str(ROOT / "setup.py"), run_name="__main__")
+    finally:
+        os.chdir(cwd)
+        setuptools.setup = real_setup
+    assert captured, "setup.py did not call setuptools.setup"
+    return captured
+
+
+def _texts(root: ET.Element, tag: str) -> list[str]:
+    return [(e.text or "").strip() for e in root.findall(tag)]
+
+
+# --- package.xml ------------------------------------------------------------------------------
+
+
+def test_package_xml_identity(package_xml: ET.Element) -> None:
+    assert package_xml.tag == "package"
+    assert package_xml.get("format") == "3"
+    assert _texts(package_xml, "name") == [PKG]
+    assert re.fullmatch(r"\d+\.\d+\.\d+", _texts(package_xml, "version")[0])
+    assert _texts(package_xml, "license") == ["Apache-2.0"]
+    assert package_xml.findall("maintainer"), "a maintainer is required"
+    assert _texts(package_xml, "export/build_type") == ["ament_python"]
+
+
+def test_package_xml_dependencies(package_xml: ET.Element) -> None:
+    exec_deps = set(_texts(package_xml, "exec_depend")) | set(_texts(package_xml, "depend"))
+    missing = EXEC_DEPENDS - exec_deps
+    assert not missing, f"exec_depend missing: {sorted(missing)}"
+    assert "python3-pytest" in _texts(package_xml, "test_depend")
+    # rosbags is pip-installed (README), not a rosdep key of this package.
+    all_deps = {e.text for e in package_xml.iter() if e.tag.endswith("depend")}
+    assert not any("rosbags" in (d or "") for d in all_deps)
+
+
+def test_package_xml_validates_with_catkin_pkg() -> None:
+    catkin_pkg = pytest.importorskip("catkin_pkg.package", reason="catkin_pkg not installed")
+    package = catkin_pkg.parse_package(str(ROOT / "package.xml"))
+    package.validate()
+    assert package.name == PKG
+    assert package.get_build_type() == "ament_python"
+
+
+def test_license_file_is_apache() -> None:
+    text = (ROOT / "LICENSE").read_text()
+    assert "Apache License" in text and "Version 2.0" in text
+
+
+# --- setup.py / setup.cfg ---------------------------------------------------------------------
+
+
+def test_setup_matches_package_xml(setup_kwargs: dict[str, Any], package_xml: ET.Element) -> None:
+    assert setup_kwargs["name"] == PKG
+    assert setup_kwargs["version"] == _texts(package_xml, "version")[0]
+    assert setup_kwargs["license"] == "Apache-2.0"
+    assert PKG in setup_kwargs["packages"]
+    assert not any(p.startswith(("test", "benchmarks")) for p in setup_kwargs["packages"])
+
+
+def test_setup_data_files(setup_kwargs: dict[str, Any]) -> None:
+    data = {dest: list(files) for dest, files in setup_kwargs["data_files"]}
+    marker = f"resource/{PKG}"
+    assert data["share/ament_index/resource_index/packages"] == [marker]
+    assert (ROOT / marker).is_file() and (ROOT / marker).stat().st_size == 0
+    assert data[f"share/{PKG}"] == ["package.xml"]
+    for sub, patterns in (("config", ("*.yaml", "*.xml")), ("launch", ("*.launch.py",))):
+        on_disk = sorted(
+            f"{sub}/{p.name}" for pattern in patterns for p in (ROOT / sub).glob(pattern)
+        )
+        assert sorted(data.get(f"share/{PKG}/{sub}", [])) == on_disk
+    assert (
+        f"share/{PKG}/config" in data
+        and "config/fastdds_large_data.xml" in data[f"share/{PKG}/config"]
+    )
+    for files in data.values():
+        for f in files:
+            assert (ROOT / f).is_file(), f
+
+
+def test_console_scripts_declared(setup_kwargs: dict[str, Any]) -> None:
+    declared = {}
+    for spec in setup_kwargs["entry_points"]["console_scripts"]:
+        name, target = (s.strip() for s in spec.split("=", 1))
+        declared[name] = target
+    assert declared == CONSOLE_SCRIPTS
+
+
+def _top_level_names(tree: ast.Module) -> set[str]:
+    names: set[str] = set()
+    for node in tree.body:
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            names.add(node.name)
+        elif isinstance(node, ast.Assign):
+            names.update(t.id for t in node.targets if isinstance(t, ast.Name))
+        elif isinstance(node, (ast.Import, ast.ImportFrom)):
+            names.update((a.asname or a.name).split(".")[0] for a in node.names)
+    return names
+
+
+@pytest.mark.parametrize("script", sorted(CONSOLE_SCRIPTS))
+def test_console_script_target_exists(script: str) -> None:
+    module, func = CONSOLE_SCRIPTS[script].split(":")
+    path = ROOT / (module.replace(".", "/") + ".py")
+    if not path.exists():
+        pytest.skip(f"{module} is not written yet")
+    top_level = _top_level_names(ast.parse(path.read_text(), filename=str(path)))
+    assert func in top_level, f"{path.relative_to(ROOT)} has no top-level {func}()"
+    assert importlib.util.find_spec(module) is not None
+
+
+def test_setup_cfg_script_dir() -> None:
+    cfg = configparser.ConfigParser()
+    cfg.read(ROOT / "setup.cfg")
+    assert cfg.get("develop", "script_dir") == f"$base/lib/{PKG}"
+    assert cfg.get("install", "install_scripts") == f"$base/lib/{PKG}"
+
+
+# --- requirements, scripts ----------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["requirements.txt", "requirements-dev.txt"])
+def test_requirements_are_pinned(name: str) -> None:
+    lines = [line.split("#", 1)[0].strip() for line in (ROOT / name).read_text().splitlines()]
+    reqs = [line for line in lines if line]
+    assert reqs
+    for req in reqs:
+        assert re.fullmatch(r"[A-Za-z0-9_.\-]+==[A-Za-z0-9_.\-]+", req), f"not pinned: {req}"
+
+
+def test_runtime_requirements_cover_the_ros_wheels() -> None:
+    text = (ROOT / "requirements.txt").read_text()
+    for dist in ("ros-rclpy", "ros-sensor-msgs", "ros-rmw-fastrtps-cpp", "numpy", "numba"):
+        assert re.search(rf"^{re.escape(dist)}==", text, re.M), dist
+    assert re.search(r"^rosbags==", text, re.M)
+
+
+@pytest.mark.parametrize("script", ["run", ".ci/run", "scripts/colcon_check.sh"])
+def test_shell_scripts(script: str) -> None:
+    path = ROOT / script
+    assert os.access(path, os.X_OK), f"{script} is not executable"
+    assert path.read_text().startswith("#!/usr/bin/env bash\n")
+    subprocess.run(["bash", "-n", str(path)], check=True)
+
+
+# --- colcon -------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_colcon_build_installs_the_package() -> None:
+    if os.environ.get("MFP_COLCON_CHECK_SEPARATE") == "1":
+        pytest.skip("the colcon build check runs as its own step of ./run test")
+    if importlib.util.find_spec("colcon_core") is None or shutil.which("bash") is None:
+        pytest.skip("colcon (colcon-common-extensions) is not installed in this Python")
+    env = dict(os.environ, PYTHON=sys.executable)
+    proc = subprocess.run(
+        ["bash", str(ROOT / "scripts" / "colcon_check.sh")],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        stdin=subprocess.DEVNULL,
+    )
+    if proc.returncode == 3:
+        pytest.skip(proc.stderr.strip())
+    assert proc.returncode == 0, proc.stdout + proc.stderr
