@@ -90,9 +90,22 @@ def write_map_arrays(path: str | Path, arrays: dict[str, Any]) -> None:
 
 def read_map(path: str | Path, **overrides: object) -> Mapper:
     """Read a map file into a new Mapper; ``overrides`` replace stored constructor settings."""
+    return mapper_from_arrays(_read_arrays(Path(path)), path, **overrides)
+
+
+def read_map_arrays(path: str | Path) -> dict[str, np.ndarray]:
+    """The checked arrays of a map file, as stored (float64 sums kept, no Mapper built)."""
+    return _read_arrays(Path(path))
+
+
+def mapper_from_arrays(
+    arrays: dict[str, np.ndarray], path: str | Path = "<arrays>", **overrides: object
+) -> Mapper:
+    """A new Mapper holding map-file ``arrays`` (as ``read_map_arrays`` or ``map_arrays``
+    give them; not checked again); ``path`` names them in errors; ``overrides`` replace
+    stored constructor settings."""
     from mfp_mapper.core.mapper import Mapper
 
-    arrays = _read_arrays(Path(path))
     settings: dict[str, object] = {
         "resolution": float(arrays["resolution"]),
         "decay_time": float(arrays["decay_time"]),
