@@ -333,11 +333,19 @@ class Mapper:
         write_map(path, self)
 
     @classmethod
-    def load(cls, path: str | Path, **overrides: object) -> Mapper:
-        """Read a map written by ``save``; keyword arguments override stored settings."""
-        from mfp_mapper.core.mapfile import read_map
+    def load(
+        cls,
+        path: str | Path,
+        bounds: tuple[ArrayLike, ArrayLike] | None = None,
+        **overrides: object,
+    ) -> Mapper:
+        """Read a map written by ``save``, or a tiled map (a directory: ``core.tiles``);
+        with ``bounds`` = (lower, upper) corners in metres, only the voxels whose centres
+        lie inside (of a tiled map, only the tiles reaching into them are read). Keyword
+        arguments override stored settings."""
+        from mfp_mapper.core.tiles import load_map
 
-        return read_map(path, **overrides)
+        return load_map(path, bounds, **overrides)
 
     def _assign(self, voxels: VoxelArrays) -> None:
         """Replace the statistics of the given voxels (used when loading a map)."""

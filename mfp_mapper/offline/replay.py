@@ -51,6 +51,10 @@ class ReplayError(RuntimeError):
     """The bag cannot be replayed (unreadable, missing topic, no poses...): says why."""
 
 
+class NothingMapped(ReplayError):
+    """The bag was read, but no cloud (in the ``start``/``end`` window) could be mapped."""
+
+
 @dataclass
 class ReplayOptions:
     """What to read and how to map it. ``None`` topics are detected in the bag."""
@@ -76,6 +80,10 @@ class ReplayOptions:
     point_cloud_min_z: float = -NO_LIMIT_Z
     point_cloud_max_z: float = NO_LIMIT_Z
     max_scans: int | None = None
+    start: float | None = None
+    """Map only clouds whose header stamp (absolute seconds) is >= start..."""
+    end: float | None = None
+    """...and < end: windows [start, end) that share bounds split a bag without overlap."""
 
 
 # --- configuration from the node's YAML ------------------------------------------------------
@@ -646,14 +654,19 @@ def _replay(
         for done, (conn, _, raw) in enumerate(reader.messages(connections=cloud_conns), 1):
             if opts.max_scans is not None and done > opts.max_scans:
                 break
+            stamp = math.nan
             try:
                 msg = reader.deserialize(raw, conn.msgtype)
+                stamp = stamp_seconds(msg.header.stamp)
+                if not _in_window(stamp, opts):
+                    continue
                 cloud = parse_pointcloud2(msg)
             except Exception as err:  # a damaged message (CloudFormatError or worse): skip, count
-                skipped["bad_cloud"] += 1
+                # counted by its window; one whose stamp is unreadable, by the first window
+                if opts.start is None or not math.isnan(stamp):
+                    skipped["bad_cloud"] += 1
                 bad_example = bad_example or f"{type(err).__name__}: {err}"
                 continue
-            stamp = stamp_seconds(msg.header.stamp)
             cloud_span[0], cloud_span[1] = min(cloud_span[0], stamp), max(cloud_span[1], stamp)
             frame = _frame(msg.header.frame_id)
             if frame not in extrinsics:
@@ -695,7 +708,7 @@ def _replay(
     summary.memory_bytes = mapper.memory_bytes
     summary.seconds = time.perf_counter() - t_loop
     if summary.scans_used == 0:
-        raise ReplayError(_nothing_mapped(summary, poses, bad_example, cloud_span))
+        raise NothingMapped(_nothing_mapped(summary, poses, bad_example, cloud_span, opts))
     if skipped and log is not None:
         log(
             f"warning: {sum(skipped.values())} of {summary.scans_total} scans skipped "
@@ -705,11 +718,21 @@ def _replay(
     return ReplayResult(mapper, summary)
 
 
+def _in_window(stamp: float, opts: ReplayOptions) -> bool:
+    return (opts.start is None or stamp >= opts.start) and (opts.end is None or stamp < opts.end)
+
+
 def _nothing_mapped(
-    summary: ReplaySummary, poses: _Poses, bad_example: str, cloud_span: list[float]
+    summary: ReplaySummary,
+    poses: _Poses,
+    bad_example: str,
+    cloud_span: list[float],
+    opts: ReplayOptions,
 ) -> str:
     reasons = _counts(summary.scans_skipped) or "none"
     text = f"no cloud could be mapped ({summary.scans_total} clouds; skipped: {reasons})"
+    if (opts.start is not None or opts.end is not None) and cloud_span[0] > cloud_span[1]:
+        text += f"; no cloud stamp lies in the window [{opts.start}, {opts.end}) s"
     if bad_example:
         text += f"; first bad cloud: {bad_example}"
     if any(k.startswith("no_pose") for k in summary.scans_skipped):

@@ -1,0 +1,137 @@
+"""Where fleet tasks run: in this process, one after the other, or on a Dask cluster.
+
+Dask (``dask``, ``distributed``) is imported here only, when a cluster is asked for: it is a
+dependency of the offline tools, never of the node.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import sys
+import time
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any, TextIO
+
+Outcome = tuple[Any, Any, BaseException | None]
+"""(item, result, error): exactly one of result and error is meaningful."""
+
+
+class SequentialExecutor:
+    """Runs each task here, in order (no Dask needed)."""
+
+    description = "sequential, in this process"
+    workers = 1
+
+    def run(self, fn: Callable[..., Any], items: Sequence[Any], *args: Any) -> Iterator[Outcome]:
+        for item in items:
+            try:
+                yield item, fn(item, *args), None
+            except Exception as err:
+                yield item, None, err
+
+    def close(self) -> None:
+        pass
+
+
+class DaskExecutor:
+    """Runs tasks on a Dask distributed cluster: a new LocalCluster of ``workers`` processes
+    (one thread each), or the cluster whose scheduler listens at ``scheduler``."""
+
+    def __init__(self, workers: int | None = None, scheduler: str | None = None) -> None:
+        try:
+            from distributed import Client, LocalCluster
+        except ImportError as err:  # pragma: no cover - depends on the installation
+            raise RuntimeError(
+                f"Dask is needed for --workers/--scheduler ({err}): pip install dask distributed"
+            ) from None
+        self._cluster: Any = None
+        if scheduler is not None:
+            try:
+                self.client = Client(scheduler, timeout="20s")
+            except OSError as err:
+                raise RuntimeError(
+                    f"cannot reach the Dask scheduler at {scheduler}: {err}"
+                ) from None
+            self.workers = max(1, len(self.client.scheduler_info().get("workers", {})))
+            self.description = f"Dask cluster at {scheduler} ({self.workers} workers)"
+        else:
+            count = max(1, int(workers or 1))
+            self._cluster = LocalCluster(
+                n_workers=count,
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=None,
+                silence_logs=logging.ERROR,
+            )
+            self.client = Client(self._cluster)
+            self.workers = count
+            self.description = f"Dask LocalCluster, {count} worker processes"
+
+    def run(self, fn: Callable[..., Any], items: Sequence[Any], *args: Any) -> Iterator[Outcome]:
+        from distributed import as_completed
+
+        futures = {
+            self.client.submit(fn, item, *args, pure=False, retries=0): item for item in items
+        }
+        try:
+            for future in as_completed(list(futures)):
+                item = futures[future]
+                if future.status == "error":
+                    yield item, None, future.exception()
+                else:
+                    yield item, future.result(), None
+        finally:  # stopped early (a failure): the rest is not wanted
+            self.client.cancel([f for f in futures if not f.done()])
+
+    def close(self) -> None:
+        self.client.close()
+        if self._cluster is not None:
+            self._cluster.close()
+
+
+Executor = SequentialExecutor | DaskExecutor
+
+
+def make_executor(workers: int | None = None, scheduler: str | None = None) -> Executor:
+    """Dask when ``workers`` or ``scheduler`` is given, else this process."""
+    if scheduler is not None or workers is not None:
+        return DaskExecutor(workers, scheduler)
+    return SequentialExecutor()
+
+
+class StageProgress:
+    """One progress line per stage on stderr: done/total tasks, the last one, time left.
+
+    On a terminal it redraws in place; otherwise it prints a line at most every ``interval``
+    seconds (and the last).
+    """
+
+    def __init__(
+        self, stage: str, total: int, enabled: bool = True, stream: TextIO | None = None
+    ) -> None:
+        self.stage, self.total, self.enabled = stage, total, enabled
+        self.stream = stream or sys.stderr
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.interval = 0.2 if self.tty else 5.0
+        self.t0 = time.perf_counter()
+        self.last = -math.inf
+
+    def update(self, done: int, note: str = "") -> None:
+        if not self.enabled:
+            return
+        now = time.perf_counter()
+        if now - self.last < self.interval and done < self.total:
+            return
+        self.last = now
+        elapsed = now - self.t0
+        left = elapsed / done * (self.total - done) if done else math.nan
+        text = (
+            f"{self.stage} {done}/{self.total} tasks  elapsed {elapsed:.0f} s"
+            + (f"  left {left:.0f} s" if math.isfinite(left) else "")
+            + (f"  ({note})" if note else "")
+        )
+        self.stream.write(("\r" + text + "\033[K") if self.tty else text + "\n")
+        if self.tty and done >= self.total:
+            self.stream.write("\n")
+        self.stream.flush()
