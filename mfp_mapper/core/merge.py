@@ -71,20 +71,17 @@ def merge_voxels(parts: Sequence[VoxelArrays], decay_time: float) -> VoxelArrays
     if not parts:
         return VoxelArrays(np.zeros((0, 3), np.int32), np.zeros(0), np.zeros(0), np.zeros(0))
     ijk = np.concatenate([p.ijk for p in parts]).astype(np.int64, copy=False)
-    s = np.concatenate([p.s for p in parts]).astype(np.float64, copy=False)
-    n = np.concatenate([p.n for p in parts]).astype(np.float64, copy=False)
-    t = np.concatenate([p.t_last for p in parts]).astype(np.float64, copy=False)
     order, block_key, voxel_key = _sorted_keys(ijk)
-    s, n, t, ijk = s[order], n[order], t[order], ijk[order]
+    s, n, t = (np.concatenate([getattr(p, k) for p in parts])[order] for k in ("s", "n", "t_last"))
     block_start = _starts(block_key)
     t_block = np.maximum.reduceat(t, block_start)
     t_common = np.repeat(t_block, np.diff(np.append(block_start, t.shape[0])))
     if math.isfinite(decay_time):
-        scale = np.exp(-(t_common - t) / decay_time)
+        scale = np.exp((t - t_common) / decay_time)
         s, n = s * scale, n * scale
     voxel_start = _starts(voxel_key)
     return VoxelArrays(
-        ijk[voxel_start].astype(np.int32),
+        ijk[order[voxel_start]].astype(np.int32),
         np.add.reduceat(s, voxel_start),
         np.add.reduceat(n, voxel_start),
         t_common[voxel_start],
@@ -101,7 +98,7 @@ def _starts(sorted_keys: NDArray[np.int64]) -> NDArray[np.intp]:
 
 def _sorted_keys(
     ijk: NDArray[np.int64],
-) -> tuple[NDArray[np.intp], NDArray[np.int64], NDArray[np.int64]]:
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
     """The order that sorts voxels by block, then by place in the block; and, in that order,
     a key per block and a key per voxel (equal keys = same block, same voxel)."""
     blocks = ijk >> BLOCK_BITS
@@ -109,22 +106,28 @@ def _sorted_keys(
     local_key = (local[:, 0] << (2 * BLOCK_BITS)) | (local[:, 1] << BLOCK_BITS) | local[:, 2]
     rel = blocks - blocks.min(axis=0)
     bits = [max(1, int(rel[:, a].max()).bit_length()) for a in range(3)]
-    if sum(bits) + _LOCAL_BITS <= 63:  # one int64 key: one sort
+    key_bits = sum(bits) + _LOCAL_BITS
+    if key_bits <= 63:
         block_key = (rel[:, 0] << (bits[1] + bits[2])) | (rel[:, 1] << bits[2]) | rel[:, 2]
         voxel_key = (block_key << _LOCAL_BITS) | local_key
-        order = np.argsort(voxel_key, kind="stable")
-        voxel_key = voxel_key[order]
+        index_bits = max(1, int(ijk.shape[0] - 1).bit_length())
+        if key_bits + index_bits <= 63:  # the row number rides in the low bits: one np.sort
+            packed = np.sort((voxel_key << index_bits) | np.arange(ijk.shape[0]))
+            order = packed & ((1 << index_bits) - 1)
+            voxel_key = packed >> index_bits
+        else:
+            order = np.argsort(voxel_key)
+            voxel_key = voxel_key[order]
         return order, voxel_key >> _LOCAL_BITS, voxel_key
-    # a map wider than 2^54 blocks in total bits: sort by columns, number the runs
+    # a map too wide for one int64 key: sort by columns, number the runs
     order = np.lexsort((local_key, rel[:, 2], rel[:, 1], rel[:, 0]))
     sorted_blocks = rel[order]
     new_block = np.ones(order.shape[0], dtype=bool)
     new_block[1:] = np.any(sorted_blocks[1:] != sorted_blocks[:-1], axis=1)
-    block_id = np.cumsum(new_block) - 1
     sorted_local = local_key[order]
     new_voxel = new_block.copy()
     new_voxel[1:] |= sorted_local[1:] != sorted_local[:-1]
-    return order, block_id, np.cumsum(new_voxel) - 1
+    return order, np.cumsum(new_block) - 1, np.cumsum(new_voxel) - 1
 
 
 def merge_map_arrays(

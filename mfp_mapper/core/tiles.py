@@ -84,15 +84,17 @@ def split_by_tile(arrays: MapArrays, tile_blocks: int) -> Iterator[tuple[TileKey
     keys = tile_keys(arrays["ijk"], tile_blocks)
     if keys.shape[0] == 0:
         return
-    unique, inverse = np.unique(keys, axis=0, return_inverse=True)
-    order = np.argsort(inverse.ravel(), kind="stable")
-    bounds = np.searchsorted(inverse.ravel()[order], np.arange(unique.shape[0] + 1))
+    rel = keys - keys.min(axis=0)  # tiles span < 2^21 per axis: one int64 key per voxel
+    packed = (rel[:, 0] << 42) | (rel[:, 1] << 21) | rel[:, 2]
+    order = np.argsort(packed, kind="stable")
+    starts = np.flatnonzero(np.diff(packed[order], prepend=-1))
+    ends = np.append(starts[1:], order.shape[0])
     settings = {k: v for k, v in arrays.items() if k not in VOXEL_KEYS}
-    for t in range(unique.shape[0]):
-        pick = order[bounds[t] : bounds[t + 1]]
+    for lo, hi in zip(starts, ends, strict=True):
+        pick = order[lo:hi]
         tile = {k: np.asarray(arrays[k])[pick] for k in VOXEL_KEYS}
-        key = (int(unique[t, 0]), int(unique[t, 1]), int(unique[t, 2]))
-        yield key, {**settings, **tile}
+        x, y, z = (int(v) for v in keys[pick[0]])
+        yield (x, y, z), {**settings, **tile}
 
 
 def new_generation() -> str:
@@ -105,11 +107,11 @@ def tile_file(key: TileKey, generation: str) -> str:
 
 
 def write_tile(
-    directory: str | Path, key: TileKey, arrays: MapArrays, generation: str
+    directory: str | Path, key: TileKey, arrays: MapArrays, generation: str, compress: bool = True
 ) -> TileEntry:
     """Write one tile's map file (atomically); the index is written by ``write_index``."""
     name = tile_file(key, generation)
-    write_map_arrays(Path(directory) / name, arrays)
+    write_map_arrays(Path(directory) / name, arrays, compress)
     t = np.asarray(arrays["t_last"])
     return TileEntry(key, name, int(t.shape[0]), float(t.max()) if t.size else -math.inf)
 
@@ -149,9 +151,13 @@ def write_index(
 
 
 def write_tiled(
-    directory: str | Path, arrays: MapArrays, tile_blocks: int = DEFAULT_TILE_BLOCKS
+    directory: str | Path,
+    arrays: MapArrays,
+    tile_blocks: int = DEFAULT_TILE_BLOCKS,
+    compress: bool = True,
 ) -> list[TileEntry]:
-    """Write map-file ``arrays`` as a tiled map in ``directory``."""
+    """Write map-file ``arrays`` as a tiled map in ``directory`` (``compress=False``:
+    stored, not deflated, for scratch maps read back soon)."""
     if tile_blocks < 1:
         raise ValueError(f"tile_blocks must be >= 1, got {tile_blocks}")
     root = Path(directory)
@@ -159,7 +165,9 @@ def write_tiled(
         raise MapFileError(root, "exists and is not a directory")
     (root / TILE_DIR).mkdir(parents=True, exist_ok=True)
     generation = new_generation()
-    entries = [write_tile(root, k, a, generation) for k, a in split_by_tile(arrays, tile_blocks)]
+    entries = [
+        write_tile(root, k, a, generation, compress) for k, a in split_by_tile(arrays, tile_blocks)
+    ]
     write_index(root, arrays, tile_blocks, entries)
     return entries
 

@@ -30,6 +30,9 @@ class SequentialExecutor:
             except Exception as err:
                 yield item, None, err
 
+    def warm_up(self) -> None:
+        pass
+
     def close(self) -> None:
         pass
 
@@ -68,6 +71,10 @@ class DaskExecutor:
             self.workers = count
             self.description = f"Dask LocalCluster, {count} worker processes"
 
+    def warm_up(self) -> None:
+        """Load the core's compiled kernels in every worker now, all at once."""
+        self.client.run(warm_up_worker)
+
     def run(self, fn: Callable[..., Any], items: Sequence[Any], *args: Any) -> Iterator[Outcome]:
         from distributed import as_completed
 
@@ -91,6 +98,18 @@ class DaskExecutor:
 
 
 Executor = SequentialExecutor | DaskExecutor
+
+
+def warm_up_worker() -> None:
+    """Import the replay and run the core once on a few rays (numba loads its kernels)."""
+    import numpy as np
+
+    from mfp_mapper.core.mapper import Mapper
+    from mfp_mapper.offline import replay  # noqa: F401  (the task's imports)
+
+    mapper = Mapper(0.5)
+    mapper.integrate(np.array([[2.0, 0.5, 0.3]]), np.zeros(3), 0.0)
+    mapper.voxels()
 
 
 def make_executor(workers: int | None = None, scheduler: str | None = None) -> Executor:

@@ -53,6 +53,9 @@ from mfp_mapper.offline.replay import (
     resolve_bag_path,
 )
 
+SCRATCH_MERGED = "merged"
+"""The work folder's tiled map that a ``.npz`` output is assembled from."""
+
 
 class FleetError(RuntimeError):
     """The fleet run failed: names the recording and why; no map was written."""
@@ -119,6 +122,8 @@ class FleetResult:
     skipped: dict[str, str] = field(default_factory=dict)
     voxels: int = 0
     tiles: int = 0
+    seconds_start: float = 0.0
+    """Planning, starting the cluster and loading the kernels in its workers."""
     seconds_replay: float = 0.0
     seconds_reduce: float = 0.0
     seconds_write: float = 0.0
@@ -143,7 +148,8 @@ class FleetResult:
                if skipped else ""),
             f"rays         {sum(s.rays_used for s in sums):,}",
             f"map          {self.output} ({self.voxels:,} voxels in {self.tiles} tiles)",
-            f"time         {self.seconds:.2f} s: replay {self.seconds_replay:.2f} s "
+            f"time         {self.seconds:.2f} s: start {self.seconds_start:.2f} s, "
+            f"replay {self.seconds_replay:.2f} s "
             f"({task_seconds:.2f} s of tasks), reduce {self.seconds_reduce:.2f} s, "
             f"write {self.seconds_write:.2f} s",
         ]  # fmt: skip
@@ -205,7 +211,7 @@ def replay_task(task: Task, opts: ReplayOptions, work_dir: str, tile_blocks: int
         return TaskResult(task, None, [], None, note=str(err), seconds=time.perf_counter() - t0)
     try:
         partial = Path(work_dir) / "partials" / f"task{task.index:05d}"
-        entries = write_tiled(partial, map_arrays(result.mapper), tile_blocks)
+        entries = write_tiled(partial, map_arrays(result.mapper), tile_blocks, compress=False)
     finally:
         result.mapper.close()
     return TaskResult(
@@ -219,11 +225,15 @@ def replay_task(task: Task, opts: ReplayOptions, work_dir: str, tile_blocks: int
 
 
 def reduce_task(
-    keys: Sequence[TileKey], partials: Sequence[str], out_dir: str, generation: str
+    keys: Sequence[TileKey],
+    partials: Sequence[str],
+    out_dir: str,
+    generation: str,
+    compress: bool = True,
 ) -> list[TileEntry]:
     """Merge tiles ``keys`` of the partial maps and write them into ``out_dir``."""
     tiled = [TiledMap(p) for p in partials]
-    return [write_tile(out_dir, key, merge_tile(tiled, key), generation) for key in keys]
+    return [write_tile(out_dir, k, merge_tile(tiled, k), generation, compress) for k in keys]
 
 
 # --- the run ------------------------------------------------------------------------------
@@ -258,15 +268,17 @@ def map_fleet(
     executor = make_executor(fleet.workers, fleet.scheduler)
     result = FleetResult(out, executor.description, skipped=dict(failed))
     try:
+        executor.warm_up()
+        result.seconds_start = time.perf_counter() - t0
         results = _replay_all(executor, tasks, opts, fleet, str(work), result.skipped)
         result.tasks = sorted(results, key=lambda r: r.task.index)
-        result.seconds_replay = time.perf_counter() - t0
+        result.seconds_replay = time.perf_counter() - t0 - result.seconds_start
         partials = [r for r in result.tasks if r.partial is not None]
         if not partials:
             raise FleetError("no cloud could be mapped from any recording (no map written)")
         _check_same_settings(partials)
         t1 = time.perf_counter()
-        tiled_out = out if out.suffix != ".npz" else work / "merged"
+        tiled_out = out if out.suffix != ".npz" else work / SCRATCH_MERGED
         generation = new_generation()
         entries = _reduce_all(executor, partials, tiled_out, generation, fleet)
         result.seconds_reduce = time.perf_counter() - t1
@@ -362,7 +374,8 @@ def _reduce_all(
     jobs = [(group, sorted({p for k in group for p in holders[k]})) for group in groups if group]
     progress = StageProgress("reduce", len(jobs), fleet.progress)
     entries: list[TileEntry] = []
-    runs = executor.run(_reduce_job, jobs, str(out_dir), generation)
+    compress = out_dir.name != SCRATCH_MERGED  # a map file is written from scratch tiles
+    runs = executor.run(_reduce_job, jobs, str(out_dir), generation, compress)
     for done, (_, outcome, error) in enumerate(runs, 1):
         if error is not None:
             raise FleetError(f"merging the partial maps failed: {error} (no map written)")
@@ -372,10 +385,10 @@ def _reduce_all(
 
 
 def _reduce_job(
-    job: tuple[list[TileKey], list[str]], out_dir: str, generation: str
+    job: tuple[list[TileKey], list[str]], out_dir: str, generation: str, compress: bool
 ) -> list[TileEntry]:
     keys, partials = job
-    return reduce_task(keys, partials, out_dir, generation)
+    return reduce_task(keys, partials, out_dir, generation, compress)
 
 
 def default_workers() -> int:
