@@ -57,25 +57,25 @@ def bench_fleet(args: argparse.Namespace, root: Path) -> dict[str, Any]:
     replay(bags[0], replace(opts, max_scans=2), progress=False)  # compile/load the kernels
     out: dict[str, Any] = {"recordings": len(bags), "scans_each": args.scans}
 
-    t0 = time.perf_counter()
-    rays = 0
-    for bag in bags:
-        result = replay(bag, opts, progress=False)
-        rays += result.summary.rays_used
-        result.mapper.close()
-    out["baseline_s"] = time.perf_counter() - t0
-    out["rays"] = rays
-
-    runs: dict[str, Any] = {}
     fleet = FleetOptions(chunk_seconds=args.chunk_seconds, progress=False)
-    t0 = time.perf_counter()
-    seq = map_fleet(bags, root / "seq.npz", opts, fleet)
-    runs["sequential"] = _run_figures(seq, time.perf_counter() - t0)
-    for workers in args.workers:
+    modes = [("sequential", None)] + [(f"dask_{w}", w) for w in args.workers]
+    runs: dict[str, Any] = {}
+    baseline = math.inf
+    for _ in range(args.repeat):  # rounds interleave the modes; the best of each is kept
         t0 = time.perf_counter()
-        res = map_fleet(bags, root / f"w{workers}.npz", opts, replace(fleet, workers=workers))
-        runs[f"dask_{workers}"] = _run_figures(res, time.perf_counter() - t0)
-    out["runs"] = runs
+        rays = 0
+        for bag in bags:
+            result = replay(bag, opts, progress=False)
+            rays += result.summary.rays_used
+            result.mapper.close()
+        baseline = min(baseline, time.perf_counter() - t0)
+        for name, workers in modes:
+            t0 = time.perf_counter()
+            res = map_fleet(bags, root / f"{name}.npz", opts, replace(fleet, workers=workers))
+            figures = _run_figures(res, time.perf_counter() - t0)
+            if name not in runs or figures["seconds"] < runs[name]["seconds"]:
+                runs[name] = figures
+    out.update(baseline_s=baseline, rays=rays, runs=runs, repeat=args.repeat)
     base, seq_s = out["baseline_s"], runs["sequential"]["seconds"]
     for name, r in runs.items():
         r["speedup_vs_baseline"] = base / r["seconds"]
@@ -192,6 +192,7 @@ def main() -> None:
     parser.add_argument("--max-range", type=float, default=30.0)
     parser.add_argument("--chunk-seconds", type=float, default=None)
     parser.add_argument("--workers", type=int, nargs="*", default=[1, 2])
+    parser.add_argument("--repeat", type=int, default=1, help="rounds; the best of each")
     parser.add_argument("--merge-voxels", type=int, default=10_000_000)
     parser.add_argument("--skip-fleet", action="store_true", help="part 2 only")
     parser.add_argument("--json", help="write the figures here")
