@@ -262,6 +262,8 @@ def map_fleet(
             "max_voxels evicts blocks during a replay: partial maps would not add up to the "
             "map of all scans; leave it unset to map several recordings or windows"
         )
+    if opts.max_scans is not None and len(tasks) > 1:
+        raise FleetError("max_scans counts the clouds of one replay: use it with one recording")
     _fail_or_skip(failed, fleet.skip_bad)
     parent = out.parent if str(out.parent) else Path(".")
     work = Path(tempfile.mkdtemp(prefix=".mfp-fleet-", dir=fleet.work_dir or parent))

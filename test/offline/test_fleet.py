@@ -6,7 +6,6 @@ through ``on_scan``) integrated in time order into one Mapper.
 
 from __future__ import annotations
 
-import math
 import subprocess
 import sys
 from dataclasses import replace
@@ -129,11 +128,14 @@ def test_merge_refuses_maps_of_other_settings(bags: list[Path], tmp_path: Path) 
     assert not (tmp_path / "c.npz").exists() and not list(tmp_path.glob(".mfp-merge-*"))
 
 
-def test_a_bad_bag_fails_the_run_or_is_skipped(bags: list[Path], tmp_path: Path) -> None:
+@pytest.mark.parametrize("chunk", [None, CHUNK])
+def test_a_bad_bag_fails_the_run_or_is_skipped(
+    bags: list[Path], tmp_path: Path, chunk: float | None
+) -> None:
     bad = tmp_path / "broken.bag"
     bad.write_bytes(b"#ROSBAG V2.0\n" + b"\x00garbage" * 50)
     out = tmp_path / "fleet.npz"
-    quiet = FleetOptions(progress=False)
+    quiet = FleetOptions(progress=False, chunk_seconds=chunk)
     with pytest.raises(FleetError, match=r"broken\.bag.*no map written"):
         map_fleet([bags[0], bad, bags[2]], out, OPTS, quiet)
     assert not out.exists()
@@ -142,9 +144,35 @@ def test_a_bad_bag_fails_the_run_or_is_skipped(bags: list[Path], tmp_path: Path)
     _assert_same_map(Mapper.load(out), _sequential([bags[0], bags[2]], OPTS))
 
 
+def test_a_recording_with_nothing_mappable_in_any_window_fails(
+    bags: list[Path], tmp_path: Path
+) -> None:
+    no_pose = replace(OPTS, max_gap=1e-4)  # odometry at 50 Hz: every cloud lacks a pose
+    fleet = FleetOptions(progress=False, chunk_seconds=CHUNK)
+    with pytest.raises(FleetError, match=r"robot1.*no cloud could be mapped"):
+        map_fleet([bags[1]], tmp_path / "m.npz", no_pose, fleet)
+    assert not (tmp_path / "m.npz").exists()
+
+
+def test_progress_lines_name_the_stage_and_the_task(bags: list[Path], tmp_path: Path) -> None:
+    import io
+
+    from mfp_mapper.offline.executors import StageProgress
+
+    stream = io.StringIO()
+    progress = StageProgress("replay", 3, stream=stream)
+    progress.update(1, "robot0")
+    progress.update(3, "robot2")
+    lines = stream.getvalue().splitlines()
+    assert lines[0].startswith("replay 1/3 tasks") and "(robot0)" in lines[0]
+    assert lines[-1].startswith("replay 3/3 tasks") and "(robot2)" in lines[-1]
+
+
 def test_max_voxels_is_refused_for_several_tasks(bags: list[Path], tmp_path: Path) -> None:
     with pytest.raises(FleetError, match="max_voxels"):
         map_fleet(bags, tmp_path / "m.npz", replace(OPTS, max_voxels=1000), FleetOptions())
+    with pytest.raises(FleetError, match="max_scans"):
+        map_fleet(bags, tmp_path / "m.npz", replace(OPTS, max_scans=3), FleetOptions())
 
 
 def test_the_live_node_never_imports_dask() -> None:
@@ -159,4 +187,3 @@ def test_the_live_node_never_imports_dask() -> None:
     if run.stdout.startswith("skip"):
         pytest.skip(f"rclpy not importable here: {run.stdout.strip()}")
     assert run.returncode == 0, run.stdout + run.stderr
-    assert math.isfinite(0.0)
