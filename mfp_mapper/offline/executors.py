@@ -7,9 +7,7 @@ dependency of the offline tools, never of the node.
 from __future__ import annotations
 
 import logging
-import math
 import sys
-import time
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any, TextIO
 
@@ -129,37 +127,35 @@ def make_executor(workers: int | None = None, scheduler: str | None = None) -> E
 
 
 class StageProgress:
-    """One progress line per stage on stderr: done/total tasks, the last one, time left.
-
-    On a terminal it redraws in place; otherwise it prints a line at most every ``interval``
-    seconds (and the last).
-    """
+    """A progress line per stage on stderr (tqdm): tasks done of all, time elapsed and left,
+    the task that finished last. Redrawn in place on a terminal; elsewhere every 5 s."""
 
     def __init__(
         self, stage: str, total: int, enabled: bool = True, stream: TextIO | None = None
     ) -> None:
-        self.stage, self.total, self.enabled = stage, total, enabled
-        self.stream = stream or sys.stderr
-        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
-        self.interval = 0.2 if self.tty else 5.0
-        self.t0 = time.perf_counter()
-        self.last = -math.inf
+        from tqdm import tqdm
+
+        stream = stream or sys.stderr
+        tty = bool(getattr(stream, "isatty", lambda: False)())
+        self._bar: Any = tqdm(
+            total=max(total, 0),
+            file=stream,
+            disable=not enabled,
+            mininterval=0.2 if tty else 5.0,
+            desc=stage,
+            dynamic_ncols=tty,
+            bar_format="{desc} {n_fmt}/{total_fmt} tasks  elapsed {elapsed}  left {remaining}"
+            "  {postfix}",
+        )
 
     def update(self, done: int, note: str = "") -> None:
-        if not self.enabled:
+        """``done`` tasks so far; ``note`` names the last one."""
+        if self._bar.disable:
             return
-        now = time.perf_counter()
-        if now - self.last < self.interval and done < self.total:
-            return
-        self.last = now
-        elapsed = now - self.t0
-        left = elapsed / done * (self.total - done) if done else math.nan
-        text = (
-            f"{self.stage} {done}/{self.total} tasks  elapsed {elapsed:.0f} s"
-            + (f"  left {left:.0f} s" if math.isfinite(left) else "")
-            + (f"  ({note})" if note else "")
-        )
-        self.stream.write(("\r" + text + "\033[K") if self.tty else text + "\n")
-        if self.tty and done >= self.total:
-            self.stream.write("\n")
-        self.stream.flush()
+        self._bar.set_postfix_str(f"({note})" if note else "", refresh=False)
+        self._bar.update(done - self._bar.n)
+        if done >= self._bar.total:
+            self._bar.close()
+
+    def close(self) -> None:
+        self._bar.close()

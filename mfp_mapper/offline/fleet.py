@@ -43,15 +43,9 @@ from mfp_mapper.core.tiles import (
     write_tile,
     write_tiled,
 )
+from mfp_mapper.offline.bags import ReplayError, open_reader, resolve_bag_path
 from mfp_mapper.offline.executors import Executor, StageProgress, make_executor
-from mfp_mapper.offline.replay import (
-    NothingMapped,
-    ReplayOptions,
-    ReplaySummary,
-    open_reader,
-    replay,
-    resolve_bag_path,
-)
+from mfp_mapper.offline.replay import NothingMapped, ReplayOptions, ReplaySummary, replay
 
 SCRATCH_MERGED = "merged"
 """The work folder's tiled map that a ``.npz`` output is assembled from."""
@@ -282,7 +276,9 @@ def map_fleet(
         t1 = time.perf_counter()
         tiled_out = out if out.suffix != ".npz" else work / SCRATCH_MERGED
         generation = new_generation()
-        entries = _reduce_all(executor, partials, tiled_out, generation, fleet)
+        entries = _reduce_all(
+            executor, partials, tiled_out, generation, fleet, compress=tiled_out == out
+        )
         result.seconds_reduce = time.perf_counter() - t1
         t2 = time.perf_counter()
         settings = TiledMap(partials[0].partial).settings()  # type: ignore[arg-type]
@@ -327,26 +323,23 @@ def _replay_all(
     progress = StageProgress("replay", len(tasks), fleet.progress)
     results: list[TaskResult] = []
     runs = executor.run(replay_task, tasks, opts, work, fleet.tile_blocks)
-    for done, (task, outcome, error) in enumerate(runs, 1):
-        if error is not None:
-            why = str(error) if _is_replay_error(error) else f"{type(error).__name__}: {error}"
-            skipped.setdefault(task.recording, why)
-            _fail_or_skip({task.label: why}, fleet.skip_bad)
-        else:
-            results.append(outcome)
-        progress.update(done, task.label)
+    try:
+        for done, (task, outcome, error) in enumerate(runs, 1):
+            if error is not None:
+                why = str(error) if isinstance(error, ReplayError) else f"{error!r}"
+                skipped.setdefault(task.recording, why)
+                _fail_or_skip({task.label: why}, fleet.skip_bad)
+            else:
+                results.append(outcome)
+            progress.update(done, task.label)
+    finally:
+        progress.close()
     mapped = {r.task.recording for r in results if r.partial is not None}
     for r in results:  # every window of a recording empty: nothing of it could be mapped
         if r.task.recording not in mapped and r.task.recording not in skipped:
             skipped[r.task.recording] = r.note
             _fail_or_skip({r.task.recording: r.note}, fleet.skip_bad)
     return [r for r in results if r.task.recording not in skipped]
-
-
-def _is_replay_error(error: BaseException) -> bool:
-    from mfp_mapper.offline.replay import ReplayError
-
-    return isinstance(error, ReplayError)
 
 
 def _check_same_settings(partials: list[TaskResult]) -> None:
@@ -363,8 +356,10 @@ def _reduce_all(
     out_dir: Path,
     generation: str,
     fleet: FleetOptions,
+    compress: bool,
 ) -> list[TileEntry]:
-    """The shuffle: tiles grouped into about 4 reduce tasks per worker."""
+    """The shuffle: tiles grouped into about 4 reduce tasks per worker; ``compress``: the
+    tiles are the output (deflated), not scratch for a map file (stored)."""
     holders: dict[TileKey, list[str]] = {}
     for r in partials:
         for key in r.tiles:
@@ -376,13 +371,15 @@ def _reduce_all(
     jobs = [(group, sorted({p for k in group for p in holders[k]})) for group in groups if group]
     progress = StageProgress("reduce", len(jobs), fleet.progress)
     entries: list[TileEntry] = []
-    compress = out_dir.name != SCRATCH_MERGED  # a map file is written from scratch tiles
     runs = executor.run(_reduce_job, jobs, str(out_dir), generation, compress)
-    for done, (_, outcome, error) in enumerate(runs, 1):
-        if error is not None:
-            raise FleetError(f"merging the partial maps failed: {error} (no map written)")
-        entries.extend(outcome)
-        progress.update(done)
+    try:
+        for done, (_, outcome, error) in enumerate(runs, 1):
+            if error is not None:
+                raise FleetError(f"merging the partial maps failed: {error!r} (no map written)")
+            entries.extend(outcome)
+            progress.update(done)
+    finally:
+        progress.close()
     return entries
 
 
