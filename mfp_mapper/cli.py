@@ -26,6 +26,9 @@ examples:
   mfp-mapper replay sim_bag -o map.npz --resolution 0.2
   mfp-mapper replay run.bag --cloud-topic /velodyne_points --odom-topic /odom -o map.npz
   mfp-mapper replay ros2_bag --config config/mfp_mapper.yaml -o map.npz
+  mfp-mapper replay day/*.bag -o fleet.npz --workers 4    # several recordings, on Dask
+  mfp-mapper merge a.npz b.npz -o ab.npz              # exact merge of maps
+  mfp-mapper replay day/*.bag -o fleet_tiles/ --chunk-seconds 60   # a tiled map
   mfp-mapper export map.npz -o map.ply --min-doo 0.1
   mfp-mapper render map.npz -o pictures/
   mfp-mapper plot-convergence -o pictures/
@@ -85,8 +88,14 @@ def build_parser() -> argparse.ArgumentParser:
         "child frame), else from --extrinsic or the config. The map is written only when the "
         "whole bag was replayed.",
     )
-    p.add_argument("bag", help="a ROS 1 .bag file or a ROS 2 bag directory")
-    p.add_argument("-o", "--output", required=True, help="the map file to write (.npz)")
+    p.add_argument(
+        "inputs", nargs="+", metavar="INPUT",
+        help="ROS 1 .bag files or ROS 2 bag directories (several: mapped into one map)",
+    )  # fmt: skip
+    p.add_argument(
+        "-o", "--output", required=True,
+        help="the map to write: NAME.npz, or a directory for a tiled map (docs/TILES.md)",
+    )  # fmt: skip
     p.add_argument("--cloud-topic", help="sensor_msgs/PointCloud2 topic (default: detected)")
     p.add_argument("--odom-topic", help="nav_msgs/Odometry topic (default: detected)")
     p.add_argument("--tf", action="store_true", help="poses from /tf even if there is odometry")
@@ -106,6 +115,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-scans", type=_nonneg_int, help="stop after this many clouds")
     p.add_argument("--summary-json", help="also write the summary as JSON here")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    _fleet_arguments(p)
+
+    p = sub.add_parser(
+        "merge",
+        help="merge maps exactly (.npz files or tiled maps) into one",
+        description="Per-voxel sums, decay brought to a common time (docs/FLEET.md). Maps of "
+        "other resolutions, frames, decay times are refused. OUTPUT: NAME.npz, or a "
+        "directory for a tiled map.",
+    )
+    p.add_argument("inputs", nargs="+", metavar="MAP", help="map files (.npz) or tiled maps")
+    p.add_argument("-o", "--output", required=True, help="the merged map to write")
+    p.add_argument("--tile-blocks", type=_positive_int, default=32, help=TILE_BLOCKS_HELP)
 
     p = sub.add_parser(
         "simulate",
@@ -146,7 +167,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="PLY binary little endian, one vertex per observed voxel: "
         "x y z degree_of_occupancy std mean_free_path n s.",
     )
-    p.add_argument("map", help="map file (.npz)")
+    p.add_argument("map", help="map file (.npz) or tiled map (read tile by tile)")
     p.add_argument("-o", "--output", required=True, help="PLY file to write")
     p.add_argument(
         "--min-doo",
@@ -167,6 +188,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--z-min", type=float, help="bottom of the top-down band (default: ground+0.25)")
     p.add_argument("--z-max", type=float, help="top of the top-down band (default: z-min+2.25)")
     p.add_argument("--slice-y", type=float, help="y of the vertical slice (default: median)")
+    p.add_argument(
+        "--bounds", nargs=6, type=float, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
+        help="draw only this box (m; of a tiled map only its tiles are read)",
+    )  # fmt: skip
 
     p = sub.add_parser(
         "plot-convergence", help="one cell probed repeatedly: DoO vs classic occupancy (Fig. 9)"
@@ -176,7 +201,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--passes", type=_nonneg_int, default=40, help="then rays passing through")
 
     p = sub.add_parser("query", help="statistics of the voxels at points X Y Z ...")
-    p.add_argument("map", help="map file (.npz)")
+    p.add_argument("map", help="map file (.npz) or tiled map (only the tiles needed are read)")
     p.add_argument(
         "coords",
         nargs="+",
@@ -217,26 +242,71 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+TILE_BLOCKS_HELP = "tile edge of a tiled output, in 8x8x8-voxel blocks (default 32)"
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text}")
+    return value
+
+
+def _fleet_arguments(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("several recordings, Dask (docs/FLEET.md)")
+    g.add_argument(
+        "--workers", type=_nonneg_int, metavar="N",
+        help="run on a local Dask cluster of N worker processes (0: one per core)",
+    )  # fmt: skip
+    g.add_argument("--scheduler", metavar="ADDRESS", help="run on this existing Dask cluster")
+    g.add_argument(
+        "--chunk-seconds", type=_positive, metavar="S",
+        help="also split each recording into windows of S seconds of cloud stamps",
+    )  # fmt: skip
+    g.add_argument(
+        "--skip-bad", action="store_true",
+        help="leave out recordings that fail (listed at the end) instead of stopping",
+    )  # fmt: skip
+    g.add_argument(
+        "--work-dir", help="folder for the partial maps (default: beside the output; every "
+        "worker must see it)",
+    )  # fmt: skip
+    g.add_argument("--tile-blocks", type=_positive_int, default=32, help=TILE_BLOCKS_HELP)
+
+
 # --- commands ---------------------------------------------------------------------------
 
 
-def _load_map(path: str) -> Any:
+def _load_map(path: str, bounds: Any = None, lazy_tiles: bool = False) -> Any:
+    """A Mapper (only ``bounds`` when given); with ``lazy_tiles``, a tiled map is opened as a
+    ``TiledMap`` that reads its tiles when asked."""
     from mfp_mapper.core.mapfile import MapFileError
     from mfp_mapper.core.mapper import Mapper
+    from mfp_mapper.core.tiles import TiledMap
 
     try:
-        return Mapper.load(path)
+        if lazy_tiles and Path(path).is_dir():
+            return TiledMap(path)
+        return Mapper.load(path, bounds=bounds)
     except FileNotFoundError:
         raise CliError(f"{path}: no such map file") from None
     except (MapFileError, OSError, ValueError) as err:
         raise CliError(str(err)) from None
 
 
-def _check_writable(path: Path) -> None:
+def _check_writable(path: Path, tiled_ok: bool = False) -> None:
     parent = path.parent if str(path.parent) else Path(".")
     if not parent.is_dir():
         raise CliError(f"{path}: the folder {parent} does not exist")
-    if path.is_dir():
+    if tiled_ok and path.suffix != ".npz":
+        from mfp_mapper.core.mapfile import MapFileError
+        from mfp_mapper.core.tiles import check_tiled_output
+
+        try:
+            check_tiled_output(path)
+        except MapFileError as err:
+            raise CliError(str(err)) from None
+    elif path.is_dir():
         raise CliError(f"{path} is a directory, expected a file name")
 
 
@@ -275,20 +345,78 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from mfp_mapper.offline.replay import ReplayError, replay
 
     out = Path(args.output)
-    _check_writable(out)
+    _check_writable(out, tiled_ok=True)
+    fleet = any(
+        getattr(args, k) is not None for k in ("workers", "scheduler", "chunk_seconds")
+    ) or (len(args.inputs) > 1)
+    if fleet:
+        return cmd_replay_fleet(args, out)
     try:
         opts = replay_options(args)
-        result = replay(args.bag, opts, progress=not args.quiet, log=_warn)
+        result = replay(args.inputs[0], opts, progress=not args.quiet, log=_warn)
     except ReplayError as err:
         raise CliError(f"{err} (no map written)") from None
     except ValueError as err:  # invalid mapper settings
         raise CliError(f"{err} (no map written)") from None
-    result.mapper.save(out)
+    if out.suffix == ".npz":
+        result.mapper.save(out)
+    else:
+        from mfp_mapper.core.mapfile import map_arrays
+        from mfp_mapper.core.tiles import write_tiled
+
+        write_tiled(out, map_arrays(result.mapper), args.tile_blocks)
     summary = result.summary
     print(summary.format())
     print(f"map          {out} ({result.mapper.num_voxels:,} voxels, {opts.resolution:g} m)")
     if args.summary_json:
         write_text_atomic(args.summary_json, json.dumps(_jsonable(vars(summary)), indent=2) + "\n")
+    return 0
+
+
+def cmd_replay_fleet(args: argparse.Namespace, out: Path) -> int:
+    """Several recordings (or windows, or Dask): ``offline.fleet``."""
+    from mfp_mapper.offline.fleet import FleetOptions, default_workers, map_fleet
+    from mfp_mapper.offline.replay import ReplayError
+
+    workers = default_workers() if args.workers == 0 else args.workers
+    fleet = FleetOptions(
+        workers=workers,
+        scheduler=args.scheduler,
+        chunk_seconds=args.chunk_seconds,
+        skip_bad=args.skip_bad,
+        tile_blocks=args.tile_blocks,
+        work_dir=args.work_dir,
+        progress=not args.quiet,
+    )
+    try:
+        opts = replay_options(args)
+        result = map_fleet(args.inputs, out, opts, fleet, log=_warn)
+    except (ReplayError, RuntimeError, ValueError) as err:  # FleetError, MergeError, Dask
+        text = str(err)
+        raise CliError(text if "no map written" in text else f"{text} (no map written)") from None
+    print(result.format())
+    if args.summary_json:
+        tasks = [
+            {"task": r.task.label, "seconds": r.seconds, **_jsonable(vars(r.summary))}
+            for r in result.tasks
+            if r.summary is not None
+        ]
+        summary = {"output": str(out), "voxels": result.voxels, "tasks": tasks}
+        write_text_atomic(args.summary_json, json.dumps(_jsonable(summary), indent=2) + "\n")
+    return 0
+
+
+def cmd_merge(args: argparse.Namespace) -> int:
+    from mfp_mapper.core.mapfile import MapFileError
+    from mfp_mapper.offline.merge_maps import merge_maps
+
+    out = Path(args.output)
+    _check_writable(out, tiled_ok=True)
+    try:
+        result = merge_maps(args.inputs, out, args.tile_blocks)
+    except (MapFileError, ValueError) as err:  # MergeError is a ValueError
+        raise CliError(f"{err} (nothing written)") from None
+    print(f"merged {result.inputs} maps into {out}: {result.voxels:,} voxels")
     return 0
 
 
@@ -357,12 +485,18 @@ def _print_simulation(result: Any) -> None:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from mfp_mapper.offline.export import export_ply
+    from mfp_mapper.core.mapfile import MapFileError
+    from mfp_mapper.core.tiles import TiledMap
+    from mfp_mapper.offline.export import export_ply, export_ply_tiled
 
-    mapper = _load_map(args.map)
+    mapper = _load_map(args.map, lazy_tiles=True)
     out = Path(args.output)
     _check_writable(out)
-    count = export_ply(mapper, out, args.min_doo, args.min_evidence)
+    export = export_ply_tiled if isinstance(mapper, TiledMap) else export_ply
+    try:
+        count = export(mapper, out, args.min_doo, args.min_evidence)
+    except MapFileError as err:  # a damaged tile
+        raise CliError(f"{err} (nothing written)") from None
     print(f"wrote {out}: {count:,} voxels (x y z degree_of_occupancy std mean_free_path n s)")
     return 0
 
@@ -370,7 +504,8 @@ def cmd_export(args: argparse.Namespace) -> int:
 def cmd_render(args: argparse.Namespace) -> int:
     from mfp_mapper.offline.render import render_map
 
-    mapper = _load_map(args.map)
+    bounds = (args.bounds[:3], args.bounds[3:]) if args.bounds else None
+    mapper = _load_map(args.map, bounds)
     try:
         result = render_map(mapper, args.output, args.z_min, args.z_max, args.slice_y)
     except ValueError as err:
@@ -394,9 +529,14 @@ def cmd_query(args: argparse.Namespace) -> int:
 
     if len(args.coords) % 3:
         raise CliError(f"query needs X Y Z triples, got {len(args.coords)} numbers")
-    mapper = _load_map(args.map)
+    from mfp_mapper.core.mapfile import MapFileError
+
+    mapper = _load_map(args.map, lazy_tiles=True)
     pts = np.asarray(args.coords, dtype=np.float64).reshape(-1, 3)
-    st = mapper.query(pts)
+    try:
+        st = mapper.query(pts)
+    except MapFileError as err:  # a damaged tile
+        raise CliError(str(err)) from None
     lo, hi = model.doo_interval(st.s, st.n, 0.9)
     rows = []
     for k in range(len(st)):
@@ -521,6 +661,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 COMMANDS = {
     "replay": cmd_replay,
+    "merge": cmd_merge,
     "simulate": cmd_simulate,
     "export": cmd_export,
     "render": cmd_render,

@@ -161,8 +161,7 @@ def write_tiled(
     if tile_blocks < 1:
         raise ValueError(f"tile_blocks must be >= 1, got {tile_blocks}")
     root = Path(directory)
-    if root.exists() and not root.is_dir():
-        raise MapFileError(root, "exists and is not a directory")
+    check_tiled_output(root)
     (root / TILE_DIR).mkdir(parents=True, exist_ok=True)
     generation = new_generation()
     entries = [
@@ -174,6 +173,16 @@ def write_tiled(
 
 def is_tiled(path: str | Path) -> bool:
     return (Path(path) / INDEX_NAME).is_file()
+
+
+def check_tiled_output(path: str | Path) -> None:
+    """MapFileError unless a tiled map may be written at ``path``: a new or empty directory,
+    or a tiled map (replaced); never another non-empty directory or a file."""
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise MapFileError(p, "exists and is not a directory (a tiled map is a directory)")
+    if p.is_dir() and any(p.iterdir()) and not is_tiled(p):
+        raise MapFileError(p, f"is a non-empty directory without {INDEX_NAME}: not replaced")
 
 
 class TiledMap:

@@ -36,6 +36,7 @@ from mfp_mapper.core.tiles import (
     TiledMap,
     TileEntry,
     TileKey,
+    check_tiled_output,
     merge_tile,
     new_generation,
     write_index,
@@ -250,6 +251,8 @@ def map_fleet(
     names = [str(Path(r).absolute()) for r in recordings]
     if not names:
         raise FleetError("no recording given")
+    if out.suffix != ".npz":
+        check_tiled_output(out)
     tasks, failed = plan_tasks(names, fleet.chunk_seconds)
     if opts.max_voxels is not None and len(tasks) > 1:
         raise FleetError(

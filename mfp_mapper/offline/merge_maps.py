@@ -21,6 +21,7 @@ from mfp_mapper.core.tiles import (
     DEFAULT_TILE_BLOCKS,
     TILE_DIR,
     TiledMap,
+    check_tiled_output,
     concatenate,
     merge_tile,
     new_generation,
@@ -61,6 +62,8 @@ def merge_maps(
     out = Path(output)
     if not inputs:
         raise ValueError("nothing to merge: no input map")
+    if out.suffix != ".npz":
+        check_tiled_output(out)
     parent = out.parent if str(out.parent) else Path(".")
     parent.mkdir(parents=True, exist_ok=True)
     scratch = Path(tempfile.mkdtemp(prefix=".mfp-merge-", dir=parent))

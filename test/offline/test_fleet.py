@@ -6,6 +6,7 @@ through ``on_scan``) integrated in time order into one Mapper.
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from dataclasses import replace
@@ -201,3 +202,74 @@ def test_the_live_node_never_imports_dask() -> None:
     if run.stdout.startswith("skip"):
         pytest.skip(f"rclpy not importable here: {run.stdout.strip()}")
     assert run.returncode == 0, run.stdout + run.stderr
+
+
+# --- the command line ---------------------------------------------------------------------
+
+FLAGS = ["--resolution", "0.25", "--decay-time", "0.6", "--max-range", "20", "-q"]
+
+
+def test_cli_replay_of_several_bags_on_two_workers(
+    bags: list[Path], reference: dict[str, np.ndarray], tmp_path: Path, capsys
+) -> None:  # type: ignore[no-untyped-def]
+    from mfp_mapper.cli import main
+
+    pytest.importorskip("distributed")
+    out = tmp_path / "fleet.npz"
+    args = ["replay", *map(str, bags), "-o", str(out), "--workers", "2", "--chunk-seconds", "0.35"]
+    assert main([*args, *FLAGS]) == 0
+    assert "3 recordings in 12 tasks" in capsys.readouterr().out
+    _assert_same_map(Mapper.load(out), reference)
+
+
+def test_cli_sequential_replay_merge_and_tiled_outputs(
+    bags: list[Path], reference: dict[str, np.ndarray], tmp_path: Path, capsys
+) -> None:  # type: ignore[no-untyped-def]
+    from mfp_mapper.cli import main
+
+    tiles = tmp_path / "tiles"
+    assert main(["replay", *map(str, bags), "-o", str(tiles), "--tile-blocks", "2", *FLAGS]) == 0
+    _assert_same_map(Mapper.load(tiles), reference)
+    singles = []
+    for i, bag in enumerate(bags):
+        singles.append(str(tmp_path / f"bag{i}.npz"))
+        assert main(["replay", str(bag), "-o", singles[-1], *FLAGS]) == 0
+    assert main(["merge", *singles, "-o", str(tmp_path / "merged.npz")]) == 0
+    _assert_same_map(Mapper.load(tmp_path / "merged.npz"), reference)
+    capsys.readouterr()
+    # export, query and render read the tiled map
+    assert main(["export", str(tiles), "-o", str(tmp_path / "t.ply")]) == 0
+    assert main(["export", str(tmp_path / "merged.npz"), "-o", str(tmp_path / "m.ply")]) == 0
+    assert f"{len(reference['s']):,} voxels" in capsys.readouterr().out
+    assert main(["query", str(tiles), "0", "0", "1", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)[0]["observed"] is True
+    pictures = tmp_path / "pictures"
+    bounds = ["--bounds", "-3", "-3", "-1", "3", "3", "3"]
+    assert main(["render", str(tiles), "-o", str(pictures), *bounds]) == 0
+    assert (pictures / "doo_topdown.png").is_file()
+
+
+def test_cli_errors_name_the_input_and_write_nothing(
+    bags: list[Path], tmp_path: Path, capsys
+) -> None:  # type: ignore[no-untyped-def]
+    from mfp_mapper.cli import main
+
+    bad = tmp_path / "broken.bag"
+    bad.write_bytes(b"#ROSBAG V2.0\n" + b"\x00garbage" * 50)
+    out = tmp_path / "fleet.npz"
+    assert main(["replay", str(bags[0]), str(bad), "-o", str(out), *FLAGS]) == 1
+    err = capsys.readouterr().err
+    assert "broken.bag" in err and "no map written" in err and not out.exists()
+    assert main(["replay", str(bags[0]), str(bad), "-o", str(out), "--skip-bad", *FLAGS]) == 0
+    captured = capsys.readouterr()
+    assert "skipped" in captured.out and "broken.bag" in captured.out and out.exists()
+    other = tmp_path / "other.npz"
+    assert main(["replay", str(bags[1]), "-o", str(other), "--resolution", "0.5", "-q"]) == 0
+    assert main(["merge", str(out), str(other), "-o", str(tmp_path / "m.npz")]) == 1
+    assert "different resolution" in capsys.readouterr().err
+    assert not (tmp_path / "m.npz").exists()
+    (tmp_path / "stuff").mkdir()
+    (tmp_path / "stuff" / "keep.txt").write_text("mine")
+    assert main(["merge", str(out), "-o", str(tmp_path / "stuff")]) == 1
+    assert "not replaced" in capsys.readouterr().err
+    assert (tmp_path / "stuff" / "keep.txt").read_text() == "mine"
