@@ -31,7 +31,7 @@ def _rows(ply: dict[str, np.ndarray]) -> np.ndarray:
 def test_tiled_export_equals_the_export_of_the_map(
     mapper: Mapper, tmp_path: Path, min_doo: float
 ) -> None:
-    write_tiled(tmp_path / "tiles", map_arrays(mapper), tile_blocks=2)
+    write_tiled(tmp_path / "tiles", map_arrays(mapper), tile_blocks=4)
     one = export_ply(mapper, tmp_path / "one.ply", min_doo=min_doo)
     tiled = export_ply_tiled(TiledMap(tmp_path / "tiles"), tmp_path / "tiled.ply", min_doo=min_doo)
     assert one == tiled > 0
@@ -44,7 +44,7 @@ def test_tiled_export_equals_the_export_of_the_map(
 def test_render_of_a_tiled_region(mapper: Mapper, tmp_path: Path) -> None:
     from mfp_mapper.offline.render import render_map
 
-    write_tiled(tmp_path / "tiles", map_arrays(mapper), tile_blocks=2)
+    write_tiled(tmp_path / "tiles", map_arrays(mapper), tile_blocks=4)
     region = Mapper.load(tmp_path / "tiles", bounds=((-5.0, -5.0, -1.0), (5.0, 5.0, 4.0)))
     assert 0 < region.num_voxels < mapper.num_voxels
     result = render_map(region, tmp_path / "pictures")
