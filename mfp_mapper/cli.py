@@ -65,6 +65,7 @@ def _nonneg_int(text: str) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from mfp_mapper.offline.options import add_replay_flags
     from mfp_mapper.offline.simulate import BAG_FORMATS, PRESETS
 
     parser = argparse.ArgumentParser(
@@ -87,23 +88,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("bag", help="a ROS 1 .bag file or a ROS 2 bag directory")
     p.add_argument("-o", "--output", required=True, help="the map file to write (.npz)")
-    p.add_argument("--cloud-topic", help="sensor_msgs/PointCloud2 topic (default: detected)")
-    p.add_argument("--odom-topic", help="nav_msgs/Odometry topic (default: detected)")
-    p.add_argument("--tf", action="store_true", help="poses from /tf even if there is odometry")
-    p.add_argument("--fixed-frame", help="with /tf poses: the map frame (default: odom or root)")
-    p.add_argument("--config", help="the node's parameter YAML (resolution, sensor_model.*...)")
-    p.add_argument("--resolution", type=_positive, help="voxel edge in metres (default 0.1)")
-    p.add_argument("--max-range", type=float, help="cut rays at this range, m (<= 0: none)")
-    p.add_argument("--min-range", type=float, help="drop returns closer than this, m")
-    p.add_argument("--decay-time", type=float, help="decay time constant T, s (<= 0: static)")
-    p.add_argument("--threads", type=int, help="threads of the core (default 1)")
-    p.add_argument(
-        "--extrinsic", nargs=6, type=float, metavar=("X", "Y", "Z", "ROLL", "PITCH", "YAW"),
-        help="lidar pose in the odometry child frame (m, rad); overrides /tf_static",
-    )  # fmt: skip
-    p.add_argument("--no-deskew", action="store_true", help="one pose per cloud")
-    p.add_argument("--max-gap", type=_positive, help="largest pose gap to interpolate, s")
-    p.add_argument("--max-scans", type=_nonneg_int, help="stop after this many clouds")
+    p.add_argument("--config", help="a node parameter file (read as the node reads it)")
+    add_replay_flags(p)  # one flag per setting of the schema that has one
     p.add_argument("--summary-json", help="also write the summary as JSON here")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
 
@@ -241,34 +227,10 @@ def _check_writable(path: Path) -> None:
 
 
 def replay_options(args: argparse.Namespace) -> Any:
-    from mfp_mapper.offline.replay import ReplayOptions, options_from_yaml
-    from mfp_mapper.sensing.poses import Extrinsic
+    """ReplayOptions from the schema defaults, ``--config`` and the flags given."""
+    from mfp_mapper.offline.options import options_from_args
 
-    values: dict[str, Any] = options_from_yaml(args.config) if args.config else {}
-    if args.resolution is not None:
-        values["resolution"] = args.resolution
-    if args.max_range is not None:
-        values["max_range"] = math.inf if args.max_range <= 0 else args.max_range
-    if args.min_range is not None:
-        values["min_range"] = args.min_range
-    if args.decay_time is not None:
-        values["decay_time"] = math.inf if args.decay_time <= 0 else args.decay_time
-    if args.threads is not None:
-        values["threads"] = args.threads
-    if args.extrinsic is not None:
-        values["extrinsic"] = Extrinsic.from_xyz_rpy(args.extrinsic[:3], args.extrinsic[3:])
-    if args.max_gap is not None:
-        values["max_gap"] = args.max_gap
-    values.update(
-        cloud_topic=args.cloud_topic,
-        odom_topic=args.odom_topic,
-        use_tf=args.tf,
-        fixed_frame=args.fixed_frame,
-        max_scans=args.max_scans,
-    )
-    if args.no_deskew:
-        values["deskew"] = False
-    return ReplayOptions(**values)
+    return options_from_args(args)
 
 
 def cmd_replay(args: argparse.Namespace) -> int:

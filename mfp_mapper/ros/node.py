@@ -56,6 +56,7 @@ from std_srvs.srv import Empty, Trigger
 
 from mfp_mapper.core.mapfile import MapFileError, map_arrays, write_map_arrays
 from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.ros.params import declare_parameters
 from mfp_mapper.sensing.pointcloud import (
     CloudFormatError,
     PackedCloud,
@@ -72,7 +73,7 @@ from mfp_mapper.sensing.poses import (
     cloud_to_map,
     z_band,
 )
-from mfp_mapper.settings import SPECS, NodeConfig, declare_parameters
+from mfp_mapper.settings import SPECS, NodeConfig
 
 try:  # optional: not installable from PyPI
     import tf2_ros  # type: ignore[import-not-found]
