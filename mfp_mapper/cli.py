@@ -65,8 +65,8 @@ def _nonneg_int(text: str) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from mfp_mapper.offline.names import BAG_FORMATS, SCENES
     from mfp_mapper.offline.options import add_replay_flags
-    from mfp_mapper.offline.simulate import BAG_FORMATS, PRESETS
 
     parser = argparse.ArgumentParser(
         prog="mfp-mapper",
@@ -108,7 +108,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--scene",
-        choices=PRESETS,
+        choices=SCENES,
         default="demo",
         help="demo: the example hall; small: one cube of medium (tests); open: "
         "small without ceiling (rays escape: shows the bias)",

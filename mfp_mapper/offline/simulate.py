@@ -33,6 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mfp_mapper.core.atomic import write_text_atomic
+from mfp_mapper.offline.names import BAG_FORMATS, SCENES
 from mfp_mapper.offline.scan_pattern import VLP16_ELEVATIONS_DEG, scan_directions
 from mfp_mapper.sensing.pointcloud import FieldSpec, pack_records, point_fields
 from mfp_mapper.sensing.poses import quaternion_to_matrix, rpy_to_quaternion
@@ -41,7 +42,6 @@ FloatArray = NDArray[np.float64]
 
 TRUTH_FORMAT = "mfp_mapper.offline.simulate.truth"
 TRUTH_VERSION = 1
-BAG_FORMATS = ("mcap", "sqlite3", "ros1")
 
 CLOUD_TOPIC = "/velodyne_points"
 ODOM_TOPIC = "/odom"
@@ -286,7 +286,7 @@ def preset(name: str) -> SimulationConfig:
     raise SimulationError(f"unknown scene preset {name!r}: expected demo, small or open")
 
 
-PRESETS = ("demo", "small", "open")
+PRESETS = SCENES
 
 
 @dataclass
