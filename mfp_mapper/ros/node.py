@@ -610,7 +610,7 @@ class MfpMapperNode(Node):
             )
             stamp = self.mapper.last_stamp
         sel = vox
-        if window is not None:
+        if window is not None and robot is not None:
             sel = vox.select(np.sum((vox.centers - robot) ** 2, axis=1) <= radius**2)
         xyz = {a: sel.centers[:, k] for k, a in enumerate("xyz")}
         header_stamp = _stamp_msg(stamp) if stamp is not None else self.get_clock().now().to_msg()

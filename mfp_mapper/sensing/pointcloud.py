@@ -11,7 +11,7 @@ from __future__ import annotations
 import sys
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, Literal, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, DTypeLike, NDArray
@@ -292,7 +292,7 @@ def pack_records(records: NDArray[Any]) -> PackedCloud:
 
 
 def pack_columns(
-    columns: Mapping[str, ArrayLike], dtype: DTypeLike = None, big_endian: bool = False
+    columns: Mapping[str, ArrayLike], dtype: DTypeLike | None = None, big_endian: bool = False
 ) -> PackedCloud:
     """Equal-length columns packed in order, each in ``dtype`` or else its own dtype; a 2-D
     column (N, COUNT) becomes one field of COUNT values (PCD frames)."""
@@ -302,7 +302,7 @@ def pack_columns(
     lengths = {name: a.shape[0] if a.ndim else None for name, a in arrays.items()}
     if len(set(lengths.values())) != 1 or None in lengths.values():
         raise ValueError(f"columns must be of equal length, got {lengths}")
-    order = ">" if big_endian else "<"
+    order: Literal["<", ">"] = ">" if big_endian else "<"
     layout = np.dtype([(n, a.dtype.newbyteorder(order), a.shape[1:]) for n, a in arrays.items()])
     records = np.empty(len(next(iter(arrays.values()))), dtype=layout)
     for name, values in arrays.items():
@@ -310,7 +310,7 @@ def pack_columns(
     return pack_records(records)
 
 
-def pack_cloud(columns: Mapping[str, ArrayLike]) -> PackedCloud:
+def pack_cloud(columns: Mapping[str, Any]) -> PackedCloud:
     """Equal-length 1-D columns as consecutive little-endian float32 fields (map outputs)."""
     if not columns:
         raise ValueError("pack_cloud needs at least one column")
