@@ -136,3 +136,13 @@ def test_unknown_names_are_an_error_and_rclpys_own_are_not() -> None:
     assert cfg == NodeConfig.from_values({})
     with pytest.raises(ValueError, match="unknown parameter.*cloud_topic"):
         check_parameters({"cloud_topic": "/points"})  # a replay setting, not a node parameter
+
+
+def test_node_config_has_one_typed_attribute_per_parameter() -> None:
+    from mfp_mapper.settings import attr_name
+
+    assert [f.name for f in fields(NodeConfig)] == [attr_name(p.name) for p in PARAMS]
+    cfg = NodeConfig.from_values({})
+    for p in PARAMS:
+        value = getattr(cfg, attr_name(p.name))
+        assert isinstance(value, tuple if p.type is list else p.type), p.name
