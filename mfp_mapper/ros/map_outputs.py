@@ -126,7 +126,7 @@ class MapOutputs:
             )
             stamp = worker.mapper.last_stamp
         sel = vox
-        if window is not None:
+        if window is not None and robot is not None:
             sel = vox.select(np.sum((vox.centers - robot) ** 2, axis=1) <= radius**2)
         xyz = {a: sel.centers[:, k] for k, a in enumerate("xyz")}
         header_stamp = self._header_stamp(stamp)

@@ -52,10 +52,11 @@ from mfp_mapper.core.mapfile import MapFileError, map_arrays, write_map_arrays
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.ros.map_outputs import MapOutputs
 from mfp_mapper.ros.messages import cloud_msg
+from mfp_mapper.ros.params import declare_parameters
 from mfp_mapper.sensing.live import LiveIntegrator, LiveSettings, finite_or_none
 from mfp_mapper.sensing.pointcloud import CloudFormatError, pack_cloud, read_xyz
 from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer, odometry_sample
-from mfp_mapper.settings import SPECS, NodeConfig, declare_parameters
+from mfp_mapper.settings import SPECS, NodeConfig
 
 try:  # optional: not installable from PyPI
     import tf2_ros  # type: ignore[import-not-found]
