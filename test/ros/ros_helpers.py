@@ -138,7 +138,7 @@ def cloud_from_columns(
 ) -> Any:
     """A PointCloud2 with one field per column, in the columns' own dtypes (feeder side);
     ``point_step`` overrides the packed one (to build malformed clouds)."""
-    from mfp_mapper.ros.node import cloud_msg
+    from mfp_mapper.ros.messages import cloud_msg
     from mfp_mapper.sensing.pointcloud import pack_columns
 
     packed = pack_columns(columns, big_endian=bigendian)
