@@ -10,6 +10,16 @@ its CLI only; ``both``) and its CLI flag. Everything else derives from ``SETTING
 - ``ReplayOptions`` field defaults and the ``replay`` CLI flags (``mfp_mapper.offline.options``);
 - the checks of a parameter file (``check_parameters``): the node and ``--config`` use them.
 
+Reading a setting: the node reads ``NodeConfig`` attributes (``cfg.resolution``,
+``cfg.sensor_model_max_range``; ``cfg.core(name)`` or ``cfg.max_range``/``cfg.decay`` for the
+core's value, "<= 0 means no limit" applied; ``cfg.mapper_settings()`` for ``Mapper``); the
+replay reads ``ReplayOptions`` fields (``opts.max_range``, already in core units);
+``BY_NAME[name]`` is the entry itself.
+
+Adding a setting: one entry in ``SETTINGS`` (``_node``, ``_both`` or ``_replay``); a node
+parameter also needs its ``NodeConfig`` attribute (name with '.' -> '_'), a replay one its
+``ReplayOptions`` field (``field``), then regenerate the YAML. Tests fail until all agree.
+
 Node parameter names follow octomap_server where a counterpart exists (``resolution``,
 ``frame_id``, ``sensor_model.max_range``, ``point_cloud_min_z``, ``latch``...). This module is
 plain data and imports neither ROS nor numpy.

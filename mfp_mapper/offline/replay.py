@@ -32,6 +32,7 @@ from mfp_mapper.offline.bags import (
     ODOM_TYPE,
     TF_TYPE,
     Poses,
+    ReplayError,
     Transforms,
     extrinsic_for,
     odometry_poses,
@@ -41,16 +42,23 @@ from mfp_mapper.offline.bags import (
     tf_poses,
 )
 from mfp_mapper.offline.options import ConfigError as ConfigError  # re-exported
-from mfp_mapper.offline.options import ReplayError as ReplayError
-from mfp_mapper.offline.options import ReplayOptions as ReplayOptions
-from mfp_mapper.offline.options import options_from_yaml as options_from_yaml
+from mfp_mapper.offline.options import ReplayOptions, options_from_yaml
 from mfp_mapper.offline.progress import Progress
 from mfp_mapper.sensing import pipeline
 from mfp_mapper.sensing.poses import Extrinsic, frame_name
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["Progress", "ReplayError", "ReplayOptions", "ReplayResult", "ReplaySummary", "replay"]
+__all__ = [
+    "ConfigError",
+    "Progress",
+    "ReplayError",
+    "ReplayOptions",
+    "ReplayResult",
+    "ReplaySummary",
+    "options_from_yaml",
+    "replay",
+]
 
 
 # --- summary and progress ---------------------------------------------------------------------

@@ -36,6 +36,7 @@ EXEC_DEPENDS = {
     "python3-numba",
     "python3-matplotlib",
     "python3-yaml",
+    "python3-tqdm",
     "python3-scipy",
 }
 MODULE_KEYS = {  # third-party module imported -> its rosdep key (None: deliberately not listed)
@@ -44,6 +45,7 @@ MODULE_KEYS = {  # third-party module imported -> its rosdep key (None: delibera
     "llvmlite": "python3-numba",  # no key of its own; numba depends on it
     "matplotlib": "python3-matplotlib",
     "yaml": "python3-yaml",
+    "tqdm": "python3-tqdm",
     "scipy": "python3-scipy",
     "tqdm": "python3-tqdm",
     "tf2_ros": "tf2_ros_py",  # the Python module of tf2_ros comes with tf2_ros_py
