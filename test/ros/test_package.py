@@ -47,7 +47,6 @@ MODULE_KEYS = {  # third-party module imported -> its rosdep key (None: delibera
     "yaml": "python3-yaml",
     "tqdm": "python3-tqdm",
     "scipy": "python3-scipy",
-    "tqdm": "python3-tqdm",
     "tf2_ros": "tf2_ros_py",  # the Python module of tf2_ros comes with tf2_ros_py
     "rosbags": None,  # pip only: see the comment in package.xml
     **{
