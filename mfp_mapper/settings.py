@@ -197,6 +197,9 @@ SETTINGS: tuple[Setting, ...] = (
           "~/hit_probability_map.", -NO_LIMIT_Z, NO_LIMIT_Z, dynamic=True),
     _node("hit_probability_map.radius", 0.0, "~/hit_probability_map covers the square of "
           "this half side (m) around the robot. 0: the whole map.", 0.0, 1.0e6, dynamic=True),
+    _node("hit_probability_map.max_cells", 25_000_000, "Most cells ~/hit_probability_map and "
+          "~/projected_map may hold; a larger map is served as the largest square around the "
+          "robot that fits (logged).", 1, 2**31 - 1, dynamic=True),
     # --- map file, health ------------------------------------------------------------------
     _node("map_path", "", "Map file (.npz) for ~/save_map, loaded at start when it exists. "
           "Empty: none."),
@@ -338,6 +341,7 @@ class NodeConfig:
     occupancy_min_z: float
     occupancy_max_z: float
     hit_probability_map_radius: float
+    hit_probability_map_max_cells: int
     map_path: str
     save_on_shutdown: bool
     status_period: float

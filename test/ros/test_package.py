@@ -28,6 +28,7 @@ EXEC_DEPENDS = {
     "nav_msgs",
     "std_msgs",
     "std_srvs",
+    "diagnostic_msgs",
     "tf2_ros_py",
     "launch",
     "launch_ros",
@@ -53,7 +54,7 @@ MODULE_KEYS = {  # third-party module imported -> its rosdep key (None: delibera
         name: name
         for name in (
             "rclpy", "rcl_interfaces", "builtin_interfaces", "sensor_msgs", "nav_msgs",
-            "std_msgs", "std_srvs", "launch", "launch_ros", "ament_index_python",
+            "std_msgs", "std_srvs", "diagnostic_msgs", "launch", "launch_ros", "ament_index_python",
         )
     },
 }  # fmt: skip
