@@ -254,10 +254,11 @@ def map_fleet(
     if out.suffix != ".npz":
         check_tiled_output(out)
     tasks, failed = plan_tasks(names, fleet.chunk_seconds)
-    if opts.max_voxels is not None and len(tasks) > 1:
+    evicting = [k for k in ("max_voxels", "keep_radius") if getattr(opts, k, None) is not None]
+    if evicting and len(tasks) > 1:
         raise FleetError(
-            "max_voxels evicts blocks during a replay: partial maps would not add up to the "
-            "map of all scans; leave it unset to map several recordings or windows"
+            f"{' and '.join(evicting)} evict(s) blocks during a replay: partial maps would not "
+            "add up to the map of all scans; leave it unset to map several recordings or windows"
         )
     if opts.max_scans is not None and len(tasks) > 1:
         raise FleetError("max_scans counts the clouds of one replay: use it with one recording")

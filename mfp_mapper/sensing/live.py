@@ -10,6 +10,7 @@ for the map. Everything is counted under the pipeline's names (``pipeline.DROP_R
 
 from __future__ import annotations
 
+import copy
 import math
 import threading
 import time
@@ -296,11 +297,7 @@ class LiveIntegrator:
     def snapshot(self) -> tuple[LiveCounters, int]:
         """A copy of the counters and the queue length, taken together."""
         with self._cv:
-            c = self.counters
-            copy = LiveCounters(
-                **{k: (Counter(v) if isinstance(v, Counter) else v) for k, v in vars(c).items()}
-            )
-            return copy, len(self._queue)
+            return copy.deepcopy(self.counters), len(self._queue)
 
 
 def finite_or_none(value: float) -> float | None:
