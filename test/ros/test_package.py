@@ -50,6 +50,8 @@ MODULE_KEYS = {  # third-party module imported -> its rosdep key (None: delibera
     "scipy": "python3-scipy",
     "tf2_ros": "tf2_ros_py",  # the Python module of tf2_ros comes with tf2_ros_py
     "rosbags": None,  # pip only: see the comment in package.xml
+    "dask": None,  # offline fleet mapping only (--workers/--scheduler): see package.xml
+    "distributed": None,
     **{
         name: name
         for name in (
