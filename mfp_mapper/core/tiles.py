@@ -259,7 +259,7 @@ class TiledMap:
         keys = sorted(self.tiles)
         if bounds is None:
             return keys
-        lo_i, hi_i = index_bounds(bounds, self.resolution)
+        lo_i, hi_i = index_bounds(bounds, self.resolution, self.origin)
         edge = self.tile_blocks << BLOCK_BITS
         lo_t = np.floor_divide(lo_i, edge)
         hi_t = np.floor_divide(hi_i, edge)
@@ -273,7 +273,7 @@ class TiledMap:
         parts = [self.read_tile(k) for k in self.keys_in(bounds)]
         arrays = concatenate(parts, self.settings())
         if bounds is not None:
-            lo_i, hi_i = index_bounds(bounds, self.resolution)
+            lo_i, hi_i = index_bounds(bounds, self.resolution, self.origin)
             keep = np.all((arrays["ijk"] >= lo_i) & (arrays["ijk"] <= hi_i), axis=1)
             arrays = {**arrays, **{k: arrays[k][keep] for k in VOXEL_KEYS}}
         return mapper_from_arrays(arrays, self.root, **overrides)
@@ -311,13 +311,15 @@ def _from_json(value: float | None) -> float:
 
 
 def index_bounds(
-    bounds: tuple[ArrayLike, ArrayLike], resolution: float
+    bounds: tuple[ArrayLike, ArrayLike], resolution: float, origin: ArrayLike | None = None
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """The voxel index range whose centres lie in ``bounds`` (metres, +-inf allowed), as
-    ``Mapper.voxels(bounds=...)`` reads it."""
+    ``Mapper.voxels(bounds=...)`` reads it; indices relative to ``origin`` (the map file's
+    corner of voxel 0, where the format stores one)."""
     big = float(2**40)
+    corner = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64).ravel()
     with np.errstate(invalid="ignore", over="ignore"):
-        lo_m, hi_m = (np.asarray(b, dtype=np.float64) / resolution - 0.5 for b in bounds)
+        lo_m, hi_m = ((np.asarray(b, dtype=np.float64) - corner) / resolution - 0.5 for b in bounds)
         lo = np.ceil(np.clip(lo_m, -big, big))
         hi = np.floor(np.clip(hi_m, -big, big))
     return lo.astype(np.int64), hi.astype(np.int64)
@@ -362,7 +364,7 @@ def load_map(
         return TiledMap(p).load(bounds, **overrides)
     arrays = read_map_arrays(p)
     if bounds is not None:
-        lo_i, hi_i = index_bounds(bounds, float(arrays["resolution"]))
+        lo_i, hi_i = index_bounds(bounds, float(arrays["resolution"]), arrays.get("origin"))
         keep = np.all((arrays["ijk"] >= lo_i) & (arrays["ijk"] <= hi_i), axis=1)
         arrays = {**arrays, **{k: arrays[k][keep] for k in VOXEL_KEYS}}
     return mapper_from_arrays(arrays, p, **overrides)
