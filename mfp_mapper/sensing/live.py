@@ -151,15 +151,16 @@ class LiveIntegrator:
             return False
         if self.odom_frame is None:
             self.odom_frame, self.odom_child = frame, sample.child_frame_id
-            with self.map_lock:
-                if self.mapper.num_voxels and self.mapper.frame_id != self.map_frame:
-                    self._log(
-                        "map_frame",
-                        f"loaded map is in frame {self.mapper.frame_id!r}, odometry in "
-                        f"{frame!r}: the map is used as if it were in {self.map_frame!r}",
-                        False,
-                    )
-                self.mapper.frame_id = self.map_frame
+            # no map lock here: this runs on the executor, which must never wait for a scan
+            # (a str attribute is replaced atomically; the voxel count only words a warning)
+            if self.mapper.num_voxels and self.mapper.frame_id != self.map_frame:
+                self._log(
+                    "map_frame",
+                    f"loaded map is in frame {self.mapper.frame_id!r}, odometry in "
+                    f"{frame!r}: the map is used as if it were in {self.map_frame!r}",
+                    False,
+                )
+            self.mapper.frame_id = self.map_frame
         self.robot_position = np.asarray(sample.position, dtype=np.float64)
         with self._cv:
             self._cv.notify_all()
