@@ -211,7 +211,7 @@ def _replay(
         else Progress(summary.scans_total, enabled=bool(progress))
     )
     counts = pipeline.ScanCounts()
-    bad_example = ""
+    bad_example = error_example = ""
     cloud_span = [math.inf, -math.inf]
     t_loop = time.perf_counter()
     try:
@@ -221,6 +221,11 @@ def _replay(
             counts.clouds_in += 1
             try:
                 msg = reader.deserialize(raw, conn.msgtype)
+            except Exception as err:  # damaged bytes: not a cloud message at all
+                counts.drop("malformed")
+                bad_example = bad_example or f"{type(err).__name__}: {err}"
+                continue
+            try:
                 stamp = pipeline.scan_stamp(msg)
                 cloud_span = [min(cloud_span[0], stamp), max(cloud_span[1], stamp)]
                 cloud = pipeline.parse_scan(msg)
@@ -242,11 +247,10 @@ def _replay(
                 continue
             except ReplayError:
                 raise
-            except Exception as err:  # a damaged message: skip, count, say what it was
-                counts.drop("malformed")
-                bad_example = bad_example or f"{type(err).__name__}: {err}"
+            except Exception as err:  # unexpected (a bug): counted as the node does, go on
+                counts.drop("error")
+                error_example = error_example or f"{type(err).__name__}: {err}"
                 continue
-            counts.count_points(placed.points_dropped)
             counts.add(placed, result)
             first = summary.first_stamp if summary.first_stamp is not None else stamp
             last = summary.last_stamp if summary.last_stamp is not None else stamp
@@ -257,13 +261,17 @@ def _replay(
         bar.close()
     _fill(summary, counts, mapper)
     summary.seconds = time.perf_counter() - t_loop
+    examples = "".join(
+        f"; first {what}: {text}"
+        for what, text in (("bad cloud", bad_example), ("error", error_example))
+        if text
+    )
     if summary.scans_used == 0:
-        raise ReplayError(_nothing_mapped(summary, poses, bad_example, cloud_span))
+        raise ReplayError(_nothing_mapped(summary, poses, examples, cloud_span))
     if summary.scans_skipped and log is not None:
         log(
             f"warning: {sum(summary.scans_skipped.values())} of {summary.scans_total} scans "
-            f"skipped ({_counts(summary.scans_skipped)})"
-            + (f"; first bad cloud: {bad_example}" if bad_example else "")
+            f"skipped ({_counts(summary.scans_skipped)}){examples}"
         )
     return ReplayResult(mapper, summary)
 
@@ -311,12 +319,11 @@ def _fill(summary: ReplaySummary, counts: pipeline.ScanCounts, mapper: Mapper) -
 
 
 def _nothing_mapped(
-    summary: ReplaySummary, poses: Poses, bad_example: str, cloud_span: list[float]
+    summary: ReplaySummary, poses: Poses, examples: str, cloud_span: list[float]
 ) -> str:
     reasons = _counts(summary.scans_skipped) or "none"
     text = f"no cloud could be mapped ({summary.scans_total} clouds; skipped: {reasons})"
-    if bad_example:
-        text += f"; first bad cloud: {bad_example}"
+    text += examples
     if {"no_poses", "too_new", "too_old", "gap"} & set(summary.scans_skipped):
         text += (
             f". No pose covers the clouds: poses from {poses.source} span "
