@@ -77,11 +77,13 @@ class ReplaySummary:
     deskew: bool = False
     scans_total: int = 0
     scans_used: int = 0
-    scans_skipped: dict[str, int] = field(default_factory=dict)
+    clouds_dropped: dict[str, int] = field(default_factory=dict)
+    """Clouds not integrated, by reason (``sensing.pipeline.DROP_REASONS``, as ``~/status``)."""
     points_in: int = 0
     rays_used: int = 0
     rays_truncated: int = 0
-    dropped: dict[str, int] = field(default_factory=dict)
+    points_dropped: dict[str, int] = field(default_factory=dict)
+    """Points and rays not used, by reason (as ``~/status``)."""
     voxels: int = 0
     memory_bytes: int = 0
     seconds: float = 0.0
@@ -100,8 +102,8 @@ class ReplaySummary:
         return 1.0 - self.seconds_core / self.seconds if self.seconds > 0 else 0.0
 
     def format(self) -> str:
-        skipped = sum(self.scans_skipped.values())
-        dropped = {k: v for k, v in self.dropped.items() if v}
+        n_dropped = sum(self.clouds_dropped.values())
+        dropped = {k: v for k, v in self.points_dropped.items() if v}
         lines = [
             f"bag          {self.bag}",
             f"clouds       {self.cloud_topic} (frame {self.cloud_frame or '?'})",
@@ -109,10 +111,10 @@ class ReplaySummary:
             f"extrinsic    {self.extrinsic_source}",
             f"de-skew      {'yes (per-point time)' if self.deskew else 'no'}",
             f"scans        {self.scans_used} used of {self.scans_total}"
-            + (f"; skipped {skipped}: {_counts(self.scans_skipped)}" if skipped else ""),
+            + (f"; dropped {n_dropped}: {_counts(self.clouds_dropped)}" if n_dropped else ""),
             f"rays         {self.rays_used:,} used of {self.points_in:,} points"
             + (f"; {self.rays_truncated:,} cut at max range" if self.rays_truncated else ""),
-            f"dropped      {_counts(dropped) if dropped else 'none'}",
+            f"points lost  {_counts(dropped) if dropped else 'none'}",
             f"voxels       {self.voxels:,} ({self.memory_bytes / 2**20:.1f} MiB)",
             f"time         {self.seconds:.2f} s, {self.rays_per_second:,.0f} rays/s; "
             f"{100 * self.share_outside_core:.0f}% outside the core "
@@ -268,10 +270,10 @@ def _replay(
     )
     if summary.scans_used == 0:
         raise ReplayError(_nothing_mapped(summary, poses, examples, cloud_span))
-    if summary.scans_skipped and log is not None:
+    if summary.clouds_dropped and log is not None:
         log(
-            f"warning: {sum(summary.scans_skipped.values())} of {summary.scans_total} scans "
-            f"skipped ({_counts(summary.scans_skipped)}){examples}"
+            f"warning: {sum(summary.clouds_dropped.values())} of {summary.scans_total} scans "
+            f"dropped ({_counts(summary.clouds_dropped)}){examples}"
         )
     return ReplayResult(mapper, summary)
 
@@ -309,11 +311,11 @@ def _read_poses(
 
 def _fill(summary: ReplaySummary, counts: pipeline.ScanCounts, mapper: Mapper) -> None:
     summary.scans_used = counts.clouds_integrated
-    summary.scans_skipped = dict(counts.clouds_dropped)
+    summary.clouds_dropped = dict(counts.clouds_dropped)
     summary.points_in = counts.points_in
     summary.rays_used = counts.rays_used
     summary.rays_truncated = counts.rays_truncated
-    summary.dropped = dict(counts.points_dropped)
+    summary.points_dropped = dict(counts.points_dropped)
     summary.voxels = mapper.num_voxels
     summary.memory_bytes = mapper.memory_bytes
 
@@ -321,10 +323,10 @@ def _fill(summary: ReplaySummary, counts: pipeline.ScanCounts, mapper: Mapper) -
 def _nothing_mapped(
     summary: ReplaySummary, poses: Poses, examples: str, cloud_span: list[float]
 ) -> str:
-    reasons = _counts(summary.scans_skipped) or "none"
-    text = f"no cloud could be mapped ({summary.scans_total} clouds; skipped: {reasons})"
+    reasons = _counts(summary.clouds_dropped) or "none"
+    text = f"no cloud could be mapped ({summary.scans_total} clouds; dropped: {reasons})"
     text += examples
-    if {"no_poses", "too_new", "too_old", "gap"} & set(summary.scans_skipped):
+    if {"no_poses", "too_new", "too_old", "gap"} & set(summary.clouds_dropped):
         text += (
             f". No pose covers the clouds: poses from {poses.source} span "
             f"[{poses.buffer.earliest_stamp:.3f}, {poses.buffer.latest_stamp:.3f}] s, "

@@ -142,13 +142,13 @@ def _both(bag: Path) -> tuple[Any, pipeline.ScanCounts]:
 def _assert_same(summary: Any, live: pipeline.ScanCounts, expected: dict[str, int]) -> None:
     expected = dict(expected)
     integrated = expected.pop("integrated")
-    assert summary.scans_skipped == expected
+    assert summary.clouds_dropped == expected
     assert summary.scans_used == integrated
     assert dict(live.clouds_dropped) == expected
     assert live.clouds_integrated == integrated
     assert set(expected) <= set(pipeline.DROP_REASONS)
     assert live.points_in == summary.points_in
-    assert dict(live.points_dropped) == summary.dropped
+    assert dict(live.points_dropped) == summary.points_dropped
     assert live.rays_used == summary.rays_used and live.rays_truncated == summary.rays_truncated
 
 
@@ -160,7 +160,7 @@ def test_replay_and_live_worker_drop_the_same_clouds_for_the_same_reasons(
     _assert_same(summary, live, expected)
     # every point parsing or the band dropped is counted, whatever became of its cloud
     # (5 NaN + 3 zeros in an integrated cloud and again in the gap cloud, 12 NaN, 40 above)
-    assert summary.dropped == {"nonfinite": 22, "zero_range": 6, "z_band": 40}
+    assert summary.points_dropped == {"nonfinite": 22, "zero_range": 6, "z_band": 40}
     assert summary.rays_used == 3 * 40 - 8
 
 
