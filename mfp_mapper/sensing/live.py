@@ -253,14 +253,17 @@ class LiveIntegrator:
         if latest is None or latest < item.deadline:
             if time.monotonic() - item.received <= cfg.odom_wait:
                 return False
+            parse_drops = dict(item.cloud.dropped)
             if latest is None:
                 raise pipeline.ScanDropped(
-                    "no_poses", f"no odometry within odom_wait {cfg.odom_wait} s"
+                    "no_poses", f"no odometry within odom_wait {cfg.odom_wait} s", 0, parse_drops
                 )
             raise pipeline.ScanDropped(
                 "too_new",
                 f"stamp {item.deadline:.3f} not covered by odometry (latest {latest:.3f}) "
                 f"within odom_wait {cfg.odom_wait} s",
+                0,
+                parse_drops,
             )
         extrinsic = self._extrinsic_for(item.msg.header.frame_id)
         with self.pose_lock:  # de-skew from a copy: odometry keeps arriving meanwhile
@@ -273,7 +276,6 @@ class LiveIntegrator:
         latency = self._now() - item.stamp
         with self._cv:
             c = self.counters
-            c.count_points(placed.points_dropped)
             c.add(placed, summary)
             c.latency_last = latency
             c.latency_sum += latency
