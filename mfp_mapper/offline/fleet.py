@@ -131,16 +131,16 @@ class FleetResult:
     def format(self) -> str:
         sums = self.summaries
         recordings = {r.task.recording for r in self.tasks}
-        skipped = Counter[str]()
+        dropped = Counter[str]()
         for s in sums:
-            skipped.update(s.scans_skipped)
+            dropped.update(s.clouds_dropped)
         task_seconds = sum(r.seconds for r in self.tasks)
         lines = [
             f"inputs       {len(recordings)} recordings in {len(self.tasks)} tasks; "
             f"{self.executor}",
             f"scans        {sum(s.scans_used for s in sums):,} used"
-            + (f"; skipped {', '.join(f'{k} {v}' for k, v in sorted(skipped.items()))}"
-               if skipped else ""),
+            + (f"; dropped {', '.join(f'{k} {v}' for k, v in sorted(dropped.items()))}"
+               if dropped else ""),
             f"rays         {sum(s.rays_used for s in sums):,}",
             f"map          {self.output} ({self.voxels:,} voxels in {self.tiles} tiles)",
             f"time         {self.seconds:.2f} s: start {self.seconds_start:.2f} s, "

@@ -82,11 +82,13 @@ class ReplaySummary:
     deskew: bool = False
     scans_total: int = 0
     scans_used: int = 0
-    scans_skipped: dict[str, int] = field(default_factory=dict)
+    clouds_dropped: dict[str, int] = field(default_factory=dict)
+    """Clouds not integrated, by reason (``sensing.pipeline.DROP_REASONS``, as ``~/status``)."""
     points_in: int = 0
     rays_used: int = 0
     rays_truncated: int = 0
-    dropped: dict[str, int] = field(default_factory=dict)
+    points_dropped: dict[str, int] = field(default_factory=dict)
+    """Points and rays not used, by reason (as ``~/status``)."""
     voxels: int = 0
     memory_bytes: int = 0
     seconds: float = 0.0
@@ -105,8 +107,8 @@ class ReplaySummary:
         return 1.0 - self.seconds_core / self.seconds if self.seconds > 0 else 0.0
 
     def format(self) -> str:
-        skipped = sum(self.scans_skipped.values())
-        dropped = {k: v for k, v in self.dropped.items() if v}
+        n_dropped = sum(self.clouds_dropped.values())
+        dropped = {k: v for k, v in self.points_dropped.items() if v}
         lines = [
             f"bag          {self.bag}",
             f"clouds       {self.cloud_topic} (frame {self.cloud_frame or '?'})",
@@ -114,10 +116,10 @@ class ReplaySummary:
             f"extrinsic    {self.extrinsic_source}",
             f"de-skew      {'yes (per-point time)' if self.deskew else 'no'}",
             f"scans        {self.scans_used} used of {self.scans_total}"
-            + (f"; skipped {skipped}: {_counts(self.scans_skipped)}" if skipped else ""),
+            + (f"; dropped {n_dropped}: {_counts(self.clouds_dropped)}" if n_dropped else ""),
             f"rays         {self.rays_used:,} used of {self.points_in:,} points"
             + (f"; {self.rays_truncated:,} cut at max range" if self.rays_truncated else ""),
-            f"dropped      {_counts(dropped) if dropped else 'none'}",
+            f"points lost  {_counts(dropped) if dropped else 'none'}",
             f"voxels       {self.voxels:,} ({self.memory_bytes / 2**20:.1f} MiB)",
             f"time         {self.seconds:.2f} s, {self.rays_per_second:,.0f} rays/s; "
             f"{100 * self.share_outside_core:.0f}% outside the core "
@@ -216,7 +218,7 @@ def _replay(
         else Progress(summary.scans_total, enabled=bool(progress))
     )
     counts = pipeline.ScanCounts()
-    bad_example = ""
+    bad_example = error_example = ""
     cloud_span = [math.inf, -math.inf]
     t_loop = time.perf_counter()
     try:
@@ -226,8 +228,8 @@ def _replay(
             try:
                 msg = reader.deserialize(raw, conn.msgtype)
                 stamp = pipeline.scan_stamp(msg)
-            except Exception as err:  # no stamp: counted by the first window only
-                if opts.start is None:
+            except Exception as err:  # damaged bytes: not a cloud message at all
+                if opts.start is None:  # no stamp: counted by the first window only
                     counts.clouds_in += 1
                     counts.drop("malformed")
                     bad_example = bad_example or f"{type(err).__name__}: {err}"
@@ -256,11 +258,10 @@ def _replay(
                 continue
             except ReplayError:
                 raise
-            except Exception as err:  # a damaged message: skip, count, say what it was
-                counts.drop("malformed")
-                bad_example = bad_example or f"{type(err).__name__}: {err}"
+            except Exception as err:  # unexpected (a bug): counted as the node does, go on
+                counts.drop("error")
+                error_example = error_example or f"{type(err).__name__}: {err}"
                 continue
-            counts.count_points(placed.points_dropped)
             counts.add(placed, result)
             first = summary.first_stamp if summary.first_stamp is not None else stamp
             last = summary.last_stamp if summary.last_stamp is not None else stamp
@@ -271,13 +272,17 @@ def _replay(
         bar.close()
     _fill(summary, counts, mapper)
     summary.seconds = time.perf_counter() - t_loop
+    examples = "".join(
+        f"; first {what}: {text}"
+        for what, text in (("bad cloud", bad_example), ("error", error_example))
+        if text
+    )
     if summary.scans_used == 0:
-        raise NothingMapped(_nothing_mapped(summary, poses, bad_example, cloud_span, opts))
-    if summary.scans_skipped and log is not None:
+        raise NothingMapped(_nothing_mapped(summary, poses, examples, cloud_span, opts))
+    if summary.clouds_dropped and log is not None:
         log(
-            f"warning: {sum(summary.scans_skipped.values())} of {summary.scans_total} scans "
-            f"skipped ({_counts(summary.scans_skipped)})"
-            + (f"; first bad cloud: {bad_example}" if bad_example else "")
+            f"warning: {sum(summary.clouds_dropped.values())} of {summary.scans_total} scans "
+            f"dropped ({_counts(summary.clouds_dropped)}){examples}"
         )
     return ReplayResult(mapper, summary)
 
@@ -315,11 +320,11 @@ def _read_poses(
 
 def _fill(summary: ReplaySummary, counts: pipeline.ScanCounts, mapper: Mapper) -> None:
     summary.scans_used = counts.clouds_integrated
-    summary.scans_skipped = dict(counts.clouds_dropped)
+    summary.clouds_dropped = dict(counts.clouds_dropped)
     summary.points_in = counts.points_in
     summary.rays_used = counts.rays_used
     summary.rays_truncated = counts.rays_truncated
-    summary.dropped = dict(counts.points_dropped)
+    summary.points_dropped = dict(counts.points_dropped)
     summary.voxels = mapper.num_voxels
     summary.memory_bytes = mapper.memory_bytes
 
@@ -331,17 +336,16 @@ def _in_window(stamp: float, opts: ReplayOptions) -> bool:
 def _nothing_mapped(
     summary: ReplaySummary,
     poses: Poses,
-    bad_example: str,
+    examples: str,
     cloud_span: list[float],
     opts: ReplayOptions,
 ) -> str:
-    reasons = _counts(summary.scans_skipped) or "none"
-    text = f"no cloud could be mapped ({summary.scans_total} clouds; skipped: {reasons})"
+    reasons = _counts(summary.clouds_dropped) or "none"
+    text = f"no cloud could be mapped ({summary.scans_total} clouds; dropped: {reasons})"
     if (opts.start is not None or opts.end is not None) and cloud_span[0] > cloud_span[1]:
         text += f"; no cloud stamp lies in the window [{opts.start}, {opts.end}) s"
-    if bad_example:
-        text += f"; first bad cloud: {bad_example}"
-    if {"no_poses", "too_new", "too_old", "gap"} & set(summary.scans_skipped):
+    text += examples
+    if {"no_poses", "too_new", "too_old", "gap"} & set(summary.clouds_dropped):
         text += (
             f". No pose covers the clouds: poses from {poses.source} span "
             f"[{poses.buffer.earliest_stamp:.3f}, {poses.buffer.latest_stamp:.3f}] s, "
