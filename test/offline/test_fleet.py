@@ -117,6 +117,20 @@ def test_two_dask_workers_equal_the_sequential_replay(
     _assert_same_map(Mapper.load(out), reference)
 
 
+def test_an_existing_dask_cluster_by_its_scheduler_address(
+    bags: list[Path], reference: dict[str, np.ndarray], tmp_path: Path
+) -> None:
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(
+        n_workers=1, threads_per_worker=1, dashboard_address=None, processes=True
+    ) as cluster:
+        fleet = FleetOptions(scheduler=cluster.scheduler_address, progress=False)
+        result = map_fleet(bags, tmp_path / "m.npz", OPTS, fleet)
+        assert cluster.scheduler_address in result.executor
+        assert len(cluster.scheduler_info["workers"]) == 1  # the cluster is left running
+    _assert_same_map(Mapper.load(tmp_path / "m.npz"), reference)
+
+
 def test_merge_of_per_bag_maps_equals_the_sequential_replay(
     bags: list[Path], reference: dict[str, np.ndarray], tmp_path: Path
 ) -> None:
