@@ -4,7 +4,6 @@ services while the map is held by a long integration, /diagnostics."""
 
 from __future__ import annotations
 
-import os
 import threading
 import time
 from collections.abc import Iterator
@@ -12,30 +11,11 @@ from typing import Any
 
 import numpy as np
 import pytest
-from ros_helpers import Feeder, domain_id, odom_msg, set_ros_env
+from ros_helpers import Feeder, odom_msg
 
 pytestmark = pytest.mark.ros
 
 T0 = 1_700_000_000.0
-
-
-@pytest.fixture(scope="module")
-def ros_domain() -> Iterator[int]:
-    import rclpy
-
-    domain = domain_id()
-    saved = {k: os.environ.get(k) for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
-    set_ros_env(domain)
-    rclpy.init(domain_id=domain)
-    try:
-        yield domain
-    finally:
-        rclpy.try_shutdown()
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
 
 
 class Spun:
