@@ -17,7 +17,7 @@ import time
 from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -25,6 +25,9 @@ from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.sensing import pipeline
 from mfp_mapper.sensing.pointcloud import ParsedCloud
 from mfp_mapper.sensing.poses import Extrinsic, OdometrySample, PoseBuffer
+
+if TYPE_CHECKING:
+    from mfp_mapper.settings import NodeConfig
 
 Log = Callable[[str, str, bool], None]
 """``log(key, text, error)``: a throttled warning (or error) keyed by ``key``."""
@@ -40,6 +43,18 @@ class LiveSettings:
     point_cloud_max_z: float
     cloud_queue_size: int
     odom_wait: float
+
+    @classmethod
+    def of(cls, cfg: NodeConfig) -> LiveSettings:
+        """What the worker reads of the node's parameters."""
+        return cls(
+            frame_id=cfg.frame_id,
+            deskew=cfg.deskew,
+            point_cloud_min_z=cfg.point_cloud_min_z,
+            point_cloud_max_z=cfg.point_cloud_max_z,
+            cloud_queue_size=cfg.cloud_queue_size,
+            odom_wait=cfg.odom_wait,
+        )
 
 
 @dataclass
