@@ -12,7 +12,9 @@ Layout (chosen for speed and memory, see ANCHORS.md):
   crossing it finds its next voxel in the same line. Each block keeps the time ``t`` its
   statistics refer to. Decay (Eq. 28-30) is uniform scaling, so bringing a whole block to
   the current stamp the first time a scan touches it is exactly the per-voxel lazy decay;
-  a voxel's ``t_last`` is its block's ``t``.
+  a voxel's ``t_last`` is its block's ``t``. A late scan (older than the block) leaves
+  the block and its time alone and adds its data scaled by ``exp(-(t - stamp) / T)``, so
+  the map does not depend on the order in which scans arrive.
 * A voxel is *observed* when ``s > 0`` or ``n > 0``.
 
 Every ray's contribution is summed into the store: sums, never deduplication.
@@ -136,11 +138,15 @@ def open_block(
 ) -> int:
     """The block (bx, by, bz), created if new, ready to take the scan ``scan_id`` at ``stamp``.
 
-    The first time a scan opens a block, the block is decayed to ``stamp`` (when
-    ``decay_time`` is finite). Returns -1 when a new block is needed and there is no room:
+    Order-independent decay (MODEL.md, Eq. 28-30): the first time a scan opens a block,
+    a block older than ``stamp`` is decayed to ``stamp`` and takes its time; a block newer
+    than ``stamp`` (a late scan) keeps its statistics and time, and the scan's
+    contributions to it are scaled by ``exp(-(t_block - stamp) / decay_time)``, the factor
+    left in ``block_scale``. Returns -1 when a new block is needed and there is no room:
     the caller grows the shard and calls again.
     """
-    table_keys, table_blocks, block_ijk, block_sn, block_t, block_scan, _, counters = shard_arrays
+    table_keys, table_blocks, block_ijk, block_sn, block_t, block_scan = shard_arrays[:6]
+    counters, block_scale = shard_arrays[7], shard_arrays[8]
     bkey = block_key(bx, by, bz)
     block = _find(table_keys, table_blocks, bkey)
     if block < 0:
@@ -155,14 +161,21 @@ def open_block(
         block_ijk[block, 2] = bz
         block_t[block] = stamp
         block_scan[block] = scan_id
+        block_scale[block] = 1.0
         counters[2] += 1
     elif block_scan[block] != scan_id:
-        if math.isfinite(decay_time):
-            f = np.float32(math.exp(-abs(stamp - block_t[block]) / decay_time))
-            for i in range(BLOCK_VOXELS):
-                block_sn[block, i, 0] *= f
-                block_sn[block, i, 1] *= f
-        block_t[block] = stamp
+        age = stamp - block_t[block]
+        scale = 1.0
+        if age >= 0.0:
+            if math.isfinite(decay_time) and age > 0.0:
+                f = np.float32(math.exp(-age / decay_time))
+                for i in range(BLOCK_VOXELS):
+                    block_sn[block, i, 0] *= f
+                    block_sn[block, i, 1] *= f
+            block_t[block] = stamp
+        elif math.isfinite(decay_time):
+            scale = math.exp(age / decay_time)  # a late scan: its data is scaled, not the map
+        block_scale[block] = scale
         block_scan[block] = scan_id
         counters[2] += 1
     return block
@@ -362,6 +375,7 @@ ShardArrays = tuple[
     NDArray[np.int64],  # block_scan (B,): last scan that opened the block
     NDArray[np.bool_],  # block_hit (B,): the block holds a return
     NDArray[np.int64],  # counters: blocks used, new voxels, blocks touched, voxel updates
+    NDArray[np.float64],  # block_scale (B,): factor of the current scan's data (late data < 1)
 ]
 """A shard's arrays, as compiled kernels take them."""
 
@@ -391,6 +405,7 @@ class Shard:
         self.block_t: NDArray[np.float64] = np.zeros(0)
         self.block_scan: NDArray[np.int64] = np.zeros(0, dtype=np.int64)
         self.block_hit: NDArray[np.bool_] = np.zeros(0, dtype=np.bool_)
+        self.block_scale: NDArray[np.float64] = np.zeros(0)
         self._high_water = 0  # most blocks ever used: their pages stay resident
         self._resize_index(block_capacity)
 
@@ -401,13 +416,15 @@ class Shard:
         block_t = np.full(capacity, -np.inf)
         block_scan = np.full(capacity, -1, dtype=np.int64)
         block_hit = np.zeros(capacity, dtype=np.bool_)
+        block_scale = np.ones(capacity)
         if used:
             block_ijk[:used] = self.block_ijk[:used]
             block_t[:used] = self.block_t[:used]
             block_scan[:used] = self.block_scan[:used]
             block_hit[:used] = self.block_hit[:used]
+            block_scale[:used] = self.block_scale[:used]
         self.block_ijk, self.block_t, self.block_scan = block_ijk, block_t, block_scan
-        self.block_hit = block_hit
+        self.block_hit, self.block_scale = block_hit, block_scale
         if capacity > self.block_sn.shape[0]:
             reserve = max(capacity, 2 * self.block_sn.shape[0])
             region = _zeros_on_huge_pages((reserve, BLOCK_VOXELS, 2))
@@ -421,7 +438,7 @@ class Shard:
         """The arrays the compiled kernels work on (valid until the shard grows)."""
         return (
             self.table_keys, self.table_blocks, self.block_ijk, self.block_sn, self.block_t,
-            self.block_scan, self.block_hit, self.counters,
+            self.block_scan, self.block_hit, self.counters, self.block_scale,
         )  # fmt: skip
 
     @property
@@ -445,7 +462,10 @@ class Shard:
         used = self.used
         dropped = int(np.count_nonzero((self.block_sn[:used][~keep] > 0).any(axis=-1)))
         kept = int(np.count_nonzero(keep))
-        for arr in (self.block_ijk, self.block_sn, self.block_t, self.block_scan, self.block_hit):
+        for arr in (
+            self.block_ijk, self.block_sn, self.block_t, self.block_scan, self.block_hit,
+            self.block_scale,
+        ):  # fmt: skip
             arr[:kept] = arr[:used][keep]
         self.block_sn[kept:used] = 0.0
         self.block_t[kept:used] = -np.inf
@@ -460,8 +480,8 @@ class Shard:
         """Memory in use: the blocks' statistics up to the most ever held, and the index."""
         self._high_water = max(self._high_water, self.used)
         index = (
-            self.block_ijk, self.block_t, self.block_scan, self.block_hit, self.table_keys,
-            self.table_blocks,
+            self.block_ijk, self.block_t, self.block_scan, self.block_hit, self.block_scale,
+            self.table_keys, self.table_blocks,
         )  # fmt: skip
         return self._high_water * self.block_sn[0].nbytes + sum(a.nbytes for a in index)
 

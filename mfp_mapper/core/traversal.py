@@ -364,7 +364,7 @@ def _walk_rays(
     Before each ray, checks there is room for the blocks and mail it may create; returns
     the index of the first ray not walked (the caller grows and calls again), or N.
     """
-    table_keys, _, _, block_sn, block_t, _, block_hit, counters = shard_arrays
+    table_keys, _, _, block_sn, block_t, _, block_hit, counters, block_scale = shard_arrays
     capacity = min(block_t.shape[0], table_keys.shape[0] // 2)
     # blocks opened in this call, direct-mapped by their low index bits: neighbouring rays
     # cross the same blocks, and this small table stays in cache where the hash does not
@@ -430,6 +430,7 @@ def _walk_rays(
         bx = by = bz = 0
         block = -1
         key = -1
+        scale = 1.0  # the scan's weight in the current block (< 1 for a late scan)
         new_block = True
         while True:
             if new_block:
@@ -452,6 +453,7 @@ def _walk_rays(
                         block = open_block(bx, by, bz, shard_arrays, scan_id, stamp, decay_time)
                         cache_keys[slot] = key
                         cache_blocks[slot] = block
+                    scale = block_scale[block] if block >= 0 else 1.0
             if steps == 0:
                 break
             # leave the voxel through its nearest face; its chord ends there
@@ -484,7 +486,7 @@ def _walk_rays(
             if chord > 0.0:
                 if block >= 0:
                     visit_voxel[count] = block * BLOCK_VOXELS + local
-                    visit_chord[count] = chord
+                    visit_chord[count] = chord * scale
                     visit_return[count] = 0.0
                     count += 1
                 else:
@@ -500,8 +502,8 @@ def _walk_rays(
         if chord > 0.0 or returns > 0.0:
             if block >= 0:
                 visit_voxel[count] = block * BLOCK_VOXELS + (morton_x | morton_y | morton_z)
-                visit_chord[count] = chord
-                visit_return[count] = returns
+                visit_chord[count] = chord * scale
+                visit_return[count] = returns * scale
                 count += 1
             else:
                 mail_block[mail] = key
@@ -533,7 +535,12 @@ def _apply_mail(
     Returns ``stop``, or the first entry whose new block found no room (the caller grows
     the shard and calls again from there).
     """
-    block_sn, block_hit, counters = shard_arrays[3], shard_arrays[6], shard_arrays[7]
+    block_sn, block_hit, counters, block_scale = (
+        shard_arrays[3],
+        shard_arrays[6],
+        shard_arrays[7],
+        shard_arrays[8],
+    )
     cache_keys = np.full(_CACHE_SIZE, -1, dtype=np.int64)
     cache_blocks = np.empty(_CACHE_SIZE, dtype=np.int64)
     visit_voxel = np.empty(_BATCH_VISITS, dtype=np.int64)
@@ -542,6 +549,7 @@ def _apply_mail(
     count = 0
     last_key = -1
     block = -1
+    scale = 1.0
     for j in range(start, stop):
         if count == _BATCH_VISITS:
             _apply_visits(
@@ -564,6 +572,8 @@ def _apply_mail(
                     block = open_block(bx, by, bz, shard_arrays, scan_id, stamp, decay_time)
                     cache_keys[slot] = key
                     cache_blocks[slot] = block
+                if block >= 0:
+                    scale = block_scale[block] if block >= 0 else 1.0
                 if block < 0:
                     _apply_visits(
                         block_sn,
@@ -578,8 +588,8 @@ def _apply_mail(
             last_key = key
         if block >= 0:
             visit_voxel[count] = block * BLOCK_VOXELS + mail_local[j]
-            visit_chord[count] = mail_chord[j]
-            visit_return[count] = mail_return[j]
+            visit_chord[count] = mail_chord[j] * scale
+            visit_return[count] = mail_return[j] * scale
             count += 1
     _apply_visits(block_sn, block_hit, visit_voxel, visit_chord, visit_return, count, counters)
     return stop
