@@ -182,21 +182,17 @@ def open_block(
 
 
 @nb.njit(cache=True, nogil=True)
-def _assign_shard(
+def _open_blocks_of(
     ijk: NDArray[np.int64],
-    s: NDArray[np.float64],
-    n: NDArray[np.float64],
     t: NDArray[np.float64],
     start: int,
     shard: int,
     shard_mask: int,
     shard_arrays: ShardArrays,
 ) -> int:
-    """Set voxels of ``shard`` (each at its block's time ``t``) from index ``start`` on.
-
-    Returns the index reached: ``len(ijk)`` when done, less when the blocks ran out.
-    """
-    block_sn = shard_arrays[3]
+    """Open the blocks of the voxels of ``shard`` from index ``start`` on, each at the
+    latest ``t`` of its voxels. Returns ``len(ijk)``, or the index where blocks ran out."""
+    block_t = shard_arrays[4]
     for j in range(start, ijk.shape[0]):
         bx = ijk[j, 0] >> BLOCK_BITS
         by = ijk[j, 1] >> BLOCK_BITS
@@ -206,10 +202,52 @@ def _assign_shard(
         block = open_block(bx, by, bz, shard_arrays, -1, t[j], math.inf)
         if block < 0:
             return j
-        local = local_index(ijk[j, 0], ijk[j, 1], ijk[j, 2])
-        block_sn[block, local, 0] = s[j]
-        block_sn[block, local, 1] = n[j]
+        block_t[block] = max(block_t[block], t[j])
     return ijk.shape[0]
+
+
+@nb.njit(cache=True, nogil=True)
+def _set_voxels(
+    ijk: NDArray[np.int64],
+    s: NDArray[np.float64],
+    n: NDArray[np.float64],
+    t: NDArray[np.float64],
+    shard: int,
+    shard_mask: int,
+    decay_time: float,
+    shard_arrays: ShardArrays,
+    seen: NDArray[np.uint64],
+    counts: NDArray[np.int64],
+) -> int:
+    """Set the voxels of ``shard`` (blocks opened by ``_open_blocks_of``), each decayed to
+    its block's time; ``counts[0]`` receives the number of observed voxels set. Returns -1,
+    or the index of a voxel listed twice (``seen``: one bit per voxel of each block)."""
+    table_keys, table_blocks, _, block_sn, block_t = shard_arrays[:5]
+    block_hit = shard_arrays[6]
+    observed = 0
+    for j in range(ijk.shape[0]):
+        bx = ijk[j, 0] >> BLOCK_BITS
+        by = ijk[j, 1] >> BLOCK_BITS
+        bz = ijk[j, 2] >> BLOCK_BITS
+        if shard_of(bx, by, bz, shard_mask) != shard:
+            continue
+        block = _find(table_keys, table_blocks, block_key(bx, by, bz))
+        local = local_index(ijk[j, 0], ijk[j, 1], ijk[j, 2])
+        bit = np.uint64(1) << np.uint64(local & 63)
+        if seen[block, local >> 6] & bit:
+            return j
+        seen[block, local >> 6] |= bit
+        f = 1.0
+        if math.isfinite(decay_time):
+            f = math.exp(-(block_t[block] - t[j]) / decay_time)
+        block_sn[block, local, 0] = s[j] * f
+        block_sn[block, local, 1] = n[j] * f
+        if block_sn[block, local, 1] > 0.0:
+            block_hit[block] = True
+        if block_sn[block, local, 0] > 0.0 or block_sn[block, local, 1] > 0.0:
+            observed += 1
+    counts[0] += observed
+    return -1
 
 
 @nb.njit(cache=True, nogil=True)
@@ -467,7 +505,8 @@ class Shard:
             self.block_scale,
         ):  # fmt: skip
             arr[:kept] = arr[:used][keep]
-        self.block_sn[kept:used] = 0.0
+        _release_blocks(self.block_sn, kept, used)
+        self._high_water = kept
         self.block_t[kept:used] = -np.inf
         self.block_scan[kept:used] = -1
         self.block_hit[kept:used] = False
@@ -505,6 +544,30 @@ def _zeros_on_huge_pages(shape: tuple[int, ...]) -> NDArray[np.float32]:
     return np.frombuffer(region, dtype=np.float32, count=int(np.prod(shape))).reshape(shape)
 
 
+def _release_blocks(block_sn: NDArray[np.float32], start: int, stop: int) -> None:
+    """Zero blocks ``start..stop`` and give their memory back to the system: pages of the
+    anonymous region are dropped (``MADV_DONTNEED``) and read as zeros when touched again.
+    Where that is not possible the blocks are zeroed in place (memory stays resident)."""
+    if stop <= start:
+        return
+    region = block_sn.base
+    while region is not None and not isinstance(region, mmap.mmap):
+        region = getattr(region, "base", None)
+    block_bytes = block_sn[0].nbytes
+    first, last = start * block_bytes, stop * block_bytes
+    page = mmap.PAGESIZE
+    lo, hi = -(-first // page) * page, last // page * page  # whole pages inside the range
+    if isinstance(region, mmap.mmap) and hasattr(mmap, "MADV_DONTNEED") and hi > lo:
+        try:
+            region.madvise(mmap.MADV_DONTNEED, lo, hi - lo)
+        except OSError:
+            lo = hi = first
+        block_sn.reshape(-1)[first // 4 : lo // 4] = 0.0  # partial pages at the edges
+        block_sn.reshape(-1)[hi // 4 : last // 4] = 0.0
+        return
+    block_sn[start:stop] = 0.0
+
+
 def _next_pow2(x: int) -> int:
     return 1 << max(int(x - 1).bit_length(), 4)
 
@@ -536,31 +599,32 @@ class BlockStore:
         return new, touched, updates
 
     def assign(self, voxels: VoxelArrays, decay_time: float) -> None:
-        """Set the given voxels (replacing any statistics they had), e.g. from a map file.
+        """Set the given voxels of an empty store, e.g. from a map file.
 
         Voxels of one block that refer to different times are decayed to the latest.
+        Raises ``ValueError`` naming a voxel listed twice (the store is then incomplete:
+        discard it).
         """
-        ijk = voxels.ijk.astype(np.int64)
-        block_keys = (ijk >> BLOCK_BITS) @ np.array([1 << 42, 1 << 21, 1], dtype=np.int64)
-        _, inverse = np.unique(block_keys, return_inverse=True)
-        t_block = np.full(inverse.max(initial=-1) + 1, -np.inf)
-        np.maximum.at(t_block, inverse, voxels.t_last)
-        t = t_block[inverse]
-        f = np.ones_like(t)
-        if math.isfinite(decay_time):
-            f = np.exp(-np.abs(t - voxels.t_last) / decay_time)
-        s, n = voxels.s * f, voxels.n * f
+        if self.num_blocks:
+            raise ValueError("assign needs an empty store")
+        ijk = np.ascontiguousarray(voxels.ijk, dtype=np.int64)
+        s, n, t = (
+            np.ascontiguousarray(a, dtype=np.float64) for a in (voxels.s, voxels.n, voxels.t_last)
+        )
+        counts = np.zeros(1, dtype=np.int64)
         for sid, sh in enumerate(self.shards):
             start = 0
             while (
-                start := _assign_shard(ijk, s, n, t, start, sid, self.shard_mask, sh.arrays())
+                start := _open_blocks_of(ijk, t, start, sid, self.shard_mask, sh.arrays())
             ) < ijk.shape[0]:
                 sh.grow()
-        for sh in self.shards:
-            sh.block_hit[: sh.used] = (sh.block_sn[: sh.used, :, 1] > 0).any(axis=1)
-        self.num_voxels = sum(
-            int(np.count_nonzero((sh.block_sn[: sh.used] > 0).any(axis=-1))) for sh in self.shards
-        )
+            seen = np.zeros((sh.used, BLOCK_VOXELS // 64), dtype=np.uint64)
+            twice = _set_voxels(
+                ijk, s, n, t, sid, self.shard_mask, decay_time, sh.arrays(), seen, counts
+            )
+            if twice >= 0:
+                raise ValueError(f"ijk lists voxel {ijk[twice].tolist()} more than once")
+        self.num_voxels = int(counts[0])
 
     def lookup(self, ijk: NDArray[np.int64]) -> VoxelArrays:
         """Statistics of these voxels (zeros and t_last=-inf where never observed)."""
@@ -639,6 +703,17 @@ class BlockStore:
             share_to_drop = min(0.5, 1.0 - max_voxels / self.num_voxels)
             if self.evict_beyond(center, float(np.quantile(distances, 1.0 - share_to_drop))) == 0:
                 return
+
+    def evict_farthest_blocks(self, center: NDArray[np.float64], max_blocks: int) -> None:
+        """Drop the blocks farthest from ``center`` (block units) until at most
+        ``max_blocks`` remain (blocks at the same distance as the last kept may stay)."""
+        distances = np.concatenate([sh.block_distances(center) for sh in self.shards])
+        if distances.shape[0] <= max_blocks:
+            return
+        if max_blocks <= 0:
+            self.evict_beyond(center, -1.0)
+            return
+        self.evict_beyond(center, float(np.partition(distances, max_blocks - 1)[max_blocks - 1]))
 
     @property
     def num_blocks(self) -> int:
