@@ -39,6 +39,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mfp_mapper.core.atomic import atomic_output
+from mfp_mapper.core.errors import CoreError
 from mfp_mapper.core.store import MAX_VOXEL_INDEX, VoxelArrays
 
 FORMAT_NAME = "mfp_mapper.map"
@@ -52,7 +53,7 @@ _MAX_DEFLATE_RATIO = 1100  # deflate cannot expand data more than ~1032 times
 _SCALARS = {"resolution": "f", "decay_time": "f", "max_range": "f", "min_range": "f"}
 
 
-class MapFileError(ValueError):
+class MapFileError(CoreError, ValueError):
     """A map file that cannot be read: names the file and what is wrong with it."""
 
     def __init__(self, path: str | Path, problem: str) -> None:

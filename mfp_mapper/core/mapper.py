@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from mfp_mapper.core import model
+from mfp_mapper.core.errors import CoreError, ScanTooLargeError
 from mfp_mapper.core.gridmap import HitGrid, band_grid
 from mfp_mapper.core.mapfile import (
     MAX_RESOLUTION,
@@ -36,15 +37,9 @@ ORIGIN_QUANTUM_VOXELS = 1 << 16
 zero for a robot that starts within half of it from the frame's origin, so ordinary maps
 keep ``ijk = floor(p / resolution)``."""
 
-
-class CoreError(Exception):
-    """Base of the errors the core raises for inputs it refuses (the map is unchanged)."""
-
-
-class ScanTooLargeError(CoreError):
-    """A scan that could need more map memory than ``max_voxels`` allows: refused whole,
-    before any of its rays is added."""
-
+__all__ = [
+    "CoreError", "IntegrationSummary", "Mapper", "ScanTooLargeError", "VoxelStats",
+]  # fmt: skip
 
 FloatArray = NDArray[np.float64]
 

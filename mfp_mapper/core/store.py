@@ -552,7 +552,7 @@ def _release_blocks(block_sn: NDArray[np.float32], start: int, stop: int) -> Non
         return
     region = block_sn.base
     while region is not None and not isinstance(region, mmap.mmap):
-        region = getattr(region, "base", None)
+        region = region.obj if isinstance(region, memoryview) else getattr(region, "base", None)
     block_bytes = block_sn[0].nbytes
     first, last = start * block_bytes, stop * block_bytes
     page = mmap.PAGESIZE
