@@ -17,6 +17,7 @@ from numpy.typing import ArrayLike, NDArray
 from mfp_mapper.core import model
 from mfp_mapper.core.errors import CoreError, ScanTooLargeError
 from mfp_mapper.core.gridmap import HitGrid, band_grid
+from mfp_mapper.core.mailbox import Mailbox
 from mfp_mapper.core.mapfile import (
     MAX_RESOLUTION,
     MIN_RESOLUTION,
@@ -26,7 +27,7 @@ from mfp_mapper.core.mapfile import (
     write_map,
 )
 from mfp_mapper.core.store import BLOCK_EDGE, MAX_VOXEL_INDEX, BlockStore, VoxelArrays, index_box
-from mfp_mapper.core.traversal import Mailbox, block_bounds, integrate_rays, prepare_rays
+from mfp_mapper.core.traversal import block_bounds, integrate_rays, prepare_rays
 
 MAX_RAY_VOXELS = 1 << 15
 """Hard limit of a ray's walk, in voxels (3.3 km at 0.1 m): a ray longer than this (when
