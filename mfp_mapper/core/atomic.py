@@ -12,6 +12,7 @@ symlink, the file it points to is replaced and the link kept.
 from __future__ import annotations
 
 import contextlib
+import glob
 import os
 import secrets
 import threading
@@ -64,7 +65,8 @@ def remove_stale_temp_files(folder: str | Path, target_name: str | None = None) 
     """Remove the temporary files of interrupted atomic writes in ``folder`` (only those
     of ``target_name`` when given); returns the paths removed. Files of writes still in
     progress (this process or another running one) are left alone."""
-    pattern = f".{target_name}.*{TEMP_SUFFIX}" if target_name else f".*{TEMP_SUFFIX}"
+    name = glob.escape(target_name) if target_name else ""
+    pattern = f".{name}.*{TEMP_SUFFIX}" if target_name else f".*{TEMP_SUFFIX}"
     removed = []
     with contextlib.suppress(OSError):
         for path in Path(folder).glob(pattern):

@@ -222,7 +222,7 @@ def _contents(path: Path, a: dict[str, np.ndarray]) -> MapContents:
     problem = voxel_problem(a["ijk"], a["s"], a["n"], a["t_last"])
     if problem:
         raise MapFileError(path, problem)
-    ranges = {key: float(a[key]) for key in ("max_range", "min_range") if key in a}
+    ranges: dict[str, float] = {k: float(a[k]) for k in ("max_range", "min_range") if k in a}
     voxels = VoxelArrays(a["ijk"], a["s"], a["n"], a["t_last"])
     ox, oy, oz = (float(v) for v in origin)
     return MapContents(

@@ -461,7 +461,7 @@ class Mapper:
                 contents.voxels,
                 resolution=contents.resolution,
                 origin=contents.origin,
-                **settings,  # type: ignore[arg-type]
+                **settings,
             )
         except ValueError as err:
             raise MapFileError(path, str(err)) from err
