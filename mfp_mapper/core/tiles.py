@@ -235,8 +235,7 @@ class TiledMap:
             "format": np.str_(FORMAT_NAME),
             "version": np.int64(FORMAT_VERSION),
         }
-        if self.origin is not None:
-            out["origin"] = np.asarray(self.origin, dtype=np.float64)
+        out["origin"] = np.asarray(self.origin or (0.0, 0.0, 0.0), dtype=np.float64)
         return out
 
     def read_tile(self, key: TileKey) -> MapArrays:
@@ -294,7 +293,12 @@ class TiledMap:
         from mfp_mapper.core.mapper import Mapper
 
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        empty = Mapper(self.resolution, decay_time=self.decay_time, frame_id=self.frame_id)
+        empty = Mapper(
+            self.resolution,
+            decay_time=self.decay_time,
+            frame_id=self.frame_id,
+            origin=self.origin or (0.0, 0.0, 0.0),
+        )
         out = empty.query(pts, stamp)  # the answer for unobserved voxels, and every ijk
         keys = tile_keys(out.ijk, self.tile_blocks)
         for key in {(int(a), int(b), int(c)) for a, b, c in keys}:
