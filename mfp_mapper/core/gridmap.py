@@ -9,6 +9,11 @@ ray at the worst height is the one a planar robot must fear, as octomap_server's
 map marks a cell occupied when any voxel of the band is. Cells whose band holds no observed
 voxel are ``-1`` (unknown), the OccupancyGrid convention.
 
+With ``trinary=(occupied, free)`` (Nav2's static layer, octomap_server's ``projected_map``)
+cells are ``100`` where that largest hit probability is at or above ``occupied``, ``0`` where
+the band was observed and it is below ``free``, and ``-1`` otherwise (never observed, or in
+between: uncertain). Thresholds compare the exact probability, not the rounded percent.
+
 The grid is row-major, row ``r`` = y index, column ``c`` = x index, cell ``(r, c)`` covering
 ``[x0 + c * res, x0 + (c + 1) * res) x [y0 + r * res, y0 + (r + 1) * res)``.
 """
@@ -35,6 +40,19 @@ from mfp_mapper.core.store import (
 )
 
 UNKNOWN = -1
+OCCUPIED = 100
+FREE = 0
+_UNCERTAIN = 1
+"""Kernel code of a trinary cell observed between the thresholds (becomes UNKNOWN)."""
+DEFAULT_OCCUPIED_THRESHOLD = 0.25
+"""Default hit probability at or above which a trinary cell is occupied (a wall seen in 3
+scans at 0.1 m reaches 0.32-0.38, in 40 scans 0.98; see README, "Which map is which")."""
+
+
+def unobserved_hit_probability(resolution: float) -> float:
+    """p_hit of a never-observed voxel, ``s0 / (1 + s0)``: every voxel crossed by rays but
+    never hit is below it, so it is the default free threshold."""
+    return float(hit_probability_one(0.0, 0.0, resolution))
 
 
 @dataclass(frozen=True)
@@ -94,6 +112,23 @@ def _check_band(resolution: float, z_min: float, z_max: float) -> None:
         raise ValueError(f"empty height band [{z_min}, {z_max}]")
 
 
+def _check_trinary(trinary: tuple[float, float] | None) -> tuple[bool, float, float]:
+    if trinary is None:
+        return False, 0.0, 0.0
+    occupied, free = (float(v) for v in trinary)
+    if not (0.0 <= free <= occupied <= 1.0):
+        raise ValueError(
+            f"trinary thresholds need 0 <= free <= occupied <= 1, got occupied {occupied}, "
+            f"free {free}"
+        )
+    return True, occupied, free
+
+
+def _finish_trinary(cells: NDArray[np.int8]) -> NDArray[np.int8]:
+    cells[cells == _UNCERTAIN] = UNKNOWN
+    return cells
+
+
 def hit_probability_grid(
     ijk: ArrayLike,
     hit_probability: ArrayLike,
@@ -104,6 +139,7 @@ def hit_probability_grid(
     *,
     center: tuple[float, float] | None = None,
     radius: float = 0.0,
+    trinary: tuple[float, float] | None = None,
 ) -> HitGrid:
     """Project voxels (integer indices ``ijk`` = floor(centre / resolution)) onto a grid.
 
@@ -117,6 +153,7 @@ def hit_probability_grid(
     same grid from the blocks.
     """
     _check_band(resolution, z_min, z_max)
+    use_trinary, occupied, free = _check_trinary(trinary)
     ijk_arr = np.asarray(ijk, dtype=np.int64).reshape(-1, 3)
     prob = np.asarray(hit_probability, dtype=np.float64).reshape(-1)
     obs = np.asarray(observed, dtype=bool).reshape(-1)
@@ -142,11 +179,17 @@ def hit_probability_grid(
         & (j >= j0)
         & (j <= j1)
     )
-    percent = np.rint(100.0 * np.clip(np.nan_to_num(prob[sel], nan=1.0), 0.0, 1.0))
+    p = np.clip(np.nan_to_num(prob[sel], nan=1.0), 0.0, 1.0)
+    if use_trinary:
+        value = np.where(p >= occupied, OCCUPIED, np.where(p < free, FREE, _UNCERTAIN))
+    else:
+        value = np.rint(100.0 * p)
     flat = (j[sel] - j0) * width + (i[sel] - i0)
     out = np.full(width * height, UNKNOWN, dtype=np.int16)
-    np.maximum.at(out, flat, percent.astype(np.int16))
+    np.maximum.at(out, flat, value.astype(np.int16))
     data = out.astype(np.int8).reshape(height, width)
+    if use_trinary:
+        data = _finish_trinary(data)
     return HitGrid(data, resolution, (i0 * resolution, j0 * resolution))
 
 
@@ -164,6 +207,7 @@ def band_grid(
     *,
     center: tuple[float, float] | None = None,
     radius: float = 0.0,
+    trinary: tuple[float, float] | None = None,
 ) -> HitGrid:
     """``hit_probability_grid`` of the observed voxels with index in ``[lo, hi]``, computed
     in one compiled pass over the store's blocks (no per-voxel arrays of the map).
@@ -172,6 +216,7 @@ def band_grid(
     the observed voxels in ``[lo, hi]``; cells take the voxels whose centre is in the band.
     """
     _check_band(resolution, z_min, z_max)
+    use_trinary, occupied, free = _check_trinary(trinary)
     if center is not None and radius > 0.0:
         i0, j0, i1, j1 = _window_cells(center, radius, resolution)
     else:
@@ -184,8 +229,23 @@ def band_grid(
     cells = np.full((j1 - j0 + 1, i1 - i0 + 1), UNKNOWN, dtype=np.int8)
     for block_ijk, block_sn, used in shards:
         _band_max_percent(
-            block_ijk, block_sn, used, lo, hi, resolution, z_min, z_max, i0, j0, cells
+            block_ijk,
+            block_sn,
+            used,
+            lo,
+            hi,
+            resolution,
+            z_min,
+            z_max,
+            i0,
+            j0,
+            cells,
+            use_trinary,
+            occupied,
+            free,
         )
+    if use_trinary:
+        cells = _finish_trinary(cells)
     return HitGrid(cells, resolution, (i0 * resolution, j0 * resolution))
 
 
@@ -227,9 +287,13 @@ def _band_max_percent(
     i0: int,
     j0: int,
     cells: NDArray[np.int8],
+    trinary: bool,
+    occupied: float,
+    free: float,
 ) -> None:
     """Raise each cell of ``cells`` (row j - j0, column i - i0) to round(100 p_hit) of the
-    observed voxels in [lo, hi] whose centre height lies in [z_min, z_max]."""
+    observed voxels in [lo, hi] whose centre height lies in [z_min, z_max]; with
+    ``trinary``, to OCCUPIED (p >= occupied), FREE (p < free) or _UNCERTAIN."""
     height, width = cells.shape
     for b in range(used):
         bx, by, bz = block_origin(block_ijk, b)
@@ -255,6 +319,10 @@ def _band_max_percent(
             if zc < z_min or zc > z_max or not (0 <= col < width and 0 <= row < height):
                 continue
             p = min(max(hit_probability_one(s, n, resolution), 0.0), 1.0)
-            percent = np.int8(np.rint(100.0 * p))
+            if trinary:
+                code = OCCUPIED if p >= occupied else (FREE if p < free else _UNCERTAIN)
+                percent = np.int8(code)
+            else:
+                percent = np.int8(np.rint(100.0 * p))
             if percent > cells[row, col]:
                 cells[row, col] = percent
