@@ -369,6 +369,15 @@ class TfChain:
     def __init__(self, tree: TfTree, target: str, source: str) -> None:
         self.tree, self.target, self.source = tree, target, source
 
+    @property
+    def latest_stamp(self) -> float | None:
+        """Latest stamp the chain covers; +inf when it is static only; None when broken."""
+        try:
+            latest = self.tree.latest_common_stamp(self.target, self.source)
+        except TransformUnavailable:
+            return None
+        return math.inf if latest is None else latest
+
     def interpolate_quaternions(self, stamps: ArrayLike) -> tuple[FloatArray, FloatArray]:
         return self.tree.lookup(self.target, self.source, stamps)
 

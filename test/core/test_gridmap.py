@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from box_world import BoxWorld
+from grid_reference import hit_probability_grid
 
 from mfp_mapper import Mapper
 from mfp_mapper.core import model
@@ -12,7 +13,6 @@ from mfp_mapper.core.gridmap import (
     DEFAULT_OCCUPIED_THRESHOLD,
     UNKNOWN,
     band_mask,
-    hit_probability_grid,
     unobserved_hit_probability,
 )
 from mfp_mapper.offline.scan_pattern import scan_directions

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
+from mfp_mapper.sensing.deskew import cloud_to_map
 from mfp_mapper.sensing.pointcloud import ParsedCloud
-from mfp_mapper.sensing.poses import Extrinsic, cloud_to_map
+from mfp_mapper.sensing.poses import Extrinsic
 from mfp_mapper.sensing.tf_tree import TfChain, TfTree, TransformUnavailable
 
 
@@ -187,6 +188,6 @@ def test_tf_message_duck_typed_and_chain_as_pose_source() -> None:
         intensity=None,
         points_in=2,
     )
-    points, origins = cloud_to_map(cloud, 1.0, TfChain(tree, "odom", "lidar"), Extrinsic())  # type: ignore[arg-type]
+    points, origins = cloud_to_map(cloud, 1.0, TfChain(tree, "odom", "lidar"), Extrinsic())
     np.testing.assert_allclose(points, [[1.5, 0, 0], [3.0, 0, 0]], atol=1e-12)
     np.testing.assert_allclose(origins, [[0.5, 0, 0], [1.0, 0, 0]], atol=1e-12)
