@@ -44,6 +44,7 @@ from rclpy.qos import (
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 from std_srvs.srv import Empty, Trigger
+from tf2_msgs.msg import TFMessage
 
 from mfp_mapper.core.mapfile import MapFileError, map_arrays, write_map_arrays
 from mfp_mapper.core.mapper import Mapper
@@ -54,13 +55,9 @@ from mfp_mapper.ros.params import declare_parameters
 from mfp_mapper.ros.status import StatusWindow, diagnostics, next_window, status_report
 from mfp_mapper.sensing.live import LiveIntegrator, LiveSettings
 from mfp_mapper.sensing.pointcloud import CloudFormatError, pack_cloud, read_xyz
-from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer, odometry_sample
+from mfp_mapper.sensing.poses import PoseBuffer, odometry_sample
+from mfp_mapper.sensing.tf_tree import TfTree
 from mfp_mapper.settings import SPECS, NodeConfig
-
-try:  # optional: not installable from PyPI
-    import tf2_ros  # type: ignore[import-not-found]
-except ImportError:  # pragma: no cover - depends on the installation
-    tf2_ros = None
 
 NODE_NAME = "mfp_mapper"
 RESULT_FIELDS = (
@@ -79,6 +76,8 @@ def live_settings(cfg: NodeConfig) -> LiveSettings:
         point_cloud_max_z=cfg.point_cloud_max_z,
         cloud_queue_size=cfg.cloud_queue_size,
         odom_wait=cfg.odom_wait,
+        base_frame_id=cfg.base_frame_id,
+        extrinsic_override=cfg.extrinsic_override(),
     )
 
 
@@ -96,29 +95,17 @@ class MfpMapperNode(GuardedNode):
         self._last_window = self._status_window
         self._queries = 0
         self._maps_served = 0
-        self._param_extrinsic = self.cfg.extrinsic()
-        self._identity = Extrinsic()
         self.worker = LiveIntegrator(
             self._initial_mapper(),
             live_settings(self.cfg),
             PoseBuffer(max_age=self.cfg.odom_buffer, max_gap=self.cfg.odom_max_gap),
-            extrinsic_for=self._extrinsic,
+            tree=TfTree(buffer_length=self.cfg.tf_buffer),
             log=self.warn_throttled,
-            now=lambda: self.get_clock().now().nanoseconds * 1e-9,
+            now=self._now,
         )
         self.outputs = MapOutputs(self, self.worker, lambda: self.cfg, self.warn_throttled)
         self.worker._publish = self.outputs.publish
 
-        self._tf_buffer = None
-        if self.cfg.use_tf:
-            if tf2_ros is None:
-                self.get_logger().warning(
-                    "use_tf is true but tf2_ros is not importable: using lidar.translation "
-                    "and lidar.rpy"
-                )
-            else:  # pragma: no cover - tf2_ros is not installable in the test environment
-                self._tf_buffer = tf2_ros.Buffer()
-                self._tf_listener = tf2_ros.TransformListener(self._tf_buffer, self)
         self._create_interfaces()
         self.worker.start()
         self.get_logger().info(self._startup_text())
@@ -126,25 +113,33 @@ class MfpMapperNode(GuardedNode):
     def _startup_text(self) -> str:
         """What a robot integrator needs to check at start: topics, frames, sources."""
         cfg, topic = self.cfg, self.resolve_topic_name
-        if cfg.use_tf and self._tf_buffer is not None:
-            extrinsic = f"TF {cfg.base_frame_id or '<odometry child>'} <- cloud frame"
-        else:
+        if cfg.extrinsic_override() is not None:
             extrinsic = (
-                "identity when the cloud frame is the odometry child frame, else lidar.* "
-                f"parameters (translation {list(cfg.lidar_translation)}, rpy "
-                f"{list(cfg.lidar_rpy)})"
+                f"lidar.* parameters (translation {list(cfg.lidar_translation)}, rpy "
+                f"{list(cfg.lidar_rpy)}) unless the cloud frame is the odometry child"
             )
+        else:
+            body = cfg.base_frame_id or "<odometry child>"
+            extrinsic = (
+                f"/tf_static {body} -> cloud frame (identity when the cloud frame is the "
+                "odometry child; a cloud it cannot place is dropped)"
+            )
+        pose_source = (
+            f"{topic('odom')} (nav_msgs/Odometry) when it publishes, else TF "
+            f"{cfg.frame_id or '<root>'} <- cloud frame; /tf and /tf_static "
+            f"(tf2_msgs/TFMessage, {cfg.tf_buffer} s kept)"
+        )
         path = cfg.map_path or "<none>"
         loaded = f", {self.mapper.num_voxels} voxels loaded" if self.mapper.num_voxels else ""
         return (
-            f"mfp_mapper ready: clouds from {topic('cloud_in')}, poses from "
-            f"{topic('odom')} (nav_msgs/Odometry); map frame "
-            f"{cfg.frame_id or '<the odometry frame>'}; extrinsic: {extrinsic}; resolution "
+            f"mfp_mapper ready: clouds from {topic('cloud_in')}, poses from {pose_source}; "
+            f"map frame {cfg.frame_id or '<the odometry frame>'}; extrinsic: {extrinsic}; "
+            f"resolution "
             f"{self.mapper.resolution} m, max_range {cfg.max_range} m, decay_time "
             f"{cfg.decay} s, deskew {cfg.deskew}; map_path {path}{loaded}, save_on_shutdown "
             f"{cfg.save_on_shutdown}; outputs {topic('~/degree_of_occupancy')}, "
-            f"{topic('~/std')}, {topic('~/projected_map')} at {cfg.publish_rate} Hz, "
-            f"latched {cfg.latch}"
+            f"{topic('~/std')}, {topic('~/projected_map')} (trinary "
+            f"{cfg.projected_map_trinary}) at {cfg.publish_rate} Hz, latched {cfg.latch}"
         )
 
     def _create_interfaces(self) -> None:
@@ -159,6 +154,17 @@ class MfpMapperNode(GuardedNode):
             history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.BEST_EFFORT
         )
         self.create_subscription(Odometry, "odom", self._on_odom, odom_qos)
+        tf_qos = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE
+        )
+        tf_static_qos = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST,
+            depth=100,
+            reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL,
+        )
+        self.create_subscription(TFMessage, "/tf", self._on_tf, tf_qos)
+        self.create_subscription(TFMessage, "/tf_static", self._on_tf_static, tf_static_qos)
         status_qos = QoSProfile(
             depth=1,
             reliability=ReliabilityPolicy.RELIABLE,
@@ -238,25 +244,24 @@ class MfpMapperNode(GuardedNode):
         self.outputs.invalidate()  # republish with the new filter
         return SetParametersResult(successful=True)
 
-    def _extrinsic(self, cloud_frame: str) -> Extrinsic:
-        if cloud_frame and cloud_frame == self.worker.odom_child:
-            return self._identity
-        if self._tf_buffer is not None:  # pragma: no cover - needs tf2_ros
-            target = self.cfg.base_frame_id or self.worker.odom_child or ""
-            try:
-                tf = self._tf_buffer.lookup_transform(target, cloud_frame, rclpy.time.Time())
-            except Exception as err:
-                self.warn_throttled("tf", f"TF {target} <- {cloud_frame} unavailable: {err}")
-            else:
-                t, r = tf.transform.translation, tf.transform.rotation
-                return Extrinsic(np.array([t.x, t.y, t.z]), np.array([r.x, r.y, r.z, r.w]))
-        return self._param_extrinsic
+    def _now(self) -> float:
+        return float(self.get_clock().now().nanoseconds) * 1e-9
 
     # --- inputs ----------------------------------------------------------------------------
 
     @tracked
     def _on_cloud(self, msg: PointCloud2) -> None:
+        self.worker.observe_clock(self._now())
         self.worker.submit(msg)
+
+    @tracked
+    def _on_tf(self, msg: TFMessage) -> None:
+        self.worker.observe_clock(self._now())
+        self.worker.add_transforms(msg, static=False)
+
+    @tracked
+    def _on_tf_static(self, msg: TFMessage) -> None:
+        self.worker.add_transforms(msg, static=True)
 
     def _on_clouds_lost(self, info: Any) -> None:
         """The middleware reports clouds that never reached this node (transport losses)."""
@@ -269,6 +274,7 @@ class MfpMapperNode(GuardedNode):
 
     @tracked
     def _on_odom(self, msg: Odometry) -> None:
+        self.worker.observe_clock(self._now())
         self.worker.add_odometry(odometry_sample(msg))
 
     @tracked

@@ -217,6 +217,23 @@ class TfTree:
             self.rejected["future_outlier"] += 1
         return confirmed
 
+    def snapshot(self) -> TfTree:
+        """A copy that later ``add`` calls leave unchanged (lookups outside a lock)."""
+        copy = TfTree(self.buffer_length, self.max_gap, self.max_jump, self.max_future)
+        copy._static = dict(self._static)
+        copy._dynamic = {
+            child: _Edge(
+                e.parent,
+                list(e.stamps),
+                list(e.translations),
+                list(e.quaternions),
+                e.pending,
+                e._arrays,
+            )
+            for child, e in self._dynamic.items()
+        }
+        return copy
+
     def observe_clock(self, now: float) -> bool:
         """Note the reference clock; True (dynamic edges cleared) when it jumped back."""
         jumped = self._last_clock is not None and now < self._last_clock

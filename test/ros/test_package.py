@@ -29,7 +29,7 @@ EXEC_DEPENDS = {
     "std_msgs",
     "std_srvs",
     "diagnostic_msgs",
-    "tf2_ros_py",
+    "tf2_msgs",
     "launch",
     "launch_ros",
     "ament_index_python",
@@ -48,13 +48,12 @@ MODULE_KEYS = {  # third-party module imported -> its rosdep key (None: delibera
     "yaml": "python3-yaml",
     "tqdm": "python3-tqdm",
     "scipy": "python3-scipy",
-    "tf2_ros": "tf2_ros_py",  # the Python module of tf2_ros comes with tf2_ros_py
     "rosbags": None,  # pip only: see the comment in package.xml
     **{
         name: name
         for name in (
             "rclpy", "rcl_interfaces", "builtin_interfaces", "sensor_msgs", "nav_msgs",
-            "std_msgs", "std_srvs", "diagnostic_msgs", "launch", "launch_ros", "ament_index_python",
+            "std_msgs", "std_srvs", "diagnostic_msgs", "tf2_msgs", "launch", "launch_ros", "ament_index_python",
         )
     },
 }  # fmt: skip
