@@ -306,7 +306,11 @@ class MfpMapperNode(GuardedNode):
             with self.worker.map_lock:
                 return self.mapper.query(points)
 
-        stats = await self.off_executor(query)
+        try:
+            stats = await self.off_executor(query)
+        except Exception:
+            self._answer_nothing(msg)  # an answer, never silence; the error is logged
+            raise
         self._queries += 1
         columns = {
             "x": points[:, 0],

@@ -228,15 +228,16 @@ class LiveIntegrator:
         return True
 
     def _adopt_map_frame(self) -> None:
-        with self.map_lock:
-            if self.mapper.num_voxels and self.mapper.frame_id != self.map_frame:
-                self._log(
-                    "map_frame",
-                    f"loaded map is in frame {self.mapper.frame_id!r}, mapping in "
-                    f"{self.map_frame!r}: the map is used as if it were in {self.map_frame!r}",
-                    False,
-                )
-            self.mapper.frame_id = self.map_frame
+        # no map lock here: this runs on the executor, which must never wait for a scan
+        # (a str attribute is replaced atomically; the voxel count only words a warning)
+        if self.mapper.num_voxels and self.mapper.frame_id != self.map_frame:
+            self._log(
+                "map_frame",
+                f"loaded map is in frame {self.mapper.frame_id!r}, mapping in "
+                f"{self.map_frame!r}: the map is used as if it were in {self.map_frame!r}",
+                False,
+            )
+        self.mapper.frame_id = self.map_frame
 
     @property
     def map_frame(self) -> str:

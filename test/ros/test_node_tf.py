@@ -9,7 +9,6 @@ frame means every transform of the chain was applied once and in the right order
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -19,10 +18,8 @@ from ros_helpers import (
     Feeder,
     NodeProcess,
     cloud_from_columns,
-    domain_id,
     odom_msg,
     read_cloud,
-    set_ros_env,
     stamp_msg,
 )
 from scipy.spatial.transform import Rotation
@@ -137,27 +134,6 @@ class TfFeeder(Feeder):
                     self.odom_pub.publish(odom_msg(t + dt, pose, yaw))
             self.cloud_pub.publish(wall_cloud(t))
             self.spin(0.01)
-
-
-@pytest.fixture(scope="module")
-def ros_domain() -> Iterator[int]:
-    import os
-
-    import rclpy
-
-    domain = domain_id()
-    saved = {k: os.environ.get(k) for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
-    set_ros_env(domain)
-    rclpy.init(domain_id=domain)
-    try:
-        yield domain
-    finally:
-        rclpy.try_shutdown()
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
 
 
 def start(ros_domain: int, tmp: Path, name: str, **params: Any) -> tuple[NodeProcess, TfFeeder]:
