@@ -288,6 +288,15 @@ class TfTree:
             frame = parent
         return None
 
+    def edge_stamps(self, child: str) -> FloatArray:
+        """Stamps of the dynamic edge above ``child`` (empty when static or unknown)."""
+        edge = self._dynamic.get(normalize_frame(child))
+        return np.array(edge.stamps) if edge is not None else np.zeros(0)
+
+    def is_dynamic(self, child: str) -> bool:
+        """Whether the edge above ``child`` comes from /tf (moves)."""
+        return normalize_frame(child) in self._dynamic
+
     def latest_common_stamp(self, target: str, source: str) -> float | None:
         """Latest stamp at which the chain can be looked up (None: static only or unknown)."""
         path = self._path(target, source)
