@@ -54,9 +54,9 @@ from mfp_mapper.ros.messages import cloud_msg
 from mfp_mapper.ros.params import declare_parameters
 from mfp_mapper.ros.status import StatusWindow, diagnostics, next_window, status_report
 from mfp_mapper.sensing.live import LiveIntegrator, LiveSettings
-from mfp_mapper.sensing.pointcloud import CloudFormatError, pack_cloud, read_xyz
+from mfp_mapper.sensing.pointcloud import CloudFormatError, pack_cloud, read_xyz, stamp_seconds
 from mfp_mapper.sensing.poses import PoseBuffer, odometry_sample
-from mfp_mapper.sensing.tf_tree import TfTree
+from mfp_mapper.sensing.tf_tree import TfTree, TransformUnavailable
 from mfp_mapper.settings import SPECS, NodeConfig
 
 NODE_NAME = "mfp_mapper"
@@ -286,25 +286,27 @@ class MfpMapperNode(GuardedNode):
     @tracked
     async def _on_query(self, msg: PointCloud2) -> None:
         frame = msg.header.frame_id
-        if frame and frame != self.map_frame:
-            self.warn_throttled(
-                "query_frame",
-                f"hit_probability query in frame {frame!r}, expected the map frame "
-                f"{self.map_frame!r}: answered with no point",
-                error=True,
-            )
-            self._answer_nothing(msg)
-            return
         try:
             points = read_xyz(msg)
         except CloudFormatError as err:
             self.warn_throttled("query_bad", f"malformed hit_probability query: {err}", error=True)
             self._answer_nothing(msg)
             return
+        try:
+            in_map = self.worker.to_map_frame(points, frame, stamp_seconds(msg.header.stamp))
+        except TransformUnavailable as err:
+            self.warn_throttled(
+                "query_frame",
+                f"hit_probability query in frame {frame!r}, not the map frame "
+                f"{self.map_frame!r}, and TF cannot transform it ({err}): answered with no point",
+                error=True,
+            )
+            self._answer_nothing(msg)
+            return
 
         def query() -> Any:
             with self.worker.map_lock:
-                return self.mapper.query(points)
+                return self.mapper.query(in_map)
 
         try:
             stats = await self.off_executor(query)

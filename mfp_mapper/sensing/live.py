@@ -26,7 +26,7 @@ from mfp_mapper.sensing import pipeline
 from mfp_mapper.sensing.placement import Odometry, Placement, StampGuard, resolve_placement
 from mfp_mapper.sensing.pointcloud import ParsedCloud
 from mfp_mapper.sensing.poses import Extrinsic, OdometrySample, PoseBuffer
-from mfp_mapper.sensing.tf_tree import TfTree
+from mfp_mapper.sensing.tf_tree import TfTree, TransformUnavailable
 
 CLOCK_JUMP_BACK = 1.0
 """Seconds the clock must go back to count as a jump (bag loop, simulation restart)."""
@@ -226,6 +226,24 @@ class LiveIntegrator:
             False,
         )
         return True
+
+    def to_map_frame(self, points: np.ndarray, frame: str, stamp: float) -> np.ndarray:
+        """Points given in ``frame`` (empty: the map frame) in the map frame, through TF at
+        ``stamp``, or at the latest transform when the stamp is not covered; raises
+        TransformUnavailable."""
+        frame, target = frame.lstrip("/"), self.map_frame
+        if not frame or frame == target:
+            return points
+        with self.pose_lock:
+            tree = self.tree.snapshot()
+        try:
+            matrix = tree.lookup_matrix(target, frame, stamp)
+        except TransformUnavailable as err:
+            if err.reason == "unconnected":
+                raise
+            latest = tree.latest_common_stamp(target, frame)
+            matrix = tree.lookup_matrix(target, frame, stamp if latest is None else latest)
+        return points @ matrix[:3, :3].T + matrix[:3, 3]
 
     def _adopt_map_frame(self) -> None:
         # no map lock here: this runs on the executor, which must never wait for a scan

@@ -236,6 +236,24 @@ def test_odometry_with_map_to_odom_nav2_grid_and_late_joiners(
         served_values = set(np.unique(np.array(served.data, dtype=int)))
         assert len(served_values - {-1, 0, 100}) > 3  # GetMap keeps the percentages
 
+        # a query in the odometry frame is transformed through TF (map -> odom); one in a
+        # frame TF does not know is answered with no point, never silence
+        y_mid = np.floor(lidar_y / RES) * RES + RES / 2  # voxel centres: no boundary
+        wall_in_map = np.array(
+            [[WALL_X + 0.05, y_mid, 1.05, 1.0], [WALL_X - 0.95, y_mid, 1.05, 1.0]]
+        )
+        in_odom = (np.linalg.inv(matrix(*MAP_ODOM)) @ wall_in_map.T)[:3].T
+        for frame, pts in (("map", wall_in_map[:, :3]), ("odom", in_odom), ("nowhere", in_odom)):
+            count = len(feeder.results)
+            cols = {a: pts[:, k].astype(np.float32) for k, a in enumerate("xyz")}
+            feeder.query_pub.publish(cloud_from_columns(cols, frame, T0 + 0.5))
+            assert feeder.wait(lambda count=count: len(feeder.results) > count, 10.0), frame
+        by_map, by_odom, nowhere = (read_cloud(r) for r in feeder.results[-3:])
+        assert feeder.results[-2].header.frame_id == "odom"
+        np.testing.assert_allclose(by_odom["hit_probability"], by_map["hit_probability"])
+        assert by_map["hit_probability"][0] > 0.25 > by_map["hit_probability"][1]
+        assert len(nowhere["x"]) == 0
+
         # late joiners: a new transient-local subscriber gets each output at once
         late = Feeder(feeder_name="late")
         try:
