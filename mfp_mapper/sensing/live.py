@@ -345,23 +345,31 @@ class LiveIntegrator:
         waited = time.monotonic() - item.received
         try:
             placement = self._placement(item.msg.header.frame_id)
-        except pipeline.ScanDropped:
+        except pipeline.ScanDropped as drop:
             if waited <= cfg.odom_wait:
                 return False  # the transforms may still come
-            raise
+            raise pipeline.ScanDropped(
+                drop.reason, drop.detail, 0, dict(item.cloud.dropped)
+            ) from None
         latest = placement.poses.latest_stamp
         if latest is None or latest < item.deadline:
             if waited <= cfg.odom_wait:
                 return False
+            parse_drops = dict(item.cloud.dropped)
             if latest is None:
                 raise pipeline.ScanDropped(
-                    "no_poses", f"no pose ({placement.source}) within odom_wait {cfg.odom_wait} s"
+                    "no_poses",
+                    f"no pose ({placement.source}) within odom_wait {cfg.odom_wait} s",
+                    0,
+                    parse_drops,
                 )
             raise pipeline.ScanDropped(
                 "too_new",
                 f"stamp {item.deadline:.3f} (the cloud's last point, time base "
                 f"{item.cloud.time_base or 'none'}) not covered by the poses "
                 f"({placement.source}; latest {latest:.3f}) within odom_wait {cfg.odom_wait} s",
+                0,
+                parse_drops,
             )
         if self.placement_source != placement.source:
             self.placement_source = placement.source
@@ -376,7 +384,6 @@ class LiveIntegrator:
         latency = self._now() - item.stamp
         with self._cv:
             c = self.counters
-            c.count_points(placed.points_dropped)
             c.add(placed, summary)
             c.latency_last = latency
             c.latency_sum += latency
