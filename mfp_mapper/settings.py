@@ -198,6 +198,9 @@ SETTINGS: tuple[Setting, ...] = (
           "~/hit_probability_map.", -NO_LIMIT_Z, NO_LIMIT_Z, dynamic=True),
     _node("hit_probability_map.radius", 0.0, "~/hit_probability_map covers the square of "
           "this half side (m) around the robot. 0: the whole map.", 0.0, 1.0e6, dynamic=True),
+    _node("hit_probability_map.max_cells", 25_000_000, "Most cells ~/hit_probability_map and "
+          "~/projected_map may hold; a larger map is served as the largest square around the "
+          "robot that fits (logged).", 1, 2**31 - 1, dynamic=True),
     _node("projected_map.trinary", True, "~/projected_map cells 100 (occupied) / 0 (free) / "
           "-1 (unknown), as Nav2's static layer expects. False: round(100 hit probability), "
           "like ~/hit_probability_map.", dynamic=True),
@@ -207,9 +210,6 @@ SETTINGS: tuple[Setting, ...] = (
           "~/projected_map cell is free (0). Negative: that of a never-observed voxel, "
           "resolution / (1 + resolution).", -1.0, 1.0, dynamic=True),
     _node("tf_buffer", 10.0, "Seconds of /tf kept per transform.", 0.1, 3600.0),
-    _node("hit_probability_map.max_cells", 25_000_000, "Most cells ~/hit_probability_map and "
-          "~/projected_map may hold; a larger map is served as the largest square around the "
-          "robot that fits (logged).", 1, 2**31 - 1, dynamic=True),
     # --- map file, health ------------------------------------------------------------------
     _node("map_path", "", "Map file (.npz) for ~/save_map, loaded at start when it exists. "
           "Empty: none."),

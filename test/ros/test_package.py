@@ -292,7 +292,7 @@ def test_rviz_config_shows_the_node_outputs() -> None:
     by_topic = {
         d["Topic"]["Value"]: d for d in config["Visualization Manager"]["Displays"] if "Topic" in d
     }
-    node_source = (ROOT / "mfp_mapper" / "ros" / "node.py").read_text()
+    node_source = "".join(p.read_text() for p in (ROOT / "mfp_mapper" / "ros").glob("*.py"))
     for topic, channel in (
         ("/mfp_mapper/degree_of_occupancy", "degree_of_occupancy"),
         ("/mfp_mapper/std", "std"),
