@@ -17,7 +17,7 @@ import time
 from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -30,6 +30,9 @@ from mfp_mapper.sensing.tf_tree import TfTree, TransformUnavailable
 
 CLOCK_JUMP_BACK = 1.0
 """Seconds the clock must go back to count as a jump (bag loop, simulation restart)."""
+
+if TYPE_CHECKING:
+    from mfp_mapper.settings import NodeConfig
 
 Log = Callable[[str, str, bool], None]
 """``log(key, text, error)``: a throttled warning (or error) keyed by ``key``."""
@@ -47,6 +50,20 @@ class LiveSettings:
     odom_wait: float
     base_frame_id: str = ""
     extrinsic_override: Extrinsic | None = None
+
+    @classmethod
+    def of(cls, cfg: NodeConfig) -> LiveSettings:
+        """What the worker reads of the node's parameters."""
+        return cls(
+            frame_id=cfg.frame_id,
+            deskew=cfg.deskew,
+            point_cloud_min_z=cfg.point_cloud_min_z,
+            point_cloud_max_z=cfg.point_cloud_max_z,
+            cloud_queue_size=cfg.cloud_queue_size,
+            odom_wait=cfg.odom_wait,
+            base_frame_id=cfg.base_frame_id,
+            extrinsic_override=cfg.extrinsic_override(),
+        )
 
 
 @dataclass
