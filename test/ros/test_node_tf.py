@@ -272,3 +272,63 @@ def test_odometry_with_map_to_odom_nav2_grid_and_late_joiners(
     finally:
         feeder.destroy()
         assert node.stop() == 0
+
+
+def test_services_and_odometry_answer_during_a_2m_point_scan(
+    ros_domain: int, tmp_path: Path
+) -> None:
+    """A real 2 M-point scan integrating (the map lock held for seconds): odometry is taken,
+    and GetMap and save_map answer (they wait for the map off the executor, never on it)."""
+    import time
+
+    from nav_msgs.srv import GetMap
+    from std_srvs.srv import Trigger
+    from test_node_robustness import Spun, _feeder
+
+    spun = Spun(
+        "mfp_long_scan",
+        frame_id="odom",
+        resolution=0.5,  # few voxels: the time goes to the 2 M rays, the map stays small
+        publish_rate=0.0,
+        status_period=0.0,
+        odom_wait=5.0,
+        map_path=str(tmp_path / "long.npz"),
+    )
+    f = _feeder(spun)
+    try:
+        worker = spun.node.worker
+        pose = np.zeros(3)
+        f.odom_pub.publish(odom_msg(T0 - 0.1, pose, 0.0))
+        f.odom_pub.publish(odom_msg(T0 + 0.1, pose, 0.0))
+        assert f.wait(lambda: worker.counters.odom_in == 2, 10.0)
+        rng = np.random.default_rng(3)
+        n = 2_000_000
+        directions = rng.normal(size=(n, 3))
+        directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+        xyz = (directions * rng.uniform(1.0, 3.0, (n, 1))).astype(np.float32)
+        worker.submit(
+            cloud_from_columns({a: xyz[:, k] for k, a in enumerate("xyz")}, "base_link", T0)
+        )
+        assert f.wait(lambda: worker.map_lock.locked(), 30.0), "the scan never started"
+        t0 = time.monotonic()
+        get_map = f.get_map.call_async(GetMap.Request())
+        save = f.save.call_async(Trigger.Request())
+        for k in range(20):
+            f.odom_pub.publish(odom_msg(T0 + 0.2 + 0.01 * k, pose, 0.0))
+        assert f.wait(lambda: worker.counters.odom_in == 22, 10.0)
+        odom_s = time.monotonic() - t0
+        still_integrating = worker.map_lock.locked() and worker.counters.clouds_integrated == 0
+        assert f.wait(lambda: get_map.done() and save.done(), 60.0)
+        answered_s = time.monotonic() - t0
+        assert worker.counters.clouds_integrated == 1
+        assert get_map.result().map.info.width > 0
+        assert save.result().success, save.result().message
+        print(
+            f"2 M-point scan: 20 odometry messages taken after {odom_s:.3f} s "
+            f"(scan still integrating: {still_integrating}); GetMap and save answered "
+            f"after {answered_s:.2f} s"
+        )
+        assert still_integrating, "the scan ended before odometry was taken: test too weak"
+    finally:
+        f.destroy()
+        spun.close()
