@@ -46,6 +46,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Empty, Trigger
 from tf2_msgs.msg import TFMessage
 
+from mfp_mapper.core.atomic import remove_stale_temp_files
 from mfp_mapper.core.mapfile import MapFileError, map_arrays, write_map_arrays
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.ros.guarded_node import GuardedNode, tracked
@@ -77,6 +78,10 @@ def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, bool]:
     """The map to start from: ``map_path`` when it exists and loads, else an empty one; and
     whether loading failed (then that file is never saved over)."""
     path = cfg.map_path
+    if path:  # temporary files of a save that was killed midway
+        target = os.path.realpath(path)
+        for stale in remove_stale_temp_files(os.path.dirname(target), os.path.basename(target)):
+            logger.warning(f"removed {stale}, left by an interrupted save")
     if not (path and os.path.exists(path)):
         return _empty_map(cfg), False
     try:
