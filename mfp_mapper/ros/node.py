@@ -44,7 +44,9 @@ from rclpy.qos import (
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 from std_srvs.srv import Empty, Trigger
+from tf2_msgs.msg import TFMessage
 
+from mfp_mapper.core.atomic import remove_stale_temp_files
 from mfp_mapper.core.mapfile import MapFileError, map_arrays, write_map_arrays
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.ros.guarded_node import GuardedNode, tracked
@@ -59,14 +61,10 @@ from mfp_mapper.ros.status import (
     status_report,
 )
 from mfp_mapper.sensing.live import LiveIntegrator, LiveSettings
-from mfp_mapper.sensing.pointcloud import CloudFormatError, pack_cloud, read_xyz
-from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer, odometry_sample
+from mfp_mapper.sensing.pointcloud import CloudFormatError, pack_cloud, read_xyz, stamp_seconds
+from mfp_mapper.sensing.poses import PoseBuffer, odometry_sample
+from mfp_mapper.sensing.tf_tree import TfTree, TransformUnavailable
 from mfp_mapper.settings import SPECS, NodeConfig
-
-try:  # optional: not installable from PyPI
-    import tf2_ros  # type: ignore[import-not-found]
-except ImportError:  # pragma: no cover - depends on the installation
-    tf2_ros = None
 
 NODE_NAME = "mfp_mapper"
 RESULT_FIELDS = (
@@ -80,6 +78,10 @@ def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, bool]:
     """The map to start from: ``map_path`` when it exists and loads, else an empty one; and
     whether loading failed (then that file is never saved over)."""
     path = cfg.map_path
+    if path:  # temporary files of a save that was killed midway
+        target = os.path.realpath(path)
+        for stale in remove_stale_temp_files(os.path.dirname(target), os.path.basename(target)):
+            logger.warning(f"removed {stale}, left by an interrupted save")
     if not (path and os.path.exists(path)):
         return _empty_map(cfg), False
     try:
@@ -118,37 +120,21 @@ class MfpMapperNode(GuardedNode):
         self._last_window = self._status_window
         self._queries = 0
         self._maps_served = 0
-        self._param_extrinsic = self.cfg.extrinsic()
-        self._identity = Extrinsic()
         mapper, self._load_failed = initial_mapper(self.cfg, self.get_logger())
         self.worker = LiveIntegrator(
             mapper,
             LiveSettings.of(self.cfg),
             PoseBuffer(max_age=self.cfg.odom_buffer, max_gap=self.cfg.odom_max_gap),
-            extrinsic_for=self._extrinsic,
+            tree=TfTree(buffer_length=self.cfg.tf_buffer),
             log=self.warn_throttled,
-            now=lambda: self.get_clock().now().nanoseconds * 1e-9,
+            now=self._now,
         )
         self.outputs = MapOutputs(self, self.worker, lambda: self.cfg, self.warn_throttled)
         self.worker._publish = self.outputs.publish
 
-        self._tf_buffer = None
-        if self.cfg.use_tf:
-            if tf2_ros is None:
-                self.get_logger().warning(
-                    "use_tf is true but tf2_ros is not importable: using lidar.translation "
-                    "and lidar.rpy"
-                )
-            else:  # pragma: no cover - tf2_ros is not installable in the test environment
-                self._tf_buffer = tf2_ros.Buffer()
-                self._tf_listener = tf2_ros.TransformListener(self._tf_buffer, self)
         self._create_interfaces()
         self.worker.start()
-        self.get_logger().info(
-            startup_text(
-                self.cfg, self.resolve_topic_name, self.mapper, self._tf_buffer is not None
-            )
-        )
+        self.get_logger().info(startup_text(self.cfg, self.resolve_topic_name, self.mapper))
 
     def _create_interfaces(self) -> None:
         self.create_subscription(
@@ -162,6 +148,17 @@ class MfpMapperNode(GuardedNode):
             history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.BEST_EFFORT
         )
         self.create_subscription(Odometry, "odom", self._on_odom, odom_qos)
+        tf_qos = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE
+        )
+        tf_static_qos = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST,
+            depth=100,
+            reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL,
+        )
+        self.create_subscription(TFMessage, "/tf", self._on_tf, tf_qos)
+        self.create_subscription(TFMessage, "/tf_static", self._on_tf_static, tf_static_qos)
         status_qos = QoSProfile(
             depth=1,
             reliability=ReliabilityPolicy.RELIABLE,
@@ -214,25 +211,24 @@ class MfpMapperNode(GuardedNode):
         self.outputs.invalidate()  # republish with the new filter
         return SetParametersResult(successful=True)
 
-    def _extrinsic(self, cloud_frame: str) -> Extrinsic:
-        if cloud_frame and cloud_frame == self.worker.odom_child:
-            return self._identity
-        if self._tf_buffer is not None:  # pragma: no cover - needs tf2_ros
-            target = self.cfg.base_frame_id or self.worker.odom_child or ""
-            try:
-                tf = self._tf_buffer.lookup_transform(target, cloud_frame, rclpy.time.Time())
-            except Exception as err:
-                self.warn_throttled("tf", f"TF {target} <- {cloud_frame} unavailable: {err}")
-            else:
-                t, r = tf.transform.translation, tf.transform.rotation
-                return Extrinsic(np.array([t.x, t.y, t.z]), np.array([r.x, r.y, r.z, r.w]))
-        return self._param_extrinsic
+    def _now(self) -> float:
+        return float(self.get_clock().now().nanoseconds) * 1e-9
 
     # --- inputs ----------------------------------------------------------------------------
 
     @tracked
     def _on_cloud(self, msg: PointCloud2) -> None:
+        self.worker.observe_clock(self._now())
         self.worker.submit(msg)
+
+    @tracked
+    def _on_tf(self, msg: TFMessage) -> None:
+        self.worker.observe_clock(self._now())
+        self.worker.add_transforms(msg, static=False)
+
+    @tracked
+    def _on_tf_static(self, msg: TFMessage) -> None:
+        self.worker.add_transforms(msg, static=True)
 
     def _on_clouds_lost(self, info: Any) -> None:
         """The middleware reports clouds that never reached this node (transport losses)."""
@@ -245,6 +241,7 @@ class MfpMapperNode(GuardedNode):
 
     @tracked
     def _on_odom(self, msg: Odometry) -> None:
+        self.worker.observe_clock(self._now())
         self.worker.add_odometry(odometry_sample(msg))
 
     @tracked
@@ -256,25 +253,27 @@ class MfpMapperNode(GuardedNode):
     @tracked
     async def _on_query(self, msg: PointCloud2) -> None:
         frame = msg.header.frame_id
-        if frame and frame != self.map_frame:
-            self.warn_throttled(
-                "query_frame",
-                f"hit_probability query in frame {frame!r}, expected the map frame "
-                f"{self.map_frame!r}: answered with no point",
-                error=True,
-            )
-            self._answer_nothing(msg)
-            return
         try:
             points = read_xyz(msg)
         except CloudFormatError as err:
             self.warn_throttled("query_bad", f"malformed hit_probability query: {err}", error=True)
             self._answer_nothing(msg)
             return
+        try:
+            in_map = self.worker.to_map_frame(points, frame, stamp_seconds(msg.header.stamp))
+        except TransformUnavailable as err:
+            self.warn_throttled(
+                "query_frame",
+                f"hit_probability query in frame {frame!r}, not the map frame "
+                f"{self.map_frame!r}, and TF cannot transform it ({err}): answered with no point",
+                error=True,
+            )
+            self._answer_nothing(msg)
+            return
 
         def query() -> Any:
             with self.worker.map_lock:
-                return self.mapper.query(points)
+                return self.mapper.query(in_map)
 
         try:
             stats = await self.off_executor(query)

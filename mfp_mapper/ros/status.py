@@ -135,28 +135,33 @@ def diagnostics(
     return out
 
 
-def startup_text(
-    cfg: NodeConfig, topic: Callable[[str], str], mapper: Mapper, tf_extrinsic: bool
-) -> str:
-    """The start-up log line: what a robot integrator needs to check (topics, frames,
-    sources); ``topic`` resolves a topic name, ``tf_extrinsic`` says TF gives the extrinsic."""
-    if cfg.use_tf and tf_extrinsic:
-        extrinsic = f"TF {cfg.base_frame_id or '<odometry child>'} <- cloud frame"
-    else:
+def startup_text(cfg: NodeConfig, topic: Callable[[str], str], mapper: Mapper) -> str:
+    """The start-up log line: what a robot integrator needs to check (topics, frames, pose
+    and extrinsic sources, map file, outputs); ``topic`` resolves a topic name."""
+    if cfg.extrinsic_override() is not None:
         extrinsic = (
-            "identity when the cloud frame is the odometry child frame, else lidar.* "
-            f"parameters (translation {list(cfg.lidar_translation)}, rpy "
-            f"{list(cfg.lidar_rpy)})"
+            f"lidar.* parameters (translation {list(cfg.lidar_translation)}, rpy "
+            f"{list(cfg.lidar_rpy)}) unless the cloud frame is the odometry child"
         )
+    else:
+        body = cfg.base_frame_id or "<odometry child>"
+        extrinsic = (
+            f"/tf_static {body} -> cloud frame (identity when the cloud frame is the "
+            "odometry child; a cloud it cannot place is dropped)"
+        )
+    poses = (
+        f"{topic('odom')} (nav_msgs/Odometry) when it publishes, else TF "
+        f"{cfg.frame_id or '<root>'} <- cloud frame; /tf and /tf_static "
+        f"(tf2_msgs/TFMessage, {cfg.tf_buffer} s kept)"
+    )
     path = cfg.map_path or "<none>"
     loaded = f", {mapper.num_voxels} voxels loaded" if mapper.num_voxels else ""
     return (
-        f"mfp_mapper ready: clouds from {topic('cloud_in')}, poses from "
-        f"{topic('odom')} (nav_msgs/Odometry); map frame "
+        f"mfp_mapper ready: clouds from {topic('cloud_in')}, poses from {poses}; map frame "
         f"{cfg.frame_id or '<the odometry frame>'}; extrinsic: {extrinsic}; resolution "
         f"{mapper.resolution} m, max_range {cfg.max_range} m, decay_time "
         f"{cfg.decay} s, deskew {cfg.deskew}; map_path {path}{loaded}, save_on_shutdown "
         f"{cfg.save_on_shutdown}; outputs {topic('~/degree_of_occupancy')}, "
-        f"{topic('~/std')}, {topic('~/projected_map')} at {cfg.publish_rate} Hz, "
-        f"latched {cfg.latch}"
+        f"{topic('~/std')}, {topic('~/projected_map')} (trinary "
+        f"{cfg.projected_map_trinary}) at {cfg.publish_rate} Hz, latched {cfg.latch}"
     )

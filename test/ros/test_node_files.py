@@ -68,3 +68,21 @@ def test_launch_file_parses_and_uses_the_installed_names() -> None:
     assert "generate_launch_description" in functions
     strings = {n.value for n in ast.walk(tree) if isinstance(n, ast.Constant)}
     assert {"mfp_mapper", "mfp_mapper.yaml", "cloud_in", "odom"} <= strings
+
+
+def test_node_start_removes_temporary_files_of_an_interrupted_save(tmp_path: Path) -> None:
+    """A save killed midway leaves its temporary file beside map_path; the next start
+    removes it (and only files of dead writers of that map)."""
+    import logging
+
+    from mfp_mapper.ros.node import initial_mapper
+
+    dead_pid = 2**22 + 12345  # above pid_max: no such process
+    stale = tmp_path / f".map.npz.{dead_pid}.abcdef.mfp-tmp"
+    other = tmp_path / f".other.npz.{dead_pid}.abcdef.mfp-tmp"
+    stale.write_bytes(b"half a map")
+    other.write_bytes(b"someone else's")
+    cfg = NodeConfig.from_values({"map_path": str(tmp_path / "map.npz")})
+    mapper, failed = initial_mapper(cfg, logging.getLogger("test"))
+    assert not failed and mapper.num_voxels == 0
+    assert not stale.exists() and other.exists()
