@@ -1,4 +1,4 @@
-"""Odometry pose buffer, interpolation, sensor extrinsic and de-skew into the map frame.
+"""Poses: quaternions, the sensor extrinsic and the time-ordered pose buffer (interpolation).
 
 Quaternions are ``(x, y, z, w)`` like ROS; rotations act on column vectors.
 """
@@ -11,15 +11,11 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-
-from mfp_mapper.sensing.pointcloud import ParsedCloud
+from scipy.spatial.transform import Rotation
 
 FloatArray = NDArray[np.float64]
 
 IDENTITY_QUATERNION = (0.0, 0.0, 0.0, 1.0)
-DESKEW_TIME_RESOLUTION = 1e-5
-"""Seconds within which de-skewed points share one interpolated pose (10 µs)."""
-_DENSE_BINS_LIMIT = 1 << 22
 _SLERP_LINEAR_BELOW = 1e-9
 """sin(angle) under which slerp falls back to normalised linear interpolation."""
 
@@ -52,34 +48,27 @@ def normalize_quaternion(q: ArrayLike) -> FloatArray:
 
 def quaternion_to_matrix(q: ArrayLike) -> FloatArray:
     """Rotation matrix (..., 3, 3) of unit quaternion(s) (..., 4) in xyzw order."""
-    x, y, z, w = np.moveaxis(np.asarray(q, dtype=np.float64), -1, 0)
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
+    arr = np.asarray(q, dtype=np.float64)
+    flat = Rotation.from_quat(arr.reshape(-1, 4)).as_matrix()
+    return flat.reshape(*arr.shape[:-1], 3, 3)
 
 
 def rpy_to_quaternion(roll: float, pitch: float, yaw: float) -> FloatArray:
     """Quaternion (xyzw) of the fixed-axis rotation Rz(yaw) @ Ry(pitch) @ Rx(roll) (ROS RPY)."""
-    cr, sr = np.cos(roll / 2), np.sin(roll / 2)
-    cp, sp = np.cos(pitch / 2), np.sin(pitch / 2)
-    cy, sy = np.cos(yaw / 2), np.sin(yaw / 2)
-    return np.array(
-        [
-            sr * cp * cy - cr * sp * sy,
-            cr * sp * cy + sr * cp * sy,
-            cr * cp * sy - sr * sp * cy,
-            cr * cp * cy + sr * sp * sy,
-        ]
-    )
+    return np.asarray(Rotation.from_euler("xyz", [roll, pitch, yaw]).as_quat(), dtype=np.float64)
+
+
+def quaternion_to_rpy(q: ArrayLike) -> FloatArray:
+    """Fixed-axis [roll, pitch, yaw] (rad) of a unit quaternion (xyzw)."""
+    return np.asarray(Rotation.from_quat(q).as_euler("xyz"), dtype=np.float64)
 
 
 def slerp(q0: ArrayLike, q1: ArrayLike, alpha: ArrayLike) -> FloatArray:
-    """Spherical interpolation of unit quaternions (broadcast), shortest path."""
+    """Spherical interpolation of unit quaternions (broadcast), shortest path.
+
+    Written in numpy rather than with scipy's Rotation (rotation vectors): 1.5 ms against
+    30 ms for the 10k poses of a de-skewed 131k-point cloud.
+    """
     a = np.asarray(q0, dtype=np.float64)
     b = np.asarray(q1, dtype=np.float64)
     t = np.asarray(alpha, dtype=np.float64)[..., None]
@@ -272,83 +261,56 @@ def _unit_quaternion_or_none(q: ArrayLike) -> FloatArray | None:
         return None
 
 
-def cloud_to_map(
-    cloud: ParsedCloud,
-    stamp: float,
-    buffer: PoseBuffer,
-    extrinsic: Extrinsic,
-    deskew: bool = True,
-    time_resolution: float = DESKEW_TIME_RESOLUTION,
-) -> tuple[FloatArray, FloatArray]:
-    """Points of ``cloud`` in the map frame, and the sensor origin(s) they were seen from.
+@dataclass(frozen=True, eq=False)
+class OdometrySample:
+    """One nav_msgs/Odometry pose: ``child_frame_id`` in ``frame_id`` at ``stamp`` (s)."""
 
-    ``p_map = R_odom (R_ext p + t_ext) + t_odom``. With ``deskew`` and per-point times, each
-    point uses the pose at ``stamp + time_offset`` (offsets closer than ``time_resolution``
-    share one pose; 0 for exact) and origins are (N, 3); otherwise one pose at ``stamp``
-    and one origin (3,). Raises PoseUnavailable.
-    """
-    if deskew and cloud.time_offset is not None and len(cloud) > 0:
-        offsets, bin_of_point = _time_bins(cloud.time_offset, time_resolution)
-        rotations, origins = _sensor_poses(buffer, stamp + offsets, extrinsic)
-        return _transform_binned(cloud.xyz, rotations, origins, bin_of_point), origins[bin_of_point]
-    rotations, origins = _sensor_poses(buffer, np.array([stamp]), extrinsic)
-    return cloud.xyz @ rotations[0].T + origins[0], origins[0]
+    stamp: float
+    frame_id: str
+    child_frame_id: str
+    position: FloatArray
+    quaternion: FloatArray  # x, y, z, w
 
 
-def _sensor_poses(
-    buffer: PoseBuffer, stamps: FloatArray, extrinsic: Extrinsic
-) -> tuple[FloatArray, FloatArray]:
-    """Sensor-to-map rotations (N, 3, 3) and sensor origins in the map (N, 3) at ``stamps``."""
-    positions, odom_rotations = buffer.interpolate(stamps)
-    origins = odom_rotations @ extrinsic.translation + positions
-    return odom_rotations @ extrinsic.rotation, origins
+@dataclass(frozen=True, eq=False)
+class TransformSample:
+    """One geometry_msgs/TransformStamped: ``child`` in ``parent`` at ``stamp`` (s)."""
+
+    stamp: float
+    parent: str
+    child: str
+    translation: FloatArray
+    quaternion: FloatArray  # x, y, z, w
 
 
-def _transform_binned(
-    points: FloatArray, rotations: FloatArray, translations: FloatArray, bins: NDArray[np.intp]
-) -> FloatArray:
-    """``rotations[bins[k]] @ points[k] + translations[bins[k]]`` for every k, gathering
-    scalars per matrix element (much faster than gathering (N, 3, 3) matrices)."""
-    x, y, z = np.ascontiguousarray(points.T)
-    elements = np.ascontiguousarray(rotations.reshape(-1, 9).T)
-    offsets = np.ascontiguousarray(translations.T)
-    out = np.empty((points.shape[0], 3), dtype=np.float64)
-    for row in range(3):
-        r0, r1, r2 = elements[3 * row : 3 * row + 3]
-        out[:, row] = r0[bins] * x + r1[bins] * y + r2[bins] * z + offsets[row][bins]
-    return out
+def frame_name(name: str) -> str:
+    """A frame id without tf's leading slash."""
+    return name.lstrip("/")
 
 
-def _time_bins(offsets: FloatArray, resolution: float) -> tuple[FloatArray, NDArray[np.intp]]:
-    """Representative offsets (U,) and each offset's index into them.
-
-    Offsets are rounded to multiples of ``resolution`` from the smallest one (exact
-    unique values when ``resolution`` is 0); representatives stay within the offsets' range.
-    """
-    if resolution <= 0.0:
-        unique, inverse = np.unique(offsets, return_inverse=True)
-        return unique, inverse.reshape(-1)
-    start, stop = float(offsets.min()), float(offsets.max())
-    keys = np.rint((offsets - start) / resolution).astype(np.intp)
-    if keys.max() < _DENSE_BINS_LIMIT:
-        occupied = np.zeros(int(keys.max()) + 1, dtype=bool)
-        occupied[keys] = True
-        bins, inverse = np.flatnonzero(occupied), (np.cumsum(occupied) - 1)[keys]
-    else:
-        bins, inverse = np.unique(keys, return_inverse=True)
-    return np.clip(start + bins * resolution, start, stop), inverse.reshape(-1)
+def _seconds(stamp: Any) -> float:
+    return float(stamp.sec) + float(stamp.nanosec) * 1e-9
 
 
-def z_band(
-    points: FloatArray, origins: FloatArray, lo: float, hi: float
-) -> tuple[FloatArray, FloatArray, int]:
-    """Keep the rays whose end point's z (map frame) lies in [lo, hi]; returns the kept
-    points, their origins ((3,) stays (3,)) and how many rays were dropped."""
-    keep = (points[:, 2] >= lo) & (points[:, 2] <= hi)
-    if keep.all():
-        return points, origins, 0
-    return (
-        points[keep],
-        (origins[keep] if origins.ndim == 2 else origins),
-        int(keep.size - keep.sum()),
+def odometry_sample(msg: Any) -> OdometrySample:
+    """The pose of a nav_msgs/Odometry (an rclpy or a rosbags message)."""
+    p, o = msg.pose.pose.position, msg.pose.pose.orientation
+    return OdometrySample(
+        _seconds(msg.header.stamp),
+        frame_name(msg.header.frame_id),
+        frame_name(msg.child_frame_id),
+        np.array([p.x, p.y, p.z], dtype=np.float64),
+        np.array([o.x, o.y, o.z, o.w], dtype=np.float64),
+    )
+
+
+def transform_sample(msg: Any) -> TransformSample:
+    """The transform of a geometry_msgs/TransformStamped (rclpy or rosbags)."""
+    t, r = msg.transform.translation, msg.transform.rotation
+    return TransformSample(
+        _seconds(msg.header.stamp),
+        frame_name(msg.header.frame_id),
+        frame_name(msg.child_frame_id),
+        np.array([t.x, t.y, t.z], dtype=np.float64),
+        np.array([r.x, r.y, r.z, r.w], dtype=np.float64),
     )

@@ -17,8 +17,9 @@ from mfp_mapper.offline.scan_files import (
     read_vtk_points,
 )
 from mfp_mapper.sensing import pointcloud as pc
+from mfp_mapper.sensing.deskew import cloud_to_map
 from mfp_mapper.sensing.pointcloud import parse_pointcloud2
-from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer, cloud_to_map, quaternion_to_matrix
+from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer, quaternion_to_matrix
 
 PCD_HEADER = """# .PCD v0.7 - Point Cloud Data file format
 VERSION 0.7

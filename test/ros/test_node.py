@@ -499,8 +499,8 @@ def test_a_slow_save_does_not_stall_odometry(
         assert f.wait(started.is_set, 10.0), "the save never started"
         for k in range(10):
             f.odom_pub.publish(odom_msg(T0 + 0.05 * k, np.zeros(3), 0.0))
-        assert f.wait(lambda: mapper_node._counters.odom_in == 10, 10.0), (
-            f"odometry taken during the save: {mapper_node._counters.odom_in} of 10"
+        assert f.wait(lambda: mapper_node.worker.counters.odom_in == 10, 10.0), (
+            f"odometry taken during the save: {mapper_node.worker.counters.odom_in} of 10"
         )
         assert not pending.done()
         release.set()

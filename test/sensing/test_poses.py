@@ -11,12 +11,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numpy.typing import NDArray
 
+from mfp_mapper.sensing.deskew import cloud_to_map
 from mfp_mapper.sensing.pointcloud import ParsedCloud
 from mfp_mapper.sensing.poses import (
     Extrinsic,
     PoseBuffer,
     PoseUnavailable,
-    cloud_to_map,
     normalize_quaternion,
     quaternion_to_matrix,
     rpy_to_quaternion,
@@ -364,7 +364,7 @@ def test_deskew_of_131k_points_is_fast() -> None:
 
 
 def test_z_band_keeps_rays_whose_end_lies_in_the_band() -> None:
-    from mfp_mapper.sensing.poses import z_band
+    from mfp_mapper.sensing.pipeline import z_band
 
     points = np.array([[0.0, 0.0, -1.0], [1.0, 0.0, 0.5], [2.0, 0.0, 3.0]])
     origins = np.arange(9, dtype=float).reshape(3, 3)

@@ -1,0 +1,156 @@
+"""The node's map outputs: the degree-of-occupancy and std clouds and the projected grid.
+
+Built from the Mapper under the map lock (only as long as the export takes), converted and
+published outside it. The integration worker calls ``publish`` between two scans.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from nav_msgs.msg import OccupancyGrid
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import PointCloud2
+
+from mfp_mapper.ros.messages import cloud_msg, grid_msg, stamp_msg
+from mfp_mapper.sensing.live import LiveIntegrator
+from mfp_mapper.sensing.pointcloud import pack_cloud
+from mfp_mapper.settings import NodeConfig
+
+PUBLISH_DUTY = 0.1
+"""Largest share of wall time the map outputs may take: after a publication that took
+``dt`` seconds, the next one waits at least ``dt * (1 / PUBLISH_DUTY - 1)``."""
+
+
+@dataclass
+class PublishCounters:
+    seconds: float = 0.0  # building and sending, without waiting for the map lock
+    locked_seconds: float = 0.0  # of which the map lock was held (integration waits)
+    count: int = 0
+    last_seconds: float = 0.0
+    voxels: int = 0
+
+
+class MapOutputs:
+    """Publishers of ``~/degree_of_occupancy``, ``~/std`` and ``~/projected_map``."""
+
+    def __init__(
+        self, node: Node, worker: LiveIntegrator, config: Callable[[], NodeConfig]
+    ) -> None:
+        self._node = node
+        self._worker = worker
+        self._config = config
+        latch = config().latch
+        qos = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST,
+            depth=1,
+            reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL if latch else DurabilityPolicy.VOLATILE,
+        )
+        self._doo_pub = node.create_publisher(PointCloud2, "~/degree_of_occupancy", qos)
+        self._std_pub = node.create_publisher(PointCloud2, "~/std", qos)
+        self._grid_pub = node.create_publisher(OccupancyGrid, "~/projected_map", qos)
+        self.counters = PublishCounters()
+        self.published_version: int | None = None
+        self._not_before = 0.0
+
+    def invalidate(self) -> None:
+        """Publish again at the next chance (e.g. the filters changed)."""
+        self.published_version = None
+
+    def publish(self) -> None:
+        """Publish the map outputs if the map changed and someone subscribes."""
+        want_clouds = (
+            self._doo_pub.get_subscription_count() + self._std_pub.get_subscription_count()
+        )
+        want_grid = self._grid_pub.get_subscription_count()
+        if not (want_clouds or want_grid):
+            return  # nobody listens: publish when someone does (latched, so they get it)
+        if time.monotonic() < self._not_before:
+            return  # the last publication was slow: keep publishing under PUBLISH_DUTY
+        worker, cfg = self._worker, self._config()
+        with worker.map_lock:
+            version = worker.mapper.version
+            if version == self.published_version:
+                return
+            if not (cfg.frame_id or worker.odom_frame or worker.mapper.num_voxels):
+                return  # an empty map in a frame not known yet: nothing worth latching
+        t0 = time.perf_counter()
+        lock_times = [0.0, 0.0]  # waited for, held
+        if want_grid:
+            self._grid_pub.publish(self.grid(lock_times))
+        if want_clouds:
+            self._publish_clouds(lock_times)
+        self.published_version = version
+        dt = time.perf_counter() - t0 - lock_times[0]
+        self._not_before = time.monotonic() + dt * (1.0 / PUBLISH_DUTY - 1.0)
+        c = self.counters
+        c.seconds += dt
+        c.locked_seconds += lock_times[1]
+        c.count += 1
+        c.last_seconds = dt
+
+    @contextlib.contextmanager
+    def _timed_map_lock(self, times: list[float] | None) -> Iterator[None]:
+        """The map lock; adds the seconds waited for it and held to ``times`` (if given)."""
+        t0 = time.perf_counter()
+        with self._worker.map_lock:
+            t1 = time.perf_counter()
+            try:
+                yield
+            finally:
+                if times is not None:
+                    times[0] += t1 - t0
+                    times[1] += time.perf_counter() - t1
+
+    def _header_stamp(self, stamp: float | None) -> Any:
+        return stamp_msg(stamp) if stamp is not None else self._node.get_clock().now().to_msg()
+
+    def _publish_clouds(self, lock_times: list[float]) -> None:
+        """Publish the degree-of-occupancy and std clouds of the filtered voxels."""
+        cfg, worker = self._config(), self._worker
+        with self._timed_map_lock(lock_times):
+            robot = worker.robot_position
+            radius = cfg.publish_radius
+            window = None
+            if radius > 0.0 and robot is not None:
+                window = (np.asarray(robot) - radius, np.asarray(robot) + radius)
+            vox = worker.mapper.voxels(
+                min_doo=cfg.min_degree_of_occupancy, min_evidence=cfg.min_evidence, bounds=window
+            )
+            stamp = worker.mapper.last_stamp
+        sel = vox
+        if window is not None and robot is not None:
+            sel = vox.select(np.sum((vox.centers - robot) ** 2, axis=1) <= radius**2)
+        xyz = {a: sel.centers[:, k] for k, a in enumerate("xyz")}
+        header_stamp = self._header_stamp(stamp)
+        frame = worker.map_frame
+        doo = pack_cloud({**xyz, "degree_of_occupancy": sel.most_likely_doo})
+        std = pack_cloud({**xyz, "std": sel.std})
+        self._doo_pub.publish(cloud_msg(doo, frame, header_stamp))
+        self._std_pub.publish(cloud_msg(std, frame, header_stamp))
+        self.counters.voxels = len(sel)
+
+    def grid(self, lock_times: list[float] | None = None) -> OccupancyGrid:
+        """The 2D hit-probability grid of the height band (``~/hit_probability_map``,
+        ``~/projected_map``); ``lock_times`` as in ``_timed_map_lock``."""
+        cfg, worker = self._config(), self._worker
+        robot = worker.robot_position
+        radius = cfg.hit_probability_map_radius
+        center = (float(robot[0]), float(robot[1])) if robot is not None and radius > 0 else None
+        with self._timed_map_lock(lock_times):
+            grid = worker.mapper.hit_probability_grid(
+                cfg.occupancy_min_z, cfg.occupancy_max_z, center=center, radius=radius
+            )
+            resolution = worker.mapper.resolution
+            stamp = worker.mapper.last_stamp
+        now = self._node.get_clock().now().to_msg()
+        return grid_msg(
+            grid, resolution, worker.map_frame, self._header_stamp(stamp), now, cfg.occupancy_min_z
+        )

@@ -1,0 +1,227 @@
+"""The one scan pipeline: a received cloud -> placed rays in the map, or a drop with a reason.
+
+The live node's worker (``sensing.live``) and the offline replay (``offline.replay``) both
+run every cloud through these steps, so they drop the same clouds for the same reasons and
+count them under the same names (``DROP_REASONS``):
+
+1. ``parse_scan``: PointCloud2 (any object with its attributes) -> ``ParsedCloud``
+   (``malformed``, ``empty``);
+2. ``pose_deadline``: the latest time a pose must cover (the stamp, or the last point's
+   time when de-skewing) — the live worker waits for odometry up to it;
+3. ``place_scan``: points into the map frame at the poses of their times, then the height
+   band (``no_poses``, ``too_new``, ``too_old``, ``gap``);
+4. ``integrate_scan``: into the Mapper (``no_usable_rays`` when the core used no ray).
+
+A drop is a ``ScanDropped`` exception carrying its ``reason``; point-level losses
+(NaN, zero range, height band, the core's own) are counted per reason in ``ScanCounts``.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mfp_mapper.core.mapper import IntegrationSummary, Mapper
+from mfp_mapper.sensing.deskew import PoseSource, cloud_to_map
+from mfp_mapper.sensing.pointcloud import (
+    CloudFormatError,
+    ParsedCloud,
+    parse_pointcloud2,
+    stamp_seconds,
+)
+from mfp_mapper.sensing.poses import Extrinsic, PoseUnavailable
+
+FloatArray = NDArray[np.float64]
+
+DROP_REASONS: dict[str, str] = {
+    "queue_full": "integration fell behind; the oldest queued cloud was dropped (live only)",
+    "malformed": "not a parsable cloud: no x/y/z, fields beyond point_step, truncated data, "
+    "unknown datatypes",
+    "empty": "no valid point (all NaN/Inf or zero range)",
+    "no_poses": "no pose at all (no odometry or transform received)",
+    "too_new": "the poses never reached the cloud's time (live: within odom_wait)",
+    "too_old": "the cloud is older than the poses kept",
+    "gap": "the cloud lies between two poses further apart than odom_max_gap",
+    "no_extrinsic": "the lidar pose in the robot frame is unknown",
+    "no_usable_rays": "the core could use none of its rays (e.g. all out of the indexable range)",
+    "error": "an unexpected error (a bug): logged with its message",
+}
+"""Every reason a whole cloud is dropped, by the live node and the replay alike."""
+
+
+class ScanDropped(Exception):
+    """A cloud that cannot be mapped; ``reason`` is a key of ``DROP_REASONS``.
+
+    ``points_in`` and ``points_dropped`` are the points of the cloud not counted yet (an
+    empty cloud's NaN points, say), so that point counts stay complete.
+    """
+
+    def __init__(
+        self,
+        reason: str,
+        detail: str,
+        points_in: int = 0,
+        points_dropped: dict[str, int] | None = None,
+    ) -> None:
+        if reason not in DROP_REASONS:
+            raise ValueError(f"unknown drop reason {reason!r}")
+        super().__init__(f"{reason}: {detail}")
+        self.reason = reason
+        self.detail = detail
+        self.points_in = points_in
+        self.points_dropped = points_dropped or {}
+
+
+class PlacementSettings(Protocol):
+    """The settings the pipeline reads (the node's config and the replay options)."""
+
+    @property
+    def deskew(self) -> bool: ...
+
+    @property
+    def point_cloud_min_z(self) -> float: ...
+
+    @property
+    def point_cloud_max_z(self) -> float: ...
+
+
+@dataclass
+class PlacedScan:
+    """Rays of one cloud in the map frame: ends ``points`` (N, 3) seen from ``origins``
+    ((3,) or (N, 3) when de-skewed), at ``stamp``; ``points_dropped`` by reason."""
+
+    stamp: float
+    points: FloatArray
+    origins: FloatArray
+    deskewed: bool
+    points_dropped: dict[str, int] = field(default_factory=dict)
+
+
+@dataclass
+class ScanCounts:
+    """What the pipeline did, under the names of ``DROP_REASONS`` (node ~/status and the
+    replay summary report these)."""
+
+    clouds_in: int = 0
+    clouds_integrated: int = 0
+    clouds_dropped: Counter[str] = field(default_factory=Counter)
+    points_in: int = 0
+    points_dropped: Counter[str] = field(default_factory=Counter)
+    rays_in: int = 0
+    rays_used: int = 0
+    rays_truncated: int = 0
+
+    def drop(self, reason: str) -> int:
+        """Count one dropped cloud; returns how many were dropped for that reason."""
+        self.clouds_dropped[reason] += 1
+        return self.clouds_dropped[reason]
+
+    def dropped_scan(self, drop: ScanDropped) -> int:
+        """Count a dropped cloud and its points; returns the count for its reason."""
+        self.points_in += drop.points_in
+        self.count_points(drop.points_dropped)
+        return self.drop(drop.reason)
+
+    def count_points(self, dropped: dict[str, int]) -> None:
+        self.points_dropped.update({k: v for k, v in dropped.items() if v})
+
+    def add(self, placed: PlacedScan, summary: IntegrationSummary) -> None:
+        """Count one integrated cloud."""
+        self.clouds_integrated += 1
+        self.rays_in += summary.rays_in
+        self.rays_used += summary.rays_used
+        self.rays_truncated += summary.rays_truncated
+        self.count_points(summary.dropped)
+
+
+def parse_scan(msg: Any) -> ParsedCloud:
+    """The valid points of a PointCloud2; ScanDropped ``malformed`` or ``empty``."""
+    try:
+        cloud = parse_pointcloud2(msg)
+    except CloudFormatError as err:
+        raise ScanDropped("malformed", str(err)) from None
+    if len(cloud) == 0:
+        raise ScanDropped(
+            "empty",
+            f"none of its {cloud.points_in} points is valid",
+            cloud.points_in,
+            cloud.dropped,
+        )
+    return cloud
+
+
+def scan_stamp(msg: Any) -> float:
+    """The cloud's header stamp in seconds."""
+    return stamp_seconds(msg.header.stamp)
+
+
+def pose_deadline(cloud: ParsedCloud, stamp: float, deskew: bool) -> float:
+    """The latest time a pose is needed for: the stamp, or its last point's time."""
+    if deskew and cloud.time_offset is not None and cloud.time_offset.size:
+        return stamp + max(float(cloud.time_offset.max()), 0.0)
+    return stamp
+
+
+def place_scan(
+    cloud: ParsedCloud,
+    stamp: float,
+    poses: PoseSource,
+    extrinsic: Extrinsic,
+    settings: PlacementSettings,
+) -> PlacedScan:
+    """Points into the map frame at their poses, then the height band.
+
+    Raises ScanDropped (``no_poses``, ``too_new``, ``too_old``, ``gap``), or
+    ``empty`` when the height band leaves no ray.
+    """
+    try:
+        points, origins = cloud_to_map(cloud, stamp, poses, extrinsic, deskew=settings.deskew)
+    except PoseUnavailable as err:
+        raise ScanDropped(err.reason, str(err)) from None
+    dropped = dict(cloud.dropped)
+    points, origins, outside = z_band(
+        points, origins, settings.point_cloud_min_z, settings.point_cloud_max_z
+    )
+    if outside:
+        dropped["z_band"] = outside
+    if points.shape[0] == 0:
+        raise ScanDropped(
+            "empty",
+            f"all {outside} rays end outside the height band [{settings.point_cloud_min_z}, "
+            f"{settings.point_cloud_max_z}] m",
+            points_dropped=dropped,
+        )
+    deskewed = bool(settings.deskew and cloud.time_offset is not None)
+    return PlacedScan(stamp, points, origins, deskewed, dropped)
+
+
+def integrate_scan(mapper: Mapper, placed: PlacedScan) -> IntegrationSummary:
+    """Integrate placed rays; ScanDropped ``no_usable_rays`` when the core used none
+    (the map is then unchanged)."""
+    summary = mapper.integrate(placed.points, placed.origins, placed.stamp)
+    if summary.rays_used == 0:
+        lost = ", ".join(f"{k} {v}" for k, v in summary.dropped.items() if v) or "none"
+        raise ScanDropped(
+            "no_usable_rays",
+            f"the core used none of its {summary.rays_in} rays (dropped: {lost})",
+        )
+    return summary
+
+
+def z_band(
+    points: FloatArray, origins: FloatArray, lo: float, hi: float
+) -> tuple[FloatArray, FloatArray, int]:
+    """Keep the rays whose end point's z (map frame) lies in [lo, hi]; returns the kept
+    points, their origins ((3,) stays (3,)) and how many rays were dropped."""
+    keep = (points[:, 2] >= lo) & (points[:, 2] <= hi)
+    if keep.all():
+        return points, origins, 0
+    return (
+        points[keep],
+        (origins[keep] if origins.ndim == 2 else origins),
+        int(keep.size - keep.sum()),
+    )
