@@ -48,6 +48,8 @@ Float fields hold seconds, integer fields nanoseconds. Float values above
 ``ABSOLUTE_NANOSECONDS_THRESHOLD`` absolute nanoseconds; both are made relative to the
 header stamp.
 """
+RING_FIELDS = ("ring", "channel")
+"""Beam index fields recognised (Velodyne/Ouster ``ring``, Hesai/Nebula ``channel``)."""
 ABSOLUTE_SECONDS_THRESHOLD = 1e6
 ABSOLUTE_NANOSECONDS_THRESHOLD = 1e15
 
@@ -81,7 +83,8 @@ class ParsedCloud:
 
     ``time_offset`` is in seconds relative to the header stamp; ``dropped`` counts the
     points removed: ``"nonfinite"`` (NaN/Inf coordinate or time), ``"zero_range"``
-    (x = y = z = 0, the usual "no return" marker).
+    (x = y = z = 0, the usual "no return" marker). ``grid_shape``, ``cell`` and ``ring``
+    keep where the points were, for the recovery of no-return rays (``sensing.no_return``).
     """
 
     xyz: NDArray[np.float64]
@@ -89,6 +92,14 @@ class ParsedCloud:
     intensity: NDArray[np.float32] | None
     points_in: int
     dropped: dict[str, int] = field(default_factory=dict)
+    grid_shape: tuple[int, int] = (1, 0)
+    """(height, width) of the message: height > 1 is organized (rows are beams)."""
+    cell: NDArray[np.intp] | None = None
+    """Flat grid index (row * width + column) of each point; None: point i is cell i."""
+    ring: NDArray[np.int64] | None = None
+    """Beam index of each point (a ``RING_FIELDS`` field), when the cloud has one."""
+    no_return: NDArray[np.bool_] | None = None
+    """Points that end recovered rays with no return (None: every point is a return)."""
 
     def __len__(self) -> int:
         return int(self.xyz.shape[0])
@@ -145,7 +156,11 @@ def parse_pointcloud2(msg: Any, header_stamp: float | None = None) -> ParsedClou
     intensity = (
         records["intensity"].reshape(-1).astype(np.float32) if "intensity" in names else None
     )
-    return _drop_invalid(xyz, time_offset, intensity)
+    ring_name = next((n for n in RING_FIELDS if n in names), None)
+    ring = None if ring_name is None else records[ring_name].reshape(-1).astype(np.int64)
+    cloud = _drop_invalid(xyz, time_offset, intensity, ring)
+    cloud.grid_shape = (int(records.shape[0]), int(records.shape[1]))
+    return cloud
 
 
 def read_xyz(msg: Any) -> NDArray[np.float64]:
@@ -190,7 +205,7 @@ def _check_fields(fields: Mapping[str, _Field], point_step: int) -> None:
                 f"field {f.name!r} ends at byte {end} but point_step is {point_step}: "
                 "every field must fit inside one point"
             )
-    for name in ("x", "y", "z", "intensity", *TIME_FIELDS):
+    for name in ("x", "y", "z", "intensity", *TIME_FIELDS, *RING_FIELDS):
         if name in fields and fields[name].count > 1:
             raise CloudFormatError(f"field {name!r} has count {fields[name].count}: expected 1")
 
@@ -210,7 +225,9 @@ def _records(msg: Any, fields: Mapping[str, _Field]) -> NDArray[np.void]:
             f"(height {height}, row_step {row_step}) were expected"
         )
     order = ">" if msg.is_bigendian else "<"
-    used = [name for name in ("x", "y", "z", "intensity", *TIME_FIELDS) if name in fields]
+    used = [
+        name for name in ("x", "y", "z", "intensity", *TIME_FIELDS, *RING_FIELDS) if name in fields
+    ]
     dtype = np.dtype(
         {
             "names": used,
@@ -258,6 +275,7 @@ def _drop_invalid(
     xyz: NDArray[np.float64],
     time_offset: NDArray[np.float64] | None,
     intensity: NDArray[np.float32] | None,
+    ring: NDArray[np.int64] | None = None,
 ) -> ParsedCloud:
     finite = np.isfinite(xyz).all(axis=1)
     if time_offset is not None:
@@ -267,13 +285,15 @@ def _drop_invalid(
     points_in = int(xyz.shape[0])
     dropped = {"nonfinite": points_in - int(finite.sum()), "zero_range": int((finite & zero).sum())}
     if dropped["nonfinite"] == 0 and dropped["zero_range"] == 0:
-        return ParsedCloud(xyz, time_offset, intensity, points_in, dropped)
+        return ParsedCloud(xyz, time_offset, intensity, points_in, dropped, ring=ring)
     return ParsedCloud(
         xyz[keep],
         None if time_offset is None else time_offset[keep],
         None if intensity is None else intensity[keep],
         points_in,
         dropped,
+        cell=np.flatnonzero(keep),
+        ring=None if ring is None else ring[keep],
     )
 
 
