@@ -31,6 +31,8 @@ class ReplayOptions:
     resolution: float = _default("resolution")
     max_range: float = _default("sensor_model.max_range")
     min_range: float = _default("sensor_model.min_range")
+    no_return_range: float = _default("sensor_model.no_return_range")
+    """> 0: recover the firings with no return as rays this long (``sensing.no_return``)."""
     decay_time: float = _default("decay_time")
     threads: int = _default("threads")
     max_voxels: int | None = _default("max_voxels")

@@ -73,6 +73,10 @@ class ReplaySummary:
     points_in: int = 0
     rays_used: int = 0
     rays_truncated: int = 0
+    rays_no_return: int = 0
+    """Recovered firings with no return that were integrated (``--no-return-range``)."""
+    no_return_note: str = ""
+    """Why firings were not (all) recovered, the first time it happened."""
     dropped: dict[str, int] = field(default_factory=dict)
     voxels: int = 0
     memory_bytes: int = 0
@@ -103,8 +107,10 @@ class ReplaySummary:
             f"scans        {self.scans_used} used of {self.scans_total}"
             + (f"; skipped {skipped}: {_counts(self.scans_skipped)}" if skipped else ""),
             f"rays         {self.rays_used:,} used of {self.points_in:,} points"
-            + (f"; {self.rays_truncated:,} cut at max range" if self.rays_truncated else ""),
+            + (f"; {self.rays_truncated:,} cut at max range" if self.rays_truncated else "")
+            + (f"; {self.rays_no_return:,} with no return" if self.rays_no_return else ""),
             f"dropped      {_counts(dropped) if dropped else 'none'}",
+            *([f"no-return    {self.no_return_note}"] if self.no_return_note else []),
             f"voxels       {self.voxels:,} ({self.memory_bytes / 2**20:.1f} MiB)",
             f"time         {self.seconds:.2f} s, {self.rays_per_second:,.0f} rays/s; "
             f"{100 * self.share_outside_core:.0f}% outside the core "
@@ -215,7 +221,10 @@ def _replay(
                 msg = reader.deserialize(raw, conn.msgtype)
                 stamp = pipeline.scan_stamp(msg)
                 cloud_span = [min(cloud_span[0], stamp), max(cloud_span[1], stamp)]
-                cloud = pipeline.parse_scan(msg)
+                cloud, note = pipeline.add_no_return_rays(
+                    pipeline.parse_scan(msg), opts.no_return_range
+                )
+                counts.no_return_note = counts.no_return_note or note
                 counts.points_in += cloud.points_in
                 frame = frame_name(msg.header.frame_id)
                 if frame not in extrinsics:
@@ -297,6 +306,8 @@ def _fill(summary: ReplaySummary, counts: pipeline.ScanCounts, mapper: Mapper) -
     summary.points_in = counts.points_in
     summary.rays_used = counts.rays_used
     summary.rays_truncated = counts.rays_truncated
+    summary.rays_no_return = counts.rays_no_return
+    summary.no_return_note = counts.no_return_note
     summary.dropped = dict(counts.points_dropped)
     summary.voxels = mapper.num_voxels
     summary.memory_bytes = mapper.memory_bytes

@@ -92,6 +92,7 @@ def live_settings(cfg: NodeConfig) -> LiveSettings:
         point_cloud_max_z=cfg.point_cloud_max_z,
         cloud_queue_size=cfg.cloud_queue_size,
         odom_wait=cfg.odom_wait,
+        no_return_range=cfg.sensor_model_no_return_range,
     )
 
 
@@ -401,6 +402,7 @@ class MfpMapperNode(Node):
             "rays_in": c.rays_in,
             "rays_used": c.rays_used,
             "rays_truncated": c.rays_truncated,
+            "rays_no_return": c.rays_no_return,
             "rays_per_s": round((c.rays_used - rays_prev) / span, 1),
             "integration_cpu_share": round((c.integration_cpu - cpu_prev) / span, 4),
             "integration_cpu_s": round(c.integration_cpu, 4),
