@@ -29,6 +29,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from mfp_mapper.sensing import no_return_kernels as kernels
 from mfp_mapper.sensing.pointcloud import ParsedCloud
 
 FloatArray = NDArray[np.float64]
@@ -42,8 +43,8 @@ of steps (within a quarter step)."""
 MAX_ELEVATION_SPREAD_DEG = 0.3
 """... and the points of one beam agree on the elevation within this (deg, median)."""
 MIN_PAIRS = 8
-_FIT_ROUNDS = 4
-"""Alternations of the row offsets and column corrections (converged after 3 on tests)."""
+_FIT_ROUNDS = 3
+"""Alternations of the row offsets and column corrections fit."""
 """Neighbouring valid points needed to measure the azimuth step."""
 
 
@@ -106,6 +107,7 @@ def with_no_return_rays(cloud: ParsedCloud, no_return_range: float) -> tuple[Par
         xyz=np.concatenate([cloud.xyz, found.directions * no_return_range]),
         time_offset=time,
         intensity=intensity,
+        grid_shape=(1, len(cloud) + count),
         cell=None,
         ring=None,
         no_return=flags,
@@ -113,157 +115,75 @@ def with_no_return_rays(cloud: ParsedCloud, no_return_range: float) -> tuple[Par
     return extended, found
 
 
-def _wrap(angle: FloatArray) -> FloatArray:
-    """Angles into [-pi, pi)."""
-    return (angle + math.pi) % (2.0 * math.pi) - math.pi
-
-
-def _directions(elevation: FloatArray, azimuth: FloatArray) -> FloatArray:
-    cos_e = np.cos(elevation)
-    return np.stack([cos_e * np.cos(azimuth), cos_e * np.sin(azimuth), np.sin(elevation)], -1)
-
-
-def _angles(xyz: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Azimuth and elevation (rad) of points seen from the origin."""
-    horizontal = np.hypot(xyz[:, 0], xyz[:, 1])
-    return np.arctan2(xyz[:, 1], xyz[:, 0]), np.arctan2(xyz[:, 2], horizontal)
-
-
-def _group_median(keys: NDArray[np.intp], values: FloatArray, size: int) -> FloatArray:
-    """Median of ``values`` per key in [0, size) (NaN where a key has none)."""
-    out = np.full(size, np.nan)
-    order = np.argsort(keys, kind="stable")
-    sorted_keys, sorted_values = keys[order], values[order]
-    starts = np.searchsorted(sorted_keys, np.arange(size))
-    ends = np.searchsorted(sorted_keys, np.arange(size), side="right")
-    for key in np.flatnonzero(ends > starts):
-        out[key] = np.median(sorted_values[starts[key] : ends[key]])
-    return out
-
-
 def _organized(cloud: ParsedCloud, height: int, width: int) -> Recovery:
     with_time = cloud.time_offset is not None
     cells = np.arange(len(cloud)) if cloud.cell is None else cloud.cell
     if cells.size == height * width:
         return _none(None, with_time, "organized")
-    rows, cols = np.divmod(cells, width)
-    azimuth, elevation = _angles(cloud.xyz)
-    row_elevation = _group_median(rows, elevation, height)
-    # the firing order's azimuth step, from valid neighbours in the same row
-    adjacent = np.flatnonzero(np.diff(cells) == 1)
-    adjacent = adjacent[rows[adjacent] == rows[adjacent + 1]]
-    if adjacent.size < MIN_PAIRS:
+    pairs, step, offset, correction, row_elevation, outside = kernels.organized_fit(
+        cloud.xyz, cells.astype(np.int64), height, width, _FIT_ROUNDS,
+        math.radians(MAX_AZIMUTH_RESIDUAL_DEG),
+    )  # fmt: skip
+    if pairs < MIN_PAIRS:
         return _none(
-            f"organized cloud ({height} x {width}) with only {adjacent.size} neighbouring "
-            "valid points: the azimuth step cannot be measured",
+            f"organized cloud ({height} x {width}) with only {pairs} neighbouring valid "
+            "points: the azimuth step cannot be measured",
             with_time,
         )
-    step = float(np.median(_wrap(azimuth[adjacent + 1] - azimuth[adjacent])))
-    # each row's azimuth offset (circular mean) and each column's correction, alternately
-    in_column = np.bincount(cols, minlength=width)
-    seen = np.flatnonzero(in_column)
-    correction = np.zeros(width)
-    for _ in range(_FIT_ROUNDS):
-        phase = np.exp(1j * (azimuth - step * cols - correction[cols]))
-        offset = np.angle(
-            np.bincount(rows, phase.real, height) + 1j * np.bincount(rows, phase.imag, height)
-        )
-        residual = _wrap(azimuth - step * cols - offset[rows])
-        column_mean = np.bincount(cols, residual, width)[seen] / in_column[seen]
-        correction = np.interp(np.arange(width), seen, column_mean, period=width)
-    fit = np.abs(_wrap(azimuth - step * cols - offset[rows] - correction[cols]))
-    worst = math.degrees(float(np.quantile(fit, 0.95)))
-    if worst > MAX_AZIMUTH_RESIDUAL_DEG:
+    if outside > 0.05:
         return _none(
             f"organized cloud ({height} x {width}) whose azimuths do not follow its columns "
-            f"(95% within {worst:.2f} deg of the fitted firing order, need "
-            f"{MAX_AZIMUTH_RESIDUAL_DEG} deg): not a spinning lidar's row/column layout?",
+            f"({100 * outside:.0f}% of the points farther than {MAX_AZIMUTH_RESIDUAL_DEG} deg "
+            "from the fitted firing order): not a spinning lidar's row/column layout?",
             with_time,
         )
-    missing = np.ones(height * width, dtype=np.bool_)
-    missing[cells] = False
-    empty_rows = np.isnan(row_elevation)
-    missing.reshape(height, width)[empty_rows] = False
-    m_rows, m_cols = np.divmod(np.flatnonzero(missing), width)
-    directions = _directions(
-        row_elevation[m_rows], step * m_cols + offset[m_rows] + correction[m_cols]
+    times = np.empty(0) if cloud.time_offset is None else cloud.time_offset
+    directions, out_times = kernels.organized_missing(
+        cells.astype(np.int64), height, width, step, offset, correction, row_elevation, times
     )
-    times = None
-    if cloud.time_offset is not None:
-        column_time = np.bincount(cols, cloud.time_offset, width)[seen] / in_column[seen]
-        times = np.interp(m_cols, seen, column_time)
+    empty_rows = int(np.isnan(row_elevation).sum())
     reason = None
-    if empty_rows.any():
+    if empty_rows:
         reason = (
-            f"{int(empty_rows.sum())} of {height} rows have no valid point: their elevation "
-            "is unknown and their firings are not recovered"
+            f"{empty_rows} of {height} rows have no valid point: their elevation is unknown "
+            "and their firings are not recovered"
         )
-    return Recovery(directions, times, "organized", reason)
+    return Recovery(directions, out_times if with_time else None, "organized", reason)
 
 
 def _beams(cloud: ParsedCloud) -> Recovery:
     assert cloud.ring is not None
     with_time = cloud.time_offset is not None
-    azimuth, elevation = _angles(cloud.xyz)
+    azimuth, sine = kernels.angles(cloud.xyz)
     cut, widest = _widest_gap(azimuth)
     azimuth = (azimuth - cut) % (2.0 * math.pi)  # a partial scan's edges at 0 and 2 pi
-    order = np.lexsort((azimuth, cloud.ring))
-    ring, az = cloud.ring[order], azimuth[order]
-    gap = np.diff(az)
-    same = ring[1:] == ring[:-1]
-    positive = gap[same & (gap > 0)]
-    if positive.size < MIN_PAIRS:
+    ring = cloud.ring.astype(np.int64)
+    order = np.argsort((ring - ring.min()) * 8.0 + azimuth)  # by ring, then azimuth
+    ring, azimuth, sine = ring[order], azimuth[order], sine[order]
+    gaps, step, off_grid, spread = kernels.beam_grid(ring, azimuth, sine)
+    if gaps < MIN_PAIRS:
         return _none("too few points per beam to measure the azimuth step", with_time)
-    step = float(np.median(positive))
-    tiny = 0.25 * step  # dual returns and jitter: the same firing
-    steps = gap / step
-    off_grid = same & (gap > tiny) & (np.abs(steps - np.round(steps)) > 0.25)
-    share = float(off_grid.sum()) / max(int((same & (gap > tiny)).sum()), 1)
-    if share > MAX_OFF_GRID_SHARE:
+    if off_grid > MAX_OFF_GRID_SHARE or not step > 0:
         return _none(
-            f"the beams' azimuths are not on a regular grid ({100 * share:.0f}% of the gaps "
-            f"are not whole steps of {math.degrees(step):.3f} deg): no recovery",
+            f"the beams' azimuths are not on a regular grid ({100 * off_grid:.0f}% of the "
+            f"gaps are not whole steps of {math.degrees(step):.3f} deg): no recovery",
             with_time,
         )
-    beam_ids, first = np.unique(ring, return_index=True)
-    last = np.append(first[1:], ring.size) - 1
-    beam_elevation = _group_median(np.searchsorted(beam_ids, ring), elevation[order], beam_ids.size)
-    spread = _group_median(
-        np.searchsorted(beam_ids, ring),
-        np.abs(elevation[order] - beam_elevation[np.searchsorted(beam_ids, ring)]),
-        beam_ids.size,
-    )
-    if math.degrees(float(spread.max())) > MAX_ELEVATION_SPREAD_DEG:
+    if math.degrees(spread) > MAX_ELEVATION_SPREAD_DEG:  # a sine: about radians here
         return _none(
-            f"the points of one ring/channel spread over {math.degrees(float(spread.max())):.2f} "
-            "deg of elevation: the field does not name a beam",
+            f"the points of one ring/channel spread over {math.degrees(spread):.2f} deg of "
+            "elevation: the field does not name a beam",
             with_time,
         )
-    # gaps of whole steps inside each beam, and around the wrap when the scan is a full turn
-    left = np.flatnonzero(same & (np.round(steps) >= 2))
-    widths = gap[left]
     full_turn = widest <= 4.0 * step
-    if full_turn:
-        wrap_gap = az[first] + 2.0 * math.pi - az[last]
-        wrap_steps = np.round(wrap_gap / step)
-        keep = wrap_steps >= 2
-        left = np.concatenate([left, last[keep]])
-        widths = np.concatenate([widths, wrap_gap[keep]])
-    cuts = np.round(widths / step).astype(np.int64)
-    owner = np.repeat(np.arange(left.size), cuts - 1)
-    within = np.arange(owner.size) - np.repeat(np.cumsum(cuts - 1) - (cuts - 1), cuts - 1) + 1
-    delta = within * widths[owner] / cuts[owner]
-    new_az = az[left[owner]] + delta + cut
-    beam_of = np.searchsorted(beam_ids, ring[left[owner]])
-    directions = _directions(beam_elevation[beam_of], new_az)
-    times = None
-    if cloud.time_offset is not None:
-        t = cloud.time_offset[order]
-        pairs = same & (np.round(steps) == 1)
-        rate = float(np.median(np.diff(t)[pairs] / gap[pairs])) if pairs.any() else 0.0
-        times = t[left[owner]] + delta * rate
+    times = np.empty(0) if cloud.time_offset is None else cloud.time_offset[order]
+    directions, out_times = kernels.beam_gaps(ring, azimuth, sine, times, step, full_turn)
+    if cut != 0.0:  # rotate back
+        c, s = math.cos(cut), math.sin(cut)
+        x, y = directions[:, 0].copy(), directions[:, 1].copy()
+        directions[:, 0], directions[:, 1] = c * x - s * y, s * x + c * y
     reason = None if full_turn else "the scan is not a full turn: the gap at its edges is left"
-    return Recovery(directions, times, "beams", reason)
+    return Recovery(directions, out_times if with_time else None, "beams", reason)
 
 
 def _widest_gap(azimuth: FloatArray) -> tuple[float, float]:
