@@ -43,6 +43,8 @@ of steps (within a quarter step)."""
 MAX_ELEVATION_SPREAD_DEG = 0.3
 """... and the points of one beam agree on the elevation within this (deg, median)."""
 MIN_PAIRS = 8
+_SECTORS = 7200
+"""Sectors (0.05 deg) on which the widest empty sector of a ring/channel cloud is found."""
 _FIT_ROUNDS = 3
 """Alternations of the row offsets and column corrections fit."""
 """Neighbouring valid points needed to measure the azimuth step."""
@@ -154,11 +156,10 @@ def _organized(cloud: ParsedCloud, height: int, width: int) -> Recovery:
 def _beams(cloud: ParsedCloud) -> Recovery:
     assert cloud.ring is not None
     with_time = cloud.time_offset is not None
-    azimuth, sine = kernels.angles(cloud.xyz)
-    cut, widest = _widest_gap(azimuth)
-    azimuth = (azimuth - cut) % (2.0 * math.pi)  # a partial scan's edges at 0 and 2 pi
     ring = cloud.ring.astype(np.int64)
-    order = np.argsort((ring - ring.min()) * 8.0 + azimuth)  # by ring, then azimuth
+    # turned so that a partial scan's edges are at 0 and 2 pi; sorted by ring, then azimuth
+    azimuth, sine, key, cut, widest = kernels.beam_angles(cloud.xyz, ring, _SECTORS)
+    order = np.argsort(key)
     ring, azimuth, sine = ring[order], azimuth[order], sine[order]
     gaps, step, off_grid, spread = kernels.beam_grid(ring, azimuth, sine)
     if gaps < MIN_PAIRS:
@@ -184,11 +185,3 @@ def _beams(cloud: ParsedCloud) -> Recovery:
         directions[:, 0], directions[:, 1] = c * x - s * y, s * x + c * y
     reason = None if full_turn else "the scan is not a full turn: the gap at its edges is left"
     return Recovery(directions, out_times if with_time else None, "beams", reason)
-
-
-def _widest_gap(azimuth: FloatArray) -> tuple[float, float]:
-    """Where the widest empty sector of all beams together ends (rad), and its width."""
-    every = np.sort(azimuth)
-    gaps = np.append(np.diff(every), every[0] + 2.0 * math.pi - every[-1])
-    widest = int(np.argmax(gaps))
-    return float(every[(widest + 1) % every.size]), float(gaps[widest])

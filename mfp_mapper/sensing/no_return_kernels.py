@@ -318,3 +318,36 @@ def _beam_pass(
                 k += 1
         start = end
     return k
+
+
+@nb.njit(cache=True, nogil=True)
+def beam_angles(
+    xyz: FloatArray, ring: IntArray, bins: int
+) -> tuple[FloatArray, FloatArray, FloatArray, float, float]:
+    """Azimuths turned so that the widest empty sector of the scan (found on ``bins``
+    sectors) ends at 0, the sines of the elevations, a sort key (ring, then azimuth), the
+    turn (rad) and the width of that empty sector (rad)."""
+    n = xyz.shape[0]
+    azimuth, sine = angles(xyz)
+    occupied = np.zeros(bins, dtype=np.bool_)
+    for i in range(n):
+        occupied[min(int((azimuth[i] + math.pi) * _TURNS_PER_RADIAN * bins), bins - 1)] = True
+    best_end, best_length, length = 0, -1, 0
+    for k in range(2 * bins):  # twice round: a run may cross the end
+        if occupied[k % bins]:
+            if length > best_length:
+                best_end, best_length = k % bins, length
+            length = 0
+        else:
+            length += 1
+    cut = best_end / bins * _TWO_PI - math.pi
+    key = np.empty(n)
+    low, high = _TWO_PI, 0.0
+    base = ring.min() if n else 0
+    for i in range(n):
+        a = azimuth[i] - cut
+        a -= _TWO_PI * math.floor(a * _TURNS_PER_RADIAN)
+        azimuth[i] = a
+        low, high = min(low, a), max(high, a)
+        key[i] = (ring[i] - base) * 8.0 + a
+    return azimuth, sine, key, cut, _TWO_PI - high + low
