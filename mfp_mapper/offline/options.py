@@ -137,7 +137,7 @@ def _flag_type(setting: Setting) -> Any:
 
 def _flag_help(setting: Setting) -> str:
     text = setting.description.rstrip(".")
-    if setting.flag is not None and setting.flag.startswith("--no-"):
+    if setting.type is bool and setting.flag is not None and setting.flag.startswith("--no-"):
         text = f"turn off: {text[0].lower()}{text[1:]}"
     if setting.is_parameter:
         default = "" if setting.type is bool else f", default {setting.default}"

@@ -317,6 +317,7 @@ def _write_scan(
     xyz = scan.xyz
     if cfg.cloud_in_base_frame:
         xyz = (xyz.astype(np.float64) @ quaternion_to_matrix(q_ext).T + t_ext).astype(np.float32)
+    records: NDArray[np.void]
     if cfg.organized:
         beams = len(cfg.elevations_deg)
         records = np.zeros((beams, cfg.azimuths), dtype=VELODYNE_DTYPE)
