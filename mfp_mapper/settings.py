@@ -10,6 +10,16 @@ its CLI only; ``both``) and its CLI flag. Everything else derives from ``SETTING
 - ``ReplayOptions`` field defaults and the ``replay`` CLI flags (``mfp_mapper.offline.options``);
 - the checks of a parameter file (``check_parameters``): the node and ``--config`` use them.
 
+Reading a setting: the node reads ``NodeConfig`` attributes (``cfg.resolution``,
+``cfg.sensor_model_max_range``; ``cfg.core(name)`` or ``cfg.max_range``/``cfg.decay`` for the
+core's value, "<= 0 means no limit" applied; ``cfg.mapper_settings()`` for ``Mapper``); the
+replay reads ``ReplayOptions`` fields (``opts.max_range``, already in core units);
+``BY_NAME[name]`` is the entry itself.
+
+Adding a setting: one entry in ``SETTINGS`` (``_node``, ``_both`` or ``_replay``); a node
+parameter also needs its ``NodeConfig`` attribute (name with '.' -> '_'), a replay one its
+``ReplayOptions`` field (``field``), then regenerate the YAML. Tests fail until all agree.
+
 Node parameter names follow octomap_server where a counterpart exists (``resolution``,
 ``frame_id``, ``sensor_model.max_range``, ``point_cloud_min_z``, ``latch``...). This module is
 plain data and imports neither ROS nor numpy.
@@ -193,6 +203,9 @@ SETTINGS: tuple[Setting, ...] = (
           "~/hit_probability_map.", -NO_LIMIT_Z, NO_LIMIT_Z, dynamic=True),
     _node("hit_probability_map.radius", 0.0, "~/hit_probability_map covers the square of "
           "this half side (m) around the robot. 0: the whole map.", 0.0, 1.0e6, dynamic=True),
+    _node("hit_probability_map.max_cells", 25_000_000, "Most cells ~/hit_probability_map and "
+          "~/projected_map may hold; a larger map is served as the largest square around the "
+          "robot that fits (logged).", 1, 2**31 - 1, dynamic=True),
     # --- map file, health ------------------------------------------------------------------
     _node("map_path", "", "Map file (.npz) for ~/save_map, loaded at start when it exists. "
           "Empty: none."),
@@ -335,6 +348,7 @@ class NodeConfig:
     occupancy_min_z: float
     occupancy_max_z: float
     hit_probability_map_radius: float
+    hit_probability_map_max_cells: int
     map_path: str
     save_on_shutdown: bool
     status_period: float

@@ -37,6 +37,14 @@ from mfp_mapper.core.store import (
 UNKNOWN = -1
 
 
+class GridTooLarge(ValueError):
+    """A projected grid would hold more cells than allowed; ``cells`` says how many."""
+
+    def __init__(self, message: str, cells: int) -> None:
+        super().__init__(message)
+        self.cells = cells
+
+
 @dataclass(frozen=True)
 class HitGrid:
     """A 2D grid of hit probabilities in percent (int8, -1 unknown)."""
@@ -108,12 +116,14 @@ def band_grid(
     *,
     center: tuple[float, float] | None = None,
     radius: float = 0.0,
+    max_cells: int | None = None,
 ) -> HitGrid:
     """The hit-probability grid of the observed voxels with index in ``[lo, hi]``, computed
     in one compiled pass over the store's blocks (no per-voxel arrays of the map).
 
     The grid spans the window around ``center`` (``radius > 0``), else the (x, y) extent of
     the observed voxels in ``[lo, hi]``; cells take the voxels whose centre is in the band.
+    ``GridTooLarge`` before anything is allocated when it would exceed ``max_cells``.
     """
     _check_band(resolution, z_min, z_max)
     if center is not None and radius > 0.0:
@@ -125,6 +135,14 @@ def band_grid(
         if extent[0] > extent[2]:
             return HitGrid(np.zeros((0, 0), np.int8), resolution, (0.0, 0.0))
         i0, j0, i1, j1 = (int(v) for v in extent)
+    size = (j1 - j0 + 1) * (i1 - i0 + 1)
+    if max_cells is not None and size > max_cells:
+        raise GridTooLarge(
+            f"the grid would have {i1 - i0 + 1} x {j1 - j0 + 1} cells "
+            f"({(i1 - i0 + 1) * resolution:.0f} m x {(j1 - j0 + 1) * resolution:.0f} m), more "
+            f"than the {max_cells} allowed",
+            size,
+        )
     cells = np.full((j1 - j0 + 1, i1 - i0 + 1), UNKNOWN, dtype=np.int8)
     for block_ijk, block_sn, used in shards:
         _band_max_percent(

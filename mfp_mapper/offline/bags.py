@@ -15,14 +15,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
-from mfp_mapper.offline.options import ReplayError
+from mfp_mapper.offline.options import ReplayError as ReplayError  # defined with the options
 from mfp_mapper.sensing.poses import (
     Extrinsic,
     PoseBuffer,
     odometry_sample,
-    quaternion_to_rpy,
+    quaternion_to_matrix,
     transform_sample,
 )
 
@@ -90,17 +89,29 @@ def pick_topic(reader: Any, msgtype: str, wanted: str | None, what: str, flag: s
     return candidates[0] if candidates else None
 
 
+def _qmul(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Hamilton product of xyzw quaternions (broadcast)."""
+    ax, ay, az, aw = np.moveaxis(a, -1, 0)
+    bx, by, bz, bw = np.moveaxis(b, -1, 0)
+    return np.stack(
+        [
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+            aw * bw - ax * bx - ay * by - az * bz,
+        ],
+        axis=-1,
+    )
+
+
 def _compose(
     outer: tuple[FloatArray, FloatArray], inner: tuple[FloatArray, FloatArray]
 ) -> tuple[FloatArray, FloatArray]:
     """T_a_c = T_a_b * T_b_c with (translation, quaternion) pairs (broadcast)."""
     t1, q1 = outer
     t2, q2 = inner
-    q1b, q2b = np.broadcast_arrays(q1, q2)
-    r1 = Rotation.from_quat(np.array(q1b).reshape(-1, 4))
-    rotated = r1.apply(np.array(np.broadcast_to(t2, (*q1b.shape[:-1], 3))).reshape(-1, 3))
-    q = (r1 * Rotation.from_quat(np.array(q2b).reshape(-1, 4))).as_quat()
-    return t1 + rotated.reshape(*q1b.shape[:-1], 3), q.reshape(q1b.shape)
+    rotated = np.einsum("...ij,...j->...i", quaternion_to_matrix(q1), t2)
+    return t1 + rotated, _qmul(q1, q2)
 
 
 @dataclass
@@ -163,7 +174,10 @@ def extrinsic_for(
 
 
 def _describe(t: FloatArray, q: FloatArray) -> str:
-    roll, pitch, yaw = quaternion_to_rpy(q)
+    x, y, z, w = q
+    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
+    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
     return (
         f"xyz ({t[0]:.3f}, {t[1]:.3f}, {t[2]:.3f}) m, rpy ({roll:.3f}, {pitch:.3f}, {yaw:.3f}) rad"
     )

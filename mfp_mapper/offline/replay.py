@@ -32,6 +32,7 @@ from mfp_mapper.offline.bags import (
     ODOM_TYPE,
     TF_TYPE,
     Poses,
+    ReplayError,
     Transforms,
     extrinsic_for,
     odometry_poses,
@@ -41,16 +42,23 @@ from mfp_mapper.offline.bags import (
     tf_poses,
 )
 from mfp_mapper.offline.options import ConfigError as ConfigError  # re-exported
-from mfp_mapper.offline.options import ReplayError as ReplayError
-from mfp_mapper.offline.options import ReplayOptions as ReplayOptions
-from mfp_mapper.offline.options import options_from_yaml as options_from_yaml
+from mfp_mapper.offline.options import ReplayOptions, options_from_yaml
 from mfp_mapper.offline.progress import Progress
 from mfp_mapper.sensing import pipeline
 from mfp_mapper.sensing.poses import Extrinsic, frame_name
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["Progress", "ReplayError", "ReplayOptions", "ReplayResult", "ReplaySummary", "replay"]
+__all__ = [
+    "ConfigError",
+    "Progress",
+    "ReplayError",
+    "ReplayOptions",
+    "ReplayResult",
+    "ReplaySummary",
+    "options_from_yaml",
+    "replay",
+]
 
 
 # --- summary and progress ---------------------------------------------------------------------
@@ -69,7 +77,8 @@ class ReplaySummary:
     deskew: bool = False
     scans_total: int = 0
     scans_used: int = 0
-    scans_skipped: dict[str, int] = field(default_factory=dict)
+    clouds_dropped: dict[str, int] = field(default_factory=dict)
+    """Clouds not integrated, by reason (``sensing.pipeline.DROP_REASONS``, as ``~/status``)."""
     points_in: int = 0
     rays_used: int = 0
     rays_truncated: int = 0
@@ -77,7 +86,8 @@ class ReplaySummary:
     """Recovered firings with no return that were integrated (``--no-return-range``)."""
     no_return_note: str = ""
     """Why firings were not (all) recovered, the first time it happened."""
-    dropped: dict[str, int] = field(default_factory=dict)
+    points_dropped: dict[str, int] = field(default_factory=dict)
+    """Points and rays not used, by reason (as ``~/status``)."""
     voxels: int = 0
     memory_bytes: int = 0
     seconds: float = 0.0
@@ -96,8 +106,8 @@ class ReplaySummary:
         return 1.0 - self.seconds_core / self.seconds if self.seconds > 0 else 0.0
 
     def format(self) -> str:
-        skipped = sum(self.scans_skipped.values())
-        dropped = {k: v for k, v in self.dropped.items() if v}
+        n_dropped = sum(self.clouds_dropped.values())
+        dropped = {k: v for k, v in self.points_dropped.items() if v}
         lines = [
             f"bag          {self.bag}",
             f"clouds       {self.cloud_topic} (frame {self.cloud_frame or '?'})",
@@ -105,11 +115,11 @@ class ReplaySummary:
             f"extrinsic    {self.extrinsic_source}",
             f"de-skew      {'yes (per-point time)' if self.deskew else 'no'}",
             f"scans        {self.scans_used} used of {self.scans_total}"
-            + (f"; skipped {skipped}: {_counts(self.scans_skipped)}" if skipped else ""),
+            + (f"; dropped {n_dropped}: {_counts(self.clouds_dropped)}" if n_dropped else ""),
             f"rays         {self.rays_used:,} used of {self.points_in:,} points"
             + (f"; {self.rays_truncated:,} cut at max range" if self.rays_truncated else "")
             + (f"; {self.rays_no_return:,} with no return" if self.rays_no_return else ""),
-            f"dropped      {_counts(dropped) if dropped else 'none'}",
+            f"points lost  {_counts(dropped) if dropped else 'none'}",
             *([f"no-return    {self.no_return_note}"] if self.no_return_note else []),
             f"voxels       {self.voxels:,} ({self.memory_bytes / 2**20:.1f} MiB)",
             f"time         {self.seconds:.2f} s, {self.rays_per_second:,.0f} rays/s; "
@@ -209,7 +219,7 @@ def _replay(
         else Progress(summary.scans_total, enabled=bool(progress))
     )
     counts = pipeline.ScanCounts()
-    bad_example = ""
+    bad_example = error_example = ""
     cloud_span = [math.inf, -math.inf]
     t_loop = time.perf_counter()
     try:
@@ -219,6 +229,11 @@ def _replay(
             counts.clouds_in += 1
             try:
                 msg = reader.deserialize(raw, conn.msgtype)
+            except Exception as err:  # damaged bytes: not a cloud message at all
+                counts.drop("malformed")
+                bad_example = bad_example or f"{type(err).__name__}: {err}"
+                continue
+            try:
                 stamp = pipeline.scan_stamp(msg)
                 cloud_span = [min(cloud_span[0], stamp), max(cloud_span[1], stamp)]
                 cloud, note = pipeline.add_no_return_rays(
@@ -243,11 +258,10 @@ def _replay(
                 continue
             except ReplayError:
                 raise
-            except Exception as err:  # a damaged message: skip, count, say what it was
-                counts.drop("malformed")
-                bad_example = bad_example or f"{type(err).__name__}: {err}"
+            except Exception as err:  # unexpected (a bug): counted as the node does, go on
+                counts.drop("error")
+                error_example = error_example or f"{type(err).__name__}: {err}"
                 continue
-            counts.count_points(placed.points_dropped)
             counts.add(placed, result)
             first = summary.first_stamp if summary.first_stamp is not None else stamp
             last = summary.last_stamp if summary.last_stamp is not None else stamp
@@ -258,13 +272,17 @@ def _replay(
         bar.close()
     _fill(summary, counts, mapper)
     summary.seconds = time.perf_counter() - t_loop
+    examples = "".join(
+        f"; first {what}: {text}"
+        for what, text in (("bad cloud", bad_example), ("error", error_example))
+        if text
+    )
     if summary.scans_used == 0:
-        raise ReplayError(_nothing_mapped(summary, poses, bad_example, cloud_span))
-    if summary.scans_skipped and log is not None:
+        raise ReplayError(_nothing_mapped(summary, poses, examples, cloud_span))
+    if summary.clouds_dropped and log is not None:
         log(
-            f"warning: {sum(summary.scans_skipped.values())} of {summary.scans_total} scans "
-            f"skipped ({_counts(summary.scans_skipped)})"
-            + (f"; first bad cloud: {bad_example}" if bad_example else "")
+            f"warning: {sum(summary.clouds_dropped.values())} of {summary.scans_total} scans "
+            f"dropped ({_counts(summary.clouds_dropped)}){examples}"
         )
     return ReplayResult(mapper, summary)
 
@@ -302,25 +320,24 @@ def _read_poses(
 
 def _fill(summary: ReplaySummary, counts: pipeline.ScanCounts, mapper: Mapper) -> None:
     summary.scans_used = counts.clouds_integrated
-    summary.scans_skipped = dict(counts.clouds_dropped)
+    summary.clouds_dropped = dict(counts.clouds_dropped)
     summary.points_in = counts.points_in
     summary.rays_used = counts.rays_used
     summary.rays_truncated = counts.rays_truncated
     summary.rays_no_return = counts.rays_no_return
     summary.no_return_note = counts.no_return_note
-    summary.dropped = dict(counts.points_dropped)
+    summary.points_dropped = dict(counts.points_dropped)
     summary.voxels = mapper.num_voxels
     summary.memory_bytes = mapper.memory_bytes
 
 
 def _nothing_mapped(
-    summary: ReplaySummary, poses: Poses, bad_example: str, cloud_span: list[float]
+    summary: ReplaySummary, poses: Poses, examples: str, cloud_span: list[float]
 ) -> str:
-    reasons = _counts(summary.scans_skipped) or "none"
-    text = f"no cloud could be mapped ({summary.scans_total} clouds; skipped: {reasons})"
-    if bad_example:
-        text += f"; first bad cloud: {bad_example}"
-    if {"no_poses", "too_new", "too_old", "gap"} & set(summary.scans_skipped):
+    reasons = _counts(summary.clouds_dropped) or "none"
+    text = f"no cloud could be mapped ({summary.scans_total} clouds; dropped: {reasons})"
+    text += examples
+    if {"no_poses", "too_new", "too_old", "gap"} & set(summary.clouds_dropped):
         text += (
             f". No pose covers the clouds: poses from {poses.source} span "
             f"[{poses.buffer.earliest_stamp:.3f}, {poses.buffer.latest_stamp:.3f}] s, "

@@ -153,15 +153,16 @@ class LiveIntegrator:
             return False
         if self.odom_frame is None:
             self.odom_frame, self.odom_child = frame, sample.child_frame_id
-            with self.map_lock:
-                if self.mapper.num_voxels and self.mapper.frame_id != self.map_frame:
-                    self._log(
-                        "map_frame",
-                        f"loaded map is in frame {self.mapper.frame_id!r}, odometry in "
-                        f"{frame!r}: the map is used as if it were in {self.map_frame!r}",
-                        False,
-                    )
-                self.mapper.frame_id = self.map_frame
+            # no map lock here: this runs on the executor, which must never wait for a scan
+            # (a str attribute is replaced atomically; the voxel count only words a warning)
+            if self.mapper.num_voxels and self.mapper.frame_id != self.map_frame:
+                self._log(
+                    "map_frame",
+                    f"loaded map is in frame {self.mapper.frame_id!r}, odometry in "
+                    f"{frame!r}: the map is used as if it were in {self.map_frame!r}",
+                    False,
+                )
+            self.mapper.frame_id = self.map_frame
         self.robot_position = np.asarray(sample.position, dtype=np.float64)
         with self._cv:
             self._cv.notify_all()
@@ -259,14 +260,17 @@ class LiveIntegrator:
         if latest is None or latest < item.deadline:
             if time.monotonic() - item.received <= cfg.odom_wait:
                 return False
+            parse_drops = dict(item.cloud.dropped)
             if latest is None:
                 raise pipeline.ScanDropped(
-                    "no_poses", f"no odometry within odom_wait {cfg.odom_wait} s"
+                    "no_poses", f"no odometry within odom_wait {cfg.odom_wait} s", 0, parse_drops
                 )
             raise pipeline.ScanDropped(
                 "too_new",
                 f"stamp {item.deadline:.3f} not covered by odometry (latest {latest:.3f}) "
                 f"within odom_wait {cfg.odom_wait} s",
+                0,
+                parse_drops,
             )
         extrinsic = self._extrinsic_for(item.msg.header.frame_id)
         with self.pose_lock:  # de-skew from a copy: odometry keeps arriving meanwhile
@@ -279,7 +283,6 @@ class LiveIntegrator:
         latency = self._now() - item.stamp
         with self._cv:
             c = self.counters
-            c.count_points(placed.points_dropped)
             c.add(placed, summary)
             c.latency_last = latency
             c.latency_sum += latency

@@ -28,6 +28,7 @@ EXEC_DEPENDS = {
     "nav_msgs",
     "std_msgs",
     "std_srvs",
+    "diagnostic_msgs",
     "tf2_ros_py",
     "launch",
     "launch_ros",
@@ -36,6 +37,7 @@ EXEC_DEPENDS = {
     "python3-numba",
     "python3-matplotlib",
     "python3-yaml",
+    "python3-tqdm",
     "python3-scipy",
 }
 MODULE_KEYS = {  # third-party module imported -> its rosdep key (None: deliberately not listed)
@@ -44,15 +46,15 @@ MODULE_KEYS = {  # third-party module imported -> its rosdep key (None: delibera
     "llvmlite": "python3-numba",  # no key of its own; numba depends on it
     "matplotlib": "python3-matplotlib",
     "yaml": "python3-yaml",
-    "scipy": "python3-scipy",
     "tqdm": "python3-tqdm",
+    "scipy": "python3-scipy",
     "tf2_ros": "tf2_ros_py",  # the Python module of tf2_ros comes with tf2_ros_py
     "rosbags": None,  # pip only: see the comment in package.xml
     **{
         name: name
         for name in (
             "rclpy", "rcl_interfaces", "builtin_interfaces", "sensor_msgs", "nav_msgs",
-            "std_msgs", "std_srvs", "launch", "launch_ros", "ament_index_python",
+            "std_msgs", "std_srvs", "diagnostic_msgs", "launch", "launch_ros", "ament_index_python",
         )
     },
 }  # fmt: skip

@@ -194,3 +194,21 @@ def test_cli_reads_a_file_as_the_node_does(case: str, tmp_path: Path) -> None:
 def test_the_cases_cover_each_outcome(tmp_path: Path) -> None:
     kinds = {_cli_outcome(_write(tmp_path, c, t))[0] for c, t in NODE_CASES.items()}
     assert kinds == {"ok", "error", "unreadable"}
+
+
+def test_keep_radius_reaches_the_nodes_mapper(tmp_path: Path) -> None:
+    from mfp_mapper.ros.node import MfpMapperNode
+
+    path = _write(tmp_path, "keep", "mfp_mapper:\n  ros__parameters:\n    keep_radius: 25.0\n")
+    ctx = rclpy.context.Context()
+    rclpy.init(args=["x", "--ros-args", "--params-file", str(path)], context=ctx)
+    try:
+        node = MfpMapperNode(context=ctx)
+        try:
+            assert node.cfg.keep_radius == 25.0
+            assert node.mapper.keep_radius == 25.0
+        finally:
+            node.close()
+            node.destroy_node()
+    finally:
+        rclpy.shutdown(context=ctx)
