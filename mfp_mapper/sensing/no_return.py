@@ -45,8 +45,9 @@ MAX_ELEVATION_SPREAD_DEG = 0.3
 MIN_PAIRS = 8
 _SECTORS = 7200
 """Sectors (0.05 deg) on which the widest empty sector of a ring/channel cloud is found."""
-_FIT_ROUNDS = 3
-"""Alternations of the row offsets and column corrections fit."""
+_FIT_ROUNDS = 2
+"""Alternations of the row offsets and column corrections (the test layouts: 0.03 deg worst
+after 2, 0.004 deg after 3; each costs about 0.2 ms on a VLP-16 scan)."""
 """Neighbouring valid points needed to measure the azimuth step."""
 
 
