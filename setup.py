@@ -25,7 +25,7 @@ data_files = [
     (f"share/{PACKAGE}", ["package.xml"]),
 ]
 for _dest, _patterns in (
-    ("config", ("config/*.yaml", "config/*.xml")),
+    ("config", ("config/*.yaml", "config/*.xml", "config/*.rviz")),
     ("launch", ("launch/*.launch.py",)),
 ):
     _found = [f for pattern in _patterns for f in _files(pattern)]

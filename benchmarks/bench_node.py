@@ -50,6 +50,8 @@ from ros_helpers import (  # noqa: E402
     odom_msg,
     set_ros_env,
     simulate_scan,
+    stamp_msg,
+    yaw_quaternion,
 )
 
 from mfp_mapper.offline.scan_pattern import scan_directions  # noqa: E402
@@ -98,8 +100,44 @@ def _precompute(stream: dict[str, Any], n_scans: int) -> tuple[Trajectory, list[
     return traj, scans
 
 
+class TfPoses:
+    """``--tf-poses``: the base pose on /tf (odom -> base_link) and the lidar mount on
+    /tf_static instead of an odometry topic and the lidar.* parameters."""
+
+    def __init__(self, feeder: Feeder) -> None:
+        from geometry_msgs.msg import TransformStamped
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+        from tf2_msgs.msg import TFMessage
+
+        self.TFMessage, self.TransformStamped = TFMessage, TransformStamped
+        self.tf_pub = feeder.node.create_publisher(TFMessage, "/tf", QoSProfile(depth=100))
+        static = QoSProfile(
+            depth=1,
+            reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL,
+        )
+        self.static_pub = feeder.node.create_publisher(TFMessage, "/tf_static", static)
+        self.static_pub.publish(
+            TFMessage(transforms=[self._tf("base_link", "lidar", 0.0, [0, 0, LIDAR_HEIGHT], 0.0)])
+        )
+
+    def _tf(self, parent: str, child: str, stamp: float, t: Any, yaw: float) -> Any:
+        tf = self.TransformStamped()
+        tf.header.frame_id, tf.child_frame_id = parent, child
+        tf.header.stamp = stamp_msg(stamp)
+        tr = tf.transform.translation
+        tr.x, tr.y, tr.z = (float(v) for v in t)
+        r = tf.transform.rotation
+        r.x, r.y, r.z, r.w = yaw_quaternion(yaw)
+        return tf
+
+    def publish(self, stamp: float, position: Any, yaw: float) -> None:
+        tf = self._tf("odom", "base_link", stamp, position, yaw)
+        self.tf_pub.publish(self.TFMessage(transforms=[tf]))
+
+
 def run_stream(
-    name: str, duration: float, n_scans: int, workdir: Path, threads: int
+    name: str, duration: float, n_scans: int, workdir: Path, threads: int, tf_poses: bool = False
 ) -> dict[str, Any]:
 
     stream = STREAMS[name]
@@ -107,20 +145,28 @@ def run_stream(
     traj, scans = _precompute(stream, n_scans)
     points = int(np.mean([len(s["x"]) for s in scans]))
     domain = int(os.environ["ROS_DOMAIN_ID"])
-    node = NodeProcess(
-        domain,
-        {
-            "resolution": stream["resolution"],
-            "sensor_model.max_range": 100.0,
-            "publish_rate": 1.0,
-            "status_period": 1.0,
-            "lidar.translation": [0.0, 0.0, LIDAR_HEIGHT],
-            "odom_wait": 1.0,
-            "threads": threads,
-        },
-        workdir / f"{name}.log",
-    )
+    params: dict[str, Any] = {
+        "resolution": stream["resolution"],
+        "sensor_model.max_range": 100.0,
+        "publish_rate": 1.0,
+        "status_period": 1.0,
+        "odom_wait": 1.0,
+        "threads": threads,
+    }
+    if tf_poses:
+        params["frame_id"] = "odom"
+    else:
+        params["lidar.translation"] = [0.0, 0.0, LIDAR_HEIGHT]
+    node = NodeProcess(domain, params, workdir / f"{name}.log")
     feeder = Feeder()
+    tf = TfPoses(feeder) if tf_poses else None
+
+    def pose(stamp: float, rel: float) -> None:
+        if tf is not None:
+            tf.publish(stamp, traj.position(rel), float(traj.yaw(rel)))
+        else:
+            feeder.odom_pub.publish(odom_msg(stamp, traj.position(rel), float(traj.yaw(rel))))
+
     try:
         if not feeder.wait_connected(30.0):
             raise RuntimeError(f"node not discovered:\n{node.log()[-2000:]}")
@@ -134,8 +180,7 @@ def run_stream(
         while time.time() - start < duration:
             now = time.time()
             if now >= next_odom:
-                rel = (now - start) % loop
-                feeder.odom_pub.publish(odom_msg(now, traj.position(rel), float(traj.yaw(rel))))
+                pose(now, (now - start) % loop)
                 next_odom += ODOM_PERIOD
             if now >= next_scan:
                 cols = scans[k % n_scans]
@@ -149,8 +194,7 @@ def run_stream(
         drain_end = time.time() + 3.0
         while time.time() < drain_end:
             now = time.time()
-            rel = (now - start) % loop
-            feeder.odom_pub.publish(odom_msg(now, traj.position(rel), float(traj.yaw(rel))))
+            pose(now, (now - start) % loop)
             feeder.spin(ODOM_PERIOD)
             st = feeder.status or {}
             done = st.get("clouds_integrated", 0) + sum(st.get("clouds_dropped", {}).values())
@@ -228,6 +272,11 @@ def main() -> int:
     parser.add_argument("--logs", type=Path, help="keep the node logs in this directory")
     parser.add_argument("--threads", type=int, default=1, help="the node's core threads")
     parser.add_argument(
+        "--tf-poses",
+        action="store_true",
+        help="poses on /tf and the lidar mount on /tf_static instead of odometry",
+    )
+    parser.add_argument(
         "--default-dds",
         action="store_true",
         help="keep Fast DDS's default transports (not config/fastdds_large_data.xml)",
@@ -241,7 +290,8 @@ def main() -> int:
         # node and feeder alike (the node inherits this environment)
         os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(DDS_PROFILE)
     dds = os.environ.get("FASTRTPS_DEFAULT_PROFILES_FILE", "Fast DDS defaults")
-    print(f"node threads: {args.threads}; DDS profile: {dds}")
+    source = "/tf + /tf_static" if args.tf_poses else "odometry + lidar.* parameters"
+    print(f"node threads: {args.threads}; DDS profile: {dds}; poses: {source}")
     rclpy.init(domain_id=domain)
     results = []
     try:
@@ -249,7 +299,9 @@ def main() -> int:
             logs = args.logs or Path(tmp)
             logs.mkdir(parents=True, exist_ok=True)
             for name in STREAMS if args.stream == "all" else [args.stream]:
-                results.append(run_stream(name, args.duration, args.scans, logs, args.threads))
+                results.append(
+                    run_stream(name, args.duration, args.scans, logs, args.threads, args.tf_poses)
+                )
     finally:
         rclpy.try_shutdown()
     print("\nstream      res   pts/scan  rate(Hz)  latency mean/max (s)  integ. CPU  node CPU")

@@ -2,12 +2,14 @@
 
 ros2 launch mfp_mapper mfp_mapper.launch.py cloud_topic:=/velodyne_points odom_topic:=/odom
 ros2 launch mfp_mapper mfp_mapper.launch.py params_file:=/path/to/my_params.yaml
+ros2 launch mfp_mapper mfp_mapper.launch.py rviz:=true   (also starts RViz with config/mfp_mapper.rviz)
 """
 
 import os
 
 from ament_index_python.packages import get_package_share_directory
 from launch.actions import DeclareLaunchArgument
+from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
@@ -15,9 +17,9 @@ from launch import LaunchDescription
 
 
 def generate_launch_description() -> LaunchDescription:
-    default_params = os.path.join(
-        get_package_share_directory("mfp_mapper"), "config", "mfp_mapper.yaml"
-    )
+    share = get_package_share_directory("mfp_mapper")
+    default_params = os.path.join(share, "config", "mfp_mapper.yaml")
+    default_rviz = os.path.join(share, "config", "mfp_mapper.rviz")
     return LaunchDescription(
         [
             DeclareLaunchArgument(
@@ -32,6 +34,12 @@ def generate_launch_description() -> LaunchDescription:
             DeclareLaunchArgument(
                 "use_sim_time", default_value="false", description="Use /clock (bag replay)"
             ),
+            DeclareLaunchArgument(
+                "rviz", default_value="false", description="Also start RViz (rviz2)"
+            ),
+            DeclareLaunchArgument(
+                "rviz_config", default_value=default_rviz, description="RViz config file"
+            ),
             Node(
                 package="mfp_mapper",
                 executable="mfp_mapper",
@@ -45,6 +53,15 @@ def generate_launch_description() -> LaunchDescription:
                     ("cloud_in", LaunchConfiguration("cloud_topic")),
                     ("odom", LaunchConfiguration("odom_topic")),
                 ],
+            ),
+            Node(
+                package="rviz2",
+                executable="rviz2",
+                name="rviz2",
+                output="log",
+                arguments=["-d", LaunchConfiguration("rviz_config")],
+                parameters=[{"use_sim_time": LaunchConfiguration("use_sim_time")}],
+                condition=IfCondition(LaunchConfiguration("rviz")),
             ),
         ]
     )

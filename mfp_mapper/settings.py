@@ -135,10 +135,11 @@ SETTINGS: tuple[Setting, ...] = (
     # --- the map ---------------------------------------------------------------------------
     _both("resolution", 0.1, "Voxel edge (m). A map loaded from map_path keeps its own.",
           0.01, 10.0, flag="--resolution"),
-    _node("frame_id", "", "Map frame. Empty: the odometry's header.frame_id. When set, "
-          "odometry in any other frame is rejected (no TF between them here)."),
-    _node("base_frame_id", "", "Robot body frame the lidar extrinsic is relative to. Empty: "
-          "the odometry's child_frame_id. Only used for the TF lookup (use_tf)."),
+    _node("frame_id", "", "Map frame. Empty: the odometry's header.frame_id (without "
+          "odometry: the root of the cloud frame's TF tree). A frame above the odometry "
+          "frame (map -> odom from SLAM/localization) is resolved through TF."),
+    _node("base_frame_id", "", "Robot body frame the lidar extrinsic (from /tf_static) is "
+          "relative to. Empty: the odometry's child_frame_id."),
     _both("decay_time", 0.0, "Time constant T (s) of the dynamic-environment decay (Eq. "
           "28-30): evidence is scaled by exp(-dt/T). 0: static map (T = inf).", 0.0, 1.0e9,
           flag="--decay-time", unlimited="inf"),
@@ -166,13 +167,13 @@ SETTINGS: tuple[Setting, ...] = (
     _both("point_cloud_max_z", NO_LIMIT_Z, "Returns whose map-frame z (m) is above this are "
           "dropped with their rays.", -NO_LIMIT_Z, NO_LIMIT_Z, flag="--max-z"),
     _both("lidar.translation", [0.0, 0.0, 0.0], "Lidar position [x, y, z] (m) in the "
-          "odometry child frame. Ignored when the cloud's frame_id is the odometry "
-          "child_frame_id (identity).", length=3),
+          "odometry child frame; when set (not all zero with lidar.rpy) it overrides "
+          "/tf_static. Ignored when the cloud's frame_id is the odometry child_frame_id "
+          "(identity).", length=3),
     _both("lidar.rpy", [0.0, 0.0, 0.0], "Lidar orientation [roll, pitch, yaw] (rad, fixed "
           "axes X-Y-Z) in the odometry child frame. Ignored like lidar.translation.", length=3),
-    _node("use_tf", False, "Look the lidar pose up in TF (base_frame_id <- cloud frame) "
-          "instead of the lidar.* parameters. Needs tf2_ros; falls back to the parameters "
-          "without it."),
+    _node("use_tf", False, "No effect (kept for old parameter files): /tf and /tf_static "
+          "are always read; the extrinsic comes from /tf_static unless lidar.* are set."),
     _both("deskew", True, "Give every point its own pose when the cloud has per-point time "
           "(Velodyne 'time', Ouster 't', Hesai/Nebula 'timestamp'/'time_stamp').",
           flag="--no-deskew"),
@@ -206,6 +207,15 @@ SETTINGS: tuple[Setting, ...] = (
     _node("hit_probability_map.max_cells", 25_000_000, "Most cells ~/hit_probability_map and "
           "~/projected_map may hold; a larger map is served as the largest square around the "
           "robot that fits (logged).", 1, 2**31 - 1, dynamic=True),
+    _node("projected_map.trinary", True, "~/projected_map cells 100 (occupied) / 0 (free) / "
+          "-1 (unknown), as Nav2's static layer expects. False: round(100 hit probability), "
+          "like ~/hit_probability_map.", dynamic=True),
+    _node("projected_map.occupied_threshold", 0.25, "Hit probability at or above which a "
+          "~/projected_map cell is occupied (100).", 0.0, 1.0, dynamic=True),
+    _node("projected_map.free_threshold", -1.0, "Hit probability below which an observed "
+          "~/projected_map cell is free (0). Negative: that of a never-observed voxel, "
+          "resolution / (1 + resolution).", -1.0, 1.0, dynamic=True),
+    _node("tf_buffer", 10.0, "Seconds of /tf kept per transform.", 0.1, 3600.0),
     # --- map file, health ------------------------------------------------------------------
     _node("map_path", "", "Map file (.npz) for ~/save_map, loaded at start when it exists. "
           "Empty: none."),
@@ -349,6 +359,10 @@ class NodeConfig:
     occupancy_max_z: float
     hit_probability_map_radius: float
     hit_probability_map_max_cells: int
+    projected_map_trinary: bool
+    projected_map_occupied_threshold: float
+    projected_map_free_threshold: float
+    tf_buffer: float
     map_path: str
     save_on_shutdown: bool
     status_period: float
@@ -383,6 +397,12 @@ class NodeConfig:
         from mfp_mapper.sensing.poses import Extrinsic
 
         return Extrinsic.from_xyz_rpy(self.lidar_translation, self.lidar_rpy)
+
+    def extrinsic_override(self) -> Extrinsic | None:
+        """The ``lidar.*`` extrinsic when set (not all zero): it overrides /tf_static."""
+        if any(self.lidar_translation) or any(self.lidar_rpy):
+            return self.extrinsic()
+        return None
 
     @classmethod
     def from_values(cls, values: dict[str, Any]) -> NodeConfig:

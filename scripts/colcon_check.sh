@@ -62,7 +62,7 @@ SHARE="$INSTALL/share/$PKG"
 [[ -f "$INSTALL/share/ament_index/resource_index/packages/$PKG" ]] ||
     fail "ament index marker share/ament_index/resource_index/packages/$PKG not installed"
 shopt -s nullglob
-for f in "$ROOT"/config/*.yaml "$ROOT"/config/*.xml; do
+for f in "$ROOT"/config/*.yaml "$ROOT"/config/*.xml "$ROOT"/config/*.rviz; do
     [[ -f "$SHARE/config/$(basename "$f")" ]] || fail "config/$(basename "$f") not installed"
 done
 for f in "$ROOT"/launch/*.launch.py; do

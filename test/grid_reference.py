@@ -9,7 +9,16 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from mfp_mapper.core.gridmap import UNKNOWN, HitGrid, _check_band, _window_cells, band_mask
+from mfp_mapper.core.gridmap import (
+    FREE,
+    OCCUPIED,
+    UNKNOWN,
+    HitGrid,
+    _check_band,
+    _window_cells,
+    band_mask,
+    check_trinary,
+)
 
 
 def hit_probability_grid(
@@ -22,6 +31,7 @@ def hit_probability_grid(
     *,
     center: tuple[float, float] | None = None,
     radius: float = 0.0,
+    trinary: tuple[float, float] | None = None,
 ) -> HitGrid:
     """Project voxels (integer indices ``ijk`` = floor(centre / resolution)) onto a grid.
 
@@ -34,6 +44,7 @@ def hit_probability_grid(
     reads the blocks) must match exactly: written with plain numpy over ``Mapper.voxels()``.
     """
     _check_band(resolution, z_min, z_max)
+    use_trinary, occupied, free = check_trinary(trinary)
     ijk_arr = np.asarray(ijk, dtype=np.int64).reshape(-1, 3)
     prob = np.asarray(hit_probability, dtype=np.float64).reshape(-1)
     obs = np.asarray(observed, dtype=bool).reshape(-1)
@@ -59,9 +70,22 @@ def hit_probability_grid(
         & (j >= j0)
         & (j <= j1)
     )
-    percent = np.rint(100.0 * np.clip(np.nan_to_num(prob[sel], nan=1.0), 0.0, 1.0))
+    p = np.clip(np.nan_to_num(prob[sel], nan=1.0), 0.0, 1.0)
     flat = (j[sel] - j0) * width + (i[sel] - i0)
     out = np.full(width * height, UNKNOWN, dtype=np.int16)
-    np.maximum.at(out, flat, percent.astype(np.int16))
+    if use_trinary:  # occupied wins, then uncertain, then free: evaluated per cell
+        occupied_cells = np.zeros(width * height, bool)
+        uncertain_cells = np.zeros(width * height, bool)
+        occupied_cells[flat[p >= occupied]] = True
+        uncertain_cells[flat[(p >= free) & (p < occupied)]] = True
+        out[flat] = FREE
+        out[uncertain_cells] = UNKNOWN
+        out[occupied_cells] = OCCUPIED
+        return HitGrid(
+            out.astype(np.int8).reshape(height, width),
+            resolution,
+            (i0 * resolution, j0 * resolution),
+        )
+    np.maximum.at(out, flat, np.rint(100.0 * p).astype(np.int16))
     data = out.astype(np.int8).reshape(height, width)
     return HitGrid(data, resolution, (i0 * resolution, j0 * resolution))

@@ -9,6 +9,11 @@ ray at the worst height is the one a planar robot must fear, as octomap_server's
 map marks a cell occupied when any voxel of the band is. Cells whose band holds no observed
 voxel are ``-1`` (unknown), the OccupancyGrid convention.
 
+With ``trinary=(occupied, free)`` (Nav2's static layer, octomap_server's ``projected_map``)
+cells are ``100`` where that largest hit probability is at or above ``occupied``, ``0`` where
+the band was observed and it is below ``free``, and ``-1`` otherwise (never observed, or in
+between: uncertain). Thresholds compare the exact probability, not the rounded percent.
+
 The grid is row-major, row ``r`` = y index, column ``c`` = x index, cell ``(r, c)`` covering
 ``[x0 + c * res, x0 + (c + 1) * res) x [y0 + r * res, y0 + (r + 1) * res)``.
 """
@@ -23,8 +28,7 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
-from mfp_mapper.core.model import hit_probability_one
-from mfp_mapper.core.store import (
+from mfp_mapper.core.blocks import (
     BLOCK_EDGE,
     BLOCK_VOXELS,
     IndexBox,
@@ -33,8 +37,42 @@ from mfp_mapper.core.store import (
     local_coords,
     voxel_inside,
 )
+from mfp_mapper.core.model import hit_probability_one
 
 UNKNOWN = -1
+OCCUPIED = 100
+FREE = 0
+_UNCERTAIN = 1
+"""Kernel code of a trinary cell observed between the thresholds (becomes UNKNOWN)."""
+DEFAULT_OCCUPIED_THRESHOLD = 0.25
+"""Default hit probability at or above which a trinary cell is occupied (a wall seen in 3
+scans at 0.1 m reaches 0.32-0.38, in 40 scans 0.98; see README, "Which map is which")."""
+
+
+def unobserved_hit_probability(resolution: float) -> float:
+    """p_hit of a never-observed voxel, ``s0 / (1 + s0)``: every voxel crossed by rays but
+    never hit is below it, so it is the default free threshold."""
+    return float(hit_probability_one(0.0, 0.0, resolution))
+
+
+def check_trinary(trinary: tuple[float, float] | None) -> tuple[bool, float, float]:
+    """(use it, occupied, free) of trinary thresholds; ValueError unless 0 <= free <=
+    occupied <= 1."""
+    if trinary is None:
+        return False, 0.0, 0.0
+    occupied, free = (float(v) for v in trinary)
+    if not (0.0 <= free <= occupied <= 1.0):
+        raise ValueError(
+            f"trinary thresholds need 0 <= free <= occupied <= 1, got occupied {occupied}, "
+            f"free {free}"
+        )
+    return True, occupied, free
+
+
+def finish_trinary(cells: NDArray[np.int8]) -> NDArray[np.int8]:
+    """Cells observed between the thresholds become unknown (in place)."""
+    cells[cells == _UNCERTAIN] = UNKNOWN
+    return cells
 
 
 class GridTooLarge(ValueError):
@@ -117,6 +155,7 @@ def band_grid(
     center: tuple[float, float] | None = None,
     radius: float = 0.0,
     max_cells: int | None = None,
+    trinary: tuple[float, float] | None = None,
 ) -> HitGrid:
     """The hit-probability grid of the observed voxels with index in ``[lo, hi]``, computed
     in one compiled pass over the store's blocks (no per-voxel arrays of the map).
@@ -124,8 +163,10 @@ def band_grid(
     The grid spans the window around ``center`` (``radius > 0``), else the (x, y) extent of
     the observed voxels in ``[lo, hi]``; cells take the voxels whose centre is in the band.
     ``GridTooLarge`` before anything is allocated when it would exceed ``max_cells``.
+    ``trinary=(occupied, free)``: cells 100 / 0 / -1 instead of percentages (module doc).
     """
     _check_band(resolution, z_min, z_max)
+    use_trinary, occupied, free = check_trinary(trinary)
     if center is not None and radius > 0.0:
         i0, j0, i1, j1 = _window_cells(center, radius, resolution)
     else:
@@ -146,8 +187,23 @@ def band_grid(
     cells = np.full((j1 - j0 + 1, i1 - i0 + 1), UNKNOWN, dtype=np.int8)
     for block_ijk, block_sn, used in shards:
         _band_max_percent(
-            block_ijk, block_sn, used, lo, hi, resolution, z_min, z_max, i0, j0, cells
+            block_ijk,
+            block_sn,
+            used,
+            lo,
+            hi,
+            resolution,
+            z_min,
+            z_max,
+            i0,
+            j0,
+            cells,
+            use_trinary,
+            occupied,
+            free,
         )
+    if use_trinary:
+        cells = finish_trinary(cells)
     return HitGrid(cells, resolution, (i0 * resolution, j0 * resolution))
 
 
@@ -189,9 +245,13 @@ def _band_max_percent(
     i0: int,
     j0: int,
     cells: NDArray[np.int8],
+    trinary: bool,
+    occupied: float,
+    free: float,
 ) -> None:
     """Raise each cell of ``cells`` (row j - j0, column i - i0) to round(100 p_hit) of the
-    observed voxels in [lo, hi] whose centre height lies in [z_min, z_max]."""
+    observed voxels in [lo, hi] whose centre height lies in [z_min, z_max]; with
+    ``trinary``, to OCCUPIED (p >= occupied), FREE (p < free) or _UNCERTAIN."""
     height, width = cells.shape
     for b in range(used):
         bx, by, bz = block_origin(block_ijk, b)
@@ -217,6 +277,10 @@ def _band_max_percent(
             if zc < z_min or zc > z_max or not (0 <= col < width and 0 <= row < height):
                 continue
             p = min(max(hit_probability_one(s, n, resolution), 0.0), 1.0)
-            percent = np.int8(np.rint(100.0 * p))
+            if trinary:
+                code = OCCUPIED if p >= occupied else (FREE if p < free else _UNCERTAIN)
+                percent = np.int8(code)
+            else:
+                percent = np.int8(np.rint(100.0 * p))
             if percent > cells[row, col]:
                 cells[row, col] = percent

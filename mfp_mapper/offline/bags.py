@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -17,13 +17,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mfp_mapper.offline.options import ReplayError as ReplayError  # defined with the options
-from mfp_mapper.sensing.poses import (
-    Extrinsic,
-    PoseBuffer,
-    odometry_sample,
-    quaternion_to_matrix,
-    transform_sample,
-)
+from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer, odometry_sample
+from mfp_mapper.sensing.tf_tree import TfTree, TransformUnavailable
 
 if TYPE_CHECKING:
     from mfp_mapper.offline.options import ReplayOptions
@@ -89,72 +84,14 @@ def pick_topic(reader: Any, msgtype: str, wanted: str | None, what: str, flag: s
     return candidates[0] if candidates else None
 
 
-def _qmul(a: FloatArray, b: FloatArray) -> FloatArray:
-    """Hamilton product of xyzw quaternions (broadcast)."""
-    ax, ay, az, aw = np.moveaxis(a, -1, 0)
-    bx, by, bz, bw = np.moveaxis(b, -1, 0)
-    return np.stack(
-        [
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-            aw * bw - ax * bx - ay * by - az * bz,
-        ],
-        axis=-1,
-    )
-
-
-def _compose(
-    outer: tuple[FloatArray, FloatArray], inner: tuple[FloatArray, FloatArray]
-) -> tuple[FloatArray, FloatArray]:
-    """T_a_c = T_a_b * T_b_c with (translation, quaternion) pairs (broadcast)."""
-    t1, q1 = outer
-    t2, q2 = inner
-    rotated = np.einsum("...ij,...j->...i", quaternion_to_matrix(q1), t2)
-    return t1 + rotated, _qmul(q1, q2)
-
-
-@dataclass
-class Transforms:
-    """/tf_static edges (child -> parent, pose) and /tf samples per (parent, child)."""
-
-    static: dict[str, tuple[str, FloatArray, FloatArray]] = field(default_factory=dict)
-    dynamic: dict[tuple[str, str], list[tuple[float, FloatArray, FloatArray]]] = field(
-        default_factory=dict
-    )
-
-    def add(self, msg: Any, static: bool) -> None:
-        for tf in msg.transforms:
-            sample = transform_sample(tf)
-            t, q = sample.translation, sample.quaternion
-            if static:
-                self.static[sample.child] = (sample.parent, t, q)
-            else:
-                key = (sample.parent, sample.child)
-                self.dynamic.setdefault(key, []).append((sample.stamp, t, q))
-
-    def dynamic_parent(self, child: str) -> str | None:
-        for parent, c in self.dynamic:
-            if c == child:
-                return parent
-        return None
-
-    def static_chain(self, top: str, bottom: str) -> tuple[FloatArray, FloatArray] | None:
-        """T_top_bottom through /tf_static edges only; None when they do not connect."""
-        t, q = np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0])
-        frame, seen = bottom, set()
-        while frame != top:
-            if frame not in self.static or frame in seen:
-                return None
-            seen.add(frame)
-            parent, te, qe = self.static[frame]
-            t, q = _compose((te, qe), (t, q))
-            frame = parent
-        return t, q
+def read_transforms() -> TfTree:
+    """A TF tree for a whole bag: every /tf sample kept (no buffer length, no stream
+    checks: the bag is read in one go), interpolated without a gap limit."""
+    return TfTree(buffer_length=math.inf, max_jump=math.inf, max_future=math.inf)
 
 
 def extrinsic_for(
-    cloud_frame: str, body: str, tfs: Transforms, opts: ReplayOptions
+    cloud_frame: str, body: str, tfs: TfTree, opts: ReplayOptions
 ) -> tuple[Extrinsic, str]:
     if opts.extrinsic is not None:
         return opts.extrinsic, "given on the command line"
@@ -218,63 +155,44 @@ def _buffer(samples: list[tuple[float, FloatArray, FloatArray]], max_gap: float)
     return buffer
 
 
-def tf_poses(cloud_frame: str, tfs: Transforms, opts: ReplayOptions) -> Poses:
+def tf_poses(cloud_frame: str, tfs: TfTree, opts: ReplayOptions) -> Poses:
     """Poses of the lowest moving frame above the cloud frame, from the /tf chain."""
-    if not tfs.dynamic:
+    moving = sorted(c for c in tfs.frames() if tfs.is_dynamic(c))
+    if not moving:
         raise ReplayError(
             "the bag has no nav_msgs/Odometry topic and no /tf transforms: no poses "
             "(give --odom-topic if the odometry topic has another type name)"
         )
-    # walk up through static edges to the first frame that moves
-    body = cloud_frame
-    seen = set()
-    while tfs.dynamic_parent(body) is None:
-        if body not in tfs.static or body in seen:
-            moving = sorted({c for _, c in tfs.dynamic})
-            raise ReplayError(
-                f"/tf does not connect the cloud frame {cloud_frame!r} to a moving frame "
-                f"(frames moved by /tf: {', '.join(moving)}); give --odom-topic"
-            )
-        seen.add(body)
-        body = tfs.static[body][0]
-    # then up to the fixed frame: odom by default, else the root of the tree
-    edges: list[tuple[str, str]] = []
-    frame = body
-    while True:
-        parent = tfs.dynamic_parent(frame)
-        static_parent = tfs.static.get(frame, (None,))[0]
-        up = parent if parent is not None else static_parent
-        if (
-            up is None
-            or frame == opts.fixed_frame
-            or (opts.fixed_frame is None and frame == "odom")
-        ):
-            break
-        if any(c == frame for _, c in edges) or len(edges) > 32:
-            raise ReplayError(f"/tf has a loop through {frame!r}")
-        edges.append((up, frame))
-        frame = up
-    if opts.fixed_frame is not None and frame != opts.fixed_frame:
-        raise ReplayError(f"the fixed frame {opts.fixed_frame!r} is not above {body!r} in /tf")
-    root = frame
-    lowest = sorted(tfs.dynamic[edges[0]], key=lambda s: s[0])
-    stamps = np.array([s[0] for s in lowest])
-    t = np.array([s[1] for s in lowest])
-    q = np.array([s[2] for s in lowest])
+    try:
+        above = tfs.ancestors(cloud_frame)
+    except TransformUnavailable as err:
+        raise ReplayError(f"/tf: {err}") from None
+    # the first frame that moves, then up to the fixed frame: odom by default, else the root
+    body = next((f for f in above if tfs.is_dynamic(f)), None)
+    if body is None:
+        raise ReplayError(
+            f"/tf does not connect the cloud frame {cloud_frame!r} to a moving frame "
+            f"(frames moved by /tf: {', '.join(moving)}); give --odom-topic"
+        )
+    chain = above[above.index(body) :]
+    fixed = opts.fixed_frame
+    if fixed is not None and fixed not in chain:
+        raise ReplayError(f"the fixed frame {fixed!r} is not above {body!r} in /tf")
+    if fixed is None:
+        fixed = "odom" if "odom" in chain else chain[-1]
+    chain = chain[: chain.index(fixed) + 1]
+    if len(chain) < 2:
+        raise ReplayError(f"the fixed frame {fixed!r} is the moving frame {body!r} itself")
+    stamps = tfs.edge_stamps(body)
     keep = np.ones(stamps.size, dtype=bool)
-    for parent, child in edges[1:]:
-        if (parent, child) in tfs.dynamic:
-            buf = _buffer(tfs.dynamic[(parent, child)], math.inf)
-            inside = (stamps >= (buf.earliest_stamp or 0)) & (stamps <= (buf.latest_stamp or 0))
-            keep &= inside
-            te = np.zeros_like(t)
-            qe = np.tile([0.0, 0.0, 0.0, 1.0], (stamps.size, 1))
-            if np.any(inside):
-                te[inside], qe[inside] = buf.interpolate_quaternions(stamps[inside])
-        else:
-            _, te0, qe0 = tfs.static[child]
-            te, qe = np.broadcast_to(te0, t.shape), np.broadcast_to(qe0, q.shape)
-        t, q = _compose((te, qe), (t, q))
-    samples = [(float(s), t[i], q[i]) for i, s in enumerate(stamps) if keep[i]]
-    chain = " -> ".join([root, *[c for _, c in reversed(edges)]])
-    return Poses(_buffer(samples, opts.max_gap), body, root, f"/tf chain {chain}")
+    for child in chain[1:-1]:  # every other moving edge must cover the stamp
+        covered = tfs.edge_stamps(child)
+        if covered.size:
+            keep &= (stamps >= covered[0]) & (stamps <= covered[-1])
+    stamps = stamps[keep]
+    samples: list[tuple[float, FloatArray, FloatArray]] = []
+    if stamps.size:
+        t, q = tfs.lookup(fixed, body, stamps)
+        samples = [(float(s), t[i], q[i]) for i, s in enumerate(stamps)]
+    text = " -> ".join(reversed(chain))
+    return Poses(_buffer(samples, opts.max_gap), body, fixed, f"/tf chain {text}")

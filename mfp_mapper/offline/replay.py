@@ -33,11 +33,11 @@ from mfp_mapper.offline.bags import (
     TF_TYPE,
     Poses,
     ReplayError,
-    Transforms,
     extrinsic_for,
     odometry_poses,
     open_reader,
     pick_topic,
+    read_transforms,
     resolve_bag_path,
     tf_poses,
 )
@@ -46,6 +46,7 @@ from mfp_mapper.offline.options import ReplayOptions, options_from_yaml
 from mfp_mapper.offline.progress import Progress
 from mfp_mapper.sensing import pipeline
 from mfp_mapper.sensing.poses import Extrinsic, frame_name
+from mfp_mapper.sensing.tf_tree import TfTree
 
 FloatArray = NDArray[np.float64]
 
@@ -289,10 +290,10 @@ def _replay(
 
 def _read_poses(
     reader: Any, path: Path, opts: ReplayOptions, odom_topic: str | None, cloud_conns: list[Any]
-) -> tuple[Poses, Transforms, str]:
+) -> tuple[Poses, TfTree, str]:
     """Poses, transforms and the cloud frame: small, read first, so a bag without them
     fails fast."""
-    tfs = Transforms()
+    tfs = read_transforms()
     tf_conns = [
         c for c in reader.connections if c.msgtype == TF_TYPE and c.topic in ("/tf", "/tf_static")
     ]
@@ -300,7 +301,9 @@ def _read_poses(
     try:
         if read_conns:
             for conn, _, raw in reader.messages(connections=read_conns):
-                tfs.add(reader.deserialize(raw, conn.msgtype), static=conn.topic == "/tf_static")
+                tfs.add_message(
+                    reader.deserialize(raw, conn.msgtype), static=conn.topic == "/tf_static"
+                )
         first_cloud = next(reader.messages(connections=cloud_conns))
         cloud_frame = frame_name(
             reader.deserialize(first_cloud[2], first_cloud[0].msgtype).header.frame_id

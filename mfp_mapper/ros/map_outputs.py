@@ -19,7 +19,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
-from mfp_mapper.core.gridmap import GridTooLarge
+from mfp_mapper.core.gridmap import GridTooLarge, unobserved_hit_probability
 from mfp_mapper.ros.messages import cloud_msg, grid_msg, stamp_msg
 from mfp_mapper.sensing.live import LiveIntegrator
 from mfp_mapper.sensing.pointcloud import pack_cloud
@@ -96,7 +96,7 @@ class MapOutputs:
         t0 = time.perf_counter()
         lock_times = [0.0, 0.0]  # waited for, held
         if want_grid:
-            self._grid_pub.publish(self.grid(lock_times))
+            self._grid_pub.publish(self.grid(lock_times, projected=True))
         if want_clouds:
             self._publish_clouds(lock_times)
         for key in due:
@@ -150,10 +150,18 @@ class MapOutputs:
         self._std_pub.publish(cloud_msg(std, frame, header_stamp))
         self.counters.voxels = len(sel)
 
-    def grid(self, lock_times: list[float] | None = None) -> OccupancyGrid:
-        """The 2D hit-probability grid of the height band (``~/hit_probability_map``,
-        ``~/projected_map``); ``lock_times`` as in ``_timed_map_lock``."""
+    def grid(self, lock_times: list[float] | None = None, projected: bool = False) -> OccupancyGrid:
+        """The 2D grid of the height band: hit-probability percent (``~/hit_probability_map``)
+        or, with ``projected``, ``~/projected_map`` (trinary 100/0/-1 for Nav2 unless
+        ``projected_map.trinary`` is false); ``lock_times`` as in ``_timed_map_lock``."""
         cfg, worker = self._config(), self._worker
+        trinary = None
+        if projected and cfg.projected_map_trinary:
+            occupied = cfg.projected_map_occupied_threshold
+            free = cfg.projected_map_free_threshold
+            if free < 0.0:
+                free = unobserved_hit_probability(worker.mapper.resolution)
+            trinary = (occupied, min(free, occupied))
         robot = worker.robot_position
         radius = cfg.hit_probability_map_radius
         center = (float(robot[0]), float(robot[1])) if robot is not None and radius > 0 else None
@@ -164,7 +172,7 @@ class MapOutputs:
             band = (cfg.occupancy_min_z, cfg.occupancy_max_z)
             try:
                 grid = worker.mapper.hit_probability_grid(
-                    *band, center=center, radius=radius, max_cells=limit
+                    *band, center=center, radius=radius, max_cells=limit, trinary=trinary
                 )
             except GridTooLarge as err:
                 if robot is None:
@@ -178,7 +186,7 @@ class MapOutputs:
                     "(hit_probability_map.max_cells, hit_probability_map.radius)",
                 )
                 grid = worker.mapper.hit_probability_grid(
-                    *band, center=center, radius=radius, max_cells=limit
+                    *band, center=center, radius=radius, max_cells=limit, trinary=trinary
                 )
         now = self._node.get_clock().now().to_msg()
         return grid_msg(

@@ -44,23 +44,26 @@ from rclpy.qos import (
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 from std_srvs.srv import Empty, Trigger
+from tf2_msgs.msg import TFMessage
 
 from mfp_mapper.core.mapfile import MapFileError, map_arrays, write_map_arrays
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.ros.guarded_node import GuardedNode, tracked
 from mfp_mapper.ros.map_outputs import MapOutputs
 from mfp_mapper.ros.messages import cloud_msg
-from mfp_mapper.ros.params import declare_parameters
-from mfp_mapper.ros.status import StatusWindow, diagnostics, next_window, status_report
+from mfp_mapper.ros.params import declare_parameters, usage
+from mfp_mapper.ros.status import (
+    StatusWindow,
+    diagnostics,
+    next_window,
+    startup_text,
+    status_report,
+)
 from mfp_mapper.sensing.live import LiveIntegrator, LiveSettings
-from mfp_mapper.sensing.pointcloud import CloudFormatError, pack_cloud, read_xyz
-from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer, odometry_sample
+from mfp_mapper.sensing.pointcloud import CloudFormatError, pack_cloud, read_xyz, stamp_seconds
+from mfp_mapper.sensing.poses import PoseBuffer, odometry_sample
+from mfp_mapper.sensing.tf_tree import TfTree, TransformUnavailable
 from mfp_mapper.settings import SPECS, NodeConfig
-
-try:  # optional: not installable from PyPI
-    import tf2_ros  # type: ignore[import-not-found]
-except ImportError:  # pragma: no cover - depends on the installation
-    tf2_ros = None
 
 NODE_NAME = "mfp_mapper"
 RESULT_FIELDS = (
@@ -70,17 +73,33 @@ RESULT_FIELDS = (
 """The fields of a ~/hit_probability/result cloud."""
 
 
-def live_settings(cfg: NodeConfig) -> LiveSettings:
-    """What the worker reads of the node's parameters."""
-    return LiveSettings(
-        frame_id=cfg.frame_id,
-        deskew=cfg.deskew,
-        point_cloud_min_z=cfg.point_cloud_min_z,
-        point_cloud_max_z=cfg.point_cloud_max_z,
-        cloud_queue_size=cfg.cloud_queue_size,
-        odom_wait=cfg.odom_wait,
-        no_return_range=cfg.sensor_model_no_return_range,
-    )
+def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, bool]:
+    """The map to start from: ``map_path`` when it exists and loads, else an empty one; and
+    whether loading failed (then that file is never saved over)."""
+    path = cfg.map_path
+    if not (path and os.path.exists(path)):
+        return _empty_map(cfg), False
+    try:
+        mapper = Mapper.load(path, **cfg.mapper_settings())
+    except (MapFileError, ValueError, OSError) as err:
+        logger.error(
+            f"cannot load map_path {path!r}: {err}; starting an empty map (and not "
+            "saving over that file on shutdown)"
+        )
+        return _empty_map(cfg), True
+    if mapper.resolution != cfg.resolution:
+        logger.warning(
+            f"map {path!r} has resolution {mapper.resolution} m, parameter "
+            f"resolution is {cfg.resolution} m: keeping the map's"
+        )
+    if cfg.frame_id:
+        mapper.frame_id = cfg.frame_id
+    logger.info(f"loaded {mapper.num_voxels} voxels from {path!r} (frame {mapper.frame_id})")
+    return mapper, False
+
+
+def _empty_map(cfg: NodeConfig) -> Mapper:
+    return Mapper(cfg.resolution, frame_id=cfg.frame_id or "map", **cfg.mapper_settings())
 
 
 class MfpMapperNode(GuardedNode):
@@ -91,62 +110,26 @@ class MfpMapperNode(GuardedNode):
         self.cfg: NodeConfig = declare_parameters(self)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._started = time.monotonic()
-        self._load_failed = False
         self._map_figures = (0, 0, 0)
         self._status_window = StatusWindow(time.monotonic())
         self._last_window = self._status_window
         self._queries = 0
         self._maps_served = 0
-        self._param_extrinsic = self.cfg.extrinsic()
-        self._identity = Extrinsic()
+        mapper, self._load_failed = initial_mapper(self.cfg, self.get_logger())
         self.worker = LiveIntegrator(
-            self._initial_mapper(),
-            live_settings(self.cfg),
+            mapper,
+            LiveSettings.of(self.cfg),
             PoseBuffer(max_age=self.cfg.odom_buffer, max_gap=self.cfg.odom_max_gap),
-            extrinsic_for=self._extrinsic,
+            tree=TfTree(buffer_length=self.cfg.tf_buffer),
             log=self.warn_throttled,
-            now=lambda: self.get_clock().now().nanoseconds * 1e-9,
+            now=self._now,
         )
         self.outputs = MapOutputs(self, self.worker, lambda: self.cfg, self.warn_throttled)
         self.worker._publish = self.outputs.publish
 
-        self._tf_buffer = None
-        if self.cfg.use_tf:
-            if tf2_ros is None:
-                self.get_logger().warning(
-                    "use_tf is true but tf2_ros is not importable: using lidar.translation "
-                    "and lidar.rpy"
-                )
-            else:  # pragma: no cover - tf2_ros is not installable in the test environment
-                self._tf_buffer = tf2_ros.Buffer()
-                self._tf_listener = tf2_ros.TransformListener(self._tf_buffer, self)
         self._create_interfaces()
         self.worker.start()
-        self.get_logger().info(self._startup_text())
-
-    def _startup_text(self) -> str:
-        """What a robot integrator needs to check at start: topics, frames, sources."""
-        cfg, topic = self.cfg, self.resolve_topic_name
-        if cfg.use_tf and self._tf_buffer is not None:
-            extrinsic = f"TF {cfg.base_frame_id or '<odometry child>'} <- cloud frame"
-        else:
-            extrinsic = (
-                "identity when the cloud frame is the odometry child frame, else lidar.* "
-                f"parameters (translation {list(cfg.lidar_translation)}, rpy "
-                f"{list(cfg.lidar_rpy)})"
-            )
-        path = cfg.map_path or "<none>"
-        loaded = f", {self.mapper.num_voxels} voxels loaded" if self.mapper.num_voxels else ""
-        return (
-            f"mfp_mapper ready: clouds from {topic('cloud_in')}, poses from "
-            f"{topic('odom')} (nav_msgs/Odometry); map frame "
-            f"{cfg.frame_id or '<the odometry frame>'}; extrinsic: {extrinsic}; resolution "
-            f"{self.mapper.resolution} m, max_range {cfg.max_range} m, decay_time "
-            f"{cfg.decay} s, deskew {cfg.deskew}; map_path {path}{loaded}, save_on_shutdown "
-            f"{cfg.save_on_shutdown}; outputs {topic('~/degree_of_occupancy')}, "
-            f"{topic('~/std')}, {topic('~/projected_map')} at {cfg.publish_rate} Hz, "
-            f"latched {cfg.latch}"
-        )
+        self.get_logger().info(startup_text(self.cfg, self.resolve_topic_name, self.mapper))
 
     def _create_interfaces(self) -> None:
         self.create_subscription(
@@ -160,6 +143,17 @@ class MfpMapperNode(GuardedNode):
             history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.BEST_EFFORT
         )
         self.create_subscription(Odometry, "odom", self._on_odom, odom_qos)
+        tf_qos = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE
+        )
+        tf_static_qos = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST,
+            depth=100,
+            reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL,
+        )
+        self.create_subscription(TFMessage, "/tf", self._on_tf, tf_qos)
+        self.create_subscription(TFMessage, "/tf_static", self._on_tf_static, tf_static_qos)
         status_qos = QoSProfile(
             depth=1,
             reliability=ReliabilityPolicy.RELIABLE,
@@ -186,33 +180,6 @@ class MfpMapperNode(GuardedNode):
 
     # --- set-up ----------------------------------------------------------------------------
 
-    def _initial_mapper(self) -> Mapper:
-        path = self.cfg.map_path
-        if path and os.path.exists(path):
-            try:
-                mapper = Mapper.load(path, **self.cfg.mapper_settings())
-            except (MapFileError, ValueError, OSError) as err:
-                self._load_failed = True
-                self.get_logger().error(
-                    f"cannot load map_path {path!r}: {err}; starting an empty map (and not "
-                    "saving over that file on shutdown)"
-                )
-            else:
-                if mapper.resolution != self.cfg.resolution:
-                    self.get_logger().warning(
-                        f"map {path!r} has resolution {mapper.resolution} m, parameter "
-                        f"resolution is {self.cfg.resolution} m: keeping the map's"
-                    )
-                if self.cfg.frame_id:
-                    mapper.frame_id = self.cfg.frame_id
-                self.get_logger().info(
-                    f"loaded {mapper.num_voxels} voxels from {path!r} (frame {mapper.frame_id})"
-                )
-                return mapper
-        return Mapper(
-            self.cfg.resolution, frame_id=self.cfg.frame_id or "map", **self.cfg.mapper_settings()
-        )
-
     @property
     def mapper(self) -> Mapper:
         return self.worker.mapper
@@ -235,29 +202,28 @@ class MfpMapperNode(GuardedNode):
         except (ValueError, TypeError) as err:
             return SetParametersResult(successful=False, reason=str(err))
         self.cfg = new  # one assignment: a reader never sees half of a change
-        self.worker.settings = live_settings(new)
+        self.worker.settings = LiveSettings.of(new)
         self.outputs.invalidate()  # republish with the new filter
         return SetParametersResult(successful=True)
 
-    def _extrinsic(self, cloud_frame: str) -> Extrinsic:
-        if cloud_frame and cloud_frame == self.worker.odom_child:
-            return self._identity
-        if self._tf_buffer is not None:  # pragma: no cover - needs tf2_ros
-            target = self.cfg.base_frame_id or self.worker.odom_child or ""
-            try:
-                tf = self._tf_buffer.lookup_transform(target, cloud_frame, rclpy.time.Time())
-            except Exception as err:
-                self.warn_throttled("tf", f"TF {target} <- {cloud_frame} unavailable: {err}")
-            else:
-                t, r = tf.transform.translation, tf.transform.rotation
-                return Extrinsic(np.array([t.x, t.y, t.z]), np.array([r.x, r.y, r.z, r.w]))
-        return self._param_extrinsic
+    def _now(self) -> float:
+        return float(self.get_clock().now().nanoseconds) * 1e-9
 
     # --- inputs ----------------------------------------------------------------------------
 
     @tracked
     def _on_cloud(self, msg: PointCloud2) -> None:
+        self.worker.observe_clock(self._now())
         self.worker.submit(msg)
+
+    @tracked
+    def _on_tf(self, msg: TFMessage) -> None:
+        self.worker.observe_clock(self._now())
+        self.worker.add_transforms(msg, static=False)
+
+    @tracked
+    def _on_tf_static(self, msg: TFMessage) -> None:
+        self.worker.add_transforms(msg, static=True)
 
     def _on_clouds_lost(self, info: Any) -> None:
         """The middleware reports clouds that never reached this node (transport losses)."""
@@ -270,6 +236,7 @@ class MfpMapperNode(GuardedNode):
 
     @tracked
     def _on_odom(self, msg: Odometry) -> None:
+        self.worker.observe_clock(self._now())
         self.worker.add_odometry(odometry_sample(msg))
 
     @tracked
@@ -281,25 +248,27 @@ class MfpMapperNode(GuardedNode):
     @tracked
     async def _on_query(self, msg: PointCloud2) -> None:
         frame = msg.header.frame_id
-        if frame and frame != self.map_frame:
-            self.warn_throttled(
-                "query_frame",
-                f"hit_probability query in frame {frame!r}, expected the map frame "
-                f"{self.map_frame!r}: answered with no point",
-                error=True,
-            )
-            self._answer_nothing(msg)
-            return
         try:
             points = read_xyz(msg)
         except CloudFormatError as err:
             self.warn_throttled("query_bad", f"malformed hit_probability query: {err}", error=True)
             self._answer_nothing(msg)
             return
+        try:
+            in_map = self.worker.to_map_frame(points, frame, stamp_seconds(msg.header.stamp))
+        except TransformUnavailable as err:
+            self.warn_throttled(
+                "query_frame",
+                f"hit_probability query in frame {frame!r}, not the map frame "
+                f"{self.map_frame!r}, and TF cannot transform it ({err}): answered with no point",
+                error=True,
+            )
+            self._answer_nothing(msg)
+            return
 
         def query() -> Any:
             with self.worker.map_lock:
-                return self.mapper.query(points)
+                return self.mapper.query(in_map)
 
         try:
             stats = await self.off_executor(query)
@@ -429,20 +398,6 @@ class MfpMapperNode(GuardedNode):
             else:
                 self.save_map()
         self.mapper.close()
-
-
-def usage() -> str:
-    """What ``--help`` prints: how to start the node and its parameters with defaults."""
-    lines = [
-        "usage: ros2 run mfp_mapper mfp_mapper [--ros-args -p NAME:=VALUE ... "
-        "--params-file config/mfp_mapper.yaml]",
-        "",
-        "Degree-of-occupancy mapping node (cloud_in: PointCloud2, odom: Odometry).",
-        "Parameters:",
-    ]
-    for spec in SPECS.values():
-        lines.append(f"  {spec.name} (default {spec.default!r}): {spec.description}")
-    return "\n".join(lines)
 
 
 def main(args: list[str] | None = None) -> int:

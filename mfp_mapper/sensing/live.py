@@ -17,14 +17,22 @@ import time
 from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.sensing import pipeline
+from mfp_mapper.sensing.placement import Odometry, Placement, StampGuard, resolve_placement
 from mfp_mapper.sensing.pointcloud import ParsedCloud
 from mfp_mapper.sensing.poses import Extrinsic, OdometrySample, PoseBuffer
+from mfp_mapper.sensing.tf_tree import TfTree, TransformUnavailable
+
+CLOCK_JUMP_BACK = 1.0
+"""Seconds the clock must go back to count as a jump (bag loop, simulation restart)."""
+
+if TYPE_CHECKING:
+    from mfp_mapper.settings import NodeConfig
 
 Log = Callable[[str, str, bool], None]
 """``log(key, text, error)``: a throttled warning (or error) keyed by ``key``."""
@@ -42,6 +50,23 @@ class LiveSettings:
     odom_wait: float
     no_return_range: float = 0.0
     """> 0: recover the firings with no return as rays this long (``sensing.no_return``)."""
+    base_frame_id: str = ""
+    extrinsic_override: Extrinsic | None = None
+
+    @classmethod
+    def of(cls, cfg: NodeConfig) -> LiveSettings:
+        """What the worker reads of the node's parameters."""
+        return cls(
+            frame_id=cfg.frame_id,
+            deskew=cfg.deskew,
+            point_cloud_min_z=cfg.point_cloud_min_z,
+            point_cloud_max_z=cfg.point_cloud_max_z,
+            cloud_queue_size=cfg.cloud_queue_size,
+            odom_wait=cfg.odom_wait,
+            base_frame_id=cfg.base_frame_id,
+            extrinsic_override=cfg.extrinsic_override(),
+            no_return_range=cfg.sensor_model_no_return_range,
+        )
 
 
 @dataclass
@@ -78,7 +103,7 @@ class LiveIntegrator:
         settings: LiveSettings,
         poses: PoseBuffer,
         *,
-        extrinsic_for: Callable[[str], Extrinsic],
+        tree: TfTree | None = None,
         log: Log,
         now: Callable[[], float],
         publish: Callable[[], None] | None = None,
@@ -92,7 +117,12 @@ class LiveIntegrator:
         self.odom_frame: str | None = None
         self.odom_child: str | None = None
         self.robot_position: np.ndarray | None = None
-        self._extrinsic_for = extrinsic_for
+        self.tree = tree if tree is not None else TfTree()
+        self.tf_map_frame: str | None = None
+        self.placement_source = "none yet"
+        self._odom_guard = StampGuard(self.tree.max_jump, self.tree.max_future)
+        self._last_clock: float | None = None
+        self._warned_time_field = False
         self._log = log
         self._now = now
         self._publish = publish
@@ -124,27 +154,37 @@ class LiveIntegrator:
     def add_odometry(self, sample: OdometrySample) -> bool:
         """Store one odometry pose; False (counted, logged) when it is rejected."""
         frame = sample.frame_id
-        wanted = self.settings.frame_id
-        if wanted and frame and frame != wanted:
-            self.counters.odom_rejected["frame"] += 1
-            self._log(
-                "odom_frame",
-                f"odometry is in frame {frame!r} but frame_id is {wanted!r}: ignored "
-                "(the map frame must be the odometry frame)",
-                True,
-            )
-            return False
         if self.odom_frame is not None and frame != self.odom_frame:
             self.counters.odom_rejected["frame"] += 1
             self._log(
                 "odom_frame_change",
-                f"odometry frame changed from {self.odom_frame!r} to {frame!r}: ignored",
+                f"odometry frame changed from {self.odom_frame!r} to {frame!r}: ignored "
+                "(restart the node, or set frame_id to the frame the map should be in)",
+                True,
+            )
+            return False
+        refused = self._odom_guard.check(sample.stamp, self._now())
+        self.counters.odom_in += 1
+        if refused is not None:
+            self.counters.odom_rejected[refused] += 1
+            self._log(
+                f"odom_{refused}",
+                f"odometry stamped {sample.stamp:.3f} ignored ({refused}: latest "
+                f"{self._odom_guard.latest}, clock {self._now():.3f}); a second message "
+                "confirms a real jump",
                 True,
             )
             return False
         with self.pose_lock:
+            if self._odom_guard.jumped:
+                self.poses.clear()
             ok = self.poses.add(sample.stamp, sample.position, sample.quaternion)
-        self.counters.odom_in += 1
+        if self._odom_guard.jumped:
+            self._log(
+                "odom_jump",
+                f"odometry stamps jumped to {sample.stamp:.3f}: pose buffer cleared",
+                False,
+            )
         if not ok:
             self.counters.odom_rejected["out_of_order_or_invalid"] += 1
             self._log(
@@ -153,24 +193,95 @@ class LiveIntegrator:
             return False
         if self.odom_frame is None:
             self.odom_frame, self.odom_child = frame, sample.child_frame_id
-            # no map lock here: this runs on the executor, which must never wait for a scan
-            # (a str attribute is replaced atomically; the voxel count only words a warning)
-            if self.mapper.num_voxels and self.mapper.frame_id != self.map_frame:
+            wanted = self.settings.frame_id
+            if wanted and wanted != frame:
                 self._log(
-                    "map_frame",
-                    f"loaded map is in frame {self.mapper.frame_id!r}, odometry in "
-                    f"{frame!r}: the map is used as if it were in {self.map_frame!r}",
+                    "odom_frame",
+                    f"odometry is in frame {frame!r}, the map in frame_id {wanted!r}: "
+                    f"{wanted} -> {frame} is taken from TF (if TF never has it, set "
+                    f"frame_id to {frame!r})",
                     False,
                 )
-            self.mapper.frame_id = self.map_frame
+            self._adopt_map_frame()
         self.robot_position = np.asarray(sample.position, dtype=np.float64)
         with self._cv:
             self._cv.notify_all()
         return True
 
+    def add_transforms(self, msg: Any, static: bool) -> int:
+        """Store a tf2_msgs/TFMessage (``/tf`` or ``/tf_static``); how many were kept."""
+        with self.pose_lock:
+            before = sum(self.tree.rejected.values())
+            kept = self.tree.add_message(msg, static, now=self._now())
+            refused = sum(self.tree.rejected.values()) - before
+        if refused:
+            self._log(
+                "tf_rejected",
+                f"{refused} transform(s) ignored (far off the stream or the clock, or invalid;"
+                f" so far: {dict(self.tree.rejected)})",
+                False,
+            )
+        with self._cv:
+            self._cv.notify_all()
+        return kept
+
+    def observe_clock(self, now: float) -> bool:
+        """Note the node clock; on a jump back (bag loop) clear poses, TF and the queue."""
+        last, self._last_clock = self._last_clock, now
+        if last is None or now >= last - CLOCK_JUMP_BACK:
+            return False
+        with self.pose_lock:
+            self.poses.clear()
+            self.tree.clear()
+            self._odom_guard.reset()
+        with self._cv:
+            dropped = len(self._queue)
+            self._queue.clear()
+            for _ in range(dropped):
+                self.counters.drop("clock_jump")
+        self._log(
+            "clock_jump",
+            f"clock jumped back {last - now:.3f} s (to {now:.3f}): pose and TF buffers "
+            f"cleared, {dropped} queued cloud(s) dropped; the map is kept",
+            False,
+        )
+        return True
+
+    def to_map_frame(self, points: np.ndarray, frame: str, stamp: float) -> np.ndarray:
+        """Points given in ``frame`` (empty: the map frame) in the map frame, through TF at
+        ``stamp``, or at the latest transform when the stamp is not covered; raises
+        TransformUnavailable."""
+        frame, target = frame.lstrip("/"), self.map_frame
+        if not frame or frame == target:
+            return points
+        with self.pose_lock:
+            tree = self.tree.snapshot()
+        try:
+            matrix = tree.lookup_matrix(target, frame, stamp)
+        except TransformUnavailable as err:
+            if err.reason == "unconnected":
+                raise
+            latest = tree.latest_common_stamp(target, frame)
+            matrix = tree.lookup_matrix(target, frame, stamp if latest is None else latest)
+        return points @ matrix[:3, :3].T + matrix[:3, 3]
+
+    def _adopt_map_frame(self) -> None:
+        # no map lock here: this runs on the executor, which must never wait for a scan
+        # (a str attribute is replaced atomically; the voxel count only words a warning)
+        if self.mapper.num_voxels and self.mapper.frame_id != self.map_frame:
+            self._log(
+                "map_frame",
+                f"loaded map is in frame {self.mapper.frame_id!r}, mapping in "
+                f"{self.map_frame!r}: the map is used as if it were in {self.map_frame!r}",
+                False,
+            )
+        self.mapper.frame_id = self.map_frame
+
     @property
     def map_frame(self) -> str:
-        return self.settings.frame_id or self.odom_frame or self.mapper.frame_id
+        return (
+            self.settings.frame_id or self.odom_frame or self.tf_map_frame or self.mapper.frame_id
+        )
 
     @property
     def queued(self) -> int:
@@ -255,27 +366,42 @@ class LiveIntegrator:
             item.deadline = pipeline.pose_deadline(item.cloud, item.stamp, cfg.deskew)
             with self._cv:
                 self.counters.points_in += item.cloud.points_in
-        with self.pose_lock:
-            latest = self.poses.latest_stamp
+            self._warn_time_field(item.cloud)
+        waited = time.monotonic() - item.received
+        try:
+            placement = self._placement(item.msg.header.frame_id)
+        except pipeline.ScanDropped as drop:
+            if waited <= cfg.odom_wait:
+                return False  # the transforms may still come
+            raise pipeline.ScanDropped(
+                drop.reason, drop.detail, 0, dict(item.cloud.dropped)
+            ) from None
+        latest = placement.poses.latest_stamp
         if latest is None or latest < item.deadline:
-            if time.monotonic() - item.received <= cfg.odom_wait:
+            if waited <= cfg.odom_wait:
                 return False
             parse_drops = dict(item.cloud.dropped)
             if latest is None:
                 raise pipeline.ScanDropped(
-                    "no_poses", f"no odometry within odom_wait {cfg.odom_wait} s", 0, parse_drops
+                    "no_poses",
+                    f"no pose ({placement.source}) within odom_wait {cfg.odom_wait} s",
+                    0,
+                    parse_drops,
                 )
             raise pipeline.ScanDropped(
                 "too_new",
-                f"stamp {item.deadline:.3f} not covered by odometry (latest {latest:.3f}) "
-                f"within odom_wait {cfg.odom_wait} s",
+                f"stamp {item.deadline:.3f} (the cloud's last point, time base "
+                f"{item.cloud.time_base or 'none'}) not covered by the poses "
+                f"({placement.source}; latest {latest:.3f}) within odom_wait {cfg.odom_wait} s",
                 0,
                 parse_drops,
             )
-        extrinsic = self._extrinsic_for(item.msg.header.frame_id)
-        with self.pose_lock:  # de-skew from a copy: odometry keeps arriving meanwhile
-            poses = self.poses.snapshot()
-        placed = pipeline.place_scan(item.cloud, item.stamp, poses, extrinsic, cfg)
+        if self.placement_source != placement.source:
+            self.placement_source = placement.source
+            self._log("placement", f"clouds placed by {placement.source}", False)
+        placed = pipeline.place_scan(
+            item.cloud, item.stamp, placement.poses, placement.extrinsic, cfg
+        )
         own_cpu = time.thread_time()
         with self.map_lock:
             summary = pipeline.integrate_scan(self.mapper, placed)
@@ -289,6 +415,34 @@ class LiveIntegrator:
             c.latency_max = max(c.latency_max, latency)
             c.integration_cpu += max(summary.cpu_seconds - own_cpu, 0.0)  # the core's threads
         return True
+
+    def _placement(self, cloud_frame: str) -> Placement:
+        """Pose source and extrinsic of a cloud, from copies taken under the pose lock (the
+        executor keeps adding odometry and TF meanwhile)."""
+        cfg = self.settings
+        with self.pose_lock:
+            tree = self.tree.snapshot()
+            odometry = None
+            if self.odom_frame is not None and len(self.poses):
+                odometry = Odometry(self.odom_frame, self.odom_child or "", self.poses.snapshot())
+        placement = resolve_placement(
+            cloud_frame, tree, odometry, cfg.frame_id, cfg.base_frame_id, cfg.extrinsic_override
+        )
+        if odometry is None and self.tf_map_frame is None:
+            self.tf_map_frame = placement.map_frame
+            self._adopt_map_frame()
+        return placement
+
+    def _warn_time_field(self, cloud: ParsedCloud) -> None:
+        if cloud.unknown_time_field and self.settings.deskew and not self._warned_time_field:
+            self._warned_time_field = True
+            self._log(
+                "time_field",
+                f"clouds have a field {cloud.unknown_time_field!r} that looks like per-point "
+                "time but is not one of t, time, time_stamp, timestamp: de-skew is off for "
+                "them",
+                False,
+            )
 
     def _drop_locked(self, reason: str, detail: str) -> None:
         self._log_drop(reason, detail, self.counters.drop(reason))

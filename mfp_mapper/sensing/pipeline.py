@@ -42,6 +42,7 @@ FloatArray = NDArray[np.float64]
 
 DROP_REASONS: dict[str, str] = {
     "queue_full": "integration fell behind; the oldest queued cloud was dropped (live only)",
+    "clock_jump": "queued when the clock jumped back (bag loop): buffers cleared (live only)",
     "malformed": "not a parsable cloud: no x/y/z, fields beyond point_step, truncated data, "
     "unknown datatypes",
     "empty": "no valid point (all NaN/Inf or zero range), or none in the height band",

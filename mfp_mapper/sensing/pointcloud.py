@@ -9,7 +9,7 @@ messages (``numpy.uint8`` array) and plain ``bytes``.
 from __future__ import annotations
 
 import sys
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol
 
@@ -43,15 +43,23 @@ _NATIVE_ORDER = "<" if sys.byteorder == "little" else ">"
 TIME_FIELDS = ("t", "time", "time_stamp", "timestamp")
 """Per-point time fields recognised, in order of preference.
 
-Float fields hold seconds, integer fields nanoseconds. Float values above
-``ABSOLUTE_SECONDS_THRESHOLD`` are absolute seconds (Hesai ``timestamp``), above
-``ABSOLUTE_NANOSECONDS_THRESHOLD`` absolute nanoseconds; both are made relative to the
-header stamp.
+Integer fields hold nanoseconds. Float fields hold seconds, or nanoseconds when their values
+cannot be seconds (a spread over one cloud above ``FLOAT_NANOSECONDS_SPREAD`` or a magnitude
+above ``FLOAT_NANOSECONDS_MAGNITUDE``: Livox ``timestamp``). The time base is then decided
+per cloud (see :func:`time_base`): ``"relative"`` to the header stamp (Velodyne, Ouster),
+``"absolute"`` on the header's clock (PTP/GPS-synced Livox, Hesai), or ``"lidar_clock"``: an
+unsynced lidar clock (Livox since power-on, Hesai without sync), where only the spacing of the
+points is usable and the first point is taken to be at the header stamp.
 """
 RING_FIELDS = ("ring", "channel")
 """Beam index fields recognised (Velodyne/Ouster ``ring``, Hesai/Nebula ``channel``)."""
-ABSOLUTE_SECONDS_THRESHOLD = 1e6
-ABSOLUTE_NANOSECONDS_THRESHOLD = 1e15
+RELATIVE_LIMIT = 1.0
+"""Offsets (s) all within +-this are relative to the header stamp."""
+ABSOLUTE_TOLERANCE = 2.0
+"""Absolute times within this (s) of the header stamp are on the header's clock."""
+FLOAT_NANOSECONDS_SPREAD = 100.0
+FLOAT_NANOSECONDS_MAGNITUDE = 1e11
+TIME_BASES = ("relative", "absolute", "lidar_clock")
 
 _NS = 1e-9
 
@@ -100,6 +108,10 @@ class ParsedCloud:
     """Beam index of each point (a ``RING_FIELDS`` field), when the cloud has one."""
     no_return: NDArray[np.bool_] | None = None
     """Points that end recovered rays with no return (None: every point is a return)."""
+    time_base: str | None = None
+    """One of ``TIME_BASES`` when the cloud has a recognised time field."""
+    unknown_time_field: str | None = None
+    """A field that looks like per-point time but is not in ``TIME_FIELDS`` (no de-skew)."""
 
     def __len__(self) -> int:
         return int(self.xyz.shape[0])
@@ -147,11 +159,12 @@ def parse_pointcloud2(msg: Any, header_stamp: float | None = None) -> ParsedClou
     """Parse a PointCloud2 message into finite, non-zero-range points.
 
     ``header_stamp`` (seconds) makes absolute per-point times relative; it defaults to
-    ``msg.header.stamp``. Raises CloudFormatError when the layout is inconsistent.
+    ``msg.header.stamp``. ``time_base`` says how the time field was read (see
+    ``TIME_FIELDS``). Raises CloudFormatError when the layout is inconsistent.
     """
     records = _checked_records(msg)
     xyz = _xyz(records)
-    time_offset = _time_offset(records, msg, header_stamp)
+    time_offset, base = _time_offset(records, msg, header_stamp)
     names = records.dtype.names or ()
     intensity = (
         records["intensity"].reshape(-1).astype(np.float32) if "intensity" in names else None
@@ -160,6 +173,8 @@ def parse_pointcloud2(msg: Any, header_stamp: float | None = None) -> ParsedClou
     ring = None if ring_name is None else records[ring_name].reshape(-1).astype(np.int64)
     cloud = _drop_invalid(xyz, time_offset, intensity, ring)
     cloud.grid_shape = (int(records.shape[0]), int(records.shape[1]))
+    cloud.time_base = base
+    cloud.unknown_time_field = unknown_time_field([str(f.name) for f in msg.fields])
     return cloud
 
 
@@ -252,23 +267,47 @@ def _as_uint8(data: Any) -> NDArray[np.uint8]:
 
 def _time_offset(
     records: NDArray[np.void], msg: Any, header_stamp: float | None
-) -> NDArray[np.float64] | None:
+) -> tuple[NDArray[np.float64] | None, str | None]:
     names = records.dtype.names or ()
     name = next((n for n in TIME_FIELDS if n in names), None)
     if name is None:
-        return None
-    column = records[name].reshape(-1)
-    values = column.astype(np.float64)
-    if column.dtype.kind in "iu":
-        return values * _NS
-    finite = values[np.isfinite(values)]
-    peak = float(np.abs(finite).max()) if finite.size else 0.0
-    if peak <= ABSOLUTE_SECONDS_THRESHOLD:
-        return values
+        return None, None
     stamp = stamp_seconds(msg.header.stamp) if header_stamp is None else header_stamp
-    if peak > ABSOLUTE_NANOSECONDS_THRESHOLD:
-        return (values - stamp * 1e9) * _NS
-    return values - stamp
+    return time_base(records[name].reshape(-1), stamp)
+
+
+def unknown_time_field(names: Sequence[str]) -> str | None:
+    """The first field that looks like per-point time when none of ``TIME_FIELDS`` is there."""
+    if any(n in TIME_FIELDS for n in names):
+        return None
+    looks_like_time = ("time", "stamp")
+    return next((n for n in names if any(w in n.lower() for w in looks_like_time)), None)
+
+
+def time_base(column: NDArray[Any], stamp: float) -> tuple[NDArray[np.float64], str]:
+    """Per-point offsets (s) from the header ``stamp`` and the time base they were read in."""
+    values = column.astype(np.float64)
+    finite = values[np.isfinite(values)]
+    if finite.size == 0:
+        return values, "relative"
+    lo, hi = float(finite.min()), float(finite.max())
+    if column.dtype.kind in "iu":
+        scale = _NS
+    else:
+        is_ns = (
+            hi - lo > FLOAT_NANOSECONDS_SPREAD
+            or max(abs(lo), abs(hi)) > FLOAT_NANOSECONDS_MAGNITUDE
+        )
+        scale = _NS if is_ns else 1.0
+    # Offsets from the first point (exact in the field's unit), then that point's offset.
+    from_first = (values - lo) * scale
+    first_s, last_s = lo * scale, hi * scale
+    if first_s >= -RELATIVE_LIMIT and last_s <= RELATIVE_LIMIT:
+        return values * scale, "relative"
+    if first_s - ABSOLUTE_TOLERANCE <= stamp <= last_s + ABSOLUTE_TOLERANCE:
+        # Subtract in the field's unit so that epoch nanoseconds keep their precision.
+        return from_first + (lo - stamp / scale) * scale, "absolute"
+    return from_first, "lidar_clock"
 
 
 def _drop_invalid(

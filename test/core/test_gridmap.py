@@ -9,7 +9,12 @@ from grid_reference import hit_probability_grid
 
 from mfp_mapper import Mapper
 from mfp_mapper.core import model
-from mfp_mapper.core.gridmap import UNKNOWN, band_mask
+from mfp_mapper.core.gridmap import (
+    DEFAULT_OCCUPIED_THRESHOLD,
+    UNKNOWN,
+    band_mask,
+    unobserved_hit_probability,
+)
 from mfp_mapper.offline.scan_pattern import scan_directions
 
 
@@ -114,3 +119,55 @@ def test_mapper_grid_equals_the_projection_of_exported_voxels(threads: int) -> N
 
     empty = Mapper(res).hit_probability_grid(z_min, z_max)
     assert empty.data.shape == (0, 0)
+
+
+def test_trinary_cells_for_nav2() -> None:
+    """100 at/above the occupied threshold, 0 observed below the free one, else -1."""
+    ijk = np.array([[2, 1, 1], [2, 1, 2], [0, 0, 1], [1, 0, 1], [1, 1, 1], [3, 3, 1]])
+    prob = np.array([0.3, 0.5, 0.004, 0.2, 0.09999, 0.9])
+    observed = np.array([True, True, True, True, True, False])
+    grid = hit_probability_grid(ijk, prob, observed, 0.5, 0.2, 1.5, trinary=(0.5, 0.1))
+    assert grid.data[1, 2] == 100  # the column's max 0.5 is at the threshold
+    assert grid.data[0, 0] == 0
+    assert grid.data[0, 1] == UNKNOWN  # 0.2: observed but between the thresholds
+    assert grid.data[1, 1] == 0  # 0.09999 < 0.1: exact comparison, not the rounded 10
+    assert set(np.unique(grid.data)) <= {-1, 0, 100}
+    with pytest.raises(ValueError):
+        hit_probability_grid(ijk, prob, observed, 0.5, 0.2, 1.5, trinary=(0.1, 0.5))
+
+
+def test_unobserved_hit_probability_bounds_every_unhit_voxel() -> None:
+    res = 0.1
+    prior = unobserved_hit_probability(res)
+    assert prior == pytest.approx(0.090909, abs=1e-6)  # MODEL.md test vector (s = n = 0)
+    s = np.array([1e-6, 0.05, 1.0, 100.0])
+    assert np.all(model.hit_probability(s, np.zeros_like(s), res) < prior)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_mapper_trinary_grid_marks_the_wall_and_matches_the_reference(threads: int) -> None:
+    res, z_min, z_max = 0.1, 0.3, 2.0
+    mapper = Mapper(res, max_range=30.0, threads=threads)
+    world = BoxWorld()
+    dirs = scan_directions(azimuths=720)
+    for k in range(3):
+        origin = np.array([0.02 * k, 0.0, 1.8])
+        rng = world.cast(origin, dirs)
+        keep = np.isfinite(rng) & (rng < 30.0)
+        mapper.integrate(origin + dirs[keep] * rng[keep, None], origin, float(k))
+    thresholds = (DEFAULT_OCCUPIED_THRESHOLD, unobserved_hit_probability(res))
+    grid = mapper.hit_probability_grid(z_min, z_max, trinary=thresholds)
+    band = ([-np.inf, -np.inf, z_min], [np.inf, np.inf, z_max])
+    vox = mapper.voxels(bounds=band)
+    reference = hit_probability_grid(
+        vox.ijk, vox.hit_probability, vox.observed, res, z_min, z_max, trinary=thresholds
+    )
+    assert np.array_equal(grid.data, reference.data) and grid.origin == reference.origin
+    # the face x = 5 of the box, y 3..5: every cell of it occupied (one of the two columns)
+    for y in np.arange(3.05, 5.0, 0.1):
+        assert max(grid.value_at(4.95, y), grid.value_at(5.05, y)) == 100, y
+    assert grid.value_at(2.0, 0.5) == 0  # crossed by rays, never a return
+    assert grid.value_at(6.5, 4.5) == UNKNOWN  # inside the box
+    assert set(np.unique(grid.data)) == {-1, 0, 100}
+    raw = mapper.hit_probability_grid(z_min, z_max)
+    assert np.all(grid.data[raw.data == UNKNOWN] == UNKNOWN)

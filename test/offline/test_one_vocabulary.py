@@ -17,7 +17,7 @@ from mfp_mapper.offline.simulate import VELODYNE_DTYPE, BagSink
 from mfp_mapper.sensing import pipeline
 from mfp_mapper.sensing.live import LiveIntegrator, LiveSettings
 from mfp_mapper.sensing.pointcloud import FieldSpec, point_fields
-from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer, odometry_sample, rpy_to_quaternion
+from mfp_mapper.sensing.poses import PoseBuffer, odometry_sample, rpy_to_quaternion
 
 RES = 0.25
 BAND = (-5.0, 10.0)
@@ -112,7 +112,7 @@ def _live(bag: Path, opts: ReplayOptions) -> pipeline.ScanCounts:
         Mapper(RES),
         settings,
         PoseBuffer(max_age=1e6, max_gap=opts.max_gap),  # keeps every pose, as the replay
-        extrinsic_for=lambda frame: Extrinsic(),  # the clouds are in the odometry child frame
+        # the clouds are in the odometry child frame: placed with the identity extrinsic
         log=lambda key, text, error: None,
         now=time.time,
     )

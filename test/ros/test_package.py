@@ -29,7 +29,7 @@ EXEC_DEPENDS = {
     "std_msgs",
     "std_srvs",
     "diagnostic_msgs",
-    "tf2_ros_py",
+    "tf2_msgs",
     "launch",
     "launch_ros",
     "ament_index_python",
@@ -48,13 +48,13 @@ MODULE_KEYS = {  # third-party module imported -> its rosdep key (None: delibera
     "yaml": "python3-yaml",
     "tqdm": "python3-tqdm",
     "scipy": "python3-scipy",
-    "tf2_ros": "tf2_ros_py",  # the Python module of tf2_ros comes with tf2_ros_py
     "rosbags": None,  # pip only: see the comment in package.xml
     **{
         name: name
         for name in (
             "rclpy", "rcl_interfaces", "builtin_interfaces", "sensor_msgs", "nav_msgs",
-            "std_msgs", "std_srvs", "diagnostic_msgs", "launch", "launch_ros", "ament_index_python",
+            "std_msgs", "std_srvs", "diagnostic_msgs", "tf2_msgs", "launch", "launch_ros",
+            "ament_index_python",
         )
     },
 }  # fmt: skip
@@ -178,7 +178,7 @@ def test_setup_data_files(setup_kwargs: dict[str, Any]) -> None:
     assert data["share/ament_index/resource_index/packages"] == [marker]
     assert (ROOT / marker).is_file() and (ROOT / marker).stat().st_size == 0
     assert data[f"share/{PKG}"] == ["package.xml"]
-    for sub, patterns in (("config", ("*.yaml", "*.xml")), ("launch", ("*.launch.py",))):
+    for sub, patterns in (("config", ("*.yaml", "*.xml", "*.rviz")), ("launch", ("*.launch.py",))):
         on_disk = sorted(
             f"{sub}/{p.name}" for pattern in patterns for p in (ROOT / sub).glob(pattern)
         )
@@ -278,3 +278,55 @@ def test_colcon_build_installs_the_package() -> None:
     if proc.returncode == 3:
         pytest.skip(proc.stderr.strip())
     assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+# --- RViz -------------------------------------------------------------------------------------
+
+
+def test_rviz_config_shows_the_node_outputs() -> None:
+    """config/mfp_mapper.rviz: DoO cloud coloured by its field, std cloud, projected map
+    and TF, on the topics the node publishes, transient-local like the node's map outputs."""
+    yaml = pytest.importorskip("yaml")
+    config = yaml.safe_load((ROOT / "config" / "mfp_mapper.rviz").read_text())
+    displays = {d["Class"]: d for d in config["Visualization Manager"]["Displays"]}
+    by_topic = {
+        d["Topic"]["Value"]: d for d in config["Visualization Manager"]["Displays"] if "Topic" in d
+    }
+    node_source = "".join(p.read_text() for p in (ROOT / "mfp_mapper" / "ros").glob("*.py"))
+    for topic, channel in (
+        ("/mfp_mapper/degree_of_occupancy", "degree_of_occupancy"),
+        ("/mfp_mapper/std", "std"),
+        ("/mfp_mapper/projected_map", None),
+    ):
+        display = by_topic[topic]
+        assert f'"~/{topic.rsplit("/", 1)[1]}"' in node_source, topic
+        assert display["Topic"]["Durability Policy"] == "Transient Local"
+        if channel is not None:
+            assert display["Class"] == "rviz_default_plugins/PointCloud2"
+            assert display["Color Transformer"] == "Intensity"
+            assert display["Channel Name"] == channel
+            assert f'"{channel}"' in node_source
+    assert "rviz_default_plugins/TF" in displays and "rviz_default_plugins/Map" in displays
+    assert by_topic["/mfp_mapper/projected_map"]["Class"] == "rviz_default_plugins/Map"
+
+
+def test_launch_file_has_an_rviz_argument() -> None:
+    tree = ast.parse((ROOT / "launch" / "mfp_mapper.launch.py").read_text())
+    calls = [n for n in ast.walk(tree) if isinstance(n, ast.Call)]
+    declared = {
+        c.args[0].value
+        for c in calls
+        if getattr(c.func, "id", None) == "DeclareLaunchArgument" and c.args
+        if isinstance(c.args[0], ast.Constant)
+    }
+    assert {"rviz", "rviz_config"} <= declared
+    rviz_nodes = [
+        c
+        for c in calls
+        if getattr(c.func, "id", None) == "Node"
+        and any(k.arg == "package" and getattr(k.value, "value", "") == "rviz2" for k in c.keywords)
+    ]
+    assert len(rviz_nodes) == 1
+    keywords = {k.arg: k.value for k in rviz_nodes[0].keywords}
+    assert "IfCondition" in ast.dump(keywords["condition"])
+    assert "mfp_mapper.rviz" in (ROOT / "launch" / "mfp_mapper.launch.py").read_text()

@@ -273,6 +273,46 @@ def test_absolute_timestamps_become_relative_to_the_header_stamp() -> None:
     np.testing.assert_allclose(offsets(parse_pointcloud2(nanoseconds)), rel, atol=1e-6)
 
 
+def test_time_base_of_each_driver_layout() -> None:
+    """Relative, absolute on the header clock, or an unsynced lidar clock, per driver."""
+    rel = np.array([0.0, 0.031, 0.0625, 0.1])
+    power_on = 5123.25  # seconds since the lidar powered on (no PTP/GPS sync)
+    cases = {
+        # name: (field, values, expected offsets, expected base)
+        "velodyne": ("time", (rel - 0.1).astype(np.float32), rel - 0.1, "relative"),
+        "ouster": ("t", (rel * 1e9).astype(np.uint32), rel, "relative"),
+        "livox_ptp": ("timestamp", (STAMP + rel) * 1e9, rel, "absolute"),
+        "livox_power_on": ("timestamp", (power_on + rel) * 1e9, rel, "lidar_clock"),
+        "hesai_synced": ("timestamp", STAMP + rel, rel, "absolute"),
+        "hesai_lidar_clock": ("timestamp", power_on + rel, rel, "lidar_clock"),
+        "hesai_small_clock": ("timestamp", 3.5 + rel, rel, "lidar_clock"),
+    }
+    for label, (name, values, expected, base) in cases.items():
+        cloud = parse_pointcloud2(time_cloud(name, values))
+        assert cloud.time_base == base, label
+        np.testing.assert_allclose(offsets(cloud), expected, atol=1e-6, err_msg=label)
+        # Never "far in the future": every offset is within one scan of the stamp.
+        assert np.abs(offsets(cloud)).max() <= 0.1 + 1e-6, label
+
+
+def test_livox_nanoseconds_since_power_on_are_not_read_as_seconds() -> None:
+    """A young lidar's nanosecond clock (below any epoch) is still nanoseconds."""
+    values = np.array([2.0e9, 2.05e9, 2.1e9])  # 2 s after power-on, float64 ns
+    cloud = parse_pointcloud2(time_cloud("timestamp", values))
+    assert cloud.time_base == "lidar_clock"
+    np.testing.assert_allclose(offsets(cloud), [0.0, 0.05, 0.1], atol=1e-9)
+
+
+def test_unknown_time_field_is_reported_and_known_one_is_not() -> None:
+    unknown = parse_pointcloud2(time_cloud("offset_time", np.array([0, 1000], dtype=np.uint32)))
+    assert unknown.time_offset is None and unknown.time_base is None
+    assert unknown.unknown_time_field == "offset_time"
+    known = parse_pointcloud2(time_cloud("t", np.array([0, 1000], dtype=np.uint32)))
+    assert known.unknown_time_field is None and known.time_base == "relative"
+    plain = parse_pointcloud2(time_cloud("intensity", np.array([1.0, 2.0])))
+    assert plain.unknown_time_field is None and plain.time_offset is None
+
+
 def test_first_time_field_in_preference_order_wins() -> None:
     records = np.zeros(
         2, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("time", "<f4"), ("t", "<u4")]

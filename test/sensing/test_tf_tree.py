@@ -1,0 +1,193 @@
+"""The project's TF buffer against scipy's rotations: chains, interpolation, stream checks."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation, Slerp
+
+from mfp_mapper.sensing.deskew import cloud_to_map
+from mfp_mapper.sensing.pointcloud import ParsedCloud
+from mfp_mapper.sensing.poses import Extrinsic
+from mfp_mapper.sensing.tf_tree import TfChain, TfTree, TransformUnavailable
+
+
+def matrix(t: np.ndarray, q: np.ndarray) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_quat(q).as_matrix()
+    out[:3, 3] = t
+    return out
+
+
+RNG = np.random.default_rng(7)
+EDGES = {  # child: (parent, translation, quaternion)
+    "odom": ("map", np.array([1.0, -2.0, 0.1]), Rotation.from_euler("z", 0.3).as_quat()),
+    "base_link": ("odom", np.array([4.0, 0.5, 0.0]), Rotation.from_euler("z", -1.2).as_quat()),
+    "lidar": (
+        "base_link",
+        np.array([0.2, 0.0, 0.4]),
+        Rotation.from_euler("xyz", [0.1, -0.2, 0.5]).as_quat(),
+    ),
+    "camera": ("base_link", np.array([0.3, 0.1, 0.2]), Rotation.random(random_state=3).as_quat()),
+}
+
+
+def robot_tree(stamps: tuple[float, ...] = (10.0, 11.0)) -> TfTree:
+    tree = TfTree()
+    for child in ("lidar", "camera"):
+        parent, t, q = EDGES[child]
+        tree.add(parent, child, 0.0, t, q, static=True)
+    for stamp in stamps:
+        for child in ("odom", "base_link"):
+            parent, t, q = EDGES[child]
+            tree.add(parent, child, stamp, t, q)
+    return tree
+
+
+def test_chain_lookup_matches_matrix_products() -> None:
+    tree = robot_tree()
+    expected = {child: matrix(t, q) for child, (_, t, q) in EDGES.items()}
+    map_lidar = expected["odom"] @ expected["base_link"] @ expected["lidar"]
+    np.testing.assert_allclose(tree.lookup_matrix("map", "lidar", 10.5), map_lidar, atol=1e-12)
+    # siblings: the common ancestor is base_link
+    lidar_camera = np.linalg.inv(expected["lidar"]) @ expected["camera"]
+    np.testing.assert_allclose(
+        tree.lookup_matrix("lidar", "camera", 10.5), lidar_camera, atol=1e-12
+    )
+    # downwards: the inverse
+    np.testing.assert_allclose(
+        tree.lookup_matrix("lidar", "map", 10.5), np.linalg.inv(map_lidar), atol=1e-12
+    )
+    np.testing.assert_allclose(tree.lookup_matrix("/map", "map", 10.5), np.eye(4))
+
+
+def test_interpolation_is_linear_in_translation_and_slerp_in_rotation() -> None:
+    tree = TfTree()
+    r0, r1 = (
+        Rotation.from_euler("xyz", [0.1, 0.2, 0.3]),
+        Rotation.from_euler("xyz", [-0.4, 0.5, 2.0]),
+    )
+    tree.add("odom", "base_link", 1.0, [0.0, 0.0, 0.0], r0.as_quat())
+    # the same rotation on the other hemisphere: must still take the short way
+    tree.add("odom", "base_link", 3.0, [2.0, -4.0, 6.0], -r1.as_quat())
+    stamps = np.array([1.0, 1.5, 2.0, 2.9, 3.0])
+    t, q = tree.lookup("odom", "base_link", stamps)
+    alpha = (stamps - 1.0) / 2.0
+    np.testing.assert_allclose(t, alpha[:, None] * np.array([2.0, -4.0, 6.0]), atol=1e-12)
+    reference = Slerp([1.0, 3.0], Rotation.concatenate([r0, r1]))(stamps)
+    np.testing.assert_allclose(Rotation.from_quat(q).as_matrix(), reference.as_matrix(), atol=1e-12)
+
+
+def test_lookup_errors_name_the_frames_and_the_edge() -> None:
+    tree = robot_tree()
+    with pytest.raises(TransformUnavailable) as err:
+        tree.lookup("map", "lidar", [11.5])
+    assert err.value.reason == "too_new" and "odom -> base_link" in str(err.value)
+    with pytest.raises(TransformUnavailable) as err:
+        tree.lookup("map", "lidar", [9.0])
+    assert err.value.reason == "too_old"
+    with pytest.raises(TransformUnavailable) as err:
+        tree.lookup("map", "velodyne", [10.5])
+    assert err.value.reason == "unconnected" and "'velodyne'" in str(err.value)
+    gappy = TfTree(max_gap=0.5)
+    gappy.add("odom", "base_link", 0.0, [0, 0, 0], [0, 0, 0, 1])
+    gappy.add("odom", "base_link", 2.0, [0, 0, 0], [0, 0, 0, 1])
+    with pytest.raises(TransformUnavailable) as err:
+        gappy.lookup("odom", "base_link", [1.0])
+    assert err.value.reason == "gap"
+    np.testing.assert_allclose(gappy.lookup("odom", "base_link", [2.0])[0], [[0, 0, 0]])
+
+
+def test_buffer_length_keeps_one_sample_before_the_cut() -> None:
+    tree = TfTree(buffer_length=2.0)
+    for k in range(11):
+        tree.add("odom", "base_link", float(k), [k, 0, 0], [0, 0, 0, 1])
+    np.testing.assert_allclose(tree.lookup("odom", "base_link", [8.0, 8.5])[0][:, 0], [8.0, 8.5])
+    with pytest.raises(TransformUnavailable) as err:
+        tree.lookup("odom", "base_link", [6.5])  # 7 is the one kept before the cut at 8
+    assert err.value.reason == "too_old"
+    # out of order inside the buffer is inserted in place
+    tree.add("odom", "base_link", 9.5, [100, 0, 0], [0, 0, 0, 1])
+    assert tree.lookup("odom", "base_link", [9.5])[0][0, 0] == 100.0
+    # older than the buffer: dropped and counted
+    assert not tree.add("odom", "base_link", 1.0, [0, 0, 0], [0, 0, 0, 1])
+    assert tree.rejected["old"] == 1
+
+
+def test_one_poisoned_future_stamp_cannot_stop_the_stream() -> None:
+    tree = TfTree(max_jump=5.0)
+    for k in range(5):
+        assert tree.add("odom", "base_link", float(k), [k, 0, 0], [0, 0, 0, 1])
+    assert not tree.add("odom", "base_link", 3600.0, [0, 0, 0], [0, 0, 0, 1])
+    assert tree.rejected["future_outlier"] == 1
+    for k in range(5, 8):
+        assert tree.add("odom", "base_link", float(k), [k, 0, 0], [0, 0, 0, 1])
+    assert tree.latest_common_stamp("odom", "base_link") == 7.0
+    # a real jump forward is confirmed by the next sample
+    assert not tree.add("odom", "base_link", 100.0, [0, 0, 0], [0, 0, 0, 1])
+    assert tree.add("odom", "base_link", 100.1, [0, 0, 0], [0, 0, 0, 1])
+    assert tree.latest_common_stamp("odom", "base_link") == pytest.approx(100.1)
+
+
+def test_reference_clock_rejects_far_future_and_backward_jump_clears() -> None:
+    tree = robot_tree()
+    assert not tree.add("map", "odom", 1000.0, [0, 0, 0], [0, 0, 0, 1], now=12.0)
+    assert tree.rejected["ahead_of_clock"] == 1
+    assert tree.observe_clock(12.0) is False
+    assert tree.observe_clock(13.0) is False
+    assert tree.observe_clock(2.0) is True  # bag loop: dynamic edges cleared
+    with pytest.raises(TransformUnavailable):
+        tree.lookup("map", "lidar", [10.5])
+    assert tree.static_chain("base_link", "lidar") is not None  # static edges kept
+    tree.add("map", "odom", 2.0, [0, 0, 0], [0, 0, 0, 1])
+    tree.add("odom", "base_link", 2.0, [0, 0, 0], [0, 0, 0, 1])
+    assert tree.lookup("map", "lidar", [2.0])[0].shape == (1, 3)
+
+
+def test_static_chain_and_invalid_input() -> None:
+    tree = robot_tree()
+    t, q = tree.static_chain("base_link", "lidar") or (None, None)
+    np.testing.assert_allclose(matrix(t, q), matrix(*EDGES["lidar"][1:]), atol=1e-12)
+    assert tree.static_chain("map", "lidar") is None  # crosses dynamic edges
+    assert not tree.add("a", "b", 0.0, [math.nan, 0, 0], [0, 0, 0, 1])
+    assert not tree.add("a", "b", 0.0, [0, 0, 0], [0, 0, 0, 0])
+    assert not tree.add("a", "a", 0.0, [0, 0, 0], [0, 0, 0, 1])
+    assert tree.rejected["invalid"] == 3
+
+
+def test_tf_message_duck_typed_and_chain_as_pose_source() -> None:
+    def transform(parent: str, child: str, stamp: float, x: float) -> SimpleNamespace:
+        return SimpleNamespace(
+            header=SimpleNamespace(
+                frame_id=parent, stamp=SimpleNamespace(sec=int(stamp), nanosec=int(stamp % 1 * 1e9))
+            ),
+            child_frame_id=child,
+            transform=SimpleNamespace(
+                translation=SimpleNamespace(x=x, y=0.0, z=0.0),
+                rotation=SimpleNamespace(x=0.0, y=0.0, z=0.0, w=1.0),
+            ),
+        )
+
+    tree = TfTree()
+    assert (
+        tree.add_message(
+            SimpleNamespace(transforms=[transform("base_link", "/lidar", 0, 0.5)]), True
+        )
+        == 1
+    )
+    for stamp, x in ((1.0, 0.0), (2.0, 1.0)):
+        tree.add_message(
+            SimpleNamespace(transforms=[transform("odom", "base_link", stamp, x)]), False
+        )
+    cloud = ParsedCloud(
+        xyz=np.array([[1.0, 0.0, 0.0], [2.0, 0.0, 0.0]]),
+        time_offset=np.array([0.0, 0.5]),
+        intensity=None,
+        points_in=2,
+    )
+    points, origins = cloud_to_map(cloud, 1.0, TfChain(tree, "odom", "lidar"), Extrinsic())
+    np.testing.assert_allclose(points, [[1.5, 0, 0], [3.0, 0, 0]], atol=1e-12)
+    np.testing.assert_allclose(origins, [[0.5, 0, 0], [1.0, 0, 0]], atol=1e-12)
