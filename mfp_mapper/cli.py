@@ -119,6 +119,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tf", action="store_true", help="also write odom -> base_link on /tf")
     p.add_argument("--no-tf-static", action="store_true", help="no /tf_static")
     p.add_argument(
+        "--organized",
+        action="store_true",
+        help="organized clouds (rows = beams) with NaN for no-returns, as velodyne's "
+        "organize_cloud (replay --no-return-range recovers them)",
+    )
+    p.add_argument(
         "--cloud-in-base-frame",
         action="store_true",
         help="publish the points in base_link (no extrinsic needed)",
@@ -281,6 +287,8 @@ def _sim_config(args: argparse.Namespace) -> Any:
         changes["write_tf_static"] = False
     if args.cloud_in_base_frame:
         changes["cloud_in_base_frame"] = True
+    if args.organized:
+        changes["organized"] = True
     return replace(cfg, **changes)
 
 

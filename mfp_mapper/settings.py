@@ -156,6 +156,12 @@ SETTINGS: tuple[Setting, ...] = (
           "-1).", -1.0, 1.0e5, flag="--max-range", field="max_range", unlimited="inf"),
     _both("sensor_model.min_range", 0.0, "Returns closer than this (m) are dropped with "
           "their rays (robot body, dust).", 0.0, 1.0e3, flag="--min-range", field="min_range"),
+    _both("sensor_model.no_return_range", 0.0, "Firings that returned nothing (NaN/zero "
+          "cells of organized clouds, gaps of ring/channel clouds) become rays that clear "
+          "space up to this range (m) and count no return. 0: off, the default: a missing "
+          "return may also be a dark or glossy obstacle, or one closer than the minimum "
+          "range (README, 'Rays with no return').", 0.0, 1.0e5, flag="--no-return-range",
+          field="no_return_range"),
     _both("point_cloud_min_z", -NO_LIMIT_Z, "Returns whose map-frame z (m) is below this are "
           "dropped with their rays.", -NO_LIMIT_Z, NO_LIMIT_Z, flag="--min-z"),
     _both("point_cloud_max_z", NO_LIMIT_Z, "Returns whose map-frame z (m) is above this are "
@@ -333,6 +339,7 @@ class NodeConfig:
     keep_radius: float
     sensor_model_max_range: float
     sensor_model_min_range: float
+    sensor_model_no_return_range: float
     point_cloud_min_z: float
     point_cloud_max_z: float
     lidar_translation: tuple[float, float, float]

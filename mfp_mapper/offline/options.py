@@ -31,6 +31,8 @@ class ReplayOptions:
     resolution: float = _default("resolution")
     max_range: float = _default("sensor_model.max_range")
     min_range: float = _default("sensor_model.min_range")
+    no_return_range: float = _default("sensor_model.no_return_range")
+    """> 0: recover the firings with no return as rays this long (``sensing.no_return``)."""
     decay_time: float = _default("decay_time")
     threads: int = _default("threads")
     max_voxels: int | None = _default("max_voxels")
@@ -135,7 +137,7 @@ def _flag_type(setting: Setting) -> Any:
 
 def _flag_help(setting: Setting) -> str:
     text = setting.description.rstrip(".")
-    if setting.flag is not None and setting.flag.startswith("--no-"):
+    if setting.type is bool and setting.flag is not None and setting.flag.startswith("--no-"):
         text = f"turn off: {text[0].lower()}{text[1:]}"
     if setting.is_parameter:
         default = "" if setting.type is bool else f", default {setting.default}"

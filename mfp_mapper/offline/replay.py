@@ -83,6 +83,10 @@ class ReplaySummary:
     points_in: int = 0
     rays_used: int = 0
     rays_truncated: int = 0
+    rays_no_return: int = 0
+    """Recovered firings with no return that were integrated (``--no-return-range``)."""
+    no_return_note: str = ""
+    """Why firings were not (all) recovered, the first time it happened."""
     points_dropped: dict[str, int] = field(default_factory=dict)
     """Points and rays not used, by reason (as ``~/status``)."""
     voxels: int = 0
@@ -114,8 +118,10 @@ class ReplaySummary:
             f"scans        {self.scans_used} used of {self.scans_total}"
             + (f"; dropped {n_dropped}: {_counts(self.clouds_dropped)}" if n_dropped else ""),
             f"rays         {self.rays_used:,} used of {self.points_in:,} points"
-            + (f"; {self.rays_truncated:,} cut at max range" if self.rays_truncated else ""),
+            + (f"; {self.rays_truncated:,} cut at max range" if self.rays_truncated else "")
+            + (f"; {self.rays_no_return:,} with no return" if self.rays_no_return else ""),
             f"points lost  {_counts(dropped) if dropped else 'none'}",
+            *([f"no-return    {self.no_return_note}"] if self.no_return_note else []),
             f"voxels       {self.voxels:,} ({self.memory_bytes / 2**20:.1f} MiB)",
             f"time         {self.seconds:.2f} s, {self.rays_per_second:,.0f} rays/s; "
             f"{100 * self.share_outside_core:.0f}% outside the core "
@@ -231,7 +237,10 @@ def _replay(
             try:
                 stamp = pipeline.scan_stamp(msg)
                 cloud_span = [min(cloud_span[0], stamp), max(cloud_span[1], stamp)]
-                cloud = pipeline.parse_scan(msg)
+                cloud, note = pipeline.add_no_return_rays(
+                    pipeline.parse_scan(msg), opts.no_return_range
+                )
+                counts.no_return_note = counts.no_return_note or note
                 counts.points_in += cloud.points_in
                 frame = frame_name(msg.header.frame_id)
                 if frame not in extrinsics:
@@ -318,6 +327,8 @@ def _fill(summary: ReplaySummary, counts: pipeline.ScanCounts, mapper: Mapper) -
     summary.points_in = counts.points_in
     summary.rays_used = counts.rays_used
     summary.rays_truncated = counts.rays_truncated
+    summary.rays_no_return = counts.rays_no_return
+    summary.no_return_note = counts.no_return_note
     summary.points_dropped = dict(counts.points_dropped)
     summary.voxels = mapper.num_voxels
     summary.memory_bytes = mapper.memory_bytes
