@@ -12,10 +12,10 @@ from mfp_mapper.offline.scan_files import (
     cloud_message,
     cloud_message_from_columns,
     list_vtk_scans,
-    read_odometry_csv,
     read_pcd,
     read_vtk_points,
 )
+from mfp_mapper.offline.pose_files import read_odometry_csv
 from mfp_mapper.sensing import pointcloud as pc
 from mfp_mapper.sensing.deskew import cloud_to_map
 from mfp_mapper.sensing.pointcloud import parse_pointcloud2
