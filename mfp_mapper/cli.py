@@ -189,8 +189,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--z-max", type=float, help="top of the top-down band (default: z-min+2.25)")
     p.add_argument("--slice-y", type=float, help="y of the vertical slice (default: median)")
     p.add_argument(
-        "--value", choices=("max", "mean"), default="max",
-        help="top-down DoO per column: the band's largest (walls) or its mean",
+        "--value", choices=("most-likely", "mean"), default="most-likely",
+        help="top-down DoO: the most likely (default) or the posterior mean (shows how "
+        "little a voxel was seen)",
     )  # fmt: skip
     p.add_argument(
         "--min-evidence", type=float, default=0.0,

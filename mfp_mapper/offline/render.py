@@ -2,8 +2,8 @@
 
 matplotlib with the Agg backend (no display needed). ``render_map`` writes
 
-- ``doo_topdown.png``: per column the highest (or mean) most likely degree of occupancy
-  (DoO) in a height band; by default the band is found in the data: from 0.25 m above the
+- ``doo_topdown.png``: per column the highest most likely (or posterior mean) degree of
+  occupancy (DoO) in a height band; by default the band is found in the data: from 0.25 m above the
   floor, 2.25 m high, ending 0.25 m under a ceiling (floor and ceiling: the lowest and
   highest dense layers of the occupied-voxel height histogram); the view is cropped to the
   0.5-99.5 percentiles of the observed voxels, so a few outliers do not shrink the map;
@@ -48,6 +48,11 @@ class RenderResult:
     files: list[Path] = field(default_factory=list)
     band: tuple[float, float] = (math.nan, math.nan)
     slice_y: float = math.nan
+    extent: tuple[float, float, float, float] = (math.nan,) * 4
+    """x min, x max, y min, y max of the top-down pictures (m, map frame)."""
+    top_down: NDArray[np.float64] | None = None
+    """The top-down DoO grid drawn ((x, y) cells, NaN unobserved)."""
+    top_down_std: NDArray[np.float64] | None = None
 
 
 BAND_HEIGHT = 2.25
@@ -159,16 +164,6 @@ def _values(
     return np.where(filled, value[index], np.nan)
 
 
-def _mean_per_cell(
-    cells: NDArray[np.int64], shape: tuple[int, int], value: NDArray[np.float64]
-) -> NDArray[np.float64]:
-    flat = cells[:, 0] * shape[1] + cells[:, 1]
-    total = np.bincount(flat, weights=value, minlength=shape[0] * shape[1])
-    count = np.bincount(flat, minlength=shape[0] * shape[1])
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(count > 0, total / np.maximum(count, 1), np.nan).reshape(shape)
-
-
 def _max_per_cell(
     cells: NDArray[np.int64],
     shape: tuple[int, int],
@@ -228,19 +223,20 @@ def render_map(
     z_max: float | None = None,
     slice_y: float | None = None,
     stamp: float | None = None,
-    value: str = "max",
+    value: str = "most-likely",
     min_evidence: float = 0.0,
 ) -> RenderResult:
     """Write the pictures of ``mapper`` into ``out_dir``; return their paths.
 
-    ``value``: ``"max"`` draws per column the largest most likely DoO of the band (walls
-    stand out), ``"mean"`` the mean over the band's observed voxels. ``min_evidence``
-    (metres of rays, s) leaves out voxels seen less than that: drawn as unobserved.
-    The std picture shows, per column, the std of the voxel the ``max`` picture draws
-    (largest DoO, ties to the most evidence, then the highest voxel).
+    ``value``: per column, the largest ``"most-likely"`` DoO of the band (walls stand out;
+    a voxel crossed once is 0, fully free) or the largest posterior ``"mean"`` DoO (a
+    voxel crossed once stays near the prior's mean: little evidence shows). The voxel
+    drawn is the one with that largest value, ties to the most evidence (s), then the
+    highest; the std picture shows its posterior std. ``min_evidence`` (metres of rays,
+    s) leaves out voxels seen less than that: drawn as unobserved.
     """
-    if value not in ("max", "mean"):
-        raise ValueError(f"value must be 'max' or 'mean', got {value!r}")
+    if value not in ("most-likely", "mean"):
+        raise ValueError(f"value must be 'most-likely' or 'mean', got {value!r}")
     plt = _pyplot()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -266,13 +262,14 @@ def render_map(
     ijk2 = ijk2_all[inside]
     factor = _coarsening(ijk2)
     cells, shape, lo = _grid(ijk2, factor)
+    shown = stats.mean_doo if value == "mean" else doo
     top, top_std = _max_per_cell(
-        cells, shape, doo[band_index], std[band_index], stats.s[band_index], zc[band_index]
+        cells, shape, shown[band_index], std[band_index], stats.s[band_index], zc[band_index]
     )
-    if value == "mean":
-        top = _mean_per_cell(cells, shape, stats.mean_doo[band_index])
     cell = r * factor
     extent = [lo[0] * cell, (lo[0] + shape[0]) * cell, lo[1] * cell, (lo[1] + shape[1]) * cell]
+    result.extent = (extent[0], extent[1], extent[2], extent[3])
+    result.top_down, result.top_down_std = top, top_std
     band_txt = _band_text(result.band)
     frame = mapper.frame_id or "map"
     result.files.append(
@@ -282,8 +279,8 @@ def render_map(
             extent,
             (
                 f"Most likely degree of occupancy, highest in {band_txt}"
-                if value == "max"
-                else f"Mean degree of occupancy over {band_txt}"
+                if value == "most-likely"
+                else f"Posterior mean degree of occupancy, highest in {band_txt}"
             ),
             "degree of occupancy 1 - exp(-n/s)",
             out / "doo_topdown.png",
