@@ -74,7 +74,7 @@ def test_kitti_folder_with_kitti_poses_equals_the_bag_without_deskew(recording) 
     stamps = [stamp for stamp, _ in recording["clouds"]]
     positions, quaternions = buffer.interpolate_quaternions(stamps)
     lines = []
-    for k, (stamp, records) in enumerate(recording["clouds"]):
+    for k, (_, records) in enumerate(recording["clouds"]):
         xyzi = np.stack([records[n] for n in ("x", "y", "z", "intensity")], axis=1)
         xyzi.astype("<f4").tofile(folder / f"{k:06d}.bin")
         matrix = np.hstack([quaternion_to_matrix(quaternions[k]), positions[k][:, None]])

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mfp_mapper.offline.pose_files import read_odometry_csv
 from mfp_mapper.offline.scan_files import (
     DatasetFormatError,
     cloud_message,
@@ -15,7 +16,6 @@ from mfp_mapper.offline.scan_files import (
     read_pcd,
     read_vtk_points,
 )
-from mfp_mapper.offline.pose_files import read_odometry_csv
 from mfp_mapper.sensing import pointcloud as pc
 from mfp_mapper.sensing.deskew import cloud_to_map
 from mfp_mapper.sensing.pointcloud import parse_pointcloud2
