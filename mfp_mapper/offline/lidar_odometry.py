@@ -6,6 +6,8 @@ module imports it, and a clear error names the package when it is absent. Its ma
 the lidar frame of the first scan (``MAP_FRAME``). When clouds carry per-point time and
 de-skew is on, KISS-ICP de-skews each scan to the time of its LAST point, so its pose
 belongs to that time (``stamp + max time offset``); without per-point time, to the stamp.
+The first scan has no motion to de-skew with (KISS-ICP takes it as static): its pose also
+holds at its first point's time, so that the replay can place it.
 The poses are then interpolated by the scan pipeline like odometry.
 """
 
@@ -81,7 +83,14 @@ def estimate_poses(
         xyz = np.ascontiguousarray(cloud.xyz, dtype=np.float64)
         offsets = times if deskew and times is not None else np.zeros(len(xyz))
         icp.register_frame(xyz, np.ascontiguousarray(offsets, dtype=np.float64))
-        stamps.append(stamp + (float(offsets.max()) if deskew else 0.0))
+        if deskew and not stamps:  # KISS-ICP took the first scan as static: same pose at its start
+            stamps.append(stamp + float(offsets.min()))
+            poses.append(icp.last_pose.copy())
+        end = stamp + (float(offsets.max()) if deskew else 0.0)
+        if stamps and end <= stamps[-1]:
+            skipped += 1  # a cloud not after the previous one: no pose from it
+            continue
+        stamps.append(end)
         poses.append(icp.last_pose.copy())
     if not poses:
         raise ReplayError(f"KISS-ICP: none of the {skipped} clouds could be read")
