@@ -1,6 +1,6 @@
 """``mfp-mapper``: the offline command line (bags, the built-in example, exports, pictures).
 
-A thin argparse layer: the work is in bag_replay, simulate, export, render and evaluate.
+A thin argparse layer: the work is in offline/ (replay, simulate, export, render, evaluate).
 Exit status: 0 success, 1 the job failed (bad bag, bad map file...), 2 bad usage,
 130 interrupted.
 """
@@ -11,7 +11,6 @@ import argparse
 import json
 import math
 import sys
-import time
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -67,7 +66,8 @@ def _nonneg_int(text: str) -> int:
 def build_parser() -> argparse.ArgumentParser:
     from mfp_mapper import __version__
     from mfp_mapper.offline.input_args import add_input_arguments
-    from mfp_mapper.offline.simulate import BAG_FORMATS, PRESETS
+    from mfp_mapper.offline.names import BAG_FORMATS, SCENES
+    from mfp_mapper.offline.options import add_replay_flags
 
     parser = argparse.ArgumentParser(
         prog="mfp-mapper",
@@ -92,24 +92,9 @@ def build_parser() -> argparse.ArgumentParser:
         "bag", help="a ROS 1 .bag file, a ROS 2 bag directory, or a folder of scan files"
     )
     p.add_argument("-o", "--output", required=True, help="the map file to write (.npz)")
-    p.add_argument("--cloud-topic", help="sensor_msgs/PointCloud2 topic (default: detected)")
-    p.add_argument("--odom-topic", help="nav_msgs/Odometry topic (default: detected)")
-    p.add_argument("--tf", action="store_true", help="poses from /tf even if there is odometry")
-    p.add_argument("--fixed-frame", help="with /tf poses: the map frame (default: odom or root)")
-    p.add_argument("--config", help="the node's parameter YAML (resolution, sensor_model.*...)")
-    p.add_argument("--resolution", type=_positive, help="voxel edge in metres (default 0.1)")
-    p.add_argument("--max-range", type=float, help="cut rays at this range, m (<= 0: none)")
-    p.add_argument("--min-range", type=float, help="drop returns closer than this, m")
-    p.add_argument("--decay-time", type=float, help="decay time constant T, s (<= 0: static)")
-    p.add_argument("--threads", type=int, help="threads of the core (default 1)")
-    p.add_argument(
-        "--extrinsic", nargs=6, type=float, metavar=("X", "Y", "Z", "ROLL", "PITCH", "YAW"),
-        help="lidar pose in the odometry child frame (m, rad); overrides /tf_static",
-    )  # fmt: skip
-    p.add_argument("--no-deskew", action="store_true", help="one pose per cloud")
-    p.add_argument("--max-gap", type=_positive, help="largest pose gap to interpolate, s")
-    p.add_argument("--max-scans", type=_nonneg_int, help="stop after this many clouds")
-    add_input_arguments(p)
+    p.add_argument("--config", help="a node parameter file (read as the node reads it)")
+    add_replay_flags(p)  # one flag per setting of the schema that has one
+    add_input_arguments(p)  # folders, poses, odometry, --start/--end
     p.add_argument("--summary-json", help="also write the summary as JSON here")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
 
@@ -128,7 +113,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--scene",
-        choices=PRESETS,
+        choices=SCENES,
         default="demo",
         help="demo: the example hall; small: one cube of medium (tests); open: "
         "small without ceiling (rays escape: shows the bias)",
@@ -271,36 +256,14 @@ def _check_writable(path: Path) -> None:
 
 
 def replay_options(args: argparse.Namespace) -> Any:
-    from mfp_mapper.offline.input_args import input_options
-    from mfp_mapper.offline.replay import ReplayOptions, options_from_yaml
-    from mfp_mapper.sensing.poses import Extrinsic
+    """ReplayOptions from the schema defaults, ``--config``, the flags given and the
+    input flags (``offline.input_args``)."""
+    from dataclasses import replace
 
-    values: dict[str, Any] = options_from_yaml(args.config) if args.config else {}
-    if args.resolution is not None:
-        values["resolution"] = args.resolution
-    if args.max_range is not None:
-        values["max_range"] = math.inf if args.max_range <= 0 else args.max_range
-    if args.min_range is not None:
-        values["min_range"] = args.min_range
-    if args.decay_time is not None:
-        values["decay_time"] = math.inf if args.decay_time <= 0 else args.decay_time
-    if args.threads is not None:
-        values["threads"] = args.threads
-    if args.extrinsic is not None:
-        values["extrinsic"] = Extrinsic.from_xyz_rpy(args.extrinsic[:3], args.extrinsic[3:])
-    if args.max_gap is not None:
-        values["max_gap"] = args.max_gap
-    values.update(
-        cloud_topic=args.cloud_topic,
-        odom_topic=args.odom_topic,
-        use_tf=args.tf,
-        fixed_frame=args.fixed_frame,
-        max_scans=args.max_scans,
-        **input_options(args),
-    )
-    if args.no_deskew:
-        values["deskew"] = False
-    return ReplayOptions(**values)
+    from mfp_mapper.offline.input_args import input_options
+    from mfp_mapper.offline.options import options_from_args
+
+    return replace(options_from_args(args), **input_options(args))
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
@@ -338,15 +301,9 @@ def _warn(text: str) -> None:
 
 
 def _jsonable(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {k: _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if hasattr(value, "item"):
-        return _jsonable(value.item())
-    return value
+    from mfp_mapper.offline.report import jsonable
+
+    return jsonable(value)
 
 
 def _sim_config(args: argparse.Namespace) -> Any:
@@ -377,24 +334,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         result = simulate(args.out_bag, _sim_config(args), args.format, overwrite=args.overwrite)
     except SimulationError as err:
         raise CliError(str(err)) from None
-    _print_simulation(result)
+    from mfp_mapper.offline.report import simulation_lines
+
+    for line in simulation_lines(result):
+        print(line)
     return 0
-
-
-def _print_simulation(result: Any) -> None:
-    t = result.truth
-    rays = t["rays"]
-    print(f"bag          {result.bag} ({t['storage']}, {t['scans']} scans, {rays['rays']:,} rays)")
-    print(f"truth        {result.truth_path}")
-    for m in t["scene"]["media"]:
-        print(
-            f"medium       {m['name']}: extinction {m['extinction']:g} /m in {m['lo']}..{m['hi']}"
-        )
-    if rays["omitted"]:
-        print(
-            f"no return    {rays['omitted']:,} rays left the scene and are not in the bag "
-            f"({rays['omitted_through_media']:,} of them crossed a medium)"
-        )
 
 
 def cmd_export(args: argparse.Namespace) -> int:
@@ -489,53 +433,18 @@ def cmd_plot_convergence(args: argparse.Namespace) -> int:
 def cmd_query(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from mfp_mapper.core import model
+    from mfp_mapper.offline.report import query_lines, query_rows
 
     if len(args.coords) % 3:
         raise CliError(f"query needs X Y Z triples, got {len(args.coords)} numbers")
     mapper = _load_map(args.map)
-    pts = np.asarray(args.coords, dtype=np.float64).reshape(-1, 3)
-    st = mapper.query(pts)
-    lo, hi = model.doo_interval(st.s, st.n, 0.9)
-    rows = []
-    for k in range(len(st)):
-        rows.append(
-            {
-                "point": pts[k].tolist(),
-                "voxel": st.ijk[k].tolist(),
-                "observed": bool(st.observed[k]),
-                "n": float(st.n[k]),
-                "s": float(st.s[k]),
-                "degree_of_occupancy": float(st.most_likely_doo[k]),
-                "mean_degree_of_occupancy": float(st.mean_doo[k]),
-                "std": float(st.std[k]),
-                "doo_interval_90": [float(lo[k]), float(hi[k])],
-                "hit_probability": float(st.hit_probability[k]),
-                "mean_free_path": float(st.mean_free_path[k]),
-            }
-        )
+    rows = query_rows(mapper, np.asarray(args.coords, dtype=np.float64).reshape(-1, 3))
     if args.json:
         print(json.dumps(_jsonable(rows), indent=2))
         return 0
     print(f"map {args.map}: frame {mapper.frame_id}, {mapper.resolution:g} m voxels")
-    for row in rows:
-        x, y, z = row["point"]
-        head = f"({x:.2f}, {y:.2f}, {z:.2f}) voxel {tuple(row['voxel'])}: "
-        if not row["observed"]:
-            print(
-                head + f"unknown (never observed; prior DoO {model.UNKNOWN_DOO:g}, "
-                f"std {model.UNKNOWN_STD:.3f})"
-            )
-            continue
-        mfp = row["mean_free_path"]
-        print(
-            head
-            + f"DoO {row['degree_of_occupancy']:.3f} (mean {row['mean_degree_of_occupancy']:.3f}"
-            f", std {row['std']:.3f}, 90% [{row['doo_interval_90'][0]:.3f}, "
-            f"{row['doo_interval_90'][1]:.3f}]), p_hit {row['hit_probability']:.3f}, "
-            f"n {row['n']:g}, s {row['s']:.2f} m, mean free path "
-            + (f"{mfp:.2f} m" if math.isfinite(mfp) else "inf")
-        )
+    for line in query_lines(rows):
+        print(line)
     return 0
 
 
@@ -558,63 +467,14 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from mfp_mapper.offline.evaluate import evaluate_map
-    from mfp_mapper.offline.export import export_ply
-    from mfp_mapper.offline.render import plot_convergence, render_map
-    from mfp_mapper.offline.replay import ReplayError, ReplayOptions, replay
-    from mfp_mapper.offline.simulate import preset, simulate
+    from mfp_mapper.offline.demo import run_demo
+    from mfp_mapper.offline.replay import ReplayError
 
-    t0 = time.perf_counter()
-    out = Path(args.output)
-    out.mkdir(parents=True, exist_ok=True)
-    bag = out / ("example.bag" if args.format == "ros1" else "example_bag")
-    print(f"== 1/4 simulate the built-in example -> {bag}")
-    cfg = replace(preset("demo"), scans=args.scans, seed=args.seed)
-    sim = simulate(bag, cfg, args.format, overwrite=True)
-    _print_simulation(sim)
-    print(f"== 2/4 replay it into a {args.resolution:g} m map")
     try:
-        result = replay(bag, ReplayOptions(resolution=args.resolution), not args.quiet, _warn)
+        run_demo(args.output, args.resolution, args.scans, args.format, args.seed,
+                 progress=not args.quiet, warn=_warn)  # fmt: skip
     except ReplayError as err:
         raise CliError(str(err)) from None
-    map_path = out / "map.npz"
-    result.mapper.save(map_path)
-    print(result.summary.format())
-    print(f"map          {map_path}")
-    print("== 3/4 pictures")
-    pics = out / "pictures"
-    rendered = render_map(result.mapper, pics, slice_y=0.0)
-    files = [*rendered.files, plot_convergence(pics)]
-    ply = out / "map.ply"
-    count = export_ply(result.mapper, ply, min_doo=0.05)
-    print(f"top-down band {rendered.band[0]:.2f}..{rendered.band[1]:.2f} m, slice at y = 0")
-    for f in files:
-        print(f"wrote {f}")
-    print(f"wrote {ply} ({count:,} voxels with DoO >= 0.05, for CloudCompare/Open3D)")
-    print("== 4/4 evaluate against the ground truth")
-    ev = evaluate_map(result.mapper, sim.truth)
-    write_text_atomic(out / "evaluation.json", json.dumps(_jsonable(ev.to_json()), indent=2) + "\n")
-    print(ev.format())
-    print()
-    print("what it found:")
-    for m in ev.media:
-        if m.voxels_observed:
-            verdict = (
-                "ok"
-                if abs(m.pooled_relative_error) < 0.05 and 0.85 <= m.coverage <= 0.95
-                else "CHECK"
-            )
-            print(
-                f"  {m.name}: estimated extinction {m.pooled:.3f} /m vs true {m.extinction:g} /m; "
-                f"90% intervals hold the truth in {100 * m.coverage:.0f}% of "
-                f"{m.voxels_observed} voxels [{verdict}]"
-            )
-    print(
-        f"  free air: {ev.free_air.voxels_with_returns} of {ev.free_air.voxels_observed:,} "
-        "observed voxels hold a return"
-    )
-    print(f"pictures are in {pics.resolve()}/ (start with doo_topdown.png and slice.png)")
-    print(f"done in {time.perf_counter() - t0:.1f} s")
     return 0
 
 

@@ -6,12 +6,14 @@ through it, so tests and benchmarks feed the mapper the same kind of rays.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
 from mfp_mapper.offline.scan_pattern import scan_directions
+from mfp_mapper.offline.simulate import Scene, Solid
 
 FloatArray = NDArray[np.float64]
 
@@ -26,7 +28,11 @@ class Box:
 
 @dataclass(frozen=True)
 class BoxWorld:
-    """Flat ground at z=0 inside a room of walls, with solid boxes (pillars, cars) in it."""
+    """Flat ground at z=0 inside a room of walls, with solid boxes (pillars, cars) in it.
+
+    A ``simulate.Scene`` without ceiling whose walls have no top: rays are cast by the
+    simulator's caster (``Scene.cast``), the one box ray-caster of the project.
+    """
 
     half_extent: tuple[float, float] = (40.0, 25.0)
     boxes: tuple[Box, ...] = (
@@ -36,33 +42,20 @@ class BoxWorld:
         Box((-20.0, 10.0, 0.0), (-18.0, 14.0, 4.0)),
     )
 
+    def scene(self) -> Scene:
+        hx, hy = self.half_extent
+        return Scene(
+            room_lo=(-hx, -hy, 0.0),
+            room_hi=(hx, hy, math.inf),
+            solids=tuple(Solid(f"box{k}", b.lo, b.hi) for k, b in enumerate(self.boxes)),
+            enclosed=False,
+            wall_height=math.inf,
+        )
+
     def cast(self, origin: FloatArray, directions: FloatArray) -> FloatArray:
         """Range (m) to the first surface along each unit direction; inf when none is hit."""
-        o = np.asarray(origin, dtype=np.float64).reshape(-1, 3)
-        d = directions
-        rng = np.full(d.shape[0], np.inf)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            # ground plane z = 0, seen from above
-            t = -o[:, 2] / d[:, 2]
-            rng = np.where((d[:, 2] < 0) & (t > 0), np.minimum(rng, t), rng)
-            # the room's walls, seen from inside
-            for axis, half in ((0, self.half_extent[0]), (1, self.half_extent[1])):
-                for wall in (-half, half):
-                    t = (wall - o[:, axis]) / d[:, axis]
-                    rng = np.where(t > 0, np.minimum(rng, t), rng)
-            for box in self.boxes:
-                rng = np.minimum(rng, _slab_entry(o, d, np.array(box.lo), np.array(box.hi)))
-        return rng
-
-
-def _slab_entry(o: FloatArray, d: FloatArray, lo: FloatArray, hi: FloatArray) -> FloatArray:
-    """Distance at which each ray enters the box [lo, hi]; inf when it misses."""
-    t1 = (lo - o) / d
-    t2 = (hi - o) / d
-    t_near = np.nanmax(np.minimum(t1, t2), axis=1)
-    t_far = np.nanmin(np.maximum(t1, t2), axis=1)
-    hit = (t_far >= np.maximum(t_near, 0.0)) & (t_near > 0)
-    return np.where(hit, t_near, np.inf)
+        ranges, _ = self.scene().cast(origin, directions, np.random.default_rng(0))
+        return ranges
 
 
 def anchors_scene(

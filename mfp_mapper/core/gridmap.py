@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 
 from mfp_mapper.core.model import hit_probability_one
 from mfp_mapper.core.store import (
@@ -35,6 +35,14 @@ from mfp_mapper.core.store import (
 )
 
 UNKNOWN = -1
+
+
+class GridTooLarge(ValueError):
+    """A projected grid would hold more cells than allowed; ``cells`` says how many."""
+
+    def __init__(self, message: str, cells: int) -> None:
+        super().__init__(message)
+        self.cells = cells
 
 
 @dataclass(frozen=True)
@@ -94,62 +102,6 @@ def _check_band(resolution: float, z_min: float, z_max: float) -> None:
         raise ValueError(f"empty height band [{z_min}, {z_max}]")
 
 
-def hit_probability_grid(
-    ijk: ArrayLike,
-    hit_probability: ArrayLike,
-    observed: ArrayLike,
-    resolution: float,
-    z_min: float,
-    z_max: float,
-    *,
-    center: tuple[float, float] | None = None,
-    radius: float = 0.0,
-) -> HitGrid:
-    """Project voxels (integer indices ``ijk`` = floor(centre / resolution)) onto a grid.
-
-    ``hit_probability``: per-voxel probability that a ray crossing one voxel edge is
-    reflected. With ``center`` and ``radius > 0`` the grid is the square of half side
-    ``radius`` around ``center`` (fixed size, whatever is mapped); otherwise it spans the
-    (x, y) extent of all observed voxels given (0 x 0 when there are none).
-
-    For any set of voxels, e.g. ``Mapper.voxels(stamp)`` decayed to a stamp; the live map's
-    band is faster through ``Mapper.hit_probability_grid`` (``band_grid``), which gives the
-    same grid from the blocks.
-    """
-    _check_band(resolution, z_min, z_max)
-    ijk_arr = np.asarray(ijk, dtype=np.int64).reshape(-1, 3)
-    prob = np.asarray(hit_probability, dtype=np.float64).reshape(-1)
-    obs = np.asarray(observed, dtype=bool).reshape(-1)
-    if not (len(ijk_arr) == len(prob) == len(obs)):
-        raise ValueError("ijk, hit_probability and observed differ in length")
-
-    if center is not None and radius > 0.0:
-        i0, j0, i1, j1 = _window_cells(center, radius, resolution)
-    elif obs.any():
-        seen = ijk_arr[obs]
-        i0, j0 = (int(v) for v in seen[:, :2].min(axis=0))
-        i1, j1 = (int(v) for v in seen[:, :2].max(axis=0))
-    else:
-        return HitGrid(np.zeros((0, 0), np.int8), resolution, (0.0, 0.0))
-    width, height = i1 - i0 + 1, j1 - j0 + 1
-
-    i, j = ijk_arr[:, 0], ijk_arr[:, 1]
-    sel = (
-        obs
-        & band_mask(ijk_arr, resolution, z_min, z_max)
-        & (i >= i0)
-        & (i <= i1)
-        & (j >= j0)
-        & (j <= j1)
-    )
-    percent = np.rint(100.0 * np.clip(np.nan_to_num(prob[sel], nan=1.0), 0.0, 1.0))
-    flat = (j[sel] - j0) * width + (i[sel] - i0)
-    out = np.full(width * height, UNKNOWN, dtype=np.int16)
-    np.maximum.at(out, flat, percent.astype(np.int16))
-    data = out.astype(np.int8).reshape(height, width)
-    return HitGrid(data, resolution, (i0 * resolution, j0 * resolution))
-
-
 BlockArrays = tuple[NDArray[np.int32], NDArray[np.float32], int]
 """A store shard as the projection reads it: block indices, (s, n) per voxel, blocks used."""
 
@@ -164,12 +116,14 @@ def band_grid(
     *,
     center: tuple[float, float] | None = None,
     radius: float = 0.0,
+    max_cells: int | None = None,
 ) -> HitGrid:
-    """``hit_probability_grid`` of the observed voxels with index in ``[lo, hi]``, computed
+    """The hit-probability grid of the observed voxels with index in ``[lo, hi]``, computed
     in one compiled pass over the store's blocks (no per-voxel arrays of the map).
 
     The grid spans the window around ``center`` (``radius > 0``), else the (x, y) extent of
     the observed voxels in ``[lo, hi]``; cells take the voxels whose centre is in the band.
+    ``GridTooLarge`` before anything is allocated when it would exceed ``max_cells``.
     """
     _check_band(resolution, z_min, z_max)
     if center is not None and radius > 0.0:
@@ -181,6 +135,14 @@ def band_grid(
         if extent[0] > extent[2]:
             return HitGrid(np.zeros((0, 0), np.int8), resolution, (0.0, 0.0))
         i0, j0, i1, j1 = (int(v) for v in extent)
+    size = (j1 - j0 + 1) * (i1 - i0 + 1)
+    if max_cells is not None and size > max_cells:
+        raise GridTooLarge(
+            f"the grid would have {i1 - i0 + 1} x {j1 - j0 + 1} cells "
+            f"({(i1 - i0 + 1) * resolution:.0f} m x {(j1 - j0 + 1) * resolution:.0f} m), more "
+            f"than the {max_cells} allowed",
+            size,
+        )
     cells = np.full((j1 - j0 + 1, i1 - i0 + 1), UNKNOWN, dtype=np.int8)
     for block_ijk, block_sn, used in shards:
         _band_max_percent(

@@ -272,12 +272,14 @@ class Mapper:
         *,
         center: tuple[float, float] | None = None,
         radius: float = 0.0,
+        max_cells: int | None = None,
     ) -> HitGrid:
         """The height band ``[z_min, z_max]`` projected onto a 2D grid (``gridmap``): per
         cell ``round(100 p)``, ``p`` the largest hit probability of a voxel edge in the
         column, -1 where never observed; the square of half side ``radius`` around
         ``center``, or the extent of the observed band. Statistics at their last update
-        (no decay to a later stamp), read straight from the blocks."""
+        (no decay to a later stamp), read straight from the blocks. ``gridmap.GridTooLarge``
+        (nothing allocated) when the grid would exceed ``max_cells``."""
         lo_m, hi_m = [-math.inf, -math.inf, z_min], [math.inf, math.inf, z_max]
         if center is not None and radius > 0.0:  # only the blocks near the window are read
             margin = radius + self.resolution
@@ -294,6 +296,7 @@ class Mapper:
             index_box(hi),
             center=center,
             radius=radius,
+            max_cells=max_cells,
         )
 
     def _stats(self, raw: VoxelArrays, stamp: float | None) -> VoxelStats:

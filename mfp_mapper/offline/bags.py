@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from mfp_mapper.offline.options import ReplayError as ReplayError  # defined with the options
 from mfp_mapper.sensing.poses import (
     Extrinsic,
     PoseBuffer,
@@ -25,17 +26,13 @@ from mfp_mapper.sensing.poses import (
 )
 
 if TYPE_CHECKING:
-    from mfp_mapper.offline.replay import ReplayOptions
+    from mfp_mapper.offline.options import ReplayOptions
 
 FloatArray = NDArray[np.float64]
 
 CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 ODOM_TYPE = "nav_msgs/msg/Odometry"
 TF_TYPE = "tf2_msgs/msg/TFMessage"
-
-
-class ReplayError(RuntimeError):
-    """The bag cannot be replayed (unreadable, missing topic, no poses...): says why."""
 
 
 # --- reading the bag --------------------------------------------------------------------------

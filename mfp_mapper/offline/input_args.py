@@ -1,5 +1,6 @@
 """Command-line flags for what a replay reads (scan folders, poses, KISS-ICP) and which
-clouds it maps (``--start``/``--end``/``--every``), shared by ``mfp-mapper replay``.
+clouds it maps (``--start``/``--end``; ``--every`` comes from the settings schema), for
+``mfp-mapper replay``.
 
 ``--start`` and ``--end`` take one of:
 
@@ -7,7 +8,7 @@ clouds it maps (``--start``/``--end``/``--every``), shared by ``mfp-mapper repla
 - ``@1700000012.5``: an absolute cloud stamp in seconds (``ReplayOptions.start``);
 - ``#40``: a cloud's position in the recording, 0 = the first (``start_index``).
 
-The window is half-open: ``[start, end)``. ``--every N`` then maps one cloud in N.
+The window is half-open: ``[start, end)``. ``--every N`` then maps one cloud in N of it.
 """
 
 from __future__ import annotations
@@ -35,16 +36,6 @@ def parse_bound(text: str) -> tuple[str, float]:
         ) from None
 
 
-def _every(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected an integer >= 1")
-    return value
-
-
 def add_input_arguments(p: argparse.ArgumentParser) -> None:
     """The replay's flags for folders, poses, odometry and the cloud selection."""
     p.add_argument(
@@ -61,12 +52,11 @@ def add_input_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--start", type=parse_bound, help=f"first cloud mapped: {WINDOW_HELP}")
     p.add_argument("--end", type=parse_bound, help=f"end of the clouds mapped: {WINDOW_HELP}")
-    p.add_argument("--every", type=_every, default=1, help="map one cloud in N (default 1)")
 
 
 def input_options(args: argparse.Namespace) -> dict[str, Any]:
     """ReplayOptions fields from the flags of ``add_input_arguments``."""
-    values: dict[str, Any] = {"every": args.every, "odometry": args.odometry}
+    values: dict[str, Any] = {"odometry": args.odometry} if args.odometry else {}
     for bound, given in (("start", args.start), ("end", args.end)):
         if given is None:
             continue

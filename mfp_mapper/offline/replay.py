@@ -41,125 +41,24 @@ from mfp_mapper.offline.bags import (
     resolve_bag_path,
     tf_poses,
 )
+from mfp_mapper.offline.options import ConfigError as ConfigError  # re-exported
+from mfp_mapper.offline.options import ReplayOptions, options_from_yaml
 from mfp_mapper.offline.progress import Progress
 from mfp_mapper.sensing import pipeline
 from mfp_mapper.sensing.poses import Extrinsic, frame_name
-from mfp_mapper.settings import NO_LIMIT_Z
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["Progress", "ReplayError", "ReplayOptions", "ReplayResult", "ReplaySummary", "replay"]
-
-
-@dataclass
-class ReplayOptions:
-    """What to read and how to map it. ``None`` topics are detected in the bag."""
-
-    resolution: float = 0.1
-    max_range: float = 100.0
-    min_range: float = 0.0
-    decay_time: float = math.inf
-    threads: int = 1
-    max_voxels: int | None = None
-    cloud_topic: str | None = None
-    odom_topic: str | None = None
-    use_tf: bool = False
-    """Poses from the /tf chain even when the bag has an Odometry topic."""
-    fixed_frame: str | None = None
-    """TF mode: the frame the poses are in (default: ``odom`` if on the chain, else root)."""
-    extrinsic: Extrinsic | None = None
-    """Given explicitly (flag): overrides /tf_static."""
-    config_extrinsic: Extrinsic | None = None
-    """From the YAML (``lidar.*``): used when /tf_static has no chain."""
-    deskew: bool = True
-    max_gap: float = 0.5
-    point_cloud_min_z: float = -NO_LIMIT_Z
-    point_cloud_max_z: float = NO_LIMIT_Z
-    max_scans: int | None = None
-    start: float | None = None
-    """Map only clouds stamped at or after this absolute time (s): ``[start, end)``."""
-    end: float | None = None
-    """Map only clouds stamped before this absolute time (s)."""
-    start_offset: float | None = None
-    """Like ``start``, in seconds after the recording's first cloud."""
-    end_offset: float | None = None
-    """Like ``end``, in seconds after the recording's first cloud."""
-    start_index: int = 0
-    """First cloud mapped, by its position in the recording (0 = the first)."""
-    end_index: int | None = None
-    """Clouds from this position on are not mapped: ``[start_index, end_index)``."""
-    every: int = 1
-    """Map one cloud in ``every`` of those selected (the first, then every N-th)."""
-    odometry: str | None = None
-    """``"kiss-icp"``: poses estimated from the clouds (``offline.lidar_odometry``)."""
-
-
-# --- configuration from the node's YAML ------------------------------------------------------
-
-
-def options_from_yaml(path: str | Path) -> dict[str, Any]:
-    """ReplayOptions fields from a parameter file of the node (``config/*.yaml``).
-
-    Accepts the ROS 2 form (``<node>: ros__parameters: {...}``) and a plain mapping;
-    nested mappings and dotted names are both understood. Unknown names are an error.
-    """
-    import yaml  # type: ignore[import-untyped]
-
-    from mfp_mapper.settings import SPECS, NodeConfig
-
-    p = Path(path)
-    try:
-        data = yaml.safe_load(p.read_text())
-    except (OSError, yaml.YAMLError) as err:
-        raise ReplayError(f"{p}: cannot read the YAML configuration: {err}") from None
-    if data is None:
-        return {}
-    if not isinstance(data, dict):
-        raise ReplayError(f"{p}: expected a mapping of parameters")
-    params = _ros_parameters(data)
-    flat: dict[str, Any] = {}
-    _flatten(params, "", flat)
-    unknown = sorted(k for k in flat if k not in SPECS)
-    if unknown:
-        raise ReplayError(f"{p}: unknown parameter(s) {', '.join(unknown)}")
-    try:
-        cfg = NodeConfig.from_values(flat)  # the node's own checks, ranges included
-    except (TypeError, ValueError) as err:
-        raise ReplayError(f"{p}: {err}") from None
-    core = cfg.mapper_settings()
-    fields_of = {  # parameter -> (ReplayOptions field, value)
-        "resolution": ("resolution", cfg.resolution),
-        "sensor_model.max_range": ("max_range", core["max_range"]),
-        "sensor_model.min_range": ("min_range", core["min_range"]),
-        "decay_time": ("decay_time", core["decay_time"]),
-        "threads": ("threads", core["threads"]),
-        "max_voxels": ("max_voxels", core["max_voxels"]),
-        "deskew": ("deskew", cfg.deskew),
-        "odom_max_gap": ("max_gap", cfg.odom_max_gap),
-        "point_cloud_min_z": ("point_cloud_min_z", cfg.point_cloud_min_z),
-        "point_cloud_max_z": ("point_cloud_max_z", cfg.point_cloud_max_z),
-    }
-    out = {field: value for name, (field, value) in fields_of.items() if name in flat}
-    if "lidar.translation" in flat or "lidar.rpy" in flat:
-        out["config_extrinsic"] = cfg.extrinsic()
-    return out
-
-
-def _ros_parameters(data: dict[str, Any]) -> dict[str, Any]:
-    for value in data.values():
-        if isinstance(value, dict) and "ros__parameters" in value:
-            params = value["ros__parameters"]
-            return params if isinstance(params, dict) else {}
-    return data
-
-
-def _flatten(tree: dict[str, Any], prefix: str, out: dict[str, Any]) -> None:
-    for key, value in tree.items():
-        name = f"{prefix}{key}"
-        if isinstance(value, dict):
-            _flatten(value, name + ".", out)
-        else:
-            out[name] = value
+__all__ = [
+    "ConfigError",
+    "Progress",
+    "ReplayError",
+    "ReplayOptions",
+    "ReplayResult",
+    "ReplaySummary",
+    "options_from_yaml",
+    "replay",
+]
 
 
 # --- summary and progress ---------------------------------------------------------------------
@@ -328,6 +227,7 @@ def new_mapper(opts: ReplayOptions, frame_id: str) -> Mapper:
         frame_id=frame_id,
         threads=opts.threads,
         max_voxels=opts.max_voxels,
+        keep_radius=opts.keep_radius,
     )
 
 

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from mfp_mapper.sensing.pointcloud import FieldSpec, point_fields
+from mfp_mapper.sensing.pointcloud import FieldSpec, PackedCloud, pack_columns, pack_records
 
 _PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8"} | {
     (kind, size): f"{kind.lower()}{size}" for kind in "IU" for size in (1, 2, 4, 8)
@@ -283,35 +283,19 @@ def list_vtk_scans(directory: str | Path) -> list[tuple[float, Path]]:
 def cloud_message(
     records: NDArray[Any], stamp: float = 0.0, frame_id: str = "sensor"
 ) -> CloudMessage:
-    """A PointCloud2-like message holding structured ``records`` ((N,) or (height, width)).
-
-    The dtype's field offsets, itemsize and byte order become the message layout, so any
-    driver layout (padding, big-endian, float64) can be reproduced with numpy.
-    """
-    if records.ndim not in (1, 2) or not records.dtype.names:
-        raise ValueError("cloud_message needs a 1-D or 2-D structured array")
-    height, width = (1, records.shape[0]) if records.ndim == 1 else records.shape
-    fields, big_endian = point_fields(records.dtype)
-    sec = int(np.floor(stamp))
-    return CloudMessage(
-        header=Header(Time(sec, round((stamp - sec) * 1e9)), frame_id),
-        height=height,
-        width=width,
-        fields=fields,
-        is_bigendian=big_endian,
-        point_step=records.dtype.itemsize,
-        row_step=records.dtype.itemsize * width,
-        data=np.ascontiguousarray(records).tobytes(),
-    )
+    """A PointCloud2-like message holding structured ``records`` ((N,) or (height, width))
+    byte for byte (``sensing.pointcloud.pack_records``)."""
+    return _message(pack_records(records), stamp, frame_id)
 
 
 def cloud_message_from_columns(
     columns: Mapping[str, NDArray[np.generic]], stamp: float = 0.0, frame_id: str = "sensor"
 ) -> CloudMessage:
     """A message with ``columns`` packed in order, keeping their dtypes (e.g. a PCD frame)."""
-    arrays = {name: np.asarray(values) for name, values in columns.items()}
-    dtype = np.dtype([(name, a.dtype.newbyteorder("<"), a.shape[1:]) for name, a in arrays.items()])
-    records = np.empty(len(next(iter(arrays.values()))), dtype=dtype)
-    for name, values in arrays.items():
-        records[name] = values
-    return cloud_message(records, stamp, frame_id)
+    return _message(pack_columns(columns), stamp, frame_id)
+
+
+def _message(packed: PackedCloud, stamp: float, frame_id: str) -> CloudMessage:
+    sec = int(np.floor(stamp))
+    header = Header(Time(sec, round((stamp - sec) * 1e9)), frame_id)
+    return CloudMessage(header=header, fields=packed.fields, data=packed.data, **packed.layout())

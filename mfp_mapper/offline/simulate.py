@@ -33,15 +33,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mfp_mapper.core.atomic import write_text_atomic
+from mfp_mapper.offline.names import BAG_FORMATS, SCENES
 from mfp_mapper.offline.scan_pattern import VLP16_ELEVATIONS_DEG, scan_directions
-from mfp_mapper.sensing.pointcloud import FieldSpec, point_fields
+from mfp_mapper.sensing.pointcloud import FieldSpec, pack_records, point_fields
 from mfp_mapper.sensing.poses import quaternion_to_matrix, rpy_to_quaternion
 
 FloatArray = NDArray[np.float64]
 
 TRUTH_FORMAT = "mfp_mapper.offline.simulate.truth"
 TRUTH_VERSION = 1
-BAG_FORMATS = ("mcap", "sqlite3", "ros1")
 
 CLOUD_TOPIC = "/velodyne_points"
 ODOM_TOPIC = "/odom"
@@ -286,7 +286,7 @@ def preset(name: str) -> SimulationConfig:
     raise SimulationError(f"unknown scene preset {name!r}: expected demo, small or open")
 
 
-PRESETS = ("demo", "small", "open")
+PRESETS = SCENES
 
 
 @dataclass
@@ -505,25 +505,27 @@ class BagSink:
         )
 
     def pointcloud(
-        self, stamp: float, frame: str, records: NDArray[np.void], fields: tuple[FieldSpec, ...]
+        self,
+        stamp: float,
+        frame: str,
+        records: NDArray[np.void],
+        fields: tuple[FieldSpec, ...] | None = None,
     ) -> Any:
+        """A sensor_msgs/PointCloud2 holding ``records`` (``pack_records``); ``fields``
+        replaces the field list derived from their dtype."""
         t = self.types
-        point_step = records.dtype.itemsize
+        packed = pack_records(records)
         return t["sensor_msgs/msg/PointCloud2"](
             header=self.header(stamp, frame),
-            height=1,
-            width=int(records.size),
             fields=[
                 t["sensor_msgs/msg/PointField"](
                     name=f.name, offset=f.offset, datatype=f.datatype, count=f.count
                 )
-                for f in fields
+                for f in (packed.fields if fields is None else fields)
             ],
-            is_bigendian=False,
-            point_step=point_step,
-            row_step=point_step * int(records.size),
-            data=records.view(np.uint8),
+            data=np.frombuffer(packed.data, dtype=np.uint8),
             is_dense=True,
+            **packed.layout(),
         )
 
 

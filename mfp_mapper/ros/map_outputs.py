@@ -7,6 +7,7 @@ published outside it. The integration worker calls ``publish`` between two scans
 from __future__ import annotations
 
 import contextlib
+import math
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -18,6 +19,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
+from mfp_mapper.core.gridmap import GridTooLarge
 from mfp_mapper.ros.messages import cloud_msg, grid_msg, stamp_msg
 from mfp_mapper.sensing.live import LiveIntegrator
 from mfp_mapper.sensing.pointcloud import pack_cloud
@@ -41,9 +43,14 @@ class MapOutputs:
     """Publishers of ``~/degree_of_occupancy``, ``~/std`` and ``~/projected_map``."""
 
     def __init__(
-        self, node: Node, worker: LiveIntegrator, config: Callable[[], NodeConfig]
+        self,
+        node: Node,
+        worker: LiveIntegrator,
+        config: Callable[[], NodeConfig],
+        warn: Callable[[str, str], None],
     ) -> None:
         self._node = node
+        self._warn = warn
         self._worker = worker
         self._config = config
         latch = config().latch
@@ -57,37 +64,43 @@ class MapOutputs:
         self._std_pub = node.create_publisher(PointCloud2, "~/std", qos)
         self._grid_pub = node.create_publisher(OccupancyGrid, "~/projected_map", qos)
         self.counters = PublishCounters()
-        self.published_version: int | None = None
+        # the map version each output last went out with: a late transient-local subscriber
+        # of one output gets it even when the other already went out for this version
+        self.published: dict[str, int | None] = {"clouds": None, "grid": None}
         self._not_before = 0.0
 
     def invalidate(self) -> None:
         """Publish again at the next chance (e.g. the filters changed)."""
-        self.published_version = None
+        self.published = dict.fromkeys(self.published)
 
     def publish(self) -> None:
         """Publish the map outputs if the map changed and someone subscribes."""
-        want_clouds = (
-            self._doo_pub.get_subscription_count() + self._std_pub.get_subscription_count()
-        )
-        want_grid = self._grid_pub.get_subscription_count()
-        if not (want_clouds or want_grid):
+        listening = {
+            "clouds": self._doo_pub.get_subscription_count()
+            + self._std_pub.get_subscription_count(),
+            "grid": self._grid_pub.get_subscription_count(),
+        }
+        if not any(listening.values()):
             return  # nobody listens: publish when someone does (latched, so they get it)
         if time.monotonic() < self._not_before:
             return  # the last publication was slow: keep publishing under PUBLISH_DUTY
         worker, cfg = self._worker, self._config()
         with worker.map_lock:
             version = worker.mapper.version
-            if version == self.published_version:
-                return
             if not (cfg.frame_id or worker.odom_frame or worker.mapper.num_voxels):
                 return  # an empty map in a frame not known yet: nothing worth latching
+        due = {k for k, n in listening.items() if n and self.published[k] != version}
+        if not due:
+            return
+        want_grid, want_clouds = "grid" in due, "clouds" in due
         t0 = time.perf_counter()
         lock_times = [0.0, 0.0]  # waited for, held
         if want_grid:
             self._grid_pub.publish(self.grid(lock_times))
         if want_clouds:
             self._publish_clouds(lock_times)
-        self.published_version = version
+        for key in due:
+            self.published[key] = version
         dt = time.perf_counter() - t0 - lock_times[0]
         self._not_before = time.monotonic() + dt * (1.0 / PUBLISH_DUTY - 1.0)
         c = self.counters
@@ -126,7 +139,7 @@ class MapOutputs:
             )
             stamp = worker.mapper.last_stamp
         sel = vox
-        if window is not None:
+        if window is not None and robot is not None:
             sel = vox.select(np.sum((vox.centers - robot) ** 2, axis=1) <= radius**2)
         xyz = {a: sel.centers[:, k] for k, a in enumerate("xyz")}
         header_stamp = self._header_stamp(stamp)
@@ -144,12 +157,29 @@ class MapOutputs:
         robot = worker.robot_position
         radius = cfg.hit_probability_map_radius
         center = (float(robot[0]), float(robot[1])) if robot is not None and radius > 0 else None
+        limit = cfg.hit_probability_map_max_cells
         with self._timed_map_lock(lock_times):
-            grid = worker.mapper.hit_probability_grid(
-                cfg.occupancy_min_z, cfg.occupancy_max_z, center=center, radius=radius
-            )
             resolution = worker.mapper.resolution
             stamp = worker.mapper.last_stamp
+            band = (cfg.occupancy_min_z, cfg.occupancy_max_z)
+            try:
+                grid = worker.mapper.hit_probability_grid(
+                    *band, center=center, radius=radius, max_cells=limit
+                )
+            except GridTooLarge as err:
+                if robot is None:
+                    raise
+                # the largest square around the robot that fits (the window adds a cell)
+                radius = 0.5 * (math.isqrt(limit) - 2) * resolution
+                center = (float(robot[0]), float(robot[1]))
+                self._warn(
+                    "grid_too_large",
+                    f"{err}: serving the {2 * radius:.0f} m square around the robot "
+                    "(hit_probability_map.max_cells, hit_probability_map.radius)",
+                )
+                grid = worker.mapper.hit_probability_grid(
+                    *band, center=center, radius=radius, max_cells=limit
+                )
         now = self._node.get_clock().now().to_msg()
         return grid_msg(
             grid, resolution, worker.map_frame, self._header_stamp(stamp), now, cfg.occupancy_min_z

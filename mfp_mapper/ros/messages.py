@@ -21,17 +21,17 @@ def stamp_msg(seconds: float) -> TimeMsg:
 
 
 def cloud_msg(packed: PackedCloud, frame_id: str, stamp: Any) -> PointCloud2:
-    """A sensor_msgs/PointCloud2 (height 1) from ``pointcloud.pack_cloud`` output."""
+    """A sensor_msgs/PointCloud2 from a ``sensing.pointcloud.PackedCloud``."""
     msg = PointCloud2()
     msg.header.frame_id = frame_id
     msg.header.stamp = stamp
-    msg.height = 1
+    msg.height = packed.height
     msg.width = packed.width
     msg.fields = [
         PointField(name=f.name, offset=f.offset, datatype=f.datatype, count=f.count)
         for f in packed.fields
     ]
-    msg.is_bigendian = False
+    msg.is_bigendian = packed.is_bigendian
     msg.point_step = packed.point_step
     msg.row_step = packed.row_step
     msg.data = packed.data

@@ -14,14 +14,11 @@ a thread of its own. One lock (``worker.map_lock``) guards the Mapper.
 
 from __future__ import annotations
 
-import functools
 import json
-import math
 import os
 import sys
 import threading
 import time
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -30,13 +27,13 @@ import rclpy.exceptions
 import rclpy.task
 import rclpy.time
 import rclpy.utilities
-from nav_msgs.msg import Odometry
+from diagnostic_msgs.msg import DiagnosticArray
+from nav_msgs.msg import OccupancyGrid, Odometry
 from nav_msgs.srv import GetMap
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-from rclpy.node import Node
 from rclpy.qos import (
     DurabilityPolicy,
     HistoryPolicy,
@@ -50,12 +47,15 @@ from std_srvs.srv import Empty, Trigger
 
 from mfp_mapper.core.mapfile import MapFileError, map_arrays, write_map_arrays
 from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.ros.guarded_node import GuardedNode, tracked
 from mfp_mapper.ros.map_outputs import MapOutputs
 from mfp_mapper.ros.messages import cloud_msg
-from mfp_mapper.sensing.live import LiveIntegrator, LiveSettings, finite_or_none
+from mfp_mapper.ros.params import declare_parameters
+from mfp_mapper.ros.status import StatusWindow, diagnostics, next_window, status_report
+from mfp_mapper.sensing.live import LiveIntegrator, LiveSettings
 from mfp_mapper.sensing.pointcloud import CloudFormatError, pack_cloud, read_xyz
 from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer, odometry_sample
-from mfp_mapper.settings import SPECS, NodeConfig, declare_parameters
+from mfp_mapper.settings import SPECS, NodeConfig
 
 try:  # optional: not installable from PyPI
     import tf2_ros  # type: ignore[import-not-found]
@@ -63,23 +63,11 @@ except ImportError:  # pragma: no cover - depends on the installation
     tf2_ros = None
 
 NODE_NAME = "mfp_mapper"
+RESULT_FIELDS = (
+    "x", "y", "z", "hit_probability", "degree_of_occupancy", "std", "mean_free_path", "observed"
+)  # fmt: skip
 
-
-def _tracked(callback: Callable[..., Any]) -> Callable[..., Any]:
-    """Count a ROS callback as in flight, so close() can wait for it (rclpy's executor
-    shutdown does not wait for running callbacks, and destroying a node under a running
-    callback can crash the process). Callbacks that start after close() do nothing."""
-
-    @functools.wraps(callback)
-    def wrapper(self: MfpMapperNode, *args: Any) -> Any:
-        if not self._begin_work():
-            return args[-1] if len(args) == 2 else None  # a service returns its response
-        try:
-            return callback(self, *args)
-        finally:
-            self._end_work()
-
-    return wrapper
+"""The fields of a ~/hit_probability/result cloud."""
 
 
 def live_settings(cfg: NodeConfig) -> LiveSettings:
@@ -94,21 +82,18 @@ def live_settings(cfg: NodeConfig) -> LiveSettings:
     )
 
 
-class MfpMapperNode(Node):
+class MfpMapperNode(GuardedNode):
     """Mean-free-path mapping node (see the module docstring and README "## The node")."""
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
         self.cfg: NodeConfig = declare_parameters(self)
         self.add_on_set_parameters_callback(self._on_set_parameters)
-        self._warned: dict[str, float] = {}
         self._started = time.monotonic()
         self._load_failed = False
-        self._closing = False
         self._map_figures = (0, 0, 0)
-        self._inflight = 0
-        self._inflight_cv = threading.Condition()
-        self._status_window = (time.monotonic(), 0, 0.0, 0.0)
+        self._status_window = StatusWindow(time.monotonic())
+        self._last_window = self._status_window
         self._queries = 0
         self._maps_served = 0
         self._param_extrinsic = self.cfg.extrinsic()
@@ -118,10 +103,10 @@ class MfpMapperNode(Node):
             live_settings(self.cfg),
             PoseBuffer(max_age=self.cfg.odom_buffer, max_gap=self.cfg.odom_max_gap),
             extrinsic_for=self._extrinsic,
-            log=self._warn_throttled,
+            log=self.warn_throttled,
             now=lambda: self.get_clock().now().nanoseconds * 1e-9,
         )
-        self.outputs = MapOutputs(self, self.worker, lambda: self.cfg)
+        self.outputs = MapOutputs(self, self.worker, lambda: self.cfg, self.warn_throttled)
         self.worker._publish = self.outputs.publish
 
         self._tf_buffer = None
@@ -136,10 +121,30 @@ class MfpMapperNode(Node):
                 self._tf_listener = tf2_ros.TransformListener(self._tf_buffer, self)
         self._create_interfaces()
         self.worker.start()
-        self.get_logger().info(
-            f"mfp_mapper ready: resolution {self.mapper.resolution} m, max_range "
-            f"{self.cfg.max_range} m, decay_time {self.cfg.decay} s, deskew {self.cfg.deskew}, "
-            f"map frame {self.cfg.frame_id or '<odometry frame>'}"
+        self.get_logger().info(self._startup_text())
+
+    def _startup_text(self) -> str:
+        """What a robot integrator needs to check at start: topics, frames, sources."""
+        cfg, topic = self.cfg, self.resolve_topic_name
+        if cfg.use_tf and self._tf_buffer is not None:
+            extrinsic = f"TF {cfg.base_frame_id or '<odometry child>'} <- cloud frame"
+        else:
+            extrinsic = (
+                "identity when the cloud frame is the odometry child frame, else lidar.* "
+                f"parameters (translation {list(cfg.lidar_translation)}, rpy "
+                f"{list(cfg.lidar_rpy)})"
+            )
+        path = cfg.map_path or "<none>"
+        loaded = f", {self.mapper.num_voxels} voxels loaded" if self.mapper.num_voxels else ""
+        return (
+            f"mfp_mapper ready: clouds from {topic('cloud_in')}, poses from "
+            f"{topic('odom')} (nav_msgs/Odometry); map frame "
+            f"{cfg.frame_id or '<the odometry frame>'}; extrinsic: {extrinsic}; resolution "
+            f"{self.mapper.resolution} m, max_range {cfg.max_range} m, decay_time "
+            f"{cfg.decay} s, deskew {cfg.deskew}; map_path {path}{loaded}, save_on_shutdown "
+            f"{cfg.save_on_shutdown}; outputs {topic('~/degree_of_occupancy')}, "
+            f"{topic('~/std')}, {topic('~/projected_map')} at {cfg.publish_rate} Hz, "
+            f"latched {cfg.latch}"
         )
 
     def _create_interfaces(self) -> None:
@@ -160,17 +165,18 @@ class MfpMapperNode(Node):
             durability=DurabilityPolicy.TRANSIENT_LOCAL,
         )
         self._status_pub = self.create_publisher(String, "~/status", status_qos)
+        self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._result_pub = self.create_publisher(PointCloud2, "~/hit_probability/result", 10)
-        self.create_subscription(PointCloud2, "~/hit_probability/query", self._on_query, 10)
-        self.create_service(GetMap, "~/hit_probability_map", self._on_get_map)
-        # its own callback group: while a save runs in the background, its pending call must
-        # not hold the default group (which every other callback is in)
-        self.create_service(
-            Trigger, "~/save_map", self._on_save, callback_group=MutuallyExclusiveCallbackGroup()
+        # what needs the map runs in a thread of its own and is awaited (a coroutine), so the
+        # executor keeps taking odometry and clouds while a long scan holds the map; their
+        # own group: a pending call must not hold the default group
+        group = ReentrantCallbackGroup()
+        self.create_subscription(
+            PointCloud2, "~/hit_probability/query", self._on_query, 10, callback_group=group
         )
-        self.create_service(Empty, "~/reset", self._on_reset)
-        # wakes the executor when a background save finishes (its service call resumes)
-        self._wake = self.create_guard_condition(lambda: None)
+        self.create_service(GetMap, "~/hit_probability_map", self._on_get_map, callback_group=group)
+        self.create_service(Trigger, "~/save_map", self._on_save, callback_group=group)
+        self.create_service(Empty, "~/reset", self._on_reset, callback_group=group)
         self._save_lock = threading.Lock()
         if self.cfg.publish_rate > 0.0:
             self.create_timer(1.0 / self.cfg.publish_rate, self._on_publish_timer)
@@ -232,17 +238,6 @@ class MfpMapperNode(Node):
         self.outputs.invalidate()  # republish with the new filter
         return SetParametersResult(successful=True)
 
-    def _warn_throttled(self, key: str, text: str, error: bool = False) -> None:
-        now = time.monotonic()
-        if now - self._warned.get(key, -math.inf) < 5.0:
-            return
-        self._warned[key] = now
-        # rclpy ties one severity to each call site: keep the two calls apart
-        if error:
-            self.get_logger().error(text)
-        else:
-            self.get_logger().warning(text)
-
     def _extrinsic(self, cloud_frame: str) -> Extrinsic:
         if cloud_frame and cloud_frame == self.worker.odom_child:
             return self._identity
@@ -251,7 +246,7 @@ class MfpMapperNode(Node):
             try:
                 tf = self._tf_buffer.lookup_transform(target, cloud_frame, rclpy.time.Time())
             except Exception as err:
-                self._warn_throttled("tf", f"TF {target} <- {cloud_frame} unavailable: {err}")
+                self.warn_throttled("tf", f"TF {target} <- {cloud_frame} unavailable: {err}")
             else:
                 t, r = tf.transform.translation, tf.transform.rotation
                 return Extrinsic(np.array([t.x, t.y, t.z]), np.array([r.x, r.y, r.z, r.w]))
@@ -259,47 +254,57 @@ class MfpMapperNode(Node):
 
     # --- inputs ----------------------------------------------------------------------------
 
-    @_tracked
+    @tracked
     def _on_cloud(self, msg: PointCloud2) -> None:
         self.worker.submit(msg)
 
     def _on_clouds_lost(self, info: Any) -> None:
         """The middleware reports clouds that never reached this node (transport losses)."""
         total = self.worker.clouds_lost(info.total_count_change)
-        self._warn_throttled(
+        self.warn_throttled(
             "clouds_lost",
             f"{info.total_count_change} cloud(s) lost in transport before reaching the node "
             f"[{total} so far]",
         )
 
-    @_tracked
+    @tracked
     def _on_odom(self, msg: Odometry) -> None:
         self.worker.add_odometry(odometry_sample(msg))
 
-    @_tracked
+    @tracked
     def _on_publish_timer(self) -> None:
         self.worker.request_publish()
 
     # --- queries and services ----------------------------------------------------------------
 
-    @_tracked
-    def _on_query(self, msg: PointCloud2) -> None:
+    @tracked
+    async def _on_query(self, msg: PointCloud2) -> None:
         frame = msg.header.frame_id
         if frame and frame != self.map_frame:
-            self._warn_throttled(
+            self.warn_throttled(
                 "query_frame",
                 f"hit_probability query in frame {frame!r}, expected the map frame "
-                f"{self.map_frame!r}: not answered",
+                f"{self.map_frame!r}: answered with no point",
                 error=True,
             )
+            self._answer_nothing(msg)
             return
         try:
             points = read_xyz(msg)
         except CloudFormatError as err:
-            self._warn_throttled("query_bad", f"malformed hit_probability query: {err}", error=True)
+            self.warn_throttled("query_bad", f"malformed hit_probability query: {err}", error=True)
+            self._answer_nothing(msg)
             return
-        with self.worker.map_lock:
-            stats = self.mapper.query(points)
+
+        def query() -> Any:
+            with self.worker.map_lock:
+                return self.mapper.query(points)
+
+        try:
+            stats = await self.off_executor(query)
+        except Exception:
+            self._answer_nothing(msg)  # an answer, never silence; the error is logged
+            raise
         self._queries += 1
         columns = {
             "x": points[:, 0],
@@ -313,34 +318,35 @@ class MfpMapperNode(Node):
         }
         self._result_pub.publish(cloud_msg(pack_cloud(columns), frame, msg.header.stamp))
 
-    @_tracked
-    def _on_get_map(self, request: GetMap.Request, response: GetMap.Response) -> GetMap.Response:
-        response.map = self.outputs.grid()
+    def _answer_nothing(self, query: PointCloud2) -> None:
+        empty = pack_cloud({name: np.zeros(0, np.float32) for name in RESULT_FIELDS})
+        self._result_pub.publish(cloud_msg(empty, query.header.frame_id, query.header.stamp))
+
+    @tracked
+    async def _on_get_map(
+        self, request: GetMap.Request, response: GetMap.Response
+    ) -> GetMap.Response:
+        try:
+            response.map = await self.off_executor(self.outputs.grid)
+        except Exception:
+            response.map = OccupancyGrid()  # an empty map, in the map frame: never silence
+            response.map.header.frame_id = self.map_frame
+            response.map.header.stamp = self.get_clock().now().to_msg()
+            raise
         self._maps_served += 1
         return response
 
+    @tracked
     async def _on_save(
         self, request: Trigger.Request, response: Trigger.Response
     ) -> Trigger.Response:
         """Save in a background thread: writing a large map takes seconds, and meanwhile
         the executor keeps taking odometry and clouds (this call resumes when it is done)."""
-        done = rclpy.task.Future()
-
-        def save() -> None:
-            try:
-                done.set_result(self.save_map())
-            except Exception as err:  # an unexpected failure answers the call, never kills spin
-                self.get_logger().error(f"saving the map failed: {err!r}")
-                done.set_result((False, f"saving failed: {err!r}"))
-            finally:
-                self._end_work()
-                self._wake.trigger()
-
-        if not self._begin_work():  # close() waits for the save thread, not for this call
-            response.success, response.message = False, "node is shutting down"
-            return response
-        threading.Thread(target=save, name="mfp_save_map", daemon=True).start()
-        response.success, response.message = await done
+        try:
+            response.success, response.message = await self.off_executor(self.save_map)
+        except Exception as err:  # an unexpected failure answers the call, never kills spin
+            self.get_logger().error(f"saving the map failed: {err!r}")
+            response.success, response.message = False, f"saving failed: {err!r}"
         return response
 
     def save_map(self) -> tuple[bool, str]:
@@ -361,10 +367,13 @@ class MfpMapperNode(Node):
         self.get_logger().info(f"saved {count} voxels to {path!r}")
         return True, f"saved {count} voxels to {path}"
 
-    @_tracked
-    def _on_reset(self, request: Empty.Request, response: Empty.Response) -> Empty.Response:
-        with self.worker.map_lock:
-            self.mapper.reset()
+    @tracked
+    async def _on_reset(self, request: Empty.Request, response: Empty.Response) -> Empty.Response:
+        def reset() -> None:
+            with self.worker.map_lock:
+                self.mapper.reset()
+
+        await self.off_executor(reset)
         self.get_logger().info("map reset")
         return response
 
@@ -372,10 +381,7 @@ class MfpMapperNode(Node):
 
     def status(self) -> dict[str, Any]:
         """Counters and rates since the previous call (also published on ~/status)."""
-        now = time.monotonic()
         c, queued = self.worker.snapshot()
-        t_prev, rays_prev, cpu_prev, wall_prev = self._status_window
-        self._status_window = (now, c.rays_used, c.integration_cpu, c.integration_wall)
         # never wait for a long integration: report the last map figures instead
         if self.worker.map_lock.acquire(timeout=0.05):
             try:
@@ -383,45 +389,19 @@ class MfpMapperNode(Node):
                 self._map_figures = (m.num_voxels, m.memory_bytes, m.version)
             finally:
                 self.worker.map_lock.release()
-        voxels, memory, version = self._map_figures
-        span = max(now - t_prev, 1e-9)
-        n_int = max(c.clouds_integrated, 1)
-        p = self.outputs.counters
-        return {
-            "uptime_s": round(now - self._started, 3),
+        extra = {
+            "uptime_s": round(time.monotonic() - self._started, 3),
             "map_frame": self.map_frame,
-            "clouds_in": c.clouds_in,
-            "clouds_lost": c.clouds_lost,
-            "clouds_integrated": c.clouds_integrated,
-            "clouds_dropped": dict(c.clouds_dropped),
-            "points_in": c.points_in,
-            "points_dropped": dict(c.points_dropped),
-            "queued": queued,
-            "rays_in": c.rays_in,
-            "rays_used": c.rays_used,
-            "rays_truncated": c.rays_truncated,
-            "rays_per_s": round((c.rays_used - rays_prev) / span, 1),
-            "integration_cpu_share": round((c.integration_cpu - cpu_prev) / span, 4),
-            "integration_cpu_s": round(c.integration_cpu, 4),
-            "integration_wall_s": round(c.integration_wall, 4),
-            "latency_last_s": finite_or_none(c.latency_last),
-            "latency_mean_s": c.latency_sum / n_int if c.clouds_integrated else None,
-            "latency_max_s": c.latency_max if c.clouds_integrated else None,
-            "odom_in": c.odom_in,
-            "odom_rejected": dict(c.odom_rejected),
-            "voxels": voxels,
-            "memory_bytes": memory,
-            "map_version": version,
-            "publish_count": p.count,
-            "publish_last_s": round(p.last_seconds, 5),
-            "publish_total_s": round(p.seconds, 4),
-            "publish_locked_total_s": round(p.locked_seconds, 4),
-            "published_voxels": p.voxels,
             "queries": self._queries,
             "maps_served": self._maps_served,
         }
+        report = status_report(
+            c, queued, self._map_figures, self.outputs.counters, self._status_window, extra
+        )
+        self._last_window, self._status_window = self._status_window, next_window(c)
+        return report
 
-    @_tracked
+    @tracked
     def _on_status(self) -> None:
         s = self.status()
         drops = ", ".join(f"{k} {v}" for k, v in sorted(s["clouds_dropped"].items())) or "none"
@@ -432,25 +412,13 @@ class MfpMapperNode(Node):
             f"{100 * s['integration_cpu_share']:.0f}%"
         )
         self._status_pub.publish(String(data=json.dumps(s)))
-
-    def _begin_work(self) -> bool:
-        """Count work in flight that close() must wait for; False once the node closes."""
-        with self._inflight_cv:
-            if self._closing:
-                return False
-            self._inflight += 1
-            return True
-
-    def _end_work(self) -> None:
-        with self._inflight_cv:
-            self._inflight -= 1
-            self._inflight_cv.notify_all()
+        name = f"{self.get_name()}: mapping"
+        stamp = self.get_clock().now().to_msg()
+        self._diag_pub.publish(diagnostics(s, self._last_window, name, self.get_name(), stamp))
 
     def close(self) -> None:
         """Stop the worker; save the map when save_on_shutdown (not over an unreadable file)."""
-        with self._inflight_cv:
-            self._closing = True
-            self._inflight_cv.wait_for(lambda: self._inflight == 0, timeout=10.0)
+        self.wait_idle()
         self.worker.stop()
         if self.cfg.save_on_shutdown:
             if self._load_failed:

@@ -10,6 +10,7 @@ for the map. Everything is counted under the pipeline's names (``pipeline.DROP_R
 
 from __future__ import annotations
 
+import copy
 import math
 import threading
 import time
@@ -150,15 +151,16 @@ class LiveIntegrator:
             return False
         if self.odom_frame is None:
             self.odom_frame, self.odom_child = frame, sample.child_frame_id
-            with self.map_lock:
-                if self.mapper.num_voxels and self.mapper.frame_id != self.map_frame:
-                    self._log(
-                        "map_frame",
-                        f"loaded map is in frame {self.mapper.frame_id!r}, odometry in "
-                        f"{frame!r}: the map is used as if it were in {self.map_frame!r}",
-                        False,
-                    )
-                self.mapper.frame_id = self.map_frame
+            # no map lock here: this runs on the executor, which must never wait for a scan
+            # (a str attribute is replaced atomically; the voxel count only words a warning)
+            if self.mapper.num_voxels and self.mapper.frame_id != self.map_frame:
+                self._log(
+                    "map_frame",
+                    f"loaded map is in frame {self.mapper.frame_id!r}, odometry in "
+                    f"{frame!r}: the map is used as if it were in {self.map_frame!r}",
+                    False,
+                )
+            self.mapper.frame_id = self.map_frame
         self.robot_position = np.asarray(sample.position, dtype=np.float64)
         with self._cv:
             self._cv.notify_all()
@@ -296,11 +298,7 @@ class LiveIntegrator:
     def snapshot(self) -> tuple[LiveCounters, int]:
         """A copy of the counters and the queue length, taken together."""
         with self._cv:
-            c = self.counters
-            copy = LiveCounters(
-                **{k: (Counter(v) if isinstance(v, Counter) else v) for k, v in vars(c).items()}
-            )
-            return copy, len(self._queue)
+            return copy.deepcopy(self.counters), len(self._queue)
 
 
 def finite_or_none(value: float) -> float | None:

@@ -53,7 +53,6 @@ DROP_REASONS: dict[str, str] = {
 """Every reason a whole cloud is dropped, by the live node and the replay alike."""
 
 
-
 class ScanDropped(Exception):
     """A cloud that cannot be mapped; ``reason`` is a key of ``DROP_REASONS``.
 

@@ -9,12 +9,12 @@ messages (``numpy.uint8`` array) and plain ``bytes``.
 from __future__ import annotations
 
 import sys
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, Literal, Protocol
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, DTypeLike, NDArray
 
 INT8 = 1
 UINT8 = 2
@@ -96,16 +96,33 @@ class ParsedCloud:
 
 @dataclass(frozen=True)
 class PackedCloud:
-    """Field list and little-endian bytes of an unorganized cloud (height 1)."""
+    """The layout and bytes of a PointCloud2: what every message type is built from.
+
+    One packer (``pack_records``, ``pack_columns``, ``pack_cloud``) for the node's outputs,
+    the bag writers, the scan files and the tests; the message adapters only copy these
+    attributes into their own type (rclpy, rosbags, ``offline.scan_files.CloudMessage``).
+    """
 
     fields: list[FieldSpec]
     data: bytes
     point_step: int
     width: int
+    height: int = 1
+    is_bigendian: bool = False
 
     @property
     def row_step(self) -> int:
         return self.point_step * self.width
+
+    def layout(self) -> dict[str, Any]:
+        """The PointCloud2 attributes besides header, fields, data and is_dense."""
+        return {
+            "height": self.height,
+            "width": self.width,
+            "is_bigendian": self.is_bigendian,
+            "point_step": self.point_step,
+            "row_step": self.row_step,
+        }
 
 
 def stamp_seconds(header_stamp: Any) -> float:
@@ -260,20 +277,48 @@ def _drop_invalid(
     )
 
 
-def pack_cloud(columns: Mapping[str, Sequence[float] | NDArray[Any]]) -> PackedCloud:
-    """Pack equal-length 1-D columns as consecutive little-endian float32 fields."""
+def pack_records(records: NDArray[Any]) -> PackedCloud:
+    """A cloud holding structured ``records`` ((N,) or (height, width)) byte for byte.
+
+    The dtype's field offsets, itemsize and byte order become the layout, so any driver
+    layout (padding, big-endian, float64, organized clouds) can be reproduced with numpy.
+    """
+    if records.ndim not in (1, 2) or not records.dtype.names:
+        raise ValueError("a cloud needs a 1-D or 2-D structured array")
+    height, width = (1, records.shape[0]) if records.ndim == 1 else records.shape
+    fields, big_endian = point_fields(records.dtype)
+    data = np.ascontiguousarray(records).tobytes()
+    return PackedCloud(fields, data, records.dtype.itemsize, int(width), int(height), big_endian)
+
+
+def pack_columns(
+    columns: Mapping[str, ArrayLike], dtype: DTypeLike | None = None, big_endian: bool = False
+) -> PackedCloud:
+    """Equal-length columns packed in order, each in ``dtype`` or else its own dtype; a 2-D
+    column (N, COUNT) becomes one field of COUNT values (PCD frames)."""
+    if not columns:
+        raise ValueError("a cloud needs at least one column")
+    arrays = {name: np.asarray(values, dtype=dtype) for name, values in columns.items()}
+    lengths = {name: a.shape[0] if a.ndim else None for name, a in arrays.items()}
+    if len(set(lengths.values())) != 1 or None in lengths.values():
+        raise ValueError(f"columns must be of equal length, got {lengths}")
+    order: Literal["<", ">"] = ">" if big_endian else "<"
+    layout = np.dtype([(n, a.dtype.newbyteorder(order), a.shape[1:]) for n, a in arrays.items()])
+    records = np.empty(len(next(iter(arrays.values()))), dtype=layout)
+    for name, values in arrays.items():
+        records[name] = values
+    return pack_records(records)
+
+
+def pack_cloud(columns: Mapping[str, Any]) -> PackedCloud:
+    """Equal-length 1-D columns as consecutive little-endian float32 fields (map outputs)."""
     if not columns:
         raise ValueError("pack_cloud needs at least one column")
-    arrays = {name: np.asarray(values, dtype="<f4") for name, values in columns.items()}
-    shapes = {name: a.shape for name, a in arrays.items()}
-    width = next(iter(arrays.values())).shape[0]
-    if any(shape != (width,) for shape in shapes.values()):
+    shapes = {name: np.shape(values) for name, values in columns.items()}
+    width = next(iter(shapes.values()))
+    if any(len(shape) != 1 or shape != width for shape in shapes.values()):
         raise ValueError(f"pack_cloud columns must be 1-D and of equal length, got {shapes}")
-    packed = np.empty(width, dtype=[(name, "<f4") for name in arrays])
-    for name, values in arrays.items():
-        packed[name] = values
-    fields = [FieldSpec(name, 4 * i, FLOAT32, 1) for i, name in enumerate(arrays)]
-    return PackedCloud(fields, packed.tobytes(), 4 * len(fields), width)
+    return pack_columns(columns, "<f4")
 
 
 def point_fields(dtype: np.dtype[np.void]) -> tuple[list[FieldSpec], bool]:

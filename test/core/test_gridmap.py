@@ -5,10 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from box_world import BoxWorld
+from grid_reference import hit_probability_grid
 
 from mfp_mapper import Mapper
 from mfp_mapper.core import model
-from mfp_mapper.core.gridmap import UNKNOWN, band_mask, hit_probability_grid
+from mfp_mapper.core.gridmap import UNKNOWN, band_mask
 from mfp_mapper.offline.scan_pattern import scan_directions
 
 

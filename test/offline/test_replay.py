@@ -129,8 +129,12 @@ def test_missing_extrinsic_is_an_error_unless_configured(bags, tmp_path: Path) -
 
 def test_unknown_config_parameter_is_an_error(tmp_path: Path) -> None:
     cfg = tmp_path / "bad.yaml"
-    cfg.write_text("resolution: 0.2\nresolutoin: 0.1\n")
+    cfg.write_text("/**:\n  ros__parameters:\n    resolution: 0.2\n    resolutoin: 0.1\n")
     with pytest.raises(ReplayError, match="resolutoin"):
+        options_from_yaml(cfg)
+    # rcl cannot read a file without a node section: neither can --config (a former leniency)
+    cfg.write_text("resolution: 0.2\n")
+    with pytest.raises(ReplayError, match="ros__parameters"):
         options_from_yaml(cfg)
 
 
@@ -212,3 +216,10 @@ def test_progress_line_reports_rate_and_time_left() -> None:
     bar.update(5, 50_000, force=True)
     text = stream.getvalue()
     assert "5/10 scans" in text and "rays/s" in text and "left" in text
+
+
+def test_keep_radius_reaches_the_mapper(bags) -> None:  # type: ignore[no-untyped-def]
+    full = replay(bags["mcap"], ReplayOptions(resolution=RES), progress=False).mapper
+    near = replay(bags["mcap"], ReplayOptions(resolution=RES, keep_radius=1.0), progress=False)
+    assert near.mapper.keep_radius == 1.0 and full.keep_radius is None
+    assert 0 < near.mapper.num_voxels < full.num_voxels

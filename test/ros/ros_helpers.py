@@ -19,8 +19,6 @@ from typing import Any
 
 import numpy as np
 
-from mfp_mapper.sensing.pointcloud import POINTFIELD_DTYPES
-
 ROOT = Path(__file__).resolve().parents[2]
 PARAMS_FILE = ROOT / "config" / "mfp_mapper.yaml"
 
@@ -29,7 +27,6 @@ UINT32 = 6
 UINT16 = 4
 UINT8 = 2
 FLOAT64 = 8
-_NUMPY_TO_DATATYPE = {np.dtype(code): datatype for datatype, code in POINTFIELD_DTYPES.items()}
 
 
 def domain_id() -> int:
@@ -139,34 +136,16 @@ def cloud_from_columns(
     point_step: int | None = None,
     bigendian: bool = False,
 ) -> Any:
-    """A PointCloud2 with one field per column, in the columns' own dtypes (feeder side)."""
-    from sensor_msgs.msg import PointCloud2, PointField
+    """A PointCloud2 with one field per column, in the columns' own dtypes (feeder side);
+    ``point_step`` overrides the packed one (to build malformed clouds)."""
+    from mfp_mapper.ros.messages import cloud_msg
+    from mfp_mapper.sensing.pointcloud import pack_columns
 
-    order = ">" if bigendian else "<"
-    names = list(columns)
-    dtype = np.dtype([(n, np.asarray(columns[n]).dtype.newbyteorder(order)) for n in names])
-    width = len(next(iter(columns.values()))) if columns else 0
-    rec = np.empty(width, dtype=dtype)
-    for n in names:
-        rec[n] = columns[n]
-    msg = PointCloud2()
-    msg.header.frame_id = frame_id
-    msg.header.stamp = stamp_msg(stamp)
-    msg.height = 1
-    msg.width = width
-    msg.fields = [
-        PointField(
-            name=n,
-            offset=dtype.fields[n][1],
-            datatype=_NUMPY_TO_DATATYPE[np.dtype(columns[n].dtype).newbyteorder("=")],
-            count=1,
-        )
-        for n in names
-    ]
-    msg.is_bigendian = bigendian
-    msg.point_step = dtype.itemsize if point_step is None else point_step
-    msg.row_step = msg.point_step * width
-    msg.data = rec.tobytes()
+    packed = pack_columns(columns, big_endian=bigendian)
+    msg = cloud_msg(packed, frame_id, stamp_msg(stamp))
+    if point_step is not None:
+        msg.point_step = point_step
+        msg.row_step = point_step * packed.width
     msg.is_dense = False
     return msg
 

@@ -24,7 +24,6 @@ from ros_helpers import (
     domain_id,
     odom_msg,
     read_cloud,
-    set_ros_env,
     simulate_scan,
 )
 
@@ -116,25 +115,6 @@ class Sim:
     def status(self) -> dict[str, Any]:
         assert self.feeder.status is not None
         return self.feeder.status
-
-
-@pytest.fixture(scope="module")
-def ros_domain() -> Iterator[int]:
-    import rclpy
-
-    domain = domain_id()
-    saved = {k: os.environ.get(k) for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
-    set_ros_env(domain)
-    rclpy.init(domain_id=domain)
-    try:
-        yield domain
-    finally:
-        rclpy.try_shutdown()
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
 
 
 @pytest.fixture(scope="module")

@@ -22,16 +22,44 @@ PKG = "mfp_mapper"
 
 EXEC_DEPENDS = {
     "rclpy",
+    "rcl_interfaces",
+    "builtin_interfaces",
     "sensor_msgs",
     "nav_msgs",
-    "geometry_msgs",
     "std_msgs",
     "std_srvs",
-    "visualization_msgs",
+    "diagnostic_msgs",
+    "tf2_ros_py",
+    "launch",
+    "launch_ros",
+    "ament_index_python",
     "python3-numpy",
     "python3-numba",
     "python3-matplotlib",
+    "python3-yaml",
+    "python3-tqdm",
+    "python3-scipy",
 }
+MODULE_KEYS = {  # third-party module imported -> its rosdep key (None: deliberately not listed)
+    "numpy": "python3-numpy",
+    "numba": "python3-numba",
+    "llvmlite": "python3-numba",  # no key of its own; numba depends on it
+    "matplotlib": "python3-matplotlib",
+    "yaml": "python3-yaml",
+    "tqdm": "python3-tqdm",
+    "scipy": "python3-scipy",
+    "tf2_ros": "tf2_ros_py",  # the Python module of tf2_ros comes with tf2_ros_py
+    "rosbags": None,  # pip only: see the comment in package.xml
+    **{
+        name: name
+        for name in (
+            "rclpy", "rcl_interfaces", "builtin_interfaces", "sensor_msgs", "nav_msgs",
+            "std_msgs", "std_srvs", "diagnostic_msgs", "launch", "launch_ros", "ament_index_python",
+        )
+    },
+}  # fmt: skip
+AHEAD_OF_USE: set[str] = set()
+"""Keys listed before the code that needs them lands."""
 CONSOLE_SCRIPTS = {
     "mfp_mapper": "mfp_mapper.ros.node:main",
     "mfp-mapper": "mfp_mapper.cli:main",
@@ -87,6 +115,37 @@ def test_package_xml_dependencies(package_xml: ET.Element) -> None:
     # rosbags is pip-installed (README), not a rosdep key of this package.
     all_deps = {e.text for e in package_xml.iter() if e.tag.endswith("depend")}
     assert not any("rosbags" in (d or "") for d in all_deps)
+
+
+def _imported_modules() -> set[str]:
+    """Top-level third-party modules imported anywhere in mfp_mapper/ and launch/ (ast)."""
+    stdlib = set(sys.stdlib_module_names) | {"__future__"}
+    found: set[str] = set()
+    for path in [*(ROOT / PKG).rglob("*.py"), *(ROOT / "launch").glob("*.py")]:
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            if isinstance(node, ast.Import):
+                found.update(a.name.split(".")[0] for a in node.names)
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                found.add(node.module.split(".")[0])
+    return found - stdlib - {PKG}
+
+
+def test_package_xml_lists_exactly_what_is_imported(package_xml: ET.Element) -> None:
+    modules = _imported_modules()
+    unknown = modules - set(MODULE_KEYS)
+    assert not unknown, f"imported modules without a rosdep key in MODULE_KEYS: {unknown}"
+    needed = {MODULE_KEYS[m] for m in modules} - {None}
+    listed = set(_texts(package_xml, "exec_depend")) | set(_texts(package_xml, "depend"))
+    assert needed - listed == set(), "imported but not in package.xml"
+    assert listed - needed - AHEAD_OF_USE == set(), "in package.xml but imported nowhere"
+    assert {"rclpy", "launch_ros", "python3-yaml", "python3-numba"} <= needed  # the scan works
+    assert listed >= AHEAD_OF_USE, "a key listed ahead of its use is missing"
+
+
+def test_requirements_hold_the_imported_pypi_packages() -> None:
+    text = (ROOT / "requirements.txt").read_text()
+    assert re.search(r"^PyYAML==", text, re.M), "yaml is imported: pin PyYAML"
+    assert "visualization" not in text and "visualization_msgs" not in _imported_modules()
 
 
 def test_package_xml_validates_with_catkin_pkg() -> None:

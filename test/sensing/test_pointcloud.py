@@ -367,16 +367,11 @@ def test_rclpy_message() -> None:
     msg_module = pytest.importorskip("sensor_msgs.msg", reason="ROS 2 sensor_msgs not installed")
     records = ouster_records(8, 32)
     source = cloud_message(records, STAMP)
-    msg = msg_module.PointCloud2()
-    msg.header.stamp.sec, msg.header.stamp.nanosec = source.header.stamp.sec, 250_000_000
-    msg.height, msg.width = source.height, source.width
-    msg.fields = [
-        msg_module.PointField(name=f.name, offset=f.offset, datatype=f.datatype, count=f.count)
-        for f in source.fields
-    ]
-    msg.is_bigendian = False
-    msg.point_step, msg.row_step = source.point_step, source.row_step
-    msg.data = source.data
+    from mfp_mapper.ros.messages import cloud_msg
+
+    stamp = msg_module.PointCloud2().header.stamp
+    stamp.sec, stamp.nanosec = source.header.stamp.sec, 250_000_000
+    msg = cloud_msg(pc.pack_records(records), "lidar", stamp)
     cloud = parse_pointcloud2(msg)
     np.testing.assert_array_equal(cloud.xyz, expected_columns(records))
     assert pc.stamp_seconds(msg.header.stamp) == STAMP
@@ -388,6 +383,7 @@ def test_rosbags_message_after_cdr_round_trip(shared_data: Path) -> None:
     types = store.types
     path = next(p for p in nebula_frames(shared_data) if "time_stamp" in read_pcd(p))
     source = cloud_message_from_columns(read_pcd(path), stamp=STAMP)
+    packed = pc.pack_columns(read_pcd(path))
     msg = types["sensor_msgs/msg/PointCloud2"](
         header=types["std_msgs/msg/Header"](
             stamp=types["builtin_interfaces/msg/Time"](
@@ -395,19 +391,15 @@ def test_rosbags_message_after_cdr_round_trip(shared_data: Path) -> None:
             ),
             frame_id="lidar",
         ),
-        height=source.height,
-        width=source.width,
         fields=[
             types["sensor_msgs/msg/PointField"](
                 name=f.name, offset=f.offset, datatype=f.datatype, count=f.count
             )
-            for f in source.fields
+            for f in packed.fields
         ],
-        is_bigendian=False,
-        point_step=source.point_step,
-        row_step=source.row_step,
-        data=np.frombuffer(source.data, dtype=np.uint8),
+        data=np.frombuffer(packed.data, dtype=np.uint8),
         is_dense=True,
+        **packed.layout(),
     )
     raw = store.serialize_cdr(msg, "sensor_msgs/msg/PointCloud2")
     decoded = store.deserialize_cdr(raw, "sensor_msgs/msg/PointCloud2")
@@ -427,16 +419,8 @@ def test_pack_cloud_round_trip() -> None:
     assert packed.point_step == 16 and packed.width == 100 and packed.row_step == 1600
     assert [(f.name, f.offset, f.datatype, f.count) for f in packed.fields][3] == ("doo", 12, 7, 1)
     assert len(packed.data) == 1600
-    msg = CloudMessage(
-        header=cloud_message(velodyne_records(1, 22)).header,
-        height=1,
-        width=packed.width,
-        fields=packed.fields,
-        is_bigendian=False,
-        point_step=packed.point_step,
-        row_step=packed.row_step,
-        data=packed.data,
-    )
+    header = cloud_message(velodyne_records(1, 22)).header
+    msg = CloudMessage(header=header, fields=packed.fields, data=packed.data, **packed.layout())
     np.testing.assert_array_equal(parse_pointcloud2(msg).xyz, xyz)
 
 

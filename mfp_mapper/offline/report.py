@@ -1,0 +1,91 @@
+"""What the CLI prints: simulation lines, voxel query rows, JSON-safe values."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mfp_mapper.core import model
+from mfp_mapper.core.mapper import Mapper
+
+
+def jsonable(value: Any) -> Any:
+    """``value`` with tuples as lists, numpy scalars as Python numbers, inf/nan as None."""
+    if isinstance(value, dict):
+        return {k: jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [jsonable(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if hasattr(value, "item"):
+        return jsonable(value.item())
+    return value
+
+
+def simulation_lines(result: Any) -> list[str]:
+    """What a simulation wrote: bag, truth, media, rays without return."""
+    t = result.truth
+    rays = t["rays"]
+    lines = [
+        f"bag          {result.bag} ({t['storage']}, {t['scans']} scans, {rays['rays']:,} rays)",
+        f"truth        {result.truth_path}",
+    ]
+    for m in t["scene"]["media"]:
+        lines.append(
+            f"medium       {m['name']}: extinction {m['extinction']:g} /m in {m['lo']}..{m['hi']}"
+        )
+    if rays["omitted"]:
+        lines.append(
+            f"no return    {rays['omitted']:,} rays left the scene and are not in the bag "
+            f"({rays['omitted_through_media']:,} of them crossed a medium)"
+        )
+    return lines
+
+
+def query_rows(mapper: Mapper, points: NDArray[np.float64]) -> list[dict[str, Any]]:
+    """The statistics of the voxel holding each point (90% credible DoO interval included)."""
+    st = mapper.query(points)
+    lo, hi = model.doo_interval(st.s, st.n, 0.9)
+    return [
+        {
+            "point": points[k].tolist(),
+            "voxel": st.ijk[k].tolist(),
+            "observed": bool(st.observed[k]),
+            "n": float(st.n[k]),
+            "s": float(st.s[k]),
+            "degree_of_occupancy": float(st.most_likely_doo[k]),
+            "mean_degree_of_occupancy": float(st.mean_doo[k]),
+            "std": float(st.std[k]),
+            "doo_interval_90": [float(lo[k]), float(hi[k])],
+            "hit_probability": float(st.hit_probability[k]),
+            "mean_free_path": float(st.mean_free_path[k]),
+        }
+        for k in range(len(st))
+    ]
+
+
+def query_lines(rows: list[dict[str, Any]]) -> list[str]:
+    """One line per ``query_rows`` row."""
+    lines = []
+    for row in rows:
+        x, y, z = row["point"]
+        head = f"({x:.2f}, {y:.2f}, {z:.2f}) voxel {tuple(row['voxel'])}: "
+        if not row["observed"]:
+            lines.append(
+                head + f"unknown (never observed; prior DoO {model.UNKNOWN_DOO:g}, "
+                f"std {model.UNKNOWN_STD:.3f})"
+            )
+            continue
+        mfp = row["mean_free_path"]
+        lines.append(
+            head
+            + f"DoO {row['degree_of_occupancy']:.3f} (mean {row['mean_degree_of_occupancy']:.3f}"
+            f", std {row['std']:.3f}, 90% [{row['doo_interval_90'][0]:.3f}, "
+            f"{row['doo_interval_90'][1]:.3f}]), p_hit {row['hit_probability']:.3f}, "
+            f"n {row['n']:g}, s {row['s']:.2f} m, mean free path "
+            + (f"{mfp:.2f} m" if math.isfinite(mfp) else "inf")
+        )
+    return lines

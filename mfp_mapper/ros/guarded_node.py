@@ -1,0 +1,132 @@
+"""A ROS 2 node whose callbacks can neither kill its executor nor outlive it.
+
+- ``tracked``: a callback counted in flight (``close`` waits for it), and no exception
+  leaves it: it is logged (throttled) and a service answers with its response.
+- ``off_executor``: a job run in a thread and awaited, so the executor keeps serving other
+  callbacks meanwhile (service callbacks that need the map while a long scan holds it).
+- ``warn_throttled``: one log line per key every few seconds.
+"""
+
+from __future__ import annotations
+
+import functools
+import inspect
+import math
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import rclpy.task
+from rclpy.node import Node
+
+THROTTLE_S = 5.0
+
+
+def tracked(callback: Callable[..., Any]) -> Callable[..., Any]:
+    """Count a ROS callback as in flight, so close() can wait for it (rclpy's executor
+    shutdown does not wait for running callbacks, and destroying a node under a running
+    callback can crash the process). Callbacks that start after close() do nothing.
+
+    No exception leaves a callback (it would end ``spin()`` and the node): it is logged and
+    a service answers with its (default or error) response.
+    """
+
+    def fallback(args: tuple[Any, ...]) -> Any:
+        return args[-1] if len(args) == 2 else None  # a service returns its response
+
+    if inspect.iscoroutinefunction(callback):
+
+        @functools.wraps(callback)
+        async def run_async(self: GuardedNode, *args: Any) -> Any:
+            try:
+                return await callback(self, *args)
+            except Exception as err:
+                self._callback_failed(callback.__name__, err)
+                return fallback(args)
+
+        return run_async
+
+    @functools.wraps(callback)
+    def run(self: GuardedNode, *args: Any) -> Any:
+        if not self._begin_work():
+            return fallback(args)
+        try:
+            return callback(self, *args)
+        except Exception as err:
+            self._callback_failed(callback.__name__, err)
+            return fallback(args)
+        finally:
+            self._end_work()
+
+    return run
+
+
+class GuardedNode(Node):
+    """A Node with ``tracked`` callbacks, ``off_executor`` jobs and throttled logs."""
+
+    def __init__(self, name: str, **kwargs: Any) -> None:
+        super().__init__(name, **kwargs)
+        self._warned: dict[str, float] = {}
+        self._closing = False
+        self._inflight = 0
+        self._inflight_cv = threading.Condition()
+        # wakes the executor when a background job finishes (its call resumes)
+        self._wake = self.create_guard_condition(lambda: None)
+
+    def warn_throttled(self, key: str, text: str, error: bool = False) -> None:
+        now = time.monotonic()
+        if now - self._warned.get(key, -math.inf) < THROTTLE_S:
+            return
+        self._warned[key] = now
+        # rclpy ties one severity to each call site: keep the two calls apart
+        if error:
+            self.get_logger().error(text)
+        else:
+            self.get_logger().warning(text)
+
+    def _callback_failed(self, name: str, err: Exception) -> None:
+        self.warn_throttled(
+            f"callback_{name}", f"{name} failed: {type(err).__name__}: {err}", error=True
+        )
+
+    async def off_executor(self, job: Callable[[], Any]) -> Any:
+        """Run ``job`` in a thread and await it: the executor serves other callbacks
+        meanwhile. Its exception is raised here."""
+        done = rclpy.task.Future()
+
+        def run() -> None:
+            try:
+                done.set_result((True, job()))
+            except Exception as err:
+                done.set_result((False, err))
+            finally:
+                self._end_work()
+                self._wake.trigger()
+
+        if not self._begin_work():  # close() waits for the thread, not for this call
+            raise RuntimeError("the node is shutting down")
+        threading.Thread(target=run, name="mfp_service", daemon=True).start()
+        ok, value = await done
+        if not ok:
+            raise value
+        return value
+
+    def _begin_work(self) -> bool:
+        """Count work in flight that close() must wait for; False once the node closes."""
+        with self._inflight_cv:
+            if self._closing:
+                return False
+            self._inflight += 1
+            return True
+
+    def _end_work(self) -> None:
+        with self._inflight_cv:
+            self._inflight -= 1
+            self._inflight_cv.notify_all()
+
+    def wait_idle(self, timeout: float = 10.0) -> None:
+        """Refuse new callbacks and wait for those in flight (and their jobs)."""
+        with self._inflight_cv:
+            self._closing = True
+            self._inflight_cv.wait_for(lambda: self._inflight == 0, timeout=timeout)

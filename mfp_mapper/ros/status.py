@@ -1,0 +1,132 @@
+"""The node's health: the ``~/status`` JSON counters and the ``/diagnostics`` entry."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+from mfp_mapper.ros.map_outputs import PublishCounters
+from mfp_mapper.sensing.live import LiveCounters, finite_or_none
+
+
+@dataclass
+class StatusWindow:
+    """The counters at the previous report, for rates and "since last time"."""
+
+    time: float
+    rays_used: int = 0
+    cpu: float = 0.0
+    clouds_in: int = 0
+    clouds_integrated: int = 0
+    clouds_dropped: int = 0
+    clouds_lost: int = 0
+
+
+def status_report(
+    c: LiveCounters,
+    queued: int,
+    map_figures: tuple[int, int, int],
+    publish: PublishCounters,
+    window: StatusWindow,
+    extra: dict[str, Any],
+) -> dict[str, Any]:
+    """The ``~/status`` dictionary (counters, rates since ``window``, map figures)."""
+    now = time.monotonic()
+    voxels, memory, version = map_figures
+    span = max(now - window.time, 1e-9)
+    n_int = max(c.clouds_integrated, 1)
+    return {
+        **extra,
+        "clouds_in": c.clouds_in,
+        "clouds_lost": c.clouds_lost,
+        "clouds_integrated": c.clouds_integrated,
+        "clouds_dropped": dict(c.clouds_dropped),
+        "points_in": c.points_in,
+        "points_dropped": dict(c.points_dropped),
+        "queued": queued,
+        "rays_in": c.rays_in,
+        "rays_used": c.rays_used,
+        "rays_truncated": c.rays_truncated,
+        "rays_per_s": round((c.rays_used - window.rays_used) / span, 1),
+        "integration_cpu_share": round((c.integration_cpu - window.cpu) / span, 4),
+        "integration_cpu_s": round(c.integration_cpu, 4),
+        "integration_wall_s": round(c.integration_wall, 4),
+        "latency_last_s": finite_or_none(c.latency_last),
+        "latency_mean_s": c.latency_sum / n_int if c.clouds_integrated else None,
+        "latency_max_s": c.latency_max if c.clouds_integrated else None,
+        "odom_in": c.odom_in,
+        "odom_rejected": dict(c.odom_rejected),
+        "voxels": voxels,
+        "memory_bytes": memory,
+        "map_version": version,
+        "publish_count": publish.count,
+        "publish_last_s": round(publish.last_seconds, 5),
+        "publish_total_s": round(publish.seconds, 4),
+        "publish_locked_total_s": round(publish.locked_seconds, 4),
+        "published_voxels": publish.voxels,
+    }
+
+
+def next_window(c: LiveCounters) -> StatusWindow:
+    return StatusWindow(
+        time.monotonic(),
+        c.rays_used,
+        c.integration_cpu,
+        c.clouds_in,
+        c.clouds_integrated,
+        sum(c.clouds_dropped.values()),
+        c.clouds_lost,
+    )
+
+
+def health(status: dict[str, Any], window: StatusWindow) -> tuple[bytes, str]:
+    """Level (DiagnosticStatus OK, WARN or ERROR) and message for the last window."""
+    arrived = status["clouds_in"] - window.clouds_in
+    integrated = status["clouds_integrated"] - window.clouds_integrated
+    dropped = sum(status["clouds_dropped"].values()) - window.clouds_dropped
+    lost = status["clouds_lost"] - window.clouds_lost
+    if arrived == 0:
+        return DiagnosticStatus.WARN, "no cloud received"
+    if integrated == 0:
+        reasons = ", ".join(f"{k} {v}" for k, v in sorted(status["clouds_dropped"].items()))
+        return (
+            DiagnosticStatus.ERROR,
+            f"{arrived} clouds received, none integrated (drops so far: {reasons or 'none'})",
+        )
+    if dropped or lost:
+        return (
+            DiagnosticStatus.WARN,
+            f"{integrated} of {arrived} clouds integrated, {dropped} dropped, {lost} lost",
+        )
+    return DiagnosticStatus.OK, f"{integrated} clouds integrated"
+
+
+def diagnostics(
+    status: dict[str, Any], window: StatusWindow, name: str, hardware_id: str, stamp: Any
+) -> DiagnosticArray:
+    """A ``/diagnostics`` message with one status: the node's health and its counters."""
+    level, message = health(status, window)
+    entry = DiagnosticStatus(
+        level=level,
+        name=name,
+        message=message,
+        hardware_id=hardware_id,
+        values=[
+            KeyValue(key=key, value=str(value))
+            for key, value in status.items()
+            if not isinstance(value, dict)
+        ]
+        + [
+            KeyValue(key=f"{key}.{sub}", value=str(v))
+            for key, value in status.items()
+            if isinstance(value, dict)
+            for sub, v in sorted(value.items())
+        ],
+    )
+    out = DiagnosticArray()
+    out.header.stamp = stamp
+    out.status = [entry]
+    return out

@@ -1,0 +1,49 @@
+"""Heavy imports stay lazy: ``import mfp_mapper``, ``import mfp_mapper.cli`` and
+``mfp-mapper --help`` load no numba (its import compiles a probe kernel), no ROS, no bag
+reader and no plotting (checked in a fresh interpreter)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+HEAVY = ("numba", "llvmlite", "rclpy", "rosbags", "matplotlib", "scipy", "yaml")
+
+HELP = "import mfp_mapper.cli as c\ntry:\n    c.main({argv!r})\nexcept SystemExit:\n    pass"
+PROBE = """
+import json, sys
+{code}
+print(json.dumps(sorted({{m.split(".")[0] for m in sys.modules}} & set({heavy!r}))))
+"""
+
+
+def _heavy_modules_after(code: str) -> list[str]:
+    script = PROBE.format(code=code, heavy=HEAVY)
+    proc = subprocess.run(
+        [sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=120
+    )
+    assert proc.returncode == 0, proc.stderr
+    return list(json.loads(proc.stdout.strip().splitlines()[-1]))
+
+
+@pytest.mark.parametrize(
+    "code",
+    [
+        "import mfp_mapper",
+        "import mfp_mapper.cli",
+        "import mfp_mapper.settings",
+        HELP.format(argv=["--help"]),
+        HELP.format(argv=["replay", "--help"]),
+    ],
+)
+def test_light_entry_points_import_nothing_heavy(code: str) -> None:
+    assert _heavy_modules_after(code) == []
+
+
+def test_the_probe_sees_heavy_imports() -> None:
+    assert {"numba", "llvmlite"} <= set(_heavy_modules_after("import mfp_mapper.core.traversal"))
