@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterator
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -64,7 +65,7 @@ def replay_folder(
 
     def clouds() -> Iterator[tuple[int, Callable[[], Any]]]:
         for index in range(len(folder)):
-            yield index, lambda index=index: folder.message(index)
+            yield index, partial(folder.message, index)
 
     map_scans(clouds(), found, lambda _: extrinsic, opts, mapper, summary, progress, log, on_scan)
     return ReplayResult(mapper, summary)
@@ -83,7 +84,7 @@ def folder_poses(
         from mfp_mapper.offline.lidar_odometry import odometry_poses
 
         return odometry_poses(
-            ((scan.stamp, lambda k=k: folder.message(k)) for k, scan in enumerate(folder.scans)),
+            ((scan.stamp, partial(folder.message, k)) for k, scan in enumerate(folder.scans)),
             opts,
             folder.frame_id,
             len(folder),

@@ -30,7 +30,7 @@ MAP_FRAME = "kiss_icp_map"
 
 def kiss_icp_available() -> bool:
     try:
-        import kiss_icp  # noqa: F401
+        import kiss_icp  # type: ignore[import-untyped]  # noqa: F401
     except ImportError:
         return False
     return True
@@ -38,8 +38,8 @@ def kiss_icp_available() -> bool:
 
 def _kiss(opts: Any, deskew: bool) -> Any:
     try:
-        from kiss_icp.config import KISSConfig
-        from kiss_icp.kiss_icp import KissICP
+        from kiss_icp.config import KISSConfig  # type: ignore[import-untyped]
+        from kiss_icp.kiss_icp import KissICP  # type: ignore[import-untyped]
     except ImportError:
         raise ReplayError(
             "--odometry kiss-icp needs the Python package kiss-icp: pip install kiss-icp "

@@ -76,10 +76,10 @@ def write_nav2_map(
     if grid.data.size == 0:
         raise ValueError(f"no observed voxel in the band [{z_min}, {z_max}] m: no map")
     occupancy = occupancy_from_grid(grid, occupied_threshold, free_threshold)
-    pixels = np.full(occupancy.shape, UNKNOWN_PIXEL, dtype=np.uint8)
+    pixels: NDArray[np.uint8] = np.full(occupancy.shape, UNKNOWN_PIXEL, dtype=np.uint8)
     pixels[occupancy == 100] = OCCUPIED_PIXEL
     pixels[occupancy == 0] = FREE_PIXEL
-    height, width = pixels.shape
+    height, width = occupancy.shape[0], occupancy.shape[1]
     with atomic_output(image_path) as f:
         f.write(f"P5\n# mfp_mapper {mapper.frame_id}\n{width} {height}\n255\n".encode("ascii"))
         f.write(np.flipud(pixels).tobytes())

@@ -20,6 +20,7 @@ import math
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -206,7 +207,7 @@ def _replay(
 
     def clouds() -> Iterator[tuple[int, Callable[[], Any]]]:
         for index, (conn, _, raw) in enumerate(reader.messages(connections=cloud_conns)):
-            yield index, lambda conn=conn, raw=raw: reader.deserialize(raw, conn.msgtype)
+            yield index, partial(reader.deserialize, raw, conn.msgtype)
 
     def extrinsic_of(frame: str) -> Extrinsic:
         if frame not in extrinsics:
@@ -375,7 +376,7 @@ def _estimated_poses(
     first = next(reader.messages(connections=cloud_conns))
     cloud_frame = frame_name(reader.deserialize(first[2], first[0].msgtype).header.frame_id)
     clouds = (
-        (None, lambda conn=conn, raw=raw: reader.deserialize(raw, conn.msgtype))
+        (None, partial(reader.deserialize, raw, conn.msgtype))
         for conn, _, raw in reader.messages(connections=cloud_conns)
     )
     total = sum(c.msgcount for c in cloud_conns)

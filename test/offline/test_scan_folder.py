@@ -36,7 +36,8 @@ def test_ply_round_trip(tmp_path: Path, binary: bool) -> None:
 
 def test_bad_ply(tmp_path: Path) -> None:
     path = tmp_path / "b.ply"
-    path.write_bytes(b"ply\nformat binary_big_endian 1.0\nelement vertex 1\nproperty float x\nend_header\n")
+    header = "ply\nformat binary_big_endian 1.0\nelement vertex 1\nproperty float x\nend_header\n"
+    path.write_bytes(header.encode())
     with pytest.raises(DatasetFormatError, match="binary_big_endian"):
         read_ply(path)
     write_ply(path, COLUMNS)
