@@ -120,4 +120,5 @@ def folder_poses(
             f"{path}: {kind.upper()} poses are matched by time, but the scans have no stamps "
             "(give a times file with --times, or name the files by their time)"
         )
-    return Poses(buffer, folder.frame_id, "world", f"{path} ({kind.upper()}, T_world_lidar)")
+    what = "odometry CSV, T_map_body" if kind == "csv" else f"{kind.upper()}, T_world_lidar"
+    return Poses(buffer, folder.frame_id, "world", f"{path} ({what})")
