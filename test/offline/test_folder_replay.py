@@ -163,3 +163,18 @@ def test_matrix_to_quaternion_round_trip() -> None:
     q[:4] = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
     back = matrix_to_quaternion(quaternion_to_matrix(q))
     np.testing.assert_allclose(np.abs(np.sum(back * q, axis=1)), 1.0, atol=1e-12)
+
+
+def test_kiss_icp_missing_is_a_clear_error(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import sys
+
+    monkeypatch.setitem(sys.modules, "kiss_icp.config", None)  # import raises ImportError
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    for k in range(2):
+        xyz = {"x": np.full(4, 3.0, "<f4"), "y": np.arange(4, dtype="<f4"), "z": np.zeros(4, "<f4")}
+        write_pcd(folder / f"{k}.pcd", xyz)
+    with pytest.raises(
+        ReplayError, match="needs the Python package kiss-icp: pip install kiss-icp"
+    ):
+        replay_folder(folder, None, ReplayOptions(odometry="kiss-icp"), progress=False)
