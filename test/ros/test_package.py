@@ -50,6 +50,7 @@ MODULE_KEYS = {  # third-party module imported -> its rosdep key (None: delibera
     "scipy": "python3-scipy",
     "tf2_ros": "tf2_ros_py",  # the Python module of tf2_ros comes with tf2_ros_py
     "rosbags": None,  # pip only: see the comment in package.xml
+    "kiss_icp": None,  # optional, pip only (replay --odometry kiss-icp): see package.xml
     **{
         name: name
         for name in (
