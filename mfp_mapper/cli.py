@@ -390,7 +390,9 @@ def _export_band(mapper: Any, args: argparse.Namespace) -> tuple[float, float]:
     """The height band of a 2D output: given, else the render's band from the data."""
     from mfp_mapper.offline.render import BAND_HEIGHT, top_down_band
 
-    lo, hi = top_down_band(mapper.voxels()) if args.z_min is None or args.z_max is None else (0, 0)
+    needed = args.z_min is None or args.z_max is None
+    # the band comes from the occupied voxels only (filtered in compiled code)
+    lo, hi = top_down_band(mapper.voxels(min_doo=0.5)) if needed else (0.0, 0.0)
     z_min = args.z_min if args.z_min is not None else lo
     z_max = (
         args.z_max
