@@ -1,6 +1,7 @@
 """mfp_mapper: lidar mapping with the mean-free-path (degree of occupancy) model.
 
-The public API (``Mapper``, ``VoxelStats``, ``IntegrationSummary``, ``MapFileError``) is
+The public API (``Mapper``, ``VoxelStats``, ``IntegrationSummary``, ``MapFileError``,
+``CoreError``, ``ScanTooLargeError``) is
 imported lazily, so ``import mfp_mapper`` and ``mfp-mapper --help`` do not load numba.
 """
 
@@ -10,10 +11,18 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from mfp_mapper.core.errors import CoreError, ScanTooLargeError
     from mfp_mapper.core.mapfile import MapFileError
     from mfp_mapper.core.mapper import IntegrationSummary, Mapper, VoxelStats
 
-__all__ = ["IntegrationSummary", "MapFileError", "Mapper", "VoxelStats"]
+__all__ = [
+    "CoreError",
+    "IntegrationSummary",
+    "MapFileError",
+    "Mapper",
+    "ScanTooLargeError",
+    "VoxelStats",
+]
 __version__ = "0.2.0"
 
 _LAZY = {
@@ -21,6 +30,8 @@ _LAZY = {
     "Mapper": "mfp_mapper.core.mapper",
     "VoxelStats": "mfp_mapper.core.mapper",
     "MapFileError": "mfp_mapper.core.mapfile",
+    "CoreError": "mfp_mapper.core.errors",
+    "ScanTooLargeError": "mfp_mapper.core.errors",
 }
 
 

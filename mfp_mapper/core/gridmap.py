@@ -23,8 +23,7 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
-from mfp_mapper.core.model import hit_probability_one
-from mfp_mapper.core.store import (
+from mfp_mapper.core.blocks import (
     BLOCK_EDGE,
     BLOCK_VOXELS,
     IndexBox,
@@ -33,6 +32,7 @@ from mfp_mapper.core.store import (
     local_coords,
     voxel_inside,
 )
+from mfp_mapper.core.model import hit_probability_one
 
 UNKNOWN = -1
 

@@ -3,42 +3,57 @@
 An ``.npz`` archive (never pickles) holding
 
 =============  ==============  ===================================================
-``ijk``        int32 (N, 3)    voxel index = floor(coordinate / resolution), map frame
+``ijk``        int32 (N, 3)    voxel index relative to ``origin``:
+                               floor((coordinate - origin) / resolution), map frame
 ``s``          float64 (N,)    metres travelled by rays inside the voxel
 ``n``          float64 (N,)    first returns inside the voxel (real after decay)
 ``t_last``     float64 (N,)    time (s) the statistics refer to (last update)
 ``resolution`` float64 ()      voxel edge, metres
+``origin``     float64 (3,)    map-frame position of the corner of voxel (0, 0, 0),
+                               metres (version 2; absent in version 1: zero)
 ``decay_time`` float64 ()      time constant, seconds (inf = static map)
 ``frame_id``   str ()          the map frame
 ``format``     str ()          ``"mfp_mapper.map"``
-``version``    int64 ()        file format version (1)
+``version``    int64 ()        file format version (2)
 =============  ==============  ===================================================
 
-plus ``max_range`` and ``min_range`` (float64, metres). Files are written to a temporary
-file in the same folder, flushed, and renamed over the target, so a reader never sees a
-half-written map.
+plus ``max_range`` and ``min_range`` (float64, metres). The centre of voxel ``ijk`` is
+``origin + (ijk + 0.5) * resolution`` (map frame, metres). Every voxel is listed once, in no
+particular order. Files are written atomically (``core.atomic``).
+
+Reading checks the archive before allocating: the arrays' shapes and dtypes from their
+``.npy`` headers, sizes against the archive's own sizes; then the values: resolution in
+[``MIN_RESOLUTION``, ``MAX_RESOLUTION``], indices within the store's range, no voxel twice
+(checked while the voxels are stored, in compiled code).
 """
 
 from __future__ import annotations
 
+import math
 import zipfile
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
+from numpy.typing import NDArray
 
 from mfp_mapper.core.atomic import atomic_output
-from mfp_mapper.core.store import VoxelArrays
-
-if TYPE_CHECKING:
-    from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.core.errors import CoreError
+from mfp_mapper.core.store import MAX_VOXEL_INDEX, VoxelArrays
 
 FORMAT_NAME = "mfp_mapper.map"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 REQUIRED_KEYS = ("ijk", "s", "n", "t_last", "resolution", "decay_time", "frame_id")
+MIN_RESOLUTION = 1e-3
+"""Smallest voxel edge (metres) a map may have."""
+MAX_RESOLUTION = 1e3
+"""Largest voxel edge (metres) a map may have."""
+_MAX_DEFLATE_RATIO = 1100  # deflate cannot expand data more than ~1032 times
+_SCALARS = {"resolution": "f", "decay_time": "f", "max_range": "f", "min_range": "f"}
 
 
-class MapFileError(ValueError):
+class MapFileError(CoreError, ValueError):
     """A map file that cannot be read: names the file and what is wrong with it."""
 
     def __init__(self, path: str | Path, problem: str) -> None:
@@ -47,21 +62,51 @@ class MapFileError(ValueError):
         self.problem = problem
 
 
-def write_map(path: str | Path, mapper: Mapper) -> None:
+class MapSource(Protocol):
+    """What ``map_arrays`` reads from a map (``Mapper`` is one)."""
+
+    resolution: float
+    decay_time: float
+    max_range: float
+    min_range: float
+    frame_id: str
+
+    @property
+    def origin(self) -> tuple[float, float, float] | None: ...
+
+    def voxels(self) -> Any: ...
+
+
+@dataclass
+class MapContents:
+    """A map file's contents, checked: settings and voxels."""
+
+    resolution: float
+    origin: tuple[float, float, float]
+    decay_time: float
+    frame_id: str
+    ranges: dict[str, float]
+    """``max_range`` and ``min_range`` where the file has them."""
+    voxels: VoxelArrays
+
+
+def write_map(path: str | Path, mapper: MapSource) -> None:
     """Write ``mapper`` to ``path`` (.npz) atomically."""
     write_map_arrays(path, map_arrays(mapper))
 
 
-def map_arrays(mapper: Mapper) -> dict[str, np.ndarray]:
+def map_arrays(mapper: MapSource) -> dict[str, np.ndarray]:
     """The arrays of the map file: a snapshot, independent of the mapper afterwards (so a
     caller can take it under a lock and compress and write it outside)."""
     voxels = mapper.voxels()
+    origin = mapper.origin if mapper.origin is not None else (0.0, 0.0, 0.0)
     return {
         "ijk": voxels.ijk.astype(np.int32, copy=False),
         "s": voxels.s.astype(np.float64, copy=False),
         "n": voxels.n.astype(np.float64, copy=False),
         "t_last": voxels.t_last.astype(np.float64, copy=False),
         "resolution": np.float64(mapper.resolution),
+        "origin": np.array(origin, dtype=np.float64),
         "decay_time": np.float64(mapper.decay_time),
         "max_range": np.float64(mapper.max_range),
         "min_range": np.float64(mapper.min_range),
@@ -88,81 +133,113 @@ def write_map_arrays(path: str | Path, arrays: dict[str, Any]) -> None:
                 np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
 
 
-def read_map(path: str | Path, **overrides: object) -> Mapper:
-    """Read a map file into a new Mapper; ``overrides`` replace stored constructor settings."""
-    from mfp_mapper.core.mapper import Mapper
-
-    arrays = _read_arrays(Path(path))
-    settings: dict[str, object] = {
-        "resolution": float(arrays["resolution"]),
-        "decay_time": float(arrays["decay_time"]),
-        "frame_id": str(arrays["frame_id"]),
-    }
-    for key in ("max_range", "min_range"):
-        if key in arrays:
-            settings[key] = float(arrays[key])
-    settings.update(overrides)
-    if settings["resolution"] != float(arrays["resolution"]):
-        raise MapFileError(
-            path, f"stored resolution {float(arrays['resolution'])} cannot be changed"
-        )
-    try:
-        mapper = Mapper(**settings)  # type: ignore[arg-type]
-    except ValueError as err:
-        raise MapFileError(path, f"invalid settings: {err}") from err
-    mapper._assign(VoxelArrays(arrays["ijk"], arrays["s"], arrays["n"], arrays["t_last"]))
-    return mapper
-
-
-def _read_arrays(path: Path) -> dict[str, np.ndarray]:
+def read_map_file(path: str | Path) -> MapContents:
+    """Read and check a map file; raises ``MapFileError`` naming the file and the problem."""
+    path = Path(path)
     if not path.is_file():
         raise MapFileError(path, "no such file")
     try:
-        with np.load(path, allow_pickle=False) as archive:
-            missing = [k for k in REQUIRED_KEYS if k not in archive.files]
-            if missing:
-                raise MapFileError(path, f"not an mfp_mapper map: missing {', '.join(missing)}")
-            arrays = {k: archive[k] for k in archive.files}
+        with zipfile.ZipFile(path) as archive:
+            headers = _check_headers(path, archive)
+            arrays = {}
+            for name in headers:
+                with archive.open(f"{name}.npy") as member:
+                    arrays[name] = np.lib.format.read_array(member, allow_pickle=False)
     except MapFileError:
         raise
     except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as err:
         raise MapFileError(
             path, f"unreadable or truncated map file ({type(err).__name__}: {err})"
         ) from err
-    _validate(path, arrays)
-    return arrays
+    return _contents(path, arrays)
 
 
-def _validate(path: Path, a: dict[str, np.ndarray]) -> None:
+def _check_headers(
+    path: Path, archive: zipfile.ZipFile
+) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
+    """Shapes and dtypes of the members, checked before any array is read."""
+    headers: dict[str, tuple[tuple[int, ...], np.dtype]] = {}
+    for info in archive.infolist():
+        if not info.filename.endswith(".npy"):
+            continue
+        with archive.open(info) as member:
+            version = np.lib.format.read_magic(member)
+            if version == (1, 0):
+                shape, _, dtype = np.lib.format.read_array_header_1_0(member)
+            else:
+                shape, _, dtype = np.lib.format.read_array_header_2_0(member)
+        name = info.filename[: -len(".npy")]
+        if dtype.hasobject:
+            raise MapFileError(path, f"unreadable or truncated map file ({name} holds objects)")
+        nbytes = math.prod(shape) * dtype.itemsize
+        limit = min(info.file_size, _MAX_DEFLATE_RATIO * info.compress_size + (1 << 20))
+        if nbytes > limit:
+            raise MapFileError(
+                path, f"{name} claims {nbytes} bytes ({shape} {dtype}) but holds at most {limit}"
+            )
+        headers[name] = (shape, dtype)
+    missing = [k for k in REQUIRED_KEYS if k not in headers]
+    if missing:
+        raise MapFileError(path, f"not an mfp_mapper map: missing {', '.join(missing)}")
+    shape, dtype = headers["ijk"]
+    if len(shape) != 2 or shape[1] != 3 or dtype.kind not in "iu":
+        raise MapFileError(path, f"ijk must be an integer (N, 3) array, got {dtype} {shape}")
+    for key in ("s", "n", "t_last"):
+        if headers[key] != ((shape[0],), headers[key][1]) or headers[key][1].kind != "f":
+            raise MapFileError(
+                path,
+                f"{key} must be a float array of length {shape[0]}, got "
+                f"{headers[key][1]} {headers[key][0]}",
+            )
+    for key in ("resolution", "decay_time"):
+        if headers[key][0] != () or headers[key][1].kind not in "iuf":
+            raise MapFileError(path, f"{key} must be a number")
+    if headers["frame_id"][0] != () or headers["frame_id"][1].kind != "U":
+        raise MapFileError(path, "frame_id must be a string")
+    if "origin" in headers and (headers["origin"][0] != (3,) or headers["origin"][1].kind != "f"):
+        raise MapFileError(path, "origin must be a float array of 3 metres")
+    return headers
+
+
+def _contents(path: Path, a: dict[str, np.ndarray]) -> MapContents:
     if "format" in a and str(a["format"]) != FORMAT_NAME:
         raise MapFileError(path, f"format is {str(a['format'])!r}, expected {FORMAT_NAME!r}")
-    if "version" in a and int(a["version"]) > FORMAT_VERSION:
+    version = int(a["version"]) if "version" in a else 1
+    if version > FORMAT_VERSION:
+        raise MapFileError(path, f"file format version {version} is newer than {FORMAT_VERSION}")
+    if version >= 2 and "origin" not in a:
+        raise MapFileError(path, f"version {version} needs origin")
+    resolution = float(a["resolution"])
+    if not MIN_RESOLUTION <= resolution <= MAX_RESOLUTION:
         raise MapFileError(
-            path, f"file format version {int(a['version'])} is newer than {FORMAT_VERSION}"
+            path,
+            f"resolution must be positive, within [{MIN_RESOLUTION}, {MAX_RESOLUTION}] m, "
+            f"got {resolution}",
         )
-    ijk = a["ijk"]
-    if ijk.ndim != 2 or ijk.shape[1] != 3 or not np.issubdtype(ijk.dtype, np.integer):
-        raise MapFileError(
-            path, f"ijk must be an integer (N, 3) array, got {ijk.dtype} {ijk.shape}"
-        )
-    count = ijk.shape[0]
-    for key in ("s", "n", "t_last"):
-        arr = a[key]
-        if arr.shape != (count,) or not np.issubdtype(arr.dtype, np.floating):
-            raise MapFileError(
-                path, f"{key} must be a float array of length {count}, got {arr.dtype} {arr.shape}"
-            )
-    for key in ("s", "n"):
-        if not (np.isfinite(a[key]).all() and (a[key] >= 0).all()):
-            raise MapFileError(path, f"{key} holds negative, NaN or infinite values")
-    if not np.isfinite(a["t_last"]).all():
-        raise MapFileError(path, "t_last holds NaN or infinite values (seconds expected)")
-    for key in ("resolution", "decay_time"):
-        if a[key].shape != () or not np.issubdtype(a[key].dtype, np.number):
-            raise MapFileError(path, f"{key} must be a number")
-    if not (np.isfinite(a["resolution"]) and a["resolution"] > 0):
-        raise MapFileError(path, f"resolution must be positive, got {a['resolution']}")
-    if a["frame_id"].shape != () or a["frame_id"].dtype.kind != "U":
-        raise MapFileError(path, "frame_id must be a string")
-    if count and len(np.unique(ijk, axis=0)) != count:
-        raise MapFileError(path, "ijk lists a voxel more than once")
+    origin = a.get("origin", np.zeros(3))
+    if not np.isfinite(origin).all():
+        raise MapFileError(path, f"origin must be finite metres, got {origin.tolist()}")
+    problem = voxel_problem(a["ijk"], a["s"], a["n"], a["t_last"])
+    if problem:
+        raise MapFileError(path, problem)
+    ranges: dict[str, float] = {k: float(a[k]) for k in ("max_range", "min_range") if k in a}
+    voxels = VoxelArrays(a["ijk"], a["s"], a["n"], a["t_last"])
+    ox, oy, oz = (float(v) for v in origin)
+    return MapContents(
+        resolution, (ox, oy, oz), float(a["decay_time"]), str(a["frame_id"]), ranges, voxels
+    )
+
+
+def voxel_problem(
+    ijk: NDArray[np.integer], s: NDArray[np.floating], n: NDArray[np.floating], t: NDArray
+) -> str | None:
+    """What is wrong with these voxel arrays (values only; duplicates are found when they are
+    stored), or None."""
+    for key, arr in (("s", s), ("n", n)):
+        if not (np.isfinite(arr).all() and arr.min(initial=0.0) >= 0):
+            return f"{key} holds negative, NaN or infinite values"
+    if not np.isfinite(t).all():
+        return "t_last holds NaN or infinite values (seconds expected)"
+    if ijk.shape[0] and max(-int(ijk.min()), int(ijk.max())) > MAX_VOXEL_INDEX:
+        return f"ijk holds indices beyond +-{MAX_VOXEL_INDEX}, the map's range"
+    return None

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import time
@@ -14,9 +15,32 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from mfp_mapper.core import model
+from mfp_mapper.core.errors import CoreError, ScanTooLargeError
 from mfp_mapper.core.gridmap import HitGrid, band_grid
+from mfp_mapper.core.mailbox import Mailbox
+from mfp_mapper.core.mapfile import (
+    MAX_RESOLUTION,
+    MIN_RESOLUTION,
+    MapFileError,
+    read_map_file,
+    voxel_problem,
+    write_map,
+)
 from mfp_mapper.core.store import BLOCK_EDGE, MAX_VOXEL_INDEX, BlockStore, VoxelArrays, index_box
-from mfp_mapper.core.traversal import Mailbox, integrate_rays, prepare_rays
+from mfp_mapper.core.traversal import block_bounds, integrate_rays, prepare_rays
+
+MAX_RAY_VOXELS = 1 << 15
+"""Hard limit of a ray's walk, in voxels (3.3 km at 0.1 m): a ray longer than this (when
+``max_range`` allows it) is walked this far and carries no return, so one input point
+costs a bounded time and memory whatever its distance."""
+ORIGIN_QUANTUM_VOXELS = 1 << 16
+"""An origin taken from the first scan is a multiple of this many voxels (6.5 km at 0.1 m):
+zero for a robot that starts within half of it from the frame's origin, so ordinary maps
+keep ``ijk = floor(p / resolution)``."""
+
+__all__ = [
+    "CoreError", "IntegrationSummary", "Mapper", "ScanTooLargeError", "VoxelStats",
+]  # fmt: skip
 
 FloatArray = NDArray[np.float64]
 
@@ -36,6 +60,12 @@ class IntegrationSummary:
     rays_used: int = 0
     rays_truncated: int = 0
     """Rays longer than max_range: walked up to max_range, with no return."""
+    rays_beyond_walk_limit: int = 0
+    """Rays longer than ``MAX_RAY_VOXELS`` voxels (when max_range is longer still): walked
+    that far, with no return."""
+    rays_unindexable: int = 0
+    """Rays dropped because they reach beyond the map's index range around its origin
+    (also in ``dropped["out_of_bounds"]``): worth a log line."""
     dropped: dict[str, int] = field(default_factory=dict)
     """Rays not used, by reason: nonfinite, below_min_range, out_of_bounds."""
     voxels_touched: int = 0
@@ -45,6 +75,12 @@ class IntegrationSummary:
     seconds: float = 0.0
     cpu_seconds: float = 0.0
     """CPU time of the call, the core's worker threads included."""
+
+    @property
+    def integrated(self) -> bool:
+        """Whether the scan added anything (at least one usable ray); a scan with none left
+        the map unchanged and is a drop, not an integration."""
+        return self.rays_used > 0
 
 
 @dataclass
@@ -108,9 +144,13 @@ class Mapper:
         threads: int = 1,
         max_voxels: int | None = None,
         keep_radius: float | None = None,
+        origin: ArrayLike | None = None,
     ) -> None:
-        if not (math.isfinite(resolution) and resolution > 0):
-            raise ValueError(f"resolution must be a positive number of metres, got {resolution}")
+        if not (math.isfinite(resolution) and MIN_RESOLUTION <= resolution <= MAX_RESOLUTION):
+            raise ValueError(
+                f"resolution must be a positive number of metres in [{MIN_RESOLUTION}, "
+                f"{MAX_RESOLUTION}], got {resolution}"
+            )
         if not max_range > min_range >= 0:
             raise ValueError(f"need max_range > min_range >= 0, got {max_range}, {min_range}")
         if not decay_time > 0:
@@ -129,6 +169,12 @@ class Mapper:
         self.threads = int(threads)
         self.max_voxels = max_voxels
         self.keep_radius = keep_radius
+        self._origin_given = origin is not None
+        self._origin: FloatArray | None = None
+        if origin is not None:
+            self._origin = np.asarray(origin, dtype=np.float64).reshape(3).copy()
+            if not np.isfinite(self._origin).all():
+                raise ValueError(f"origin must be 3 finite metres, got {origin}")
         self.last_stamp: float | None = None
         self.last_origin: FloatArray | None = None
         self.version = 0
@@ -156,11 +202,23 @@ class Mapper:
             raise ValueError(f"origins must have shape (3,) or {pts.shape}, got {org.shape}")
         if not math.isfinite(stamp):
             raise ValueError(f"stamp must be finite seconds, got {stamp}")
-        rays, dropped = prepare_rays(pts, org, self.resolution, self.min_range, self.max_range)
+        if self._origin is None:
+            self._origin = self._origin_from(org)
+        if self._origin is not None and self._origin.any():
+            pts, org = pts - self._origin, org - self._origin
+        walk_limit = MAX_RAY_VOXELS * self.resolution
+        reach = min(self.max_range, walk_limit)
+        rays, dropped = prepare_rays(pts, org, self.resolution, self.min_range, reach)
         summary = IntegrationSummary(rays_in=pts.shape[0], dropped=dropped)
         summary.rays_used = len(rays)
-        summary.rays_truncated = int(np.count_nonzero(~rays.has_return))
+        summary.rays_unindexable = dropped["out_of_bounds"]
+        cut = int(np.count_nonzero(~rays.has_return))
+        if self.max_range > walk_limit:
+            summary.rays_beyond_walk_limit = cut
+        else:
+            summary.rays_truncated = cut
         if len(rays):
+            self._make_room(rays.origins_vox, rays.ends_vox)
             scan_id = self._store.begin_scan()
             integrate_rays(
                 self._store,
@@ -177,12 +235,42 @@ class Mapper:
             self.last_stamp = (
                 float(stamp) if self.last_stamp is None else max(self.last_stamp, stamp)
             )
-            self.last_origin = rays.origins_vox.mean(axis=0) * self.resolution
+            self.last_origin = rays.origins_vox.mean(axis=0) * self.resolution + self._offset
             self._enforce_memory_bound()
             self.version += 1
         summary.seconds = time.perf_counter() - t0
         summary.cpu_seconds = time.thread_time() - cpu0 + self._worker_cpu
         return summary
+
+    def _origin_from(self, sensor_origins: FloatArray) -> FloatArray | None:
+        """The origin a first scan gives the map: its first finite sensor position, rounded
+        to a multiple of ``ORIGIN_QUANTUM_VOXELS`` voxels (None: no finite position)."""
+        finite = sensor_origins.reshape(-1, 3)
+        finite = finite[np.isfinite(finite).all(axis=1)]
+        if not len(finite):
+            return None
+        quantum = ORIGIN_QUANTUM_VOXELS * self.resolution
+        return np.round(finite[0] / quantum) * quantum
+
+    def _make_room(self, origins_vox: FloatArray, ends_vox: FloatArray) -> None:
+        """With ``max_voxels``: make sure the scan cannot take the map's blocks beyond
+        ``max_voxels`` (a map within the bound never has more blocks than voxels), evicting
+        far blocks first; raises ``ScanTooLargeError`` when even an empty map could not."""
+        if self.max_voxels is None:
+            return
+        per_ray = int(block_bounds(origins_vox, ends_vox).sum())
+        lo = np.floor(np.minimum(origins_vox.min(axis=0), ends_vox.min(axis=0))) // BLOCK_EDGE
+        hi = np.floor(np.maximum(origins_vox.max(axis=0), ends_vox.max(axis=0))) // BLOCK_EDGE
+        in_box = float(np.prod(hi - lo + 1))
+        worst = min(per_ray, in_box)
+        if worst > self.max_voxels:
+            raise ScanTooLargeError(
+                f"scan refused: its rays could create {worst:.0f} blocks of "
+                f"{BLOCK_EDGE**3} voxels, more than max_voxels={self.max_voxels}"
+            )
+        if self._store.num_blocks + worst > self.max_voxels and self.last_origin is not None:
+            center = (self.last_origin - self._offset) / (self.resolution * BLOCK_EDGE)
+            self._store.evict_farthest_blocks(center, int(self.max_voxels - worst))
 
     def _run_parallel(self, fn: Callable[[int], None], items: Sequence[int]) -> None:
         if self._pool is None or len(items) == 1:
@@ -197,7 +285,7 @@ class Mapper:
         if self.last_origin is None:
             return
         block_size = self.resolution * BLOCK_EDGE
-        center = self.last_origin / block_size
+        center = (self.last_origin - self._offset) / block_size
         if self.keep_radius is not None:
             self._store.evict_beyond(center, self.keep_radius / block_size)
         if self.max_voxels is not None and self._store.num_voxels > self.max_voxels:
@@ -208,22 +296,38 @@ class Mapper:
         self._store = BlockStore(shards=len(self._store.shards))
         self.last_stamp = None
         self.last_origin = None
+        if not self._origin_given:
+            self._origin = None
         self.version += 1
 
     # --- reading ----------------------------------------------------------------------
 
+    @property
+    def origin(self) -> tuple[float, float, float] | None:
+        """Map-frame position (metres) of the corner of voxel (0, 0, 0); None until the
+        first scan sets it (when not given to the constructor)."""
+        if self._origin is None:
+            return None
+        x, y, z = (float(v) for v in self._origin)
+        return x, y, z
+
+    @property
+    def _offset(self) -> FloatArray:
+        return self._origin if self._origin is not None else np.zeros(3)
+
     def voxel_index(self, points: ArrayLike) -> NDArray[np.int64]:
-        """floor(point / resolution): the map-file voxel index of each point."""
-        return np.floor(np.asarray(points, dtype=np.float64) / self.resolution).astype(np.int64)
+        """floor((point - origin) / resolution): the map-file voxel index of each point."""
+        rel = np.asarray(points, dtype=np.float64) - self._offset
+        return np.floor(rel / self.resolution).astype(np.int64)
 
     def query(self, points: ArrayLike, stamp: float | None = None) -> VoxelStats:
         """Statistics of the voxel containing each point, decayed to ``stamp`` when given."""
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         with np.errstate(invalid="ignore"):
             valid: NDArray[np.bool_] = np.all(
-                np.abs(pts / self.resolution) < MAX_VOXEL_INDEX, axis=1
+                np.abs((pts - self._offset) / self.resolution) < MAX_VOXEL_INDEX, axis=1
             )
-        ijk = self.voxel_index(np.where(valid[:, None], pts, 0.0))
+        ijk = self.voxel_index(np.where(valid[:, None], pts, self._offset))
         raw = self._store.lookup(ijk)
         raw.ijk = ijk.astype(np.int32)
         for arr in (raw.s, raw.n):
@@ -260,7 +364,10 @@ class Mapper:
     ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
         """The voxel index range whose centres lie in ``bounds`` (metres, +-inf allowed)."""
         with np.errstate(invalid="ignore", over="ignore"):
-            lo_m, hi_m = (np.asarray(b, dtype=np.float64) / self.resolution - 0.5 for b in bounds)
+            lo_m, hi_m = (
+                (np.asarray(b, dtype=np.float64) - self._offset) / self.resolution - 0.5
+                for b in bounds
+            )
             lo = np.ceil(np.clip(lo_m, -MAX_VOXEL_INDEX - 1, MAX_VOXEL_INDEX + 1))
             hi = np.floor(np.clip(hi_m, -MAX_VOXEL_INDEX - 1, MAX_VOXEL_INDEX + 1))
         return lo.astype(np.int64), hi.astype(np.int64)
@@ -287,17 +394,21 @@ class Mapper:
             hi_m[:2] = [center[0] + margin, center[1] + margin]
         lo, hi = self._index_bounds((lo_m, hi_m))
         shards = [(sh.block_ijk, sh.block_sn, sh.used) for sh in self._store.shards]
-        return band_grid(
+        ox, oy, oz = (float(v) for v in self._offset)
+        grid = band_grid(
             shards,
             self.resolution,
-            z_min,
-            z_max,
+            z_min - oz,
+            z_max - oz,
             index_box(lo),
             index_box(hi),
-            center=center,
+            center=None if center is None else (center[0] - ox, center[1] - oy),
             radius=radius,
             max_cells=max_cells,
         )
+        if ox == 0.0 and oy == 0.0:
+            return grid
+        return dataclasses.replace(grid, origin=(grid.origin[0] + ox, grid.origin[1] + oy))
 
     def _stats(self, raw: VoxelArrays, stamp: float | None) -> VoxelStats:
         s, n = raw.s, raw.n
@@ -307,7 +418,7 @@ class Mapper:
             s, n = model.decay(s, n, dt, self.decay_time)
         return VoxelStats(
             ijk=raw.ijk,
-            centers=(raw.ijk + 0.5).astype(np.float64) * self.resolution,
+            centers=(raw.ijk + 0.5).astype(np.float64) * self.resolution + self._offset,
             s=s,
             n=n,
             t_last=raw.t_last,
@@ -331,23 +442,59 @@ class Mapper:
 
     def save(self, path: str | Path) -> None:
         """Write the map to an .npz file atomically (see ``mfp_mapper.core.mapfile``)."""
-        from mfp_mapper.core.mapfile import write_map
-
         write_map(path, self)
 
     @classmethod
     def load(cls, path: str | Path, **overrides: object) -> Mapper:
-        """Read a map written by ``save``; keyword arguments override stored settings."""
-        from mfp_mapper.core.mapfile import read_map
+        """Read a map written by ``save``; keyword arguments override stored settings
+        (not ``resolution`` or ``origin``). Raises ``MapFileError`` naming the file and
+        the problem."""
+        contents = read_map_file(path)
+        settings: dict[str, object] = {
+            "decay_time": contents.decay_time,
+            "frame_id": contents.frame_id,
+            **contents.ranges,
+            **overrides,
+        }
+        for fixed, stored in (("resolution", contents.resolution), ("origin", contents.origin)):
+            if fixed in settings and np.any(np.asarray(settings.pop(fixed)) != stored):
+                raise MapFileError(path, f"stored {fixed} {stored} cannot be changed")
+        try:
+            return cls.from_arrays(
+                contents.voxels,
+                resolution=contents.resolution,
+                origin=contents.origin,
+                **settings,
+            )
+        except ValueError as err:
+            raise MapFileError(path, str(err)) from err
 
-        return read_map(path, **overrides)
-
-    def _assign(self, voxels: VoxelArrays) -> None:
-        """Replace the statistics of the given voxels (used when loading a map)."""
-        self._store.assign(voxels, self.decay_time)
+    @classmethod
+    def from_arrays(
+        cls,
+        voxels: VoxelArrays,
+        *,
+        resolution: float,
+        origin: ArrayLike = (0.0, 0.0, 0.0),
+        **settings: object,
+    ) -> Mapper:
+        """A Mapper holding these voxels (indices relative to ``origin``, as in the map file;
+        each voxel once). ``settings`` are the constructor's keyword arguments. Raises
+        ``ValueError`` on bad settings or voxels."""
+        problem = voxel_problem(voxels.ijk, voxels.s, voxels.n, voxels.t_last)
+        if problem:
+            raise ValueError(problem)
+        count = voxels.ijk.shape[0]
+        if voxels.ijk.shape != (count, 3) or any(
+            a.shape != (count,) for a in (voxels.s, voxels.n, voxels.t_last)
+        ):
+            raise ValueError("voxels need ijk (N, 3) and s, n, t_last (N,)")
+        mapper = cls(resolution, origin=origin, **settings)  # type: ignore[arg-type]
+        mapper._store.assign(voxels, mapper.decay_time)
         finite_t = voxels.t_last[np.isfinite(voxels.t_last)]
-        self.last_stamp = float(finite_t.max()) if finite_t.size else None
-        self.version += 1
+        mapper.last_stamp = float(finite_t.max()) if finite_t.size else None
+        mapper.version += 1
+        return mapper
 
     def close(self) -> None:
         """Stop the worker threads (the map stays readable)."""

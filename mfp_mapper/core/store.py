@@ -12,7 +12,9 @@ Layout (chosen for speed and memory, see ANCHORS.md):
   crossing it finds its next voxel in the same line. Each block keeps the time ``t`` its
   statistics refer to. Decay (Eq. 28-30) is uniform scaling, so bringing a whole block to
   the current stamp the first time a scan touches it is exactly the per-voxel lazy decay;
-  a voxel's ``t_last`` is its block's ``t``.
+  a voxel's ``t_last`` is its block's ``t``. A late scan (older than the block) leaves
+  the block and its time alone and adds its data scaled by ``exp(-(t - stamp) / T)``, so
+  the map does not depend on the order in which scans arrive.
 * A voxel is *observed* when ``s > 0`` or ``n > 0``.
 
 Every ray's contribution is summed into the store: sums, never deduplication.
@@ -20,170 +22,56 @@ Every ray's contribution is summed into the store: sums, never deduplication.
 
 from __future__ import annotations
 
-import contextlib
 import math
-import mmap
 from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
-BLOCK_BITS = 3
-BLOCK_EDGE = 1 << BLOCK_BITS
-BLOCK_VOXELS = BLOCK_EDGE**3
-_LOCAL_MASK = BLOCK_EDGE - 1
-_EMPTY = -1
-_HASH_MULT = np.uint64(0x9E3779B97F4A7C15)
-_KEY_BITS = 21
-_KEY_OFFSET = 1 << (_KEY_BITS - 1)
-RESERVED_BLOCKS = 1 << 18
-"""Blocks (4 KiB each) of address space a shard reserves up front: 1 GiB, not resident."""
-MAX_VOXEL_INDEX = (_KEY_OFFSET << BLOCK_BITS) - BLOCK_EDGE
-"""Largest |voxel index| the store can hold (block indices are packed in 21 bits each)."""
+from mfp_mapper.core.blocks import (
+    BLOCK_BITS,
+    BLOCK_EDGE,
+    BLOCK_VOXELS,
+    MAX_VOXEL_INDEX,
+    IndexBox,
+    block_key,
+    block_origin,
+    block_outside,
+    find_block,
+    index_box,
+    local_coords,
+    local_index,
+    shard_of,
+    voxel_inside,
+)
+from mfp_mapper.core.shard import Shard, ShardArrays, open_block
 
-IndexBox = tuple[int, int, int]
-"""A corner of an inclusive voxel index range, as kernels take it: a tuple, not an array
-(numba reference-counts array arguments on every call, even of inlined helpers)."""
-
-
-def index_box(corner: NDArray[np.int64] | tuple[int, int, int]) -> IndexBox:
-    x, y, z = (int(v) for v in corner)
-    return x, y, z
+__all__ = ["BLOCK_EDGE", "MAX_VOXEL_INDEX", "BlockStore", "VoxelArrays", "index_box"]
 
 
-@nb.njit(inline="always", cache=True)
-def block_key(bx: int, by: int, bz: int) -> int:
-    return (
-        ((bx + _KEY_OFFSET) << (2 * _KEY_BITS))
-        | ((by + _KEY_OFFSET) << _KEY_BITS)
-        | (bz + _KEY_OFFSET)
-    )
+@dataclass
+class VoxelArrays:
+    """Raw statistics of a set of voxels: index, s, n and the time they refer to."""
 
-
-@nb.njit(inline="always", cache=True)
-def block_of_key(key: int) -> tuple[int, int, int]:
-    """The block index packed in ``key`` by ``block_key``."""
-    mask = (1 << _KEY_BITS) - 1
-    return (
-        ((key >> (2 * _KEY_BITS)) & mask) - _KEY_OFFSET,
-        ((key >> _KEY_BITS) & mask) - _KEY_OFFSET,
-        (key & mask) - _KEY_OFFSET,
-    )
-
-
-@nb.njit(inline="always", cache=True)
-def shard_of(bx: int, by: int, bz: int, shard_mask: int) -> int:
-    return (bx + by + bz) & shard_mask
-
-
-@nb.njit(inline="always", cache=True)
-def _slot_index(key: int, table_mask: int) -> int:
-    return int((np.uint64(key) * _HASH_MULT) >> np.uint64(40)) & table_mask
-
-
-@nb.njit(inline="always", cache=True)
-def _find(table_keys: NDArray[np.int64], table_blocks: NDArray[np.int32], key: int) -> int:
-    """Block number of ``key``, or -1."""
-    mask = table_keys.shape[0] - 1
-    i = _slot_index(key, mask)
-    while True:
-        k = table_keys[i]
-        if k == key:
-            return int(table_blocks[i])
-        if k == _EMPTY:
-            return -1
-        i = (i + 1) & mask
-
-
-@nb.njit(inline="always", cache=True)
-def _insert(
-    table_keys: NDArray[np.int64], table_blocks: NDArray[np.int32], key: int, block: int
-) -> None:
-    mask = table_keys.shape[0] - 1
-    i = _slot_index(key, mask)
-    while table_keys[i] != _EMPTY:
-        i = (i + 1) & mask
-    table_keys[i] = key
-    table_blocks[i] = block
-
-
-@nb.njit(inline="always", cache=True)
-def _spread_bits(v: int) -> int:
-    """The 3 low bits of ``v`` placed 3 apart (b0 -> 0, b1 -> 3, b2 -> 6)."""
-    return (v & 1) | ((v & 2) << 2) | ((v & 4) << 4)
-
-
-@nb.njit(inline="always", cache=True)
-def local_index(vx: int, vy: int, vz: int) -> int:
-    """Morton (z-order) index of a voxel inside its block."""
-    return (
-        (_spread_bits(vx & _LOCAL_MASK) << 2)
-        | (_spread_bits(vy & _LOCAL_MASK) << 1)
-        | _spread_bits(vz & _LOCAL_MASK)
-    )
-
-
-@nb.njit(inline="always", cache=True)
-def open_block(
-    bx: int,
-    by: int,
-    bz: int,
-    shard_arrays: ShardArrays,
-    scan_id: int,
-    stamp: float,
-    decay_time: float,
-) -> int:
-    """The block (bx, by, bz), created if new, ready to take the scan ``scan_id`` at ``stamp``.
-
-    The first time a scan opens a block, the block is decayed to ``stamp`` (when
-    ``decay_time`` is finite). Returns -1 when a new block is needed and there is no room:
-    the caller grows the shard and calls again.
-    """
-    table_keys, table_blocks, block_ijk, block_sn, block_t, block_scan, _, counters = shard_arrays
-    bkey = block_key(bx, by, bz)
-    block = _find(table_keys, table_blocks, bkey)
-    if block < 0:
-        used = counters[0]
-        if used >= block_t.shape[0] or 2 * used >= table_keys.shape[0]:
-            return -1
-        block = used
-        counters[0] = used + 1
-        _insert(table_keys, table_blocks, bkey, block)
-        block_ijk[block, 0] = bx
-        block_ijk[block, 1] = by
-        block_ijk[block, 2] = bz
-        block_t[block] = stamp
-        block_scan[block] = scan_id
-        counters[2] += 1
-    elif block_scan[block] != scan_id:
-        if math.isfinite(decay_time):
-            f = np.float32(math.exp(-abs(stamp - block_t[block]) / decay_time))
-            for i in range(BLOCK_VOXELS):
-                block_sn[block, i, 0] *= f
-                block_sn[block, i, 1] *= f
-        block_t[block] = stamp
-        block_scan[block] = scan_id
-        counters[2] += 1
-    return block
+    ijk: NDArray[np.int32]
+    s: NDArray[np.float64]
+    n: NDArray[np.float64]
+    t_last: NDArray[np.float64]
 
 
 @nb.njit(cache=True, nogil=True)
-def _assign_shard(
+def _open_blocks_of(
     ijk: NDArray[np.int64],
-    s: NDArray[np.float64],
-    n: NDArray[np.float64],
     t: NDArray[np.float64],
     start: int,
     shard: int,
     shard_mask: int,
     shard_arrays: ShardArrays,
 ) -> int:
-    """Set voxels of ``shard`` (each at its block's time ``t``) from index ``start`` on.
-
-    Returns the index reached: ``len(ijk)`` when done, less when the blocks ran out.
-    """
-    block_sn = shard_arrays[3]
+    """Open the blocks of the voxels of ``shard`` from index ``start`` on, each at the
+    latest ``t`` of its voxels. Returns ``len(ijk)``, or the index where blocks ran out."""
+    block_t = shard_arrays[4]
     for j in range(start, ijk.shape[0]):
         bx = ijk[j, 0] >> BLOCK_BITS
         by = ijk[j, 1] >> BLOCK_BITS
@@ -193,10 +81,52 @@ def _assign_shard(
         block = open_block(bx, by, bz, shard_arrays, -1, t[j], math.inf)
         if block < 0:
             return j
-        local = local_index(ijk[j, 0], ijk[j, 1], ijk[j, 2])
-        block_sn[block, local, 0] = s[j]
-        block_sn[block, local, 1] = n[j]
+        block_t[block] = max(block_t[block], t[j])
     return ijk.shape[0]
+
+
+@nb.njit(cache=True, nogil=True)
+def _set_voxels(
+    ijk: NDArray[np.int64],
+    s: NDArray[np.float64],
+    n: NDArray[np.float64],
+    t: NDArray[np.float64],
+    shard: int,
+    shard_mask: int,
+    decay_time: float,
+    shard_arrays: ShardArrays,
+    seen: NDArray[np.uint64],
+    counts: NDArray[np.int64],
+) -> int:
+    """Set the voxels of ``shard`` (blocks opened by ``_open_blocks_of``), each decayed to
+    its block's time; ``counts[0]`` receives the number of observed voxels set. Returns -1,
+    or the index of a voxel listed twice (``seen``: one bit per voxel of each block)."""
+    table_keys, table_blocks, _, block_sn, block_t = shard_arrays[:5]
+    block_hit = shard_arrays[6]
+    observed = 0
+    for j in range(ijk.shape[0]):
+        bx = ijk[j, 0] >> BLOCK_BITS
+        by = ijk[j, 1] >> BLOCK_BITS
+        bz = ijk[j, 2] >> BLOCK_BITS
+        if shard_of(bx, by, bz, shard_mask) != shard:
+            continue
+        block = find_block(table_keys, table_blocks, block_key(bx, by, bz))
+        local = local_index(ijk[j, 0], ijk[j, 1], ijk[j, 2])
+        bit = np.uint64(1) << np.uint64(local & 63)
+        if seen[block, local >> 6] & bit:
+            return j
+        seen[block, local >> 6] |= bit
+        f = 1.0
+        if math.isfinite(decay_time):
+            f = math.exp(-(block_t[block] - t[j]) / decay_time)
+        block_sn[block, local, 0] = s[j] * f
+        block_sn[block, local, 1] = n[j] * f
+        if block_sn[block, local, 1] > 0.0:
+            block_hit[block] = True
+        if block_sn[block, local, 0] > 0.0 or block_sn[block, local, 1] > 0.0:
+            observed += 1
+    counts[0] += observed
+    return -1
 
 
 @nb.njit(cache=True, nogil=True)
@@ -216,7 +146,7 @@ def _lookup(
         bz = ijk[j, 2] >> BLOCK_BITS
         shard = shard_of(bx, by, bz, shard_mask)
         out_shard[j] = shard
-        out_block[j] = _find(tables_keys[shard], tables_blocks[shard], block_key(bx, by, bz))
+        out_block[j] = find_block(tables_keys[shard], tables_blocks[shard], block_key(bx, by, bz))
         out_local[j] = local_index(ijk[j, 0], ijk[j, 1], ijk[j, 2])
 
 
@@ -294,201 +224,6 @@ def _gather_voxels(
                 j += 1
 
 
-@nb.njit(inline="always", cache=True)
-def _unspread_bits(v: int) -> int:
-    """Inverse of ``_spread_bits``: bits 0, 3, 6 of ``v`` gathered into bits 0, 1, 2."""
-    return (v & 1) | ((v >> 2) & 2) | ((v >> 4) & 4)
-
-
-@nb.njit(inline="always", cache=True)
-def local_coords(i: int) -> tuple[int, int, int]:
-    """Offsets (x, y, z) in its block of the voxel with Morton index ``i`` (``local_index``
-    inverted)."""
-    return _unspread_bits(i >> 2), _unspread_bits(i >> 1), _unspread_bits(i)
-
-
-@nb.njit(inline="always", cache=True)
-def block_origin(block_ijk: NDArray[np.int32], b: int) -> tuple[int, int, int]:
-    """Voxel index of the first voxel (lowest corner) of block ``b``."""
-    return (
-        np.int64(block_ijk[b, 0]) * BLOCK_EDGE,
-        np.int64(block_ijk[b, 1]) * BLOCK_EDGE,
-        np.int64(block_ijk[b, 2]) * BLOCK_EDGE,
-    )
-
-
-@nb.njit(inline="always", cache=True)
-def block_outside(x0: int, y0: int, z0: int, lo: IndexBox, hi: IndexBox) -> bool:
-    """Whether the block at voxel index (x0, y0, z0) lies wholly outside [lo, hi]."""
-    return (
-        x0 + BLOCK_EDGE <= lo[0]
-        or x0 > hi[0]
-        or y0 + BLOCK_EDGE <= lo[1]
-        or y0 > hi[1]
-        or z0 + BLOCK_EDGE <= lo[2]
-        or z0 > hi[2]
-    )
-
-
-@nb.njit(inline="always", cache=True)
-def voxel_inside(x: int, y: int, z: int, lo: IndexBox, hi: IndexBox) -> bool:
-    """Whether voxel index (x, y, z) lies in [lo, hi] (inclusive)."""
-    return lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1] and lo[2] <= z <= hi[2]
-
-
-@nb.njit(cache=True, nogil=True)
-def _rebuild_table(
-    block_ijk: NDArray[np.int32],
-    used: int,
-    table_keys: NDArray[np.int64],
-    table_blocks: NDArray[np.int32],
-) -> None:
-    table_keys[:] = _EMPTY
-    for b in range(used):
-        _insert(
-            table_keys,
-            table_blocks,
-            block_key(block_ijk[b, 0], block_ijk[b, 1], block_ijk[b, 2]),
-            b,
-        )
-
-
-ShardArrays = tuple[
-    NDArray[np.int64],  # table_keys: block keys of the open-addressing hash (-1 = empty)
-    NDArray[np.int32],  # table_blocks: block number of each table entry
-    NDArray[np.int32],  # block_ijk (B, 3): block index
-    NDArray[np.float32],  # block_sn (B, 512, 2): s and n of every voxel
-    NDArray[np.float64],  # block_t (B,): time the block's statistics refer to
-    NDArray[np.int64],  # block_scan (B,): last scan that opened the block
-    NDArray[np.bool_],  # block_hit (B,): the block holds a return
-    NDArray[np.int64],  # counters: blocks used, new voxels, blocks touched, voxel updates
-]
-"""A shard's arrays, as compiled kernels take them."""
-
-
-@dataclass
-class VoxelArrays:
-    """Raw statistics of a set of voxels: index, s, n and the time they refer to."""
-
-    ijk: NDArray[np.int32]
-    s: NDArray[np.float64]
-    n: NDArray[np.float64]
-    t_last: NDArray[np.float64]
-
-
-class Shard:
-    """One hash table and the blocks it indexes.
-
-    The voxel statistics live in one region reserved for ``RESERVED_BLOCKS`` blocks: its
-    pages become memory only when a block is first written, so growing the map does not
-    copy it (until a map outgrows the reservation; then it doubles, with one copy).
-    """
-
-    def __init__(self, block_capacity: int = 1024) -> None:
-        self.counters = np.zeros(4, dtype=np.int64)
-        self.block_sn = _zeros_on_huge_pages((RESERVED_BLOCKS, BLOCK_VOXELS, 2))
-        self.block_ijk: NDArray[np.int32] = np.zeros((0, 3), dtype=np.int32)
-        self.block_t: NDArray[np.float64] = np.zeros(0)
-        self.block_scan: NDArray[np.int64] = np.zeros(0, dtype=np.int64)
-        self.block_hit: NDArray[np.bool_] = np.zeros(0, dtype=np.bool_)
-        self._high_water = 0  # most blocks ever used: their pages stay resident
-        self._resize_index(block_capacity)
-
-    def _resize_index(self, capacity: int) -> None:
-        """Size the per-block arrays and the hash table for ``capacity`` blocks."""
-        used = self.used
-        block_ijk = np.zeros((capacity, 3), dtype=np.int32)
-        block_t = np.full(capacity, -np.inf)
-        block_scan = np.full(capacity, -1, dtype=np.int64)
-        block_hit = np.zeros(capacity, dtype=np.bool_)
-        if used:
-            block_ijk[:used] = self.block_ijk[:used]
-            block_t[:used] = self.block_t[:used]
-            block_scan[:used] = self.block_scan[:used]
-            block_hit[:used] = self.block_hit[:used]
-        self.block_ijk, self.block_t, self.block_scan = block_ijk, block_t, block_scan
-        self.block_hit = block_hit
-        if capacity > self.block_sn.shape[0]:
-            reserve = max(capacity, 2 * self.block_sn.shape[0])
-            region = _zeros_on_huge_pages((reserve, BLOCK_VOXELS, 2))
-            region[:used] = self.block_sn[:used]
-            self.block_sn = region
-        self.table_keys = np.full(_next_pow2(2 * capacity), _EMPTY, dtype=np.int64)
-        self.table_blocks = np.zeros(self.table_keys.shape[0], dtype=np.int32)
-        _rebuild_table(self.block_ijk, used, self.table_keys, self.table_blocks)
-
-    def arrays(self) -> ShardArrays:
-        """The arrays the compiled kernels work on (valid until the shard grows)."""
-        return (
-            self.table_keys, self.table_blocks, self.block_ijk, self.block_sn, self.block_t,
-            self.block_scan, self.block_hit, self.counters,
-        )  # fmt: skip
-
-    @property
-    def capacity(self) -> int:
-        return int(self.block_t.shape[0])
-
-    @property
-    def used(self) -> int:
-        return int(self.counters[0])
-
-    def grow(self, min_free: int = 0) -> None:
-        """Double the block capacity (or more, for ``min_free``), keeping every block."""
-        self._resize_index(max(2 * self.capacity, self.used + min_free))
-
-    def block_distances(self, center: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Distance (block units) from ``center`` to the centre of every used block."""
-        return np.linalg.norm(self.block_ijk[: self.used] + 0.5 - center, axis=1)
-
-    def keep_blocks(self, keep: NDArray[np.bool_]) -> int:
-        """Drop the blocks where ``keep`` (over used blocks) is False; returns voxels dropped."""
-        used = self.used
-        dropped = int(np.count_nonzero((self.block_sn[:used][~keep] > 0).any(axis=-1)))
-        kept = int(np.count_nonzero(keep))
-        for arr in (self.block_ijk, self.block_sn, self.block_t, self.block_scan, self.block_hit):
-            arr[:kept] = arr[:used][keep]
-        self.block_sn[kept:used] = 0.0
-        self.block_t[kept:used] = -np.inf
-        self.block_scan[kept:used] = -1
-        self.block_hit[kept:used] = False
-        self.counters[0] = kept
-        _rebuild_table(self.block_ijk, kept, self.table_keys, self.table_blocks)
-        return dropped
-
-    @property
-    def nbytes(self) -> int:
-        """Memory in use: the blocks' statistics up to the most ever held, and the index."""
-        self._high_water = max(self._high_water, self.used)
-        index = (
-            self.block_ijk, self.block_t, self.block_scan, self.block_hit, self.table_keys,
-            self.table_blocks,
-        )  # fmt: skip
-        return self._high_water * self.block_sn[0].nbytes + sum(a.nbytes for a in index)
-
-
-def _zeros_on_huge_pages(shape: tuple[int, ...]) -> NDArray[np.float32]:
-    """A zeroed float32 array in fresh anonymous memory, advised to use huge pages.
-
-    Pages are zeroed by the kernel when first touched, so unused capacity costs no time
-    and no resident memory. With 4 KiB pages every 4 KiB block would be its own page and
-    the far-field updates of a scan would miss the TLB one after another.
-    """
-    nbytes = int(np.prod(shape)) * 4
-    try:
-        flags = mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS | getattr(mmap, "MAP_NORESERVE", 0)
-        region = mmap.mmap(-1, max(nbytes, 1), flags=flags)
-    except (OSError, AttributeError, ValueError):  # no anonymous mmap here: plain memory
-        return np.zeros(shape, dtype=np.float32)
-    if hasattr(region, "madvise") and hasattr(mmap, "MADV_HUGEPAGE"):
-        with contextlib.suppress(OSError):
-            region.madvise(mmap.MADV_HUGEPAGE)
-    return np.frombuffer(region, dtype=np.float32, count=int(np.prod(shape))).reshape(shape)
-
-
-def _next_pow2(x: int) -> int:
-    return 1 << max(int(x - 1).bit_length(), 4)
-
-
 class BlockStore:
     """All shards together: the map's memory, with lookup, export, loading and eviction."""
 
@@ -516,31 +251,32 @@ class BlockStore:
         return new, touched, updates
 
     def assign(self, voxels: VoxelArrays, decay_time: float) -> None:
-        """Set the given voxels (replacing any statistics they had), e.g. from a map file.
+        """Set the given voxels of an empty store, e.g. from a map file.
 
         Voxels of one block that refer to different times are decayed to the latest.
+        Raises ``ValueError`` naming a voxel listed twice (the store is then incomplete:
+        discard it).
         """
-        ijk = voxels.ijk.astype(np.int64)
-        block_keys = (ijk >> BLOCK_BITS) @ np.array([1 << 42, 1 << 21, 1], dtype=np.int64)
-        _, inverse = np.unique(block_keys, return_inverse=True)
-        t_block = np.full(inverse.max(initial=-1) + 1, -np.inf)
-        np.maximum.at(t_block, inverse, voxels.t_last)
-        t = t_block[inverse]
-        f = np.ones_like(t)
-        if math.isfinite(decay_time):
-            f = np.exp(-np.abs(t - voxels.t_last) / decay_time)
-        s, n = voxels.s * f, voxels.n * f
+        if self.num_blocks:
+            raise ValueError("assign needs an empty store")
+        ijk = np.ascontiguousarray(voxels.ijk, dtype=np.int64)
+        s, n, t = (
+            np.ascontiguousarray(a, dtype=np.float64) for a in (voxels.s, voxels.n, voxels.t_last)
+        )
+        counts = np.zeros(1, dtype=np.int64)
         for sid, sh in enumerate(self.shards):
             start = 0
             while (
-                start := _assign_shard(ijk, s, n, t, start, sid, self.shard_mask, sh.arrays())
+                start := _open_blocks_of(ijk, t, start, sid, self.shard_mask, sh.arrays())
             ) < ijk.shape[0]:
                 sh.grow()
-        for sh in self.shards:
-            sh.block_hit[: sh.used] = (sh.block_sn[: sh.used, :, 1] > 0).any(axis=1)
-        self.num_voxels = sum(
-            int(np.count_nonzero((sh.block_sn[: sh.used] > 0).any(axis=-1))) for sh in self.shards
-        )
+            seen = np.zeros((sh.used, BLOCK_VOXELS // 64), dtype=np.uint64)
+            twice = _set_voxels(
+                ijk, s, n, t, sid, self.shard_mask, decay_time, sh.arrays(), seen, counts
+            )
+            if twice >= 0:
+                raise ValueError(f"ijk lists voxel {ijk[twice].tolist()} more than once")
+        self.num_voxels = int(counts[0])
 
     def lookup(self, ijk: NDArray[np.int64]) -> VoxelArrays:
         """Statistics of these voxels (zeros and t_last=-inf where never observed)."""
@@ -619,6 +355,17 @@ class BlockStore:
             share_to_drop = min(0.5, 1.0 - max_voxels / self.num_voxels)
             if self.evict_beyond(center, float(np.quantile(distances, 1.0 - share_to_drop))) == 0:
                 return
+
+    def evict_farthest_blocks(self, center: NDArray[np.float64], max_blocks: int) -> None:
+        """Drop the blocks farthest from ``center`` (block units) until at most
+        ``max_blocks`` remain (blocks at the same distance as the last kept may stay)."""
+        distances = np.concatenate([sh.block_distances(center) for sh in self.shards])
+        if distances.shape[0] <= max_blocks:
+            return
+        if max_blocks <= 0:
+            self.evict_beyond(center, -1.0)
+            return
+        self.evict_beyond(center, float(np.partition(distances, max_blocks - 1)[max_blocks - 1]))
 
     @property
     def num_blocks(self) -> int:

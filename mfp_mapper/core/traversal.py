@@ -11,8 +11,7 @@ thread walks its share of the rays; visits to its own blocks are applied at once
 to another shard's blocks go to the thread's mailbox. When every thread has walked, each
 applies the mailboxes' visits to its shard. With one thread there is no mailbox traffic.
 
-Visits are applied in batches: one pass only prefetches the visited cache lines (so their
-memory latencies overlap), a second pass adds.
+Visits are applied in batches (``visits``); mail goes through ``mailbox``.
 """
 
 from __future__ import annotations
@@ -23,87 +22,24 @@ from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
-from llvmlite import ir
-from numba import types
-from numba.core import cgutils
-from numba.extending import intrinsic
 from numpy.typing import NDArray
 
-from mfp_mapper.core.store import (
+from mfp_mapper.core.blocks import (
     BLOCK_BITS,
     BLOCK_VOXELS,
     MAX_VOXEL_INDEX,
-    BlockStore,
-    Shard,
-    ShardArrays,
     block_key,
-    block_of_key,
     local_index,
-    open_block,
     shard_of,
 )
-
-
-@intrinsic
-def _prefetch_voxel(typingctx, array, index):  # type: ignore[no-untyped-def]
-    """Ask the processor to start loading the cache line of ``array[index]`` (a row).
-
-    A prefetch does not wait for the line (a load would hold its place in the processor's
-    window until the line arrives), so many misses are in flight at once.
-    """
-    sig = types.void(array, index)
-
-    def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
-        array_type = signature.args[0]
-        ary = context.make_array(array_type)(context, builder, args[0])
-        index = [
-            context.cast(builder, a, t, types.intp)
-            for a, t in zip(args[1:], signature.args[1:], strict=True)
-        ]
-        pointer = cgutils.get_item_pointer2(
-            context, builder, data=ary.data, shape=cgutils.unpack_tuple(builder, ary.shape),
-            strides=cgutils.unpack_tuple(builder, ary.strides), layout=array_type.layout,
-            inds=[*index, context.get_constant(types.intp, 0)], wraparound=False,
-        )  # fmt: skip
-        byte_pointer = ir.IntType(8).as_pointer()
-        i32 = ir.IntType(32)
-        prefetch = builder.module.declare_intrinsic(
-            "llvm.prefetch",
-            [byte_pointer],
-            ir.FunctionType(ir.VoidType(), [byte_pointer, i32, i32, i32]),
-        )
-        # write access, high temporal locality, data cache
-        builder.call(prefetch, [builder.bitcast(pointer, byte_pointer), i32(1), i32(3), i32(1)])
-        return context.get_dummy_value()
-
-    return sig, codegen
-
-
-def _prefetch_compiles() -> bool:
-    """Whether this numba/llvmlite turns ``_prefetch_voxel`` into a prefetch instruction."""
-    try:
-
-        @nb.njit
-        def probe(array: NDArray[np.float32]) -> None:
-            _prefetch_voxel(array, 0)  # type: ignore[call-arg]
-
-        probe(np.zeros((1, 2), dtype=np.float32))
-    except Exception:  # noqa: BLE001 - any failure means: use plain loads instead
-        return False
-    return True
-
-
-_PREFETCH = _prefetch_compiles()
-
+from mfp_mapper.core.mailbox import Mailbox, deliver_mail
+from mfp_mapper.core.shard import Shard, ShardArrays, open_block
+from mfp_mapper.core.store import BlockStore
+from mfp_mapper.core.visits import BATCH_VISITS, CACHE_BITS, CACHE_MASK, CACHE_SIZE, apply_visits
 
 _LOCAL_MASK = (1 << BLOCK_BITS) - 1
 _SPREAD = np.array([local_index(0, 0, z) for z in range(1 << BLOCK_BITS)], dtype=np.int64)
 """Morton bits of an index in a block along one axis (z; y is this << 1, x this << 2)."""
-_CACHE_BITS = 4
-_CACHE_MASK = (1 << _CACHE_BITS) - 1
-_CACHE_SIZE = 1 << (3 * _CACHE_BITS)
-_BATCH_VISITS = 8192
-"""Voxel visits gathered (from several rays) before they are applied to the blocks."""
 _RAYS_PER_CHUNK = 256
 """Rays are dealt to threads in chunks of neighbours, so each thread's rays stay coherent."""
 
@@ -211,31 +147,6 @@ def _prepare_rays(
     return k
 
 
-class Mailbox:
-    """Visits a thread made to blocks of other shards: block key, voxel, chord, return."""
-
-    def __init__(self, capacity: int = 1 << 16) -> None:
-        self.count = np.zeros(1, dtype=np.int64)
-        self.block = np.zeros(capacity, dtype=np.int64)
-        self.local = np.zeros(capacity, dtype=np.int16)
-        self.chord = np.zeros(capacity, dtype=np.float32)
-        self.returns = np.zeros(capacity, dtype=np.float32)
-
-    def reserve(self, capacity: int) -> None:
-        """Make room for ``capacity`` entries in all."""
-        if capacity > self.block.shape[0]:
-            self.grow(capacity - int(self.count[0]))
-
-    def grow(self, min_free: int) -> None:
-        used = int(self.count[0])
-        capacity = max(2 * self.block.shape[0], used + min_free)
-        for name in ("block", "local", "chord", "returns"):
-            old = getattr(self, name)
-            new = np.zeros(capacity, dtype=old.dtype)
-            new[:used] = old[:used]
-            setattr(self, name, new)
-
-
 def integrate_rays(
     store: BlockStore,
     rays: Rays,
@@ -265,7 +176,7 @@ def integrate_rays(
     def deliver(k: int) -> None:
         for sender, mail in enumerate(mailboxes):
             if sender != k:
-                _deliver(mail, store.shards[k], k, store.shard_mask, scan_id, stamp, decay_time)
+                deliver_mail(mail, store.shards[k], k, store.shard_mask, scan_id, stamp, decay_time)
 
     run_parallel(walk, range(threads))
     if threads > 1:
@@ -317,26 +228,6 @@ def _walk_part(
                 shard.grow(min_free=int(room[first]))
 
 
-def _deliver(
-    mail: Mailbox,
-    shard: Shard,
-    shard_id: int,
-    shard_mask: int,
-    scan_id: int,
-    stamp: float,
-    decay_time: float,
-) -> None:
-    """Apply the visits in ``mail`` that belong to ``shard``, growing it as needed."""
-    start, stop = 0, int(mail.count[0])
-    while start < stop:
-        start = _apply_mail(
-            mail.block, mail.local, mail.chord, mail.returns, start, stop, shard_id, shard_mask,
-            shard.arrays(), scan_id, stamp, decay_time,
-        )  # fmt: skip
-        if start < stop:
-            shard.grow(min_free=1024)
-
-
 @nb.njit(cache=True, nogil=True)
 def _walk_rays(
     origins_vox: NDArray[np.float64],
@@ -364,18 +255,18 @@ def _walk_rays(
     Before each ray, checks there is room for the blocks and mail it may create; returns
     the index of the first ray not walked (the caller grows and calls again), or N.
     """
-    table_keys, _, _, block_sn, block_t, _, block_hit, counters = shard_arrays
+    table_keys, _, _, block_sn, block_t, _, block_hit, counters, block_scale = shard_arrays
     capacity = min(block_t.shape[0], table_keys.shape[0] // 2)
     # blocks opened in this call, direct-mapped by their low index bits: neighbouring rays
     # cross the same blocks, and this small table stays in cache where the hash does not
-    cache_keys = np.full(_CACHE_SIZE, -1, dtype=np.int64)
-    cache_blocks = np.empty(_CACHE_SIZE, dtype=np.int64)
+    cache_keys = np.full(CACHE_SIZE, -1, dtype=np.int64)
+    cache_blocks = np.empty(CACHE_SIZE, dtype=np.int64)
     longest = 0
     for r in range(first, lengths.shape[0]):
         longest = max(longest, visits_needed[r])
-    visit_voxel = np.empty(_BATCH_VISITS + longest, dtype=np.int64)
-    visit_chord = np.empty(_BATCH_VISITS + longest, dtype=np.float32)
-    visit_return = np.empty(_BATCH_VISITS + longest, dtype=np.float32)
+    visit_voxel = np.empty(BATCH_VISITS + longest, dtype=np.int64)
+    visit_chord = np.empty(BATCH_VISITS + longest, dtype=np.float32)
+    visit_return = np.empty(BATCH_VISITS + longest, dtype=np.float32)
     count = 0
     mail = mail_count[0]
     for r in range(first, lengths.shape[0] + 1):
@@ -384,8 +275,8 @@ def _walk_rays(
             or counters[0] + room_needed[r] > capacity
             or mail + visits_needed[r] > mail_block.shape[0]
         )
-        if count >= _BATCH_VISITS or stop:
-            _apply_visits(
+        if count >= BATCH_VISITS or stop:
+            apply_visits(
                 block_sn, block_hit, visit_voxel, visit_chord, visit_return, count, counters
             )
             count = 0
@@ -430,6 +321,7 @@ def _walk_rays(
         bx = by = bz = 0
         block = -1
         key = -1
+        scale = 1.0  # the scan's weight in the current block (< 1 for a late scan)
         new_block = True
         while True:
             if new_block:
@@ -442,9 +334,9 @@ def _walk_rays(
                 block = -1
                 if shard_of(bx, by, bz, shard_mask) == shard:
                     slot = (
-                        ((bx & _CACHE_MASK) << (2 * _CACHE_BITS))
-                        | ((by & _CACHE_MASK) << _CACHE_BITS)
-                        | (bz & _CACHE_MASK)
+                        ((bx & CACHE_MASK) << (2 * CACHE_BITS))
+                        | ((by & CACHE_MASK) << CACHE_BITS)
+                        | (bz & CACHE_MASK)
                     )
                     if cache_keys[slot] == key:
                         block = cache_blocks[slot]
@@ -452,6 +344,7 @@ def _walk_rays(
                         block = open_block(bx, by, bz, shard_arrays, scan_id, stamp, decay_time)
                         cache_keys[slot] = key
                         cache_blocks[slot] = block
+                    scale = block_scale[block] if block >= 0 else 1.0
             if steps == 0:
                 break
             # leave the voxel through its nearest face; its chord ends there
@@ -484,7 +377,7 @@ def _walk_rays(
             if chord > 0.0:
                 if block >= 0:
                     visit_voxel[count] = block * BLOCK_VOXELS + local
-                    visit_chord[count] = chord
+                    visit_chord[count] = chord * scale
                     visit_return[count] = 0.0
                     count += 1
                 else:
@@ -500,8 +393,8 @@ def _walk_rays(
         if chord > 0.0 or returns > 0.0:
             if block >= 0:
                 visit_voxel[count] = block * BLOCK_VOXELS + (morton_x | morton_y | morton_z)
-                visit_chord[count] = chord
-                visit_return[count] = returns
+                visit_chord[count] = chord * scale
+                visit_return[count] = returns * scale
                 count += 1
             else:
                 mail_block[mail] = key
@@ -511,113 +404,3 @@ def _walk_rays(
                 mail += 1
     mail_count[0] = mail
     return lengths.shape[0]
-
-
-@nb.njit(cache=True, nogil=True)
-def _apply_mail(
-    mail_block: NDArray[np.int64],
-    mail_local: NDArray[np.int16],
-    mail_chord: NDArray[np.float32],
-    mail_return: NDArray[np.float32],
-    start: int,
-    stop: int,
-    shard: int,
-    shard_mask: int,
-    shard_arrays: ShardArrays,
-    scan_id: int,
-    stamp: float,
-    decay_time: float,
-) -> int:
-    """Apply mailbox entries ``start..stop`` that belong to ``shard``, in order.
-
-    Returns ``stop``, or the first entry whose new block found no room (the caller grows
-    the shard and calls again from there).
-    """
-    block_sn, block_hit, counters = shard_arrays[3], shard_arrays[6], shard_arrays[7]
-    cache_keys = np.full(_CACHE_SIZE, -1, dtype=np.int64)
-    cache_blocks = np.empty(_CACHE_SIZE, dtype=np.int64)
-    visit_voxel = np.empty(_BATCH_VISITS, dtype=np.int64)
-    visit_chord = np.empty(_BATCH_VISITS, dtype=np.float32)
-    visit_return = np.empty(_BATCH_VISITS, dtype=np.float32)
-    count = 0
-    last_key = -1
-    block = -1
-    for j in range(start, stop):
-        if count == _BATCH_VISITS:
-            _apply_visits(
-                block_sn, block_hit, visit_voxel, visit_chord, visit_return, count, counters
-            )
-            count = 0
-        key = mail_block[j]
-        if key != last_key:
-            bx, by, bz = block_of_key(key)
-            block = -1
-            if shard_of(bx, by, bz, shard_mask) == shard:
-                slot = (
-                    ((bx & _CACHE_MASK) << (2 * _CACHE_BITS))
-                    | ((by & _CACHE_MASK) << _CACHE_BITS)
-                    | (bz & _CACHE_MASK)
-                )
-                if cache_keys[slot] == key:
-                    block = cache_blocks[slot]
-                else:
-                    block = open_block(bx, by, bz, shard_arrays, scan_id, stamp, decay_time)
-                    cache_keys[slot] = key
-                    cache_blocks[slot] = block
-                if block < 0:
-                    _apply_visits(
-                        block_sn,
-                        block_hit,
-                        visit_voxel,
-                        visit_chord,
-                        visit_return,
-                        count,
-                        counters,
-                    )
-                    return j
-            last_key = key
-        if block >= 0:
-            visit_voxel[count] = block * BLOCK_VOXELS + mail_local[j]
-            visit_chord[count] = mail_chord[j]
-            visit_return[count] = mail_return[j]
-            count += 1
-    _apply_visits(block_sn, block_hit, visit_voxel, visit_chord, visit_return, count, counters)
-    return stop
-
-
-@nb.njit(cache=True, nogil=True)
-def _apply_visits(
-    block_sn: NDArray[np.float32],
-    block_hit: NDArray[np.bool_],
-    visit_voxel: NDArray[np.int64],
-    visit_chord: NDArray[np.float32],
-    visit_return: NDArray[np.float32],
-    count: int,
-    counters: NDArray[np.int64],
-) -> None:
-    """Add the buffered visits, in order, to their voxels: s += chord, n += return (and
-    mark the blocks that hold a return).
-
-    ``visit_voxel`` holds ``block * BLOCK_VOXELS + index in block``.
-    """
-    sn = block_sn.reshape((-1, 2))
-    # first only fetch every visited cache line, so that many misses are in flight at once;
-    # the additions then find the lines in cache. Without a prefetch instruction: plain
-    # loads, which do not depend on each other either
-    touch = np.float32(0.0)
-    for i in range(count):
-        if _PREFETCH:
-            _prefetch_voxel(sn, visit_voxel[i])  # type: ignore[call-arg]
-        else:
-            touch += sn[visit_voxel[i], 1]
-    new = 0
-    for i in range(count):
-        v = visit_voxel[i]
-        if sn[v, 0] == 0.0 and sn[v, 1] == 0.0:
-            new += 1
-        sn[v, 0] += visit_chord[i]
-        if visit_return[i] > 0.0:
-            sn[v, 1] += visit_return[i]
-            block_hit[v // BLOCK_VOXELS] = True
-    counters[1] += new
-    counters[3] += count + (touch < 0.0)  # touch is never negative; using it keeps the loads

@@ -79,11 +79,13 @@ class ReplaySummary:
     scans_total: int = 0
     scans_selected: int = 0
     scans_used: int = 0
-    scans_skipped: dict[str, int] = field(default_factory=dict)
+    clouds_dropped: dict[str, int] = field(default_factory=dict)
+    """Clouds not integrated, by reason (``sensing.pipeline.DROP_REASONS``, as ``~/status``)."""
     points_in: int = 0
     rays_used: int = 0
     rays_truncated: int = 0
-    dropped: dict[str, int] = field(default_factory=dict)
+    points_dropped: dict[str, int] = field(default_factory=dict)
+    """Points and rays not used, by reason (as ``~/status``)."""
     voxels: int = 0
     memory_bytes: int = 0
     seconds: float = 0.0
@@ -102,8 +104,8 @@ class ReplaySummary:
         return 1.0 - self.seconds_core / self.seconds if self.seconds > 0 else 0.0
 
     def format(self) -> str:
-        skipped = sum(self.scans_skipped.values())
-        dropped = {k: v for k, v in self.dropped.items() if v}
+        n_dropped = sum(self.clouds_dropped.values())
+        dropped = {k: v for k, v in self.points_dropped.items() if v}
         lines = [
             f"bag          {self.bag}",
             f"clouds       {self.cloud_topic} (frame {self.cloud_frame or '?'})",
@@ -116,10 +118,10 @@ class ReplaySummary:
                 if self.scans_selected != self.scans_total
                 else ""
             )
-            + (f"; skipped {skipped}: {_counts(self.scans_skipped)}" if skipped else ""),
+            + (f"; dropped {n_dropped}: {_counts(self.clouds_dropped)}" if n_dropped else ""),
             f"rays         {self.rays_used:,} used of {self.points_in:,} points"
             + (f"; {self.rays_truncated:,} cut at max range" if self.rays_truncated else ""),
-            f"dropped      {_counts(dropped) if dropped else 'none'}",
+            f"points lost  {_counts(dropped) if dropped else 'none'}",
             f"voxels       {self.voxels:,} ({self.memory_bytes / 2**20:.1f} MiB)",
             f"time         {self.seconds:.2f} s, {self.rays_per_second:,.0f} rays/s; "
             f"{100 * self.share_outside_core:.0f}% outside the core "
@@ -301,7 +303,7 @@ def map_scans(
         else Progress(summary.scans_total, enabled=bool(progress))
     )
     counts = pipeline.ScanCounts()
-    bad_example = ""
+    bad_example = error_example = ""
     cloud_span = [math.inf, -math.inf]
     t_loop = time.perf_counter()
     try:
@@ -341,11 +343,10 @@ def map_scans(
                 continue
             except ReplayError:
                 raise
-            except Exception as err:  # a damaged message: skip, count, say what it was
-                counts.drop("malformed")
-                bad_example = bad_example or f"{type(err).__name__}: {err}"
+            except Exception as err:  # unexpected (a bug): counted as the node does, go on
+                counts.drop("error")
+                error_example = error_example or f"{type(err).__name__}: {err}"
                 continue
-            counts.count_points(placed.points_dropped)
             counts.add(placed, result)
             first = summary.first_stamp if summary.first_stamp is not None else stamp
             last = summary.last_stamp if summary.last_stamp is not None else stamp
@@ -357,13 +358,17 @@ def map_scans(
     _fill(summary, counts, mapper)
     summary.scans_selected = counts.clouds_in
     summary.seconds = time.perf_counter() - t_loop
+    examples = "".join(
+        f"; first {what}: {text}"
+        for what, text in (("bad cloud", bad_example), ("error", error_example))
+        if text
+    )
     if summary.scans_used == 0:
-        raise ReplayError(_nothing_mapped(summary, poses, bad_example, cloud_span))
-    if summary.scans_skipped and log is not None:
+        raise ReplayError(_nothing_mapped(summary, poses, examples, cloud_span))
+    if summary.clouds_dropped and log is not None:
         log(
-            f"warning: {sum(summary.scans_skipped.values())} of {summary.scans_selected} scans "
-            f"skipped ({_counts(summary.scans_skipped)})"
-            + (f"; first bad cloud: {bad_example}" if bad_example else "")
+            f"warning: {sum(summary.clouds_dropped.values())} of {summary.scans_selected} "
+            f"scans dropped ({_counts(summary.clouds_dropped)}){examples}"
         )
 
 
@@ -416,26 +421,25 @@ def _read_poses(
 
 def _fill(summary: ReplaySummary, counts: pipeline.ScanCounts, mapper: Mapper) -> None:
     summary.scans_used = counts.clouds_integrated
-    summary.scans_skipped = dict(counts.clouds_dropped)
+    summary.clouds_dropped = dict(counts.clouds_dropped)
     summary.points_in = counts.points_in
     summary.rays_used = counts.rays_used
     summary.rays_truncated = counts.rays_truncated
-    summary.dropped = dict(counts.points_dropped)
+    summary.points_dropped = dict(counts.points_dropped)
     summary.voxels = mapper.num_voxels
     summary.memory_bytes = mapper.memory_bytes
 
 
 def _nothing_mapped(
-    summary: ReplaySummary, poses: Poses, bad_example: str, cloud_span: list[float]
+    summary: ReplaySummary, poses: Poses, examples: str, cloud_span: list[float]
 ) -> str:
-    reasons = _counts(summary.scans_skipped) or "none"
+    reasons = _counts(summary.clouds_dropped) or "none"
     text = (
         f"no cloud could be mapped ({summary.scans_selected} of {summary.scans_total} clouds "
-        f"selected; skipped: {reasons})"
+        f"selected; dropped: {reasons})"
     )
-    if bad_example:
-        text += f"; first bad cloud: {bad_example}"
-    if {"no_poses", "too_new", "too_old", "gap"} & set(summary.scans_skipped):
+    text += examples
+    if {"no_poses", "too_new", "too_old", "gap"} & set(summary.clouds_dropped):
         text += (
             f". No pose covers the clouds: poses from {poses.source} span "
             f"[{poses.buffer.earliest_stamp:.3f}, {poses.buffer.latest_stamp:.3f}] s, "

@@ -50,8 +50,14 @@ from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.ros.guarded_node import GuardedNode, tracked
 from mfp_mapper.ros.map_outputs import MapOutputs
 from mfp_mapper.ros.messages import cloud_msg
-from mfp_mapper.ros.params import declare_parameters
-from mfp_mapper.ros.status import StatusWindow, diagnostics, next_window, status_report
+from mfp_mapper.ros.params import declare_parameters, usage
+from mfp_mapper.ros.status import (
+    StatusWindow,
+    diagnostics,
+    next_window,
+    startup_text,
+    status_report,
+)
 from mfp_mapper.sensing.live import LiveIntegrator, LiveSettings
 from mfp_mapper.sensing.pointcloud import CloudFormatError, pack_cloud, read_xyz
 from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer, odometry_sample
@@ -70,16 +76,33 @@ RESULT_FIELDS = (
 """The fields of a ~/hit_probability/result cloud."""
 
 
-def live_settings(cfg: NodeConfig) -> LiveSettings:
-    """What the worker reads of the node's parameters."""
-    return LiveSettings(
-        frame_id=cfg.frame_id,
-        deskew=cfg.deskew,
-        point_cloud_min_z=cfg.point_cloud_min_z,
-        point_cloud_max_z=cfg.point_cloud_max_z,
-        cloud_queue_size=cfg.cloud_queue_size,
-        odom_wait=cfg.odom_wait,
-    )
+def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, bool]:
+    """The map to start from: ``map_path`` when it exists and loads, else an empty one; and
+    whether loading failed (then that file is never saved over)."""
+    path = cfg.map_path
+    if not (path and os.path.exists(path)):
+        return _empty_map(cfg), False
+    try:
+        mapper = Mapper.load(path, **cfg.mapper_settings())
+    except (MapFileError, ValueError, OSError) as err:
+        logger.error(
+            f"cannot load map_path {path!r}: {err}; starting an empty map (and not "
+            "saving over that file on shutdown)"
+        )
+        return _empty_map(cfg), True
+    if mapper.resolution != cfg.resolution:
+        logger.warning(
+            f"map {path!r} has resolution {mapper.resolution} m, parameter "
+            f"resolution is {cfg.resolution} m: keeping the map's"
+        )
+    if cfg.frame_id:
+        mapper.frame_id = cfg.frame_id
+    logger.info(f"loaded {mapper.num_voxels} voxels from {path!r} (frame {mapper.frame_id})")
+    return mapper, False
+
+
+def _empty_map(cfg: NodeConfig) -> Mapper:
+    return Mapper(cfg.resolution, frame_id=cfg.frame_id or "map", **cfg.mapper_settings())
 
 
 class MfpMapperNode(GuardedNode):
@@ -90,7 +113,6 @@ class MfpMapperNode(GuardedNode):
         self.cfg: NodeConfig = declare_parameters(self)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._started = time.monotonic()
-        self._load_failed = False
         self._map_figures = (0, 0, 0)
         self._status_window = StatusWindow(time.monotonic())
         self._last_window = self._status_window
@@ -98,9 +120,10 @@ class MfpMapperNode(GuardedNode):
         self._maps_served = 0
         self._param_extrinsic = self.cfg.extrinsic()
         self._identity = Extrinsic()
+        mapper, self._load_failed = initial_mapper(self.cfg, self.get_logger())
         self.worker = LiveIntegrator(
-            self._initial_mapper(),
-            live_settings(self.cfg),
+            mapper,
+            LiveSettings.of(self.cfg),
             PoseBuffer(max_age=self.cfg.odom_buffer, max_gap=self.cfg.odom_max_gap),
             extrinsic_for=self._extrinsic,
             log=self.warn_throttled,
@@ -121,30 +144,10 @@ class MfpMapperNode(GuardedNode):
                 self._tf_listener = tf2_ros.TransformListener(self._tf_buffer, self)
         self._create_interfaces()
         self.worker.start()
-        self.get_logger().info(self._startup_text())
-
-    def _startup_text(self) -> str:
-        """What a robot integrator needs to check at start: topics, frames, sources."""
-        cfg, topic = self.cfg, self.resolve_topic_name
-        if cfg.use_tf and self._tf_buffer is not None:
-            extrinsic = f"TF {cfg.base_frame_id or '<odometry child>'} <- cloud frame"
-        else:
-            extrinsic = (
-                "identity when the cloud frame is the odometry child frame, else lidar.* "
-                f"parameters (translation {list(cfg.lidar_translation)}, rpy "
-                f"{list(cfg.lidar_rpy)})"
+        self.get_logger().info(
+            startup_text(
+                self.cfg, self.resolve_topic_name, self.mapper, self._tf_buffer is not None
             )
-        path = cfg.map_path or "<none>"
-        loaded = f", {self.mapper.num_voxels} voxels loaded" if self.mapper.num_voxels else ""
-        return (
-            f"mfp_mapper ready: clouds from {topic('cloud_in')}, poses from "
-            f"{topic('odom')} (nav_msgs/Odometry); map frame "
-            f"{cfg.frame_id or '<the odometry frame>'}; extrinsic: {extrinsic}; resolution "
-            f"{self.mapper.resolution} m, max_range {cfg.max_range} m, decay_time "
-            f"{cfg.decay} s, deskew {cfg.deskew}; map_path {path}{loaded}, save_on_shutdown "
-            f"{cfg.save_on_shutdown}; outputs {topic('~/degree_of_occupancy')}, "
-            f"{topic('~/std')}, {topic('~/projected_map')} at {cfg.publish_rate} Hz, "
-            f"latched {cfg.latch}"
         )
 
     def _create_interfaces(self) -> None:
@@ -185,33 +188,6 @@ class MfpMapperNode(GuardedNode):
 
     # --- set-up ----------------------------------------------------------------------------
 
-    def _initial_mapper(self) -> Mapper:
-        path = self.cfg.map_path
-        if path and os.path.exists(path):
-            try:
-                mapper = Mapper.load(path, **self.cfg.mapper_settings())
-            except (MapFileError, ValueError, OSError) as err:
-                self._load_failed = True
-                self.get_logger().error(
-                    f"cannot load map_path {path!r}: {err}; starting an empty map (and not "
-                    "saving over that file on shutdown)"
-                )
-            else:
-                if mapper.resolution != self.cfg.resolution:
-                    self.get_logger().warning(
-                        f"map {path!r} has resolution {mapper.resolution} m, parameter "
-                        f"resolution is {self.cfg.resolution} m: keeping the map's"
-                    )
-                if self.cfg.frame_id:
-                    mapper.frame_id = self.cfg.frame_id
-                self.get_logger().info(
-                    f"loaded {mapper.num_voxels} voxels from {path!r} (frame {mapper.frame_id})"
-                )
-                return mapper
-        return Mapper(
-            self.cfg.resolution, frame_id=self.cfg.frame_id or "map", **self.cfg.mapper_settings()
-        )
-
     @property
     def mapper(self) -> Mapper:
         return self.worker.mapper
@@ -234,7 +210,7 @@ class MfpMapperNode(GuardedNode):
         except (ValueError, TypeError) as err:
             return SetParametersResult(successful=False, reason=str(err))
         self.cfg = new  # one assignment: a reader never sees half of a change
-        self.worker.settings = live_settings(new)
+        self.worker.settings = LiveSettings.of(new)
         self.outputs.invalidate()  # republish with the new filter
         return SetParametersResult(successful=True)
 
@@ -428,20 +404,6 @@ class MfpMapperNode(GuardedNode):
             else:
                 self.save_map()
         self.mapper.close()
-
-
-def usage() -> str:
-    """What ``--help`` prints: how to start the node and its parameters with defaults."""
-    lines = [
-        "usage: ros2 run mfp_mapper mfp_mapper [--ros-args -p NAME:=VALUE ... "
-        "--params-file config/mfp_mapper.yaml]",
-        "",
-        "Degree-of-occupancy mapping node (cloud_in: PointCloud2, odom: Odometry).",
-        "Parameters:",
-    ]
-    for spec in SPECS.values():
-        lines.append(f"  {spec.name} (default {spec.default!r}): {spec.description}")
-    return "\n".join(lines)
 
 
 def main(args: list[str] | None = None) -> int:

@@ -9,6 +9,7 @@ from rclpy.node import Node
 
 from mfp_mapper.settings import (
     PARAMS,
+    SPECS,
     NodeConfig,
     Setting,
     unknown_parameters,
@@ -56,3 +57,17 @@ def declare_parameters(node: Node) -> NodeConfig:
         param = node.declare_parameter(spec.name, spec.default, descriptor(spec))
         values[spec.name] = param.value
     return NodeConfig.from_values(values)
+
+
+def usage() -> str:
+    """What ``--help`` prints: how to start the node and its parameters with defaults."""
+    lines = [
+        "usage: ros2 run mfp_mapper mfp_mapper [--ros-args -p NAME:=VALUE ... "
+        "--params-file config/mfp_mapper.yaml]",
+        "",
+        "Degree-of-occupancy mapping node (cloud_in: PointCloud2, odom: Odometry).",
+        "Parameters:",
+    ]
+    for spec in SPECS.values():
+        lines.append(f"  {spec.name} (default {spec.default!r}): {spec.description}")
+    return "\n".join(lines)

@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
+from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.ros.map_outputs import PublishCounters
 from mfp_mapper.sensing.live import LiveCounters, finite_or_none
+from mfp_mapper.settings import NodeConfig
 
 
 @dataclass
@@ -130,3 +133,30 @@ def diagnostics(
     out.header.stamp = stamp
     out.status = [entry]
     return out
+
+
+def startup_text(
+    cfg: NodeConfig, topic: Callable[[str], str], mapper: Mapper, tf_extrinsic: bool
+) -> str:
+    """The start-up log line: what a robot integrator needs to check (topics, frames,
+    sources); ``topic`` resolves a topic name, ``tf_extrinsic`` says TF gives the extrinsic."""
+    if cfg.use_tf and tf_extrinsic:
+        extrinsic = f"TF {cfg.base_frame_id or '<odometry child>'} <- cloud frame"
+    else:
+        extrinsic = (
+            "identity when the cloud frame is the odometry child frame, else lidar.* "
+            f"parameters (translation {list(cfg.lidar_translation)}, rpy "
+            f"{list(cfg.lidar_rpy)})"
+        )
+    path = cfg.map_path or "<none>"
+    loaded = f", {mapper.num_voxels} voxels loaded" if mapper.num_voxels else ""
+    return (
+        f"mfp_mapper ready: clouds from {topic('cloud_in')}, poses from "
+        f"{topic('odom')} (nav_msgs/Odometry); map frame "
+        f"{cfg.frame_id or '<the odometry frame>'}; extrinsic: {extrinsic}; resolution "
+        f"{mapper.resolution} m, max_range {cfg.max_range} m, decay_time "
+        f"{cfg.decay} s, deskew {cfg.deskew}; map_path {path}{loaded}, save_on_shutdown "
+        f"{cfg.save_on_shutdown}; outputs {topic('~/degree_of_occupancy')}, "
+        f"{topic('~/std')}, {topic('~/projected_map')} at {cfg.publish_rate} Hz, "
+        f"latched {cfg.latch}"
+    )

@@ -17,7 +17,7 @@ import time
 from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -25,6 +25,9 @@ from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.sensing import pipeline
 from mfp_mapper.sensing.pointcloud import ParsedCloud
 from mfp_mapper.sensing.poses import Extrinsic, OdometrySample, PoseBuffer
+
+if TYPE_CHECKING:
+    from mfp_mapper.settings import NodeConfig
 
 Log = Callable[[str, str, bool], None]
 """``log(key, text, error)``: a throttled warning (or error) keyed by ``key``."""
@@ -40,6 +43,18 @@ class LiveSettings:
     point_cloud_max_z: float
     cloud_queue_size: int
     odom_wait: float
+
+    @classmethod
+    def of(cls, cfg: NodeConfig) -> LiveSettings:
+        """What the worker reads of the node's parameters."""
+        return cls(
+            frame_id=cfg.frame_id,
+            deskew=cfg.deskew,
+            point_cloud_min_z=cfg.point_cloud_min_z,
+            point_cloud_max_z=cfg.point_cloud_max_z,
+            cloud_queue_size=cfg.cloud_queue_size,
+            odom_wait=cfg.odom_wait,
+        )
 
 
 @dataclass
@@ -253,14 +268,17 @@ class LiveIntegrator:
         if latest is None or latest < item.deadline:
             if time.monotonic() - item.received <= cfg.odom_wait:
                 return False
+            parse_drops = dict(item.cloud.dropped)
             if latest is None:
                 raise pipeline.ScanDropped(
-                    "no_poses", f"no odometry within odom_wait {cfg.odom_wait} s"
+                    "no_poses", f"no odometry within odom_wait {cfg.odom_wait} s", 0, parse_drops
                 )
             raise pipeline.ScanDropped(
                 "too_new",
                 f"stamp {item.deadline:.3f} not covered by odometry (latest {latest:.3f}) "
                 f"within odom_wait {cfg.odom_wait} s",
+                0,
+                parse_drops,
             )
         extrinsic = self._extrinsic_for(item.msg.header.frame_id)
         with self.pose_lock:  # de-skew from a copy: odometry keeps arriving meanwhile
@@ -273,7 +291,6 @@ class LiveIntegrator:
         latency = self._now() - item.stamp
         with self._cv:
             c = self.counters
-            c.count_points(placed.points_dropped)
             c.add(placed, summary)
             c.latency_last = latency
             c.latency_sum += latency

@@ -41,7 +41,7 @@ DROP_REASONS: dict[str, str] = {
     "queue_full": "integration fell behind; the oldest queued cloud was dropped (live only)",
     "malformed": "not a parsable cloud: no x/y/z, fields beyond point_step, truncated data, "
     "unknown datatypes",
-    "empty": "no valid point (all NaN/Inf or zero range)",
+    "empty": "no valid point (all NaN/Inf or zero range), or none in the height band",
     "no_poses": "no pose at all (no odometry or transform received)",
     "too_new": "the poses never reached the cloud's time (live: within odom_wait)",
     "too_old": "the cloud is older than the poses kept",
@@ -130,7 +130,8 @@ class ScanCounts:
         self.points_dropped.update({k: v for k, v in dropped.items() if v})
 
     def add(self, placed: PlacedScan, summary: IntegrationSummary) -> None:
-        """Count one integrated cloud."""
+        """Count one integrated cloud, its points dropped before the core and the core's."""
+        self.count_points(placed.points_dropped)
         self.clouds_integrated += 1
         self.rays_in += summary.rays_in
         self.rays_used += summary.rays_used
@@ -176,12 +177,12 @@ def place_scan(
     """Points into the map frame at their poses, then the height band.
 
     Raises ScanDropped (``no_poses``, ``too_new``, ``too_old``, ``gap``), or
-    ``empty`` when the height band leaves no ray.
+    ``empty`` when the height band leaves no ray; either carries the points parsing dropped.
     """
     try:
         points, origins = cloud_to_map(cloud, stamp, poses, extrinsic, deskew=settings.deskew)
     except PoseUnavailable as err:
-        raise ScanDropped(err.reason, str(err)) from None
+        raise ScanDropped(err.reason, str(err), points_dropped=dict(cloud.dropped)) from None
     dropped = dict(cloud.dropped)
     points, origins, outside = z_band(
         points, origins, settings.point_cloud_min_z, settings.point_cloud_max_z
@@ -201,13 +202,17 @@ def place_scan(
 
 def integrate_scan(mapper: Mapper, placed: PlacedScan) -> IntegrationSummary:
     """Integrate placed rays; ScanDropped ``no_usable_rays`` when the core used none
-    (the map is then unchanged)."""
+    (the map is then unchanged; the drop carries the placed scan's and the core's point
+    drops; on success ``ScanCounts.add`` counts both)."""
     summary = mapper.integrate(placed.points, placed.origins, placed.stamp)
     if summary.rays_used == 0:
         lost = ", ".join(f"{k} {v}" for k, v in summary.dropped.items() if v) or "none"
+        dropped = Counter(placed.points_dropped)
+        dropped.update({k: v for k, v in summary.dropped.items() if v})
         raise ScanDropped(
             "no_usable_rays",
             f"the core used none of its {summary.rays_in} rays (dropped: {lost})",
+            points_dropped=dict(dropped),
         )
     return summary
 

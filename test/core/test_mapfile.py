@@ -168,3 +168,102 @@ def test_pickled_objects_are_never_loaded(tmp_path: Path) -> None:
         assert "frame_id.npy" in z.namelist()
     with pytest.raises(MapFileError, match="unreadable or truncated"):
         Mapper.load(path)
+
+
+def _v1_file(mapper: Mapper, path: Path) -> Path:
+    """A version-1 file as the code before the origin wrote it (no origin, version 1)."""
+    from mfp_mapper.core.mapfile import map_arrays, write_map_arrays
+
+    arrays = map_arrays(mapper)
+    del arrays["origin"]
+    arrays["version"] = np.int64(1)
+    write_map_arrays(path, arrays)
+    return path
+
+
+def test_version_1_files_still_load(mapper: Mapper, tmp_path: Path) -> None:
+    loaded = Mapper.load(_v1_file(mapper, tmp_path / "v1.npz"))
+    assert loaded.origin == (0.0, 0.0, 0.0)
+    a, b = mapper.voxels(), loaded.voxels()
+    assert len(a) == len(b) and a.s.sum() == pytest.approx(b.s.sum())
+
+
+def test_geo_referenced_map_round_trips_its_origin(tmp_path: Path) -> None:
+    utm = np.array([512_345.6, 5_412_345.7, 250.0])
+    m = Mapper(0.1)
+    points, origin = anchors_scene(n_scans=1, azimuths=100)[0]
+    summary = m.integrate(points + utm, origin + utm, 1.0)
+    assert summary.integrated and summary.rays_unindexable == 0
+    assert m.origin is not None and np.abs(np.array(m.origin) - utm).max() < 6553.6 / 2
+    m.save(tmp_path / "geo.npz")
+    with np.load(tmp_path / "geo.npz") as f:
+        assert int(f["version"]) == 2 and np.array_equal(f["origin"], np.array(m.origin))
+        centers = np.asarray(f["origin"]) + (f["ijk"] + 0.5) * float(f["resolution"])
+    loaded = Mapper.load(tmp_path / "geo.npz")
+    assert loaded.origin == m.origin
+    q = loaded.query(centers)
+    assert q.observed.all() and q.s.sum() == pytest.approx(m.voxels().s.sum())
+
+
+def test_huge_array_claimed_by_a_header_is_refused_before_reading(tmp_path: Path) -> None:
+    arrays = _valid_arrays()
+    path = _write_npz(tmp_path / "huge.npz", **arrays)
+    # rewrite the s member with a header claiming 10^12 elements and no data
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        header, {"descr": "<f8", "fortran_order": False, "shape": (10**12,)}
+    )
+    raw = header.getvalue()  # magic and header, no data
+    with zipfile.ZipFile(path) as src:
+        members = {n: src.read(n) for n in src.namelist()}
+    members["s.npy"] = raw
+    with zipfile.ZipFile(path, "w") as out:
+        for name, data in members.items():
+            out.writestr(name, data)
+    with pytest.raises(MapFileError, match="s claims 8000000000000 bytes") as err:
+        Mapper.load(path)
+    assert str(path) in str(err.value)
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"resolution": np.float64(1e-300)}, r"resolution must be positive, within"),
+        ({"ijk": np.array([[0, 0, 0], [2**30, 0, 0]], dtype=np.int32)}, "beyond"),
+        ({"origin": np.array([0.0, np.nan, 0.0])}, "origin must be finite"),
+        ({"origin": np.zeros(2)}, "origin must be a float array of 3"),
+        ({"version": np.int64(2)}, "needs origin"),
+        ({"ijk": np.array([[5, 6, 7], [5, 6, 7]], dtype=np.int32)}, r"\[5, 6, 7\] more than"),
+    ],
+)
+def test_ranges_are_checked(tmp_path: Path, change: dict, message: str) -> None:
+    path = _write_npz(tmp_path / "bad.npz", **{**_valid_arrays(), **change})
+    with pytest.raises(MapFileError, match=message):
+        Mapper.load(path)
+
+
+def test_duplicates_far_apart_in_a_large_file_are_found(tmp_path: Path) -> None:
+    rng = np.random.default_rng(3)
+    ijk = rng.integers(-5000, 5000, size=(200_000, 3), dtype=np.int32)
+    ijk = np.unique(ijk, axis=0)
+    rng.shuffle(ijk)
+    count = len(ijk)
+    base = {**_valid_arrays(), "s": np.ones(count), "n": np.zeros(count), "t_last": np.zeros(count)}
+    ok = _write_npz(tmp_path / "ok.npz", **{**base, "ijk": ijk})
+    assert Mapper.load(ok).num_voxels == count
+    twice = ijk.copy()
+    twice[-1] = twice[0]
+    with pytest.raises(MapFileError, match="more than once"):
+        Mapper.load(_write_npz(tmp_path / "twice.npz", **{**base, "ijk": twice}))
+
+
+def test_from_arrays_builds_a_map_without_a_file() -> None:
+    from mfp_mapper.core.store import VoxelArrays
+
+    voxels = VoxelArrays(
+        np.array([[1, 2, 3]], dtype=np.int32), np.array([2.0]), np.array([1.0]), np.array([4.0])
+    )
+    m = Mapper.from_arrays(voxels, resolution=0.5, origin=(10.0, 0.0, 0.0), decay_time=5.0)
+    q = m.query(np.array([[10.0 + 0.75, 1.25, 1.75]]))
+    assert q.s[0] == 2.0 and q.n[0] == 1.0 and m.last_stamp == 4.0
+    assert q.centers[0] == pytest.approx([10.75, 1.25, 1.75])

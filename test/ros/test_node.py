@@ -192,7 +192,10 @@ def test_parameters_declared_with_descriptions_and_ranges(feeder: Feeder) -> Non
 
 
 def test_map_clouds_published_in_the_odometry_frame(sim: Sim, feeder: Feeder) -> None:
-    assert feeder.wait(lambda: feeder.doo is not None and feeder.std is not None, 10.0)
+    # the first latched clouds may predate the scans (an emptier map): wait for the full one
+    assert feeder.wait(
+        lambda: all(m is not None and m.width > 100 for m in (feeder.doo, feeder.std)), 20.0
+    )
     status = sim.status()
     assert status["map_frame"] == "odom"
     for msg, name in ((feeder.doo, "degree_of_occupancy"), (feeder.std, "std")):

@@ -77,9 +77,12 @@ def test_deskew_needs_poses_up_to_the_last_point() -> None:
 
 
 def test_a_cloud_the_core_cannot_use_is_dropped_not_integrated() -> None:
-    mapper = Mapper(0.1, max_range=math.inf)
+    # a sensor beyond the index range around the map's origin (a ray merely longer than
+    # the core's walk limit is walked that far, with no return: used, not dropped)
+    mapper = Mapper(0.1, max_range=math.inf, origin=(0.0, 0.0, 0.0))
     far = np.full((5, 3), 1e9)
-    placed = pipeline.PlacedScan(T0, far, np.zeros(3), False)
+    far[:, 0] += 1.0
+    placed = pipeline.PlacedScan(T0, far, np.full(3, 1e9), False)
     version = mapper.version
     with pytest.raises(pipeline.ScanDropped) as info:
         pipeline.integrate_scan(mapper, placed)

@@ -1,0 +1,81 @@
+"""Map-file benchmark: save and load of a 10 M-voxel map against numpy on the same arrays.
+
+Builds a map of ``--voxels`` observed voxels (a dense box of them, random statistics and
+times, so every block holds voxels of several times), then times, in one run:
+
+* numpy reading the file's arrays (``np.load`` and every array read): the baseline;
+* ``Mapper.load`` (read, check headers and values, find duplicates, fill the store);
+* ``Mapper.save`` and, for comparison, numpy writing the same arrays (``np.savez``);
+* ``Mapper.query`` of a few points after the load.
+
+    python benchmarks/bench_mapfile.py             # 10 M voxels
+    python benchmarks/bench_mapfile.py --voxels 1e6
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(ROOT)]
+
+
+def _timed(fn):  # type: ignore[no-untyped-def]
+    t0 = time.perf_counter()
+    out = fn()
+    return time.perf_counter() - t0, out
+
+
+def _numpy_read(path: Path) -> int:
+    with np.load(path, allow_pickle=False) as f:
+        return sum(f[k].nbytes for k in f.files)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--voxels", type=float, default=10e6)
+    parser.add_argument("--repeat", type=int, default=2, help="best of this many runs")
+    args = parser.parse_args()
+    from mfp_mapper import Mapper
+    from mfp_mapper.core.store import VoxelArrays
+
+    count = int(args.voxels)
+    side = round(count ** (1 / 3))
+    grid = np.stack(np.meshgrid(*(np.arange(side),) * 3, indexing="ij"), -1).reshape(-1, 3)
+    rng = np.random.default_rng(0)
+    ijk = (grid - side // 2).astype(np.int32)
+    rng.shuffle(ijk)
+    n_vox = len(ijk)
+    voxels = VoxelArrays(
+        ijk, rng.uniform(0.01, 5.0, n_vox), rng.integers(0, 5, n_vox).astype(np.float64),
+        rng.uniform(90.0, 100.0, n_vox),
+    )  # fmt: skip
+    mapper = Mapper.from_arrays(voxels, resolution=0.1, decay_time=600.0)
+    with tempfile.TemporaryDirectory() as tmp:
+        path, plain = Path(tmp) / "map.npz", Path(tmp) / "plain.npz"
+        arrays = {"ijk": ijk, "s": voxels.s, "n": voxels.n, "t_last": voxels.t_last}
+        save = min(_timed(lambda: mapper.save(path))[0] for _ in range(args.repeat))
+        np_save = min(_timed(lambda: np.savez(plain, **arrays))[0] for _ in range(args.repeat))
+        np_read = min(_timed(lambda: _numpy_read(path))[0] for _ in range(args.repeat))
+        load = min(_timed(lambda: Mapper.load(path))[0] for _ in range(args.repeat))
+        loaded = Mapper.load(path)
+        points = (rng.uniform(-side / 2, side / 2, (10, 3)) + 0.5) * 0.1
+        loaded.query(points)  # compiles nothing new; first-call overhead excluded
+        query = min(_timed(lambda: loaded.query(points))[0] for _ in range(5))
+        size = path.stat().st_size
+    print(f"map file of {mapper.num_voxels / 1e6:.2f} M voxels, {size / 1e6:.0f} MB (deflate 1)")
+    print(f"  numpy read of its arrays  {np_read:7.3f} s   1.00x")
+    print(f"  Mapper.load               {load:7.3f} s   {load / np_read:.2f}x numpy read")
+    print(f"  np.savez (uncompressed)   {np_save:7.3f} s   1.00x")
+    print(f"  Mapper.save               {save:7.3f} s   {save / np_save:.2f}x np.savez")
+    print(f"  query of 10 points        {query * 1e3:7.3f} ms  {query / np_read:.2e}x numpy read")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,166 @@
+"""Blocks and their keys: the geometry of the store, shared by every compiled kernel.
+
+A voxel index ``(x, y, z)`` lies in block ``(x >> 3, y >> 3, z >> 3)``; inside its block the
+voxels are in Morton (z-order) order. A block's index is packed into one int64 key
+(``block_key``) for the open-addressing hash tables of the shards (``find_block``,
+``insert_block``).
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+from numpy.typing import NDArray
+
+BLOCK_BITS = 3
+BLOCK_EDGE = 1 << BLOCK_BITS
+BLOCK_VOXELS = BLOCK_EDGE**3
+_LOCAL_MASK = BLOCK_EDGE - 1
+EMPTY_KEY = -1
+_HASH_MULT = np.uint64(0x9E3779B97F4A7C15)
+_KEY_BITS = 21
+_KEY_OFFSET = 1 << (_KEY_BITS - 1)
+RESERVED_BLOCKS = 1 << 18
+"""Blocks (4 KiB each) of address space a shard reserves up front: 1 GiB, not resident."""
+MAX_VOXEL_INDEX = (_KEY_OFFSET << BLOCK_BITS) - BLOCK_EDGE
+"""Largest |voxel index| the store can hold (block indices are packed in 21 bits each)."""
+
+IndexBox = tuple[int, int, int]
+"""A corner of an inclusive voxel index range, as kernels take it: a tuple, not an array
+(numba reference-counts array arguments on every call, even of inlined helpers)."""
+
+
+def index_box(corner: NDArray[np.int64] | tuple[int, int, int]) -> IndexBox:
+    x, y, z = (int(v) for v in corner)
+    return x, y, z
+
+
+@nb.njit(inline="always", cache=True)
+def block_key(bx: int, by: int, bz: int) -> int:
+    return (
+        ((bx + _KEY_OFFSET) << (2 * _KEY_BITS))
+        | ((by + _KEY_OFFSET) << _KEY_BITS)
+        | (bz + _KEY_OFFSET)
+    )
+
+
+@nb.njit(inline="always", cache=True)
+def block_of_key(key: int) -> tuple[int, int, int]:
+    """The block index packed in ``key`` by ``block_key``."""
+    mask = (1 << _KEY_BITS) - 1
+    return (
+        ((key >> (2 * _KEY_BITS)) & mask) - _KEY_OFFSET,
+        ((key >> _KEY_BITS) & mask) - _KEY_OFFSET,
+        (key & mask) - _KEY_OFFSET,
+    )
+
+
+@nb.njit(inline="always", cache=True)
+def shard_of(bx: int, by: int, bz: int, shard_mask: int) -> int:
+    return (bx + by + bz) & shard_mask
+
+
+@nb.njit(inline="always", cache=True)
+def _slot_index(key: int, table_mask: int) -> int:
+    return int((np.uint64(key) * _HASH_MULT) >> np.uint64(40)) & table_mask
+
+
+@nb.njit(inline="always", cache=True)
+def find_block(table_keys: NDArray[np.int64], table_blocks: NDArray[np.int32], key: int) -> int:
+    """Block number of ``key``, or -1."""
+    mask = table_keys.shape[0] - 1
+    i = _slot_index(key, mask)
+    while True:
+        k = table_keys[i]
+        if k == key:
+            return int(table_blocks[i])
+        if k == EMPTY_KEY:
+            return -1
+        i = (i + 1) & mask
+
+
+@nb.njit(inline="always", cache=True)
+def insert_block(
+    table_keys: NDArray[np.int64], table_blocks: NDArray[np.int32], key: int, block: int
+) -> None:
+    mask = table_keys.shape[0] - 1
+    i = _slot_index(key, mask)
+    while table_keys[i] != EMPTY_KEY:
+        i = (i + 1) & mask
+    table_keys[i] = key
+    table_blocks[i] = block
+
+
+@nb.njit(inline="always", cache=True)
+def _spread_bits(v: int) -> int:
+    """The 3 low bits of ``v`` placed 3 apart (b0 -> 0, b1 -> 3, b2 -> 6)."""
+    return (v & 1) | ((v & 2) << 2) | ((v & 4) << 4)
+
+
+@nb.njit(inline="always", cache=True)
+def local_index(vx: int, vy: int, vz: int) -> int:
+    """Morton (z-order) index of a voxel inside its block."""
+    return (
+        (_spread_bits(vx & _LOCAL_MASK) << 2)
+        | (_spread_bits(vy & _LOCAL_MASK) << 1)
+        | _spread_bits(vz & _LOCAL_MASK)
+    )
+
+
+@nb.njit(inline="always", cache=True)
+def _unspread_bits(v: int) -> int:
+    """Inverse of ``_spread_bits``: bits 0, 3, 6 of ``v`` gathered into bits 0, 1, 2."""
+    return (v & 1) | ((v >> 2) & 2) | ((v >> 4) & 4)
+
+
+@nb.njit(inline="always", cache=True)
+def local_coords(i: int) -> tuple[int, int, int]:
+    """Offsets (x, y, z) in its block of the voxel with Morton index ``i`` (``local_index``
+    inverted)."""
+    return _unspread_bits(i >> 2), _unspread_bits(i >> 1), _unspread_bits(i)
+
+
+@nb.njit(inline="always", cache=True)
+def block_origin(block_ijk: NDArray[np.int32], b: int) -> tuple[int, int, int]:
+    """Voxel index of the first voxel (lowest corner) of block ``b``."""
+    return (
+        np.int64(block_ijk[b, 0]) * BLOCK_EDGE,
+        np.int64(block_ijk[b, 1]) * BLOCK_EDGE,
+        np.int64(block_ijk[b, 2]) * BLOCK_EDGE,
+    )
+
+
+@nb.njit(inline="always", cache=True)
+def block_outside(x0: int, y0: int, z0: int, lo: IndexBox, hi: IndexBox) -> bool:
+    """Whether the block at voxel index (x0, y0, z0) lies wholly outside [lo, hi]."""
+    return (
+        x0 + BLOCK_EDGE <= lo[0]
+        or x0 > hi[0]
+        or y0 + BLOCK_EDGE <= lo[1]
+        or y0 > hi[1]
+        or z0 + BLOCK_EDGE <= lo[2]
+        or z0 > hi[2]
+    )
+
+
+@nb.njit(inline="always", cache=True)
+def voxel_inside(x: int, y: int, z: int, lo: IndexBox, hi: IndexBox) -> bool:
+    """Whether voxel index (x, y, z) lies in [lo, hi] (inclusive)."""
+    return lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1] and lo[2] <= z <= hi[2]
+
+
+@nb.njit(cache=True, nogil=True)
+def rebuild_table(
+    block_ijk: NDArray[np.int32],
+    used: int,
+    table_keys: NDArray[np.int64],
+    table_blocks: NDArray[np.int32],
+) -> None:
+    table_keys[:] = EMPTY_KEY
+    for b in range(used):
+        insert_block(
+            table_keys,
+            table_blocks,
+            block_key(block_ijk[b, 0], block_ijk[b, 1], block_ijk[b, 2]),
+            b,
+        )
