@@ -236,6 +236,20 @@ SETTINGS: tuple[Setting, ...] = (
             flag="--extrinsic", length=6, metavar=("X", "Y", "Z", "ROLL", "PITCH", "YAW")),
     _replay("max_scans", int, "Stop after this many clouds.", lo=0, hi=2**63 - 1,
             flag="--max-scans"),
+    # which clouds: --start/--end (offline.input_args) set one of the three kinds of bound
+    _replay("start", float, "Map only clouds stamped at or after this absolute time (s); "
+            "the window is half-open, [start, end)."),
+    _replay("end", float, "Map only clouds stamped before this absolute time (s)."),
+    _replay("start_offset", float, "Like start, in seconds after the first cloud."),
+    _replay("end_offset", float, "Like end, in seconds after the first cloud."),
+    _replay("start_index", int, "First cloud mapped, by its position in the recording "
+            "(0: the first).", default=0, lo=0, hi=2**63 - 1),
+    _replay("end_index", int, "Clouds from this position on are not mapped: "
+            "[start_index, end_index).", lo=0, hi=2**63 - 1),
+    _replay("every", int, "Map one cloud in N of those selected (the first, then every "
+            "N-th).", default=1, lo=1, hi=2**63 - 1, flag="--every"),
+    _replay("odometry", str, "Poses estimated from the clouds: kiss-icp (needs the kiss-icp "
+            "package). Default: poses from the recording."),
 )  # fmt: skip
 
 BY_NAME: dict[str, Setting] = {s.name: s for s in SETTINGS}

@@ -52,6 +52,22 @@ class ReplayOptions:
     point_cloud_min_z: float = _default("point_cloud_min_z")
     point_cloud_max_z: float = _default("point_cloud_max_z")
     max_scans: int | None = _default("max_scans")
+    start: float | None = _default("start")
+    """Map only clouds stamped at or after this absolute time (s): ``[start, end)``."""
+    end: float | None = _default("end")
+    """Map only clouds stamped before this absolute time (s)."""
+    start_offset: float | None = _default("start_offset")
+    """Like ``start``, in seconds after the recording's first cloud."""
+    end_offset: float | None = _default("end_offset")
+    """Like ``end``, in seconds after the recording's first cloud."""
+    start_index: int = _default("start_index")
+    """First cloud mapped, by its position in the recording (0 = the first)."""
+    end_index: int | None = _default("end_index")
+    """Clouds from this position on are not mapped: ``[start_index, end_index)``."""
+    every: int = _default("every")
+    """Map one cloud in ``every`` of those selected (the first, then every N-th)."""
+    odometry: str | None = _default("odometry")
+    """``"kiss-icp"``: poses estimated from the clouds (``offline.lidar_odometry``)."""
 
     def mapper_settings(self) -> dict[str, Any]:
         """Keyword arguments of ``Mapper`` besides the resolution."""

@@ -49,6 +49,7 @@ MODULE_KEYS = {  # third-party module imported -> its rosdep key (None: delibera
     "tqdm": "python3-tqdm",
     "scipy": "python3-scipy",
     "rosbags": None,  # pip only: see the comment in package.xml
+    "kiss_icp": None,  # optional, pip only (replay --odometry kiss-icp): see package.xml
     **{
         name: name
         for name in (
