@@ -67,6 +67,8 @@ def _nonneg_int(text: str) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from mfp_mapper import __version__
+    from mfp_mapper.offline.input_args import add_input_arguments
     from mfp_mapper.offline.names import BAG_FORMATS, SCENES
     from mfp_mapper.offline.options import add_replay_flags
 
@@ -77,6 +79,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
     p = sub.add_parser(
@@ -91,7 +94,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "inputs", nargs="+", metavar="INPUT",
-        help="ROS 1 .bag files or ROS 2 bag directories (several: mapped into one map)",
+        help="ROS 1 .bag files, ROS 2 bag directories, or a folder of scan files (several "
+        "bags: mapped into one map)",
     )  # fmt: skip
     p.add_argument(
         "-o", "--output", required=True,
@@ -99,6 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     p.add_argument("--config", help="a node parameter file (read as the node reads it)")
     add_replay_flags(p)  # one flag per setting of the schema that has one
+    add_input_arguments(p)  # folders, poses, odometry, --start/--end
     p.add_argument("--summary-json", help="also write the summary as JSON here")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     _fleet_arguments(p)
@@ -141,6 +146,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tf", action="store_true", help="also write odom -> base_link on /tf")
     p.add_argument("--no-tf-static", action="store_true", help="no /tf_static")
     p.add_argument(
+        "--organized",
+        action="store_true",
+        help="organized clouds (rows = beams) with NaN for no-returns, as velodyne's "
+        "organize_cloud (replay --no-return-range recovers them)",
+    )
+    p.add_argument(
         "--cloud-in-base-frame",
         action="store_true",
         help="publish the points in base_link (no extrinsic needed)",
@@ -149,24 +160,39 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "export",
-        help="write a map as PLY (CloudCompare, Open3D)",
-        description="PLY binary little endian, one vertex per observed voxel: "
-        "x y z degree_of_occupancy std mean_free_path n s.",
+        help="write a map as PLY (CloudCompare), a Nav2 map (PGM + YAML) or an mcap bag",
+        description="ply: binary little endian, one vertex per observed voxel: "
+        "x y z degree_of_occupancy std mean_free_path n s. nav2: a map_server map "
+        "(OUT.yaml + OUT.pgm) of the height band: occupied where the hit probability >= "
+        "--occupied-threshold, free below --free-threshold, else unknown. mcap: a ROS 2 bag "
+        "(directory OUT) with the DoO and std clouds and the projected grid, for Foxglove "
+        "or ros2 bag play. The format defaults from OUT: .ply, .yaml/.pgm, else mcap.",
     )
-    p.add_argument("map", help="map file (.npz) or tiled map (read tile by tile)")
-    p.add_argument("-o", "--output", required=True, help="PLY file to write")
+    p.add_argument("map", help="map file (.npz) or tiled map (ply: read tile by tile)")
+    p.add_argument("-o", "--output", required=True, help="file (ply, nav2) or directory (mcap)")
+    p.add_argument("--format", choices=("ply", "nav2", "mcap"), help="default: from OUT")
     p.add_argument(
         "--min-doo",
         type=_unit_interval,
         default=0.0,
-        help="only voxels with most likely degree of occupancy >= this",
+        help="ply, mcap: only voxels with most likely degree of occupancy >= this",
     )
     p.add_argument(
         "--min-evidence",
         type=float,
         default=0.0,
-        help="only voxels with s >= this (metres of rays)",
+        help="ply, mcap: only voxels with s >= this (metres of rays)",
     )
+    p.add_argument("--z-min", type=float, help="nav2, mcap: band bottom (default: floor+0.25)")
+    p.add_argument("--z-max", type=float, help="nav2, mcap: band top (default: as render)")
+    p.add_argument(
+        "--occupied-threshold", type=_unit_interval, default=0.65,
+        help="nav2: occupied where the hit probability >= this (default 0.65)",
+    )  # fmt: skip
+    p.add_argument(
+        "--free-threshold", type=_unit_interval, default=0.25,
+        help="nav2: free where the hit probability < this (default 0.25)",
+    )  # fmt: skip
 
     p = sub.add_parser("render", help="draw a map: top-down DoO and std, slice, histogram")
     p.add_argument("map", help="map file (.npz)")
@@ -177,6 +203,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--bounds", nargs=6, type=float, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
         help="draw only this box (m; of a tiled map only its tiles are read)",
+    )  # fmt: skip
+    p.add_argument(
+        "--value", choices=("most-likely", "mean"), default="most-likely",
+        help="top-down DoO: the most likely (default) or the posterior mean (shows how "
+        "little a voxel was seen)",
+    )  # fmt: skip
+    p.add_argument(
+        "--min-evidence", type=float, default=0.0,
+        help="draw only voxels with s >= this (metres of rays); others as unobserved",
     )  # fmt: skip
 
     p = sub.add_parser(
@@ -297,14 +332,20 @@ def _check_writable(path: Path, tiled_ok: bool = False) -> None:
 
 
 def replay_options(args: argparse.Namespace) -> Any:
-    """ReplayOptions from the schema defaults, ``--config`` and the flags given."""
+    """ReplayOptions from the schema defaults, ``--config``, the flags given and the
+    input flags (``offline.input_args``)."""
+    from dataclasses import replace
+
+    from mfp_mapper.offline.input_args import input_options
     from mfp_mapper.offline.options import options_from_args
 
-    return options_from_args(args)
+    return replace(options_from_args(args), **input_options(args))
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
+    from mfp_mapper.offline.folder_replay import replay_folder
     from mfp_mapper.offline.replay import ReplayError, replay
+    from mfp_mapper.offline.scan_folder import is_scan_folder
 
     out = Path(args.output)
     _check_writable(out, tiled_ok=True)
@@ -315,7 +356,16 @@ def cmd_replay(args: argparse.Namespace) -> int:
         return cmd_replay_fleet(args, out)
     try:
         opts = replay_options(args)
-        result = replay(args.inputs[0], opts, progress=not args.quiet, log=_warn)
+        if is_scan_folder(args.inputs[0]):
+            result = replay_folder(
+                args.inputs[0], args.poses, opts, args.times, progress=not args.quiet, log=_warn
+            )
+        elif args.poses is not None or args.times is not None:
+            raise ReplayError(
+                f"{args.inputs[0]}: --poses and --times are for folders of scan files"
+            )
+        else:
+            result = replay(args.inputs[0], opts, progress=not args.quiet, log=_warn)
     except ReplayError as err:
         raise CliError(f"{err} (no map written)") from None
     except ValueError as err:  # invalid mapper settings
@@ -410,6 +460,8 @@ def _sim_config(args: argparse.Namespace) -> Any:
         changes["write_tf_static"] = False
     if args.cloud_in_base_frame:
         changes["cloud_in_base_frame"] = True
+    if args.organized:
+        changes["organized"] = True
     return replace(cfg, **changes)
 
 
@@ -428,20 +480,73 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from mfp_mapper.core.mapfile import MapFileError
-    from mfp_mapper.core.tiles import TiledMap
-    from mfp_mapper.offline.export import export_ply, export_ply_tiled
-
-    mapper = _load_map(args.map, lazy_tiles=True)
     out = Path(args.output)
-    _check_writable(out)
-    export = export_ply_tiled if isinstance(mapper, TiledMap) else export_ply
+    fmt = args.format or _export_format(out)
+    if fmt == "ply":
+        from mfp_mapper.core.mapfile import MapFileError
+        from mfp_mapper.core.tiles import TiledMap
+        from mfp_mapper.offline.export import export_ply, export_ply_tiled
+
+        mapper = _load_map(args.map, lazy_tiles=True)  # a tiled map: one tile at a time
+        _check_writable(out)
+        export = export_ply_tiled if isinstance(mapper, TiledMap) else export_ply
+        try:
+            count = export(mapper, out, args.min_doo, args.min_evidence)
+        except MapFileError as err:  # a damaged tile
+            raise CliError(f"{err} (nothing written)") from None
+        print(f"wrote {out}: {count:,} voxels (x y z degree_of_occupancy std mean_free_path n s)")
+        return 0
+    mapper = _load_map(args.map)
+    z_min, z_max = _export_band(mapper, args)
     try:
-        count = export(mapper, out, args.min_doo, args.min_evidence)
-    except MapFileError as err:  # a damaged tile
-        raise CliError(f"{err} (nothing written)") from None
-    print(f"wrote {out}: {count:,} voxels (x y z degree_of_occupancy std mean_free_path n s)")
+        if fmt == "nav2":
+            from mfp_mapper.offline.nav2_map import write_nav2_map
+
+            _check_writable(out)
+            nav = write_nav2_map(
+                mapper, out, z_min, z_max, args.occupied_threshold, args.free_threshold
+            )
+            cells = nav.occupancy
+            print(
+                f"wrote {nav.yaml} and {nav.image}: {cells.shape[1]} x {cells.shape[0]} cells "
+                f"of {nav.resolution:g} m, band z in [{z_min:.2f}, {z_max:.2f}] m; "
+                f"{int((cells == 100).sum()):,} occupied, {int((cells == 0).sum()):,} free, "
+                f"{int((cells == -1).sum()):,} unknown"
+            )
+        else:
+            from mfp_mapper.offline.mcap_export import export_mcap
+
+            counts = export_mcap(mapper, out, z_min, z_max, args.min_doo, args.min_evidence)
+            listing = ", ".join(f"{topic} ({n:,})" for topic, n in counts.items())
+            print(f"wrote {out} (mcap): {listing}")
+    except (ValueError, FileExistsError) as err:
+        raise CliError(str(err)) from None
     return 0
+
+
+def _export_format(out: Path) -> str:
+    suffix = out.suffix.lower()
+    if suffix == ".ply":
+        return "ply"
+    return "nav2" if suffix in (".yaml", ".yml", ".pgm") else "mcap"
+
+
+def _export_band(mapper: Any, args: argparse.Namespace) -> tuple[float, float]:
+    """The height band of a 2D output: given, else the render's band from the data."""
+    from mfp_mapper.offline.render import BAND_HEIGHT, top_down_band
+
+    needed = args.z_min is None or args.z_max is None
+    # the band comes from the occupied voxels only (filtered in compiled code)
+    lo, hi = top_down_band(mapper.voxels(min_doo=0.5)) if needed else (0.0, 0.0)
+    z_min = args.z_min if args.z_min is not None else lo
+    z_max = (
+        args.z_max
+        if args.z_max is not None
+        else (hi if args.z_min is None else z_min + BAND_HEIGHT)
+    )
+    if not (math.isfinite(z_min) and math.isfinite(z_max)):
+        raise CliError("no floor found in the map: give the band with --z-min and --z-max")
+    return z_min, z_max
 
 
 def cmd_render(args: argparse.Namespace) -> int:
@@ -450,7 +555,15 @@ def cmd_render(args: argparse.Namespace) -> int:
     bounds = (args.bounds[:3], args.bounds[3:]) if args.bounds else None
     mapper = _load_map(args.map, bounds)
     try:
-        result = render_map(mapper, args.output, args.z_min, args.z_max, args.slice_y)
+        result = render_map(
+            mapper,
+            args.output,
+            args.z_min,
+            args.z_max,
+            args.slice_y,
+            value=args.value,
+            min_evidence=args.min_evidence,
+        )
     except ValueError as err:
         raise CliError(str(err)) from None
     for f in result.files:

@@ -156,6 +156,12 @@ SETTINGS: tuple[Setting, ...] = (
           "-1).", -1.0, 1.0e5, flag="--max-range", field="max_range", unlimited="inf"),
     _both("sensor_model.min_range", 0.0, "Returns closer than this (m) are dropped with "
           "their rays (robot body, dust).", 0.0, 1.0e3, flag="--min-range", field="min_range"),
+    _both("sensor_model.no_return_range", 0.0, "Firings that returned nothing (NaN/zero "
+          "cells of organized clouds, gaps of ring/channel clouds) become rays that clear "
+          "space up to this range (m) and count no return. 0: off, the default: a missing "
+          "return may also be a dark or glossy obstacle, or one closer than the minimum "
+          "range (README, 'Rays with no return').", 0.0, 1.0e5, flag="--no-return-range",
+          field="no_return_range"),
     _both("point_cloud_min_z", -NO_LIMIT_Z, "Returns whose map-frame z (m) is below this are "
           "dropped with their rays.", -NO_LIMIT_Z, NO_LIMIT_Z, flag="--min-z"),
     _both("point_cloud_max_z", NO_LIMIT_Z, "Returns whose map-frame z (m) is above this are "
@@ -230,6 +236,20 @@ SETTINGS: tuple[Setting, ...] = (
             flag="--extrinsic", length=6, metavar=("X", "Y", "Z", "ROLL", "PITCH", "YAW")),
     _replay("max_scans", int, "Stop after this many clouds.", lo=0, hi=2**63 - 1,
             flag="--max-scans"),
+    # which clouds: --start/--end (offline.input_args) set one of the three kinds of bound
+    _replay("start", float, "Map only clouds stamped at or after this absolute time (s); "
+            "the window is half-open, [start, end)."),
+    _replay("end", float, "Map only clouds stamped before this absolute time (s)."),
+    _replay("start_offset", float, "Like start, in seconds after the first cloud."),
+    _replay("end_offset", float, "Like end, in seconds after the first cloud."),
+    _replay("start_index", int, "First cloud mapped, by its position in the recording "
+            "(0: the first).", default=0, lo=0, hi=2**63 - 1),
+    _replay("end_index", int, "Clouds from this position on are not mapped: "
+            "[start_index, end_index).", lo=0, hi=2**63 - 1),
+    _replay("every", int, "Map one cloud in N of those selected (the first, then every "
+            "N-th).", default=1, lo=1, hi=2**63 - 1, flag="--every"),
+    _replay("odometry", str, "Poses estimated from the clouds: kiss-icp (needs the kiss-icp "
+            "package). Default: poses from the recording."),
 )  # fmt: skip
 
 BY_NAME: dict[str, Setting] = {s.name: s for s in SETTINGS}
@@ -333,6 +353,7 @@ class NodeConfig:
     keep_radius: float
     sensor_model_max_range: float
     sensor_model_min_range: float
+    sensor_model_no_return_range: float
     point_cloud_min_z: float
     point_cloud_max_z: float
     lidar_translation: tuple[float, float, float]

@@ -60,6 +60,8 @@ class IntegrationSummary:
     rays_used: int = 0
     rays_truncated: int = 0
     """Rays longer than max_range: walked up to max_range, with no return."""
+    rays_no_return: int = 0
+    """Used rays flagged ``no_return``: free space up to their end point, no return."""
     rays_beyond_walk_limit: int = 0
     """Rays longer than ``MAX_RAY_VOXELS`` voxels (when max_range is longer still): walked
     that far, with no return."""
@@ -185,12 +187,19 @@ class Mapper:
 
     # --- writing ----------------------------------------------------------------------
 
-    def integrate(self, points: ArrayLike, origins: ArrayLike, stamp: float) -> IntegrationSummary:
+    def integrate(
+        self,
+        points: ArrayLike,
+        origins: ArrayLike,
+        stamp: float,
+        no_return: ArrayLike | None = None,
+    ) -> IntegrationSummary:
         """Add one scan: rays from ``origins`` ((3,) or (N, 3)) to ``points`` (N, 3), map frame.
 
-        Each point is a first return, unless the ray is longer than ``max_range``: then it
-        is walked up to ``max_range`` and carries no return. Rays shorter than
-        ``min_range`` and rays with NaN/Inf are dropped and counted.
+        Each point is a first return, unless the ray is longer than ``max_range`` or its
+        ``no_return`` flag (N,) is set: then it is walked up to its point (at most
+        ``max_range``) and carries no return. Rays shorter than ``min_range`` and rays with
+        NaN/Inf are dropped and counted.
         """
         t0, cpu0 = time.perf_counter(), time.thread_time()
         self._worker_cpu = 0.0
@@ -208,11 +217,15 @@ class Mapper:
             pts, org = pts - self._origin, org - self._origin
         walk_limit = MAX_RAY_VOXELS * self.resolution
         reach = min(self.max_range, walk_limit)
-        rays, dropped = prepare_rays(pts, org, self.resolution, self.min_range, reach)
+        flags = None if no_return is None else np.asarray(no_return, dtype=np.bool_)
+        if flags is not None and flags.shape != (pts.shape[0],):
+            raise ValueError(f"no_return must have shape ({pts.shape[0]},), got {flags.shape}")
+        rays, dropped = prepare_rays(pts, org, self.resolution, self.min_range, reach, flags)
         summary = IntegrationSummary(rays_in=pts.shape[0], dropped=dropped)
         summary.rays_used = len(rays)
         summary.rays_unindexable = dropped["out_of_bounds"]
-        cut = int(np.count_nonzero(~rays.has_return))
+        summary.rays_no_return = rays.no_return_flagged
+        cut = int(np.count_nonzero(~rays.has_return)) - rays.no_return_flagged
         if self.max_range > walk_limit:
             summary.rays_beyond_walk_limit = cut
         else:

@@ -52,6 +52,8 @@ class Rays:
     ends_vox: NDArray[np.float64]
     lengths: NDArray[np.float64]
     has_return: NDArray[np.bool_]
+    no_return_flagged: int = 0
+    """How many of the rays had their ``no_return`` flag set (see ``prepare_rays``)."""
 
     def __len__(self) -> int:
         return int(self.lengths.shape[0])
@@ -71,21 +73,26 @@ def prepare_rays(
     resolution: float,
     min_range: float,
     max_range: float,
+    no_return: NDArray[np.bool_] | None = None,
 ) -> tuple[Rays, dict[str, int]]:
     """The usable rays in voxel units, and how many were dropped for which reason.
 
     ``origins`` is one origin (3,) or one per point (N, 3). A ray longer than ``max_range``
-    is cut there and carries no return; NaN/Inf, shorter than ``min_range`` (or zero), and
-    reaching beyond the indexable range are dropped.
+    is cut there and carries no return; so does a ray whose ``no_return`` flag (N,) is set:
+    its point only marks where its credited free space ends. NaN/Inf, shorter than
+    ``min_range`` (or zero), and reaching beyond the indexable range are dropped.
     """
     count = points.shape[0]
     out = Rays(
         np.empty((count, 3)), np.empty((count, 3)), np.empty(count), np.empty(count, dtype=np.bool_)
     )
-    drops = np.zeros(3, dtype=np.int64)
+    drops = np.zeros(4, dtype=np.int64)  # the 3 reasons, then the flagged rays kept
+    flags = np.zeros(0, dtype=np.bool_) if no_return is None else no_return
+    if flags.size and flags.shape != (count,):
+        raise ValueError(f"no_return must have shape ({count},), got {flags.shape}")
     used = _prepare_rays(
         points, np.atleast_2d(origins), resolution, min_range, max_range, MAX_VOXEL_INDEX,
-        out.origins_vox, out.ends_vox, out.lengths, out.has_return, drops,
+        flags, out.origins_vox, out.ends_vox, out.lengths, out.has_return, drops,
     )  # fmt: skip
     dropped = {
         "nonfinite": int(drops[0]),
@@ -93,7 +100,11 @@ def prepare_rays(
         "out_of_bounds": int(drops[2]),
     }
     rays = Rays(
-        out.origins_vox[:used], out.ends_vox[:used], out.lengths[:used], out.has_return[:used]
+        out.origins_vox[:used],
+        out.ends_vox[:used],
+        out.lengths[:used],
+        out.has_return[:used],
+        int(drops[3]),
     )
     return rays, dropped
 
@@ -106,6 +117,7 @@ def _prepare_rays(
     min_range: float,
     max_range: float,
     max_index: float,
+    no_return: NDArray[np.bool_],
     origins_vox: NDArray[np.float64],
     ends_vox: NDArray[np.float64],
     lengths: NDArray[np.float64],
@@ -113,9 +125,12 @@ def _prepare_rays(
     drops: NDArray[np.int64],
 ) -> int:
     """One pass over the points: fill the first rays of the outputs, count the drops
-    ([nonfinite, below_min_range, out_of_bounds]); returns how many rays are usable."""
+    ([nonfinite, below_min_range, out_of_bounds], then the flagged rays kept); returns how
+    many rays are usable.
+    ``no_return`` is empty (every point a return) or one flag per point."""
     k = 0
     per_point = origins.shape[0] > 1
+    flagged = no_return.shape[0] > 0
     for i in range(points.shape[0]):
         o = i if per_point else 0
         dx = points[i, 0] - origins[o, 0]
@@ -142,7 +157,11 @@ def _prepare_rays(
             drops[2] += 1
             continue
         lengths[k] = reach
-        has_return[k] = length <= max_range
+        if flagged and no_return[i]:
+            has_return[k] = False
+            drops[3] += 1
+        else:
+            has_return[k] = length <= max_range
         k += 1
     return k
 

@@ -5,19 +5,26 @@ estimate ``sum(n) / sum(s)`` against ``lambda``, the median error of the per-vox
 ``n/s``, and how often the central credible interval (``model.extinction_interval``, 90% by
 default) contains ``lambda`` — about 90% of the voxels for a calibrated map. Voxels of free
 air (at least one voxel away from every surface and volume) should hold no returns.
+
+``compare_no_return`` replays a bag twice, without and with the recovery of no-return rays
+(``--no-return-range``), and reports the bias of both maps.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
-from typing import Any
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from mfp_mapper.core import model
 from mfp_mapper.core.mapper import Mapper
+
+if TYPE_CHECKING:
+    from mfp_mapper.offline.options import ReplayOptions
 
 FloatArray = NDArray[np.float64]
 
@@ -117,11 +124,17 @@ def inside_voxels(lo: Any, hi: Any, resolution: float) -> NDArray[np.int64]:
 
 
 def evaluate_map(
-    mapper: Mapper, truth: dict[str, Any], level: float = 0.9, min_length: float = 0.0
+    mapper: Mapper,
+    truth: dict[str, Any],
+    level: float = 0.9,
+    min_length: float = 0.0,
+    no_return_recovered: bool = False,
 ) -> Evaluation:
     """Evaluate ``mapper`` against ``truth`` (the JSON written by ``simulate``).
 
     ``min_length``: only voxels with at least this many metres of rays (s) count.
+    ``no_return_recovered``: the map was made with ``no_return_range`` > 0 and recovered
+    the omitted rays (no warning about them).
     """
     r = mapper.resolution
     scene = truth["scene"]
@@ -158,7 +171,7 @@ def evaluate_map(
             )
         media.append(result)
     ev = Evaluation(r, level, media, _free_air(mapper, scene))
-    ev.warnings.extend(_warnings(mapper, truth, media))
+    ev.warnings.extend(_warnings(mapper, truth, media, no_return_recovered))
     return ev
 
 
@@ -188,15 +201,18 @@ def _free_air(mapper: Mapper, scene: dict[str, Any]) -> FreeAirResult:
     )
 
 
-def _warnings(mapper: Mapper, truth: dict[str, Any], media: list[MediumResult]) -> list[str]:
+def _warnings(
+    mapper: Mapper, truth: dict[str, Any], media: list[MediumResult], recovered: bool
+) -> list[str]:
     out = []
     rays = truth.get("rays", {})
     through = int(rays.get("omitted_through_media", 0))
-    if through:
+    if through and not recovered:
         out.append(
             f"{through:,} simulated rays crossed a medium and returned nothing; a driver omits "
             "them, so the map never saw the space they crossed and n/s is biased upward "
-            "(close the scene with walls and a ceiling)"
+            "(close the scene with walls and a ceiling, or simulate --organized and replay "
+            "with --no-return-range)"
         )
     odom = truth.get("frames", {}).get("odom")
     if odom and mapper.frame_id and mapper.frame_id != odom:
@@ -209,3 +225,58 @@ def _warnings(mapper: Mapper, truth: dict[str, Any], media: list[MediumResult]) 
         if m.voxels_inside == 0
     )
     return out
+
+
+@dataclass
+class NoReturnComparison:
+    """One bag mapped without and with the recovery of no-return rays."""
+
+    no_return_range: float
+    rays_no_return: int
+    without: Evaluation
+    recovered: Evaluation
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "no_return_range": self.no_return_range,
+            "rays_no_return": self.rays_no_return,
+            "without": self.without.to_json(),
+            "recovered": self.recovered.to_json(),
+        }
+
+    def format(self) -> str:
+        lines = [
+            f"no-return rays: {self.rays_no_return:,} recovered up to {self.no_return_range:g} m"
+        ]
+        for before, after in zip(self.without.media, self.recovered.media, strict=True):
+            pct = f"{100 * self.without.level:.0f}%"
+            lines.append(
+                f"{before.name}: pooled n/s {100 * before.pooled_relative_error:+.1f}% vs lambda "
+                f"without recovery, {100 * after.pooled_relative_error:+.1f}% with; {pct} "
+                f"interval coverage {100 * before.coverage:.1f}% -> {100 * after.coverage:.1f}%"
+            )
+        return "\n".join(lines)
+
+
+def compare_no_return(
+    bag: str | Path,
+    truth: dict[str, Any],
+    no_return_range: float,
+    options: ReplayOptions | None = None,
+    level: float = 0.9,
+) -> NoReturnComparison:
+    """Replay ``bag`` without and with ``no_return_range`` and evaluate both maps."""
+    from mfp_mapper.offline.options import ReplayOptions
+    from mfp_mapper.offline.replay import replay
+
+    if not no_return_range > 0:
+        raise ValueError(f"no_return_range must be > 0 m, got {no_return_range}")
+    base = options or ReplayOptions()
+    plain = replay(bag, replace(base, no_return_range=0.0), progress=False)
+    with_rays = replay(bag, replace(base, no_return_range=no_return_range), progress=False)
+    return NoReturnComparison(
+        no_return_range,
+        with_rays.summary.rays_no_return,
+        evaluate_map(plain.mapper, truth, level),
+        evaluate_map(with_rays.mapper, truth, level, no_return_recovered=True),
+    )

@@ -197,7 +197,11 @@ def plan_tasks(
 def replay_task(task: Task, opts: ReplayOptions, work_dir: str, tile_blocks: int) -> TaskResult:
     """Replay ``task`` and write its partial map as tiles under ``work_dir``."""
     t0 = time.perf_counter()
-    window = replace(opts, start=task.start, end=task.end)
+    window = replace(
+        opts,  # the task's window within the one asked for (--start/--end), if any
+        start=_latest(opts.start, task.start),
+        end=_earliest(opts.end, task.end),
+    )
     try:
         result = replay(task.recording, window, progress=False)
     except NothingMapped as err:
@@ -217,6 +221,14 @@ def replay_task(task: Task, opts: ReplayOptions, work_dir: str, tile_blocks: int
         seconds=time.perf_counter() - t0,
         peak_rss_bytes=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
     )
+
+
+def _latest(a: float | None, b: float | None) -> float | None:
+    return b if a is None else a if b is None else max(a, b)
+
+
+def _earliest(a: float | None, b: float | None) -> float | None:
+    return b if a is None else a if b is None else min(a, b)
 
 
 def reduce_task(
@@ -260,6 +272,8 @@ def map_fleet(
             f"{' and '.join(evicting)} evict(s) blocks during a replay: partial maps would not "
             "add up to the map of all scans; leave it unset to map several recordings or windows"
         )
+    if getattr(opts, "every", 1) not in (None, 1) and fleet.chunk_seconds:
+        raise FleetError("--every counts the clouds of one replay: not with --chunk-seconds")
     if opts.max_scans is not None and len(tasks) > 1:
         raise FleetError("max_scans counts the clouds of one replay: use it with one recording")
     _fail_or_skip(failed, fleet.skip_bad)

@@ -31,6 +31,8 @@ class ReplayOptions:
     resolution: float = _default("resolution")
     max_range: float = _default("sensor_model.max_range")
     min_range: float = _default("sensor_model.min_range")
+    no_return_range: float = _default("sensor_model.no_return_range")
+    """> 0: recover the firings with no return as rays this long (``sensing.no_return``)."""
     decay_time: float = _default("decay_time")
     threads: int = _default("threads")
     max_voxels: int | None = _default("max_voxels")
@@ -50,10 +52,22 @@ class ReplayOptions:
     point_cloud_min_z: float = _default("point_cloud_min_z")
     point_cloud_max_z: float = _default("point_cloud_max_z")
     max_scans: int | None = _default("max_scans")
-    start: float | None = None
-    """Map only clouds whose header stamp (absolute seconds) is >= start..."""
-    end: float | None = None
-    """...and < end: windows [start, end) that share bounds split a bag without overlap."""
+    start: float | None = _default("start")
+    """Map only clouds stamped at or after this absolute time (s): ``[start, end)``."""
+    end: float | None = _default("end")
+    """Map only clouds stamped before this absolute time (s)."""
+    start_offset: float | None = _default("start_offset")
+    """Like ``start``, in seconds after the recording's first cloud."""
+    end_offset: float | None = _default("end_offset")
+    """Like ``end``, in seconds after the recording's first cloud."""
+    start_index: int = _default("start_index")
+    """First cloud mapped, by its position in the recording (0 = the first)."""
+    end_index: int | None = _default("end_index")
+    """Clouds from this position on are not mapped: ``[start_index, end_index)``."""
+    every: int = _default("every")
+    """Map one cloud in ``every`` of those selected (the first, then every N-th)."""
+    odometry: str | None = _default("odometry")
+    """``"kiss-icp"``: poses estimated from the clouds (``offline.lidar_odometry``)."""
 
     def mapper_settings(self) -> dict[str, Any]:
         """Keyword arguments of ``Mapper`` besides the resolution."""
@@ -139,7 +153,7 @@ def _flag_type(setting: Setting) -> Any:
 
 def _flag_help(setting: Setting) -> str:
     text = setting.description.rstrip(".")
-    if setting.flag is not None and setting.flag.startswith("--no-"):
+    if setting.type is bool and setting.flag is not None and setting.flag.startswith("--no-"):
         text = f"turn off: {text[0].lower()}{text[1:]}"
     if setting.is_parameter:
         default = "" if setting.type is bool else f", default {setting.default}"

@@ -2,9 +2,13 @@
 
 matplotlib with the Agg backend (no display needed). ``render_map`` writes
 
-- ``doo_topdown.png``: per column the highest most likely degree of occupancy (DoO) in a
-  height band (default: from just above the ground to 2.5 m above it);
-- ``std_topdown.png``: the posterior std of that same voxel;
+- ``doo_topdown.png``: per column the highest most likely (or posterior mean) degree of
+  occupancy (DoO) in a height band; by default the band is found in the data: from 0.25 m above the
+  floor, 2.25 m high, ending 0.25 m under a ceiling (floor and ceiling: the lowest and
+  highest dense layers of the occupied-voxel height histogram); the view is cropped to the
+  0.5-99.5 percentiles of the observed voxels, so a few outliers do not shrink the map;
+- ``std_topdown.png``: the posterior std of the voxel drawn (largest DoO, ties to the most
+  evidence, then the highest: no storage-order artefact);
 - ``slice.png``: a vertical x-z slice at one y: most likely DoO and std;
 - ``histogram.png``: histograms of the most likely DoO and of the std.
 
@@ -44,21 +48,80 @@ class RenderResult:
     files: list[Path] = field(default_factory=list)
     band: tuple[float, float] = (math.nan, math.nan)
     slice_y: float = math.nan
+    extent: tuple[float, float, float, float] = (math.nan,) * 4
+    """x min, x max, y min, y max of the top-down pictures (m, map frame)."""
+    top_down: NDArray[np.float64] | None = None
+    """The top-down DoO grid drawn ((x, y) cells, NaN unobserved)."""
+    top_down_std: NDArray[np.float64] | None = None
+
+
+BAND_HEIGHT = 2.25
+"""Default height of the top-down band, from 0.25 m above the floor."""
+DENSE_LAYER = 0.3
+"""A horizontal layer holding at least this share of the fullest layer's occupied voxels
+is a floor or a ceiling."""
+CROP_PERCENTILES = (0.5, 99.5)
+"""The top-down view spans these percentiles of the observed voxels' x and y (outliers
+beyond are left out), plus a margin."""
+
+
+def _occupied_layers(stats: VoxelStats) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    occ = stats.observed & (stats.most_likely_doo > 0.5) & (stats.n >= 1)
+    values, counts = np.unique(stats.ijk[occ, 2], return_counts=True)
+    return values.astype(np.int64), counts.astype(np.int64)
+
+
+def _dense_surface(values: NDArray[np.int64], counts: NDArray[np.int64], k: int, up: bool) -> int:
+    """A floor/ceiling at a voxel boundary splits over two layers: widen to the neighbour
+    (above for a floor, below for a ceiling) when it is dense too."""
+    step = 1 if up else -1
+    neighbour = counts[values == k + step]
+    if neighbour.size and neighbour[0] > 0.5 * counts[values == k][0]:
+        return k + step
+    return k
 
 
 def ground_height(stats: VoxelStats) -> float | None:
-    """Top of the horizontal voxel layer holding the most confidently occupied voxels."""
-    occ = stats.observed & (stats.most_likely_doo > 0.5) & (stats.n >= 1)
-    if not np.any(occ):
-        return None
-    k = stats.ijk[occ, 2]
-    values, counts = np.unique(k, return_counts=True)
-    best = int(values[np.argmax(counts)])
-    # a floor at a voxel boundary splits over two layers: take the upper if it is dense too
-    upper = counts[values == best + 1]
-    if upper.size and upper[0] > 0.5 * counts.max():
-        best += 1
-    return (best + 1) * stats.resolution
+    """Top of the floor: the lowest dense horizontal layer of occupied voxels."""
+    floor, _ = floor_and_ceiling(stats)
+    return floor
+
+
+def floor_and_ceiling(stats: VoxelStats) -> tuple[float | None, float | None]:
+    """Top of the floor and bottom of the ceiling (None when absent), from the histogram
+    of occupied voxels per height layer: the lowest and highest dense layers, the ceiling
+    at least 1.5 m above the floor."""
+    values, counts = _occupied_layers(stats)
+    if values.size == 0:
+        return None, None
+    r = stats.resolution
+    dense = values[counts >= DENSE_LAYER * counts.max()]
+    low = _dense_surface(values, counts, int(dense.min()), up=True)
+    floor = (low + 1) * r
+    high = _dense_surface(values, counts, int(dense.max()), up=False)
+    ceiling = high * r
+    return floor, (ceiling if ceiling >= floor + 1.5 else None)
+
+
+def top_down_band(stats: VoxelStats) -> tuple[float, float]:
+    """The default band: from 0.25 m above the floor, ``BAND_HEIGHT`` high, and ending
+    0.25 m under the ceiling when there is one; all heights when no floor is found."""
+    floor, ceiling = floor_and_ceiling(stats)
+    if floor is None:
+        return -math.inf, math.inf
+    lo, hi = floor + 0.25, floor + 0.25 + BAND_HEIGHT
+    if ceiling is not None:
+        hi = min(hi, max(ceiling - 0.25, (floor + ceiling) / 2))
+    return lo, hi
+
+
+def crop_box(
+    ijk2: NDArray[np.int64], margin: int = 2
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Index bounds (lo, hi inclusive) of the ``CROP_PERCENTILES`` of these cells."""
+    lo = np.floor(np.percentile(ijk2, CROP_PERCENTILES[0], axis=0)).astype(np.int64) - margin
+    hi = np.ceil(np.percentile(ijk2, CROP_PERCENTILES[1], axis=0)).astype(np.int64) + margin
+    return lo, hi
 
 
 def _grid(
@@ -75,23 +138,44 @@ def _coarsening(ijk2: NDArray[np.int64]) -> int:
     return max(1, int(math.ceil(float(span.max()) / MAX_IMAGE_CELLS)))
 
 
+def _pick_per_cell(
+    cells: NDArray[np.int64],
+    shape: tuple[int, int],
+    keys: tuple[NDArray[np.float64], ...],
+) -> tuple[NDArray[np.bool_], NDArray[np.intp]]:
+    """Per cell, the voxel with the largest ``keys`` (last key first, then the others in
+    reverse order): (cells holding one, index of the voxel picked) — deterministic,
+    whatever the storage order."""
+    flat = cells[:, 0] * shape[1] + cells[:, 1]
+    order = np.lexsort((*keys, flat))
+    last = np.ones(order.size, dtype=bool)
+    last[:-1] = flat[order][1:] != flat[order][:-1]
+    pick = order[last]
+    filled = np.zeros(shape[0] * shape[1], dtype=bool)
+    filled[flat[pick]] = True
+    index = np.zeros(shape[0] * shape[1], dtype=np.intp)
+    index[flat[pick]] = pick
+    return filled.reshape(shape), index.reshape(shape)
+
+
+def _values(
+    filled: NDArray[np.bool_], index: NDArray[np.intp], value: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    return np.where(filled, value[index], np.nan)
+
+
 def _max_per_cell(
     cells: NDArray[np.int64],
     shape: tuple[int, int],
     value: NDArray[np.float64],
     other: NDArray[np.float64],
+    evidence: NDArray[np.float64],
+    height: NDArray[np.float64],
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Per cell, the largest ``value`` and the ``other`` of the same voxel (NaN: empty)."""
-    flat = cells[:, 0] * shape[1] + cells[:, 1]
-    order = np.lexsort((value, flat))
-    last = np.ones(order.size, dtype=bool)
-    last[:-1] = flat[order][1:] != flat[order][:-1]
-    pick = order[last]
-    top = np.full(shape[0] * shape[1], np.nan)
-    oth = np.full(shape[0] * shape[1], np.nan)
-    top[flat[pick]] = value[pick]
-    oth[flat[pick]] = other[pick]
-    return top.reshape(shape), oth.reshape(shape)
+    """Per cell, the largest ``value`` and the ``other`` of the same voxel (NaN: empty);
+    ties go to the voxel with most evidence, then the highest."""
+    filled, index = _pick_per_cell(cells, shape, (height, evidence, value))
+    return _values(filled, index, value), _values(filled, index, other)
 
 
 def _draw_grid(ax: Any, grid: np.ndarray, extent: Any, vmax: float, cmap: str) -> Any:
@@ -139,32 +223,53 @@ def render_map(
     z_max: float | None = None,
     slice_y: float | None = None,
     stamp: float | None = None,
+    value: str = "most-likely",
+    min_evidence: float = 0.0,
 ) -> RenderResult:
-    """Write the pictures of ``mapper`` into ``out_dir``; return their paths."""
+    """Write the pictures of ``mapper`` into ``out_dir``; return their paths.
+
+    ``value``: per column, the largest ``"most-likely"`` DoO of the band (walls stand out;
+    a voxel crossed once is 0, fully free) or the largest posterior ``"mean"`` DoO (a
+    voxel crossed once stays near the prior's mean: little evidence shows). The voxel
+    drawn is the one with that largest value, ties to the most evidence (s), then the
+    highest; the std picture shows its posterior std. ``min_evidence`` (metres of rays,
+    s) leaves out voxels seen less than that: drawn as unobserved.
+    """
+    if value not in ("most-likely", "mean"):
+        raise ValueError(f"value must be 'most-likely' or 'mean', got {value!r}")
     plt = _pyplot()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    stats = mapper.voxels(stamp)
+    stats = mapper.voxels(stamp, min_evidence=min_evidence)
     result = RenderResult()
     if len(stats) == 0:
-        raise ValueError("the map has no observed voxel: nothing to draw")
+        raise ValueError("the map has no observed voxel (with that evidence): nothing to draw")
     r = mapper.resolution
     doo, std = stats.most_likely_doo, stats.std
-    ground = ground_height(stats)
-    lo_z = z_min if z_min is not None else (ground + 0.25 if ground is not None else -math.inf)
-    hi_z = z_max if z_max is not None else (lo_z + 2.25 if math.isfinite(lo_z) else math.inf)
+    auto_lo, auto_hi = top_down_band(stats)
+    lo_z = z_min if z_min is not None else auto_lo
+    hi_z = z_max if z_max is not None else (auto_hi if z_min is None else lo_z + BAND_HEIGHT)
     result.band = (lo_z, hi_z)
     zc = stats.centers[:, 2]
     band = (zc >= lo_z) & (zc <= hi_z)
     if not np.any(band):
         band = np.ones(len(stats), dtype=bool)
         result.band = (-math.inf, math.inf)
-    ijk2 = stats.ijk[band][:, :2].astype(np.int64)
+    ijk2_all = stats.ijk[band][:, :2].astype(np.int64)
+    box_lo, box_hi = crop_box(ijk2_all)
+    inside = np.all((ijk2_all >= box_lo) & (ijk2_all <= box_hi), axis=1)
+    band_index = np.flatnonzero(band)[inside]
+    ijk2 = ijk2_all[inside]
     factor = _coarsening(ijk2)
     cells, shape, lo = _grid(ijk2, factor)
-    top, top_std = _max_per_cell(cells, shape, doo[band], std[band])
+    shown = stats.mean_doo if value == "mean" else doo
+    top, top_std = _max_per_cell(
+        cells, shape, shown[band_index], std[band_index], stats.s[band_index], zc[band_index]
+    )
     cell = r * factor
     extent = [lo[0] * cell, (lo[0] + shape[0]) * cell, lo[1] * cell, (lo[1] + shape[1]) * cell]
+    result.extent = (extent[0], extent[1], extent[2], extent[3])
+    result.top_down, result.top_down_std = top, top_std
     band_txt = _band_text(result.band)
     frame = mapper.frame_id or "map"
     result.files.append(
@@ -172,7 +277,11 @@ def render_map(
             plt,
             top,
             extent,
-            f"Most likely degree of occupancy, highest in {band_txt}",
+            (
+                f"Most likely degree of occupancy, highest in {band_txt}"
+                if value == "most-likely"
+                else f"Posterior mean degree of occupancy, highest in {band_txt}"
+            ),
             "degree of occupancy 1 - exp(-n/s)",
             out / "doo_topdown.png",
             f"x [m] ({frame})",
@@ -203,7 +312,9 @@ def render_map(
         xz = stats.ijk[row][:, [0, 2]].astype(np.int64)
         f2 = _coarsening(xz)
         cells2, shape2, lo2 = _grid(xz, f2)
-        sdoo, sstd = _max_per_cell(cells2, shape2, doo[row], std[row])
+        sdoo, sstd = _max_per_cell(
+            cells2, shape2, doo[row], std[row], stats.s[row], stats.centers[row, 1]
+        )
         c2 = r * f2
         ext2 = [lo2[0] * c2, (lo2[0] + shape2[0]) * c2, lo2[1] * c2, (lo2[1] + shape2[1]) * c2]
         aspect = (ext2[3] - ext2[2]) / max(ext2[1] - ext2[0], 1e-9)

@@ -18,8 +18,9 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -82,12 +83,17 @@ class ReplaySummary:
     extrinsic_source: str = ""
     deskew: bool = False
     scans_total: int = 0
+    scans_selected: int = 0
     scans_used: int = 0
     clouds_dropped: dict[str, int] = field(default_factory=dict)
     """Clouds not integrated, by reason (``sensing.pipeline.DROP_REASONS``, as ``~/status``)."""
     points_in: int = 0
     rays_used: int = 0
     rays_truncated: int = 0
+    rays_no_return: int = 0
+    """Recovered firings with no return that were integrated (``--no-return-range``)."""
+    no_return_note: str = ""
+    """Why firings were not (all) recovered, the first time it happened."""
     points_dropped: dict[str, int] = field(default_factory=dict)
     """Points and rays not used, by reason (as ``~/status``)."""
     voxels: int = 0
@@ -117,10 +123,17 @@ class ReplaySummary:
             f"extrinsic    {self.extrinsic_source}",
             f"de-skew      {'yes (per-point time)' if self.deskew else 'no'}",
             f"scans        {self.scans_used} used of {self.scans_total}"
+            + (
+                f" ({self.scans_selected} selected)"
+                if self.scans_selected != self.scans_total
+                else ""
+            )
             + (f"; dropped {n_dropped}: {_counts(self.clouds_dropped)}" if n_dropped else ""),
             f"rays         {self.rays_used:,} used of {self.points_in:,} points"
-            + (f"; {self.rays_truncated:,} cut at max range" if self.rays_truncated else ""),
+            + (f"; {self.rays_truncated:,} cut at max range" if self.rays_truncated else "")
+            + (f"; {self.rays_no_return:,} with no return" if self.rays_no_return else ""),
             f"points lost  {_counts(dropped) if dropped else 'none'}",
+            *([f"no-return    {self.no_return_note}"] if self.no_return_note else []),
             f"voxels       {self.voxels:,} ({self.memory_bytes / 2**20:.1f} MiB)",
             f"time         {self.seconds:.2f} s, {self.rays_per_second:,.0f} rays/s; "
             f"{100 * self.share_outside_core:.0f}% outside the core "
@@ -188,13 +201,14 @@ def _replay(
     summary.cloud_topic = cloud_topic
     cloud_conns = [c for c in reader.connections if c.topic == cloud_topic]
     summary.scans_total = sum(c.msgcount for c in cloud_conns)
-    if opts.max_scans is not None:
-        summary.scans_total = min(summary.scans_total, opts.max_scans)
     if summary.scans_total == 0:
         raise ReplayError(f"the cloud topic {cloud_topic} has no messages")
 
     t_poses = time.perf_counter()
-    poses, tfs, cloud_frame = _read_poses(reader, path, opts, odom_topic, cloud_conns)
+    if opts.odometry is not None:
+        poses, tfs, cloud_frame = _estimated_poses(reader, opts, cloud_conns, log)
+    else:
+        poses, tfs, cloud_frame = _read_poses(reader, path, opts, odom_topic, cloud_conns)
     summary.seconds_poses = time.perf_counter() - t_poses
     summary.pose_source = poses.source
     summary.map_frame = poses.map_frame
@@ -203,16 +217,98 @@ def _replay(
     ext, summary.extrinsic_source = extrinsic_for(cloud_frame, poses.body, tfs, opts)
     extrinsics[cloud_frame] = ext
 
-    mapper = Mapper(
+    mapper = new_mapper(opts, poses.map_frame)
+
+    def clouds() -> Iterator[tuple[int, Callable[[], Any]]]:
+        for index, (conn, _, raw) in enumerate(reader.messages(connections=cloud_conns)):
+            yield index, partial(reader.deserialize, raw, conn.msgtype)
+
+    def extrinsic_of(frame: str) -> Extrinsic:
+        if frame not in extrinsics:
+            extrinsics[frame], _ = extrinsic_for(frame, poses.body, tfs, opts)
+        return extrinsics[frame]
+
+    map_scans(clouds(), poses, extrinsic_of, opts, mapper, summary, progress, log, on_scan)
+    return ReplayResult(mapper, summary)
+
+
+def new_mapper(opts: ReplayOptions, frame_id: str) -> Mapper:
+    """An empty Mapper with the options' core settings."""
+    return Mapper(
         opts.resolution,
         max_range=opts.max_range,
         min_range=opts.min_range,
         decay_time=opts.decay_time,
-        frame_id=poses.map_frame,
+        frame_id=frame_id,
         threads=opts.threads,
         max_voxels=opts.max_voxels,
         keep_radius=opts.keep_radius,
     )
+
+
+class ScanSelection:
+    """Which clouds a replay maps: ``start_index``/``end_index``, ``start``/``end``
+    (absolute, or ``*_offset`` after the first cloud), one in ``every``, ``max_scans``."""
+
+    def __init__(self, opts: ReplayOptions) -> None:
+        if opts.every < 1:
+            raise ReplayError(f"every must be >= 1, got {opts.every}")
+        if opts.start_index < 0 or (opts.end_index is not None and opts.end_index < 0):
+            raise ReplayError("scan indices start at 0")
+        self.opts = opts
+        self.first_stamp: float | None = None
+        self.taken = 0
+        self.in_window = 0
+
+    def by_index(self, index: int) -> bool:
+        """False when ``index`` is outside ``[start_index, end_index)`` (cheap: no read)."""
+        end = self.opts.end_index
+        return index >= self.opts.start_index and (end is None or index < end)
+
+    def past_end(self, index: int) -> bool:
+        end, cap = self.opts.end_index, self.opts.max_scans
+        return (end is not None and index >= end) or (cap is not None and self.taken >= cap)
+
+    def by_stamp(self, stamp: float, index: int) -> bool:
+        """True when the cloud at ``stamp`` is in the time window and its turn in ``every``."""
+        if self.first_stamp is None:
+            self.first_stamp = stamp
+        lo, hi = self._window()
+        if stamp < lo or stamp >= hi:
+            return False
+        turn = self.in_window % self.opts.every == 0
+        self.in_window += 1
+        return turn
+
+    def _window(self) -> tuple[float, float]:
+        o, first = self.opts, self.first_stamp or 0.0
+        lo = max(
+            o.start if o.start is not None else -math.inf,
+            first + o.start_offset if o.start_offset is not None else -math.inf,
+        )
+        hi = min(
+            o.end if o.end is not None else math.inf,
+            first + o.end_offset if o.end_offset is not None else math.inf,
+        )
+        return lo, hi
+
+
+def map_scans(
+    clouds: Iterable[tuple[int, Callable[[], Any]]],
+    poses: Poses,
+    extrinsic_of: Callable[[str], Extrinsic],
+    opts: ReplayOptions,
+    mapper: Mapper,
+    summary: ReplaySummary,
+    progress: bool | Progress,
+    log: Callable[[str], None] | None,
+    on_scan: ScanCallback | None,
+) -> None:
+    """Run the selected clouds ``(position, load message)`` through the scan pipeline into
+    ``mapper``; fills ``summary``; ReplayError when no cloud could be mapped."""
+    select = ScanSelection(opts)
+    if opts.max_scans is not None:
+        summary.scans_total = min(summary.scans_total, opts.max_scans)
     bar = (
         progress
         if isinstance(progress, Progress)
@@ -223,29 +319,32 @@ def _replay(
     cloud_span = [math.inf, -math.inf]
     t_loop = time.perf_counter()
     try:
-        for done, (conn, _, raw) in enumerate(reader.messages(connections=cloud_conns), 1):
-            if opts.max_scans is not None and done > opts.max_scans:
+        for index, load in clouds:
+            if select.past_end(index):
                 break
+            if not select.by_index(index):
+                continue
             try:
-                msg = reader.deserialize(raw, conn.msgtype)
+                msg = load()
                 stamp = pipeline.scan_stamp(msg)
-            except Exception as err:  # damaged bytes: not a cloud message at all
-                if opts.start is None:  # no stamp: counted by the first window only
-                    counts.clouds_in += 1
-                    counts.drop("malformed")
-                    bad_example = bad_example or f"{type(err).__name__}: {err}"
+            except Exception as err:  # a damaged message: skip, count, say what it was
+                counts.clouds_in += 1
+                counts.drop("malformed")
+                bad_example = bad_example or f"{type(err).__name__}: {err}"
                 continue
-            if not _in_window(stamp, opts):
+            if not select.by_stamp(stamp, index):
                 continue
+            select.taken += 1
             counts.clouds_in += 1
             try:
                 cloud_span = [min(cloud_span[0], stamp), max(cloud_span[1], stamp)]
-                cloud = pipeline.parse_scan(msg)
+                cloud, note = pipeline.add_no_return_rays(
+                    pipeline.parse_scan(msg), opts.no_return_range
+                )
+                counts.no_return_note = counts.no_return_note or note
                 counts.points_in += cloud.points_in
-                frame = frame_name(msg.header.frame_id)
-                if frame not in extrinsics:
-                    extrinsics[frame], _ = extrinsic_for(frame, poses.body, tfs, opts)
-                placed = pipeline.place_scan(cloud, stamp, poses.buffer, extrinsics[frame], opts)
+                extrinsic = extrinsic_of(frame_name(msg.header.frame_id))
+                placed = pipeline.place_scan(cloud, stamp, poses.buffer, extrinsic, opts)
                 summary.deskew |= placed.deskewed
                 if on_scan is not None:
                     on_scan(stamp, placed.points, placed.origins)
@@ -267,11 +366,12 @@ def _replay(
             first = summary.first_stamp if summary.first_stamp is not None else stamp
             last = summary.last_stamp if summary.last_stamp is not None else stamp
             summary.first_stamp, summary.last_stamp = min(first, stamp), max(last, stamp)
-            bar.update(done, counts.rays_used)
-        bar.update(counts.clouds_in, counts.rays_used, force=True)
+            bar.update(index + 1, counts.rays_used)
+        bar.update(summary.scans_total, counts.rays_used, force=True)
     finally:
         bar.close()
     _fill(summary, counts, mapper)
+    summary.scans_selected = counts.clouds_in
     summary.seconds = time.perf_counter() - t_loop
     examples = "".join(
         f"; first {what}: {text}"
@@ -282,10 +382,25 @@ def _replay(
         raise NothingMapped(_nothing_mapped(summary, poses, examples, cloud_span, opts))
     if summary.clouds_dropped and log is not None:
         log(
-            f"warning: {sum(summary.clouds_dropped.values())} of {summary.scans_total} scans "
-            f"dropped ({_counts(summary.clouds_dropped)}){examples}"
+            f"warning: {sum(summary.clouds_dropped.values())} of {summary.scans_selected} "
+            f"scans dropped ({_counts(summary.clouds_dropped)}){examples}"
         )
-    return ReplayResult(mapper, summary)
+
+
+def _estimated_poses(
+    reader: Any, opts: ReplayOptions, cloud_conns: list[Any], log: Callable[[str], None] | None
+) -> tuple[Poses, TfTree, str]:
+    """Poses from the clouds (KISS-ICP): the map frame is the first scan's lidar frame."""
+    from mfp_mapper.offline.lidar_odometry import odometry_poses
+
+    first = next(reader.messages(connections=cloud_conns))
+    cloud_frame = frame_name(reader.deserialize(first[2], first[0].msgtype).header.frame_id)
+    clouds = (
+        (None, partial(reader.deserialize, raw, conn.msgtype))
+        for conn, _, raw in reader.messages(connections=cloud_conns)
+    )
+    total = sum(c.msgcount for c in cloud_conns)
+    return odometry_poses(clouds, opts, cloud_frame, total, log), read_transforms(), cloud_frame
 
 
 def _read_poses(
@@ -327,13 +442,11 @@ def _fill(summary: ReplaySummary, counts: pipeline.ScanCounts, mapper: Mapper) -
     summary.points_in = counts.points_in
     summary.rays_used = counts.rays_used
     summary.rays_truncated = counts.rays_truncated
+    summary.rays_no_return = counts.rays_no_return
+    summary.no_return_note = counts.no_return_note
     summary.points_dropped = dict(counts.points_dropped)
     summary.voxels = mapper.num_voxels
     summary.memory_bytes = mapper.memory_bytes
-
-
-def _in_window(stamp: float, opts: ReplayOptions) -> bool:
-    return (opts.start is None or stamp >= opts.start) and (opts.end is None or stamp < opts.end)
 
 
 def _nothing_mapped(
@@ -344,7 +457,10 @@ def _nothing_mapped(
     opts: ReplayOptions,
 ) -> str:
     reasons = _counts(summary.clouds_dropped) or "none"
-    text = f"no cloud could be mapped ({summary.scans_total} clouds; dropped: {reasons})"
+    text = (
+        f"no cloud could be mapped ({summary.scans_selected} of {summary.scans_total} clouds "
+        f"selected; dropped: {reasons})"
+    )
     if (opts.start is not None or opts.end is not None) and cloud_span[0] > cloud_span[1]:
         text += f"; no cloud stamp lies in the window [{opts.start}, {opts.end}) s"
     text += examples

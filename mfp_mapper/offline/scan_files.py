@@ -1,9 +1,12 @@
-"""Readers for the shared lidar data (PCD frames, VTK scans, odometry CSV) and a
-PointCloud2-like message builder so real field layouts can go through the parser."""
+"""Readers for scan files (PCD binary/ascii, PLY ascii/binary little-endian, KITTI ``.bin``,
+legacy ASCII VTK) and a PointCloud2-like message builder, so that every file goes through
+the same parser (``sensing.pointcloud``) as a recorded PointCloud2.
+
+Each reader returns the file's columns by name (``x``, ``y``, ``z`` and whatever else it
+holds, e.g. a per-point ``time_stamp``), so that per-point time reaches the de-skew."""
 
 from __future__ import annotations
 
-import csv
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -19,15 +22,11 @@ _PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8"} | {
     (kind, size): f"{kind.lower()}{size}" for kind in "IU" for size in (1, 2, 4, 8)
 }
 _SCAN_NAME = re.compile(r"cloud_(\d+)_(\d+)\.vtk$")
-_ODOMETRY_COLUMNS = (
-    "header.stamp.sec",
-    "header.stamp.nanosec",
-    *(f"pose.pose.position.{axis}" for axis in "xyz"),
-    *(f"pose.pose.orientation.{axis}" for axis in "xyzw"),
-)
-
-ODOMETRY_DTYPE = np.dtype([("stamp", "f8"), ("position", "f8", (3,)), ("quaternion", "f8", (4,))])
-"""Rows of :func:`read_odometry_csv`: stamp seconds, position xyz, quaternion xyzw."""
+_PLY_TYPES = {
+    "char": "i1", "uchar": "u1", "short": "i2", "ushort": "u2", "int": "i4", "uint": "u4",
+    "float": "f4", "double": "f8", "int8": "i1", "uint8": "u1", "int16": "i2",
+    "uint16": "u2", "int32": "i4", "uint32": "u4", "float32": "f4", "float64": "f8",
+}  # fmt: skip
 
 
 class DatasetFormatError(ValueError):
@@ -186,6 +185,88 @@ def read_vtk_points(path: str | Path) -> NDArray[np.float64]:
     return values.reshape(count, 3)
 
 
+def read_vtk(path: str | Path) -> dict[str, NDArray[np.generic]]:
+    """``x``, ``y``, ``z`` columns of an ASCII legacy VTK POLYDATA file."""
+    xyz = read_vtk_points(path)
+    return {"x": xyz[:, 0].copy(), "y": xyz[:, 1].copy(), "z": xyz[:, 2].copy()}
+
+
+def read_kitti_bin(path: str | Path) -> dict[str, NDArray[np.generic]]:
+    """A KITTI velodyne scan: float32 ``x y z intensity`` records, little-endian."""
+    path = Path(path)
+    raw = np.fromfile(path, dtype="<f4")
+    if raw.size % 4:
+        raise DatasetFormatError(
+            f"{path}: {raw.size * 4} bytes is not a whole number of 16-byte x y z intensity "
+            "records (KITTI .bin)"
+        )
+    records = raw.reshape(-1, 4)
+    return {name: records[:, k].copy() for k, name in enumerate(("x", "y", "z", "intensity"))}
+
+
+def read_ply(path: str | Path) -> dict[str, NDArray[np.generic]]:
+    """Columns of the ``vertex`` element of a PLY file (ascii or binary_little_endian).
+
+    Other elements (faces...) after the vertices are ignored; list properties on the
+    vertex element are not supported.
+    """
+    path = Path(path)
+    raw = path.read_bytes()
+    end = raw.find(b"end_header")
+    if not raw.startswith(b"ply") or end < 0:
+        raise DatasetFormatError(f"{path}: not a PLY file (no 'ply' ... 'end_header')")
+    body_start = raw.index(b"\n", end) + 1
+    lines = raw[:end].decode("ascii", errors="replace").splitlines()
+    fmt, dtype, count = _ply_header(lines, path)
+    if fmt == "binary_little_endian":
+        if len(raw) - body_start < count * dtype.itemsize:
+            raise DatasetFormatError(f"{path}: truncated, {count} vertices expected")
+        records = np.frombuffer(raw, dtype=dtype, count=count, offset=body_start)
+    else:
+        rows = raw[body_start:].split(b"\n")
+        width = len(dtype.names or ())
+        try:
+            values = np.array(b" ".join(rows[:count]).split(), dtype=np.float64)
+        except ValueError as error:
+            raise DatasetFormatError(f"{path}: non-numeric ascii data ({error})") from None
+        if values.size != count * width:
+            raise DatasetFormatError(
+                f"{path}: {values.size} ascii values, expected {count} vertices x {width}"
+            )
+        flat = values.reshape(count, width)
+        records = np.empty(count, dtype=dtype)
+        for k, name in enumerate(dtype.names or ()):
+            records[name] = flat[:, k]
+    return {name: records[name].copy() for name in dtype.names or ()}
+
+
+def _ply_header(lines: list[str], path: Path) -> tuple[str, np.dtype[np.void], int]:
+    """(format, vertex dtype, vertex count)."""
+    fmt, element, count = "", "", -1
+    fields: list[tuple[str, str]] = []
+    for line in lines[1:]:
+        parts = line.split()
+        if parts[:1] == ["format"] and len(parts) >= 2:
+            fmt = parts[1]
+        elif parts[:1] == ["element"] and len(parts) == 3:
+            element = parts[1]
+            if element != "vertex" and count < 0:
+                raise DatasetFormatError(f"{path}: elements before 'vertex' are not supported")
+            if element == "vertex":
+                count = int(parts[2])
+        elif parts[:1] == ["property"] and element == "vertex":
+            if parts[1] == "list" or len(parts) != 3 or parts[1] not in _PLY_TYPES:
+                raise DatasetFormatError(f"{path}: unsupported vertex property {line!r}")
+            fields.append((parts[2], "<" + _PLY_TYPES[parts[1]]))
+    if fmt not in ("ascii", "binary_little_endian"):
+        raise DatasetFormatError(
+            f"{path}: PLY format {fmt or '?'} is not supported (ascii, binary_little_endian)"
+        )
+    if count < 0 or not fields:
+        raise DatasetFormatError(f"{path}: no vertex element with properties")
+    return fmt, np.dtype(fields), count
+
+
 def list_vtk_scans(directory: str | Path) -> list[tuple[float, Path]]:
     """``(stamp seconds, path)`` of every ``cloud_<sec>_<nanosec>.vtk``, in time order.
 
@@ -197,27 +278,6 @@ def list_vtk_scans(directory: str | Path) -> list[tuple[float, Path]]:
         if match:
             scans.append((int(match[1]) + int(match[2]) * 1e-9, path))
     return sorted(scans)
-
-
-def read_odometry_csv(path: str | Path) -> NDArray[np.void]:
-    """nav_msgs/Odometry rows (columns named like the message fields) as ODOMETRY_DTYPE."""
-    path = Path(path)
-    with path.open(newline="") as stream:
-        reader = csv.DictReader(stream)
-        missing = [c for c in _ODOMETRY_COLUMNS if c not in (reader.fieldnames or [])]
-        if missing:
-            raise DatasetFormatError(f"{path}: missing odometry columns {', '.join(missing)}")
-        try:
-            rows = [[float(row[c]) for c in _ODOMETRY_COLUMNS] for row in reader]
-        except (TypeError, ValueError) as error:
-            line = reader.line_num
-            raise DatasetFormatError(f"{path}:{line}: bad odometry value ({error})") from None
-    values = np.array(rows, dtype=np.float64).reshape(-1, len(_ODOMETRY_COLUMNS))
-    odometry = np.empty(len(values), dtype=ODOMETRY_DTYPE)
-    odometry["stamp"] = values[:, 0] + values[:, 1] * 1e-9
-    odometry["position"] = values[:, 2:5]
-    odometry["quaternion"] = values[:, 5:9]
-    return odometry
 
 
 def cloud_message(

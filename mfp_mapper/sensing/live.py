@@ -48,6 +48,8 @@ class LiveSettings:
     point_cloud_max_z: float
     cloud_queue_size: int
     odom_wait: float
+    no_return_range: float = 0.0
+    """> 0: recover the firings with no return as rays this long (``sensing.no_return``)."""
     base_frame_id: str = ""
     extrinsic_override: Extrinsic | None = None
 
@@ -63,6 +65,7 @@ class LiveSettings:
             odom_wait=cfg.odom_wait,
             base_frame_id=cfg.base_frame_id,
             extrinsic_override=cfg.extrinsic_override(),
+            no_return_range=cfg.sensor_model_no_return_range,
         )
 
 
@@ -353,7 +356,12 @@ class LiveIntegrator:
     def _process(self, item: _Pending) -> bool:
         cfg = self.settings
         if item.cloud is None:
-            item.cloud = pipeline.parse_scan(item.msg)
+            item.cloud, note = pipeline.add_no_return_rays(
+                pipeline.parse_scan(item.msg), cfg.no_return_range
+            )
+            if note and not self.counters.no_return_note:
+                self.counters.no_return_note = note
+                self._log("no_return", f"no-return rays: {note}", False)
             item.stamp = pipeline.scan_stamp(item.msg)
             item.deadline = pipeline.pose_deadline(item.cloud, item.stamp, cfg.deskew)
             with self._cv:

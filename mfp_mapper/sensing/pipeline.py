@@ -5,7 +5,9 @@ run every cloud through these steps, so they drop the same clouds for the same r
 count them under the same names (``DROP_REASONS``):
 
 1. ``parse_scan``: PointCloud2 (any object with its attributes) -> ``ParsedCloud``
-   (``malformed``, ``empty``);
+   (``malformed``, ``empty``); ``add_no_return_rays`` (``no_return_range`` > 0) appends
+   the firings that returned nothing (``sensing.no_return``) as flagged rays, which are
+   de-skewed, placed and banded like the returns and integrated with no return;
 2. ``pose_deadline``: the latest time a pose must cover (the stamp, or the last point's
    time when de-skewing) — the live worker waits for odometry up to it;
 3. ``place_scan``: points into the map frame at the poses of their times, then the height
@@ -27,6 +29,7 @@ from numpy.typing import NDArray
 
 from mfp_mapper.core.mapper import IntegrationSummary, Mapper
 from mfp_mapper.sensing.deskew import PoseSource, cloud_to_map
+from mfp_mapper.sensing.no_return import with_no_return_rays
 from mfp_mapper.sensing.pointcloud import (
     CloudFormatError,
     ParsedCloud,
@@ -100,6 +103,8 @@ class PlacedScan:
     origins: FloatArray
     deskewed: bool
     points_dropped: dict[str, int] = field(default_factory=dict)
+    no_return: NDArray[np.bool_] | None = None
+    """Rays that end without a return (recovered firings), or None."""
 
 
 @dataclass
@@ -115,6 +120,10 @@ class ScanCounts:
     rays_in: int = 0
     rays_used: int = 0
     rays_truncated: int = 0
+    rays_no_return: int = 0
+    """Recovered firings with no return that were integrated (``no_return_range``)."""
+    no_return_note: str = ""
+    """Why firings were not (all) recovered, the first time it happened; "" if never."""
 
     def drop(self, reason: str) -> int:
         """Count one dropped cloud; returns how many were dropped for that reason."""
@@ -137,6 +146,7 @@ class ScanCounts:
         self.rays_in += summary.rays_in
         self.rays_used += summary.rays_used
         self.rays_truncated += summary.rays_truncated
+        self.rays_no_return += summary.rays_no_return
         self.count_points(summary.dropped)
 
 
@@ -154,6 +164,16 @@ def parse_scan(msg: Any) -> ParsedCloud:
             cloud.dropped,
         )
     return cloud
+
+
+def add_no_return_rays(cloud: ParsedCloud, no_return_range: float) -> tuple[ParsedCloud, str]:
+    """With ``no_return_range`` > 0: ``cloud`` plus its recovered no-return firings as
+    flagged points that far along them, and why firings could not (all) be recovered ("" if
+    they could). With 0: ``cloud`` unchanged."""
+    if not no_return_range > 0:
+        return cloud, ""
+    extended, found = with_no_return_rays(cloud, no_return_range)
+    return extended, found.reason or ""
 
 
 def scan_stamp(msg: Any) -> float:
@@ -185,6 +205,10 @@ def place_scan(
     except PoseUnavailable as err:
         raise ScanDropped(err.reason, str(err), points_dropped=dict(cloud.dropped)) from None
     dropped = dict(cloud.dropped)
+    flags = cloud.no_return
+    if flags is not None:
+        lo, hi = settings.point_cloud_min_z, settings.point_cloud_max_z
+        flags = flags[(points[:, 2] >= lo) & (points[:, 2] <= hi)]
     points, origins, outside = z_band(
         points, origins, settings.point_cloud_min_z, settings.point_cloud_max_z
     )
@@ -198,14 +222,14 @@ def place_scan(
             points_dropped=dropped,
         )
     deskewed = bool(settings.deskew and cloud.time_offset is not None)
-    return PlacedScan(stamp, points, origins, deskewed, dropped)
+    return PlacedScan(stamp, points, origins, deskewed, dropped, flags)
 
 
 def integrate_scan(mapper: Mapper, placed: PlacedScan) -> IntegrationSummary:
     """Integrate placed rays; ScanDropped ``no_usable_rays`` when the core used none
     (the map is then unchanged; the drop carries the placed scan's and the core's point
     drops; on success ``ScanCounts.add`` counts both)."""
-    summary = mapper.integrate(placed.points, placed.origins, placed.stamp)
+    summary = mapper.integrate(placed.points, placed.origins, placed.stamp, placed.no_return)
     if summary.rays_used == 0:
         lost = ", ".join(f"{k} {v}" for k, v in summary.dropped.items() if v) or "none"
         dropped = Counter(placed.points_dropped)

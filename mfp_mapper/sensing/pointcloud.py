@@ -51,6 +51,8 @@ per cloud (see :func:`time_base`): ``"relative"`` to the header stamp (Velodyne,
 unsynced lidar clock (Livox since power-on, Hesai without sync), where only the spacing of the
 points is usable and the first point is taken to be at the header stamp.
 """
+RING_FIELDS = ("ring", "channel")
+"""Beam index fields recognised (Velodyne/Ouster ``ring``, Hesai/Nebula ``channel``)."""
 RELATIVE_LIMIT = 1.0
 """Offsets (s) all within +-this are relative to the header stamp."""
 ABSOLUTE_TOLERANCE = 2.0
@@ -89,7 +91,8 @@ class ParsedCloud:
 
     ``time_offset`` is in seconds relative to the header stamp; ``dropped`` counts the
     points removed: ``"nonfinite"`` (NaN/Inf coordinate or time), ``"zero_range"``
-    (x = y = z = 0, the usual "no return" marker).
+    (x = y = z = 0, the usual "no return" marker). ``grid_shape``, ``cell`` and ``ring``
+    keep where the points were, for the recovery of no-return rays (``sensing.no_return``).
     """
 
     xyz: NDArray[np.float64]
@@ -97,6 +100,14 @@ class ParsedCloud:
     intensity: NDArray[np.float32] | None
     points_in: int
     dropped: dict[str, int] = field(default_factory=dict)
+    grid_shape: tuple[int, int] = (1, 0)
+    """(height, width) of the message: height > 1 is organized (rows are beams)."""
+    cell: NDArray[np.intp] | None = None
+    """Flat grid index (row * width + column) of each point; None: point i is cell i."""
+    ring: NDArray[np.int64] | None = None
+    """Beam index of each point (a ``RING_FIELDS`` field), when the cloud has one."""
+    no_return: NDArray[np.bool_] | None = None
+    """Points that end recovered rays with no return (None: every point is a return)."""
     time_base: str | None = None
     """One of ``TIME_BASES`` when the cloud has a recognised time field."""
     unknown_time_field: str | None = None
@@ -158,7 +169,10 @@ def parse_pointcloud2(msg: Any, header_stamp: float | None = None) -> ParsedClou
     intensity = (
         records["intensity"].reshape(-1).astype(np.float32) if "intensity" in names else None
     )
-    cloud = _drop_invalid(xyz, time_offset, intensity)
+    ring_name = next((n for n in RING_FIELDS if n in names), None)
+    ring = None if ring_name is None else records[ring_name].reshape(-1).astype(np.int64)
+    cloud = _drop_invalid(xyz, time_offset, intensity, ring)
+    cloud.grid_shape = (int(records.shape[0]), int(records.shape[1]))
     cloud.time_base = base
     cloud.unknown_time_field = unknown_time_field([str(f.name) for f in msg.fields])
     return cloud
@@ -206,7 +220,7 @@ def _check_fields(fields: Mapping[str, _Field], point_step: int) -> None:
                 f"field {f.name!r} ends at byte {end} but point_step is {point_step}: "
                 "every field must fit inside one point"
             )
-    for name in ("x", "y", "z", "intensity", *TIME_FIELDS):
+    for name in ("x", "y", "z", "intensity", *TIME_FIELDS, *RING_FIELDS):
         if name in fields and fields[name].count > 1:
             raise CloudFormatError(f"field {name!r} has count {fields[name].count}: expected 1")
 
@@ -226,7 +240,9 @@ def _records(msg: Any, fields: Mapping[str, _Field]) -> NDArray[np.void]:
             f"(height {height}, row_step {row_step}) were expected"
         )
     order = ">" if msg.is_bigendian else "<"
-    used = [name for name in ("x", "y", "z", "intensity", *TIME_FIELDS) if name in fields]
+    used = [
+        name for name in ("x", "y", "z", "intensity", *TIME_FIELDS, *RING_FIELDS) if name in fields
+    ]
     dtype = np.dtype(
         {
             "names": used,
@@ -298,6 +314,7 @@ def _drop_invalid(
     xyz: NDArray[np.float64],
     time_offset: NDArray[np.float64] | None,
     intensity: NDArray[np.float32] | None,
+    ring: NDArray[np.int64] | None = None,
 ) -> ParsedCloud:
     finite = np.isfinite(xyz).all(axis=1)
     if time_offset is not None:
@@ -307,13 +324,15 @@ def _drop_invalid(
     points_in = int(xyz.shape[0])
     dropped = {"nonfinite": points_in - int(finite.sum()), "zero_range": int((finite & zero).sum())}
     if dropped["nonfinite"] == 0 and dropped["zero_range"] == 0:
-        return ParsedCloud(xyz, time_offset, intensity, points_in, dropped)
+        return ParsedCloud(xyz, time_offset, intensity, points_in, dropped, ring=ring)
     return ParsedCloud(
         xyz[keep],
         None if time_offset is None else time_offset[keep],
         None if intensity is None else intensity[keep],
         points_in,
         dropped,
+        cell=np.flatnonzero(keep),
+        ring=None if ring is None else ring[keep],
     )
 
 

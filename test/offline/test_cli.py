@@ -148,3 +148,33 @@ def test_demo_runs_end_to_end(tmp_path: Path) -> None:
         assert (out / "pictures" / name).is_file()
     assert (out / "map.npz").is_file() and (out / "map.ply").is_file()
     assert json.loads((out / "evaluation.json").read_text())["media"]
+
+
+def test_replay_of_a_scan_folder_with_selection(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    from folder_helpers import write_pcd
+
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    angles = np.linspace(0, 2 * np.pi, 360, endpoint=False)
+    ring = {"x": (4 * np.cos(angles)).astype("<f4"), "y": (4 * np.sin(angles)).astype("<f4"),
+            "z": np.zeros(360, "<f4")}  # fmt: skip
+    for k in range(6):
+        write_pcd(folder / f"{k:03d}.pcd", ring)
+    out = tmp_path / "m.npz"
+    argv = ["replay", str(folder), "-o", str(out), "--poses", "identity", "--resolution", "0.5",
+            "--start", "#1", "--every", "2", "-q"]  # fmt: skip
+    assert main(argv) == 0
+    text = capsys.readouterr().out
+    assert "scans        3 used of 6" in text and "identity" in text and out.exists()
+    assert main(["replay", str(folder), "-o", str(out), "-q"]) == 1
+    assert "--poses FILE" in capsys.readouterr().err
+    assert main(["replay", str(tmp_path / "m.npz"), "-o", str(out), "--poses", "x"]) == 1
+
+
+def test_version(capsys) -> None:  # type: ignore[no-untyped-def]
+    import mfp_mapper
+
+    with pytest.raises(SystemExit) as info:
+        main(["--version"])
+    assert info.value.code == 0
+    assert capsys.readouterr().out.strip() == f"mfp-mapper {mfp_mapper.__version__}"

@@ -7,12 +7,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mfp_mapper.offline.pose_files import read_odometry_csv
 from mfp_mapper.offline.scan_files import (
     DatasetFormatError,
     cloud_message,
     cloud_message_from_columns,
     list_vtk_scans,
-    read_odometry_csv,
     read_pcd,
     read_vtk_points,
 )

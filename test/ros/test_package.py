@@ -51,6 +51,7 @@ MODULE_KEYS = {  # third-party module imported -> its rosdep key (None: delibera
     "rosbags": None,  # pip only: see the comment in package.xml
     "dask": None,  # offline fleet mapping only (--workers/--scheduler): see package.xml
     "distributed": None,
+    "kiss_icp": None,  # optional, pip only (replay --odometry kiss-icp): see package.xml
     **{
         name: name
         for name in (

@@ -130,3 +130,50 @@ def test_worker_thread_integrates_and_publishes_between_scans() -> None:
         worker.stop()
     assert worker.counters.clouds_integrated == 3
     assert published == [worker.mapper.version]
+
+
+def _organized_cloud(stamp: float) -> Any:
+    """A 4 x 90 organized cloud (4 beams, 4 deg steps) with NaN in every third cell."""
+    elevation = np.radians([-3.0, -1.0, 1.0, 3.0])[:, None]
+    azimuth = np.radians(np.arange(90) * 4.0)[None, :]
+    xyz = 5.0 * np.stack(
+        np.broadcast_arrays(
+            np.cos(elevation) * np.cos(azimuth),
+            np.cos(elevation) * np.sin(azimuth),
+            np.sin(elevation),
+        ),
+        axis=-1,
+    )
+    xyz.reshape(-1, 3)[::3] = np.nan
+    records = np.zeros((4, 90), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+    for k, axis in enumerate("xyz"):
+        records[axis] = xyz[..., k]
+    from mfp_mapper.offline.scan_files import cloud_message
+
+    return cloud_message(records, stamp, "base_link")
+
+
+def test_no_return_rays_are_recovered_and_counted_when_enabled() -> None:
+    for no_return_range, expected in ((0.0, 0), (8.0, 120)):
+        worker, logs = _worker(no_return_range=no_return_range)
+        worker.add_odometry(_odom(T0 - 0.1))
+        worker.add_odometry(_odom(T0 + 0.1))
+        worker.submit(_organized_cloud(T0))
+        _drain(worker)
+        c = worker.counters
+        assert c.clouds_integrated == 1 and c.rays_no_return == expected
+        assert c.rays_used == 240 + expected and c.points_dropped["nonfinite"] == 120
+        assert not any(key == "no_return" for key, _, _ in logs)
+
+
+def test_a_cloud_without_pattern_says_why_once() -> None:
+    worker, logs = _worker(no_return_range=8.0)
+    for k in range(5):
+        worker.add_odometry(_odom(T0 - 0.1 + 0.3 * k))
+    for k in range(3):
+        worker.submit(_cloud(T0 + 0.5 * k))
+    _drain(worker)
+    assert worker.counters.clouds_integrated == 3 and worker.counters.rays_no_return == 0
+    notes = [text for key, text, _ in logs if key == "no_return"]
+    assert len(notes) == 1 and "ring" in notes[0]
+    assert "ring" in worker.counters.no_return_note
