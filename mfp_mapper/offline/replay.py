@@ -384,7 +384,7 @@ def map_scans(
 
 def _estimated_poses(
     reader: Any, opts: ReplayOptions, cloud_conns: list[Any], log: Callable[[str], None] | None
-) -> tuple[Poses, Transforms, str]:
+) -> tuple[Poses, TfTree, str]:
     """Poses from the clouds (KISS-ICP): the map frame is the first scan's lidar frame."""
     from mfp_mapper.offline.lidar_odometry import odometry_poses
 
@@ -395,7 +395,7 @@ def _estimated_poses(
         for conn, _, raw in reader.messages(connections=cloud_conns)
     )
     total = sum(c.msgcount for c in cloud_conns)
-    return odometry_poses(clouds, opts, cloud_frame, total, log), Transforms(), cloud_frame
+    return odometry_poses(clouds, opts, cloud_frame, total, log), read_transforms(), cloud_frame
 
 
 def _read_poses(
