@@ -186,12 +186,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--z-min", type=float, help="nav2, mcap: band bottom (default: floor+0.25)")
     p.add_argument("--z-max", type=float, help="nav2, mcap: band top (default: as render)")
     p.add_argument(
-        "--occupied-threshold", type=_unit_interval, default=0.65,
-        help="nav2: occupied where the hit probability >= this (default 0.65)",
+        "--occupied-threshold", type=_unit_interval, default=None,
+        help="nav2: occupied where the hit probability >= this (default: the node's "
+        "projected_map.occupied_threshold, 0.25)",
     )  # fmt: skip
     p.add_argument(
-        "--free-threshold", type=_unit_interval, default=0.25,
-        help="nav2: free where the hit probability < this (default 0.25)",
+        "--free-threshold", type=_unit_interval, default=None,
+        help="nav2: free where the hit probability < this (default: that of a never-observed "
+        "voxel, resolution / (1 + resolution), as the node)",
     )  # fmt: skip
 
     p = sub.add_parser("render", help="draw a map: top-down DoO and std, slice, histogram")

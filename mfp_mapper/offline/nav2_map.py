@@ -1,9 +1,9 @@
 """A Nav2 ``map_server`` map of a height band: ``NAME.pgm`` + ``NAME.yaml``.
 
-The band ``[z_min, z_max]`` is projected like the node's projected map
-(``Mapper.hit_probability_grid``): per cell ``p``, the largest hit probability (the
-probability that a ray crossing one voxel edge is reflected, Eq. 31-34) among the observed
-voxels of the column. A cell is then
+The band ``[z_min, z_max]`` is projected exactly as the node's ``~/projected_map``
+(``Mapper.hit_probability_grid(..., trinary=...)``, the same thresholds and defaults): per
+cell ``p``, the largest hit probability (the probability that a ray crossing one voxel edge
+is reflected, Eq. 31-34) among the observed voxels of the column. A cell is then
 
 - occupied (pixel 0, OccupancyGrid 100) when ``p >= occupied_threshold``,
 - free (pixel 254, OccupancyGrid 0) when ``p < free_threshold``,
@@ -24,14 +24,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mfp_mapper.core.atomic import atomic_output, write_text_atomic
-from mfp_mapper.core.gridmap import UNKNOWN, HitGrid
+from mfp_mapper.core.gridmap import DEFAULT_OCCUPIED_THRESHOLD, unobserved_hit_probability
 from mfp_mapper.core.mapper import Mapper
 
 OCCUPIED_PIXEL, FREE_PIXEL, UNKNOWN_PIXEL = 0, 254, 205
 MAP_SERVER_OCCUPIED_THRESH = 0.65
 MAP_SERVER_FREE_THRESH = 0.196
-DEFAULT_OCCUPIED_THRESHOLD = 0.65
-DEFAULT_FREE_THRESHOLD = 0.25
 
 
 @dataclass
@@ -44,38 +42,29 @@ class Nav2Map:
     resolution: float
 
 
-def occupancy_from_grid(
-    grid: HitGrid, occupied_threshold: float, free_threshold: float
-) -> NDArray[np.int8]:
-    """Trinary OccupancyGrid values (100 / 0 / -1) of a hit-probability grid (percent)."""
-    if not 0.0 <= free_threshold <= occupied_threshold <= 1.0:
-        raise ValueError(
-            f"need 0 <= free_threshold ({free_threshold}) <= occupied_threshold "
-            f"({occupied_threshold}) <= 1"
-        )
-    percent = grid.data.astype(np.int16)
-    known = percent != UNKNOWN
-    out = np.full(percent.shape, -1, dtype=np.int8)
-    out[known & (percent >= 100.0 * occupied_threshold - 1e-9)] = 100
-    out[known & (percent < 100.0 * free_threshold - 1e-9)] = 0
-    return out
-
-
 def write_nav2_map(
     mapper: Mapper,
     path: str | Path,
     z_min: float,
     z_max: float,
-    occupied_threshold: float = DEFAULT_OCCUPIED_THRESHOLD,
-    free_threshold: float = DEFAULT_FREE_THRESHOLD,
+    occupied_threshold: float | None = None,
+    free_threshold: float | None = None,
 ) -> Nav2Map:
-    """Write ``path`` (.yaml; the .pgm beside it) for the band ``[z_min, z_max]``."""
+    """Write ``path`` (.yaml; the .pgm beside it) for the band ``[z_min, z_max]``.
+
+    Thresholds default to the node's (``projected_map.occupied_threshold``; free: the hit
+    probability of a never-observed voxel, ``resolution / (1 + resolution)``).
+    """
     yaml_path = Path(path).with_suffix(".yaml")
     image_path = yaml_path.with_suffix(".pgm")
-    grid = mapper.hit_probability_grid(z_min, z_max)
+    if occupied_threshold is None:
+        occupied_threshold = DEFAULT_OCCUPIED_THRESHOLD
+    if free_threshold is None or free_threshold < 0.0:
+        free_threshold = min(unobserved_hit_probability(mapper.resolution), occupied_threshold)
+    grid = mapper.hit_probability_grid(z_min, z_max, trinary=(occupied_threshold, free_threshold))
     if grid.data.size == 0:
         raise ValueError(f"no observed voxel in the band [{z_min}, {z_max}] m: no map")
-    occupancy = occupancy_from_grid(grid, occupied_threshold, free_threshold)
+    occupancy = grid.data
     pixels: NDArray[np.uint8] = np.full(occupancy.shape, UNKNOWN_PIXEL, dtype=np.uint8)
     pixels[occupancy == 100] = OCCUPIED_PIXEL
     pixels[occupancy == 0] = FREE_PIXEL
@@ -93,7 +82,7 @@ def write_nav2_map(
         f"occupied_thresh: {MAP_SERVER_OCCUPIED_THRESH}\n"
         f"free_thresh: {MAP_SERVER_FREE_THRESH}\n"
         f"# band z in [{z_min}, {z_max}] m of {mapper.frame_id or 'map'}; hit probability "
-        f">= {occupied_threshold} occupied, < {free_threshold} free\n"
+        f">= {occupied_threshold} occupied, < {free_threshold:.6g} free\n"
     )
     write_text_atomic(yaml_path, text)
     return Nav2Map(image_path, yaml_path, occupancy, (x0, y0), grid.resolution)

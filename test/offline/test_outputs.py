@@ -9,9 +9,10 @@ import pytest
 import yaml  # type: ignore[import-untyped]
 
 from mfp_mapper.cli import main
+from mfp_mapper.core.gridmap import unobserved_hit_probability
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.offline.mcap_export import DOO_TOPIC, GRID_TOPIC, STD_TOPIC, export_mcap
-from mfp_mapper.offline.nav2_map import occupancy_from_grid, read_pgm, write_nav2_map
+from mfp_mapper.offline.nav2_map import read_pgm, write_nav2_map
 
 
 @pytest.fixture
@@ -48,7 +49,8 @@ def test_nav2_map_reads_back_as_the_thresholded_grid(ring_map: Mapper, tmp_path:
     assert pixels.shape == grid.data.shape
     decoded = _map_server_decode(pixels, meta)
     np.testing.assert_array_equal(decoded, nav.occupancy)
-    np.testing.assert_array_equal(decoded, occupancy_from_grid(grid, 0.65, 0.25))
+    trinary = ring_map.hit_probability_grid(0.5, 1.5, trinary=(0.65, 0.25)).data
+    np.testing.assert_array_equal(decoded, trinary)
     # the wall ring is occupied, the inside free, the corners unknown
     row, col = grid.cell_of(3.0, 0.05)
     assert (decoded[row, col - 1 : col + 2] == 100).any()
@@ -62,7 +64,7 @@ def test_nav2_map_reads_back_as_the_thresholded_grid(ring_map: Mapper, tmp_path:
 
 
 def test_thresholds_are_checked(ring_map: Mapper, tmp_path: Path) -> None:
-    with pytest.raises(ValueError, match="free_threshold"):
+    with pytest.raises(ValueError, match="free <= occupied"):
         write_nav2_map(ring_map, tmp_path / "m.yaml", 0.5, 1.5, 0.2, 0.6)
 
 
@@ -130,3 +132,16 @@ def test_export_cli_formats(
     assert main(["export", str(path), "-o", str(tmp_path / "v.ply")]) == 0
     out = capsys.readouterr().out
     assert "occupied" in out and "mcap" in out and "voxels" in out
+
+
+def test_nav2_map_defaults_are_the_nodes_projected_map(ring_map: Mapper, tmp_path: Path) -> None:
+    """Without thresholds, the PGM holds exactly what ~/projected_map would (the schema's
+    projected_map.* defaults: occupied 0.25, free that of a never-observed voxel)."""
+    from mfp_mapper.settings import BY_NAME
+
+    nav = write_nav2_map(ring_map, tmp_path / "default.yaml", 0.5, 1.5)
+    occupied = BY_NAME["projected_map.occupied_threshold"].default
+    free = unobserved_hit_probability(ring_map.resolution)
+    expected = ring_map.hit_probability_grid(0.5, 1.5, trinary=(occupied, free)).data
+    np.testing.assert_array_equal(nav.occupancy, expected)
+    assert (expected == 100).any() and (expected == 0).any()
