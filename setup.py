@@ -34,7 +34,7 @@ for _dest, _patterns in (
 
 setup(
     name=PACKAGE,
-    version="0.1.0",
+    version="0.2.0",
     packages=find_packages(exclude=["test", "test.*", "benchmarks", "benchmarks.*"]),
     data_files=data_files,
     install_requires=["setuptools"],

@@ -8,7 +8,6 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +27,7 @@ from mfp_mapper.core.mapfile import (
 )
 from mfp_mapper.core.store import BLOCK_EDGE, MAX_VOXEL_INDEX, BlockStore, VoxelArrays, index_box
 from mfp_mapper.core.traversal import block_bounds, integrate_rays, prepare_rays
+from mfp_mapper.core.voxel_stats import IntegrationSummary, VoxelStats
 
 MAX_RAY_VOXELS = 1 << 15
 """Hard limit of a ray's walk, in voxels (3.3 km at 0.1 m): a ray longer than this (when
@@ -50,81 +50,6 @@ def _cpu_of(fn: Callable[[int], None], item: int) -> float:
     cpu0 = time.thread_time()
     fn(item)
     return time.thread_time() - cpu0
-
-
-@dataclass
-class IntegrationSummary:
-    """What one ``Mapper.integrate`` call did with its rays."""
-
-    rays_in: int = 0
-    rays_used: int = 0
-    rays_truncated: int = 0
-    """Rays longer than max_range: walked up to max_range, with no return."""
-    rays_no_return: int = 0
-    """Used rays flagged ``no_return``: free space up to their end point, no return."""
-    rays_beyond_walk_limit: int = 0
-    """Rays longer than ``MAX_RAY_VOXELS`` voxels (when max_range is longer still): walked
-    that far, with no return."""
-    rays_unindexable: int = 0
-    """Rays dropped because they reach beyond the map's index range around its origin
-    (also in ``dropped["out_of_bounds"]``): worth a log line."""
-    dropped: dict[str, int] = field(default_factory=dict)
-    """Rays not used, by reason: nonfinite, below_min_range, out_of_bounds."""
-    voxels_touched: int = 0
-    """Voxel updates (a voxel crossed by k rays counts k times)."""
-    new_voxels: int = 0
-    blocks_touched: int = 0
-    seconds: float = 0.0
-    cpu_seconds: float = 0.0
-    """CPU time of the call, the core's worker threads included."""
-
-    @property
-    def integrated(self) -> bool:
-        """Whether the scan added anything (at least one usable ray); a scan with none left
-        the map unchanged and is a drop, not an integration."""
-        return self.rays_used > 0
-
-
-@dataclass
-class VoxelStats:
-    """Statistics of a set of voxels, with the model's estimates computed on demand."""
-
-    ijk: NDArray[np.int32]
-    centers: FloatArray
-    s: FloatArray
-    n: FloatArray
-    t_last: FloatArray
-    observed: NDArray[np.bool_]
-    resolution: float
-
-    def __len__(self) -> int:
-        return int(self.s.shape[0])
-
-    @property
-    def most_likely_doo(self) -> FloatArray:
-        return model.most_likely_doo(self.s, self.n)
-
-    @property
-    def mean_doo(self) -> FloatArray:
-        return model.mean_doo(self.s, self.n)
-
-    @property
-    def std(self) -> FloatArray:
-        return model.std_doo(self.s, self.n)
-
-    @property
-    def hit_probability(self) -> FloatArray:
-        """Probability that a ray crossing one voxel edge of this voxel is reflected."""
-        return model.hit_probability(self.s, self.n, self.resolution)
-
-    @property
-    def mean_free_path(self) -> FloatArray:
-        return model.mean_free_path(self.s, self.n)
-
-    def select(self, mask: NDArray[np.bool_] | NDArray[np.intp]) -> VoxelStats:
-        """The subset of voxels picked by a boolean mask or index array."""
-        values = {f.name: getattr(self, f.name) for f in fields(self)}
-        return VoxelStats(**{k: (v if k == "resolution" else v[mask]) for k, v in values.items()})
 
 
 class Mapper:

@@ -333,3 +333,13 @@ def test_launch_file_has_an_rviz_argument() -> None:
     keywords = {k.arg: k.value for k in rviz_nodes[0].keywords}
     assert "IfCondition" in ast.dump(keywords["condition"])
     assert "mfp_mapper.rviz" in (ROOT / "launch" / "mfp_mapper.launch.py").read_text()
+
+
+def test_one_version(package_xml: ET.Element) -> None:
+    """package.xml, setup.py and ``mfp_mapper.__version__`` (``--version``) agree."""
+    import mfp_mapper
+
+    setup_text = (ROOT / "setup.py").read_text()
+    found = re.search(r'version="([^"]+)"', setup_text)
+    assert found is not None
+    assert package_xml.findtext("version") == found.group(1) == mfp_mapper.__version__
