@@ -6,7 +6,9 @@ times, so every block holds voxels of several times), then times, in one run:
 * numpy reading the file's arrays (``np.load`` and every array read): the baseline;
 * ``Mapper.load`` (read, check headers and values, find duplicates, fill the store);
 * ``Mapper.save`` and, for comparison, numpy writing the same arrays (``np.savez``);
-* ``Mapper.query`` of a few points after the load.
+* ``Mapper.query`` of a few points after the load;
+* what a user runs on such a map: ``export`` (PLY of the voxels with DoO >= 0.1, the Nav2
+  map) and ``render`` (the pictures), each as a ratio to numpy's read.
 
     python benchmarks/bench_mapfile.py             # 10 M voxels
     python benchmarks/bench_mapfile.py --voxels 1e6
@@ -69,12 +71,22 @@ def main() -> None:
         loaded.query(points)  # compiles nothing new; first-call overhead excluded
         query = min(_timed(lambda: loaded.query(points))[0] for _ in range(5))
         size = path.stat().st_size
+        from mfp_mapper.offline.export import export_ply
+        from mfp_mapper.offline.nav2_map import write_nav2_map
+        from mfp_mapper.offline.render import render_map
+
+        ply = _timed(lambda: export_ply(loaded, Path(tmp) / "map.ply", min_doo=0.1))[0]
+        nav2 = _timed(lambda: write_nav2_map(loaded, Path(tmp) / "nav.yaml", -1.0, 1.0))[0]
+        render = _timed(lambda: render_map(loaded, Path(tmp) / "pictures"))[0]
     print(f"map file of {mapper.num_voxels / 1e6:.2f} M voxels, {size / 1e6:.0f} MB (deflate 1)")
     print(f"  numpy read of its arrays  {np_read:7.3f} s   1.00x")
     print(f"  Mapper.load               {load:7.3f} s   {load / np_read:.2f}x numpy read")
     print(f"  np.savez (uncompressed)   {np_save:7.3f} s   1.00x")
     print(f"  Mapper.save               {save:7.3f} s   {save / np_save:.2f}x np.savez")
     print(f"  query of 10 points        {query * 1e3:7.3f} ms  {query / np_read:.2e}x numpy read")
+    print(f"  export PLY (DoO >= 0.1)   {ply:7.3f} s   {ply / np_read:.2f}x numpy read")
+    print(f"  export Nav2 map           {nav2:7.3f} s   {nav2 / np_read:.2f}x numpy read")
+    print(f"  render (all pictures)     {render:7.3f} s   {render / np_read:.2f}x numpy read")
 
 
 if __name__ == "__main__":

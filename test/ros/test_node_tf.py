@@ -157,7 +157,14 @@ def start(ros_domain: int, tmp: Path, name: str, **params: Any) -> tuple[NodePro
 
 def wall_found(feeder: Feeder, node: NodeProcess) -> None:
     """The DoO cloud (frame map) has its occupied voxels on the wall plane."""
-    assert feeder.wait(lambda: feeder.doo is not None and len(read_cloud(feeder.doo)["x"]) > 0, 15)
+
+    def occupied_voxels() -> int:
+        if feeder.doo is None:
+            return 0
+        return int((read_cloud(feeder.doo)["degree_of_occupancy"] > 0.5).sum())
+
+    # the first latched clouds may predate the last scans: wait for a map with the wall
+    feeder.wait(lambda: occupied_voxels() > 50, 20.0)
     assert feeder.doo.header.frame_id == "map"
     cloud = read_cloud(feeder.doo)
     occupied = cloud["degree_of_occupancy"] > 0.5
@@ -215,7 +222,10 @@ def test_odometry_with_map_to_odom_nav2_grid_and_late_joiners(
         )
 
         # Nav2: the wall is 100 (lethal), the space before it 0, behind it unknown
-        assert feeder.wait(lambda: feeder.projected is not None, 10.0)
+        # the first latched grid may predate the scans: wait for the one that has the wall
+        assert feeder.wait(
+            lambda: feeder.projected is not None and 100 in feeder.projected.data, 20.0
+        )
         grid = feeder.projected
         data = np.array(grid.data, dtype=int).reshape(grid.info.height, grid.info.width)
 
