@@ -225,3 +225,12 @@ def test_diagnostics_report_the_mapping_health(spun: Spun) -> None:
         assert {"clouds_in", "clouds_integrated", "voxels"} <= keys
     finally:
         listener.destroy_node()
+
+
+@pytest.mark.skip(
+    reason="cannot be done with best-effort DDS: a reader learns of a lost sample only from "
+    "the sequence number of a later one (Fast DDS message-lost events, README 'Large clouds "
+    "over DDS'), so clouds_lost counts a loss when the next cloud arrives, never earlier"
+)
+def test_clouds_lost_counted_when_the_loss_happens() -> None:
+    """Issue 9 asks for clouds_lost at the moment of the loss; see the skip reason."""
