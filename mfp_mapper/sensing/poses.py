@@ -201,16 +201,7 @@ class PoseBuffer:
         """
         times = np.asarray(stamps, dtype=np.float64).reshape(-1)
         pose_stamps, positions, quaternions = self._as_arrays()
-        self._check_range(times, pose_stamps)
-        if pose_stamps.size == 1:
-            return np.repeat(positions, times.size, 0), np.repeat(quaternions, times.size, 0)
-        hi = np.clip(np.searchsorted(pose_stamps, times, side="right"), 1, pose_stamps.size - 1)
-        lo = hi - 1
-        span = pose_stamps[hi] - pose_stamps[lo]
-        alpha = np.clip((times - pose_stamps[lo]) / span, 0.0, 1.0)
-        self._check_gaps(times, span, alpha, pose_stamps[lo])
-        position = positions[lo] + alpha[:, None] * (positions[hi] - positions[lo])
-        return position, slerp(quaternions[lo], quaternions[hi], alpha)
+        return interpolate_samples(pose_stamps, positions, quaternions, times, self.max_gap)
 
     def _as_arrays(self) -> tuple[FloatArray, FloatArray, FloatArray]:
         if not self._stamps:
@@ -223,35 +214,54 @@ class PoseBuffer:
             )
         return self._arrays
 
-    def _check_range(self, times: FloatArray, pose_stamps: FloatArray) -> None:
-        if times.size == 0:
-            return
-        newest, oldest = float(times.max()), float(times.min())
-        if newest > pose_stamps[-1]:
-            raise PoseUnavailable(
-                "too_new",
-                f"stamp {newest:.6f} is {newest - pose_stamps[-1]:.6f} s after the latest "
-                f"pose ({pose_stamps[-1]:.6f})",
-            )
-        if oldest < pose_stamps[0]:
-            raise PoseUnavailable(
-                "too_old",
-                f"stamp {oldest:.6f} is {pose_stamps[0] - oldest:.6f} s before the earliest "
-                f"kept pose ({pose_stamps[0]:.6f})",
-            )
 
-    def _check_gaps(
-        self, times: FloatArray, span: FloatArray, alpha: FloatArray, start: FloatArray
-    ) -> None:
-        inside = (alpha > 0.0) & (alpha < 1.0)
-        gaps = inside & (span > self.max_gap)
-        if np.any(gaps):
-            first = int(np.argmax(gaps))
-            raise PoseUnavailable(
-                "gap",
-                f"stamp {times[first]:.6f} falls between poses {span[first]:.3f} s apart "
-                f"(from {start[first]:.6f}), more than max_gap {self.max_gap} s",
-            )
+def interpolate_samples(
+    stamps: FloatArray,
+    positions: FloatArray,
+    quaternions: FloatArray,
+    times: FloatArray,
+    max_gap: float,
+    what: str = "",
+    noun: str = "pose",
+    error: type[PoseUnavailable] = PoseUnavailable,
+) -> tuple[FloatArray, FloatArray]:
+    """Positions (linear) and quaternions (slerp) of time-ordered samples at ``times``.
+
+    Raises ``error`` (a PoseUnavailable) ``too_new``/``too_old`` outside the samples and
+    ``gap`` between two samples more than ``max_gap`` apart; ``what`` prefixes its message.
+    """
+    n = times.size
+    if n == 0:
+        return np.zeros((0, 3)), np.zeros((0, 4))
+    newest, oldest = float(times.max()), float(times.min())
+    if newest > stamps[-1]:
+        raise error(
+            "too_new",
+            f"{what}stamp {newest:.6f} is {newest - stamps[-1]:.6f} s after the latest "
+            f"{noun} ({stamps[-1]:.6f})",
+        )
+    if oldest < stamps[0]:
+        raise error(
+            "too_old",
+            f"{what}stamp {oldest:.6f} is {stamps[0] - oldest:.6f} s before the earliest "
+            f"kept {noun} ({stamps[0]:.6f})",
+        )
+    if stamps.size == 1:
+        return np.repeat(positions, n, 0), np.repeat(quaternions, n, 0)
+    hi = np.clip(np.searchsorted(stamps, times, side="right"), 1, stamps.size - 1)
+    lo = hi - 1
+    span = stamps[hi] - stamps[lo]
+    alpha = np.clip((times - stamps[lo]) / span, 0.0, 1.0)
+    gaps = (alpha > 0.0) & (alpha < 1.0) & (span > max_gap)
+    if np.any(gaps):
+        k = int(np.argmax(gaps))
+        raise error(
+            "gap",
+            f"{what}stamp {times[k]:.6f} falls between {noun}s {span[k]:.3f} s apart "
+            f"(from {stamps[lo][k]:.6f}), more than max_gap {max_gap} s",
+        )
+    position = positions[lo] + alpha[:, None] * (positions[hi] - positions[lo])
+    return position, slerp(quaternions[lo], quaternions[hi], alpha)
 
 
 def _unit_quaternion_or_none(q: ArrayLike) -> FloatArray | None:

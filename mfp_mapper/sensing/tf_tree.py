@@ -29,9 +29,9 @@ from mfp_mapper.sensing.pointcloud import stamp_seconds
 from mfp_mapper.sensing.poses import (
     IDENTITY_QUATERNION,
     PoseUnavailable,
+    interpolate_samples,
     normalize_quaternion,
     quaternion_to_matrix,
-    slerp,
 )
 
 FloatArray = NDArray[np.float64]
@@ -356,37 +356,16 @@ class TfTree:
         edge = self._dynamic[child]
         what = f"{target} <- {source}: edge {edge.parent} -> {child}"
         stamps, translations, quaternions = edge.arrays()
-        if n == 0:
-            return np.zeros((0, 3)), np.zeros((0, 4))
-        newest, oldest = float(times.max()), float(times.min())
-        if newest > stamps[-1]:
-            raise TransformUnavailable(
-                "too_new",
-                f"{what}: stamp {newest:.6f} is {newest - stamps[-1]:.6f} s after its latest "
-                f"transform ({stamps[-1]:.6f})",
-            )
-        if oldest < stamps[0]:
-            raise TransformUnavailable(
-                "too_old",
-                f"{what}: stamp {oldest:.6f} is {stamps[0] - oldest:.6f} s before its earliest "
-                f"kept transform ({stamps[0]:.6f})",
-            )
-        if stamps.size == 1:
-            return np.repeat(translations, n, 0), np.repeat(quaternions, n, 0)
-        hi = np.clip(np.searchsorted(stamps, times, side="right"), 1, stamps.size - 1)
-        lo = hi - 1
-        span = stamps[hi] - stamps[lo]
-        alpha = np.clip((times - stamps[lo]) / span, 0.0, 1.0)
-        gaps = (alpha > 0.0) & (alpha < 1.0) & (span > self.max_gap)
-        if np.any(gaps):
-            k = int(np.argmax(gaps))
-            raise TransformUnavailable(
-                "gap",
-                f"{what}: stamp {times[k]:.6f} falls between transforms {span[k]:.3f} s apart, "
-                f"more than {self.max_gap} s",
-            )
-        t = translations[lo] + alpha[:, None] * (translations[hi] - translations[lo])
-        return t, slerp(quaternions[lo], quaternions[hi], alpha)
+        return interpolate_samples(
+            stamps,
+            translations,
+            quaternions,
+            times,
+            self.max_gap,
+            what=f"{what}: ",
+            noun="transform",
+            error=TransformUnavailable,
+        )
 
 
 class TfChain:

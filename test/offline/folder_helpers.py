@@ -53,15 +53,7 @@ def write_pcd(path: Path, columns: dict[str, np.ndarray], binary: bool = True) -
         f"WIDTH {len(arrays[0])}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(arrays[0])}\n"
         f"DATA {'binary' if binary else 'ascii'}\n"
     )
-    dtype = np.dtype([(n, a.dtype.newbyteorder("<")) for n, a in zip(names, arrays, strict=True)])
-    records = np.empty(len(arrays[0]), dtype=dtype)
-    for n, a in zip(names, arrays, strict=True):
-        records[n] = a
-    if binary:
-        path.write_bytes(header.encode() + records.tobytes())
-    else:
-        rows = "\n".join(" ".join(repr(v.item()) for v in row) for row in records)
-        path.write_text(header + rows + "\n")
+    _write_records(path, header, names, arrays, binary)
 
 
 def write_ply(path: Path, columns: dict[str, np.ndarray], binary: bool = True) -> None:
@@ -76,6 +68,13 @@ def write_ply(path: Path, columns: dict[str, np.ndarray], binary: bool = True) -
         )
         + "element face 0\nproperty list uchar int vertex_indices\nend_header\n"
     )
+    _write_records(path, header, names, arrays, binary)
+
+
+def _write_records(
+    path: Path, header: str, names: list[str], arrays: list[np.ndarray], binary: bool
+) -> None:
+    """The header, then the columns as little-endian records or ASCII rows."""
     dtype = np.dtype([(n, a.dtype.newbyteorder("<")) for n, a in zip(names, arrays, strict=True)])
     records = np.empty(len(arrays[0]), dtype=dtype)
     for n, a in zip(names, arrays, strict=True):
