@@ -20,13 +20,11 @@ from mfp_mapper.core.mailbox import Mailbox
 from mfp_mapper.core.mapfile import (
     MAX_RESOLUTION,
     MIN_RESOLUTION,
-    MapFileError,
-    read_map_file,
-    voxel_problem,
     write_map,
 )
+from mfp_mapper.core.memory_bound import MemoryBound
 from mfp_mapper.core.store import BLOCK_EDGE, MAX_VOXEL_INDEX, BlockStore, VoxelArrays, index_box
-from mfp_mapper.core.traversal import block_bounds, integrate_rays, prepare_rays
+from mfp_mapper.core.traversal import integrate_rays, prepare_rays
 from mfp_mapper.core.voxel_stats import IntegrationSummary, VoxelStats
 
 MAX_RAY_VOXELS = 1 << 15
@@ -73,21 +71,9 @@ class Mapper:
         keep_radius: float | None = None,
         origin: ArrayLike | None = None,
     ) -> None:
-        if not (math.isfinite(resolution) and MIN_RESOLUTION <= resolution <= MAX_RESOLUTION):
-            raise ValueError(
-                f"resolution must be a positive number of metres in [{MIN_RESOLUTION}, "
-                f"{MAX_RESOLUTION}], got {resolution}"
-            )
-        if not max_range > min_range >= 0:
-            raise ValueError(f"need max_range > min_range >= 0, got {max_range}, {min_range}")
-        if not decay_time > 0:
-            raise ValueError(f"decay_time must be > 0 seconds (inf = static), got {decay_time}")
-        if threads < 1:
-            raise ValueError(f"threads must be >= 1, got {threads}")
-        if max_voxels is not None and max_voxels < 1:
-            raise ValueError(f"max_voxels must be >= 1 or None, got {max_voxels}")
-        if keep_radius is not None and not keep_radius > 0:
-            raise ValueError(f"keep_radius must be > 0 metres or None, got {keep_radius}")
+        _check_settings(
+            resolution, max_range, min_range, decay_time, threads, max_voxels, keep_radius
+        )
         self.resolution = float(resolution)
         self.max_range = float(max_range)
         self.min_range = float(min_range)
@@ -96,6 +82,10 @@ class Mapper:
         self.threads = int(threads)
         self.max_voxels = max_voxels
         self.keep_radius = keep_radius
+        self._bound = MemoryBound(
+            max_voxels,
+            None if keep_radius is None else keep_radius / (self.resolution * BLOCK_EDGE),
+        )
         self._origin_given = origin is not None
         self._origin: FloatArray | None = None
         if origin is not None:
@@ -156,7 +146,7 @@ class Mapper:
         else:
             summary.rays_truncated = cut
         if len(rays):
-            self._make_room(rays.origins_vox, rays.ends_vox)
+            self._bound.make_room(self._store, rays.origins_vox, rays.ends_vox, self._center())
             scan_id = self._store.begin_scan()
             integrate_rays(
                 self._store,
@@ -174,7 +164,7 @@ class Mapper:
                 float(stamp) if self.last_stamp is None else max(self.last_stamp, stamp)
             )
             self.last_origin = rays.origins_vox.mean(axis=0) * self.resolution + self._offset
-            self._enforce_memory_bound()
+            self._bound.enforce(self._store, self._center())
             self.version += 1
         summary.seconds = time.perf_counter() - t0
         summary.cpu_seconds = time.thread_time() - cpu0 + self._worker_cpu
@@ -190,26 +180,6 @@ class Mapper:
         quantum = ORIGIN_QUANTUM_VOXELS * self.resolution
         return np.round(finite[0] / quantum) * quantum
 
-    def _make_room(self, origins_vox: FloatArray, ends_vox: FloatArray) -> None:
-        """With ``max_voxels``: make sure the scan cannot take the map's blocks beyond
-        ``max_voxels`` (a map within the bound never has more blocks than voxels), evicting
-        far blocks first; raises ``ScanTooLargeError`` when even an empty map could not."""
-        if self.max_voxels is None:
-            return
-        per_ray = int(block_bounds(origins_vox, ends_vox).sum())
-        lo = np.floor(np.minimum(origins_vox.min(axis=0), ends_vox.min(axis=0))) // BLOCK_EDGE
-        hi = np.floor(np.maximum(origins_vox.max(axis=0), ends_vox.max(axis=0))) // BLOCK_EDGE
-        in_box = float(np.prod(hi - lo + 1))
-        worst = min(per_ray, in_box)
-        if worst > self.max_voxels:
-            raise ScanTooLargeError(
-                f"scan refused: its rays could create {worst:.0f} blocks of "
-                f"{BLOCK_EDGE**3} voxels, more than max_voxels={self.max_voxels}"
-            )
-        if self._store.num_blocks + worst > self.max_voxels and self.last_origin is not None:
-            center = (self.last_origin - self._offset) / (self.resolution * BLOCK_EDGE)
-            self._store.evict_farthest_blocks(center, int(self.max_voxels - worst))
-
     def _run_parallel(self, fn: Callable[[int], None], items: Sequence[int]) -> None:
         if self._pool is None or len(items) == 1:
             for item in items:
@@ -217,17 +187,11 @@ class Mapper:
         else:
             self._worker_cpu += sum(self._pool.map(functools.partial(_cpu_of, fn), items))
 
-    def _enforce_memory_bound(self) -> None:
-        """Evict far blocks: beyond ``keep_radius`` of the latest sensor position, then the
-        farthest blocks until the map holds at most 90% of ``max_voxels``."""
+    def _center(self) -> FloatArray | None:
+        """The latest sensor position in block units of the store (None before a scan)."""
         if self.last_origin is None:
-            return
-        block_size = self.resolution * BLOCK_EDGE
-        center = (self.last_origin - self._offset) / block_size
-        if self.keep_radius is not None:
-            self._store.evict_beyond(center, self.keep_radius / block_size)
-        if self.max_voxels is not None and self._store.num_voxels > self.max_voxels:
-            self._store.evict_farthest(center, int(0.9 * self.max_voxels))
+            return None
+        return (self.last_origin - self._offset) / (self.resolution * BLOCK_EDGE)
 
     def reset(self) -> None:
         """Forget every voxel (parameters stay)."""
@@ -397,29 +361,9 @@ class Mapper:
         lie inside (of a tiled map, only the tiles reaching into them are read). Keyword
         arguments override stored settings (not ``resolution`` or ``origin``). Raises
         ``MapFileError`` naming the file and the problem."""
-        if bounds is not None or Path(path).is_dir():
-            from mfp_mapper.core.tiles import load_map
+        from mfp_mapper.core.map_loading import load_map
 
-            return load_map(path, bounds, **overrides)
-        contents = read_map_file(path)
-        settings: dict[str, object] = {
-            "decay_time": contents.decay_time,
-            "frame_id": contents.frame_id,
-            **contents.ranges,
-            **overrides,
-        }
-        for fixed, stored in (("resolution", contents.resolution), ("origin", contents.origin)):
-            if fixed in settings and np.any(np.asarray(settings.pop(fixed)) != stored):
-                raise MapFileError(path, f"stored {fixed} {stored} cannot be changed")
-        try:
-            return cls.from_arrays(
-                contents.voxels,
-                resolution=contents.resolution,
-                origin=contents.origin,
-                **settings,
-            )
-        except ValueError as err:
-            raise MapFileError(path, str(err)) from err
+        return load_map(cls, path, bounds, **overrides)
 
     @classmethod
     def from_arrays(
@@ -433,20 +377,9 @@ class Mapper:
         """A Mapper holding these voxels (indices relative to ``origin``, as in the map file;
         each voxel once). ``settings`` are the constructor's keyword arguments. Raises
         ``ValueError`` on bad settings or voxels."""
-        problem = voxel_problem(voxels.ijk, voxels.s, voxels.n, voxels.t_last)
-        if problem:
-            raise ValueError(problem)
-        count = voxels.ijk.shape[0]
-        if voxels.ijk.shape != (count, 3) or any(
-            a.shape != (count,) for a in (voxels.s, voxels.n, voxels.t_last)
-        ):
-            raise ValueError("voxels need ijk (N, 3) and s, n, t_last (N,)")
-        mapper = cls(resolution, origin=origin, **settings)  # type: ignore[arg-type]
-        mapper._store.assign(voxels, mapper.decay_time)
-        finite_t = voxels.t_last[np.isfinite(voxels.t_last)]
-        mapper.last_stamp = float(finite_t.max()) if finite_t.size else None
-        mapper.version += 1
-        return mapper
+        from mfp_mapper.core.map_loading import from_arrays
+
+        return from_arrays(cls, voxels, resolution=resolution, origin=origin, **settings)
 
     def close(self) -> None:
         """Stop the worker threads (the map stays readable)."""
@@ -460,3 +393,30 @@ def _shard_count(threads: int) -> int:
     while shards < threads:
         shards *= 2
     return shards
+
+
+def _check_settings(
+    resolution: float,
+    max_range: float,
+    min_range: float,
+    decay_time: float,
+    threads: int,
+    max_voxels: int | None,
+    keep_radius: float | None,
+) -> None:
+    """ValueError naming the first setting of a Mapper out of its range."""
+    if not (math.isfinite(resolution) and MIN_RESOLUTION <= resolution <= MAX_RESOLUTION):
+        raise ValueError(
+            f"resolution must be a positive number of metres in [{MIN_RESOLUTION}, "
+            f"{MAX_RESOLUTION}], got {resolution}"
+        )
+    if not max_range > min_range >= 0:
+        raise ValueError(f"need max_range > min_range >= 0, got {max_range}, {min_range}")
+    if not decay_time > 0:
+        raise ValueError(f"decay_time must be > 0 seconds (inf = static), got {decay_time}")
+    if threads < 1:
+        raise ValueError(f"threads must be >= 1, got {threads}")
+    if max_voxels is not None and max_voxels < 1:
+        raise ValueError(f"max_voxels must be >= 1 or None, got {max_voxels}")
+    if keep_radius is not None and not keep_radius > 0:
+        raise ValueError(f"keep_radius must be > 0 metres or None, got {keep_radius}")
