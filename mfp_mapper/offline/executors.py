@@ -7,9 +7,10 @@ dependency of the offline tools, never of the node.
 from __future__ import annotations
 
 import logging
-import sys
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any, TextIO
+
+from mfp_mapper.offline.progress import stderr_bar
 
 Outcome = tuple[Any, Any, BaseException | None]
 """(item, result, error): exactly one of result and error is meaningful."""
@@ -133,19 +134,12 @@ class StageProgress:
     def __init__(
         self, stage: str, total: int, enabled: bool = True, stream: TextIO | None = None
     ) -> None:
-        from tqdm import tqdm
-
-        stream = stream or sys.stderr
-        tty = bool(getattr(stream, "isatty", lambda: False)())
-        self._bar: Any = tqdm(
-            total=max(total, 0),
-            file=stream,
-            disable=not enabled,
-            mininterval=0.2 if tty else 5.0,
-            desc=stage,
-            dynamic_ncols=tty,
-            bar_format="{desc} {n_fmt}/{total_fmt} tasks  elapsed {elapsed}  left {remaining}"
-            "  {postfix}",
+        self._bar: Any = stderr_bar(
+            stage,
+            total,
+            "{desc} {n_fmt}/{total_fmt} tasks  elapsed {elapsed}  left {remaining}  {postfix}",
+            enabled,
+            stream,
         )
 
     def update(self, done: int, note: str = "") -> None:

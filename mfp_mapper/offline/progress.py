@@ -6,6 +6,31 @@ import sys
 from typing import Any, TextIO
 
 
+def stderr_bar(
+    desc: str,
+    total: int,
+    bar_format: str,
+    enabled: bool = True,
+    stream: TextIO | None = None,
+    interval: float | None = None,
+) -> Any:
+    """A tqdm bar on ``stream`` (stderr): redrawn in place every 0.2 s on a terminal,
+    elsewhere (logs, CI) a line every 5 s; ``enabled=False`` prints nothing."""
+    from tqdm import tqdm
+
+    stream = stream or sys.stderr
+    tty = bool(getattr(stream, "isatty", lambda: False)())
+    return tqdm(
+        total=max(total, 0),
+        file=stream,
+        disable=not enabled,
+        mininterval=interval if interval is not None else (0.2 if tty else 5.0),
+        desc=desc,
+        dynamic_ncols=tty,
+        bar_format=bar_format,
+    )
+
+
 class Progress:
     """A progress bar of ``total`` scans; ``update(done, rays)`` sets its state.
 
@@ -20,20 +45,14 @@ class Progress:
         enabled: bool = True,
         interval: float | None = None,
     ) -> None:
-        from tqdm import tqdm
-
-        stream = stream or sys.stderr
-        tty = bool(getattr(stream, "isatty", lambda: False)())
-        self._bar: Any = tqdm(
-            total=max(total, 0),
-            file=stream,
-            disable=not enabled,
-            mininterval=interval if interval is not None else (0.2 if tty else 5.0),
-            desc="replay",
-            unit="scan",
-            dynamic_ncols=tty,
-            bar_format="{desc} [{bar:24}] {n_fmt}/{total_fmt} scans  {postfix}  "
+        self._bar: Any = stderr_bar(
+            "replay",
+            total,
+            "{desc} [{bar:24}] {n_fmt}/{total_fmt} scans  {postfix}  "
             "elapsed {elapsed}  left {remaining}",
+            enabled,
+            stream,
+            interval,
         )
         self._rays = 0
 
