@@ -51,6 +51,7 @@ from ros_helpers import (  # noqa: E402
     set_ros_env,
     simulate_scan,
     stamp_msg,
+    tf_publishers,
     yaw_quaternion,
 )
 
@@ -106,17 +107,10 @@ class TfPoses:
 
     def __init__(self, feeder: Feeder) -> None:
         from geometry_msgs.msg import TransformStamped
-        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
         from tf2_msgs.msg import TFMessage
 
         self.TFMessage, self.TransformStamped = TFMessage, TransformStamped
-        self.tf_pub = feeder.node.create_publisher(TFMessage, "/tf", QoSProfile(depth=100))
-        static = QoSProfile(
-            depth=1,
-            reliability=ReliabilityPolicy.RELIABLE,
-            durability=DurabilityPolicy.TRANSIENT_LOCAL,
-        )
-        self.static_pub = feeder.node.create_publisher(TFMessage, "/tf_static", static)
+        self.tf_pub, self.static_pub = tf_publishers(feeder.node)
         self.static_pub.publish(
             TFMessage(transforms=[self._tf("base_link", "lidar", 0.0, [0, 0, LIDAR_HEIGHT], 0.0)])
         )

@@ -343,3 +343,19 @@ class Feeder:
 
     def destroy(self) -> None:
         self.node.destroy_node()
+
+
+def tf_publishers(node: Any) -> tuple[Any, Any]:
+    """Publishers of ``/tf`` and of ``/tf_static`` (transient-local, as tf2 latches it)."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from tf2_msgs.msg import TFMessage
+
+    static = QoSProfile(
+        depth=1,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    )
+    return (
+        node.create_publisher(TFMessage, "/tf", QoSProfile(depth=100)),
+        node.create_publisher(TFMessage, "/tf_static", static),
+    )

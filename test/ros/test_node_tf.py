@@ -21,6 +21,7 @@ from ros_helpers import (
     odom_msg,
     read_cloud,
     stamp_msg,
+    tf_publishers,
 )
 from scipy.spatial.transform import Rotation
 
@@ -84,19 +85,12 @@ class TfFeeder(Feeder):
 
     def __init__(self) -> None:
         super().__init__()
-        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
         from rosgraph_msgs.msg import Clock
         from tf2_msgs.msg import TFMessage
 
         self.TFMessage = TFMessage
         self.Clock = Clock
-        self.tf_pub = self.node.create_publisher(TFMessage, "/tf", QoSProfile(depth=100))
-        static = QoSProfile(
-            depth=1,
-            reliability=ReliabilityPolicy.RELIABLE,
-            durability=DurabilityPolicy.TRANSIENT_LOCAL,
-        )
-        self.static_pub = self.node.create_publisher(TFMessage, "/tf_static", static)
+        self.tf_pub, self.static_pub = tf_publishers(self.node)
         self.clock_pub = self.node.create_publisher(Clock, "/clock", 10)
 
     def static_tf(self) -> None:

@@ -6,11 +6,12 @@ import time
 from typing import Any
 
 import numpy as np
+from live_helpers import drain, odom_sample
 
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.offline.scan_files import cloud_message_from_columns
 from mfp_mapper.sensing.live import LiveIntegrator, LiveSettings
-from mfp_mapper.sensing.poses import OdometrySample, PoseBuffer
+from mfp_mapper.sensing.poses import PoseBuffer
 
 T0 = 500.0
 
@@ -45,18 +46,6 @@ def _cloud(stamp: float, n: int = 30, frame: str = "base_link") -> Any:
     return cloud_message_from_columns({a: xyz[:, k] for k, a in enumerate("xyz")}, stamp, frame)
 
 
-def _odom(stamp: float, frame: str = "odom") -> OdometrySample:
-    return OdometrySample(stamp, frame, "base_link", np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]))
-
-
-def _drain(worker: LiveIntegrator) -> None:
-    """Process every queued cloud on this thread (what run() does), waiting when told to."""
-    while worker._queue:
-        item = worker._queue.popleft()
-        while not worker.process(item):
-            time.sleep(0.01)
-
-
 def test_queue_keeps_the_newest_clouds() -> None:
     worker, logs = _worker(cloud_queue_size=2)
     for k in range(5):
@@ -69,11 +58,11 @@ def test_queue_keeps_the_newest_clouds() -> None:
 
 def test_waits_for_odometry_then_integrates() -> None:
     worker, _ = _worker(odom_wait=5.0)
-    worker.add_odometry(_odom(T0 - 0.1))
+    worker.add_odometry(odom_sample(T0 - 0.1))
     worker.submit(_cloud(T0))
     item = worker._queue.popleft()
     assert worker.process(item) is False  # odometry does not cover it yet: wait
-    worker.add_odometry(_odom(T0 + 0.1))
+    worker.add_odometry(odom_sample(T0 + 0.1))
     assert worker.process(item) is True
     c = worker.counters
     assert c.clouds_integrated == 1 and c.rays_used == 30 and not c.clouds_dropped
@@ -83,10 +72,10 @@ def test_waits_for_odometry_then_integrates() -> None:
 def test_drops_after_odom_wait_with_the_reason() -> None:
     worker, logs = _worker(odom_wait=0.05)
     worker.submit(_cloud(T0))
-    _drain(worker)
-    worker.add_odometry(_odom(T0 - 1.0))
+    drain(worker)
+    worker.add_odometry(odom_sample(T0 - 1.0))
     worker.submit(_cloud(T0))
-    _drain(worker)
+    drain(worker)
     assert worker.counters.clouds_dropped == {"no_poses": 1, "too_new": 1}
     assert worker.counters.clouds_integrated == 0
     texts = [text for _, text, _ in logs]
@@ -96,17 +85,19 @@ def test_drops_after_odom_wait_with_the_reason() -> None:
 
 def test_malformed_cloud_is_counted_and_logged_as_an_error() -> None:
     worker, logs = _worker()
-    worker.add_odometry(_odom(T0))
+    worker.add_odometry(odom_sample(T0))
     worker.submit(cloud_message_from_columns({"x": np.ones(3, np.float32)}, T0))
-    _drain(worker)
+    drain(worker)
     assert worker.counters.clouds_dropped == {"malformed": 1}
     assert any(error and "malformed" in text for _, text, error in logs)
 
 
 def test_odometry_frame_change_and_order_are_rejected() -> None:
     worker, _ = _worker()
-    assert worker.add_odometry(_odom(T0)) and not worker.add_odometry(_odom(T0 + 1, "other"))
-    assert not worker.add_odometry(_odom(T0))  # not newer
+    assert worker.add_odometry(odom_sample(T0)) and not worker.add_odometry(
+        odom_sample(T0 + 1, "other")
+    )
+    assert not worker.add_odometry(odom_sample(T0))  # not newer
     assert worker.counters.odom_rejected == {"frame": 1, "out_of_order_or_invalid": 1}
 
 
@@ -116,10 +107,10 @@ def test_worker_thread_integrates_and_publishes_between_scans() -> None:
     worker._publish = lambda: published.append(worker.mapper.version)
     worker.start()
     try:
-        worker.add_odometry(_odom(T0 - 0.2))
+        worker.add_odometry(odom_sample(T0 - 0.2))
         for k in range(3):
             worker.submit(_cloud(T0 + 0.1 * k))
-        worker.add_odometry(_odom(T0 + 0.25))
+        worker.add_odometry(odom_sample(T0 + 0.25))
         deadline = time.monotonic() + 20.0
         while worker.counters.clouds_integrated < 3 and time.monotonic() < deadline:
             time.sleep(0.02)
@@ -156,10 +147,10 @@ def _organized_cloud(stamp: float) -> Any:
 def test_no_return_rays_are_recovered_and_counted_when_enabled() -> None:
     for no_return_range, expected in ((0.0, 0), (8.0, 120)):
         worker, logs = _worker(no_return_range=no_return_range)
-        worker.add_odometry(_odom(T0 - 0.1))
-        worker.add_odometry(_odom(T0 + 0.1))
+        worker.add_odometry(odom_sample(T0 - 0.1))
+        worker.add_odometry(odom_sample(T0 + 0.1))
         worker.submit(_organized_cloud(T0))
-        _drain(worker)
+        drain(worker)
         c = worker.counters
         assert c.clouds_integrated == 1 and c.rays_no_return == expected
         assert c.rays_used == 240 + expected and c.points_dropped["nonfinite"] == 120
@@ -169,10 +160,10 @@ def test_no_return_rays_are_recovered_and_counted_when_enabled() -> None:
 def test_a_cloud_without_pattern_says_why_once() -> None:
     worker, logs = _worker(no_return_range=8.0)
     for k in range(5):
-        worker.add_odometry(_odom(T0 - 0.1 + 0.3 * k))
+        worker.add_odometry(odom_sample(T0 - 0.1 + 0.3 * k))
     for k in range(3):
         worker.submit(_cloud(T0 + 0.5 * k))
-    _drain(worker)
+    drain(worker)
     assert worker.counters.clouds_integrated == 3 and worker.counters.rays_no_return == 0
     notes = [text for key, text, _ in logs if key == "no_return"]
     assert len(notes) == 1 and "ring" in notes[0]

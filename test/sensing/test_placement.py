@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from live_helpers import drain, odom_sample
 from scipy.spatial.transform import Rotation
 
 from mfp_mapper.core.mapper import Mapper
@@ -17,7 +18,7 @@ from mfp_mapper.sensing.live import LiveIntegrator, LiveSettings
 from mfp_mapper.sensing.pipeline import ScanDropped
 from mfp_mapper.sensing.placement import Odometry, StampGuard, resolve_placement
 from mfp_mapper.sensing.pointcloud import ParsedCloud
-from mfp_mapper.sensing.poses import Extrinsic, OdometrySample, PoseBuffer
+from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer
 from mfp_mapper.sensing.tf_tree import TfTree
 
 T0 = 100.0
@@ -165,25 +166,14 @@ def cloud(stamp: float, frame: str = "base_link", time_field: str | None = None)
     return cloud_message_from_columns(columns, stamp, frame)
 
 
-def odom(stamp: float) -> OdometrySample:
-    return OdometrySample(stamp, "odom", "base_link", np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]))
-
-
-def drain(worker: LiveIntegrator) -> None:
-    while worker._queue:
-        item = worker._queue.popleft()
-        while not worker.process(item):
-            time.sleep(0.01)
-
-
 def test_one_poisoned_odometry_stamp_does_not_stop_mapping() -> None:
     now = [T0]
     worker, logs = worker_and_logs(now)
     for k in range(5):
-        assert worker.add_odometry(odom(T0 - 0.5 + 0.1 * k))
-    assert not worker.add_odometry(odom(T0 + 3600.0))  # one hour ahead
+        assert worker.add_odometry(odom_sample(T0 - 0.5 + 0.1 * k))
+    assert not worker.add_odometry(odom_sample(T0 + 3600.0))  # one hour ahead
     assert worker.counters.odom_rejected["ahead_of_clock"] == 1
-    assert worker.add_odometry(odom(T0 + 0.1))
+    assert worker.add_odometry(odom_sample(T0 + 0.1))
     worker.submit(cloud(T0))
     drain(worker)
     assert worker.counters.clouds_integrated == 1
@@ -193,8 +183,8 @@ def test_one_poisoned_odometry_stamp_does_not_stop_mapping() -> None:
 def test_clock_jump_back_clears_buffers_and_mapping_resumes() -> None:
     now = [T0]
     worker, logs = worker_and_logs(now)
-    worker.add_odometry(odom(T0 - 0.1))
-    worker.add_odometry(odom(T0 + 0.1))
+    worker.add_odometry(odom_sample(T0 - 0.1))
+    worker.add_odometry(odom_sample(T0 + 0.1))
     worker.submit(cloud(T0))
     drain(worker)
     now[0] = T0 - 20.0  # bag loop
@@ -204,8 +194,8 @@ def test_clock_jump_back_clears_buffers_and_mapping_resumes() -> None:
     assert worker.counters.clouds_dropped["clock_jump"] == 1 and len(worker.poses) == 0
     assert sum("clock jumped back" in line for line in logs) == 1
     t0 = time.monotonic()
-    worker.add_odometry(odom(T0 - 20.1))
-    worker.add_odometry(odom(T0 - 19.9))
+    worker.add_odometry(odom_sample(T0 - 20.1))
+    worker.add_odometry(odom_sample(T0 - 19.9))
     worker.submit(cloud(T0 - 20.0))
     drain(worker)
     assert worker.counters.clouds_integrated == 2 and time.monotonic() - t0 < 1.0
@@ -225,8 +215,8 @@ def test_tf_only_worker_maps_in_the_root_frame() -> None:
 def test_unknown_time_field_warns_once() -> None:
     now = [T0]
     worker, logs = worker_and_logs(now)
-    worker.add_odometry(odom(T0 - 0.1))
-    worker.add_odometry(odom(T0 + 0.2))
+    worker.add_odometry(odom_sample(T0 - 0.1))
+    worker.add_odometry(odom_sample(T0 + 0.2))
     for k in range(3):
         worker.submit(cloud(T0 + 0.01 * k, time_field="offset_time"))
     drain(worker)

@@ -1,0 +1,23 @@
+"""Helpers of the tests that drive the live worker (``sensing.live``) without ROS."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from mfp_mapper.sensing.live import LiveIntegrator
+from mfp_mapper.sensing.poses import OdometrySample
+
+
+def odom_sample(stamp: float, frame: str = "odom") -> OdometrySample:
+    """An odometry pose at the origin of ``frame`` (child ``base_link``) at ``stamp``."""
+    return OdometrySample(stamp, frame, "base_link", np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]))
+
+
+def drain(worker: LiveIntegrator) -> None:
+    """Process every queued cloud on this thread (what ``run()`` does), waiting when told to."""
+    while worker._queue:
+        item = worker._queue.popleft()
+        while not worker.process(item):
+            time.sleep(0.01)
