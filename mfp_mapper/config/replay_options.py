@@ -14,7 +14,15 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
-from mfp_mapper.config.schema import BY_NAME, SETTINGS, NodeConfig, Setting, XyzRpy, xyz_rpy
+from mfp_mapper.config.schema import (
+    BY_NAME,
+    SETTINGS,
+    MapSettings,
+    NodeConfig,
+    Setting,
+    XyzRpy,
+    xyz_rpy,
+)
 
 
 def _default(name: str) -> Any:
@@ -66,16 +74,9 @@ class ReplayOptions:
     odometry: str | None = _default("odometry")
     """``"kiss-icp"``: poses estimated from the clouds (``sources.lidar_odometry``)."""
 
-    def mapper_settings(self) -> dict[str, Any]:
-        """Keyword arguments of ``Mapper`` besides the resolution."""
-        return {
-            "max_range": self.max_range,
-            "min_range": self.min_range,
-            "decay_time": self.decay_time,
-            "threads": self.threads,
-            "max_voxels": self.max_voxels,
-            "keep_radius": self.keep_radius,
-        }
+    def map_settings(self) -> MapSettings:
+        """The map section of these options (what ``Mapper`` takes)."""
+        return MapSettings.of(lambda name: getattr(self, BY_NAME[name].option))
 
 
 EXTRINSIC_PARAMETERS = ("lidar.translation", "lidar.rpy")

@@ -13,7 +13,7 @@ its CLI only; ``both``) and its CLI flag. Everything else derives from ``SETTING
 
 Reading a setting: the node reads ``NodeConfig`` attributes (``cfg.resolution``,
 ``cfg.sensor_model_max_range``; ``cfg.core(name)`` or ``cfg.max_range``/``cfg.decay`` for the
-core's value, "<= 0 means no limit" applied; ``cfg.mapper_settings()`` for ``Mapper``); the
+core's value, "<= 0 means no limit" applied; ``cfg.map_settings()`` for ``Mapper``); the
 replay reads ``ReplayOptions`` fields (``opts.max_range``, already in core units);
 ``BY_NAME[name]`` is the entry itself.
 
@@ -29,6 +29,7 @@ plain data and imports neither ROS nor numpy.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, fields, replace
 from typing import Any, Literal
 
@@ -347,6 +348,45 @@ def check_parameters(values: dict[str, Any]) -> NodeConfig:
     return NodeConfig.from_values(ours)
 
 
+# --- sections ----------------------------------------------------------------------------------
+
+MAP_SECTION: dict[str, str] = {
+    "resolution": "resolution",
+    "max_range": "sensor_model.max_range",
+    "min_range": "sensor_model.min_range",
+    "decay_time": "decay_time",
+    "threads": "threads",
+    "max_voxels": "max_voxels",
+    "keep_radius": "keep_radius",
+}
+"""``MapSettings`` field -> the setting it holds."""
+
+
+@dataclass(frozen=True)
+class MapSettings:
+    """The map section: what the core's ``Mapper`` takes, in the core's units ("<= 0 means
+    no limit" applied). The node (``NodeConfig.map_settings``) and the replay
+    (``ReplayOptions.map_settings``) both build it from the schema's settings."""
+
+    resolution: float = BY_NAME["resolution"].core_default
+    max_range: float = BY_NAME["sensor_model.max_range"].core_default
+    min_range: float = BY_NAME["sensor_model.min_range"].core_default
+    decay_time: float = BY_NAME["decay_time"].core_default
+    threads: int = BY_NAME["threads"].core_default
+    max_voxels: int | None = BY_NAME["max_voxels"].core_default
+    keep_radius: float | None = BY_NAME["keep_radius"].core_default
+
+    @classmethod
+    def of(cls, core_value: Callable[[str], Any]) -> MapSettings:
+        """From ``core_value(setting name)``, the core's value of each setting."""
+        return cls(**{field: core_value(name) for field, name in MAP_SECTION.items()})
+
+    def mapper_kwargs(self) -> dict[str, Any]:
+        """Keyword arguments of ``Mapper`` besides the resolution (also the overrides a
+        loaded map takes: its own resolution stays)."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "resolution"}
+
+
 # --- the node's values -----------------------------------------------------------------------
 
 
@@ -406,16 +446,9 @@ class NodeConfig:
         """A parameter's value as the core takes it (``Setting.core_value``)."""
         return SPECS[name].core_value(getattr(self, attr_name(name)))
 
-    def mapper_settings(self) -> dict[str, Any]:
-        """Keyword arguments of ``Mapper`` (besides resolution and frame) these values give."""
-        return {
-            "max_range": self.max_range,
-            "min_range": self.sensor_model_min_range,
-            "decay_time": self.decay,
-            "threads": self.threads,
-            "max_voxels": self.core("max_voxels"),
-            "keep_radius": self.core("keep_radius"),
-        }
+    def map_settings(self) -> MapSettings:
+        """The map section of these values (what ``Mapper`` takes)."""
+        return MapSettings.of(self.core)
 
     def lidar_xyz_rpy(self) -> XyzRpy:
         """The lidar pose in the odometry child frame (``lidar.translation``, ``lidar.rpy``)."""

@@ -12,6 +12,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from mfp_mapper.config.schema import MapSettings
 from mfp_mapper.core import model
 from mfp_mapper.core.errors import CoreError, ScanTooLargeError
 from mfp_mapper.core.gridmap import HitGrid, band_grid
@@ -103,6 +104,15 @@ class Mapper:
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
         self._worker_cpu = 0.0  # CPU seconds of the pool threads in the current integrate()
         self._mailboxes = [Mailbox() for _ in self._store.shards]
+
+    @classmethod
+    def of(
+        cls, settings: MapSettings, frame_id: str = "map", origin: ArrayLike | None = None
+    ) -> Mapper:
+        """An empty map with the settings of the map section (``config.MapSettings``)."""
+        return cls(
+            settings.resolution, frame_id=frame_id, origin=origin, **settings.mapper_kwargs()
+        )
 
     # --- writing ----------------------------------------------------------------------
 

@@ -86,7 +86,7 @@ def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, bool]:
     if not (path and os.path.exists(path)):
         return _empty_map(cfg), False
     try:
-        mapper = load_map(path, **cfg.mapper_settings())
+        mapper = load_map(path, **cfg.map_settings().mapper_kwargs())
     except (MapFileError, ValueError, OSError) as err:
         logger.error(
             f"cannot load map_path {path!r}: {err}; starting an empty map (and not "
@@ -105,7 +105,7 @@ def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, bool]:
 
 
 def _empty_map(cfg: NodeConfig) -> Mapper:
-    return Mapper(cfg.resolution, frame_id=cfg.frame_id or "map", **cfg.mapper_settings())
+    return Mapper.of(cfg.map_settings(), frame_id=cfg.frame_id or "map")
 
 
 class MfpMapperNode(GuardedNode):

@@ -95,13 +95,27 @@ def test_node_config_keeps_its_attributes_and_gives_keep_radius() -> None:
     cfg = NodeConfig.from_values({"keep_radius": 30.0, "max_voxels": 1000})
     assert cfg.resolution == 0.1 and cfg.deskew and cfg.sensor_model_max_range == 100.0
     assert cfg.max_range == 100.0 and math.isinf(cfg.decay)
-    settings = cfg.mapper_settings()
-    assert settings["keep_radius"] == 30.0 and settings["max_voxels"] == 1000
-    assert NodeConfig.from_values({}).mapper_settings()["keep_radius"] is None
+    settings = cfg.map_settings()
+    assert settings.keep_radius == 30.0 and settings.max_voxels == 1000
+    assert NodeConfig.from_values({}).map_settings().keep_radius is None
     assert cfg.values()["keep_radius"] == 30.0
     from mfp_mapper.core.mapper import Mapper
 
-    assert Mapper(cfg.resolution, **settings).keep_radius == 30.0
+    mapper = Mapper.of(settings)
+    assert (mapper.keep_radius, mapper.max_voxels, mapper.resolution) == (30.0, 1000, 0.1)
+
+
+def test_the_replay_and_the_node_build_the_same_map_section() -> None:
+    from mfp_mapper.config.replay_options import ReplayOptions
+    from mfp_mapper.config.schema import MAP_SECTION, MapSettings
+
+    assert ReplayOptions().map_settings() == NodeConfig.from_values({}).map_settings()
+    assert ReplayOptions().map_settings() == MapSettings()
+    values = {"resolution": 0.2, "decay_time": 30.0, "sensor_model.max_range": -1.0}
+    node = NodeConfig.from_values(values).map_settings()
+    replay = ReplayOptions(resolution=0.2, decay_time=30.0, max_range=math.inf).map_settings()
+    assert node == replay and math.isinf(node.max_range)
+    assert set(MAP_SECTION.values()) <= set(BY_NAME)
 
 
 @pytest.mark.parametrize(
