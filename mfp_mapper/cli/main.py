@@ -18,6 +18,7 @@ from mfp_mapper.cli import (
     demo,
     evaluate,
     export,
+    localize,
     merge,
     plot_convergence,
     query,
@@ -28,7 +29,9 @@ from mfp_mapper.cli import (
 from mfp_mapper.cli.common import CliError, error
 from mfp_mapper.config.names import VERSION
 
-COMMANDS = (replay, merge, simulate, export, render, plot_convergence, query, evaluate, demo)
+COMMANDS = (
+    replay, localize, merge, simulate, export, render, plot_convergence, query, evaluate, demo,
+)
 """The subcommand modules, in the order ``--help`` lists them."""
 
 EPILOG = """\
@@ -46,6 +49,7 @@ examples:
   mfp-mapper plot-convergence -o pictures/
   mfp-mapper query map.npz 1.0 0.0 1.2  4.0 2.0 0.5
   mfp-mapper evaluate map.npz sim_bag.truth.json
+  mfp-mapper localize map.npz scans/ --poses guess.tum --poses-out refined.tum
 """
 
 
