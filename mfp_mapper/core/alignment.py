@@ -77,8 +77,10 @@ class AlignOptions:
     """Metres: converts rotations (radians) into displacements for scaling and refusal."""
     max_iterations: int = 30
     """Per pyramid level (Levenberg-Marquardt steps on the BHHH information matrix)."""
-    tolerance: float = 0.01
+    tolerance: float = 0.05
     """Stop a level when a step moves less than this fraction of its voxel edge."""
+    probe_rays: int = 1000
+    """Rays used for the curvature probes (the curvature is scaled to all rays)."""
     step: float = 0.5
     """Free-space samples every ``step`` voxel edges of the level."""
     probe: float = 2.0
@@ -508,23 +510,28 @@ def align_scan(
     grads = np.zeros((rays, 6))
     levels_done: list[dict[str, float]] = []
 
-    def evaluate(fld: LikelihoodField, rot1: FloatArray, trans1: FloatArray,
-                 acc1: FloatArray) -> tuple[float, FloatArray, FloatArray]:
-        """Objective (log-likelihood minus prior, nats), its gradient and the BHHH
-        information matrix, both in scaled coordinates, at correction (rot1, trans1)."""
+    def evaluate(fld: LikelihoodField, sub: NDArray[np.intp], rot1: FloatArray,
+                 trans1: FloatArray, acc1: FloatArray) -> tuple[float, FloatArray, FloatArray]:
+        """Objective (log-likelihood of the rays ``sub`` scaled to all rays, minus the
+        prior; nats), its gradient and the BHHH information matrix, both in scaled
+        coordinates, at correction (rot1, trans1)."""
         nonlocal evaluations
         evaluations += 1
-        f = _score(*fld._args(), pts, orgs, rot1, trans1, center,
-                   max(opt.window, 2 * fld.resolution), opt.step * fld.resolution, per_ray, grads)
-        gs = grads * scale
-        value = f - 0.5 * float(np.sum(prior_w * acc1**2))
-        grad = gs.sum(axis=0) - prior_w * acc1 * scale
-        info = gs.T @ gs + np.diag(prior_w * scale * scale)
+        per, grd = per_ray[: sub.size], grads[: sub.size]
+        f = _score(*fld._args(), pts[sub], orgs[sub], rot1, trans1, center,
+                   max(opt.window, 2 * fld.resolution), opt.step * fld.resolution, per, grd)
+        weight = rays / sub.size
+        gs = grd * scale
+        value = weight * f - 0.5 * float(np.sum(prior_w * acc1**2))
+        grad = weight * gs.sum(axis=0) - prior_w * acc1 * scale
+        info = weight * (gs.T @ gs) + np.diag(prior_w * scale * scale)
         return value, grad, info
 
     acc = np.zeros(6)  # the correction so far, linearised (metres, radians), for the prior
-    for fld in reversed(pyramid.fields):
-        value, grad, info = evaluate(fld, rot, trans, acc)
+    for level in reversed(range(len(pyramid.fields))):
+        fld = pyramid.fields[level]
+        sub = _spread_subset(rays, max(rays >> level, min(rays, 200)))
+        value, grad, info = evaluate(fld, sub, rot, trans, acc)
         start_value, damping, iterations = value, 1e-3, 0
         while iterations < opt.max_iterations:
             iterations += 1
@@ -532,21 +539,23 @@ def align_scan(
             x = np.linalg.solve(lhs, grad)  # ascent step, scaled coordinates
             y = x * scale
             rot1, trans1 = _compose(y[3:], y[:3], center, rot, trans)
-            value1, grad1, info1 = evaluate(fld, rot1, trans1, acc + y)
+            value1, grad1, info1 = evaluate(fld, sub, rot1, trans1, acc + y)
             if value1 > value:
                 rot, trans, acc = rot1, trans1, acc + y
                 improved = value1 - value
                 value, grad, info = value1, grad1, info1
                 damping = max(damping / 3.0, 1e-7)
-                if float(np.max(np.abs(x))) < opt.tolerance * fld.resolution or improved < 1e-6 * rays:
+                small = float(np.max(np.abs(x))) < opt.tolerance * fld.resolution
+                if small or improved < 1e-4 * rays:
                     break
             else:
                 damping *= 4.0
                 if damping > 1e6:
                     break
         levels_done.append(
-            {"resolution": fld.resolution, "objective_start": start_value,
-             "objective_end": value, "iterations": float(iterations)}
+            {"resolution": fld.resolution, "rays": float(sub.size),
+             "objective_start": start_value, "objective_end": value,
+             "iterations": float(iterations)}
         )
     fine = pyramid.fields[0]
     f_init = float(
@@ -605,6 +614,9 @@ def _curvature(fld: LikelihoodField, pts: FloatArray, orgs: FloatArray, rot: Flo
     over the voxel-scale texture of the field (a sampled spread, not a local derivative)."""
     h = opt.probe * fld.resolution
     _, dirs = np.linalg.eigh(info)
+    sub = _spread_subset(pts.shape[0], opt.probe_rays)
+    weight = pts.shape[0] / sub.size
+    pts, orgs = pts[sub], orgs[sub]
 
     def value(y: FloatArray) -> float:
         y = y * scale
@@ -617,7 +629,7 @@ def _curvature(fld: LikelihoodField, pts: FloatArray, orgs: FloatArray, rot: Flo
     curv = np.empty(6)
     for c in range(6):
         drop = f0 - 0.5 * (value(h * dirs[:, c]) + value(-h * dirs[:, c]))
-        curv[c] = 2.0 * drop / (h * h)
+        curv[c] = 2.0 * weight * drop / (h * h)
     return curv, dirs
 
 
