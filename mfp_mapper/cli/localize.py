@@ -78,6 +78,8 @@ def run(args: argparse.Namespace) -> int:
         )
     except ReplayError as err:
         raise CliError(f"{err} (no poses written)") from None
+    if not result.scans:
+        raise CliError(f"{args.input}: no scan had an initial pose (no poses written)")
     write_results(result, out)
     print_summary(result, out)
     return 0
