@@ -120,7 +120,12 @@ def run_case(name: str, args: argparse.Namespace, opts: AlignOptions) -> None:
             ref = Pose(al.rotation @ init.rotation, al.rotation @ init.translation + al.translation)
             e = ref.error_to(poses[k])
             errs.append(e)
-            wrong += int(e[0] > 0.1 or e[1] > 1.0)
+            bad = e[0] > 0.1 or e[1] > 1.0
+            wrong += int(bad)
+            if bad and args.verbose:
+                print(f"  wrong: scan {k}: {e[0]:.3f} m {e[1]:.2f} deg, sigma "
+                      f"{np.round(al.sigma, 3)}, constraints {al.conditioning}, "
+                      f"gain/ray {al.gain_per_ray:.3f}")
     e = np.array(errs).reshape(-1, 2)
     med = np.median(e, axis=0) if len(e) else np.array([np.nan, np.nan])
     within = float(np.mean((e[:, 0] <= 0.1) & (e[:, 1] <= 1.0))) if len(e) else float("nan")
@@ -140,6 +145,7 @@ def main() -> None:
     ap.add_argument("--rays", type=int, default=3000)
     ap.add_argument("--levels", type=int, default=3)
     ap.add_argument("--cases", default=",".join(CASES))
+    ap.add_argument("--verbose", action="store_true", help="print each wrong acceptance")
     args = ap.parse_args()
     opts = AlignOptions(levels=args.levels, max_rays=args.rays)
     print(f"initial error {args.shift} m, {args.angle} deg; map {RES} m; {args.rays} rays, "

@@ -536,16 +536,25 @@ def align_scan(
         while iterations < opt.max_iterations:
             iterations += 1
             lhs = info + damping * np.diag(np.diag(info))
-            x = np.linalg.solve(lhs, grad)  # ascent step, scaled coordinates
-            y = x * scale
-            rot1, trans1 = _compose(y[3:], y[:3], center, rot, trans)
-            value1, grad1, info1 = evaluate(fld, sub, rot1, trans1, acc + y)
-            if value1 > value:
-                rot, trans, acc = rot1, trans1, acc + y
-                improved = value1 - value
-                value, grad, info = value1, grad1, info1
+            x = np.linalg.solve(lhs, grad)  # ascent direction, scaled coordinates
+            # BHHH steps are short far from the optimum (inconsistent per-ray scores make
+            # the information matrix large): double the step while the objective improves
+            best: tuple[float, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray,
+                        FloatArray] | None = None
+            mult = 1.0
+            while mult <= 64.0:
+                y = mult * x * scale
+                rot1, trans1 = _compose(y[3:], y[:3], center, rot, trans)
+                value1, grad1, info1 = evaluate(fld, sub, rot1, trans1, acc + y)
+                if value1 <= (value if best is None else best[0]):
+                    break
+                best = (value1, grad1, info1, rot1, trans1, acc + y, mult * x)
+                mult *= 2.0
+            if best is not None:
+                improved = best[0] - value
+                value, grad, info, rot, trans, acc, step_x = best
                 damping = max(damping / 3.0, 1e-7)
-                small = float(np.max(np.abs(x))) < opt.tolerance * fld.resolution
+                small = float(np.max(np.abs(step_x))) < opt.tolerance * fld.resolution
                 if small or improved < 1e-4 * rays:
                     break
             else:
