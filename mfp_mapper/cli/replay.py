@@ -20,6 +20,7 @@ from mfp_mapper.cli.common import (
     warn,
 )
 from mfp_mapper.cli.input_args import add_input_arguments, input_options
+from mfp_mapper.cli.localize import add_align_arguments
 from mfp_mapper.config.replay_options import ReplayOptions, add_replay_flags, options_from_args
 from mfp_mapper.mapio.atomic import write_text_atomic
 
@@ -48,6 +49,17 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     p.add_argument("--config", help="a node parameter file (read as the node reads it)")
     add_replay_flags(p)  # one flag per setting of the schema that has one
     add_input_arguments(p)  # folders, poses, odometry, --start/--end
+    p.add_argument(
+        "--refine-poses", action="store_true",
+        help="scan folder: align each scan against the map built so far (by the forward "
+        "model's likelihood) before integrating it; initial guess from --poses or --odometry",
+    )  # fmt: skip
+    p.add_argument(
+        "--poses-out", metavar="FILE",
+        help="scan folder: write the poses used (refined or not) as TUM, and a per-scan "
+        "confidence file FILE.confidence.jsonl",
+    )  # fmt: skip
+    add_align_arguments(p)
     p.add_argument("--summary-json", help="also write the summary as JSON here")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     _fleet_arguments(p)
@@ -71,7 +83,11 @@ def run(args: argparse.Namespace) -> int:
         getattr(args, k) is not None for k in ("workers", "scheduler", "chunk_seconds")
     ) or (len(args.inputs) > 1)
     if fleet:
+        if args.refine_poses or args.poses_out:
+            raise CliError("--refine-poses and --poses-out take one scan folder (no fleet)")
         return run_fleet(args, out)
+    if args.refine_poses or args.poses_out:
+        return run_refined(args, out)
     try:
         opts = replay_options(args)
         if is_scan_folder(args.inputs[0]):
@@ -102,6 +118,45 @@ def run(args: argparse.Namespace) -> int:
     print(f"map          {out} ({result.mapper.num_voxels:,} voxels, {opts.resolution:g} m)")
     if args.summary_json:
         write_text_atomic(args.summary_json, json.dumps(jsonable(vars(summary)), indent=2) + "\n")
+    return 0
+
+
+def run_refined(args: argparse.Namespace, out: Path) -> int:
+    """One scan folder, scan by scan, with ``--refine-poses`` and/or ``--poses-out``
+    (``mapping.localize.replay_refined_folder``)."""
+    from mfp_mapper.cli.localize import align_options, print_summary, write_results
+    from mfp_mapper.mapio.loading import save_map
+    from mfp_mapper.mapping.localize import replay_refined_folder
+    from mfp_mapper.mapping.replay import ReplayError
+    from mfp_mapper.sources.scan_folder import is_scan_folder
+
+    if out.suffix != ".npz":
+        raise CliError("--refine-poses/--poses-out write an .npz map")
+    if not is_scan_folder(args.inputs[0]):
+        raise CliError(
+            f"{args.inputs[0]}: --refine-poses/--poses-out read folders of scan files "
+            "(bags: not yet, see README)"
+        )
+    poses_out = Path(args.poses_out) if args.poses_out else None
+    if poses_out is not None:
+        check_writable(poses_out)
+    try:
+        result = replay_refined_folder(
+            args.inputs[0], args.poses, replay_options(args), times_file=args.times,
+            align=align_options(args), log=warn, refine=args.refine_poses,
+        )  # fmt: skip
+    except ReplayError as err:
+        raise CliError(f"{err} (no map written)") from None
+    except ValueError as err:
+        raise CliError(f"{err} (no map written)") from None
+    if result.mapper is None or not result.scans:
+        raise CliError(f"{args.inputs[0]}: no scan had a pose (no map written)")
+    save_map(result.mapper, out)
+    if poses_out is not None:
+        write_results(result, poses_out)
+    if args.refine_poses:
+        print_summary(result, poses_out or Path("(not written)"))
+    print(f"map          {out} ({result.mapper.num_voxels:,} voxels)")
     return 0
 
 

@@ -159,6 +159,7 @@ def _run(
     align: AlignOptions,
     fixed: Mapper | None,
     log: Callable[[str], None] | None,
+    refine: bool = True,
 ) -> LocalizeResult:
     import time
 
@@ -191,12 +192,14 @@ def _run(
             result.scans.append(entry)
             continue
         t0 = time.perf_counter()
-        if fixed is None and mapper.num_voxels > 0:
+        if not refine:
+            pyramid = None
+        elif fixed is None and mapper.num_voxels > 0:
             pyramid = FieldPyramid.from_mapper(
                 mapper, stamp=stamp, levels=align.levels, **_prior(mapper)
             )
         if pyramid is None:
-            entry.note = "first scan: nothing to align against"
+            entry.note = "not refined" if not refine else "first scan: nothing to align against"
         else:
             al, gain = refine_placed(mapper, pyramid, placed, align)
             entry.alignment, entry.exact_gain = al, gain
@@ -240,7 +243,9 @@ def replay_refined_folder(
     times_file: str | Path | None = None,
     align: AlignOptions | None = None,
     log: Callable[[str], None] | None = None,
+    refine: bool = True,
 ) -> LocalizeResult:
     """Map ``directory`` scan by scan, each aligned against the map built so far before it
-    is integrated at its refined pose (the first scan at its initial pose)."""
-    return _run(directory, poses, opts, times_file, align or AlignOptions(), None, log)
+    is integrated at its refined pose (the first scan at its initial pose); with
+    ``refine=False`` at its initial pose (to write the poses used)."""
+    return _run(directory, poses, opts, times_file, align or AlignOptions(), None, log, refine)
