@@ -24,7 +24,7 @@ from mfp_mapper.core.mapfile import (
 )
 from mfp_mapper.core.memory_bound import MemoryBound
 from mfp_mapper.core.store import BLOCK_EDGE, MAX_VOXEL_INDEX, BlockStore, VoxelArrays, index_box
-from mfp_mapper.core.traversal import integrate_rays, prepare_rays
+from mfp_mapper.core.traversal import Rays, StoreView, integrate_rays, prepare_rays, store_view
 from mfp_mapper.core.voxel_stats import IntegrationSummary, VoxelStats
 
 MAX_RAY_VOXELS = 1 << 15
@@ -118,30 +118,15 @@ class Mapper:
         """
         t0, cpu0 = time.perf_counter(), time.thread_time()
         self._worker_cpu = 0.0
-        pts = np.asarray(points, dtype=np.float64)
-        if pts.ndim != 2 or pts.shape[1] != 3:
-            raise ValueError(f"points must have shape (N, 3), got {pts.shape}")
-        org = np.asarray(origins, dtype=np.float64)
-        if org.shape != (3,) and org.shape != pts.shape:
-            raise ValueError(f"origins must have shape (3,) or {pts.shape}, got {org.shape}")
         if not math.isfinite(stamp):
             raise ValueError(f"stamp must be finite seconds, got {stamp}")
-        if self._origin is None:
-            self._origin = self._origin_from(org)
-        if self._origin is not None and self._origin.any():
-            pts, org = pts - self._origin, org - self._origin
-        walk_limit = MAX_RAY_VOXELS * self.resolution
-        reach = min(self.max_range, walk_limit)
-        flags = None if no_return is None else np.asarray(no_return, dtype=np.bool_)
-        if flags is not None and flags.shape != (pts.shape[0],):
-            raise ValueError(f"no_return must have shape ({pts.shape[0]},), got {flags.shape}")
-        rays, dropped = prepare_rays(pts, org, self.resolution, self.min_range, reach, flags)
+        rays, pts, dropped = self._place(points, origins, no_return, set_origin=True)
         summary = IntegrationSummary(rays_in=pts.shape[0], dropped=dropped)
         summary.rays_used = len(rays)
         summary.rays_unindexable = dropped["out_of_bounds"]
         summary.rays_no_return = rays.no_return_flagged
         cut = int(np.count_nonzero(~rays.has_return)) - rays.no_return_flagged
-        if self.max_range > walk_limit:
+        if self.max_range > MAX_RAY_VOXELS * self.resolution:
             summary.rays_beyond_walk_limit = cut
         else:
             summary.rays_truncated = cut
@@ -169,6 +154,43 @@ class Mapper:
         summary.seconds = time.perf_counter() - t0
         summary.cpu_seconds = time.thread_time() - cpu0 + self._worker_cpu
         return summary
+
+    def place_rays(
+        self, points: ArrayLike, origins: ArrayLike, no_return: ArrayLike | None = None
+    ) -> tuple[Rays, dict[str, int]]:
+        """The rays ``integrate`` would walk for this scan (voxel units of the store, the
+        same checks, cuts and drops), and the drops by reason; the map is not changed
+        (an empty map's origin is not set). ``Rays.source`` indexes the input points."""
+        rays, _, dropped = self._place(points, origins, no_return, set_origin=False)
+        return rays, dropped
+
+    def _place(
+        self, points: ArrayLike, origins: ArrayLike, no_return: ArrayLike | None, set_origin: bool
+    ) -> tuple[Rays, FloatArray, dict[str, int]]:
+        pts = np.asarray(points, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise ValueError(f"points must have shape (N, 3), got {pts.shape}")
+        org = np.asarray(origins, dtype=np.float64)
+        if org.shape != (3,) and org.shape != pts.shape:
+            raise ValueError(f"origins must have shape (3,) or {pts.shape}, got {org.shape}")
+        if self._origin is None and set_origin:
+            self._origin = self._origin_from(org)
+        offset = self._origin
+        if offset is not None and offset.any():
+            pts_rel, org = pts - offset, org - offset
+        else:
+            pts_rel = pts
+        reach = min(self.max_range, MAX_RAY_VOXELS * self.resolution)
+        flags = None if no_return is None else np.asarray(no_return, dtype=np.bool_)
+        if flags is not None and flags.shape != (pts.shape[0],):
+            raise ValueError(f"no_return must have shape ({pts.shape[0]},), got {flags.shape}")
+        rays, dropped = prepare_rays(pts_rel, org, self.resolution, self.min_range, reach, flags)
+        return rays, pts, dropped
+
+    def store_view(self) -> tuple[StoreView, int]:
+        """The store's arrays for read-only compiled kernels (``traversal.read_walk``) and
+        its shard mask; valid until the next ``integrate``, ``reset`` or eviction."""
+        return store_view(self._store), self._store.shard_mask
 
     def _origin_from(self, sensor_origins: FloatArray) -> FloatArray | None:
         """The origin a first scan gives the map: its first finite sensor position, rounded
