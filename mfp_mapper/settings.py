@@ -150,6 +150,15 @@ SETTINGS: tuple[Setting, ...] = (
     _both("keep_radius", 0.0, "Keep only the map blocks within this distance (m) of the "
           "latest sensor position; farther ones are evicted after each scan. 0: keep all.",
           0.0, 1.0e6, flag="--keep-radius", unlimited="none"),
+    _both("prior.shape", 1.0, "Shape alpha (returns) of the Gamma prior on each voxel's "
+          "extinction (docs/PRIOR.md); with prior.rate = 1, the paper's uniform prior on m. "
+          "Used by every estimate but the most likely DoO (mean, std, intervals, hit "
+          "probability, the grids' thresholds); never stored in the statistics. "
+          "`mfp-mapper fit-prior` fits it to a recording.", 1.0e-6, 1.0e6,
+          flag="--prior-shape", field="prior_shape"),
+    _both("prior.rate", 1.0, "Rate beta (metres of ray) of the Gamma prior on the "
+          "extinction: the prior weighs like beta metres of ray with alpha returns.",
+          1.0e-6, 1.0e6, flag="--prior-rate", field="prior_rate"),
     # --- the sensor ------------------------------------------------------------------------
     _both("sensor_model.max_range", 100.0, "Rays are cut at this range (m); a return beyond "
           "it clears space up to it but counts no return. <= 0: no limit (octomap_server's "
@@ -351,6 +360,8 @@ class NodeConfig:
     threads: int
     max_voxels: int
     keep_radius: float
+    prior_shape: float
+    prior_rate: float
     sensor_model_max_range: float
     sensor_model_min_range: float
     sensor_model_no_return_range: float
@@ -404,6 +415,8 @@ class NodeConfig:
             "threads": self.threads,
             "max_voxels": self.core("max_voxels"),
             "keep_radius": self.core("keep_radius"),
+            "prior_shape": self.prior_shape,
+            "prior_rate": self.prior_rate,
         }
 
     def extrinsic(self) -> Extrinsic:

@@ -126,12 +126,15 @@ def score_rays(
     rays: Rays,
     stamp: float,
     *,
-    shape: float = UNIFORM_SHAPE,
-    rate: float = UNIFORM_RATE,
+    shape: float | None = None,
+    rate: float | None = None,
     events: bool = False,
 ) -> tuple[FloatArray, int, ScanEvents | None]:
     """Per-ray log-likelihood of rays already placed by ``mapper.place_rays`` (reuse them
-    to score one scan under several priors); the event count; the events when asked."""
+    to score one scan under several priors); the event count; the events when asked.
+    ``shape``/``rate`` default to the mapper's prior (``Mapper.prior``)."""
+    shape = mapper.prior.shape if shape is None else shape
+    rate = mapper.prior.rate if rate is None else rate
     check_prior(shape, rate)
     if not math.isfinite(stamp):
         raise ValueError(f"stamp must be finite seconds, got {stamp}")
@@ -169,18 +172,19 @@ def scan_log_likelihood(
     stamp: float,
     *,
     no_return: ArrayLike | None = None,
-    shape: float = UNIFORM_SHAPE,
-    rate: float = UNIFORM_RATE,
+    shape: float | None = None,
+    rate: float | None = None,
     events: bool = False,
 ) -> ScanLikelihood:
     """The log-likelihood of one scan under ``mapper``, read at ``stamp`` (seconds).
 
     ``points`` (N, 3) and ``origins`` ((3,) or (N, 3)) in the map frame, exactly what
     ``Mapper.integrate`` takes (``no_return`` (N,) flags rays that saw nothing up to their
-    point); rays are placed, cut and dropped as integration does. ``shape``/``rate``: the
-    Gamma prior on the extinction. ``events=True`` also returns every event (memory: about
-    45 bytes per voxel crossed). The map is only read: safe to call from several threads
-    at once (e.g. one per candidate pose) while nothing integrates into ``mapper``.
+    point); rays are placed, cut and dropped as integration does. ``shape``/``rate``: the Gamma
+    prior on the extinction (default: the mapper's, ``Mapper.prior``). ``events=True`` also
+    returns every event (memory: about 45 bytes per voxel crossed). The map is only read: safe
+    to call from several threads at once (e.g. one per candidate pose) while nothing integrates
+    into ``mapper``.
     """
     rays, dropped = mapper.place_rays(points, origins, no_return)
     per_ray, count, ev = score_rays(mapper, rays, stamp, shape=shape, rate=rate, events=events)
@@ -195,8 +199,8 @@ def total_log_likelihood(
     stamp: float,
     *,
     no_return: ArrayLike | None = None,
-    shape: float = UNIFORM_SHAPE,
-    rate: float = UNIFORM_RATE,
+    shape: float | None = None,
+    rate: float | None = None,
 ) -> float:
     """Just the sum of ``scan_log_likelihood``'s per-ray values: the objective of a pose
     search (call it once per candidate pose of the same scan)."""

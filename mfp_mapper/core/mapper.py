@@ -70,10 +70,16 @@ class Mapper:
         max_voxels: int | None = None,
         keep_radius: float | None = None,
         origin: ArrayLike | None = None,
+        prior_shape: float = 1.0,
+        prior_rate: float = 1.0,
     ) -> None:
         _check_settings(
             resolution, max_range, min_range, decay_time, threads, max_voxels, keep_radius
         )
+        self.prior = model.Prior(float(prior_shape), float(prior_rate))
+        """Gamma prior on the extinction (``model.Prior``; 1, 1: the paper's uniform prior):
+        read by every estimate (mean, std, intervals, p_hit, grids, likelihood), never stored
+        in the statistics, so it may be changed at any time."""
         self.resolution = float(resolution)
         self.max_range = float(max_range)
         self.min_range = float(min_range)
@@ -192,6 +198,14 @@ class Mapper:
         its shard mask; valid until the next ``integrate``, ``reset`` or eviction."""
         return store_view(self._store), self._store.shard_mask
 
+    @property
+    def prior_shape(self) -> float:
+        return self.prior.shape
+
+    @property
+    def prior_rate(self) -> float:
+        return self.prior.rate
+
     def _origin_from(self, sensor_origins: FloatArray) -> FloatArray | None:
         """The origin a first scan gives the map: its first finite sensor position, rounded
         to a multiple of ``ORIGIN_QUANTUM_VOXELS`` voxels (None: no finite position)."""
@@ -308,11 +322,12 @@ class Mapper:
     ) -> HitGrid:
         """The height band ``[z_min, z_max]`` projected onto a 2D grid (``gridmap``): per
         cell ``round(100 p)``, ``p`` the largest hit probability of a voxel edge in the
-        column, -1 where never observed; the square of half side ``radius`` around
-        ``center``, or the extent of the observed band. Statistics at their last update
-        (no decay to a later stamp), read straight from the blocks. ``gridmap.GridTooLarge``
-        (nothing allocated) when the grid would exceed ``max_cells``. ``trinary=(occupied,
-        free)``: cells 100 / 0 / -1 by those hit-probability thresholds (Nav2)."""
+        column (with the map's prior), -1 where never observed; the square of half side
+        ``radius`` around ``center``, or the extent of the observed band. Statistics at their
+        last update (no decay to a later stamp), read straight from the blocks.
+        ``gridmap.GridTooLarge`` (nothing allocated) when the grid would exceed
+        ``max_cells``. ``trinary=(occupied, free)``: cells 100 / 0 / -1 by those
+        hit-probability thresholds (Nav2)."""
         lo_m, hi_m = [-math.inf, -math.inf, z_min], [math.inf, math.inf, z_max]
         if center is not None and radius > 0.0:  # only the blocks near the window are read
             margin = radius + self.resolution
@@ -332,6 +347,7 @@ class Mapper:
             radius=radius,
             max_cells=max_cells,
             trinary=trinary,
+            prior=(self.prior.shape, self.prior.rate),
         )
         if ox == 0.0 and oy == 0.0:
             return grid
@@ -351,6 +367,7 @@ class Mapper:
             t_last=raw.t_last,
             observed=model.observed(s, n),
             resolution=self.resolution,
+            prior=self.prior,
         )
 
     @property

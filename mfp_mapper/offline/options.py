@@ -37,6 +37,8 @@ class ReplayOptions:
     threads: int = _default("threads")
     max_voxels: int | None = _default("max_voxels")
     keep_radius: float | None = _default("keep_radius")
+    prior_shape: float = _default("prior.shape")
+    prior_rate: float = _default("prior.rate")
     cloud_topic: str | None = _default("cloud_topic")
     odom_topic: str | None = _default("odom_topic")
     use_tf: bool = _default("use_tf_poses")
@@ -78,6 +80,8 @@ class ReplayOptions:
             "threads": self.threads,
             "max_voxels": self.max_voxels,
             "keep_radius": self.keep_radius,
+            "prior_shape": self.prior_shape,
+            "prior_rate": self.prior_rate,
         }
 
 

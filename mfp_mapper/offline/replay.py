@@ -234,16 +234,7 @@ def _replay(
 
 def new_mapper(opts: ReplayOptions, frame_id: str) -> Mapper:
     """An empty Mapper with the options' core settings."""
-    return Mapper(
-        opts.resolution,
-        max_range=opts.max_range,
-        min_range=opts.min_range,
-        decay_time=opts.decay_time,
-        frame_id=frame_id,
-        threads=opts.threads,
-        max_voxels=opts.max_voxels,
-        keep_radius=opts.keep_radius,
-    )
+    return Mapper(opts.resolution, frame_id=frame_id, **opts.mapper_settings())
 
 
 class ScanSelection:
