@@ -334,6 +334,141 @@ def cmd_query(args: argparse.Namespace) -> int:
     return 0
 
 
+def _is_map(path: str) -> bool:
+    p = Path(path)
+    return (p.suffix == ".npz" and p.is_file()) or (p / "index.json").is_file()
+
+
+def _score_rows(args: argparse.Namespace) -> list[tuple[str, argparse.Namespace]]:
+    """One (label, flags with single values) per combination of --resolution and
+    --decay-time lists."""
+    import itertools
+
+    resolutions = args.resolution or [None]
+    decays = args.decay_time or [None]
+    rows = []
+    for res, decay in itertools.product(resolutions, decays):
+        label = []
+        if args.resolution and len(args.resolution) > 1:
+            label.append(f"resolution {res:g} m")
+        if args.decay_time and len(args.decay_time) > 1:
+            label.append(f"decay_time {decay:g} s")
+        rows.append((", ".join(label), argparse.Namespace(**{
+            **vars(args), "resolution": res, "decay_time": decay,
+        })))  # fmt: skip
+    return rows
+
+
+def _priors(main: Any) -> dict[str, Any]:
+    from mfp_mapper.core.model import UNIFORM
+
+    return {"model": main} if main.is_uniform else {"model": main, "uniform_prior": UNIFORM}
+
+
+def cmd_score(args: argparse.Namespace) -> int:
+    from mfp_mapper.core.mapfile import MapFileError
+    from mfp_mapper.core.model import Prior
+    from mfp_mapper.offline.replay import ReplayError
+    from mfp_mapper.outputs import score
+
+    maps = [p for p in args.paths if _is_map(p)]
+    inputs = [score.Source(p, args.poses, args.times) for p in args.paths if not _is_map(p)]
+    if not inputs:
+        raise CliError("score needs a recording (bag or scan folder) to score")
+    if args.split and maps:
+        raise CliError("--split builds its own map from the recording: give no map")
+    if args.split and len(inputs) != 1:
+        raise CliError("--split takes one recording")
+    if not args.split and not maps:
+        raise CliError("give a map to score against, or --split even-odd on one recording")
+    if maps and (args.resolution or args.decay_time):
+        raise CliError("--resolution/--decay-time rows need --split (a map has its own)")
+    log = None if args.quiet else _warn
+    results: list[tuple[str, dict[str, Any]]] = []
+    try:
+        if args.split:
+            for label, row_args in _score_rows(args):
+                opts = replay_options(row_args)
+                prior = Prior(opts.prior_shape, opts.prior_rate)
+                scorer = score.score_split(
+                    inputs[0], opts, args.split, _priors(prior),
+                    classic=not args.no_classic, progress=not args.quiet, log=log,
+                )  # fmt: skip
+                results.append((label or f"resolution {opts.resolution:g} m", score.report(
+                    scorer, "model"
+                )))  # fmt: skip
+        else:
+            opts = replay_options(args)
+            for path in maps:
+                mapper = _load_map(path)
+                if args.prior_shape is not None or args.prior_rate is not None:
+                    mapper.prior = Prior(
+                        opts.prior_shape if args.prior_shape is not None else mapper.prior.shape,
+                        opts.prior_rate if args.prior_rate is not None else mapper.prior.rate,
+                    )
+                scorer = score.score_map(
+                    mapper, inputs, opts, _priors(mapper.prior), progress=not args.quiet, log=log
+                )
+                results.append((path, score.report(scorer, "model")))
+    except (ReplayError, MapFileError, ValueError) as err:
+        raise CliError(str(err)) from None
+    for label, rep in results:
+        for line in score.summary_lines(rep, f"{label}: " if len(results) > 1 else ""):
+            print(line)
+    if len(results) > 1:
+        print(f"{'row':<28} {'loglik/ray':>11} {'ece':>8}")
+        for label, rep in results:
+            print(f"{label:<28} {rep['log_likelihood_per_ray']:>11.4f} {rep['ece']:>8.5f}")
+    single = results[0][1] if len(results) == 1 else None
+    if args.json:
+        doc = single if single is not None else {
+            "rows": [{"label": label, **rep} for label, rep in results]
+        }  # fmt: skip
+        write_text_atomic(args.json, json.dumps(_jsonable(doc), indent=2) + "\n")
+        print(f"wrote {args.json}")
+    plot = args.plot or (str(Path(args.json).with_suffix(".png")) if args.json else None)
+    if plot:
+        for k, (label, rep) in enumerate(results):
+            base = Path(plot)
+            out = base if len(results) == 1 else base.with_stem(f"{base.stem}_{k}")
+            print(f"wrote {score.plot_reliability(rep, out, label)}")
+    return 0
+
+
+def cmd_fit_prior(args: argparse.Namespace) -> int:
+    from mfp_mapper.core.model import UNIFORM
+    from mfp_mapper.offline.replay import ReplayError
+    from mfp_mapper.outputs import score
+
+    log = None if args.quiet else _warn
+    try:
+        opts = replay_options(args)
+        sample = score.EventSample()
+        score.score_split(
+            score.Source(args.input, args.poses, args.times), opts, args.split,
+            {"uniform_prior": UNIFORM}, classic=False, sample=sample,
+            progress=not args.quiet, log=log,
+        )  # fmt: skip
+        fitted = score.fit_prior(sample)
+    except (ReplayError, ValueError) as err:
+        raise CliError(str(err)) from None
+    print(
+        f"prior fitted on {fitted.rays:,} held-out rays ({args.split} split, "
+        f"{fitted.events:,} events sampled): shape {fitted.shape:.6g}, rate {fitted.rate:.6g} m"
+    )
+    print(
+        f"held-out log-likelihood per ray {fitted.log_likelihood_per_ray:.4f} "
+        f"(uniform prior {fitted.uniform_log_likelihood_per_ray:.4f}): "
+        f"{100 * fitted.gain:+.1f}%"
+    )
+    print("parameter file:\n" + fitted.parameter_snippet(), end="")
+    print(f"flags: --prior-shape {fitted.shape:.6g} --prior-rate {fitted.rate:.6g}")
+    if args.json:
+        write_text_atomic(args.json, json.dumps(_jsonable(fitted.json()), indent=2) + "\n")
+        print(f"wrote {args.json}")
+    return 0
+
+
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from mfp_mapper.offline.evaluate import evaluate_map
     from mfp_mapper.offline.simulate import SimulationError, load_truth
@@ -373,6 +508,8 @@ COMMANDS = {
     "plot-convergence": cmd_plot_convergence,
     "query": cmd_query,
     "evaluate": cmd_evaluate,
+    "score": cmd_score,
+    "fit-prior": cmd_fit_prior,
     "demo": cmd_demo,
 }
 

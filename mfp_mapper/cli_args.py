@@ -92,6 +92,46 @@ def build_parser() -> argparse.ArgumentParser:
     _fleet_arguments(p)
 
     p = sub.add_parser(
+        "score",
+        help="how well a map predicts held-out lidar rays, against classic occupancy",
+        description="Score lidar scans with a map: log-likelihood per ray, log loss, Brier, "
+        "calibration (ECE, table, reliability diagram). MAP INPUT...: every scan of the "
+        "inputs against the map(s). --split even-odd INPUT: map the 1st, 3rd... scan, score "
+        "the others, with classic occupancy (OctoMap log-odds) built from the same training "
+        "rays (paper's a, b and fitted a, b). --split shots: within each scan, even rays map, "
+        "odd rays are scored. Lists (--resolution 0.1,0.2) give one row each.",
+    )
+    p.add_argument(
+        "paths", nargs="+", metavar="MAP|INPUT",
+        help="maps (.npz, tiled map directories) then recordings (bags, scan folders); "
+        "with --split: one recording, no map",
+    )  # fmt: skip
+    p.add_argument("--split", choices=("even-odd", "shots"), help="score held-out data")
+    p.add_argument("--json", help="write the scores as JSON here (reliability PNG beside it)")
+    p.add_argument("--plot", help="write the reliability diagram here (PNG)")
+    p.add_argument("--no-classic", action="store_true", help="skip classic occupancy")
+    p.add_argument("--config", help="a node parameter file (read as the node reads it)")
+    add_replay_flags(p, lists=("resolution", "decay_time"))
+    add_input_arguments(p)
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+
+    p = sub.add_parser(
+        "fit-prior",
+        help="empirical Bayes: the Gamma prior that best predicts held-out scans",
+        description="Map part of the given scans (--split, default even-odd), then choose "
+        "the Gamma(shape, rate) prior on the extinction that maximises the likelihood of "
+        "the other part (docs/PRIOR.md). Never fit on what you later score: select the "
+        "training scans (e.g. --every 2 here, then score --split even-odd).",
+    )
+    p.add_argument("input", metavar="INPUT", help="a recording (bag or scan folder)")
+    p.add_argument("--split", choices=("even-odd", "shots"), default="even-odd")
+    p.add_argument("--json", help="write shape, rate, gain as JSON here")
+    p.add_argument("--config", help="a node parameter file (read as the node reads it)")
+    add_replay_flags(p)
+    add_input_arguments(p)
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+
+    p = sub.add_parser(
         "merge",
         help="merge maps exactly (.npz files or tiled maps) into one",
         description="Per-voxel sums, decay brought to a common time (docs/FLEET.md). Maps of "

@@ -23,6 +23,7 @@ from mfp_mapper.offline.replay import (
     ReplayResult,
     ReplaySummary,
     ScanCallback,
+    ScanConsumer,
     map_scans,
     new_mapper,
 )
@@ -41,9 +42,11 @@ def replay_folder(
     progress: bool | Progress = True,
     log: Callable[[str], None] | None = None,
     on_scan: ScanCallback | None = None,
+    consume: ScanConsumer | None = None,
 ) -> ReplayResult:
     """Map the scans of ``directory``; ``poses`` is a pose file, ``"identity"``, or None
-    with ``opts.odometry == "kiss-icp"``. ReplayError says why when it cannot be done."""
+    with ``opts.odometry == "kiss-icp"``. ReplayError says why when it cannot be done.
+    ``on_scan`` and ``consume``: as for ``replay.replay``."""
     opts = opts or ReplayOptions()
     try:
         folder = open_scan_folder(directory, times_file)
@@ -67,7 +70,9 @@ def replay_folder(
         for index in range(len(folder)):
             yield index, partial(folder.message, index)
 
-    map_scans(clouds(), found, lambda _: extrinsic, opts, mapper, summary, progress, log, on_scan)
+    map_scans(
+        clouds(), found, lambda _: extrinsic, opts, mapper, summary, progress, log, on_scan, consume
+    )
     return ReplayResult(mapper, summary)
 
 

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.core.mapper import IntegrationSummary, Mapper
 from mfp_mapper.offline.bags import (
     CLOUD_TYPE,
     ODOM_TYPE,
@@ -151,6 +151,9 @@ def _counts(d: dict[str, int]) -> str:
 
 ScanCallback = Callable[[float, FloatArray, FloatArray], None]
 """Called with (stamp, points (N, 3), origins (3,) or (N, 3)) for every placed cloud."""
+ScanConsumer = Callable[[Mapper, pipeline.PlacedScan], IntegrationSummary]
+"""What is done with each placed scan instead of integrating it into the replay's mapper;
+returns the summary of the rays used (``ScanDropped`` when none)."""
 
 
 @dataclass
@@ -165,17 +168,20 @@ def replay(
     progress: bool | Progress = True,
     log: Callable[[str], None] | None = None,
     on_scan: ScanCallback | None = None,
+    consume: ScanConsumer | None = None,
 ) -> ReplayResult:
     """Map every cloud of ``bag``; ReplayError (with the reason) when it cannot be done.
 
     ``on_scan(stamp, points, origins)`` sees every placed cloud (map frame) just before it
-    is integrated, e.g. to feed the same rays to another mapper.
+    is integrated, e.g. to feed the same rays to another mapper. ``consume(mapper,
+    placed)`` replaces the integration of each placed scan (default
+    ``pipeline.integrate_scan``), e.g. to score the scans against another map.
     """
     opts = opts or ReplayOptions()
     path = resolve_bag_path(bag)
     reader = open_reader(path)
     try:
-        return _replay(reader, path, opts, progress, log, on_scan)
+        return _replay(reader, path, opts, progress, log, on_scan, consume)
     finally:
         reader.close()
 
@@ -187,6 +193,7 @@ def _replay(
     progress: bool | Progress,
     log: Callable[[str], None] | None,
     on_scan: ScanCallback | None,
+    consume: ScanConsumer | None = None,
 ) -> ReplayResult:
     summary = ReplaySummary(bag=str(path))
     cloud_topic = pick_topic(reader, CLOUD_TYPE, opts.cloud_topic, "PointCloud2", "--cloud-topic")
@@ -228,7 +235,7 @@ def _replay(
             extrinsics[frame], _ = extrinsic_for(frame, poses.body, tfs, opts)
         return extrinsics[frame]
 
-    map_scans(clouds(), poses, extrinsic_of, opts, mapper, summary, progress, log, on_scan)
+    map_scans(clouds(), poses, extrinsic_of, opts, mapper, summary, progress, log, on_scan, consume)
     return ReplayResult(mapper, summary)
 
 
@@ -294,9 +301,12 @@ def map_scans(
     progress: bool | Progress,
     log: Callable[[str], None] | None,
     on_scan: ScanCallback | None,
+    consume: ScanConsumer | None = None,
 ) -> None:
     """Run the selected clouds ``(position, load message)`` through the scan pipeline into
-    ``mapper``; fills ``summary``; ReplayError when no cloud could be mapped."""
+    ``mapper`` (or ``consume``); fills ``summary``; ReplayError when no cloud could be
+    mapped."""
+    integrate = consume or pipeline.integrate_scan
     select = ScanSelection(opts)
     if opts.max_scans is not None:
         summary.scans_total = min(summary.scans_total, opts.max_scans)
@@ -340,7 +350,7 @@ def map_scans(
                 if on_scan is not None:
                     on_scan(stamp, placed.points, placed.origins)
                 t_core = time.perf_counter()
-                result = pipeline.integrate_scan(mapper, placed)
+                result = integrate(mapper, placed)
                 summary.seconds_core += time.perf_counter() - t_core
             except pipeline.ScanDropped as drop:
                 counts.dropped_scan(drop)
