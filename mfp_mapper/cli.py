@@ -447,13 +447,14 @@ def cmd_fit_prior(args: argparse.Namespace) -> int:
         score.score_split(
             score.Source(args.input, args.poses, args.times), opts, args.split,
             {"uniform_prior": UNIFORM}, classic=False, sample=sample,
-            progress=not args.quiet, log=log,
+            within_training=True, progress=not args.quiet, log=log,
         )  # fmt: skip
         fitted = score.fit_prior(sample)
     except (ReplayError, ValueError) as err:
         raise CliError(str(err)) from None
     print(
-        f"prior fitted on {fitted.rays:,} held-out rays ({args.split} split, "
+        f"prior fitted on {fitted.rays:,} held-out rays of the training part of the "
+        f"{args.split} split ("
         f"{fitted.events:,} events sampled): shape {fitted.shape:.6g}, rate {fitted.rate:.6g} m"
     )
     print(

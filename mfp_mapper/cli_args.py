@@ -118,10 +118,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "fit-prior",
         help="empirical Bayes: the Gamma prior that best predicts held-out scans",
-        description="Map part of the given scans (--split, default even-odd), then choose "
-        "the Gamma(shape, rate) prior on the extinction that maximises the likelihood of "
-        "the other part (docs/PRIOR.md). Never fit on what you later score: select the "
-        "training scans (e.g. --every 2 here, then score --split even-odd).",
+        description="Empirical Bayes (docs/PRIOR.md): within the TRAINING part of --split "
+        "(what `score --split` maps), map one half and choose the Gamma(shape, rate) prior "
+        "on the extinction that maximises the likelihood of the other half. even-odd: "
+        "scans 0, 4, 8... map, 2, 6, 10... fit; shots: rays likewise. What `score --split` "
+        "holds out (odd scans or rays) is never read.",
     )
     p.add_argument("input", metavar="INPUT", help="a recording (bag or scan folder)")
     p.add_argument("--split", choices=("even-odd", "shots"), default="even-odd")

@@ -540,18 +540,23 @@ def run_input(
     return replay(source.path, opts, progress, log, consume=consume)
 
 
-def split_options(opts: Any, split: str) -> tuple[Any, Any, slice | None, slice | None]:
+def split_options(
+    opts: Any, split: str, within_training: bool = False
+) -> tuple[Any, Any, slice | None, slice | None]:
     """(training options, held-out options, training rays, held-out rays) of a split:
     ``even-odd``: of the scans selected, the 1st, 3rd... build the map and the 2nd, 4th...
     are scored; ``shots``: within every scan, the even rays build the map, the odd ones are
-    scored."""
+    scored. ``within_training``: the same split of the training part alone (scans or rays
+    0, 4, 8... build the map, 2, 6, 10... are held out), for ``fit-prior``: what ``score``
+    later holds out is never used."""
+    k = 2 if within_training else 1
     if split == "even-odd":
-        step = opts.every
+        step = opts.every * k
         train = replace(opts, every=2 * step)
         held = replace(opts, every=2 * step, start_index=opts.start_index + step)
         return train, held, None, None
     if split == "shots":
-        return opts, opts, slice(0, None, 2), slice(1, None, 2)
+        return opts, opts, slice(0, None, 2 * k), slice(k, None, 2 * k)
     raise ValueError(f"unknown split {split!r}: {', '.join(SPLITS)}")
 
 
@@ -563,12 +568,13 @@ def score_split(
     *,
     classic: bool = True,
     sample: EventSample | None = None,
+    within_training: bool = False,
     progress: bool = False,
     log: Callable[[str], None] | None = None,
 ) -> Scorer:
     """Build the map (and classic occupancy) from the training part of ``source``, score
-    the held-out part with ``Scorer``."""
-    train_opts, held_opts, train_rays, held_rays = split_options(opts, split)
+    the held-out part with ``Scorer`` (``within_training``: see ``split_options``)."""
+    train_opts, held_opts, train_rays, held_rays = split_options(opts, split, within_training)
     classic_map = ClassicMap() if classic else None
     trained = run_input(
         source, train_opts, training_consumer(classic_map, train_rays), progress, log
