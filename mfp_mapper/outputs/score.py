@@ -33,7 +33,8 @@ from numpy.typing import NDArray
 from mfp_mapper.core.likelihood import ScanEvents, score_rays
 from mfp_mapper.core.mapper import IntegrationSummary, Mapper
 from mfp_mapper.core.model import UNIFORM, Prior
-from mfp_mapper.sensing.pipeline import PlacedScan, ScanDropped, integrate_scan
+from mfp_mapper.mapping.loop import integrate_scan
+from mfp_mapper.sensing.pipeline import PlacedScan, ScanDropped
 
 FloatArray = NDArray[np.float64]
 
@@ -527,9 +528,9 @@ def run_input(
 ) -> Any:
     """Replay ``source`` (bag or scan folder) with ``consume`` doing the work; the
     ``ReplayResult`` (its mapper holds what ``consume`` integrated into it)."""
-    from mfp_mapper.offline.folder_replay import replay_folder
-    from mfp_mapper.offline.replay import ReplayError, replay
-    from mfp_mapper.offline.scan_folder import is_scan_folder
+    from mfp_mapper.mapping.folder_replay import replay_folder
+    from mfp_mapper.mapping.replay import ReplayError, replay
+    from mfp_mapper.sources.scan_folder import is_scan_folder
 
     if is_scan_folder(source.path):
         return replay_folder(

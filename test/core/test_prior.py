@@ -10,13 +10,14 @@ import numpy as np
 import pytest
 from scipy import integrate, stats
 
+from mfp_mapper.config.replay_options import add_replay_flags, options_from_args
 from mfp_mapper.core import model
 from mfp_mapper.core.gridmap import unobserved_hit_probability
 from mfp_mapper.core.likelihood import scan_log_likelihood
-from mfp_mapper.core.mapfile import map_arrays, write_map_arrays
 from mfp_mapper.core.mapper import Mapper
-from mfp_mapper.core.tiles import TiledMap, write_tiled
-from mfp_mapper.offline.options import add_replay_flags, options_from_args
+from mfp_mapper.mapio.loading import load_map, save_map
+from mfp_mapper.mapio.mapfile import map_arrays, write_map_arrays
+from mfp_mapper.mapio.tiles import TiledMap, write_tiled
 
 PRIOR = model.Prior(0.3, 0.05)
 
@@ -91,12 +92,12 @@ def test_every_estimate_reads_the_mappers_prior(tmp_path: Path) -> None:
 
 def test_map_files_keep_the_prior_and_old_files_mean_uniform(tmp_path: Path) -> None:
     mapper = _mapper(PRIOR)
-    mapper.save(tmp_path / "m.npz")
-    assert Mapper.load(tmp_path / "m.npz").prior == PRIOR
+    save_map(mapper, tmp_path / "m.npz")
+    assert load_map(tmp_path / "m.npz").prior == PRIOR
     old = {k: v for k, v in map_arrays(mapper).items() if not k.startswith("prior_")}
     write_map_arrays(tmp_path / "old.npz", old)
-    assert Mapper.load(tmp_path / "old.npz").prior == model.UNIFORM
-    assert Mapper.load(tmp_path / "m.npz", prior_shape=2.0).prior == model.Prior(2.0, 0.05)
+    assert load_map(tmp_path / "old.npz").prior == model.UNIFORM
+    assert load_map(tmp_path / "m.npz", prior_shape=2.0).prior == model.Prior(2.0, 0.05)
     write_tiled(tmp_path / "tiled", map_arrays(mapper), 2)
     tiled = TiledMap(tmp_path / "tiled")
     assert tiled.prior == PRIOR
@@ -105,15 +106,15 @@ def test_map_files_keep_the_prior_and_old_files_mean_uniform(tmp_path: Path) -> 
 
 
 def test_replay_flags_and_node_parameters() -> None:
-    from mfp_mapper.settings import check_parameters
+    from mfp_mapper.config.schema import check_parameters
 
     parser = argparse.ArgumentParser()
     parser.add_argument("--config")
     add_replay_flags(parser)
     opts = options_from_args(parser.parse_args(["--prior-shape", "0.3", "--prior-rate", "0.05"]))
     assert (opts.prior_shape, opts.prior_rate) == (0.3, 0.05)
-    assert opts.mapper_settings()["prior_shape"] == 0.3
+    assert opts.map_settings().prior_shape == 0.3
     cfg = check_parameters({"prior.shape": 0.3, "prior.rate": 0.05})
-    assert Mapper(0.1, **cfg.mapper_settings()).prior == PRIOR
+    assert Mapper.of(cfg.map_settings()).prior == PRIOR
     with pytest.raises(ValueError, match=r"prior\.rate"):
         check_parameters({"prior.rate": 0.0})
