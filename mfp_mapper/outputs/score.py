@@ -487,7 +487,10 @@ def plot_reliability(report_: dict[str, Any], path: str | Path, title: str = "")
         rows = r["calibration_log"]
         x = [max(row["mean_predicted"], floor) for row in rows]
         y = [max(row["observed_frequency"], floor) for row in rows]
-        label = f"{name}: {r['log_likelihood_per_ray']:.2f} nats/ray, ECE {r['ece']:.3f}"
+        what = name
+        if "prior" in r:
+            what += f" (prior {r['prior']['shape']:.3g}, {r['prior']['rate']:.3g})"
+        label = f"{what}: {r['log_likelihood_per_ray']:.2f} nats/ray, ECE {r['ece']:.4f}"
         top.plot(x, y, marker="o", ms=3, label=label)
         bottom.plot(x, [row["count"] for row in rows], marker="o", ms=3)
     top.set_xscale("log")
