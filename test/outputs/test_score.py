@@ -228,3 +228,34 @@ def test_score_refuses_bad_usage(tmp_path: Path, capsys: pytest.CaptureFixture[s
     assert main(["score", str(map_path), str(folder), "--split", "even-odd", "-q"]) == 1
     assert "give no map" in capsys.readouterr().err
     shutil.rmtree(folder)
+
+
+def test_score_splits_the_shots_of_one_real_tls_scan(shared_data: Path, tmp_path: Path) -> None:
+    """tls_conifers is one scan: --split shots maps its even rays and scores the odd ones
+    (a subsample of the scan, written as a one-scan folder)."""
+    from mfp_mapper.sources.scan_files import read_ply
+
+    cols = read_ply(shared_data / "tls_conifers" / "scan.ply")
+    xyz = np.stack([cols["x"], cols["y"], cols["z"]], axis=1).astype(np.float32)[::40]
+    folder = tmp_path / "tls"
+    folder.mkdir()
+    np.c_[xyz, np.zeros(len(xyz), np.float32)].astype(np.float32).tofile(folder / "0.bin")
+    out = tmp_path / "tls.json"
+    assert main(["score", "--split", "shots", str(folder), "--poses", "identity",
+                 "--resolution", "0.4", "--json", str(out), "-q"]) == 0  # fmt: skip
+    got = json.loads(out.read_text())
+    assert got["rays"] == len(xyz) // 2
+    assert got["log_likelihood_per_ray"] > got["classic_paper"]["log_likelihood_per_ray"]
+
+
+def test_score_norlab_sequence_even_odd(shared_data: Path, tmp_path: Path) -> None:
+    """The first six norlab scans with their odometry: three mapped, three scored."""
+    data = shared_data / "norlab_sequence"
+    out = tmp_path / "norlab.json"
+    assert main(["score", "--split", "even-odd", str(data / "scans"), "--poses",
+                 str(data / "icp_odom.csv"), "--end", "#6", "--resolution", "0.4",
+                 "--json", str(out), "-q"]) == 0  # fmt: skip
+    got = json.loads(out.read_text())
+    assert got["rays"] > 100_000
+    assert got["log_likelihood_per_ray"] > got["classic_paper"]["log_likelihood_per_ray"]
+    assert 0.0 <= got["ece"] < 0.1
