@@ -126,9 +126,12 @@ def run(args: argparse.Namespace) -> int:
         for line in score.summary_lines(rep, f"{label}: " if len(results) > 1 else ""):
             print(line)
     if len(results) > 1:
-        print(f"{'row':<28} {'loglik/ray':>11} {'ece':>8}")
+        print(f"{'row':<28} {'loglik/ray':>11} {'density/ray':>11} {'ece':>8}")
         for label, rep in results:
-            print(f"{label:<28} {rep['log_likelihood_per_ray']:>11.4f} {rep['ece']:>8.5f}")
+            print(
+                f"{label:<28} {rep['log_likelihood_per_ray']:>11.4f} "
+                f"{rep['log_density_per_ray']:>11.4f} {rep['ece']:>8.5f}"
+            )
     single = results[0][1] if len(results) == 1 else None
     if args.json:
         doc = single if single is not None else {

@@ -7,7 +7,11 @@ here" (over its full chord). Per model, over all events: ``log_likelihood_per_ra
 the events' log-probabilities / rays), ``log_loss_per_event``, ``brier`` (mean squared
 error of the predicted return probability), ``ece`` (expected calibration error on 10
 equal-width bins of predicted probability, Guo et al. 2017), ``ece_log`` (the same on the
-log-spaced bins: most events are predicted below 0.1, where equal-width bins see one bin)
+log-spaced bins: most events are predicted below 0.1, where equal-width bins see one bin),
+``log_density_per_ray`` (the log-likelihood with each return voxel's probability turned
+into a density of the return's range, divided by the voxel's full chord: nats with ranges
+in metres, comparable between resolutions, where the per-ray log-likelihood is not: a
+coarser voxel locates a return less precisely and so predicts it more easily)
 and the calibration tables (``calibration``: equal-width bins; ``calibration_log``:
 log-spaced; each bin: count, mean predicted, observed frequency).
 
@@ -270,6 +274,9 @@ class Scorer:
         self.classic_counts = ClassicCounts()
         self.sample = sample
         self.ray_slice = rays
+        self.return_log_chord = 0.0
+        """Sum of log(full chord, m) of the return events: turns a return voxel's probability
+        into a density of the return's range along the ray (``log_density_per_ray``)."""
 
     def __call__(self, _replay_mapper: Mapper, placed: PlacedScan) -> IntegrationSummary:
         placed = select_rays(placed, self.ray_slice)
@@ -280,6 +287,7 @@ class Scorer:
             raise ScanDropped("no_usable_rays", "no ray of the scan could be scored")
         _, _, ev = score_rays(self.mapper, rays, placed.stamp, events=True)
         assert ev is not None
+        self.return_log_chord += float(np.log(ev.chord[ev.hit]).sum())
         for name, prior in self.priors.items():
             m = self.metrics[name]
             m.rays += len(rays)
@@ -336,6 +344,10 @@ def report(scorer: Scorer, main: str) -> dict[str, Any]:
         out["classic_paper"] = {**paper, "a": PAPER_A, "b": PAPER_B}
         a, b = scorer.classic_counts.fit()
         out["classic_fitted"] = {**scorer.classic_counts.metrics(a, b).result(), "a": a, "b": b}
+    for part in [out, *(v for v in out.values() if isinstance(v, dict) and "rays" in v)]:
+        part["log_density_per_ray"] = (part["log_likelihood"] - scorer.return_log_chord) / max(
+            part["rays"], 1
+        )
     return out
 
 
@@ -352,7 +364,11 @@ def summary_lines(report_: dict[str, Any], label: str = "") -> list[str]:
         if isinstance(value, dict) and "log_likelihood_per_ray" in value
     ]
     head = f"{label}{report_['rays']:,} rays, {report_['events']:,} events"
-    lines = [head, f"{'model':<34} {'loglik/ray':>11} {'logloss/ev':>11} {'brier':>9} {'ece':>8}"]
+    lines = [
+        head,
+        f"{'model':<36} {'loglik/ray':>10} {'density/ray':>11} {'logloss/ev':>10} "
+        f"{'brier':>8} {'ece':>8}",
+    ]
     for name, r in rows:
         text = name
         if "prior" in r:
@@ -360,8 +376,8 @@ def summary_lines(report_: dict[str, Any], label: str = "") -> list[str]:
         if "a" in r:
             text += f" (a {r['a']:.3f}, b {r['b']:.3f})"
         lines.append(
-            f"{text:<34} {r['log_likelihood_per_ray']:>11.4f} {r['log_loss_per_event']:>11.5f} "
-            f"{r['brier']:>9.5f} {r['ece']:>8.5f}"
+            f"{text:<36} {r['log_likelihood_per_ray']:>10.4f} {r['log_density_per_ray']:>11.4f} "
+            f"{r['log_loss_per_event']:>10.5f} {r['brier']:>8.5f} {r['ece']:>8.5f}"
         )
     return lines
 

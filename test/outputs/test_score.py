@@ -181,6 +181,8 @@ def test_score_agrees_with_an_independent_implementation(shared_data: Path, tmp_
     assert got["events"] == len(events)
     assert got["log_likelihood_per_ray"] == pytest.approx(want.mean(), rel=0.01)
     assert got["log_likelihood_per_ray"] == pytest.approx(want.mean(), rel=1e-6)
+    density = want.sum() - sum(math.log(e[2]) for e in events if e[3])
+    assert got["log_density_per_ray"] == pytest.approx(density / len(pts), rel=1e-6)
 
 
 def test_score_split_and_fit_prior_on_real_scans(shared_data: Path, tmp_path: Path) -> None:
