@@ -112,8 +112,10 @@ def test_buffer_length_keeps_one_sample_before_the_cut() -> None:
     # out of order inside the buffer is inserted in place
     tree.add("odom", "base_link", 9.5, [100, 0, 0], [0, 0, 0, 1])
     assert tree.lookup("odom", "base_link", [9.5])[0][0, 0] == 100.0
-    # older than the buffer: dropped and counted
+    # older than the buffer: dropped and counted (9 s back is also a jump to confirm)
     assert not tree.add("odom", "base_link", 1.0, [0, 0, 0], [0, 0, 0, 1])
+    assert tree.rejected["past_outlier"] == 1
+    assert not tree.add("odom", "base_link", 6.0, [0, 0, 0], [0, 0, 0, 1])
     assert tree.rejected["old"] == 1
 
 
