@@ -84,7 +84,7 @@ class MapOutputs:
             return  # nobody listens: publish when someone does (latched, so they get it)
         if time.monotonic() < self._not_before:
             return  # the last publication was slow: keep publishing under PUBLISH_DUTY
-        worker, cfg = self._worker, self._config()
+        worker = self._worker
         with worker.map_lock:
             version = worker.mapper.version
             if not worker.map_frame:
@@ -193,5 +193,7 @@ class MapOutputs:
             grid,
             resolution,
             worker.map_frame or worker.mapper.frame_id,
-            self._header_stamp(stamp), now, cfg.occupancy_min_z
+            self._header_stamp(stamp),
+            now,
+            cfg.occupancy_min_z,
         )

@@ -28,12 +28,12 @@ import rclpy.exceptions
 import rclpy.task
 import rclpy.time
 import rclpy.utilities
-from rclpy.clock import Clock, ClockType
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import OccupancyGrid, Odometry
 from nav_msgs.srv import GetMap
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.qos import (
@@ -309,7 +309,9 @@ class MfpMapperNode(GuardedNode):
             self._answer_nothing(msg)
             return
         try:
-            in_map = self.worker.pose_inputs.to_map_frame(points, frame, stamp_seconds(msg.header.stamp))
+            in_map = self.worker.pose_inputs.to_map_frame(
+                points, frame, stamp_seconds(msg.header.stamp)
+            )
         except TransformUnavailable as err:
             self.warn_throttled(
                 "query_frame",

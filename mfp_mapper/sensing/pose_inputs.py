@@ -145,7 +145,9 @@ class PoseInputs:
                 if self.map_frame in (None, frame)
                 else f"linked to the map frame {self.map_frame!r} through TF"
             )
-            self._info(f"odometry received in frame {frame!r} (child {sample.child_frame_id!r}): {linked}")
+            self._info(
+                f"odometry received in frame {frame!r} (child {sample.child_frame_id!r}): {linked}"
+            )
         if self.map_frame == frame:
             self.robot_position = np.asarray(sample.position, dtype=np.float64)
         return True
@@ -282,7 +284,5 @@ class PoseInputs:
             "odom_frame": self.odom_frame,
         }
         if conflicts:
-            out["tf_conflicts"] = frame_list(
-                f"{c} ({a} / {b})" for c, (a, b) in conflicts.items()
-            )
+            out["tf_conflicts"] = frame_list(f"{c} ({a} / {b})" for c, (a, b) in conflicts.items())
         return out

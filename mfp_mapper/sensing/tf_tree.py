@@ -30,7 +30,8 @@ What tf2 does, and this buffer too:
 
 Events (:meth:`TfTree.take_events`) are ``(kind, text)`` pairs for the caller's throttled
 log; ``kind`` never holds a frame name, and every text names at most a handful of frames.
-Rotations are composed with scipy's ``Rotation``. Quaternions are ``(x, y, z, w)``;
+Vectors are rotated with scipy's ``Rotation``; only the quaternion product is ours
+(``quaternion_multiply`` says why). Quaternions are ``(x, y, z, w)``;
 ``T_a_b`` maps points in ``b`` into ``a``.
 """
 
@@ -52,7 +53,6 @@ from mfp_mapper.sensing.poses import (
     IDENTITY_QUATERNION,
     PoseUnavailable,
     interpolate_samples,
-    normalize_quaternion,
     quaternion_to_matrix,
 )
 
@@ -73,11 +73,46 @@ def frame_list(names: Iterable[str], limit: int = NAMES_SHOWN) -> str:
     return shown + (f" and {len(ordered) - limit} more" if len(ordered) > limit else "")
 
 
+def _unit_quaternion(q: ArrayLike) -> FloatArray | None:
+    """One quaternion normalised (plain floats: a TF message at a time); None if invalid."""
+    try:
+        x, y, z, w = (float(v) for v in np.asarray(q, dtype=np.float64).reshape(-1))
+    except (TypeError, ValueError):
+        return None
+    norm = math.sqrt(x * x + y * y + z * z + w * w)
+    if not (math.isfinite(norm) and norm > 1e-12):
+        return None
+    return np.array([x / norm, y / norm, z / norm, w / norm])
+
+
 class TransformUnavailable(PoseUnavailable):
     """No transform for a lookup. Reasons: those of PoseUnavailable (``"no_poses"``,
     ``"too_new"``, ``"too_old"``, ``"gap"``, each naming the edge), ``"unconnected"``
     (no chain between the frames, or an unknown frame) and ``"tf_conflict"`` (a frame of
     the chain has two parents alternately)."""
+
+
+def quaternion_multiply(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Hamilton product ``a * b`` (xyzw, broadcast): rotate by ``b`` then by ``a``.
+
+    Hand-written because scipy's ``Rotation.__mul__`` is the one slow step of a chain
+    lookup, and a de-skewed scan composes several edges at every point time: for 10k
+    rotations (scipy 1.17, same process, 3 interleaved runs) 32-48 ms against 1-2 ms here;
+    ``compose`` with ``Rotation`` throughout took 43-51 ms against 4-5 ms with this
+    product (``Rotation.apply`` for the translation costs 0.6 ms). Checked against
+    scipy's rotation matrices in the tests.
+    """
+    x1, y1, z1, w1 = np.moveaxis(np.asarray(a, dtype=np.float64), -1, 0)
+    x2, y2, z2, w2 = np.moveaxis(np.asarray(b, dtype=np.float64), -1, 0)
+    return np.stack(
+        [
+            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+        ],
+        -1,
+    )
 
 
 def compose(outer: Transform, inner: Transform) -> Transform:
@@ -87,8 +122,7 @@ def compose(outer: Transform, inner: Transform) -> Transform:
     t_bc, q_bc = inner
     if np.size(q_ab) == 0 or np.size(q_bc) == 0:
         return np.zeros((0, 3)), np.zeros((0, 4))
-    r_ab = Rotation.from_quat(q_ab)
-    return r_ab.apply(t_bc) + t_ab, (r_ab * Rotation.from_quat(q_bc)).as_quat()
+    return Rotation.from_quat(q_ab).apply(t_bc) + t_ab, quaternion_multiply(q_ab, q_bc)
 
 
 def invert(transform: Transform) -> Transform:
@@ -227,10 +261,7 @@ class TfTree:
         """Store ``T_parent_child``; False (counted in ``rejected``) when it is not stored."""
         parent, child = self._name(parent), self._name(child)
         t = np.asarray(translation, dtype=np.float64).reshape(-1)
-        try:
-            q = normalize_quaternion(quaternion_xyzw)
-        except ValueError:
-            q = None
+        q = _unit_quaternion(quaternion_xyzw)
         if q is None or t.shape != (3,) or not np.all(np.isfinite(t)) or not math.isfinite(stamp):
             self.rejected["invalid"] += 1
             return False

@@ -17,9 +17,8 @@ from mfp_mapper.sensing.deskew import cloud_to_map
 from mfp_mapper.sensing.live import LiveIntegrator, LiveSettings
 from mfp_mapper.sensing.pipeline import ScanDropped
 from mfp_mapper.sensing.placement import Odometry, resolve_placement
-from mfp_mapper.sensing.poses import StampGuard
 from mfp_mapper.sensing.pointcloud import ParsedCloud
-from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer
+from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer, StampGuard
 from mfp_mapper.sensing.tf_tree import TfTree
 
 T0 = 100.0
