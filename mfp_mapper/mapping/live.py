@@ -432,7 +432,7 @@ class LiveIntegrator:
     def snapshot(self) -> tuple[LiveCounters, int]:
         """A copy of the counters and the queue length, taken together."""
         with self._cv:
-            return copy.deepcopy(self.counters), len(self._queue)
+            return copy.deepcopy(self.counters), len(self._queue) + len(self._waiting)
 
 
 def finite_or_none(value: float) -> float | None:

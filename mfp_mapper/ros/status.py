@@ -63,6 +63,7 @@ def status_report(
         "latency_max_s": c.latency_max if c.clouds_integrated else None,
         "odom_in": c.odom_in,
         "odom_rejected": dict(c.odom_rejected),
+        "tf_in": c.tf_in,
         "tf_rejected": dict(c.tf_rejected),
         "voxels": voxels,
         "memory_bytes": memory,

@@ -49,6 +49,7 @@ class PoseCounters:
 
     odom_in: int = 0
     odom_rejected: Counter[str] = field(default_factory=Counter)
+    tf_in: int = 0
     tf_rejected: Counter[str] = field(default_factory=Counter)
 
 
@@ -159,6 +160,7 @@ class PoseInputs:
             kept = self.tree.add_message(msg, static, now=self._clock())
             refused = sum(self.tree.rejected.values()) - before
             events = self.tree.take_events()
+            self.counters.tf_in += len(msg.transforms)
             self.counters.tf_rejected = Counter(self.tree.rejected)
             if kept:
                 self.generation += 1
@@ -278,10 +280,12 @@ class PoseInputs:
         """What ``~/status`` says of the poses: map frame, pose source, TF conflicts."""
         with self.lock:
             conflicts = self.tree.conflicts()
+            frames = len(self.tree.frames())
         out: dict[str, Any] = {
             "map_frame": self.map_frame,
             "pose_source": self.pose_source,
             "odom_frame": self.odom_frame,
+            "tf_frames": frames,
         }
         if conflicts:
             out["tf_conflicts"] = frame_list(f"{c} ({a} / {b})" for c, (a, b) in conflicts.items())

@@ -16,7 +16,8 @@ What tf2 does, and this buffer too:
   names do not accumulate. A static edge shadowed by a dynamic one comes back then.
 - **One parent per frame**: a message giving a frame another parent replaces its edge,
   with one event naming both parents; the replaced samples are kept aside, so a single
-  stray costs nothing once the usual parent speaks again. A frame whose parent changes
+  stray costs nothing once the usual parent speaks again, and a new parent is not used
+  before a second message confirms it (one stray message never places a cloud). A frame whose parent changes
   ``CONFLICT_CHANGES`` times within the cache time is in *conflict* (two localizers
   publishing it): lookups through it fail naming both parents until it settles.
 - **Loops are refused**: a message whose child is an ancestor of its parent is never
@@ -328,6 +329,7 @@ class TfTree:
             static = self._static.get(child)
             frame = self._dynamic[child] = _Frame(_Edge(parent))
             if static is not None and static[0] != parent:
+                frame.changes.append(stamp)
                 self._event(
                     "tf_parent",
                     f"/tf gives frame {child!r} the parent {parent!r} while /tf_static gives "
@@ -576,6 +578,12 @@ class TfTree:
                 "tf_conflict",
                 f"{target} <- {source}: frame {child!r} gets its parent alternately from "
                 f"{edge.parent!r} and {frame.previous.parent!r} (two nodes publish it)",
+            )
+        if frame.changes and len(edge.stamps) < 2:
+            raise TransformUnavailable(
+                "too_new",
+                f"{target} <- {source}: frame {child!r} got a new parent {edge.parent!r} in one "
+                "message only: not used before a second one confirms it",
             )
         stamps, translations, quaternions = edge.arrays()
         return interpolate_samples(

@@ -62,7 +62,7 @@ def _param_arg(name: str, value: Any) -> str:
     elif isinstance(value, float):
         text = repr(value)
     else:
-        text = str(value)
+        text = str(value) or "''"  # an empty string: quoted, or rcl cannot parse the rule
     return f"{name}:={text}"
 
 

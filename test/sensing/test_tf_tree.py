@@ -241,6 +241,8 @@ def test_a_stray_parent_on_a_static_frame_expires_after_the_cache_time() -> None
     events = tree.take_events()
     assert [k for k, _ in events] == ["tf_parent"]
     assert "'base_link'" in events[0][1] and "'odom'" in events[0][1]
+    with pytest.raises(TransformUnavailable):  # one message never places a cloud
+        tree.lookup("map", "velodyne", [11.0])
     end = streaming(tree, 11.02, 12.9)
     with pytest.raises(TransformUnavailable):  # only one stray sample: not at 12.9
         tree.lookup("map", "velodyne", [end])
