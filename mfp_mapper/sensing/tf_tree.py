@@ -17,9 +17,10 @@ What tf2 does, and this buffer too:
 - **One parent per frame**: a message giving a frame another parent replaces its edge,
   with one event naming both parents; the replaced samples are kept aside, so a single
   stray costs nothing once the usual parent speaks again, and a new parent is not used
-  before a second message confirms it (one stray message never places a cloud). A frame whose parent changes
-  ``CONFLICT_CHANGES`` times within the cache time is in *conflict* (two localizers
-  publishing it): lookups through it fail naming both parents until it settles.
+  before a second message confirms it (one stray message never places a cloud). A frame
+  whose parent changes ``CONFLICT_CHANGES`` times within the cache time is in *conflict*
+  (two localizers publishing it): lookups through it fail naming both parents until it
+  settles.
 - **Loops are refused**: a message whose child is an ancestor of its parent is never
   stored (``rejected["loop"]``, an event names the frames).
 - **Stamps**: a sample more than ``max_jump`` seconds away from the stream's newest (ahead
