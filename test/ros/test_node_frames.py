@@ -372,10 +372,17 @@ def test_sim_time_without_clock_is_reported_and_status_keeps_going(
                 statuses.append(f.status)
         log = node.log()
         assert log.count("use_sim_time is true and /clock has not been received") == 1, log
+        stamps = {  # the node's own log times (wall clock): from its start to the line
+            key: float(re.search(rf"\[(\d+\.\d+)\] \[mfp_mapper\]: {key}", log).group(1))
+            for key in ("mfp_mapper ready", "use_sim_time is true")
+        }
+        after = stamps["use_sim_time is true"] - stamps["mfp_mapper ready"]
+        assert after <= 5.0, after
         assert len(statuses) >= 5 and len(diags) >= 5, (len(statuses), len(diags))
         assert statuses[-1]["sim_time_without_clock"] is True
         print(
-            f"no /clock: reported once within {time.monotonic() - t0:.1f} s of start; "
+            f"no /clock: reported once, {after:.1f} s after the node was ready "
+            f"({time.monotonic() - t0:.1f} s after launch, discovery included); "
             f"{len(statuses)} ~/status and {len(diags)} /diagnostics in 6 s"
         )
     finally:
