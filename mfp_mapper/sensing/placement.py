@@ -27,7 +27,13 @@ from numpy.typing import ArrayLike, NDArray
 from mfp_mapper.sensing.deskew import PoseSource
 from mfp_mapper.sensing.pipeline import ScanDropped
 from mfp_mapper.sensing.poses import Extrinsic
-from mfp_mapper.sensing.tf_tree import TfChain, TfTree, TransformUnavailable, compose
+from mfp_mapper.sensing.tf_tree import (
+    TfChain,
+    TfTree,
+    TransformUnavailable,
+    compose,
+    frame_list,
+)
 
 FloatArray = NDArray[np.float64]
 
@@ -119,7 +125,7 @@ def _tf_only(cloud_frame: str, tree: TfTree, frame_id: str) -> Placement:
         raise ScanDropped(
             "no_poses",
             f"no odometry, and TF has no transform for the cloud frame {cloud_frame!r} "
-            f"(frames known: {', '.join(sorted(tree.frames())) or 'none'})",
+            f"(frames known: {frame_list(tree.frames())})",
         )
     try:
         root = tree.ancestors(cloud_frame)[-1]

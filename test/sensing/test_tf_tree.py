@@ -10,6 +10,8 @@ import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
 from mfp_mapper.sensing.deskew import cloud_to_map
+from mfp_mapper.sensing.pipeline import ScanDropped
+from mfp_mapper.sensing.placement import resolve_placement
 from mfp_mapper.sensing.pointcloud import ParsedCloud
 from mfp_mapper.sensing.poses import Extrinsic
 from mfp_mapper.sensing.tf_tree import (
@@ -310,6 +312,11 @@ def test_churned_frame_names_are_forgotten_and_errors_stay_short() -> None:
     with pytest.raises(TransformUnavailable) as err:
         tree.lookup("map", "nowhere", [1059.0])
     assert len(str(err.value)) < 300 and "more" in str(err.value)
+    for k in range(3000):  # 3000 live frames: the placement's drop line stays short too
+        tree.add("map", f"live_{k}", 1060.0, [0, 0, 0], UNIT)
+    with pytest.raises(ScanDropped) as drop:
+        resolve_placement("nowhere", tree, None)
+    assert len(drop.value.detail) < 300 and " more)" in drop.value.detail, drop.value.detail
     assert frame_list(["c", "a", "b"], limit=2) == "'a', 'b' and 1 more"
 
 
