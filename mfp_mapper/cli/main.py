@@ -1,7 +1,8 @@
 """``mfp-mapper``: the offline command line (bags, the built-in example, exports, pictures).
 
 One module per subcommand (``cli.replay``, ``cli.merge``, ``cli.simulate``, ``cli.export``,
-``cli.render``, ``cli.plot_convergence``, ``cli.query``, ``cli.evaluate``, ``cli.demo``), each
+``cli.render``, ``cli.plot_convergence``, ``cli.query``, ``cli.evaluate``, ``cli.score``,
+``cli.fit_prior``, ``cli.demo``), each
 with ``add_parser(sub)`` and ``run(args)``; the work is in mapping/, sources/ and outputs/.
 The modules import no numpy at the top, so ``mfp-mapper --help`` stays cheap.
 Exit status: 0 success, 1 the job failed (bad bag, bad map file...), 2 bad usage,
@@ -18,20 +19,23 @@ from mfp_mapper.cli import (
     demo,
     evaluate,
     export,
+    fit_prior,
     localize,
     merge,
     plot_convergence,
     query,
     render,
     replay,
+    score,
     simulate,
 )
 from mfp_mapper.cli.common import CliError, error
 from mfp_mapper.config.names import VERSION
 
 COMMANDS = (
-    replay, localize, merge, simulate, export, render, plot_convergence, query, evaluate, demo,
-)
+    replay, localize, merge, simulate, export, render, plot_convergence, query, evaluate, score,
+    fit_prior, demo,
+)  # fmt: skip
 """The subcommand modules, in the order ``--help`` lists them."""
 
 EPILOG = """\
@@ -49,6 +53,8 @@ examples:
   mfp-mapper plot-convergence -o pictures/
   mfp-mapper query map.npz 1.0 0.0 1.2  4.0 2.0 0.5
   mfp-mapper evaluate map.npz sim_bag.truth.json
+  mfp-mapper score --split even-odd run.bag --json score.json   # held-out likelihood
+  mfp-mapper fit-prior run.bag                        # the prior that predicts best
   mfp-mapper localize map.npz scans/ --poses guess.tum --poses-out refined.tum
 """
 

@@ -147,9 +147,13 @@ SETTINGS: tuple[Setting, ...] = (
     # --- the map ---------------------------------------------------------------------------
     _both("resolution", 0.1, "Voxel edge (m). A map loaded from map_path keeps its own.",
           0.01, 10.0, flag="--resolution"),
-    _node("frame_id", "", "Map frame. Empty: the odometry's header.frame_id (without "
-          "odometry: the root of the cloud frame's TF tree). A frame above the odometry "
-          "frame (map -> odom from SLAM/localization) is resolved through TF."),
+    _node("frame_id", "", "Map frame, fixed for the run (octomap_server's frame_id; set it "
+          "to 'map' with SLAM/localization: map -> odom is then taken from TF and clouds wait "
+          "for it). Empty: a loaded map's frame, else decided at the first cloud placed: the "
+          "odometry's header.frame_id, without odometry the root of the cloud frame's TF "
+          "tree; never changed afterwards."),
+    _node("cloud_frame_id", "", "Frame of clouds whose header.frame_id is empty (e.g. the "
+          "lidar frame). Empty: such clouds are dropped (no_frame)."),
     _node("base_frame_id", "", "Robot body frame the lidar extrinsic (from /tf_static) is "
           "relative to. Empty: the odometry's child_frame_id."),
     _both("decay_time", 0.0, "Time constant T (s) of the dynamic-environment decay (Eq. "
@@ -162,6 +166,15 @@ SETTINGS: tuple[Setting, ...] = (
     _both("keep_radius", 0.0, "Keep only the map blocks within this distance (m) of the "
           "latest sensor position; farther ones are evicted after each scan. 0: keep all.",
           0.0, 1.0e6, flag="--keep-radius", unlimited="none"),
+    _both("prior.shape", 1.0, "Shape alpha (returns) of the Gamma prior on each voxel's "
+          "extinction (docs/PRIOR.md); with prior.rate = 1, the paper's uniform prior on m. "
+          "Used by every estimate but the most likely DoO (mean, std, intervals, hit "
+          "probability, the grids' thresholds); never stored in the statistics. "
+          "`mfp-mapper fit-prior` fits it to a recording.", 1.0e-6, 1.0e6,
+          flag="--prior-shape", field="prior_shape"),
+    _both("prior.rate", 1.0, "Rate beta (metres of ray) of the Gamma prior on the "
+          "extinction: the prior weighs like beta metres of ray with alpha returns.",
+          1.0e-6, 1.0e6, flag="--prior-rate", field="prior_rate"),
     # --- the sensor ------------------------------------------------------------------------
     _both("sensor_model.max_range", 100.0, "Rays are cut at this range (m); a return beyond "
           "it clears space up to it but counts no return. <= 0: no limit (octomap_server's "
@@ -227,7 +240,9 @@ SETTINGS: tuple[Setting, ...] = (
     _node("projected_map.free_threshold", -1.0, "Hit probability below which an observed "
           "~/projected_map cell is free (0). Negative: that of a never-observed voxel, "
           "resolution / (1 + resolution).", -1.0, 1.0, dynamic=True),
-    _node("tf_buffer", 10.0, "Seconds of /tf kept per transform.", 0.1, 3600.0),
+    _node("tf_buffer", 10.0, "TF cache time (s; tf2's default 10): /tf samples kept per "
+          "transform; a transform not received for this long (stream time) is forgotten.",
+          0.1, 3600.0),
     # --- map file, health ------------------------------------------------------------------
     _node("map_path", "", "Map file (.npz) for ~/save_map, loaded at start when it exists. "
           "Empty: none."),
@@ -358,6 +373,8 @@ MAP_SECTION: dict[str, str] = {
     "threads": "threads",
     "max_voxels": "max_voxels",
     "keep_radius": "keep_radius",
+    "prior_shape": "prior.shape",
+    "prior_rate": "prior.rate",
 }
 """``MapSettings`` field -> the setting it holds."""
 
@@ -375,6 +392,8 @@ class MapSettings:
     threads: int = BY_NAME["threads"].core_default
     max_voxels: int | None = BY_NAME["max_voxels"].core_default
     keep_radius: float | None = BY_NAME["keep_radius"].core_default
+    prior_shape: float = BY_NAME["prior.shape"].core_default
+    prior_rate: float = BY_NAME["prior.rate"].core_default
 
     @classmethod
     def of(cls, core_value: Callable[[str], Any]) -> MapSettings:
@@ -397,11 +416,14 @@ class NodeConfig:
 
     resolution: float
     frame_id: str
+    cloud_frame_id: str
     base_frame_id: str
     decay_time: float
     threads: int
     max_voxels: int
     keep_radius: float
+    prior_shape: float
+    prior_rate: float
     sensor_model_max_range: float
     sensor_model_min_range: float
     sensor_model_no_return_range: float

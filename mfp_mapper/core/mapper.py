@@ -28,7 +28,7 @@ from mfp_mapper.core.store import (
     index_box,
     voxel_problem,
 )
-from mfp_mapper.core.traversal import integrate_rays, prepare_rays
+from mfp_mapper.core.traversal import Rays, StoreView, integrate_rays, prepare_rays, store_view
 from mfp_mapper.core.voxel_stats import IntegrationSummary, VoxelStats
 
 MAX_RAY_VOXELS = 1 << 15
@@ -75,10 +75,16 @@ class Mapper:
         max_voxels: int | None = None,
         keep_radius: float | None = None,
         origin: ArrayLike | None = None,
+        prior_shape: float = 1.0,
+        prior_rate: float = 1.0,
     ) -> None:
         _check_settings(
             resolution, max_range, min_range, decay_time, threads, max_voxels, keep_radius
         )
+        self.prior = model.Prior(float(prior_shape), float(prior_rate))
+        """Gamma prior on the extinction (``model.Prior``; 1, 1: the paper's uniform prior):
+        read by every estimate (mean, std, intervals, p_hit, grids, likelihood), never stored
+        in the statistics, so it may be changed at any time."""
         self.resolution = float(resolution)
         self.max_range = float(max_range)
         self.min_range = float(min_range)
@@ -132,30 +138,15 @@ class Mapper:
         """
         t0, cpu0 = time.perf_counter(), time.thread_time()
         self._worker_cpu = 0.0
-        pts = np.asarray(points, dtype=np.float64)
-        if pts.ndim != 2 or pts.shape[1] != 3:
-            raise ValueError(f"points must have shape (N, 3), got {pts.shape}")
-        org = np.asarray(origins, dtype=np.float64)
-        if org.shape != (3,) and org.shape != pts.shape:
-            raise ValueError(f"origins must have shape (3,) or {pts.shape}, got {org.shape}")
         if not math.isfinite(stamp):
             raise ValueError(f"stamp must be finite seconds, got {stamp}")
-        if self._origin is None:
-            self._origin = self._origin_from(org)
-        if self._origin is not None and self._origin.any():
-            pts, org = pts - self._origin, org - self._origin
-        walk_limit = MAX_RAY_VOXELS * self.resolution
-        reach = min(self.max_range, walk_limit)
-        flags = None if no_return is None else np.asarray(no_return, dtype=np.bool_)
-        if flags is not None and flags.shape != (pts.shape[0],):
-            raise ValueError(f"no_return must have shape ({pts.shape[0]},), got {flags.shape}")
-        rays, dropped = prepare_rays(pts, org, self.resolution, self.min_range, reach, flags)
+        rays, pts, dropped = self._place(points, origins, no_return, set_origin=True)
         summary = IntegrationSummary(rays_in=pts.shape[0], dropped=dropped)
         summary.rays_used = len(rays)
         summary.rays_unindexable = dropped["out_of_bounds"]
         summary.rays_no_return = rays.no_return_flagged
         cut = int(np.count_nonzero(~rays.has_return)) - rays.no_return_flagged
-        if self.max_range > walk_limit:
+        if self.max_range > MAX_RAY_VOXELS * self.resolution:
             summary.rays_beyond_walk_limit = cut
         else:
             summary.rays_truncated = cut
@@ -183,6 +174,51 @@ class Mapper:
         summary.seconds = time.perf_counter() - t0
         summary.cpu_seconds = time.thread_time() - cpu0 + self._worker_cpu
         return summary
+
+    def place_rays(
+        self, points: ArrayLike, origins: ArrayLike, no_return: ArrayLike | None = None
+    ) -> tuple[Rays, dict[str, int]]:
+        """The rays ``integrate`` would walk for this scan (voxel units of the store, the
+        same checks, cuts and drops), and the drops by reason; the map is not changed
+        (an empty map's origin is not set). ``Rays.source`` indexes the input points."""
+        rays, _, dropped = self._place(points, origins, no_return, set_origin=False)
+        return rays, dropped
+
+    def _place(
+        self, points: ArrayLike, origins: ArrayLike, no_return: ArrayLike | None, set_origin: bool
+    ) -> tuple[Rays, FloatArray, dict[str, int]]:
+        pts = np.asarray(points, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise ValueError(f"points must have shape (N, 3), got {pts.shape}")
+        org = np.asarray(origins, dtype=np.float64)
+        if org.shape != (3,) and org.shape != pts.shape:
+            raise ValueError(f"origins must have shape (3,) or {pts.shape}, got {org.shape}")
+        if self._origin is None and set_origin:
+            self._origin = self._origin_from(org)
+        offset = self._origin
+        if offset is not None and offset.any():
+            pts_rel, org = pts - offset, org - offset
+        else:
+            pts_rel = pts
+        reach = min(self.max_range, MAX_RAY_VOXELS * self.resolution)
+        flags = None if no_return is None else np.asarray(no_return, dtype=np.bool_)
+        if flags is not None and flags.shape != (pts.shape[0],):
+            raise ValueError(f"no_return must have shape ({pts.shape[0]},), got {flags.shape}")
+        rays, dropped = prepare_rays(pts_rel, org, self.resolution, self.min_range, reach, flags)
+        return rays, pts, dropped
+
+    def store_view(self) -> tuple[StoreView, int]:
+        """The store's arrays for read-only compiled kernels (``traversal.read_walk``) and
+        its shard mask; valid until the next ``integrate``, ``reset`` or eviction."""
+        return store_view(self._store), self._store.shard_mask
+
+    @property
+    def prior_shape(self) -> float:
+        return self.prior.shape
+
+    @property
+    def prior_rate(self) -> float:
+        return self.prior.rate
 
     def _origin_from(self, sensor_origins: FloatArray) -> FloatArray | None:
         """The origin a first scan gives the map: its first finite sensor position, rounded
@@ -300,11 +336,12 @@ class Mapper:
     ) -> HitGrid:
         """The height band ``[z_min, z_max]`` projected onto a 2D grid (``gridmap``): per
         cell ``round(100 p)``, ``p`` the largest hit probability of a voxel edge in the
-        column, -1 where never observed; the square of half side ``radius`` around
-        ``center``, or the extent of the observed band. Statistics at their last update
-        (no decay to a later stamp), read straight from the blocks. ``gridmap.GridTooLarge``
-        (nothing allocated) when the grid would exceed ``max_cells``. ``trinary=(occupied,
-        free)``: cells 100 / 0 / -1 by those hit-probability thresholds (Nav2)."""
+        column (with the map's prior), -1 where never observed; the square of half side
+        ``radius`` around ``center``, or the extent of the observed band. Statistics at their
+        last update (no decay to a later stamp), read straight from the blocks.
+        ``gridmap.GridTooLarge`` (nothing allocated) when the grid would exceed
+        ``max_cells``. ``trinary=(occupied, free)``: cells 100 / 0 / -1 by those
+        hit-probability thresholds (Nav2)."""
         lo_m, hi_m = [-math.inf, -math.inf, z_min], [math.inf, math.inf, z_max]
         if center is not None and radius > 0.0:  # only the blocks near the window are read
             margin = radius + self.resolution
@@ -324,6 +361,7 @@ class Mapper:
             radius=radius,
             max_cells=max_cells,
             trinary=trinary,
+            prior=(self.prior.shape, self.prior.rate),
         )
         if ox == 0.0 and oy == 0.0:
             return grid
@@ -343,6 +381,7 @@ class Mapper:
             t_last=raw.t_last,
             observed=model.observed(s, n),
             resolution=self.resolution,
+            prior=self.prior,
         )
 
     @property

@@ -56,6 +56,9 @@ class VoxelStats:
     t_last: FloatArray
     observed: NDArray[np.bool_]
     resolution: float
+    prior: model.Prior = model.UNIFORM
+    """The map's prior on the extinction: every estimate below but the most likely DoO
+    and mean free path depends on it."""
 
     def __len__(self) -> int:
         return int(self.s.shape[0])
@@ -66,16 +69,20 @@ class VoxelStats:
 
     @property
     def mean_doo(self) -> FloatArray:
-        return model.mean_doo(self.s, self.n)
+        return model.mean_doo(self.s, self.n, self.prior)
 
     @property
     def std(self) -> FloatArray:
-        return model.std_doo(self.s, self.n)
+        return model.std_doo(self.s, self.n, self.prior)
 
     @property
     def hit_probability(self) -> FloatArray:
         """Probability that a ray crossing one voxel edge of this voxel is reflected."""
-        return model.hit_probability(self.s, self.n, self.resolution)
+        return model.hit_probability(self.s, self.n, self.resolution, self.prior)
+
+    def doo_interval(self, level: float = 0.9) -> tuple[FloatArray, FloatArray]:
+        """Central credible interval of the degree of occupancy."""
+        return model.doo_interval(self.s, self.n, level, self.prior)
 
     @property
     def mean_free_path(self) -> FloatArray:
@@ -84,4 +91,5 @@ class VoxelStats:
     def select(self, mask: NDArray[np.bool_] | NDArray[np.intp]) -> VoxelStats:
         """The subset of voxels picked by a boolean mask or index array."""
         values = {f.name: getattr(self, f.name) for f in fields(self)}
-        return VoxelStats(**{k: (v if k == "resolution" else v[mask]) for k, v in values.items()})
+        scalars = ("resolution", "prior")
+        return VoxelStats(**{k: (v if k in scalars else v[mask]) for k, v in values.items()})

@@ -17,7 +17,9 @@ An ``.npz`` archive (never pickles) holding
 ``version``    int64 ()        file format version (2)
 =============  ==============  ===================================================
 
-plus ``max_range`` and ``min_range`` (float64, metres). The centre of voxel ``ijk`` is
+plus ``max_range`` and ``min_range`` (float64, metres) and ``prior_shape``, ``prior_rate``
+(float64: the Gamma prior on the extinction the estimates use, docs/PRIOR.md; a file
+without them was written with the uniform prior, 1 and 1). The centre of voxel ``ijk`` is
 ``origin + (ijk + 0.5) * resolution`` (map frame, metres). Every voxel is listed once, in no
 particular order. Files are written atomically (``mapio.atomic``).
 
@@ -31,6 +33,7 @@ from __future__ import annotations
 
 import math
 import zipfile
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -52,7 +55,8 @@ FORMAT_NAME = "mfp_mapper.map"
 FORMAT_VERSION = 2
 REQUIRED_KEYS = ("ijk", "s", "n", "t_last", "resolution", "decay_time", "frame_id")
 _MAX_DEFLATE_RATIO = 1100  # deflate cannot expand data more than ~1032 times
-_SCALARS = {"resolution": "f", "decay_time": "f", "max_range": "f", "min_range": "f"}
+OPTIONAL_SETTINGS = {"max_range": None, "min_range": None, "prior_shape": 1.0, "prior_rate": 1.0}
+"""Settings a file may lack: None, the Mapper's default; else what an older file meant."""
 
 
 class MapFileError(CoreError, ValueError):
@@ -74,6 +78,12 @@ class MapSource(Protocol):
     frame_id: str
 
     @property
+    def prior_shape(self) -> float: ...
+
+    @property
+    def prior_rate(self) -> float: ...
+
+    @property
     def origin(self) -> tuple[float, float, float] | None: ...
 
     def voxels(self) -> Any: ...
@@ -88,7 +98,8 @@ class MapContents:
     decay_time: float
     frame_id: str
     ranges: dict[str, float]
-    """``max_range`` and ``min_range`` where the file has them."""
+    """``max_range`` and ``min_range`` where the file has them; ``prior_shape`` and
+    ``prior_rate`` always (1 and 1 where the file has none)."""
     voxels: VoxelArrays
 
 
@@ -112,6 +123,8 @@ def map_arrays(mapper: MapSource) -> dict[str, np.ndarray]:
         "decay_time": np.float64(mapper.decay_time),
         "max_range": np.float64(mapper.max_range),
         "min_range": np.float64(mapper.min_range),
+        "prior_shape": np.float64(mapper.prior_shape),
+        "prior_rate": np.float64(mapper.prior_rate),
         "frame_id": np.str_(mapper.frame_id),
         "format": np.str_(FORMAT_NAME),
         "version": np.int64(FORMAT_VERSION),
@@ -195,8 +208,8 @@ def _check_headers(
                 f"{key} must be a float array of length {shape[0]}, got "
                 f"{headers[key][1]} {headers[key][0]}",
             )
-    for key in ("resolution", "decay_time"):
-        if headers[key][0] != () or headers[key][1].kind not in "iuf":
+    for key in ("resolution", "decay_time", *OPTIONAL_SETTINGS):
+        if key in headers and (headers[key][0] != () or headers[key][1].kind not in "iuf"):
             raise MapFileError(path, f"{key} must be a number")
     if headers["frame_id"][0] != () or headers["frame_id"][1].kind != "U":
         raise MapFileError(path, "frame_id must be a string")
@@ -226,12 +239,22 @@ def _contents(path: Path, a: dict[str, np.ndarray]) -> MapContents:
     problem = voxel_problem(a["ijk"], a["s"], a["n"], a["t_last"])
     if problem:
         raise MapFileError(path, problem)
-    ranges: dict[str, float] = {k: float(a[k]) for k in ("max_range", "min_range") if k in a}
+    ranges = optional_settings(a)
     voxels = VoxelArrays(a["ijk"], a["s"], a["n"], a["t_last"])
     ox, oy, oz = (float(v) for v in origin)
     return MapContents(
         resolution, (ox, oy, oz), float(a["decay_time"]), str(a["frame_id"]), ranges, voxels
     )
+
+
+def optional_settings(arrays: Mapping[str, Any]) -> dict[str, float]:
+    """The ``OPTIONAL_SETTINGS`` of map-file arrays: as stored, else what their absence
+    means (the prior: uniform); ranges the file lacks are left out."""
+    out = {k: float(arrays[k]) for k in OPTIONAL_SETTINGS if k in arrays}
+    for key, meaning in OPTIONAL_SETTINGS.items():
+        if meaning is not None:
+            out.setdefault(key, meaning)
+    return out
 
 
 def read_map_arrays(path: str | Path, check_duplicates: bool = True) -> dict[str, np.ndarray]:
@@ -268,7 +291,7 @@ def mapper_from_arrays(
     settings: dict[str, object] = {
         "decay_time": float(arrays["decay_time"]),
         "frame_id": str(arrays["frame_id"]),
-        **{k: float(arrays[k]) for k in ("max_range", "min_range") if k in arrays},
+        **optional_settings(arrays),
         **overrides,
     }
     for fixed, stored in (("resolution", resolution), ("origin", origin)):

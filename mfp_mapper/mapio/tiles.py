@@ -28,6 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from mfp_mapper.core.mapper import Mapper, VoxelStats
 from mfp_mapper.core.merge import check_mergeable, merge_map_arrays
+from mfp_mapper.core.model import Prior
 from mfp_mapper.core.store import BLOCK_BITS
 from mfp_mapper.mapio.atomic import write_text_atomic
 from mfp_mapper.mapio.mapfile import (
@@ -45,7 +46,9 @@ INDEX_NAME = "index.json"
 TILE_DIR = "tiles"
 DEFAULT_TILE_BLOCKS = 32
 """Tile edge in blocks: 256 voxels, 25.6 m at 0.1 m."""
-SETTINGS = ("resolution", "decay_time", "frame_id", "max_range", "min_range")
+SETTINGS = (
+    "resolution", "decay_time", "frame_id", "max_range", "min_range", "prior_shape", "prior_rate",
+)  # fmt: skip
 VOXEL_KEYS = ("ijk", "s", "n", "t_last")
 
 TileKey = tuple[int, int, int]
@@ -135,6 +138,8 @@ def write_index(
         "frame_id": str(settings["frame_id"]),
         "max_range": _json_number(float(settings.get("max_range", math.inf))),
         "min_range": float(settings.get("min_range", 0.0)),
+        "prior_shape": float(settings.get("prior_shape", 1.0)),
+        "prior_rate": float(settings.get("prior_rate", 1.0)),
         "tile_blocks": tile_blocks,
         "voxels": sum(e.voxels for e in listed),
         "tiles": [e.to_json(tile_blocks) for e in listed],
@@ -203,6 +208,10 @@ class TiledMap:
             self.frame_id = str(index["frame_id"])
             self.max_range = _from_json(index["max_range"])
             self.min_range = float(index["min_range"])
+            # an index without a prior was written with the uniform prior
+            self.prior = Prior(
+                float(index.get("prior_shape", 1.0)), float(index.get("prior_rate", 1.0))
+            )
             self.origin = index.get("origin")
             self.tiles = {
                 (int(e["tile"][0]), int(e["tile"][1]), int(e["tile"][2])): TileEntry(
@@ -230,6 +239,8 @@ class TiledMap:
             "frame_id": np.str_(self.frame_id),
             "max_range": np.float64(self.max_range),
             "min_range": np.float64(self.min_range),
+            "prior_shape": np.float64(self.prior.shape),
+            "prior_rate": np.float64(self.prior.rate),
             "format": np.str_(FORMAT_NAME),
             "version": np.int64(FORMAT_VERSION),
         }
@@ -294,6 +305,8 @@ class TiledMap:
             decay_time=self.decay_time,
             frame_id=self.frame_id,
             origin=self.origin or (0.0, 0.0, 0.0),
+            prior_shape=self.prior.shape,
+            prior_rate=self.prior.rate,
         )
         out = empty.query(pts, stamp)  # the answer for unobserved voxels, and every ijk
         keys = tile_keys(out.ijk, self.tile_blocks)

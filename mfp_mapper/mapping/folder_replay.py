@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from mfp_mapper.mapping.loop import ScanConsumer
 from mfp_mapper.mapping.progress import Progress
 from mfp_mapper.mapping.replay import (
     ReplayOptions,
@@ -41,6 +42,7 @@ def replay_folder(
     progress: bool | Progress = True,
     log: Callable[[str], None] | None = None,
     on_scan: ScanCallback | None = None,
+    consume: ScanConsumer | None = None,
 ) -> ReplayResult:
     """Map the scans of ``directory``; ``poses`` is a pose file, ``"identity"``, or None
     with ``opts.odometry == "kiss-icp"``. ReplayError says why when it cannot be done."""
@@ -67,7 +69,9 @@ def replay_folder(
         for index in range(len(folder)):
             yield index, partial(folder.message, index)
 
-    map_scans(clouds(), found, lambda _: extrinsic, opts, mapper, summary, progress, log, on_scan)
+    map_scans(
+        clouds(), found, lambda _: extrinsic, opts, mapper, summary, progress, log, on_scan, consume
+    )
     return ReplayResult(mapper, summary)
 
 

@@ -36,6 +36,10 @@ FloatArray = NDArray[np.float64]
 
 ScanCallback = Callable[[float, FloatArray, FloatArray], None]
 """Called with (stamp, points (N, 3), origins (3,) or (N, 3)) for every placed cloud."""
+ScanConsumer = Callable[[Mapper, PlacedScan], IntegrationSummary]
+"""What the loop does with a placed scan instead of integrating it (``integrate_scan``):
+e.g. the scorer (``outputs.score``); returns the summary of the rays used, raises
+``ScanDropped`` when none."""
 
 
 class LoopSettings(pipeline.PlacementSettings, Protocol):
@@ -130,6 +134,7 @@ class ScanLoop:
         map_lock: AbstractContextManager[Any] | None = None,
         on_placed: ScanCallback | None = None,
         fatal: tuple[type[Exception], ...] = (),
+        consume: ScanConsumer | None = None,
     ) -> None:
         self.mapper = mapper
         self.settings = settings
@@ -141,6 +146,8 @@ class ScanLoop:
             map_lock if map_lock is not None else nullcontext()
         )
         self.on_placed = on_placed
+        self.consume: ScanConsumer = consume if consume is not None else integrate_scan
+        """What is done with each placed scan (default: integrated into ``mapper``)."""
         self.fatal = fatal
         """Exceptions that end the loop instead of dropping one cloud (the replay's
         ``ReplayError``: no extrinsic for a frame, say)."""
@@ -172,7 +179,7 @@ class ScanLoop:
         if self.on_placed is not None:
             self.on_placed(placed.stamp, placed.points, placed.origins)
         with self.map_lock:
-            summary = integrate_scan(self.mapper, placed)
+            summary = self.consume(self.mapper, placed)
         with self.counts_lock:
             self.counts.add(placed, summary)
         return placed, summary

@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 from mfp_mapper.config.replay_options import ConfigError as ConfigError  # re-exported
 from mfp_mapper.config.replay_options import ReplayOptions, options_from_yaml
 from mfp_mapper.core.mapper import Mapper
-from mfp_mapper.mapping.loop import ScanCallback, ScanCounts, ScanLoop
+from mfp_mapper.mapping.loop import ScanCallback, ScanConsumer, ScanCounts, ScanLoop
 from mfp_mapper.mapping.progress import Progress
 from mfp_mapper.sensing import pipeline
 from mfp_mapper.sensing.poses import Extrinsic, frame_name
@@ -163,17 +163,20 @@ def replay(
     progress: bool | Progress = True,
     log: Callable[[str], None] | None = None,
     on_scan: ScanCallback | None = None,
+    consume: ScanConsumer | None = None,
 ) -> ReplayResult:
     """Map every cloud of ``bag``; ReplayError (with the reason) when it cannot be done.
 
     ``on_scan(stamp, points, origins)`` sees every placed cloud (map frame) just before it
-    is integrated, e.g. to feed the same rays to another mapper.
+    is integrated, e.g. to feed the same rays to another mapper. ``consume(mapper,
+    placed)`` replaces the integration of each placed scan (``loop.ScanConsumer``), e.g.
+    to score the scans against another map.
     """
     opts = opts or ReplayOptions()
     path = resolve_bag_path(bag)
     reader = open_reader(path)
     try:
-        return _replay(reader, path, opts, progress, log, on_scan)
+        return _replay(reader, path, opts, progress, log, on_scan, consume)
     finally:
         reader.close()
 
@@ -185,6 +188,7 @@ def _replay(
     progress: bool | Progress,
     log: Callable[[str], None] | None,
     on_scan: ScanCallback | None,
+    consume: ScanConsumer | None = None,
 ) -> ReplayResult:
     summary = ReplaySummary(bag=str(path))
     cloud_topic = pick_topic(reader, CLOUD_TYPE, opts.cloud_topic, "PointCloud2", "--cloud-topic")
@@ -226,7 +230,7 @@ def _replay(
             extrinsics[frame], _ = extrinsic_for(frame, poses.body, tfs, opts)
         return extrinsics[frame]
 
-    map_scans(clouds(), poses, extrinsic_of, opts, mapper, summary, progress, log, on_scan)
+    map_scans(clouds(), poses, extrinsic_of, opts, mapper, summary, progress, log, on_scan, consume)
     return ReplayResult(mapper, summary)
 
 
@@ -292,6 +296,7 @@ def map_scans(
     progress: bool | Progress,
     log: Callable[[str], None] | None,
     on_scan: ScanCallback | None,
+    consume: ScanConsumer | None = None,
 ) -> None:
     """Run the selected clouds ``(position, load message)`` through the scan pipeline into
     ``mapper``; fills ``summary``; ReplayError when no cloud could be mapped."""
@@ -303,7 +308,7 @@ def map_scans(
         if isinstance(progress, Progress)
         else Progress(summary.scans_total, enabled=bool(progress))
     )
-    loop = ScanLoop(mapper, opts, on_placed=on_scan, fatal=(ReplayError,))
+    loop = ScanLoop(mapper, opts, on_placed=on_scan, fatal=(ReplayError,), consume=consume)
     counts = loop.counts
     bad_example = error_example = ""
     cloud_span = [math.inf, -math.inf]
