@@ -123,15 +123,18 @@ def run_case(name: str, args: argparse.Namespace, opts: AlignOptions) -> None:
             bad = e[0] > 0.1 or e[1] > 1.0
             wrong += int(bad)
             if bad and args.verbose:
-                print(f"  wrong: scan {k}: {e[0]:.3f} m {e[1]:.2f} deg, sigma "
-                      f"{np.round(al.sigma, 3)}, constraints {al.conditioning}, "
-                      f"gain/ray {al.gain_per_ray:.3f}")
+                print(
+                    f"  wrong: scan {k}: {e[0]:.3f} m {e[1]:.2f} deg, sigma "
+                    f"{np.round(al.sigma, 3)}, constraints {al.conditioning}, "
+                    f"gain/ray {al.gain_per_ray:.3f}"
+                )
     e = np.array(errs).reshape(-1, 2)
     med = np.median(e, axis=0) if len(e) else np.array([np.nan, np.nan])
     within = float(np.mean((e[:, 0] <= 0.1) & (e[:, 1] <= 1.0))) if len(e) else float("nan")
     ratio = float(np.median(secs) / np.median(t_int))
     print(
-        f"{name:16s} {total:3d} scans  accepted {total - refused:3d}  median {100 * med[0]:5.1f} cm "
+        f"{name:16s} {total:3d} scans  accepted {total - refused:3d}  "
+        f"median {100 * med[0]:5.1f} cm "
         f"{med[1]:5.2f} deg  within 10 cm/1 deg {100 * within:5.1f}%  wrong {wrong:2d}  "
         f"{1000 * np.median(secs):6.0f} ms/scan ({ratio:.1f}x integrating one scan)"
     )

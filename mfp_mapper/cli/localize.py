@@ -16,10 +16,13 @@ ALIGN_HELP = "scan-to-map alignment (README, Localization)"
 def add_align_arguments(p: argparse.ArgumentParser) -> None:
     """The aligner's flags (``core.alignment.AlignOptions``)."""
     g = p.add_argument_group(ALIGN_HELP)
-    g.add_argument("--align-levels", type=int, default=3,
-                   help="pyramid levels: voxel edges resolution * 2^k (default 3)")
-    g.add_argument("--align-rays", type=int, default=3000,
-                   help="rays used per scan (default 3000)")
+    g.add_argument(
+        "--align-levels",
+        type=int,
+        default=3,
+        help="pyramid levels: voxel edges resolution * 2^k (default 3)",
+    )
+    g.add_argument("--align-rays", type=int, default=3000, help="rays used per scan (default 3000)")
     g.add_argument("--align-max-sigma", type=float, default=0.05,
                    help="refuse when the weakest direction's std exceeds this, metres "
                    "(default 0.05)")  # fmt: skip

@@ -8,9 +8,10 @@ reports the exact one:
 - **Extinction field** (``LikelihoodField``): per voxel of the map, two numbers of the
   forward model with the Gamma(alpha, beta) prior (MODEL.md): the log-probability per metre
   that a ray passes (``b = (n+alpha) log((s+beta)/(s+beta+r)) / r``) and the log-probability
-  that a ray crossing the whole voxel returns in it (``a = log(1 - ((s+beta)/(s+beta+r))^(n+alpha))``),
-  unknown voxels at the prior. Both are interpolated trilinearly between voxel centres, so
-  the likelihood of a ray is continuous and almost everywhere differentiable in the pose.
+  that a ray crossing the whole voxel returns in it
+  (``a = log(1 - ((s+beta)/(s+beta+r))^(n+alpha))``), unknown voxels at the prior. Both
+  are interpolated trilinearly between voxel centres, so the likelihood of a ray is
+  continuous and almost everywhere differentiable in the pose.
 - **Ray surrogate**: ``a(end point) + step * sum b(samples)`` over samples every ``step``
   metres along the last ``window`` metres of the ray before its return (the free space
   that decides between two nearby poses; the rest of the ray crosses space far from any
@@ -164,16 +165,17 @@ class LikelihoodField:
         res = resolution * factor
         ijk = np.asarray(ijk, dtype=np.int64).reshape(-1, 3)
         keys = np.floor_divide(ijk, factor)
-        if keys.shape[0]:
-            uniq, inv = _unique_rows(keys)
-            s_c = np.bincount(inv, weights=np.asarray(s, dtype=np.float64), minlength=len(uniq))
-            n_c = np.bincount(inv, weights=np.asarray(n, dtype=np.float64), minlength=len(uniq))
-        else:
-            uniq, s_c, n_c = np.zeros((0, 3), np.int64), np.zeros(0), np.zeros(0)
+        uniq, inv = _unique_rows(keys)
+        s_c: FloatArray = np.bincount(
+            inv, weights=np.asarray(s, dtype=np.float64), minlength=len(uniq)
+        ).astype(np.float64)
+        n_c: FloatArray = np.bincount(
+            inv, weights=np.asarray(n, dtype=np.float64), minlength=len(uniq)
+        ).astype(np.float64)
         a_v, b_v = _log_probabilities(s_c, n_c, res, shape, rate)
-        prior_a, prior_b = (float(v[0]) for v in _log_probabilities(
-            np.zeros(1), np.zeros(1), res, shape, rate
-        ))
+        prior_a, prior_b = (
+            float(v[0]) for v in _log_probabilities(np.zeros(1), np.zeros(1), res, shape, rate)
+        )
         blocks = np.floor_divide(uniq, _BLOCK)
         if blocks.shape[0]:
             lo = blocks.min(axis=0)
@@ -204,7 +206,7 @@ class LikelihoodField:
         """Interpolated ``a``, ``b`` at points (N, 3) and their gradients (N, 3) each."""
         pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
         out = np.zeros((pts.shape[0], 8))
-        _values(*self._args(), pts, out)
+        _values(*self._args(), pts, out)  # type: ignore[call-arg]
         return out[:, 0], out[:, 1], out[:, 2:5], out[:, 5:8]
 
     def _args(self) -> tuple[object, ...]:
@@ -371,8 +373,23 @@ def _values(a, b, index, block_lo, prior_a, prior_b, res, origin, pts, out):  # 
 
 @nb.njit(cache=True, nogil=True)
 def _score(  # type: ignore[no-untyped-def]
-    a, b, index, block_lo, prior_a, prior_b, res, origin,
-    pts, orgs, rot, trans, center, window, step, per_ray, grads,
+    a,
+    b,
+    index,
+    block_lo,
+    prior_a,
+    prior_b,
+    res,
+    origin,
+    pts,
+    orgs,
+    rot,
+    trans,
+    center,
+    window,
+    step,
+    per_ray,
+    grads,
 ):
     """Surrogate log-likelihood of rays orgs[r] -> pts[r] moved by (rot, trans); fills
     per_ray (N,) and grads (N, 6): d/d(v, w) of x -> x + v + w x (x - center)."""
@@ -384,7 +401,9 @@ def _score(  # type: ignore[no-untyped-def]
     for r in range(pts.shape[0]):
         for c in range(3):
             p[c] = rot[c, 0] * pts[r, 0] + rot[c, 1] * pts[r, 1] + rot[c, 2] * pts[r, 2] + trans[c]
-            o[c] = rot[c, 0] * orgs[r, 0] + rot[c, 1] * orgs[r, 1] + rot[c, 2] * orgs[r, 2] + trans[c]
+            o[c] = (
+                rot[c, 0] * orgs[r, 0] + rot[c, 1] * orgs[r, 1] + rot[c, 2] * orgs[r, 2] + trans[c]
+            )
         dx, dy, dz = p[0] - o[0], p[1] - o[1], p[2] - o[2]
         length = math.sqrt(dx * dx + dy * dy + dz * dz)
         for c in range(6):
@@ -440,25 +459,33 @@ def surrogate_log_likelihood(
     the last ``window`` metres), and its gradient (N, 6) with respect to a
     further translation (metres) and rotation (radians) about ``center``."""
     pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
-    orgs = np.ascontiguousarray(
-        np.broadcast_to(np.asarray(origins, dtype=np.float64), pts.shape)
-    )
+    orgs = np.ascontiguousarray(np.broadcast_to(np.asarray(origins, dtype=np.float64), pts.shape))
     rot = np.eye(3) if rotation is None else np.ascontiguousarray(rotation, dtype=np.float64)
     trans = np.zeros(3) if translation is None else np.asarray(translation, dtype=np.float64)
     ctr = np.zeros(3) if center is None else np.asarray(center, dtype=np.float64)
     per_ray = np.zeros(pts.shape[0])
     grads = np.zeros((pts.shape[0], 6))
-    _score(*fld._args(), pts, orgs, rot, trans, ctr, max(window, 2.0 * fld.resolution),
-           step * fld.resolution,
-           per_ray, grads)
+    _score(  # type: ignore[call-arg]
+        *fld._args(),
+        pts,
+        orgs,
+        rot,
+        trans,
+        ctr,
+        max(window, 2.0 * fld.resolution),
+        step * fld.resolution,
+        per_ray,
+        grads,
+    )
     return per_ray, grads
 
 
 # --- the optimiser ----------------------------------------------------------------------
 
 
-def _compose(rotvec: FloatArray, v: FloatArray, center: FloatArray, rot: FloatArray,
-             trans: FloatArray) -> tuple[FloatArray, FloatArray]:
+def _compose(
+    rotvec: FloatArray, v: FloatArray, center: FloatArray, rot: FloatArray, trans: FloatArray
+) -> tuple[FloatArray, FloatArray]:
     """The correction (R', t') = [x -> dR (x - c) + c + v] o (rot, trans)."""
     d_rot = Rotation.from_rotvec(rotvec).as_matrix()
     return d_rot @ rot, d_rot @ (trans - center) + center + v
@@ -510,16 +537,31 @@ def align_scan(
     grads = np.zeros((rays, 6))
     levels_done: list[dict[str, float]] = []
 
-    def evaluate(fld: LikelihoodField, sub: NDArray[np.intp], rot1: FloatArray,
-                 trans1: FloatArray, acc1: FloatArray) -> tuple[float, FloatArray, FloatArray]:
+    def evaluate(
+        fld: LikelihoodField,
+        sub: NDArray[np.intp],
+        rot1: FloatArray,
+        trans1: FloatArray,
+        acc1: FloatArray,
+    ) -> tuple[float, FloatArray, FloatArray]:
         """Objective (log-likelihood of the rays ``sub`` scaled to all rays, minus the
         prior; nats), its gradient and the BHHH information matrix, both in scaled
         coordinates, at correction (rot1, trans1)."""
         nonlocal evaluations
         evaluations += 1
         per, grd = per_ray[: sub.size], grads[: sub.size]
-        f = _score(*fld._args(), pts[sub], orgs[sub], rot1, trans1, center,
-                   max(opt.window, 2 * fld.resolution), opt.step * fld.resolution, per, grd)
+        f = _score(  # type: ignore[call-arg]
+            *fld._args(),
+            pts[sub],
+            orgs[sub],
+            rot1,
+            trans1,
+            center,
+            max(opt.window, 2 * fld.resolution),
+            opt.step * fld.resolution,
+            per,
+            grd,
+        )
         weight = rays / sub.size
         gs = grd * scale
         value = weight * f - 0.5 * float(np.sum(prior_w * acc1**2))
@@ -539,8 +581,10 @@ def align_scan(
             x = np.linalg.solve(lhs, grad)  # ascent direction, scaled coordinates
             # BHHH steps are short far from the optimum (inconsistent per-ray scores make
             # the information matrix large): double the step while the objective improves
-            best: tuple[float, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray,
-                        FloatArray] | None = None
+            best: (
+                tuple[float, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]
+                | None
+            ) = None
             mult = 1.0
             while mult <= 64.0:
                 y = mult * x * scale
@@ -548,7 +592,7 @@ def align_scan(
                 value1, grad1, info1 = evaluate(fld, sub, rot1, trans1, acc + y)
                 if value1 <= (value if best is None else best[0]):
                     break
-                best = (value1, grad1, info1, rot1, trans1, acc + y, mult * x)
+                best = (value1, grad1, info1, rot1, trans1, acc + y, np.asarray(mult * x))
                 mult *= 2.0
             if best is not None:
                 improved = best[0] - value
@@ -562,9 +606,13 @@ def align_scan(
                 if damping > 1e6:
                     break
         levels_done.append(
-            {"resolution": fld.resolution, "rays": float(sub.size),
-             "objective_start": start_value, "objective_end": value,
-             "iterations": float(iterations)}
+            {
+                "resolution": fld.resolution,
+                "rays": float(sub.size),
+                "objective_start": start_value,
+                "objective_end": value,
+                "iterations": float(iterations),
+            }
         )
     fine = pyramid.fields[0]
     f_init = float(
@@ -572,9 +620,9 @@ def align_scan(
     )
     f_final = float(
         np.sum(
-            surrogate_log_likelihood(
-                fine, pts, orgs, rot, trans, window=opt.window, step=opt.step
-            )[0]
+            surrogate_log_likelihood(fine, pts, orgs, rot, trans, window=opt.window, step=opt.step)[
+                0
+            ]
         )
     )
     curv, dirs = _curvature(fine, pts, orgs, rot, trans, center, opt, scale, info)
@@ -614,9 +662,17 @@ def align_scan(
     )
 
 
-def _curvature(fld: LikelihoodField, pts: FloatArray, orgs: FloatArray, rot: FloatArray,
-               trans: FloatArray, center: FloatArray, opt: AlignOptions, scale: FloatArray,
-               info: FloatArray) -> tuple[FloatArray, FloatArray]:
+def _curvature(
+    fld: LikelihoodField,
+    pts: FloatArray,
+    orgs: FloatArray,
+    rot: FloatArray,
+    trans: FloatArray,
+    center: FloatArray,
+    opt: AlignOptions,
+    scale: FloatArray,
+    info: FloatArray,
+) -> tuple[FloatArray, FloatArray]:
     """Curvatures (6,) of the log-likelihood (nats per scaled unit squared) along the
     eigen-directions (columns of the 6x6 result) of the information matrix ``info``: the
     mean drop of the likelihood at +-``probe`` voxel edges, which is wide enough to average
@@ -630,8 +686,7 @@ def _curvature(fld: LikelihoodField, pts: FloatArray, orgs: FloatArray, rot: Flo
     def value(y: FloatArray) -> float:
         y = y * scale
         r1, t1 = _compose(y[3:], y[:3], center, rot, trans)
-        f, _ = surrogate_log_likelihood(fld, pts, orgs, r1, t1, window=opt.window,
-                                        step=opt.step)
+        f, _ = surrogate_log_likelihood(fld, pts, orgs, r1, t1, window=opt.window, step=opt.step)
         return float(f.sum())
 
     f0 = value(np.zeros(6))
@@ -645,8 +700,9 @@ def _curvature(fld: LikelihoodField, pts: FloatArray, orgs: FloatArray, rot: Flo
 _AXES = ("x", "y", "z", "roll", "pitch", "yaw")
 
 
-def _confidence(curv: FloatArray, dirs: FloatArray, scale: FloatArray,
-                opt: AlignOptions) -> tuple[FloatArray, FloatArray, str]:
+def _confidence(
+    curv: FloatArray, dirs: FloatArray, scale: FloatArray, opt: AlignOptions
+) -> tuple[FloatArray, FloatArray, str]:
     """Standard deviations per axis, the weakest direction, and a refusal reason if any."""
     weak = int(np.argmin(curv))
     weakest = dirs[:, weak]
@@ -662,7 +718,8 @@ def _confidence(curv: FloatArray, dirs: FloatArray, scale: FloatArray,
         )
     with np.errstate(divide="ignore"):
         inv = np.where(curv > 0.0, 1.0 / np.where(curv > 0.0, curv, 1.0), np.inf)
-    var = (dirs**2) @ inv
+    with np.errstate(invalid="ignore"):
+        var = np.nan_to_num((dirs**2) @ inv, nan=math.inf)
     sig = np.sqrt(var) * scale
     sig[3:] = np.degrees(sig[3:])
     return sig, weakest, reason

@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from mfp_mapper.config.replay_options import ReplayOptions
-from mfp_mapper.core.alignment import AlignOptions, Alignment, FieldPyramid, align_scan
+from mfp_mapper.core.alignment import Alignment, AlignOptions, FieldPyramid, align_scan
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.mapping.folder_replay import folder_poses
 from mfp_mapper.mapping.loop import integrate_scan
@@ -28,8 +28,8 @@ from mfp_mapper.sensing import pipeline
 from mfp_mapper.sensing.pipeline import PlacedScan, ScanDropped
 from mfp_mapper.sensing.poses import Extrinsic, PoseUnavailable
 from mfp_mapper.sensing.scan_normals import scan_normals
-from mfp_mapper.sources.scan_folder import ScanFolder, open_scan_folder
 from mfp_mapper.sources.scan_files import DatasetFormatError
+from mfp_mapper.sources.scan_folder import ScanFolder, open_scan_folder
 
 FloatArray = NDArray[np.float64]
 
@@ -84,9 +84,7 @@ class LocalizeResult:
         return sum(1 for s in self.scans if s.alignment is not None and s.alignment.accepted)
 
 
-def _exact_gain(
-    mapper: Mapper, placed: PlacedScan, al: Alignment, max_rays: int
-) -> float:
+def _exact_gain(mapper: Mapper, placed: PlacedScan, al: Alignment, max_rays: int) -> float:
     """Exact log-likelihood gain over an evenly spread subset of the scan's rays (NaN
     without the likelihood kernel, ``core.likelihood``)."""
     try:
@@ -99,7 +97,9 @@ def _exact_gain(
     p, o = pts[pick], np.ascontiguousarray(org[pick])
     before = total_log_likelihood(mapper, p, o, placed.stamp)
     after = total_log_likelihood(
-        mapper, p @ al.rotation.T + al.translation, o @ al.rotation.T + al.translation,
+        mapper,
+        p @ al.rotation.T + al.translation,
+        o @ al.rotation.T + al.translation,
         placed.stamp,
     )
     return after - before
@@ -132,16 +132,22 @@ def refine_placed(
     return al, gain
 
 
-def _apply(al: Alignment, position: FloatArray, rotation: FloatArray) -> tuple[FloatArray, FloatArray]:
+def _apply(
+    al: Alignment, position: FloatArray, rotation: FloatArray
+) -> tuple[FloatArray, FloatArray]:
     """The refined robot pose C * (position, rotation): (position, quaternion xyzw)."""
     pos = al.rotation @ position + al.translation
     rot = al.rotation @ rotation
     return pos, Rotation.from_matrix(rot).as_quat()
 
 
-def _open(directory: str | Path, poses: str | Path | None, opts: ReplayOptions,
-          times_file: str | Path | None, log: Callable[[str], None] | None
-          ) -> tuple[ScanFolder, object, Extrinsic]:
+def _open(
+    directory: str | Path,
+    poses: str | Path | None,
+    opts: ReplayOptions,
+    times_file: str | Path | None,
+    log: Callable[[str], None] | None,
+) -> tuple[ScanFolder, object, Extrinsic]:
     try:
         folder = open_scan_folder(directory, times_file)
     except (DatasetFormatError, OSError) as err:

@@ -49,7 +49,5 @@ def _clean(value: object) -> object:
 
 def write_confidence(path: str | Path, rows: Iterable[dict[str, object]]) -> None:
     """One JSON object per scan (non-finite numbers as null), atomically."""
-    text = "".join(
-        json.dumps({k: _clean(v) for k, v in row.items()}) + "\n" for row in rows
-    )
+    text = "".join(json.dumps({k: _clean(v) for k, v in row.items()}) + "\n" for row in rows)
     write_text_atomic(path, text)

@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from mfp_mapper.sources.scan_pattern import VLP16_ELEVATIONS_DEG, scan_directions
-from mfp_mapper.sources.sim_scene import Medium, Scene, Solid, builtin_scene
+from mfp_mapper.sources.sim_scene import Medium, Scene, builtin_scene
 
 FloatArray = NDArray[np.float64]
 

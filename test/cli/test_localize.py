@@ -54,9 +54,14 @@ def test_localize_brings_a_perturbed_real_scan_back(shared_data: Path, tmp_path:
     stamps, positions, quats = read_tum_poses(refined)
     assert stamps.tolist() == [10.0]
     shift = float(np.linalg.norm(positions[0] - pos[1]))
-    angle = math.degrees((Rotation.from_quat(quats[0]).inv() * Rotation.from_quat(quat[1])).magnitude())
+    angle = math.degrees(
+        (Rotation.from_quat(quats[0]).inv() * Rotation.from_quat(quat[1])).magnitude()
+    )
     assert shift < 0.05 and angle < 0.5, (shift, angle)
-    rows = [json.loads(x) for x in refined.with_name("refined.tum.confidence.jsonl").read_text().splitlines()]
+    rows = [
+        json.loads(x)
+        for x in refined.with_name("refined.tum.confidence.jsonl").read_text().splitlines()
+    ]
     assert rows[0]["accepted"] is True and rows[0]["shift_m"] > 0.2
     assert all(v is not None and v < 0.05 for v in rows[0]["sigma"][:3])
 

@@ -82,7 +82,9 @@ def test_gradient_matches_finite_differences_of_the_surrogate() -> None:
         trans = y[:3] + center - rot @ center
         f_plus, _ = surrogate_log_likelihood(fld, pts, org, rot, trans)
         rot_m = Rotation.from_rotvec(-y[3:]).as_matrix()
-        f_minus, _ = surrogate_log_likelihood(fld, pts, org, rot_m, -y[:3] + center - rot_m @ center)
+        f_minus, _ = surrogate_log_likelihood(
+            fld, pts, org, rot_m, -y[:3] + center - rot_m @ center
+        )
         numeric = (f_plus - f_minus) / (2 * eps)
         np.testing.assert_allclose(g[:, c], numeric, rtol=1e-3, atol=1e-4)
 
