@@ -74,3 +74,28 @@ def test_localize_says_why_when_the_input_is_not_a_folder(tmp_path: Path, capsys
     assert code == 1
     err = capsys.readouterr().err
     assert "localize reads folders of scan files" in err and "Traceback" not in err
+
+
+def test_replay_refine_poses_keeps_good_poses_and_writes_them(
+    shared_data: Path, tmp_path: Path
+) -> None:
+    """ouster_street with its own (good) poses: refinement moves no scan by more than 5 cm,
+    the first scan has nothing to align against, and --poses-out has one line per scan."""
+    src = shared_data / "ouster_street"
+    pos, _ = read_kitti_poses(src / "poses.txt")
+    out = tmp_path / "used.tum"
+    code = main(["replay", str(src / "scans"), "--poses", str(src / "poses.txt"), "-o",
+                 str(tmp_path / "m.npz"), "--resolution", "0.2", "--refine-poses",
+                 "--poses-out", str(out)])  # fmt: skip
+    assert code == 0
+    _, positions, _ = read_tum_poses(out)
+    assert positions.shape == (3, 3)
+    assert np.max(np.linalg.norm(positions - pos, axis=1)) < 0.05
+    rows = [
+        json.loads(x)
+        for x in out.with_name("used.tum.confidence.jsonl").read_text().split("\n")
+        if x
+    ]
+    assert rows[0]["reason"].startswith("first scan")
+    assert all(r["rays"] > 0 for r in rows[1:])
+    assert (tmp_path / "m.npz").stat().st_size > 0
