@@ -43,6 +43,12 @@ class LiveSettings:
     point_cloud_max_z: float
     cloud_queue_size: int
     odom_wait: float
+    point_cloud_min_x: float = -math.inf
+    point_cloud_max_x: float = math.inf
+    point_cloud_min_y: float = -math.inf
+    point_cloud_max_y: float = math.inf
+    max_range: float | None = None
+    """The core's ray length (m, inf = no limit); None: the Mapper's own, unchanged."""
     no_return_range: float = 0.0
     """> 0: recover the firings with no return as rays this long (``sensing.no_return``)."""
     base_frame_id: str = ""
@@ -54,8 +60,13 @@ class LiveSettings:
         return cls(
             frame_id=cfg.frame_id,
             deskew=cfg.deskew,
+            point_cloud_min_x=cfg.point_cloud_min_x,
+            point_cloud_max_x=cfg.point_cloud_max_x,
+            point_cloud_min_y=cfg.point_cloud_min_y,
+            point_cloud_max_y=cfg.point_cloud_max_y,
             point_cloud_min_z=cfg.point_cloud_min_z,
             point_cloud_max_z=cfg.point_cloud_max_z,
+            max_range=cfg.max_range,
             cloud_queue_size=cfg.cloud_queue_size,
             odom_wait=cfg.odom_wait,
             base_frame_id=cfg.base_frame_id,
@@ -161,6 +172,8 @@ class LiveIntegrator(PoseInputs):
     # --- the worker thread ------------------------------------------------------------------
 
     def start(self) -> None:
+        """Start the worker thread (again after ``stop``: a lifecycle node reactivated)."""
+        self._stop.clear()
         self._thread = threading.Thread(target=self.run, name="mfp_integration", daemon=True)
         self._thread.start()
 
@@ -170,6 +183,8 @@ class LiveIntegrator(PoseInputs):
             self._cv.notify_all()
         if self._thread is not None:
             self._thread.join(timeout=timeout)
+        with self._cv:
+            self._queue.clear()  # stale when the worker starts again
 
     def run(self) -> None:
         """Integrate queued clouds in order; publish between scans when asked."""
@@ -268,6 +283,8 @@ class LiveIntegrator(PoseInputs):
         )
         own_cpu = time.thread_time()
         with self.map_lock:
+            if cfg.max_range is not None:  # sensor_model.max_range changes at run time
+                self.mapper.max_range = cfg.max_range
             summary = pipeline.integrate_scan(self.mapper, placed)
         own_cpu = time.thread_time() - own_cpu
         latency = self._now() - item.stamp
