@@ -237,7 +237,8 @@ def _report(
         "points_per_scan": points,
         "clouds_sent": sent,
         "clouds_received": after["clouds_in"] - before["clouds_in"],
-        "clouds_lost_in_transport": after["clouds_lost"] - before["clouds_lost"],
+        "clouds_lost_in_transport": after["clouds_lost_transport"]
+        - before["clouds_lost_transport"],
         "clouds_integrated": integrated,
         "clouds_dropped": drops,
         "rate_hz": round(integrated / duration, 2),

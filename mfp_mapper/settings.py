@@ -234,6 +234,9 @@ SETTINGS: tuple[Setting, ...] = (
     _node("map_path", "", "Map file (.npz) for ~/save_map, loaded at start when it exists. "
           "Empty: none."),
     _node("save_on_shutdown", False, "Save the map to map_path when the node stops."),
+    _node("autostart", True, "Configure and activate the node when it starts (a plain "
+          "node). false: it waits unconfigured for a lifecycle manager (Nav2's "
+          "lifecycle_manager, ros2 lifecycle set) to configure and activate it."),
     _node("status_period", 10.0, "Period (s) of the status log line and of ~/status. 0: "
           "off.", 0.0, 3600.0),
     # --- the offline replay only -------------------------------------------------------------
@@ -427,6 +430,7 @@ class NodeConfig:
     tf_buffer: float
     map_path: str
     save_on_shutdown: bool
+    autostart: bool
     status_period: float
 
     @property

@@ -25,7 +25,7 @@ class StatusWindow:
     clouds_in: int = 0
     clouds_integrated: int = 0
     clouds_dropped: int = 0
-    clouds_lost: int = 0
+    clouds_lost_transport: int = 0
 
 
 def status_report(
@@ -44,7 +44,7 @@ def status_report(
     return {
         **extra,
         "clouds_in": c.clouds_in,
-        "clouds_lost": c.clouds_lost,
+        "clouds_lost_transport": c.clouds_lost_transport,
         "clouds_integrated": c.clouds_integrated,
         "clouds_dropped": dict(c.clouds_dropped),
         "points_in": c.points_in,
@@ -82,7 +82,7 @@ def next_window(c: LiveCounters) -> StatusWindow:
         c.clouds_in,
         c.clouds_integrated,
         sum(c.clouds_dropped.values()),
-        c.clouds_lost,
+        c.clouds_lost_transport,
     )
 
 
@@ -91,7 +91,7 @@ def health(status: dict[str, Any], window: StatusWindow) -> tuple[bytes, str]:
     arrived = status["clouds_in"] - window.clouds_in
     integrated = status["clouds_integrated"] - window.clouds_integrated
     dropped = sum(status["clouds_dropped"].values()) - window.clouds_dropped
-    lost = status["clouds_lost"] - window.clouds_lost
+    lost = status["clouds_lost_transport"] - window.clouds_lost_transport
     if arrived == 0:
         return DiagnosticStatus.WARN, "no cloud received"
     if integrated == 0:
@@ -103,7 +103,8 @@ def health(status: dict[str, Any], window: StatusWindow) -> tuple[bytes, str]:
     if dropped or lost:
         return (
             DiagnosticStatus.WARN,
-            f"{integrated} of {arrived} clouds integrated, {dropped} dropped, {lost} lost",
+            f"{integrated} of {arrived} clouds integrated, {dropped} dropped, "
+            f"{lost} lost in transport",
         )
     return DiagnosticStatus.OK, f"{integrated} clouds integrated"
 

@@ -90,7 +90,7 @@ class _Pending:
 class LiveCounters(pipeline.ScanCounts):
     """The pipeline's counts plus what only a live stream has."""
 
-    clouds_lost: int = 0  # reported lost by the middleware (never received)
+    clouds_lost_transport: int = 0  # reported lost by the middleware (never received)
     odom_in: int = 0
     odom_rejected: Counter[str] = field(default_factory=Counter)
     integration_cpu: float = 0.0  # CPU seconds: parse + place + integrate (+ core threads)
@@ -155,8 +155,8 @@ class LiveIntegrator(PoseInputs):
     def clouds_lost(self, count: int) -> int:
         """Count clouds the middleware lost; returns the total."""
         with self._cv:
-            self.counters.clouds_lost += count
-            return self.counters.clouds_lost
+            self.counters.clouds_lost_transport += count
+            return self.counters.clouds_lost_transport
 
     @property
     def queued(self) -> int:
@@ -267,11 +267,19 @@ class LiveIntegrator(PoseInputs):
                     0,
                     parse_drops,
                 )
+            lost = self.counters.clouds_lost_transport
+            starved = (
+                f"; {lost} cloud(s) were lost in transport: DDS may starve /tf and odometry "
+                "too (the large-data profile, README 'Large clouds over DDS')"
+                if lost
+                else ""
+            )
             raise pipeline.ScanDropped(
                 "too_new",
                 f"stamp {item.deadline:.3f} (the cloud's last point, time base "
                 f"{item.cloud.time_base or 'none'}) not covered by the poses "
-                f"({placement.source}; latest {latest:.3f}) within odom_wait {cfg.odom_wait} s",
+                f"({placement.source}; latest {latest:.3f}) within odom_wait {cfg.odom_wait} s"
+                f"{starved}",
                 0,
                 parse_drops,
             )
