@@ -10,7 +10,7 @@ from typing import Any
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
 from mfp_mapper.core.mapper import Mapper
-from mfp_mapper.ros.map_outputs import PublishCounters
+from mfp_mapper.ros.map_outputs import OCTOMAP_TOPICS, TOPICS, PublishCounters
 from mfp_mapper.sensing.live import LiveCounters, finite_or_none
 from mfp_mapper.settings import NodeConfig
 
@@ -140,6 +140,7 @@ def diagnostics(
 def startup_text(cfg: NodeConfig, topic: Callable[[str], str], mapper: Mapper) -> str:
     """The start-up log line: what a robot integrator needs to check (topics, frames, pose
     and extrinsic sources, map file, outputs); ``topic`` resolves a topic name."""
+    names = OCTOMAP_TOPICS if cfg.octomap_topics else TOPICS
     if cfg.extrinsic_override() is not None:
         extrinsic = (
             f"lidar.* parameters (translation {list(cfg.lidar_translation)}, rpy "
@@ -163,7 +164,7 @@ def startup_text(cfg: NodeConfig, topic: Callable[[str], str], mapper: Mapper) -
         f"{cfg.frame_id or '<the odometry frame>'}; extrinsic: {extrinsic}; resolution "
         f"{mapper.resolution} m, max_range {cfg.max_range} m, decay_time "
         f"{cfg.decay} s, deskew {cfg.deskew}; map_path {path}{loaded}, save_on_shutdown "
-        f"{cfg.save_on_shutdown}; outputs {topic('~/degree_of_occupancy')}, "
-        f"{topic('~/std')}, {topic('~/projected_map')} (trinary "
+        f"{cfg.save_on_shutdown}; outputs {topic(names['degree_of_occupancy'])}, "
+        f"{topic(names['std'])}, {topic(names['projected_map'])} (trinary "
         f"{cfg.projected_map_trinary}) at {cfg.publish_rate} Hz, latched {cfg.latch}"
     )

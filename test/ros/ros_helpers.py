@@ -359,3 +359,20 @@ def tf_publishers(node: Any) -> tuple[Any, Any]:
         node.create_publisher(TFMessage, "/tf", QoSProfile(depth=100)),
         node.create_publisher(TFMessage, "/tf_static", static),
     )
+
+
+def clear_bbox(feeder: Feeder, node_name: str, corner_a: Any, corner_b: Any) -> Any:
+    """Call ``~/clear_bbox`` (mfp_mapper_msgs/srv/ClearBbox) of ``node_name``; the response."""
+    from geometry_msgs.msg import Point
+    from mfp_mapper_msgs.srv import ClearBbox
+
+    client = feeder.node.create_client(ClearBbox, f"/{node_name}/clear_bbox")
+    try:
+        assert client.wait_for_service(10.0), f"/{node_name}/clear_bbox not found"
+        request = ClearBbox.Request()
+        request.min, request.max = (
+            Point(x=float(c[0]), y=float(c[1]), z=float(c[2])) for c in (corner_a, corner_b)
+        )
+        return feeder.call(client, request)
+    finally:
+        feeder.node.destroy_client(client)
