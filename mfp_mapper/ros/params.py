@@ -1,4 +1,4 @@
-"""The node's ROS parameters, declared from the settings schema (``mfp_mapper.settings``)."""
+"""The node's ROS parameters, declared from the settings schema (``mfp_mapper.config.schema``)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from typing import Any
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.node import Node
 
-from mfp_mapper.settings import (
+from mfp_mapper.config.schema import (
     PARAMS,
     SPECS,
     NodeConfig,
@@ -48,7 +48,7 @@ def declare_parameters(node: Node) -> NodeConfig:
     An override naming no parameter (a typo) is an error, as in ``mfp-mapper --config``;
     octomap_server's names with no meaning here (``settings.OCTOMAP_ONLY``) get one warning; a
     value of the wrong type or out of range is rejected by rclpy (``ParameterException``),
-    with the message ``mfp_mapper.settings.check_value`` gives the CLI.
+    with the message ``mfp_mapper.config.schema.check_value`` gives the CLI.
     """
     given = list(parameter_overrides(node))
     unknown = [n for n in unknown_parameters(given) if not node.has_parameter(n)]

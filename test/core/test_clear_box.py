@@ -9,6 +9,7 @@ import pytest
 from box_world import anchors_scene
 
 from mfp_mapper import Mapper
+from mfp_mapper.mapio import load_map, save_map
 
 
 def _scene(threads: int = 1) -> Mapper:
@@ -58,8 +59,8 @@ def test_cleared_space_maps_again_and_the_clearing_is_saved(tmp_path: Path) -> N
     cleared = mapper.clear_box(*box)
     assert cleared > 0
     path = tmp_path / "map.npz"
-    mapper.save(path)
-    loaded = Mapper.load(path)
+    save_map(mapper, path)
+    loaded = load_map(path)
     assert loaded.num_voxels == mapper.num_voxels
     centers = loaded.voxels().centers
     assert not np.any((centers[:, 2] >= 1.013) & (centers[:, 2] <= 1.417))
