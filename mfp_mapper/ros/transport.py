@@ -31,7 +31,7 @@ def profile_path() -> str:
             installed = Path(get_package_share_directory("mfp_mapper")) / "config" / PROFILE_FILE
             if installed.is_file():
                 return str(installed)
-        except (PackageNotFoundError, ValueError, LookupError):
+        except (PackageNotFoundError, ValueError, LookupError, OSError):  # not installed
             pass
     except ImportError:
         pass

@@ -206,18 +206,3 @@ def band_mask(
         return None, {}
     xy_out = int(keep.size - xy.sum())
     return keep, {"xy_band": xy_out, "z_band": int(keep.size - keep.sum()) - xy_out}
-
-
-def z_band(
-    points: FloatArray, origins: FloatArray, lo: float, hi: float
-) -> tuple[FloatArray, FloatArray, int]:
-    """Keep the rays whose end point's z (map frame) lies in [lo, hi]; returns the kept
-    points, their origins ((3,) stays (3,)) and how many rays were dropped."""
-    keep = (points[:, 2] >= lo) & (points[:, 2] <= hi)
-    if keep.all():
-        return points, origins, 0
-    return (
-        points[keep],
-        (origins[keep] if origins.ndim == 2 else origins),
-        int(keep.size - keep.sum()),
-    )

@@ -75,6 +75,7 @@ class NodeProcess:
         *,
         name: str | None = None,
         params_file: Path | None = PARAMS_FILE,
+        env: dict[str, str] | None = None,
     ) -> None:
         args = [sys.executable, "-m", "mfp_mapper.node", "--ros-args"]
         if name:
@@ -86,7 +87,11 @@ class NodeProcess:
         self.log_path = log_path
         self._log = open(log_path, "wb")  # noqa: SIM115 - closed in stop()
         self.proc = subprocess.Popen(
-            args, env=ros_env(domain), stdout=self._log, stderr=subprocess.STDOUT, cwd=ROOT
+            args,
+            env={**ros_env(domain), **(env or {})},
+            stdout=self._log,
+            stderr=subprocess.STDOUT,
+            cwd=ROOT,
         )
 
     @property
