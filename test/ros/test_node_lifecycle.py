@@ -75,7 +75,12 @@ class Lifecycle:
 
 
 def _services(feeder: Feeder, node_name: str = "mfp_mapper") -> set[str]:
-    return {name for name, _ in feeder.node.get_service_names_and_types_by_node(node_name, "/")}
+    """The node's services as discovered so far (none before the node is discovered)."""
+    try:
+        found = feeder.node.get_service_names_and_types_by_node(node_name, "/")
+    except RuntimeError:  # rclpy's NodeNameNonExistentError: not discovered yet
+        return set()
+    return {name for name, _ in found}
 
 
 def _set_parameters(feeder: Feeder, node_name: str, values: dict[str, Any]) -> list[Any]:
