@@ -2,9 +2,11 @@
 
 ROS wiring only: subscriptions hand clouds and odometry to the ROS-free worker
 (``mfp_mapper.mapping.live``: queue, odometry wait, the scan pipeline, drops, counters);
-``map_outputs`` publishes the map; services query, save and reset it. Run it with
+``map_outputs`` publishes the map; services query, save, reset and clear it. Run it with
 ``python -m mfp_mapper.node --ros-args ...`` or ``ros2 run mfp_mapper mfp_mapper``;
-parameters are in ``mfp_mapper.config.schema``.
+parameters are in ``mfp_mapper.config.schema``. A lifecycle node: with ``autostart`` (the
+default) it configures and activates itself; else a lifecycle manager drives it
+(``on_configure``... below).
 
 Threads: one executor thread runs every ROS callback (rclpy's multi-threaded executor
 cost about 70% of a core in overhead); subscription callbacks only queue clouds and store
@@ -115,6 +117,10 @@ def _empty_map(cfg: NodeConfig) -> Mapper:
     return Mapper.of(cfg.map_settings(), frame_id=cfg.frame_id or "map")
 
 
+class StartError(RuntimeError):
+    """``autostart``: configuring or activating the node failed (logged)."""
+
+
 class MfpMapperNode(GuardedLifecycleNode):
     """Mean-free-path mapping node (see the module docstring and README "## The node").
 
@@ -143,7 +149,7 @@ class MfpMapperNode(GuardedLifecycleNode):
             for step, ok in (("configure", self.trigger_configure), ("activate", None)):
                 result = ok() if ok is not None else self.trigger_activate()
                 if result != TransitionCallbackReturn.SUCCESS:
-                    raise RuntimeError(f"the node could not {step} (see the log above)")
+                    raise StartError(f"the node could not {step} (see the log above)")
 
     # --- lifecycle transitions ---------------------------------------------------------------
 
@@ -570,6 +576,9 @@ def main(args: list[str] | None = None) -> int:
     except (ValueError, rclpy.exceptions.ParameterException) as err:
         print(f"mfp_mapper: invalid parameters: {err}", file=sys.stderr)
         code = 2
+    except StartError as err:
+        print(f"mfp_mapper: {err}", file=sys.stderr)
+        code = 1
     finally:
         if executor is not None:
             executor.shutdown(timeout_sec=5.0)  # no callback may run past the context
