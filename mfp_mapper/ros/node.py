@@ -359,7 +359,7 @@ class MfpMapperNode(GuardedLifecycleNode):
         if not self._transport_explained:  # the first time: the whole story, once
             self._transport_explained = True
             queue = (self.worker.queued, self.cfg.cloud_queue_size)
-            self.get_logger().warning(transport_loss_text(info.total_count_change, queue))
+            self.warn_throttled("clouds_lost", transport_loss_text(info.total_count_change, queue))
             return
         self.warn_throttled(
             "clouds_lost",
