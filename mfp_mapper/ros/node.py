@@ -146,9 +146,9 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._entities: list[Any] = []  # what configure creates (cleanup destroys)
         self._active: list[Any] = []  # what activate creates (deactivate destroys)
         if self.cfg.autostart:
-            for step, ok in (("configure", self.trigger_configure), ("activate", None)):
-                result = ok() if ok is not None else self.trigger_activate()
-                if result != TransitionCallbackReturn.SUCCESS:
+            steps = (("configure", self.trigger_configure), ("activate", self.trigger_activate))
+            for step, trigger in steps:
+                if trigger() != TransitionCallbackReturn.SUCCESS:
                     raise StartError(f"the node could not {step} (see the log above)")
 
     # --- lifecycle transitions ---------------------------------------------------------------
