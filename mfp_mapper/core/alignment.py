@@ -70,6 +70,10 @@ class AlignOptions:
     max_sigma_m: float = 0.05
     """Refuse a correction when the standard deviation along its weakest direction
     (translation, or rotation times ``lever``) exceeds this (metres)."""
+    max_shift_m: float = 1.0
+    """Refuse a correction that moves the sensor further than this (metres)."""
+    max_angle_deg: float = 10.0
+    """Refuse a correction that turns the scan by more than this (degrees)."""
     min_gain_per_ray: float = 0.02
     """Refuse a correction that raises the smoothed log-likelihood by less than this per ray
     (nats): within what the voxel-scale texture of a map gives; from 0.3 m / 3 deg off, real
@@ -591,6 +595,8 @@ def align_scan(
             ) = None
             mult = 1.0
             while mult <= 64.0:
+                if mult > 1.0 and mult * float(np.max(np.abs(x))) > fld.resolution:
+                    break  # at most one voxel of the level per doubled step
                 y = mult * x * scale
                 rot1, trans1 = _compose(y[3:], y[:3], center, rot, trans)
                 value1, grad1, info1 = evaluate(fld, sub, rot1, trans1, acc + y)
@@ -644,6 +650,13 @@ def align_scan(
                 f"degenerate geometry: only {conditioning} surface patches of the scan "
                 f"constrain {main} (< {opt.min_constraints}); kept the initial pose"
             )
+    shift = float(np.linalg.norm(trans + rot @ center - center))
+    angle = math.degrees(float(np.linalg.norm(Rotation.from_matrix(rot).as_rotvec())))
+    if not reason and (shift > opt.max_shift_m or angle > opt.max_angle_deg):
+        reason = (
+            f"correction beyond the search range ({shift:.2f} m, {angle:.1f} deg > "
+            f"{opt.max_shift_m:g} m or {opt.max_angle_deg:g} deg): kept the initial pose"
+        )
     if not reason and f_final - f_init < opt.min_gain_per_ray * rays:
         reason = (
             f"no significant gain ({(f_final - f_init) / rays:.3g} nats per ray < "
