@@ -278,7 +278,7 @@ def main() -> int:
     args = parser.parse_args()
     import rclpy
 
-    domain = os.getpid() % 90 + 10
+    domain = int(os.environ.get("ROS_DOMAIN_ID") or os.getpid() % 90 + 10)  # a set one is kept
     set_ros_env(domain)
     if not args.default_dds and "FASTRTPS_DEFAULT_PROFILES_FILE" not in os.environ:
         # node and feeder alike (the node inherits this environment)
