@@ -34,6 +34,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 NEBULA = ROOT.parent / "shared" / "data" / "nebula_frames"
+OUSTER = ROOT.parent / "shared" / "data" / "ouster_street"
+"""Three real OS1-128 scans with KITTI poses (``--ouster``): a real recording's rays."""
 sys.path[:0] = [str(ROOT), str(ROOT / "test")]  # the package and the test scenes
 
 
@@ -49,6 +51,15 @@ def _scene(name: str) -> list[tuple[np.ndarray, np.ndarray]]:
 
     if name == "anchors":
         return anchors_scene()
+    if name == "ouster_street":
+        poses = np.loadtxt(OUSTER / "poses.txt").reshape(-1, 3, 4)
+        scans = []
+        for k, pose in enumerate(poses):
+            xyz = np.fromfile(OUSTER / "scans" / f"{k:06d}.bin", dtype=np.float32)
+            xyz = xyz.reshape(-1, 4)[:, :3].astype(np.float64)
+            xyz = xyz[np.linalg.norm(xyz, axis=1) > 0.3]
+            scans.append((xyz @ pose[:, :3].T + pose[:, 3], pose[:, 3].copy()))
+        return scans
     from mfp_mapper.sources.scan_files import read_pcd
 
     cols = read_pcd(NEBULA / name)
@@ -341,6 +352,9 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=1, help="interleaved rounds (default 1)")
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="mfp_mapper's")
     parser.add_argument("--no-extras", action="store_true", help="only the insertion table")
+    parser.add_argument(
+        "--ouster", action="store_true", help=f"also the real OS1-128 scans of {OUSTER} at 0.2 m"
+    )
     parser.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
@@ -368,10 +382,14 @@ def main() -> None:
     vlp32 = NEBULA / "velodyne_vlp32_1713492677464078412.pcd"
     if vlp32.exists() and not args.no_extras:
         scenes.append((vlp32.name, [0.1]))
+    if args.ouster:
+        if not OUSTER.exists():
+            raise SystemExit(f"--ouster: {OUSTER} not found")
+        scenes.append(("ouster_street", [0.2]))
     with tempfile.TemporaryDirectory() as tmp:
         for scene, scene_res in scenes:
             if scene != "anchors":
-                print(f"real frame: {scene}")
+                print(f"real scans: {scene}")
             rays_file = Path(tmp) / "rays.bin"
             if bonxai:
                 write_rays(_scene(scene), rays_file)
