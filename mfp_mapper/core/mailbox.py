@@ -20,7 +20,8 @@ class MailArrays(NamedTuple):
     local: NDArray[np.int16]
     chord: NDArray[np.float32]
     returns: NDArray[np.float32]
-    count: NDArray[np.int64]
+    used: NDArray[np.int64]
+    """Entries in use (one element)."""
 
 
 class Mailbox:

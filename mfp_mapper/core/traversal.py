@@ -275,7 +275,7 @@ def _walk_rays(
     shard_mask: int,
     shard_arrays: ShardArrays,
     scan: ScanStamp,
-    mail: MailArrays,
+    mailbox: MailArrays,
 ) -> int:
     """Walk rays ``first..`` (voxel units): visits to ``shard`` are added to its blocks,
     visits to other shards are appended to the mailbox.
@@ -285,7 +285,7 @@ def _walk_rays(
     """
     origins_vox, ends_vox, lengths, has_return, room_needed, visits_needed = rays
     scan_id, stamp, decay_time = scan
-    mail_block, mail_local, mail_chord, mail_return, mail_count = mail
+    mail_block, mail_local, mail_chord, mail_return, mail_count = mailbox
     table_keys, _, _, block_sn, block_t, _, block_hit, counters, block_scale = shard_arrays
     capacity = min(block_t.shape[0], table_keys.shape[0] // 2)
     # blocks opened in this call, direct-mapped by their low index bits: neighbouring rays
@@ -304,12 +304,12 @@ def _walk_rays(
     return_weight = np.empty(BATCH_VISITS + longest)
     count = 0
     returned = 0
-    mail = mail_count[0]
+    mailed = mail_count[0]
     for r in range(first, lengths.shape[0] + 1):
         stop = (
             r == lengths.shape[0]
             or counters[0] + room_needed[r] > capacity
-            or mail + visits_needed[r] > mail_block.shape[0]
+            or mailed + visits_needed[r] > mail_block.shape[0]
         )
         if count >= BATCH_VISITS or stop:
             apply_chords(
@@ -319,7 +319,7 @@ def _walk_rays(
             count = 0
             returned = 0
             if stop:
-                mail_count[0] = mail
+                mail_count[0] = mailed
                 return r
         ox = origins_vox[r, 0]
         oy = origins_vox[r, 1]
@@ -417,11 +417,11 @@ def _walk_rays(
                     visit_chord[count] = chord * scale
                     count += 1
                 else:
-                    mail_block[mail] = key
-                    mail_local[mail] = here
-                    mail_chord[mail] = chord
-                    mail_return[mail] = 0.0
-                    mail += 1
+                    mail_block[mailed] = key
+                    mail_local[mailed] = here
+                    mail_chord[mailed] = chord
+                    mail_return[mailed] = 0.0
+                    mailed += 1
         # the end voxel takes the rest of the ray and the return; an end point exactly on a
         # face gets a zero chord there, still with its return
         chord = (1.0 - t_prev) * length
@@ -436,10 +436,10 @@ def _walk_rays(
                     returned += 1
                 count += 1
             else:
-                mail_block[mail] = key
-                mail_local[mail] = local
-                mail_chord[mail] = chord
-                mail_return[mail] = returns
-                mail += 1
-    mail_count[0] = mail
+                mail_block[mailed] = key
+                mail_local[mailed] = local
+                mail_chord[mailed] = chord
+                mail_return[mailed] = returns
+                mailed += 1
+    mail_count[0] = mailed
     return lengths.shape[0]
