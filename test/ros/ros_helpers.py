@@ -30,8 +30,10 @@ FLOAT64 = 8
 
 
 def domain_id() -> int:
-    """A ROS domain id derived from this process id (10..99)."""
-    return os.getpid() % 90 + 10
+    """A ROS domain id: ``ROS_DOMAIN_ID`` when set (``./run test`` sets a private one), else
+    derived from this process id (10..99)."""
+    chosen = os.environ.get("ROS_DOMAIN_ID")
+    return int(chosen) if chosen else os.getpid() % 90 + 10
 
 
 def ros_env(domain: int) -> dict[str, str]:
@@ -60,7 +62,7 @@ def _param_arg(name: str, value: Any) -> str:
     elif isinstance(value, float):
         text = repr(value)
     else:
-        text = str(value)
+        text = str(value) or "''"  # an empty string: quoted, or rcl cannot parse the rule
     return f"{name}:={text}"
 
 
@@ -75,6 +77,7 @@ class NodeProcess:
         *,
         name: str | None = None,
         params_file: Path | None = PARAMS_FILE,
+        env: dict[str, str] | None = None,
     ) -> None:
         args = [sys.executable, "-m", "mfp_mapper.node", "--ros-args"]
         if name:
@@ -86,7 +89,11 @@ class NodeProcess:
         self.log_path = log_path
         self._log = open(log_path, "wb")  # noqa: SIM115 - closed in stop()
         self.proc = subprocess.Popen(
-            args, env=ros_env(domain), stdout=self._log, stderr=subprocess.STDOUT, cwd=ROOT
+            args,
+            env={**ros_env(domain), **(env or {})},
+            stdout=self._log,
+            stderr=subprocess.STDOUT,
+            cwd=ROOT,
         )
 
     @property
@@ -359,3 +366,20 @@ def tf_publishers(node: Any) -> tuple[Any, Any]:
         node.create_publisher(TFMessage, "/tf", QoSProfile(depth=100)),
         node.create_publisher(TFMessage, "/tf_static", static),
     )
+
+
+def clear_bbox(feeder: Feeder, node_name: str, corner_a: Any, corner_b: Any) -> Any:
+    """Call ``~/clear_bbox`` (mfp_mapper_msgs/srv/ClearBbox) of ``node_name``; the response."""
+    from geometry_msgs.msg import Point
+    from mfp_mapper_msgs.srv import ClearBbox
+
+    client = feeder.node.create_client(ClearBbox, f"/{node_name}/clear_bbox")
+    try:
+        assert client.wait_for_service(10.0), f"/{node_name}/clear_bbox not found"
+        request = ClearBbox.Request()
+        request.min, request.max = (
+            Point(x=float(c[0]), y=float(c[1]), z=float(c[2])) for c in (corner_a, corner_b)
+        )
+        return feeder.call(client, request)
+    finally:
+        feeder.node.destroy_client(client)
