@@ -46,6 +46,8 @@ def _load_map(path: str, bounds: Any = None, lazy_tiles: bool = False) -> Any:
         raise CliError(f"{path}: no such map file") from None
     except (MapFileError, OSError, ValueError) as err:
         raise CliError(str(err)) from None
+    except MemoryError:
+        raise CliError(f"{path}: not enough memory to load this map") from None
 
 
 def _check_writable(path: Path, tiled_ok: bool = False) -> None:
@@ -384,6 +386,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return COMMANDS[args.command](args)
     except CliError as err:
         _err(str(err))
+        return 1
+    except ValueError as err:  # a damaged tile found while a command runs
+        from mfp_mapper.core.mapfile import MapFileError
+
+        if not isinstance(err, MapFileError):
+            raise
+        _err(f"{err} (nothing written)")
         return 1
     except KeyboardInterrupt:
         _err("interrupted (nothing written for the step in progress)")

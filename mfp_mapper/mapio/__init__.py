@@ -1,0 +1,1 @@
+"""Map files and tiled maps: reading (checked before anything is allocated), writing."""
