@@ -23,8 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from mfp_mapper.core.mapfile import write_map_arrays
-from mfp_mapper.core.tiles import INDEX_NAME, write_tiled
+from mfp_mapper.mapio.mapfile import write_map_arrays
+from mfp_mapper.mapio.tiles import INDEX_NAME, write_tiled
 
 QUERY_POINT = (0.05, 0.05, 0.05)
 """Inside voxel (0, 0, 0) of every corpus map: a query there reads tile (0, 0, 0)."""
@@ -520,9 +520,7 @@ def tile_wrong_voxels(d: Path) -> Path:
 
 def tile_other_resolution(d: Path) -> Path:
     root = _tiled(d)
-    write_map_arrays(
-        _tile0(root), good_arrays(resolution=np.float64(0.2), **_tile0_voxels())
-    )
+    write_map_arrays(_tile0(root), good_arrays(resolution=np.float64(0.2), **_tile0_voxels()))
     return root
 
 

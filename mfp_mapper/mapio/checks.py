@@ -6,7 +6,7 @@ The order of a read is: the path is a regular file (``file_problem``); each ``.n
 member's header, its shape and dtype against the zip's sizes (``member_problem``) and the
 whole archive's declared bytes against the file's real size (``expansion_problem``); the
 settings (``settings_problem``, ``origin_problem``); only then the voxel arrays are read,
-and their values checked (``mapfile.voxel_problem``, ``future_problem``). A tiled map's
+and their values checked (``core.store.voxel_problem``, ``future_problem``). A tiled map's
 ``index.json`` is parsed and checked whole by ``parse_index`` before any tile is opened.
 
 Limits (README, "Map files that are refused"):
@@ -32,12 +32,8 @@ from typing import Any
 
 import numpy as np
 
-from mfp_mapper.core.store import MAX_VOXEL_INDEX
+from mfp_mapper.core.store import MAX_RESOLUTION, MAX_VOXEL_INDEX, MIN_RESOLUTION
 
-MIN_RESOLUTION = 1e-3
-"""Smallest voxel edge (metres) a map may have."""
-MAX_RESOLUTION = 1e3
-"""Largest voxel edge (metres) a map may have."""
 MAX_DEFLATE_RATIO = 1100
 """Deflate cannot expand data more than ~1032 times: a member claiming more is lying."""
 MAX_EXPANSION = 64
@@ -102,7 +98,12 @@ def file_problem(path: Path, what: str = "map file") -> str | None:
 
 
 def member_problem(
-    name: str, shape: tuple[int, ...], dtype: np.dtype, data_bytes: int, compressed: int, method: int
+    name: str,
+    shape: tuple[int, ...],
+    dtype: np.dtype,
+    data_bytes: int,
+    compressed: int,
+    method: int,
 ) -> str | None:
     """One ``.npy`` member's header against what the zip says it holds: sizes non-negative,
     dtypes plain, the declared bytes within the member's size (``data_bytes``) and, when
@@ -137,7 +138,9 @@ def header_problem(headers: dict[str, tuple[tuple[int, ...], np.dtype]]) -> str 
         if dtype.kind in "iu" and dtype.itemsize > 8:
             ok = False
         if dtype.kind == "U" and dtype.itemsize > 4 * MAX_FRAME_ID:
-            return f"{name} is a string of {dtype.itemsize // 4} characters (at most {MAX_FRAME_ID})"
+            return (
+                f"{name} is a string of {dtype.itemsize // 4} characters (at most {MAX_FRAME_ID})"
+            )
         if not ok:
             return f"{name} must be {text}, got {dtype} {shape}"
     return None
@@ -244,7 +247,9 @@ def _number(
         return null
     if not _is_number(value) or not math.isfinite(value) or not lo <= value <= hi:
         allowed = " or null" if null is not None else ""
-        raise ValueError(f"{key} must be a finite number in [{lo}, {hi}]{allowed}, got {value!r:.40}")
+        raise ValueError(
+            f"{key} must be a finite number in [{lo}, {hi}]{allowed}, got {value!r:.40}"
+        )
     return float(value)
 
 
@@ -331,8 +336,8 @@ def _tile_entry(e: Any, k: int, tile_blocks: int, tile_dir: str) -> tuple[Any, .
         if e["blocks"] != [b0, [v + tile_blocks for v in b0]]:
             raise ValueError(f"{where}blocks {e['blocks']!r:.60} do not match tile {key}")
     name = e.get("file")
-    parts = PurePosixPath(name).parts if isinstance(name, str) else ()
-    if len(parts) != 2 or parts[0] != tile_dir or not parts[1].endswith(".npz") or "\\" in name:
+    parts = PurePosixPath(name).parts if isinstance(name, str) and "\\" not in name else ()
+    if len(parts) != 2 or parts[0] != tile_dir or not parts[1].endswith(".npz"):
         raise ValueError(f"{where}file must name a .npz file in {tile_dir}/, got {name!r:.80}")
     voxels = _int(e, "voxels", 0, MAX_VOXELS, where)
     t_max = -math.inf

@@ -20,14 +20,15 @@ import pytest
 from hostile_maps import KINDS, QUERY_POINT, good_arrays, zip_bomb
 
 from mfp_mapper.cli import main
-from mfp_mapper.core.mapfile import MapFileError, read_map_arrays, write_map_arrays
-from mfp_mapper.core.tiles import load_map, write_tiled
 from mfp_mapper.mapio.checks import (
     EXPANSION_SLACK,
     FUTURE_TOLERANCE_S,
     MAX_EXPANSION,
     MAX_ORIGIN_VOXELS,
 )
+from mfp_mapper.mapio.loading import load_map, save_map
+from mfp_mapper.mapio.mapfile import MapFileError, read_map_arrays, write_map_arrays
+from mfp_mapper.mapio.tiles import write_tiled
 
 ROOT = Path(__file__).resolve().parents[2]
 QUERY = [str(v) for v in QUERY_POINT]
@@ -176,7 +177,7 @@ def test_expansion_limit_leaves_room_for_real_maps(tmp_path: Path) -> None:
     m = Mapper(0.1, decay_time=30.0)
     for k, (points, origin) in enumerate(anchors_scene(n_scans=3, azimuths=300)):
         m.integrate(points, origin, 100.0 + k)
-    m.save(tmp_path / "real.npz")
+    save_map(m, tmp_path / "real.npz")
     declared = 36 * m.num_voxels
     assert declared / (tmp_path / "real.npz").stat().st_size < MAX_EXPANSION / 8
     count = EXPANSION_SLACK // 36 // 2  # about 0.9 million voxels of zeros

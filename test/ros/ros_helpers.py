@@ -30,8 +30,10 @@ FLOAT64 = 8
 
 
 def domain_id() -> int:
-    """A ROS domain id derived from this process id (10..99)."""
-    return os.getpid() % 90 + 10
+    """``ROS_DOMAIN_ID`` when the test run is given one, else one derived from this process
+    id (10..99)."""
+    given = os.environ.get("ROS_DOMAIN_ID", "")
+    return int(given) if given.isdigit() else os.getpid() % 90 + 10
 
 
 def ros_env(domain: int) -> dict[str, str]:
