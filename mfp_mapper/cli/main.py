@@ -221,7 +221,6 @@ def cmd_export(args: argparse.Namespace) -> int:
     out = Path(args.output)
     fmt = args.format or _export_format(out)
     if fmt == "ply":
-        from mfp_mapper.mapio.mapfile import MapFileError
         from mfp_mapper.mapio.tiles import TiledMap
         from mfp_mapper.outputs.export import export_ply, export_ply_tiled
 
@@ -230,7 +229,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         export = export_ply_tiled if isinstance(mapper, TiledMap) else export_ply
         try:
             count = export(mapper, out, args.min_doo, args.min_evidence)
-        except MapFileError as err:  # a damaged tile
+        except ValueError as err:  # a damaged tile (MapFileError), values beyond float32
             raise CliError(f"{err} (nothing written)") from None
         print(f"wrote {out}: {count:,} voxels (x y z degree_of_occupancy std mean_free_path n s)")
         return 0

@@ -27,13 +27,17 @@ PLY_DTYPE = np.dtype([(name, "<f4") for name in PLY_PROPERTIES])
 def ply_records(stats: VoxelStats) -> np.ndarray:
     """The PLY vertex records (binary body) of these voxels."""
     rec = np.empty(len(stats), dtype=PLY_DTYPE)
-    rec["x"], rec["y"], rec["z"] = stats.centers[:, 0], stats.centers[:, 1], stats.centers[:, 2]
-    rec["degree_of_occupancy"] = stats.most_likely_doo
-    rec["std"] = stats.std
-    mfp = stats.mean_free_path
-    rec["mean_free_path"] = np.where(np.isfinite(mfp), mfp, np.nan)
-    rec["n"] = stats.n
-    rec["s"] = stats.s
+    with np.errstate(over="ignore"):  # float64 -> float32 may overflow to inf: refused below
+        rec["x"], rec["y"], rec["z"] = stats.centers[:, 0], stats.centers[:, 1], stats.centers[:, 2]
+        rec["degree_of_occupancy"] = stats.most_likely_doo
+        rec["std"] = stats.std
+        mfp = stats.mean_free_path
+        rec["mean_free_path"] = np.where(np.isfinite(mfp), mfp, np.nan)
+        rec["n"] = stats.n
+        rec["s"] = stats.s
+    for name in ("x", "y", "z", "n", "s"):
+        if not np.isfinite(rec[name]).all():
+            raise ValueError(f"voxel {name} values beyond float32's range: no PLY written")
     return rec
 
 

@@ -213,3 +213,17 @@ def test_a_stale_modification_time_is_the_stated_remedy(tmp_path: Path) -> None:
         load_map(path)
     os.utime(path, (2e9, 2e9))
     assert load_map(path).num_voxels == 3
+
+
+def test_export_never_writes_infinite_coordinates(tmp_path: Path) -> None:
+    """A map built in memory (no file check) with an origin beyond float32's range: the PLY
+    export refuses it rather than write infinite coordinates, and leaves no file."""
+    from mfp_mapper.core.mapper import Mapper
+    from mfp_mapper.core.store import VoxelArrays
+    from mfp_mapper.outputs.export import export_ply
+
+    voxels = VoxelArrays(np.zeros((1, 3), np.int32), np.ones(1), np.ones(1), np.zeros(1))
+    far = Mapper.from_arrays(voxels, resolution=0.1, origin=(1e39, 0.0, 0.0))
+    with pytest.raises(ValueError, match="beyond float32"):
+        export_ply(far, tmp_path / "far.ply")
+    assert list(tmp_path.iterdir()) == []
