@@ -33,7 +33,9 @@ problem is a ``MapFileError`` naming the file.
 from __future__ import annotations
 
 import math
+import struct
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -180,8 +182,10 @@ VOXEL_MEMBERS = ("ijk", "s", "n", "t_last")
 _READ_ERRORS = (
     zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, OSError, ValueError, KeyError,
     IndexError, TypeError, ArithmeticError, UnicodeError, NotImplementedError, RuntimeError,
+    zlib.error, struct.error,
 )  # fmt: skip
-"""What a damaged archive can raise while read (RuntimeError: an encrypted member)."""
+"""What a damaged archive can raise while read (RuntimeError: an encrypted member;
+zlib.error: a damaged deflate stream)."""
 
 
 def _read(archive: zipfile.ZipFile, name: str) -> np.ndarray:

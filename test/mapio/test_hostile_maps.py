@@ -227,3 +227,49 @@ def test_export_never_writes_infinite_coordinates(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="beyond float32"):
         export_ply(far, tmp_path / "far.ply")
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("compress", [True, False], ids=["deflated", "stored"])
+def test_random_damage_is_refused_or_loaded_never_raised(compress: bool, tmp_path: Path) -> None:
+    """300 seeded random damages of a map file (bytes flipped, cut, zeroed) and of a tiled
+    map's index: each loads or raises MapFileError, never another exception."""
+    import random
+
+    rng = random.Random(21)
+    base = tmp_path / "base.npz"
+    write_map_arrays(base, good_arrays(), compress=compress)
+    data = base.read_bytes()
+    tiled = tmp_path / "tiled"
+    write_tiled(tiled, good_arrays(), tile_blocks=1)
+    index = (tiled / "index.json").read_text()
+    outcomes = {"loaded": 0, "refused": 0}
+    for k in range(300):
+        on_index = k % 3 == 2
+        raw = bytearray(index.encode() if on_index else data)
+        kind = rng.choice(["flip", "cut", "zero", "digit"])
+        at = rng.randrange(len(raw))
+        if kind == "flip":
+            for _ in range(rng.randint(1, 4)):
+                raw[rng.randrange(len(raw))] ^= 1 << rng.randrange(8)
+        elif kind == "cut":
+            del raw[at:]
+        elif kind == "zero":
+            raw[at : at + rng.randint(1, 64)] = bytes(min(64, len(raw) - at))
+        else:  # a digit changed into another or into 'e9' (numbers in headers and JSON)
+            digits = [i for i, c in enumerate(raw) if chr(c).isdigit()]
+            i = rng.choice(digits)
+            raw[i : i + 1] = rng.choice([b"e9", b"9", b"-", b"e400", b"0"])
+        if on_index:
+            (tiled / "index.json").write_bytes(bytes(raw))
+            target = tiled
+        else:
+            target = tmp_path / f"damaged{k}.npz"
+            target.write_bytes(bytes(raw))
+        try:
+            load_map(target)
+            outcomes["loaded"] += 1
+        except MapFileError as err:
+            assert "\n" not in str(err)
+            outcomes["refused"] += 1
+    (tiled / "index.json").write_text(index)
+    assert outcomes["refused"] > 100, outcomes
