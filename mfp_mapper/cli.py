@@ -10,6 +10,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
+import signal
 import sys
 from collections.abc import Sequence
 from dataclasses import replace
@@ -49,9 +51,13 @@ def _load_map(path: str, bounds: Any = None, lazy_tiles: bool = False) -> Any:
 
 
 def _check_writable(path: Path, tiled_ok: bool = False) -> None:
+    """CliError, before any work, when ``path`` cannot be written (no folder, read-only)."""
     parent = path.parent if str(path.parent) else Path(".")
     if not parent.is_dir():
         raise CliError(f"{path}: the folder {parent} does not exist")
+    target = path if path.is_dir() else parent
+    if not os.access(target, os.W_OK | os.X_OK):
+        raise CliError(f"{path}: cannot write in {target} (read-only or not permitted)")
     if tiled_ok and path.suffix != ".npz":
         from mfp_mapper.core.mapfile import MapFileError
         from mfp_mapper.core.tiles import check_tiled_output
@@ -62,6 +68,17 @@ def _check_writable(path: Path, tiled_ok: bool = False) -> None:
             raise CliError(str(err)) from None
     elif path.is_dir():
         raise CliError(f"{path} is a directory, expected a file name")
+
+
+def _check_folder_writable(folder: Path) -> None:
+    """CliError when ``folder`` (made if missing) could not be written in."""
+    existing = folder.absolute()
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise CliError(f"{folder}: {existing} is not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise CliError(f"{folder}: cannot write in {existing} (read-only or not permitted)")
 
 
 def replay_options(args: argparse.Namespace) -> Any:
@@ -119,7 +136,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_replay_fleet(args: argparse.Namespace, out: Path) -> int:
-    """Several recordings (or windows, or Dask): ``offline.fleet``."""
+    """Several inputs (or windows, or Dask): ``offline.fleet``."""
     from mfp_mapper.offline.fleet import FleetOptions, default_workers, map_fleet
     from mfp_mapper.offline.replay import ReplayError
 
@@ -132,12 +149,15 @@ def cmd_replay_fleet(args: argparse.Namespace, out: Path) -> int:
         tile_blocks=args.tile_blocks,
         work_dir=args.work_dir,
         progress=not args.quiet,
+        allow_duplicates=args.allow_duplicates,
+        poses=None if args.poses is None else str(args.poses),
+        times=None if args.times is None else str(args.times),
     )
     try:
         opts = replay_options(args)
         result = map_fleet(args.inputs, out, opts, fleet, log=_warn)
-    except (ReplayError, RuntimeError, ValueError) as err:  # FleetError, MergeError, Dask
-        text = str(err)
+    except (ReplayError, RuntimeError, ValueError, OSError) as err:  # FleetError, Dask...
+        text = _one_line(err)
         raise CliError(text if "no map written" in text else f"{text} (no map written)") from None
     print(result.format())
     if args.summary_json:
@@ -149,6 +169,14 @@ def cmd_replay_fleet(args: argparse.Namespace, out: Path) -> int:
         summary = {"output": str(out), "voxels": result.voxels, "tasks": tasks}
         write_text_atomic(args.summary_json, json.dumps(_jsonable(summary), indent=2) + "\n")
     return 0
+
+
+def _one_line(err: BaseException) -> str:
+    """The error's message on one line (a Dask or OS error may span several)."""
+    text = " ".join(str(err).split()) or type(err).__name__
+    if isinstance(err, OSError) and err.filename is not None and str(err.filename) not in text:
+        text = f"{err.filename}: {text}"
+    return text
 
 
 def cmd_merge(args: argparse.Namespace) -> int:
@@ -220,8 +248,8 @@ def cmd_export(args: argparse.Namespace) -> int:
         from mfp_mapper.core.tiles import TiledMap
         from mfp_mapper.offline.export import export_ply, export_ply_tiled
 
-        mapper = _load_map(args.map, lazy_tiles=True)  # a tiled map: one tile at a time
         _check_writable(out)
+        mapper = _load_map(args.map, lazy_tiles=True)  # a tiled map: one tile at a time
         export = export_ply_tiled if isinstance(mapper, TiledMap) else export_ply
         try:
             count = export(mapper, out, args.min_doo, args.min_evidence)
@@ -229,6 +257,7 @@ def cmd_export(args: argparse.Namespace) -> int:
             raise CliError(f"{err} (nothing written)") from None
         print(f"wrote {out}: {count:,} voxels (x y z degree_of_occupancy std mean_free_path n s)")
         return 0
+    _check_writable(out)
     mapper = _load_map(args.map)
     z_min, z_max = _export_band(mapper, args)
     try:
@@ -286,6 +315,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     from mfp_mapper.offline.render import render_map
 
     bounds = (args.bounds[:3], args.bounds[3:]) if args.bounds else None
+    _check_folder_writable(Path(args.output))
     mapper = _load_map(args.map, bounds)
     try:
         result = render_map(
@@ -377,9 +407,18 @@ COMMANDS = {
 }
 
 
+def _terminated(signum: int, _frame: Any) -> None:
+    """SIGTERM ends the command as Ctrl-C does: cleanup runs, nothing half-written stays."""
+    raise KeyboardInterrupt
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    try:
+        previous = signal.signal(signal.SIGTERM, _terminated)
+    except ValueError:  # not the main thread: leave signals alone
+        previous = None
     try:
         return COMMANDS[args.command](args)
     except CliError as err:
@@ -390,6 +429,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
     except BrokenPipeError:
         return 1
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

@@ -262,12 +262,19 @@ def _fleet_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("several recordings, Dask (docs/FLEET.md)")
     g.add_argument(
         "--workers", type=_nonneg_int, metavar="N",
-        help="run on a local Dask cluster of N worker processes (0: one per core)",
+        help="run on a local Dask cluster of N worker processes (0: one per core; at most "
+        "one per core and per task)",
     )  # fmt: skip
     g.add_argument("--scheduler", metavar="ADDRESS", help="run on this existing Dask cluster")
     g.add_argument(
         "--chunk-seconds", type=_positive, metavar="S",
-        help="also split each recording into windows of S seconds of cloud stamps",
+        help="also split each recording into windows of S seconds of cloud stamps (widened "
+        "to at most one window per cloud and 16 per worker)",
+    )  # fmt: skip
+    g.add_argument(
+        "--allow-duplicates", action="store_true",
+        help="map an input given twice twice (refused by default: its evidence would count "
+        "twice)",
     )  # fmt: skip
     g.add_argument(
         "--skip-bad", action="store_true",

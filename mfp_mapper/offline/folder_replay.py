@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.offline import pose_files
 from mfp_mapper.offline.bags import Poses, ReplayError
 from mfp_mapper.offline.progress import Progress
@@ -24,7 +25,7 @@ from mfp_mapper.offline.replay import (
     ReplaySummary,
     ScanCallback,
     map_scans,
-    new_mapper,
+    mapper_for,
 )
 from mfp_mapper.offline.scan_files import DatasetFormatError
 from mfp_mapper.offline.scan_folder import ScanFolder, open_scan_folder
@@ -41,9 +42,11 @@ def replay_folder(
     progress: bool | Progress = True,
     log: Callable[[str], None] | None = None,
     on_scan: ScanCallback | None = None,
+    into: Mapper | None = None,
 ) -> ReplayResult:
     """Map the scans of ``directory``; ``poses`` is a pose file, ``"identity"``, or None
-    with ``opts.odometry == "kiss-icp"``. ReplayError says why when it cannot be done."""
+    with ``opts.odometry == "kiss-icp"``. ReplayError says why when it cannot be done.
+    ``into``: add the scans to this map (as ``offline.replay.replay``)."""
     opts = opts or ReplayOptions()
     try:
         folder = open_scan_folder(directory, times_file)
@@ -61,7 +64,7 @@ def replay_folder(
     summary.extrinsic_source = (
         "given on the command line" if opts.extrinsic else "identity (poses are the lidar's)"
     )
-    mapper = new_mapper(opts, found.map_frame)
+    mapper = mapper_for(opts, found.map_frame, into)
 
     def clouds() -> Iterator[tuple[int, Callable[[], Any]]]:
         for index in range(len(folder)):

@@ -68,6 +68,10 @@ class NothingMapped(ReplayError):
     """The bag was read, but no cloud (in the ``start``/``end`` window) could be mapped."""
 
 
+class OtherMapFrame(ReplayError):
+    """The recording's map frame is not the one of the map it was to be added to."""
+
+
 # --- summary and progress ---------------------------------------------------------------------
 
 
@@ -165,17 +169,20 @@ def replay(
     progress: bool | Progress = True,
     log: Callable[[str], None] | None = None,
     on_scan: ScanCallback | None = None,
+    into: Mapper | None = None,
 ) -> ReplayResult:
     """Map every cloud of ``bag``; ReplayError (with the reason) when it cannot be done.
 
     ``on_scan(stamp, points, origins)`` sees every placed cloud (map frame) just before it
-    is integrated, e.g. to feed the same rays to another mapper.
+    is integrated, e.g. to feed the same rays to another mapper. ``into``: add the clouds
+    to this map (built with the same options) instead of a new one (OtherMapFrame, before
+    any cloud is read, when its frame is not the recording's).
     """
     opts = opts or ReplayOptions()
     path = resolve_bag_path(bag)
     reader = open_reader(path)
     try:
-        return _replay(reader, path, opts, progress, log, on_scan)
+        return _replay(reader, path, opts, progress, log, on_scan, into)
     finally:
         reader.close()
 
@@ -187,6 +194,7 @@ def _replay(
     progress: bool | Progress,
     log: Callable[[str], None] | None,
     on_scan: ScanCallback | None,
+    into: Mapper | None,
 ) -> ReplayResult:
     summary = ReplaySummary(bag=str(path))
     cloud_topic = pick_topic(reader, CLOUD_TYPE, opts.cloud_topic, "PointCloud2", "--cloud-topic")
@@ -217,7 +225,7 @@ def _replay(
     ext, summary.extrinsic_source = extrinsic_for(cloud_frame, poses.body, tfs, opts)
     extrinsics[cloud_frame] = ext
 
-    mapper = new_mapper(opts, poses.map_frame)
+    mapper = mapper_for(opts, poses.map_frame, into)
 
     def clouds() -> Iterator[tuple[int, Callable[[], Any]]]:
         for index, (conn, _, raw) in enumerate(reader.messages(connections=cloud_conns)):
@@ -244,6 +252,18 @@ def new_mapper(opts: ReplayOptions, frame_id: str) -> Mapper:
         max_voxels=opts.max_voxels,
         keep_radius=opts.keep_radius,
     )
+
+
+def mapper_for(opts: ReplayOptions, frame_id: str, into: Mapper | None) -> Mapper:
+    """``into`` when given (OtherMapFrame unless its frame is ``frame_id``), else a new map."""
+    if into is None:
+        return new_mapper(opts, frame_id)
+    if into.frame_id != frame_id:
+        raise OtherMapFrame(
+            f"its map frame {frame_id!r} is not {into.frame_id!r}, the frame of the "
+            "recordings before it: maps of different frames cannot be added up"
+        )
+    return into
 
 
 class ScanSelection:
