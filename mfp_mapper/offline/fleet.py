@@ -619,7 +619,8 @@ def _process_alive(pid: int) -> bool:
 def _fail_or_skip(failed: dict[str, str], skip_bad: bool) -> None:
     if failed and not skip_bad:
         name, why = next(iter(failed.items()))
-        raise FleetError(f"{name}: {why} (no map written; --skip-bad goes on without it)")
+        named = why if name.split(" [")[0] in why else f"{name}: {why}"
+        raise FleetError(f"{named} (no map written; --skip-bad goes on without it)")
 
 
 def _replay_all(
@@ -644,6 +645,7 @@ def _replay_all(
                 results.append(outcome)
             progress.update(done, task.label)
     finally:
+        runs.close()  # cancels what is left while the executor still runs
         progress.close()
     mapped = {r.task.recording for r in results if r.partial is not None}
     for r in results:  # every window of a recording empty: nothing of it could be mapped
@@ -690,6 +692,7 @@ def _reduce_all(
             entries.extend(outcome)
             progress.update(done)
     finally:
+        runs.close()
         progress.close()
     return entries
 

@@ -353,6 +353,19 @@ def test_bad_work_dir_and_read_only_output_are_one_line(
     assert not (tmp_path / "m.npz").exists()
 
 
+def test_a_failing_recording_on_workers_is_one_line(bags: list[Path], tmp_path: Path) -> None:
+    pytest.importorskip("distributed")
+    bad = tmp_path / "broken.bag"
+    bad.write_bytes(b"#ROSBAG V2.0\n" + b"\x00garbage" * 50)
+    cmd = [sys.executable, "-m", "mfp_mapper.cli", "replay", str(bags[0]), str(bad),
+           "-o", str(tmp_path / "m.npz"), "--workers", "2", *FLAGS]  # fmt: skip
+    run = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 1
+    assert run.stderr.count("broken.bag") == 1, run.stderr
+    assert len(run.stderr.strip().splitlines()) == 1, run.stderr  # no IOLoop traceback
+    assert not list(tmp_path.glob(".mfp-fleet-*")) and not (tmp_path / "m.npz").exists()
+
+
 def test_scan_folders_among_several_inputs(bags: list[Path], tmp_path: Path) -> None:
     from folder_helpers import bag_contents, write_pcd
 
