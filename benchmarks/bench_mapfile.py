@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from mfp_mapper.mapio.loading import load_map, save_map
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT)]
 
@@ -62,18 +64,18 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         path, plain = Path(tmp) / "map.npz", Path(tmp) / "plain.npz"
         arrays = {"ijk": ijk, "s": voxels.s, "n": voxels.n, "t_last": voxels.t_last}
-        save = min(_timed(lambda: mapper.save(path))[0] for _ in range(args.repeat))
+        save = min(_timed(lambda: save_map(mapper, path))[0] for _ in range(args.repeat))
         np_save = min(_timed(lambda: np.savez(plain, **arrays))[0] for _ in range(args.repeat))
         np_read = min(_timed(lambda: _numpy_read(path))[0] for _ in range(args.repeat))
-        load = min(_timed(lambda: Mapper.load(path))[0] for _ in range(args.repeat))
-        loaded = Mapper.load(path)
+        load = min(_timed(lambda: load_map(path))[0] for _ in range(args.repeat))
+        loaded = load_map(path)
         points = (rng.uniform(-side / 2, side / 2, (10, 3)) + 0.5) * 0.1
         loaded.query(points)  # compiles nothing new; first-call overhead excluded
         query = min(_timed(lambda: loaded.query(points))[0] for _ in range(5))
         size = path.stat().st_size
-        from mfp_mapper.offline.export import export_ply
-        from mfp_mapper.offline.nav2_map import write_nav2_map
-        from mfp_mapper.offline.render import render_map
+        from mfp_mapper.outputs.export import export_ply
+        from mfp_mapper.outputs.nav2_map import write_nav2_map
+        from mfp_mapper.outputs.render import render_map
 
         ply = _timed(lambda: export_ply(loaded, Path(tmp) / "map.ply", min_doo=0.1))[0]
         nav2 = _timed(lambda: write_nav2_map(loaded, Path(tmp) / "nav.yaml", -1.0, 1.0))[0]

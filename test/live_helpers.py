@@ -1,4 +1,4 @@
-"""Helpers of the tests that drive the live worker (``sensing.live``) without ROS."""
+"""Helpers of the tests that drive the live worker (``mapping.live``) without ROS."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import time
 
 import numpy as np
 
-from mfp_mapper.sensing.live import LiveIntegrator
+from mfp_mapper.mapping.live import LiveIntegrator
 from mfp_mapper.sensing.poses import OdometrySample
 
 

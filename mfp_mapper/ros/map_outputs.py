@@ -19,11 +19,11 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
+from mfp_mapper.config.schema import NodeConfig
 from mfp_mapper.core.gridmap import GridTooLarge, unobserved_hit_probability
+from mfp_mapper.mapping.live import LiveIntegrator
 from mfp_mapper.ros.messages import cloud_msg, grid_msg, stamp_msg
-from mfp_mapper.sensing.live import LiveIntegrator
 from mfp_mapper.sensing.pointcloud import pack_cloud
-from mfp_mapper.settings import NodeConfig
 
 PUBLISH_DUTY = 0.1
 """Largest share of wall time the map outputs may take: after a publication that took

@@ -1,10 +1,10 @@
 """The ``mfp_mapper`` ROS 2 node: live mapping from PointCloud2 + Odometry.
 
 ROS wiring only: subscriptions hand clouds and odometry to the ROS-free worker
-(``mfp_mapper.sensing.live``: queue, odometry wait, the scan pipeline, drops, counters);
+(``mfp_mapper.mapping.live``: queue, odometry wait, the scan pipeline, drops, counters);
 ``map_outputs`` publishes the map; services query, save and reset it. Run it with
 ``python -m mfp_mapper.node --ros-args ...`` or ``ros2 run mfp_mapper mfp_mapper``;
-parameters are in ``mfp_mapper.settings``.
+parameters are in ``mfp_mapper.config.schema``.
 
 Threads: one executor thread runs every ROS callback (rclpy's multi-threaded executor
 cost about 70% of a core in overhead); subscription callbacks only queue clouds and store
@@ -46,9 +46,12 @@ from std_msgs.msg import String
 from std_srvs.srv import Empty, Trigger
 from tf2_msgs.msg import TFMessage
 
-from mfp_mapper.core.atomic import remove_stale_temp_files
-from mfp_mapper.core.mapfile import MapFileError, map_arrays, write_map_arrays
+from mfp_mapper.config.schema import SPECS, NodeConfig
 from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.mapio.atomic import remove_stale_temp_files
+from mfp_mapper.mapio.loading import load_map
+from mfp_mapper.mapio.mapfile import MapFileError, map_arrays, write_map_arrays
+from mfp_mapper.mapping.live import LiveIntegrator, LiveSettings
 from mfp_mapper.ros.guarded_node import GuardedNode, tracked
 from mfp_mapper.ros.map_outputs import MapOutputs
 from mfp_mapper.ros.messages import cloud_msg
@@ -60,11 +63,9 @@ from mfp_mapper.ros.status import (
     startup_text,
     status_report,
 )
-from mfp_mapper.sensing.live import LiveIntegrator, LiveSettings
 from mfp_mapper.sensing.pointcloud import CloudFormatError, pack_cloud, read_xyz, stamp_seconds
 from mfp_mapper.sensing.poses import PoseBuffer, odometry_sample
 from mfp_mapper.sensing.tf_tree import TfTree, TransformUnavailable
-from mfp_mapper.settings import SPECS, NodeConfig
 
 NODE_NAME = "mfp_mapper"
 RESULT_FIELDS = (
@@ -85,7 +86,7 @@ def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, bool]:
     if not (path and os.path.exists(path)):
         return _empty_map(cfg), False
     try:
-        mapper = Mapper.load(path, **cfg.mapper_settings())
+        mapper = load_map(path, **cfg.map_settings().mapper_kwargs())
     except (MapFileError, ValueError, OSError) as err:
         logger.error(
             f"cannot load map_path {path!r}: {err}; starting an empty map (and not "
@@ -104,7 +105,7 @@ def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, bool]:
 
 
 def _empty_map(cfg: NodeConfig) -> Mapper:
-    return Mapper(cfg.resolution, frame_id=cfg.frame_id or "map", **cfg.mapper_settings())
+    return Mapper.of(cfg.map_settings(), frame_id=cfg.frame_id or "map")
 
 
 class MfpMapperNode(GuardedNode):

@@ -9,10 +9,10 @@ from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
+from mfp_mapper.config.schema import NodeConfig
 from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.mapping.live import LiveCounters, finite_or_none
 from mfp_mapper.ros.map_outputs import PublishCounters
-from mfp_mapper.sensing.live import LiveCounters, finite_or_none
-from mfp_mapper.settings import NodeConfig
 
 
 @dataclass
@@ -139,7 +139,7 @@ def diagnostics(
 def startup_text(cfg: NodeConfig, topic: Callable[[str], str], mapper: Mapper) -> str:
     """The start-up log line: what a robot integrator needs to check (topics, frames, pose
     and extrinsic sources, map file, outputs); ``topic`` resolves a topic name."""
-    if cfg.extrinsic_override() is not None:
+    if cfg.lidar_override() is not None:
         extrinsic = (
             f"lidar.* parameters (translation {list(cfg.lidar_translation)}, rpy "
             f"{list(cfg.lidar_rpy)}) unless the cloud frame is the odometry child"

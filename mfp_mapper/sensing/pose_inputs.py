@@ -20,7 +20,7 @@ from mfp_mapper.sensing.poses import OdometrySample, PoseBuffer
 from mfp_mapper.sensing.tf_tree import TfTree, TransformUnavailable
 
 if TYPE_CHECKING:
-    from mfp_mapper.sensing.live import LiveCounters, LiveSettings
+    from mfp_mapper.mapping.live import LiveCounters, LiveSettings
 
 CLOCK_JUMP_BACK = 1.0
 """Seconds the clock must go back to count as a jump (bag loop, simulation restart)."""

@@ -12,14 +12,14 @@ from live_helpers import drain, odom_sample
 from scipy.spatial.transform import Rotation
 
 from mfp_mapper.core.mapper import Mapper
-from mfp_mapper.offline.scan_files import cloud_message_from_columns
+from mfp_mapper.mapping.live import LiveIntegrator, LiveSettings
 from mfp_mapper.sensing.deskew import cloud_to_map
-from mfp_mapper.sensing.live import LiveIntegrator, LiveSettings
 from mfp_mapper.sensing.pipeline import ScanDropped
 from mfp_mapper.sensing.placement import Odometry, StampGuard, resolve_placement
 from mfp_mapper.sensing.pointcloud import ParsedCloud
 from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer
 from mfp_mapper.sensing.tf_tree import TfTree
+from mfp_mapper.sources.scan_files import cloud_message_from_columns
 
 T0 = 100.0
 MAP_ODOM = (np.array([10.0, -5.0, 0.0]), Rotation.from_euler("z", 0.5).as_quat())
