@@ -52,6 +52,9 @@ def replay_folder(
         folder = open_scan_folder(directory, times_file)
     except (DatasetFormatError, OSError) as err:
         raise ReplayError(str(err)) from None
+    if folder.skipped and log is not None:
+        log(f"warning: {folder.directory}: skipped {len(folder.skipped)} entries named like "
+            f"scan files: {', '.join(folder.skipped)}")  # fmt: skip
     summary = ReplaySummary(bag=str(folder.directory))
     summary.cloud_topic = f"{len(folder)} {folder.kind} files (stamps: {folder.stamp_source})"
     summary.scans_total = len(folder)
@@ -107,8 +110,10 @@ def folder_poses(
         if kind == "kitti":
             positions, quaternions = pose_files.read_kitti_poses(path)
             if len(positions) != len(stamps):
+                skipped = f"; skipped: {', '.join(folder.skipped)}" if folder.skipped else ""
                 raise DatasetFormatError(
-                    f"{path}: {len(positions)} KITTI poses for {len(stamps)} scans (one per scan)"
+                    f"{path}: {len(positions)} KITTI poses for {len(stamps)} scans (one per "
+                    f"scan){skipped}"
                 )
         elif kind == "tum":
             stamps, positions, quaternions = pose_files.read_tum_poses(path)

@@ -45,6 +45,7 @@ from mfp_mapper.sources.bags import (
     odometry_poses,
     open_reader,
     pick_topic,
+    read_messages,
     read_transforms,
     resolve_bag_path,
     tf_poses,
@@ -225,7 +226,7 @@ def _replay(
     mapper = mapper_for(opts, poses.map_frame, into)
 
     def clouds() -> Iterator[tuple[int, Callable[[], Any]]]:
-        for index, (conn, _, raw) in enumerate(reader.messages(connections=cloud_conns)):
+        for index, (conn, _, raw) in enumerate(read_messages(reader, cloud_conns, path)):
             yield index, partial(reader.deserialize, raw, conn.msgtype)
 
     def extrinsic_of(frame: str) -> Extrinsic:
@@ -384,11 +385,12 @@ def _estimated_poses(
     """Poses from the clouds (KISS-ICP): the map frame is the first scan's lidar frame."""
     from mfp_mapper.sources.lidar_odometry import odometry_poses
 
-    first = next(reader.messages(connections=cloud_conns))
+    path = getattr(reader, "paths", ["the bag"])[0]
+    first = next(read_messages(reader, cloud_conns, path))
     cloud_frame = frame_name(reader.deserialize(first[2], first[0].msgtype).header.frame_id)
     clouds = (
         (None, partial(reader.deserialize, raw, conn.msgtype))
-        for conn, _, raw in reader.messages(connections=cloud_conns)
+        for conn, _, raw in read_messages(reader, cloud_conns, path)
     )
     total = sum(c.msgcount for c in cloud_conns)
     return odometry_poses(clouds, opts, cloud_frame, total, log), read_transforms(), cloud_frame
