@@ -65,6 +65,14 @@ def read_pcd(path: str | Path) -> dict[str, NDArray[np.generic]]:
     header, body = _split_pcd_header(path.read_bytes(), path)
     dtype = _pcd_dtype(header, path)
     points = _pcd_int(header, "POINTS", path)
+    if points < 0:
+        raise DatasetFormatError(f"{path}: PCD header says POINTS {points}, a negative count")
+    if "WIDTH" in header and "HEIGHT" in header:
+        width, height = _pcd_int(header, "WIDTH", path), _pcd_int(header, "HEIGHT", path)
+        if width < 0 or height < 0 or width * height != points:
+            raise DatasetFormatError(
+                f"{path}: PCD header says WIDTH {width} x HEIGHT {height} but POINTS {points}"
+            )
     encoding = header["DATA"][0].lower() if header["DATA"] else ""
     if encoding == "binary":
         if len(body) < points * dtype.itemsize:
