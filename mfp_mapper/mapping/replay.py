@@ -325,7 +325,7 @@ def map_scans(
     )
     loop = ScanLoop(mapper, opts, on_placed=on_scan, fatal=(ReplayError,))
     counts = loop.counts
-    bad_example = error_example = ""
+    bad_example = error_example = empty_example = ""
     cloud_span = [math.inf, -math.inf]
     t_loop = time.perf_counter()
     try:
@@ -351,6 +351,8 @@ def map_scans(
                 bad_example = bad_example or outcome.detail
             elif outcome.reason == "error":
                 error_example = error_example or outcome.detail
+            elif outcome.reason == "empty":
+                empty_example = empty_example or outcome.detail
             if outcome.placed is None or outcome.summary is None:
                 continue
             summary.seconds_core += outcome.summary.seconds
@@ -367,7 +369,11 @@ def map_scans(
     summary.seconds = time.perf_counter() - t_loop
     examples = "".join(
         f"; first {what}: {text}"
-        for what, text in (("bad cloud", bad_example), ("error", error_example))
+        for what, text in (
+            ("bad cloud", bad_example),
+            ("empty cloud", empty_example),
+            ("error", error_example),
+        )
         if text
     )
     if summary.scans_used == 0:

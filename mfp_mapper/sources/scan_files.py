@@ -216,7 +216,7 @@ def read_ply(path: str | Path) -> dict[str, NDArray[np.generic]]:
     (0.015-0.12 s each, interleaved, within the noise). List properties on the vertex
     element are refused.
     """
-    from plyfile import PlyData
+    from plyfile import PlyData  # type: ignore[import-untyped]
 
     path = Path(path)
     try:

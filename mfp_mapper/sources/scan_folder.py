@@ -104,9 +104,9 @@ def open_scan_folder(
     folder = Path(directory)
     if not folder.is_dir():
         raise DatasetFormatError(f"{folder}: not a directory")
-    named = [f for f in folder.iterdir() if f.suffix.lower() in READERS]
-    files = [f for f in named if f.is_file()]
-    skipped = sorted(f"{f.name} ({_not_a_file(f)})" for f in named if not f.is_file())
+    entries = [f for f in folder.iterdir() if f.suffix.lower() in READERS]
+    files = [f for f in entries if f.is_file()]
+    skipped = sorted(f"{f.name} ({_not_a_file(f)})" for f in entries if not f.is_file())
     kinds = sorted({f.suffix.lower() for f in files})
     if not files:
         raise DatasetFormatError(
