@@ -2,20 +2,16 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import time
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
-from mfp_mapper.mapio.atomic import write_text_atomic
-from mfp_mapper.mapio.loading import save_map
-from mfp_mapper.mapping.replay import ReplayOptions, replay
-from mfp_mapper.outputs.evaluate import evaluate_map
-from mfp_mapper.outputs.export import export_ply
-from mfp_mapper.outputs.render import plot_convergence, render_map
-from mfp_mapper.outputs.report import jsonable, simulation_lines
-from mfp_mapper.sources.simulate import preset, simulate
+from mfp_mapper.cli.common import CliError, nonneg_int, positive, warn
+from mfp_mapper.config.names import BAG_FORMATS
 
 
 def run_demo(
@@ -29,6 +25,15 @@ def run_demo(
 ) -> None:
     """Run the whole chain into ``output`` and print what came out (ReplayError if the
     replay fails)."""
+    from mfp_mapper.mapio.atomic import write_text_atomic
+    from mfp_mapper.mapio.loading import save_map
+    from mfp_mapper.mapping.replay import ReplayOptions, replay
+    from mfp_mapper.outputs.evaluate import evaluate_map
+    from mfp_mapper.outputs.export import export_ply
+    from mfp_mapper.outputs.render import plot_convergence, render_map
+    from mfp_mapper.outputs.report import jsonable, simulation_lines
+    from mfp_mapper.sources.simulate import preset, simulate
+
     t0 = time.perf_counter()
     out = Path(output)
     out.mkdir(parents=True, exist_ok=True)
@@ -78,3 +83,35 @@ def run_demo(
     )
     print(f"pictures are in {pics.resolve()}/ (start with doo_topdown.png and slice.png)")
     print(f"done in {time.perf_counter() - t0:.1f} s")
+
+
+def add_parser(sub: Any) -> argparse.ArgumentParser:
+    """The ``demo`` subcommand's arguments."""
+    p = sub.add_parser(
+        "demo",
+        help="simulate -> replay -> render -> evaluate the built-in example",
+        description="Run the whole chain on the built-in example and say what came out.",
+    )
+    p.add_argument(
+        "-o",
+        "--output",
+        default="example_output",
+        help="directory for everything (default ./example_output)",
+    )
+    p.add_argument("--resolution", type=positive, default=0.2, help="voxel edge (default 0.2)")
+    p.add_argument("--scans", type=nonneg_int, default=120, help="rotations (default 120)")
+    p.add_argument("--format", choices=BAG_FORMATS, default="mcap")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    from mfp_mapper.mapping.replay import ReplayError
+
+    try:
+        run_demo(args.output, args.resolution, args.scans, args.format, args.seed,
+                 progress=not args.quiet, warn=warn)  # fmt: skip
+    except ReplayError as err:
+        raise CliError(str(err)) from None
+    return 0

@@ -14,6 +14,7 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
+from mfp_mapper.config.param_file import load_node_parameters
 from mfp_mapper.config.schema import (
     BY_NAME,
     SETTINGS,
@@ -21,6 +22,7 @@ from mfp_mapper.config.schema import (
     NodeConfig,
     Setting,
     XyzRpy,
+    check_parameters,
     xyz_rpy,
 )
 
@@ -113,9 +115,6 @@ def options_from_yaml(path: str | Path) -> dict[str, Any]:
     typing of values, unknown names and values the node rejects are errors: ConfigError).
     Only the parameters the file sets are returned.
     """
-    from mfp_mapper.config.param_file import load_node_parameters
-    from mfp_mapper.config.schema import check_parameters
-
     try:
         values = load_node_parameters(path)
         cfg = check_parameters(values)

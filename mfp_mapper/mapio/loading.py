@@ -26,7 +26,7 @@ def load_map(
     p = Path(path)
     if p.is_dir():
         return TiledMap(p).load(bounds, **overrides)
-    arrays = read_map_arrays(p)
+    arrays = read_map_arrays(p, check_duplicates=False)
     if bounds is not None:
         lo_i, hi_i = index_bounds(bounds, float(arrays["resolution"]), arrays.get("origin"))
         keep = np.all((arrays["ijk"] >= lo_i) & (arrays["ijk"] <= hi_i), axis=1)

@@ -234,11 +234,13 @@ def _contents(path: Path, a: dict[str, np.ndarray]) -> MapContents:
     )
 
 
-def read_map_arrays(path: str | Path) -> dict[str, np.ndarray]:
+def read_map_arrays(path: str | Path, check_duplicates: bool = True) -> dict[str, np.ndarray]:
     """The arrays of a map file as stored (float64 sums kept, no Mapper built), checked as
-    ``read_map_file`` checks them, and for voxels listed twice (one sort of packed keys)."""
+    ``read_map_file`` checks them, and for voxels listed twice (one sort of packed keys;
+    ``check_duplicates=False`` when a Mapper is built from them: its store finds them and
+    names the voxel)."""
     c = read_map_file(path)
-    if has_duplicates(c.voxels.ijk):
+    if check_duplicates and has_duplicates(c.voxels.ijk):
         raise MapFileError(path, "ijk lists a voxel more than once")
     return {
         "ijk": c.voxels.ijk,
@@ -260,9 +262,7 @@ def mapper_from_arrays(
 ) -> Mapper:
     """A new Mapper holding map-file ``arrays`` (as ``read_map_arrays`` or ``map_arrays``
     give them); ``path`` names them in errors; ``overrides`` replace stored settings (not
-    ``resolution`` or ``origin``), as ``Mapper.load`` does."""
-    from mfp_mapper.core.mapper import Mapper
-
+    ``resolution`` or ``origin``), as ``load_map`` does."""
     resolution = float(arrays["resolution"])
     origin = np.asarray(arrays.get("origin", np.zeros(3)), dtype=np.float64).reshape(3)
     settings: dict[str, object] = {

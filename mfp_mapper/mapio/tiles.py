@@ -21,11 +21,12 @@ import secrets
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from mfp_mapper.core.mapper import Mapper, VoxelStats
 from mfp_mapper.core.merge import check_mergeable, merge_map_arrays
 from mfp_mapper.core.store import BLOCK_BITS
 from mfp_mapper.mapio.atomic import write_text_atomic
@@ -37,9 +38,6 @@ from mfp_mapper.mapio.mapfile import (
     read_map_arrays,
     write_map_arrays,
 )
-
-if TYPE_CHECKING:
-    from mfp_mapper.core.mapper import Mapper, VoxelStats
 
 TILES_FORMAT = "mfp_mapper.tiles"
 TILES_VERSION = 1
@@ -290,8 +288,6 @@ class TiledMap:
 
     def query(self, points: ArrayLike, stamp: float | None = None) -> VoxelStats:
         """``Mapper.query`` over the tiles: each tile holding a point is read once."""
-        from mfp_mapper.core.mapper import Mapper
-
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         empty = Mapper(
             self.resolution,

@@ -26,7 +26,7 @@ from mfp_mapper.mapping.replay import (
     mapper_for,
 )
 from mfp_mapper.sensing.poses import Extrinsic
-from mfp_mapper.sources import pose_files
+from mfp_mapper.sources import lidar_odometry, pose_files
 from mfp_mapper.sources.bags import Poses, ReplayError
 from mfp_mapper.sources.scan_files import DatasetFormatError
 from mfp_mapper.sources.scan_folder import ScanFolder, open_scan_folder
@@ -87,9 +87,8 @@ def folder_poses(
     if opts.odometry is not None:
         if poses is not None:
             raise ReplayError("give either --poses or --odometry, not both")
-        from mfp_mapper.sources.lidar_odometry import odometry_poses
 
-        return odometry_poses(
+        return lidar_odometry.odometry_poses(
             ((scan.stamp, partial(folder.message, k)) for k, scan in enumerate(folder.scans)),
             opts,
             folder.frame_id,

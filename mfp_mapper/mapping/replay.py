@@ -35,6 +35,7 @@ from mfp_mapper.mapping.progress import Progress
 from mfp_mapper.sensing import pipeline
 from mfp_mapper.sensing.poses import Extrinsic, frame_name
 from mfp_mapper.sensing.tf_tree import TfTree
+from mfp_mapper.sources import lidar_odometry
 from mfp_mapper.sources.bags import (
     CLOUD_TYPE,
     ODOM_TYPE,
@@ -389,8 +390,6 @@ def _estimated_poses(
     reader: Any, opts: ReplayOptions, cloud_conns: list[Any], log: Callable[[str], None] | None
 ) -> tuple[Poses, TfTree, str]:
     """Poses from the clouds (KISS-ICP): the map frame is the first scan's lidar frame."""
-    from mfp_mapper.sources.lidar_odometry import odometry_poses
-
     path = getattr(reader, "paths", ["the bag"])[0]
     first = next(read_messages(reader, cloud_conns, path))
     cloud_frame = frame_name(reader.deserialize(first[2], first[0].msgtype).header.frame_id)
@@ -399,7 +398,8 @@ def _estimated_poses(
         for conn, _, raw in read_messages(reader, cloud_conns, path)
     )
     total = sum(c.msgcount for c in cloud_conns)
-    return odometry_poses(clouds, opts, cloud_frame, total, log), read_transforms(), cloud_frame
+    poses = lidar_odometry.odometry_poses(clouds, opts, cloud_frame, total, log)
+    return poses, read_transforms(), cloud_frame
 
 
 def _read_poses(

@@ -15,16 +15,15 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from mfp_mapper.config.replay_options import ReplayOptions
 from mfp_mapper.core import model
 from mfp_mapper.core.mapper import Mapper
-
-if TYPE_CHECKING:
-    from mfp_mapper.config.replay_options import ReplayOptions
+from mfp_mapper.mapping.replay import replay
 
 FloatArray = NDArray[np.float64]
 
@@ -266,8 +265,6 @@ def compare_no_return(
     level: float = 0.9,
 ) -> NoReturnComparison:
     """Replay ``bag`` without and with ``no_return_range`` and evaluate both maps."""
-    from mfp_mapper.config.replay_options import ReplayOptions
-    from mfp_mapper.mapping.replay import replay
 
     if not no_return_range > 0:
         raise ValueError(f"no_return_range must be > 0 m, got {no_return_range}")

@@ -12,17 +12,15 @@ from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from mfp_mapper.config.replay_options import ReplayError as ReplayError  # defined with the options
+from mfp_mapper.config.replay_options import ReplayOptions
 from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer, odometry_sample
 from mfp_mapper.sensing.tf_tree import TfTree, TransformUnavailable
-
-if TYPE_CHECKING:
-    from mfp_mapper.config.replay_options import ReplayOptions
 
 FloatArray = NDArray[np.float64]
 
