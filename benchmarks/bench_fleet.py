@@ -11,8 +11,8 @@ mapped in the same run: ``replay`` of each recording into its own map with nothi
 mapper takes the recordings in turn, what ``replay A B`` does without ``--workers``), the
 partial maps as tiles + the exact reduction in this process (``partials``), and Dask
 LocalClusters of each ``--workers`` count (the cluster start is timed apart). Ratios are
-against the baseline and the in-process partials of this run. Per task: seconds, rays/s, peak RSS of the worker
-process, partial voxels.
+against the baseline and the in-process partials of this run. Per task: seconds, rays/s,
+peak RSS of the worker process, partial voxels.
 
 Part 2 (reduction): two synthetic maps that overlap by half, ``--merge-voxels`` voxels in
 all: ``core.merge.merge_voxels`` (sort + segmented sums), ``np.sort`` of as many int64
