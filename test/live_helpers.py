@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 
 from mfp_mapper.mapping.live import LiveIntegrator
@@ -17,7 +15,4 @@ def odom_sample(stamp: float, frame: str = "odom") -> OdometrySample:
 
 def drain(worker: LiveIntegrator) -> None:
     """Process every queued cloud on this thread (what ``run()`` does), waiting when told to."""
-    while worker._queue:
-        item = worker._queue.popleft()
-        while not worker.process(item):
-            time.sleep(0.01)
+    worker.drain()

@@ -147,9 +147,13 @@ SETTINGS: tuple[Setting, ...] = (
     # --- the map ---------------------------------------------------------------------------
     _both("resolution", 0.1, "Voxel edge (m). A map loaded from map_path keeps its own.",
           0.01, 10.0, flag="--resolution"),
-    _node("frame_id", "", "Map frame. Empty: the odometry's header.frame_id (without "
-          "odometry: the root of the cloud frame's TF tree). A frame above the odometry "
-          "frame (map -> odom from SLAM/localization) is resolved through TF."),
+    _node("frame_id", "", "Map frame, fixed for the run (octomap_server's frame_id; set it "
+          "to 'map' with SLAM/localization: map -> odom is then taken from TF and clouds wait "
+          "for it). Empty: a loaded map's frame, else decided at the first cloud placed: the "
+          "odometry's header.frame_id, without odometry the root of the cloud frame's TF "
+          "tree; never changed afterwards."),
+    _node("cloud_frame_id", "", "Frame of clouds whose header.frame_id is empty (e.g. the "
+          "lidar frame). Empty: such clouds are dropped (no_frame)."),
     _node("base_frame_id", "", "Robot body frame the lidar extrinsic (from /tf_static) is "
           "relative to. Empty: the odometry's child_frame_id."),
     _both("decay_time", 0.0, "Time constant T (s) of the dynamic-environment decay (Eq. "
@@ -227,7 +231,9 @@ SETTINGS: tuple[Setting, ...] = (
     _node("projected_map.free_threshold", -1.0, "Hit probability below which an observed "
           "~/projected_map cell is free (0). Negative: that of a never-observed voxel, "
           "resolution / (1 + resolution).", -1.0, 1.0, dynamic=True),
-    _node("tf_buffer", 10.0, "Seconds of /tf kept per transform.", 0.1, 3600.0),
+    _node("tf_buffer", 10.0, "TF cache time (s; tf2's default 10): /tf samples kept per "
+          "transform; a transform not received for this long (stream time) is forgotten.",
+          0.1, 3600.0),
     # --- map file, health ------------------------------------------------------------------
     _node("map_path", "", "Map file (.npz) for ~/save_map, loaded at start when it exists. "
           "Empty: none."),
@@ -397,6 +403,7 @@ class NodeConfig:
 
     resolution: float
     frame_id: str
+    cloud_frame_id: str
     base_frame_id: str
     decay_time: float
     threads: int

@@ -1,11 +1,15 @@
-"""The live integration worker, without ROS: queue, odometry, waiting, drops and counters.
+"""The live integration worker, without ROS: queue, waiting, drops and counters.
 
-The node hands it received clouds (``submit``) and odometry (``add_odometry``) from its
-executor thread; one worker thread takes the clouds in order, waits (at most ``odom_wait``
-seconds) until the poses cover a cloud, runs it through the scan pipeline and integrates
-it under ``map_lock``. Between two scans it calls ``publish`` when ``request_publish``
-asked for it, so publishing never waits for an integration and the executor never waits
-for the map. Everything is counted under the pipeline's names (``pipeline.DROP_REASONS``).
+The node hands it received clouds (``submit``) from its executor thread, and odometry and
+transforms to its pose inputs (``worker.pose_inputs``, a ``PoseInputs``). One worker thread takes
+the clouds in order and runs each through the scan pipeline, integrating it under
+``map_lock``. A cloud its poses do not cover yet waits (at most ``odom_wait`` seconds) in a
+list of its own while the clouds behind it go on: **no head-of-line blocking**, and when
+the queue is full the oldest *waiting* cloud is dropped before any placeable one. Between
+two scans it calls ``publish`` (given to the constructor or ``set_publish``) when
+``request_publish`` asked for it, so publishing never waits for an integration and the
+executor never waits for the map. Everything is counted under the pipeline's names
+(``pipeline.DROP_REASONS``).
 """
 
 from __future__ import annotations
@@ -14,24 +18,24 @@ import copy
 import math
 import threading
 import time
-from collections import Counter, deque
+from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
-
-import numpy as np
 
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.mapping.loop import PreparedScan, ScanCounts, ScanLoop
 from mfp_mapper.sensing import pipeline
-from mfp_mapper.sensing.placement import Odometry, Placement, StampGuard, resolve_placement
 from mfp_mapper.sensing.pointcloud import ParsedCloud
-from mfp_mapper.sensing.pose_inputs import Log, PoseInputs
+from mfp_mapper.sensing.pose_inputs import Log, PoseCounters, PoseInputs
 from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer
 from mfp_mapper.sensing.tf_tree import TfTree
 
 if TYPE_CHECKING:
     from mfp_mapper.config.schema import NodeConfig, XyzRpy
+
+RETRY_PERIOD = 0.02
+"""Seconds between two tries of a waiting cloud (sooner when new poses arrived)."""
 
 
 @dataclass
@@ -48,6 +52,8 @@ class LiveSettings:
     """> 0: recover the firings with no return as rays this long (``sensing.no_return``)."""
     base_frame_id: str = ""
     extrinsic_override: Extrinsic | None = None
+    cloud_frame_id: str = ""
+    """The frame of a cloud whose header.frame_id is empty ("": such a cloud is dropped)."""
 
     @classmethod
     def of(cls, cfg: NodeConfig) -> LiveSettings:
@@ -59,7 +65,8 @@ class LiveSettings:
             point_cloud_max_z=cfg.point_cloud_max_z,
             cloud_queue_size=cfg.cloud_queue_size,
             odom_wait=cfg.odom_wait,
-            base_frame_id=cfg.base_frame_id,
+            base_frame_id=cfg.base_frame_id.lstrip("/"),
+            cloud_frame_id=cfg.cloud_frame_id.lstrip("/"),
             extrinsic_override=_extrinsic(cfg.lidar_override()),
             no_return_range=cfg.sensor_model_no_return_range,
         )
@@ -72,15 +79,15 @@ class _Pending:
     received: float  # time.monotonic()
     msg: Any
     prepared: PreparedScan | None = None
+    tried: int = -1  # the pose generation of the last try (-1: never tried)
+    next_try: float = 0.0  # time.monotonic()
 
 
 @dataclass
-class LiveCounters(ScanCounts):
-    """The pipeline's counts plus what only a live stream has."""
+class LiveCounters(ScanCounts, PoseCounters):
+    """The pipeline's counts, the pose inputs' and what only a live stream has."""
 
     clouds_lost: int = 0  # reported lost by the middleware (never received)
-    odom_in: int = 0
-    odom_rejected: Counter[str] = field(default_factory=Counter)
     integration_cpu: float = 0.0  # CPU seconds: parse + place + integrate (+ core threads)
     integration_wall: float = 0.0
     latency_sum: float = 0.0
@@ -88,9 +95,9 @@ class LiveCounters(ScanCounts):
     latency_last: float = float("nan")
 
 
-class LiveIntegrator(PoseInputs):
+class LiveIntegrator:
     """Queue and worker thread of the live node (see the module docstring); its pose
-    inputs (odometry, TF, the clock) are those of ``PoseInputs``."""
+    inputs (odometry, TF, the clock, the map frame) are ``self.pose_inputs``."""
 
     def __init__(
         self,
@@ -101,29 +108,34 @@ class LiveIntegrator(PoseInputs):
         tree: TfTree | None = None,
         log: Log,
         now: Callable[[], float],
+        info: Callable[[str], None] | None = None,
         publish: Callable[[], None] | None = None,
+        map_frame: str = "",
     ) -> None:
+        """``map_frame``: the run's map frame when known at start (``frame_id``, a loaded
+        map's frame); empty: decided at the first cloud placed (``PoseInputs``)."""
         self.mapper = mapper
         self.settings = settings
-        self.poses = poses
         self.counters = LiveCounters()
         self.map_lock = threading.Lock()
-        self.pose_lock = threading.Lock()
-        self.odom_frame: str | None = None
-        self.odom_child: str | None = None
-        self.robot_position: np.ndarray | None = None
-        self.tree = tree if tree is not None else TfTree()
-        self.tf_map_frame: str | None = None
-        self.placement_source = "none yet"
-        self._odom_guard = StampGuard(self.tree.max_jump, self.tree.max_future)
-        self._last_clock: float | None = None
-        self._warned_time_field = False
-        self._logged_no_return = False
+        self.pose_inputs = PoseInputs(
+            poses,
+            tree if tree is not None else TfTree(),
+            self.counters,
+            frame_id=map_frame or settings.frame_id,
+            log=log,
+            info=info or (lambda text: log("info", text, False)),
+            now=now,
+        )
+        if self.pose_inputs.map_frame is not None:
+            mapper.frame_id = self.pose_inputs.map_frame
+        self._warned: set[str] = set()
         self._log = log
         self._now = now
         self._publish = publish
         self._cv = threading.Condition()
         self._queue: deque[_Pending] = deque()
+        self._waiting: list[_Pending] = []
         self._publish_due = False
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -131,17 +143,71 @@ class LiveIntegrator(PoseInputs):
             mapper, settings, counts=self.counters, counts_lock=self._cv, map_lock=self.map_lock
         )
 
+    def set_publish(self, publish: Callable[[], None] | None) -> None:
+        """What the worker calls between two scans after ``request_publish``."""
+        self._publish = publish
+
+    @property
+    def map_frame(self) -> str:
+        """The run's map frame ("" until decided)."""
+        return self.pose_inputs.map_frame or ""
+
+    @property
+    def robot_position(self) -> Any:
+        return self.pose_inputs.robot_position
+
     # --- inputs (any thread) ----------------------------------------------------------------
 
     def submit(self, msg: Any) -> None:
-        """Queue a received cloud; when the queue is full the oldest is dropped."""
+        """Queue a received cloud; when the queue is full the oldest waiting cloud (one its
+        poses do not cover yet) is dropped, else the oldest."""
         item = _Pending(time.monotonic(), msg)
         with self._cv:
             self.counters.clouds_in += 1
-            if len(self._queue) >= self.settings.cloud_queue_size:
-                self._queue.popleft()
-                self._drop_locked("queue_full", "integration is behind; dropped the oldest cloud")
+            if len(self._queue) + len(self._waiting) >= self.settings.cloud_queue_size:
+                if self._waiting:
+                    self._waiting.pop(0)
+                    detail = "the oldest cloud still waiting for its poses was dropped"
+                else:
+                    self._queue.popleft()
+                    detail = "integration is behind; dropped the oldest cloud"
+                self._drop_locked("queue_full", detail)
             self._queue.append(item)
+            self._cv.notify_all()
+
+    def add_odometry(self, sample: Any) -> bool:
+        """``poses.add_odometry``, then wake the worker."""
+        ok = self.pose_inputs.add_odometry(sample)
+        self._wake()
+        return ok
+
+    def add_transforms(self, msg: Any, static: bool) -> int:
+        """``poses.add_transforms``, then wake the worker."""
+        kept = self.pose_inputs.add_transforms(msg, static)
+        self._wake()
+        return kept
+
+    def observe_clock(self, now: float) -> bool:
+        """Note the node clock; on a jump back (bag loop) clear poses, TF and the queue."""
+        jump = self.pose_inputs.observe_clock(now)
+        if jump is None:
+            return False
+        with self._cv:
+            dropped = len(self._queue) + len(self._waiting)
+            self._queue.clear()
+            self._waiting.clear()
+            for _ in range(dropped):
+                self.counters.drop("clock_jump")
+        self._log(
+            "clock_jump",
+            f"clock jumped back {jump:.3f} s (to {now:.3f}): pose and TF buffers "
+            f"cleared, {dropped} queued cloud(s) dropped; the map is kept",
+            False,
+        )
+        return True
+
+    def _wake(self) -> None:
+        with self._cv:
             self._cv.notify_all()
 
     def clouds_lost(self, count: int) -> int:
@@ -153,7 +219,7 @@ class LiveIntegrator(PoseInputs):
     @property
     def queued(self) -> int:
         with self._cv:
-            return len(self._queue)
+            return len(self._queue) + len(self._waiting)
 
     def request_publish(self) -> None:
         """Ask the worker to publish between two scans."""
@@ -174,37 +240,64 @@ class LiveIntegrator(PoseInputs):
         if self._thread is not None:
             self._thread.join(timeout=timeout)
 
+    def _next(self) -> _Pending | None:
+        """The next cloud to try (under ``_cv``): a new one first, else a waiting one that
+        is due (new poses since its last try, or ``RETRY_PERIOD`` passed)."""
+        if self._queue:
+            return self._queue.popleft()
+        now, generation = time.monotonic(), self.pose_inputs.generation
+        for i, item in enumerate(self._waiting):
+            if item.next_try <= now and (
+                item.tried != generation or now - item.received > self.settings.odom_wait
+            ):
+                return self._waiting.pop(i)
+        return None
+
     def run(self) -> None:
-        """Integrate queued clouds in order; publish between scans when asked."""
-        current: _Pending | None = None
+        """Integrate clouds in order, a waiting one not blocking those behind it; publish
+        between scans when asked."""
         while not self._stop.is_set():
             with self._cv:
-                while not (
-                    current is not None or self._queue or self._publish_due or self._stop.is_set()
-                ):
-                    self._cv.wait(0.5)
+                item = self._next()
+                while item is None and not (self._publish_due or self._stop.is_set()):
+                    self._cv.wait(RETRY_PERIOD if self._waiting else 0.5)
+                    item = self._next()
                 if self._stop.is_set():
                     return
                 publish, self._publish_due = self._publish_due, False
-                if current is None and self._queue:
-                    current = self._queue.popleft()
             if publish and self._publish is not None:
                 try:
                     self._publish()
                 except Exception as err:  # a failed publication must not stop the worker
                     self._log("publish", f"publishing the map failed: {err!r}", False)
-            if current is None:
-                continue
-            try:
-                done = self.process(current)
-            except Exception as err:  # keep the node alive whatever a message holds
-                self._drop("error", f"{type(err).__name__}: {err}")
-                done = True
-            if done:
-                current = None
+            if item is not None:
+                self._try(item)
+
+    def _try(self, item: _Pending) -> None:
+        generation = self.pose_inputs.generation
+        try:
+            done = self.process(item)
+        except Exception as err:  # keep the node alive whatever a message holds
+            self._drop("error", f"{type(err).__name__}: {err}")
+            done = True
+        if not done:
+            item.tried, item.next_try = generation, time.monotonic() + RETRY_PERIOD
+            with self._cv:
+                self._waiting.append(item)
+
+    def drain(self, timeout: float = 10.0) -> None:
+        """Process every queued and waiting cloud on the calling thread (what ``run`` does;
+        for tests and tools that do not start the thread)."""
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            with self._cv:
+                item = self._next()
+                if item is None and not self._waiting:
+                    return
+            if item is None:
+                time.sleep(0.005)
             else:
-                with self._cv:
-                    self._cv.wait(0.02)
+                self._try(item)
 
     def process(self, item: _Pending) -> bool:
         """Try to integrate one cloud; False when it must wait for poses."""
@@ -222,25 +315,24 @@ class LiveIntegrator(PoseInputs):
         cfg = self.settings
         if item.prepared is None:
             item.prepared = self.loop.prepare(item.msg)
-            if self.counters.no_return_note and not self._logged_no_return:
-                self._logged_no_return = True
-                self._log("no_return", f"no-return rays: {self.counters.no_return_note}", False)
+            if self.counters.no_return_note:
+                self._warn_once("no_return", f"no-return rays: {self.counters.no_return_note}")
             self._warn_time_field(item.prepared.cloud)
+            self._check_stamp(item.prepared)
         prepared = item.prepared
+        parse_drops = dict(prepared.cloud.dropped)
+        frame = self._cloud_frame(prepared.frame_id, parse_drops)
         waited = time.monotonic() - item.received
         try:
-            placement = self._placement(item.msg.header.frame_id)
+            placement = self.pose_inputs.placement(frame, cfg.base_frame_id, cfg.extrinsic_override)
         except pipeline.ScanDropped as drop:
-            if waited <= cfg.odom_wait:
+            if waited <= cfg.odom_wait and drop.reason != "tf_conflict":
                 return False  # the transforms may still come
-            raise pipeline.ScanDropped(
-                drop.reason, drop.detail, 0, dict(prepared.cloud.dropped)
-            ) from None
+            raise pipeline.ScanDropped(drop.reason, drop.detail, 0, parse_drops) from None
         latest = placement.poses.latest_stamp
         if latest is None or latest < prepared.deadline:
             if waited <= cfg.odom_wait:
                 return False
-            parse_drops = dict(prepared.cloud.dropped)
             if latest is None:
                 raise pipeline.ScanDropped(
                     "no_poses",
@@ -256,12 +348,12 @@ class LiveIntegrator(PoseInputs):
                 0,
                 parse_drops,
             )
-        if self.placement_source != placement.source:
-            self.placement_source = placement.source
-            self._log("placement", f"clouds placed by {placement.source}", False)
+        if self.mapper.frame_id != placement.map_frame:
+            self.mapper.frame_id = placement.map_frame  # the run's frame, decided once
         own_cpu = time.thread_time()
         _, summary = self.loop.finish(prepared, placement.poses, placement.extrinsic)
         own_cpu = time.thread_time() - own_cpu
+        self.pose_inputs.note_robot(placement, prepared.stamp, cfg.base_frame_id)
         latency = self._now() - prepared.stamp
         with self._cv:
             c = self.counters
@@ -271,32 +363,56 @@ class LiveIntegrator(PoseInputs):
             c.integration_cpu += max(summary.cpu_seconds - own_cpu, 0.0)  # the core's threads
         return True
 
-    def _placement(self, cloud_frame: str) -> Placement:
-        """Pose source and extrinsic of a cloud, from copies taken under the pose lock (the
-        executor keeps adding odometry and TF meanwhile)."""
-        cfg = self.settings
-        with self.pose_lock:
-            tree = self.tree.snapshot()
-            odometry = None
-            if self.odom_frame is not None and len(self.poses):
-                odometry = Odometry(self.odom_frame, self.odom_child or "", self.poses.snapshot())
-        placement = resolve_placement(
-            cloud_frame, tree, odometry, cfg.frame_id, cfg.base_frame_id, cfg.extrinsic_override
+    def _check_stamp(self, prepared: PreparedScan) -> None:
+        """A cloud stamped further ahead of the node clock than a pose may be is dropped
+        at once (it would only wait: ``ahead_of_clock``)."""
+        now = self._now()
+        limit = self.pose_inputs.tree.max_future
+        if now > 0.0 and prepared.stamp > now + limit:
+            raise pipeline.ScanDropped(
+                "ahead_of_clock",
+                f"stamp {prepared.stamp:.3f} is {prepared.stamp - now:.1f} s ahead of the node "
+                "clock "
+                f"({now:.3f}; at most {limit:g} s allowed): check the sensor's clock or "
+                "use_sim_time",
+                0,
+                dict(prepared.cloud.dropped),
+            )
+
+    def _cloud_frame(self, frame: str, parse_drops: dict[str, int]) -> str:
+        """The cloud's frame: tf1's leading slash stripped (warned once); an empty one is
+        ``cloud_frame_id`` or a drop (``no_frame``)."""
+        if frame.startswith("/"):
+            self._warn_once(
+                "cloud_slash",
+                f"cloud frame_id {frame!r} has a leading slash: read as {frame.lstrip('/')!r} "
+                "(tf2 rejects such names; fix the driver)",
+            )
+            frame = frame.lstrip("/")
+        if frame:
+            return frame
+        if self.settings.cloud_frame_id:
+            return self.settings.cloud_frame_id
+        raise pipeline.ScanDropped(
+            "no_frame",
+            "the cloud's header.frame_id is empty: set the parameter cloud_frame_id to the "
+            "frame such clouds are in (e.g. the lidar frame)",
+            0,
+            parse_drops,
         )
-        if odometry is None and self.tf_map_frame is None:
-            self.tf_map_frame = placement.map_frame
-            self._adopt_map_frame()
-        return placement
+
+    def _warn_once(self, key: str, text: str) -> None:
+        if key not in self._warned:
+            self._warned.add(key)
+            self._log(key, text, False)
 
     def _warn_time_field(self, cloud: ParsedCloud) -> None:
-        if cloud.unknown_time_field and self.settings.deskew and not self._warned_time_field:
-            self._warned_time_field = True
-            self._log(
+        if cloud.unknown_time_field and self.settings.deskew:
+            self._warn_once(
                 "time_field",
                 f"clouds have a field {cloud.unknown_time_field!r} that looks like per-point "
                 "time but is not one of t, time, time_stamp, timestamp: de-skew is off for "
                 "them",
-                False,
             )
 
     def _drop_locked(self, reason: str, detail: str) -> None:
@@ -316,7 +432,7 @@ class LiveIntegrator(PoseInputs):
     def snapshot(self) -> tuple[LiveCounters, int]:
         """A copy of the counters and the queue length, taken together."""
         with self._cv:
-            return copy.deepcopy(self.counters), len(self._queue)
+            return copy.deepcopy(self.counters), len(self._queue) + len(self._waiting)
 
 
 def finite_or_none(value: float) -> float | None:

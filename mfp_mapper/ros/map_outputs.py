@@ -84,11 +84,11 @@ class MapOutputs:
             return  # nobody listens: publish when someone does (latched, so they get it)
         if time.monotonic() < self._not_before:
             return  # the last publication was slow: keep publishing under PUBLISH_DUTY
-        worker, cfg = self._worker, self._config()
+        worker = self._worker
         with worker.map_lock:
             version = worker.mapper.version
-            if not (cfg.frame_id or worker.odom_frame or worker.mapper.num_voxels):
-                return  # an empty map in a frame not known yet: nothing worth latching
+            if not worker.map_frame:
+                return  # the map frame is not decided yet (no cloud placed): nothing to latch
         due = {k for k, n in listening.items() if n and self.published[k] != version}
         if not due:
             return
@@ -190,5 +190,10 @@ class MapOutputs:
                 )
         now = self._node.get_clock().now().to_msg()
         return grid_msg(
-            grid, resolution, worker.map_frame, self._header_stamp(stamp), now, cfg.occupancy_min_z
+            grid,
+            resolution,
+            worker.map_frame or worker.mapper.frame_id,
+            self._header_stamp(stamp),
+            now,
+            cfg.occupancy_min_z,
         )

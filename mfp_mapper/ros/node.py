@@ -19,6 +19,7 @@ import os
 import sys
 import threading
 import time
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -32,6 +33,7 @@ from nav_msgs.msg import OccupancyGrid, Odometry
 from nav_msgs.srv import GetMap
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.qos import (
@@ -73,6 +75,8 @@ RESULT_FIELDS = (
 )  # fmt: skip
 
 """The fields of a ~/hit_probability/result cloud."""
+CLOCK_GRACE = 3.0
+"""Wall seconds after start before a missing /clock (use_sim_time) is reported."""
 
 
 def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, bool]:
@@ -122,20 +126,25 @@ class MfpMapperNode(GuardedNode):
         self._queries = 0
         self._maps_served = 0
         mapper, self._load_failed = initial_mapper(self.cfg, self.get_logger())
+        self._warn_slashes()
         self.worker = LiveIntegrator(
             mapper,
             LiveSettings.of(self.cfg),
             PoseBuffer(max_age=self.cfg.odom_buffer, max_gap=self.cfg.odom_max_gap),
             tree=TfTree(buffer_length=self.cfg.tf_buffer),
             log=self.warn_throttled,
+            info=self.get_logger().info,
             now=self._now,
+            map_frame=self.cfg.frame_id or (mapper.frame_id if mapper.num_voxels else ""),
         )
         self.outputs = MapOutputs(self, self.worker, lambda: self.cfg, self.warn_throttled)
-        self.worker._publish = self.outputs.publish
+        self.worker.set_publish(self.outputs.publish)
 
         self._create_interfaces()
         self.worker.start()
-        self.get_logger().info(startup_text(self.cfg, self.resolve_topic_name, self.mapper))
+        self.get_logger().info(
+            startup_text(self.cfg, self.resolve_topic_name, self.mapper, self.map_frame)
+        )
 
     def _create_interfaces(self) -> None:
         self.create_subscription(
@@ -179,10 +188,15 @@ class MfpMapperNode(GuardedNode):
         self.create_service(Trigger, "~/save_map", self._on_save, callback_group=group)
         self.create_service(Empty, "~/reset", self._on_reset, callback_group=group)
         self._save_lock = threading.Lock()
+        # wall-clock timers: with use_sim_time and no /clock the ROS clock stands still,
+        # and the map, ~/status and /diagnostics must still go out
+        wall = Clock(clock_type=ClockType.STEADY_TIME)
         if self.cfg.publish_rate > 0.0:
-            self.create_timer(1.0 / self.cfg.publish_rate, self._on_publish_timer)
+            self.create_timer(1.0 / self.cfg.publish_rate, self._on_publish_timer, clock=wall)
         if self.cfg.status_period > 0.0:
-            self.create_timer(self.cfg.status_period, self._on_status)
+            self.create_timer(self.cfg.status_period, self._on_status, clock=wall)
+        self._clock_warned = False
+        self.create_timer(1.0, self._check_clock, clock=wall)
 
     # --- set-up ----------------------------------------------------------------------------
 
@@ -192,7 +206,42 @@ class MfpMapperNode(GuardedNode):
 
     @property
     def map_frame(self) -> str:
+        """The run's map frame ("" until decided at the first cloud placed)."""
         return self.worker.map_frame
+
+    def _warn_slashes(self) -> None:
+        for name in ("frame_id", "base_frame_id", "cloud_frame_id"):
+            value = getattr(self.cfg, name)
+            if value.startswith("/"):
+                self.get_logger().warning(
+                    f"parameter {name} {value!r} has a leading slash: using "
+                    f"{value.lstrip('/')!r} (tf2 and RViz reject such frame names)"
+                )
+        self.cfg = replace(
+            self.cfg,
+            frame_id=self.cfg.frame_id.lstrip("/"),
+            base_frame_id=self.cfg.base_frame_id.lstrip("/"),
+            cloud_frame_id=self.cfg.cloud_frame_id.lstrip("/"),
+        )
+
+    @tracked
+    def _check_clock(self) -> None:
+        """One clear line when use_sim_time is true and /clock never came (a bag played
+        without --clock); one more when it comes."""
+        sim = self.get_parameter("use_sim_time").value
+        if not sim or time.monotonic() - self._started < CLOCK_GRACE:
+            return
+        stopped = self.get_clock().now().nanoseconds == 0
+        if stopped and not self._clock_warned:
+            self._clock_warned = True
+            self.get_logger().error(
+                f"use_sim_time is true and /clock has not been received in {CLOCK_GRACE:g} s: "
+                "stamps cannot be checked and clouds wait for a clock that stands still "
+                "(play the bag with --clock, or set use_sim_time false)"
+            )
+        elif not stopped and self._clock_warned:
+            self._clock_warned = False
+            self.get_logger().info("/clock received: simulated time runs")
 
     def _on_set_parameters(self, params: list[Any]) -> SetParametersResult:
         values = self.cfg.values()
@@ -261,7 +310,9 @@ class MfpMapperNode(GuardedNode):
             self._answer_nothing(msg)
             return
         try:
-            in_map = self.worker.to_map_frame(points, frame, stamp_seconds(msg.header.stamp))
+            in_map = self.worker.pose_inputs.to_map_frame(
+                points, frame, stamp_seconds(msg.header.stamp)
+            )
         except TransformUnavailable as err:
             self.warn_throttled(
                 "query_frame",
@@ -306,7 +357,7 @@ class MfpMapperNode(GuardedNode):
             response.map = await self.off_executor(self.outputs.grid)
         except Exception:
             response.map = OccupancyGrid()  # an empty map, in the map frame: never silence
-            response.map.header.frame_id = self.map_frame
+            response.map.header.frame_id = self.map_frame or self.mapper.frame_id
             response.map.header.stamp = self.get_clock().now().to_msg()
             raise
         self._maps_served += 1
@@ -333,7 +384,6 @@ class MfpMapperNode(GuardedNode):
         try:
             with self._save_lock:
                 with self.worker.map_lock:  # snapshot only: compressing and writing run unlocked
-                    self.mapper.frame_id = self.map_frame
                     arrays = map_arrays(self.mapper)
                 write_map_arrays(path, arrays)
             count = len(arrays["s"])
@@ -367,7 +417,8 @@ class MfpMapperNode(GuardedNode):
                 self.worker.map_lock.release()
         extra = {
             "uptime_s": round(time.monotonic() - self._started, 3),
-            "map_frame": self.map_frame,
+            **self.worker.pose_inputs.describe(),
+            "sim_time_without_clock": self._clock_warned,
             "queries": self._queries,
             "maps_served": self._maps_served,
         }

@@ -44,7 +44,11 @@ DROP_REASONS: dict[str, str] = {
     "malformed": "not a parsable cloud: no x/y/z, fields beyond point_step, truncated data, "
     "unknown datatypes",
     "empty": "no valid point (all NaN/Inf or zero range), or none in the height band",
+    "no_frame": "the cloud's header.frame_id is empty (parameter cloud_frame_id says what it "
+    "means)",
+    "ahead_of_clock": "stamped further ahead of the node clock than any pose can be (live only)",
     "no_poses": "no pose at all (no odometry or transform received)",
+    "tf_conflict": "a frame of the TF chain gets its parent alternately from two publishers",
     "too_new": "the poses never reached the cloud's time (live: within odom_wait)",
     "too_old": "the cloud is older than the poses kept",
     "gap": "the cloud lies between two poses further apart than odom_max_gap",

@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from mfp_mapper.config.replay_options import ReplayError as ReplayError  # defined with the options
 from mfp_mapper.config.replay_options import ReplayOptions
 from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer, odometry_sample
-from mfp_mapper.sensing.tf_tree import TfTree, TransformUnavailable
+from mfp_mapper.sensing.tf_tree import TfTree, TransformUnavailable, frame_list
 
 FloatArray = NDArray[np.float64]
 
@@ -192,7 +192,7 @@ def tf_poses(cloud_frame: str, tfs: TfTree, opts: ReplayOptions) -> Poses:
     if body is None:
         raise ReplayError(
             f"/tf does not connect the cloud frame {cloud_frame!r} to a moving frame "
-            f"(frames moved by /tf: {', '.join(moving)}); give --odom-topic"
+            f"(frames moved by /tf: {frame_list(moving)}); give --odom-topic"
         )
     chain = above[above.index(body) :]
     fixed = opts.fixed_frame

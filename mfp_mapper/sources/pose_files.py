@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
 
 from mfp_mapper.sensing.poses import PoseBuffer
 from mfp_mapper.sources.scan_files import DatasetFormatError
@@ -128,30 +129,10 @@ def read_tum_poses(path: str | Path) -> tuple[FloatArray, FloatArray, FloatArray
 
 
 def matrix_to_quaternion(rotations: ArrayLike) -> FloatArray:
-    """Quaternions xyzw (N, 4) of rotation matrices (N, 3, 3) (largest-component method)."""
+    """Quaternions xyzw (N, 4) of rotation matrices (N, 3, 3) (scipy; a matrix a little off
+    orthogonal, as in text pose files, gives the nearest rotation's quaternion)."""
     r = np.asarray(rotations, dtype=np.float64).reshape(-1, 3, 3)
-    trace = np.trace(r, axis1=1, axis2=2)
-    diag = np.stack([r[:, 0, 0], r[:, 1, 1], r[:, 2, 2], trace], axis=1)
-    pick = np.argmax(diag, axis=1)
-    q = np.empty((len(r), 4))
-    for case in range(4):
-        m = pick == case
-        if not np.any(m):
-            continue
-        rc = r[m]
-        if case == 3:
-            s = np.sqrt(1.0 + trace[m]) * 2
-            q[m] = np.stack(
-                [(rc[:, 2, 1] - rc[:, 1, 2]) / s, (rc[:, 0, 2] - rc[:, 2, 0]) / s,
-                 (rc[:, 1, 0] - rc[:, 0, 1]) / s, 0.25 * s], axis=1)  # fmt: skip
-            continue
-        i, j, k = case, (case + 1) % 3, (case + 2) % 3
-        s = np.sqrt(1.0 + rc[:, i, i] - rc[:, j, j] - rc[:, k, k]) * 2
-        q[m, i] = 0.25 * s
-        q[m, j] = (rc[:, j, i] + rc[:, i, j]) / s
-        q[m, k] = (rc[:, k, i] + rc[:, i, k]) / s
-        q[m, 3] = (rc[:, k, j] - rc[:, j, k]) / s
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
+    return np.asarray(Rotation.from_matrix(r).as_quat(), dtype=np.float64).reshape(-1, 4)
 
 
 def pose_buffer(

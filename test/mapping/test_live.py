@@ -104,7 +104,7 @@ def test_odometry_frame_change_and_order_are_rejected() -> None:
 def test_worker_thread_integrates_and_publishes_between_scans() -> None:
     published: list[int] = []
     worker, _ = _worker(odom_wait=2.0)
-    worker._publish = lambda: published.append(worker.mapper.version)
+    worker.set_publish(lambda: published.append(worker.mapper.version))
     worker.start()
     try:
         worker.add_odometry(odom_sample(T0 - 0.2))
@@ -168,3 +168,88 @@ def test_a_cloud_without_pattern_says_why_once() -> None:
     notes = [text for key, text, _ in logs if key == "no_return"]
     assert len(notes) == 1 and "ring" in notes[0]
     assert "ring" in worker.counters.no_return_note
+
+
+def test_an_unplaceable_cloud_does_not_block_those_behind_it() -> None:
+    """A cloud its poses will never cover waits apart: the placeable clouds behind it are
+    integrated at once, none is lost to the queue, and the waiting one is dropped after
+    odom_wait (the worker thread, as in the node)."""
+    worker, _ = _worker(cloud_queue_size=3, odom_wait=1.0)
+    for k in range(12):
+        worker.add_odometry(odom_sample(T0 - 0.1 + 0.1 * k))
+    worker.start()
+    try:
+        worker.submit(_cloud(T0 + 5.0))  # never covered (and not far enough ahead to refuse)
+        for k in range(8):
+            worker.submit(_cloud(T0 + 0.1 * k))
+            deadline = time.monotonic() + 5.0
+            while worker.counters.clouds_integrated < k + 1 and time.monotonic() < deadline:
+                time.sleep(0.005)
+        integrated_before_drop = worker.counters.clouds_integrated
+        deadline = time.monotonic() + 5.0
+        while worker.queued and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        worker.stop()
+    c = worker.counters
+    assert integrated_before_drop == 8 and c.clouds_integrated == 8
+    assert c.clouds_dropped == {"too_new": 1}
+    worker.submit(_cloud(T0 + 100.0))  # 99 s ahead of the clock: refused at once
+    worker.drain(timeout=0.05)
+    assert c.clouds_dropped == {"too_new": 1, "ahead_of_clock": 1}
+
+
+def test_a_full_queue_drops_the_waiting_cloud_first() -> None:
+    worker, _ = _worker(cloud_queue_size=2, odom_wait=5.0)
+    worker.add_odometry(odom_sample(T0 - 0.1))
+    worker.submit(_cloud(T0 + 5.0))
+    worker.drain(timeout=0.05)  # tried once: it waits
+    worker.submit(_cloud(T0 + 6.0))
+    worker.submit(_cloud(T0 - 0.05))  # full: the waiting one goes, not this one
+    assert worker.counters.clouds_dropped == {"queue_full": 1} and worker.queued == 2
+    worker.add_odometry(odom_sample(T0 + 0.1))
+    worker.drain(timeout=0.2)
+    assert worker.counters.clouds_integrated == 1
+
+
+def test_empty_and_slashed_cloud_frames() -> None:
+    worker, logs = _worker()
+    worker.add_odometry(odom_sample(T0 - 0.1))
+    worker.add_odometry(odom_sample(T0 + 0.1))
+    worker.submit(_cloud(T0, frame=""))
+    worker.submit(_cloud(T0, frame="/base_link"))
+    worker.submit(_cloud(T0 + 0.05, frame="/base_link"))
+    drain(worker)
+    assert worker.counters.clouds_dropped == {"no_frame": 1}
+    assert worker.counters.clouds_integrated == 2
+    assert sum("leading slash" in text for _, text, _ in logs) == 1
+    told, _ = _worker(cloud_frame_id="base_link")
+    told.add_odometry(odom_sample(T0 - 0.1))
+    told.add_odometry(odom_sample(T0 + 0.1))
+    told.submit(_cloud(T0, frame=""))
+    drain(told)
+    assert told.counters.clouds_integrated == 1
+
+
+def test_the_map_frame_is_decided_once() -> None:
+    """frame_id "": the odometry frame at the first cloud; odometry in another frame later
+    is refused, and the map frame, the Mapper's frame and ~/status never change."""
+    infos: list[str] = []
+    worker = LiveIntegrator(
+        Mapper(0.2),
+        _settings(),
+        PoseBuffer(max_age=10.0, max_gap=0.5),
+        log=lambda key, text, error: None,
+        info=infos.append,
+        now=lambda: T0 + 1.0,
+    )
+    assert worker.map_frame == ""
+    worker.add_odometry(odom_sample(T0 - 0.1))
+    worker.add_odometry(odom_sample(T0 + 0.1))
+    worker.submit(_cloud(T0))
+    drain(worker)
+    assert worker.map_frame == "odom" == worker.mapper.frame_id
+    assert not worker.add_odometry(odom_sample(T0 + 0.2, frame="map"))
+    assert worker.map_frame == "odom" == worker.mapper.frame_id
+    assert any("map frame 'odom'" in line for line in infos)
+    assert worker.pose_inputs.describe()["map_frame"] == "odom"
