@@ -106,9 +106,13 @@ class DaskExecutor:
                     self.client.cancel(pending)
 
     def close(self) -> None:
-        self.client.close()
+        """Close the client and our cluster; a slow shutdown (workers still busy on a loaded
+        machine, a timeout) is not an error of the run: the processes are ended anyway."""
+        with contextlib.suppress(Exception):
+            self.client.close()
         if self._cluster is not None:
-            self._cluster.close()
+            with contextlib.suppress(Exception):
+                self._cluster.close()
 
 
 Executor = SequentialExecutor | DaskExecutor

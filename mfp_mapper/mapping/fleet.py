@@ -417,8 +417,10 @@ def map_fleet(
                 stale.unlink(missing_ok=True)
         raise
     finally:
-        executor.close()
-        shutil.rmtree(work, ignore_errors=True)
+        try:
+            executor.close()
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
     result.seconds = time.perf_counter() - t0
     _log_skipped(result, log)
     return result

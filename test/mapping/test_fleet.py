@@ -361,10 +361,11 @@ def test_a_failing_recording_on_workers_is_one_line(bags: list[Path], tmp_path: 
     cmd = [sys.executable, "-m", "mfp_mapper.cli", "replay", str(bags[0]), str(bad),
            "-o", str(tmp_path / "m.npz"), "--workers", "2", *FLAGS]  # fmt: skip
     run = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-    assert run.returncode == 1
+    assert run.returncode == 1, run.stderr
     assert run.stderr.count("broken.bag") == 1, run.stderr
     assert len(run.stderr.strip().splitlines()) == 1, run.stderr  # no IOLoop traceback
-    assert not list(tmp_path.glob(".mfp-fleet-*")) and not (tmp_path / "m.npz").exists()
+    left = list(tmp_path.glob(".mfp-fleet-*"))
+    assert not left and not (tmp_path / "m.npz").exists(), (left, run.stderr)
 
 
 def test_scan_folders_among_several_inputs(bags: list[Path], tmp_path: Path) -> None:
