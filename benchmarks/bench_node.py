@@ -293,7 +293,7 @@ def main() -> int:
         args.dds = "none"
     import rclpy
 
-    domain = os.getpid() % 90 + 10
+    domain = int(os.environ.get("ROS_DOMAIN_ID") or os.getpid() % 90 + 10)  # a set one is kept
     set_ros_env(domain)
     node_env: dict[str, str] = {}
     if args.dds == "all":  # node and feeder alike (the node inherits this environment)

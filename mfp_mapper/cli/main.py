@@ -12,8 +12,10 @@ Exit status: 0 success, 1 the job failed (bad bag, bad map file...), 2 bad usage
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 from collections.abc import Sequence
+from typing import Any
 
 from mfp_mapper.cli import (
     demo,
@@ -75,19 +77,38 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _terminated(signum: int, _frame: Any) -> None:
+    """SIGTERM ends the command as Ctrl-C does: cleanup runs, nothing half-written stays."""
+    raise KeyboardInterrupt
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        previous = signal.signal(signal.SIGTERM, _terminated)
+    except ValueError:  # not the main thread: leave signals alone
+        previous = None
+    try:
         return int(args.run(args))
     except CliError as err:
         error(str(err))
+        return 1
+    except ValueError as err:  # a damaged tile found while a command runs
+        from mfp_mapper.mapio.mapfile import MapFileError
+
+        if not isinstance(err, MapFileError):
+            raise
+        error(f"{err} (nothing written)")
         return 1
     except KeyboardInterrupt:
         error("interrupted (nothing written for the step in progress)")
         return 130
     except BrokenPipeError:
         return 1
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

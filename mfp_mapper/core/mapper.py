@@ -17,7 +17,7 @@ from mfp_mapper.core import model
 from mfp_mapper.core.errors import CoreError, ScanTooLargeError
 from mfp_mapper.core.gridmap import HitGrid, band_grid
 from mfp_mapper.core.mailbox import Mailbox
-from mfp_mapper.core.memory_bound import MemoryBound
+from mfp_mapper.core.memory_bound import MemoryBound, fit_scan_budget, scan_block_budget
 from mfp_mapper.core.store import (
     BLOCK_EDGE,
     MAX_RESOLUTION,
@@ -151,6 +151,8 @@ class Mapper:
         else:
             summary.rays_truncated = cut
         if len(rays):
+            budget = scan_block_budget(self.max_voxels)
+            rays, summary.rays_cut_by_budget = fit_scan_budget(rays, budget, self.resolution)
             self._bound.make_room(self._store, rays.origins_vox, rays.ends_vox, self._center())
             scan_id = self._store.begin_scan()
             integrate_rays(

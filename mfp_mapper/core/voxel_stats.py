@@ -25,6 +25,10 @@ class IntegrationSummary:
     rays_beyond_walk_limit: int = 0
     """Rays longer than ``MAX_RAY_VOXELS`` voxels (when max_range is longer still): walked
     that far, with no return."""
+    rays_cut_by_budget: int = 0
+    """Rays whose part beyond ``memory_bound.FREE_WALK_VOXELS`` was cut to keep the scan
+    within its block budget (``memory_bound.scan_block_budget``): walked that far, no
+    return."""
     rays_unindexable: int = 0
     """Rays dropped because they reach beyond the map's index range around its origin
     (also in ``dropped["out_of_bounds"]``): worth a log line."""

@@ -22,6 +22,7 @@ import sys
 import threading
 import time
 from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -88,24 +89,29 @@ CLOCK_GRACE = 3.0
 """Wall seconds after start before a missing /clock (use_sim_time) is reported."""
 
 
-def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, bool]:
-    """The map to start from: ``map_path`` when it exists and loads, else an empty one; and
-    whether loading failed (then that file is never saved over)."""
+def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, str | None]:
+    """The map to start from: ``map_path`` when it exists and loads, else an empty one; and,
+    when loading failed, the path saves go to instead (``recovery_path``): that file is
+    never saved over."""
     path = cfg.map_path
     if path:  # temporary files of a save that was killed midway
         target = os.path.realpath(path)
         for stale in remove_stale_temp_files(os.path.dirname(target), os.path.basename(target)):
             logger.warning(f"removed {stale}, left by an interrupted save")
-    if not (path and os.path.exists(path)):
-        return _empty_map(cfg), False
+    if not (path and os.path.lexists(path)):
+        return _empty_map(cfg), None
     try:
         mapper = load_map(path, **cfg.map_settings().mapper_kwargs())
-    except (MapFileError, ValueError, OSError) as err:
+    except Exception as err:  # a map file never takes the node down (MemoryError included)
+        text = f"{type(err).__name__}: {err}"
+        if isinstance(err, MapFileError):  # it names its file: once is enough
+            text = err.problem if err.path == Path(path) else str(err)
+        other = recovery_path(path)
         logger.error(
-            f"cannot load map_path {path!r}: {err}; starting an empty map (and not "
-            "saving over that file on shutdown)"
+            f"cannot load map_path {path!r}: {text}; starting an empty map, saved to "
+            f"{other!r}, never over that file"
         )
-        return _empty_map(cfg), True
+        return _empty_map(cfg), other
     if mapper.resolution != cfg.resolution:
         logger.warning(
             f"map {path!r} has resolution {mapper.resolution} m, parameter "
@@ -114,7 +120,15 @@ def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, bool]:
     if cfg.frame_id:
         mapper.frame_id = cfg.frame_id
     logger.info(f"loaded {mapper.num_voxels} voxels from {path!r} (frame {mapper.frame_id})")
-    return mapper, False
+    return mapper, None
+
+
+def recovery_path(map_path: str) -> str:
+    """Where the node saves when ``map_path`` failed to load: beside it, named by the start
+    time (UTC), e.g. ``site.npz`` -> ``site.20261124T010203Z.npz``."""
+    stem = map_path.rstrip("/")
+    stem = stem[: -len(".npz")] if stem.endswith(".npz") else stem
+    return f"{stem}.{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}.npz"
 
 
 def _empty_map(cfg: NodeConfig) -> Mapper:
@@ -143,6 +157,7 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._queries = 0
         self._maps_served = 0
         self._save_lock = threading.Lock()
+        self._save_elsewhere: str | None = None  # where saves go when map_path failed to load
         self._transport_explained = False
         self._clock_warned = False
         self.worker: LiveIntegrator  # set by configure
@@ -172,7 +187,7 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._map_figures = (0, 0, 0)
         self._status_window = StatusWindow(time.monotonic())
         self._last_window = self._status_window
-        mapper, self._load_failed = initial_mapper(self.cfg, self.get_logger())
+        mapper, self._save_elsewhere = initial_mapper(self.cfg, self.get_logger())
         self._warn_slashes()
         self.worker = LiveIntegrator(
             mapper,
@@ -507,8 +522,9 @@ class MfpMapperNode(GuardedLifecycleNode):
         return response
 
     def save_map(self) -> tuple[bool, str]:
-        """Write the map to ``map_path`` (one save at a time); returns (success, message)."""
-        path = self.cfg.map_path
+        """Write the map to ``map_path`` (one save at a time), or beside it when it failed to
+        load at start (``recovery_path``); returns (success, message)."""
+        path = self._save_elsewhere or self.cfg.map_path
         if not path:
             return False, "parameter map_path is empty: nowhere to save"
         try:
@@ -520,8 +536,11 @@ class MfpMapperNode(GuardedLifecycleNode):
         except (OSError, ValueError, MapFileError) as err:
             self.get_logger().error(f"saving the map to {path!r} failed: {err}")
             return False, f"saving to {path!r} failed: {err}"
-        self.get_logger().info(f"saved {count} voxels to {path!r}")
-        return True, f"saved {count} voxels to {path}"
+        kept = ""
+        if self._save_elsewhere:
+            kept = f" (map_path {self.cfg.map_path!r} failed to load at start: kept as it was)"
+        self.get_logger().info(f"saved {count} voxels to {path!r}{kept}")
+        return True, f"saved {count} voxels to {path}{kept}"
 
     @tracked
     async def _on_reset(self, request: Empty.Request, response: Empty.Response) -> Empty.Response:
@@ -597,17 +616,13 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._diag_pub.publish(diagnostics(s, self._last_window, name, self.get_name(), stamp))
 
     def close(self) -> None:
-        """Stop the worker; save the map when save_on_shutdown (not over an unreadable file)."""
+        """Stop the worker; save the map when save_on_shutdown (never over a map_path that
+        failed to load: beside it, ``recovery_path``)."""
         self._release(save=True)
 
     def _save_on_shutdown(self) -> None:
         if self.cfg.save_on_shutdown:
-            if self._load_failed:
-                self.get_logger().error(
-                    "save_on_shutdown: not overwriting the map file that failed to load"
-                )
-            else:
-                self.save_map()
+            self.save_map()  # beside map_path when it failed to load
 
 
 def main(args: list[str] | None = None) -> int:

@@ -183,6 +183,18 @@ def test_score_agrees_with_an_independent_implementation(shared_data: Path, tmp_
     assert got["log_likelihood_per_ray"] == pytest.approx(want.mean(), rel=1e-6)
     density = want.sum() - sum(math.log(e[2]) for e in events if e[3])
     assert got["log_density_per_ray"] == pytest.approx(density / len(pts), rel=1e-6)
+    # several maps: one row each; the map's prior can be overridden by the flags
+    rows = tmp_path / "rows.json"
+    assert main([
+        "score", str(map_path), str(map_path), str(held), "--poses",
+        str(poses).format(held.name), "--max-range", "30", "--prior-shape", "0.5",
+        "--json", str(rows), "-q",
+    ]) == 0  # fmt: skip
+    table = json.loads(rows.read_text())["rows"]
+    assert [r["label"] for r in table] == [str(map_path)] * 2
+    want_prior, _ = reference(mapper, pts, pose[:, 3], 1.0, flags, 0.5, 1.0)
+    assert table[0]["log_likelihood_per_ray"] == pytest.approx(want_prior.mean(), rel=1e-6)
+    assert table[0]["uniform_prior"]["log_likelihood_per_ray"] == got["log_likelihood_per_ray"]
 
 
 def test_score_split_and_fit_prior_on_real_scans(shared_data: Path, tmp_path: Path) -> None:
@@ -214,9 +226,12 @@ def test_score_split_and_fit_prior_on_real_scans(shared_data: Path, tmp_path: Pa
     )
     rows = tmp_path / "rows.json"
     assert main(["score", "--split", "even-odd", str(folder), "--poses", poses, "-q",
-                 "--resolution", "0.4,0.8", "--no-classic", "--json", str(rows)]) == 0  # fmt: skip
+                 "--resolution", "0.4,0.8", "--decay-time", "0,5", "--no-classic",
+                 "--json", str(rows)]) == 0  # fmt: skip
     table = json.loads(rows.read_text())["rows"]
-    assert [r["label"] for r in table] == ["resolution 0.4 m", "resolution 0.8 m"]
+    assert [r["label"] for r in table] == [
+        f"resolution {r} m, decay_time {d} s" for r in ("0.4", "0.8") for d in ("0", "5")
+    ]
     assert all(math.isfinite(r["log_likelihood_per_ray"]) for r in table)
 
 
