@@ -107,3 +107,26 @@ def test_no_import_circle() -> None:
 @pytest.mark.parametrize("package", sorted(LAYERS))
 def test_each_layer_is_a_package(package: str) -> None:
     assert (PACKAGE / package / "__init__.py").is_file()
+
+
+STAGES = ("parse_scan", "add_no_return_rays", "pose_deadline", "place_scan")
+"""The scan pipeline's stages (``sensing.pipeline``): only the one loop chains them."""
+
+
+def test_only_the_loop_runs_the_pipeline_stages() -> None:
+    callers = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        if path.name == "pipeline.py" or path == PACKAGE / "mapping" / "loop.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            called = node.func if isinstance(node, ast.Call) else None
+            name = (
+                called.attr
+                if isinstance(called, ast.Attribute)
+                else called.id
+                if isinstance(called, ast.Name)
+                else None
+            )
+            if name in STAGES:
+                callers.append(f"{_module_name(path)}: {name}")
+    assert not callers, "pipeline stages called outside mapping.loop:\n" + "\n".join(callers)

@@ -22,9 +22,8 @@ from mfp_mapper.config.replay_options import ReplayOptions
 from mfp_mapper.core.alignment import Alignment, AlignOptions, FieldPyramid, align_scan
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.mapping.folder_replay import folder_poses
-from mfp_mapper.mapping.loop import integrate_scan
+from mfp_mapper.mapping.loop import ScanLoop
 from mfp_mapper.mapping.replay import ReplayError, new_mapper
-from mfp_mapper.sensing import pipeline
 from mfp_mapper.sensing.pipeline import PlacedScan, ScanDropped
 from mfp_mapper.sensing.poses import Extrinsic, PoseUnavailable
 from mfp_mapper.sensing.scan_normals import scan_normals
@@ -178,6 +177,7 @@ def _run(
         else None
     )
     result = LocalizeResult(map_frame=str(found.map_frame), mapper=mapper)  # type: ignore[attr-defined]
+    loop = ScanLoop(mapper, opts)
     for index, scan in enumerate(folder.scans):
         stamp = float(scan.stamp)
         try:
@@ -190,10 +190,9 @@ def _run(
         q0 = Rotation.from_matrix(rot0).as_quat()
         entry = LocalizedScan(stamp, index, pos0, q0, pos0, q0, None)
         try:
-            placed = pipeline.place_scan(
-                pipeline.parse_scan(folder.message(index)), stamp, buffer, extrinsic, opts
-            )
+            placed = loop.place(loop.prepare(folder.message(index)), buffer, extrinsic)
         except ScanDropped as drop:
+            loop.count_drop(drop)
             entry.note = f"dropped: {drop.reason}"
             result.scans.append(entry)
             continue
@@ -221,7 +220,11 @@ def _run(
                 )
         entry.seconds = time.perf_counter() - t0
         if fixed is None:
-            integrate_scan(mapper, placed)
+            try:
+                loop.commit(placed)
+            except ScanDropped as drop:
+                loop.count_drop(drop)
+                entry.note = f"not integrated: {drop.reason}"
         result.scans.append(entry)
     return result
 

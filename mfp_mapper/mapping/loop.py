@@ -171,18 +171,30 @@ class ScanLoop:
     def finish(
         self, prepared: PreparedScan, poses: PoseSource, extrinsic: Extrinsic
     ) -> tuple[PlacedScan, IntegrationSummary]:
-        """Place a prepared cloud at its poses and integrate it (under ``map_lock``); counts
-        it; raises ``ScanDropped`` (placement's reasons, ``no_usable_rays``)."""
+        """Place a prepared cloud at its poses and integrate it (``place``, then
+        ``commit``); raises ``ScanDropped`` (placement's reasons, ``no_usable_rays``)."""
+        placed = self.place(prepared, poses, extrinsic)
+        return placed, self.commit(placed)
+
+    def place(self, prepared: PreparedScan, poses: PoseSource, extrinsic: Extrinsic) -> PlacedScan:
+        """A prepared cloud's rays in the map frame at its poses (de-skew, extrinsic, height
+        band); raises ``ScanDropped`` (``no_poses``, ``too_new``, ``too_old``, ``gap``,
+        ``empty``). A caller may move the placed rays (pose refinement) before ``commit``."""
         placed = pipeline.place_scan(
             prepared.cloud, prepared.stamp, poses, extrinsic, self.settings
         )
         if self.on_placed is not None:
             self.on_placed(placed.stamp, placed.points, placed.origins)
+        return placed
+
+    def commit(self, placed: PlacedScan) -> IntegrationSummary:
+        """Integrate placed rays (``consume``, under ``map_lock``) and count them; raises
+        ``ScanDropped`` (``no_usable_rays``)."""
         with self.map_lock:
             summary = self.consume(self.mapper, placed)
         with self.counts_lock:
             self.counts.add(placed, summary)
-        return placed, summary
+        return summary
 
     # --- the error ladder ----------------------------------------------------------------
 
