@@ -24,7 +24,8 @@ from mfp_mapper.core.mapfile import (
 )
 from mfp_mapper.core.memory_bound import MemoryBound
 from mfp_mapper.core.store import BLOCK_EDGE, MAX_VOXEL_INDEX, BlockStore, VoxelArrays, index_box
-from mfp_mapper.core.traversal import integrate_rays, prepare_rays
+from mfp_mapper.core.staging import merge_shard, staged_updates
+from mfp_mapper.core.traversal import Rays, integrate_rays, prepare_rays
 from mfp_mapper.core.voxel_stats import IntegrationSummary, VoxelStats
 
 MAX_RAY_VOXELS = 1 << 15
@@ -41,6 +42,18 @@ __all__ = [
 ]  # fmt: skip
 
 FloatArray = NDArray[np.float64]
+
+
+@dataclasses.dataclass
+class StagedScan:
+    """A scan integrated into a store of its own by ``Mapper.stage``, for ``commit``."""
+
+    inputs: tuple[ArrayLike, ArrayLike, ArrayLike | None]  # points, origins, no_return
+    origin: FloatArray | None  # the map origin its rays are relative to
+    rays: Rays
+    store: BlockStore
+    stamp: float
+    summary: IntegrationSummary
 
 
 def _cpu_of(fn: Callable[[int], None], item: int) -> float:
@@ -99,6 +112,7 @@ class Mapper:
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
         self._worker_cpu = 0.0  # CPU seconds of the pool threads in the current integrate()
         self._mailboxes = [Mailbox() for _ in self._store.shards]
+        self._stage_mailboxes = [Mailbox() for _ in self._store.shards]
 
     # --- writing ----------------------------------------------------------------------
 
@@ -118,33 +132,10 @@ class Mapper:
         """
         t0, cpu0 = time.perf_counter(), time.thread_time()
         self._worker_cpu = 0.0
-        pts = np.asarray(points, dtype=np.float64)
-        if pts.ndim != 2 or pts.shape[1] != 3:
-            raise ValueError(f"points must have shape (N, 3), got {pts.shape}")
-        org = np.asarray(origins, dtype=np.float64)
-        if org.shape != (3,) and org.shape != pts.shape:
-            raise ValueError(f"origins must have shape (3,) or {pts.shape}, got {org.shape}")
-        if not math.isfinite(stamp):
-            raise ValueError(f"stamp must be finite seconds, got {stamp}")
+        pts, org, flags = _checked(points, origins, stamp, no_return)
         if self._origin is None:
             self._origin = self._origin_from(org)
-        if self._origin is not None and self._origin.any():
-            pts, org = pts - self._origin, org - self._origin
-        walk_limit = MAX_RAY_VOXELS * self.resolution
-        reach = min(self.max_range, walk_limit)
-        flags = None if no_return is None else np.asarray(no_return, dtype=np.bool_)
-        if flags is not None and flags.shape != (pts.shape[0],):
-            raise ValueError(f"no_return must have shape ({pts.shape[0]},), got {flags.shape}")
-        rays, dropped = prepare_rays(pts, org, self.resolution, self.min_range, reach, flags)
-        summary = IntegrationSummary(rays_in=pts.shape[0], dropped=dropped)
-        summary.rays_used = len(rays)
-        summary.rays_unindexable = dropped["out_of_bounds"]
-        summary.rays_no_return = rays.no_return_flagged
-        cut = int(np.count_nonzero(~rays.has_return)) - rays.no_return_flagged
-        if self.max_range > walk_limit:
-            summary.rays_beyond_walk_limit = cut
-        else:
-            summary.rays_truncated = cut
+        rays, summary = self._rays(pts, org, flags, self._offset)
         if len(rays):
             self._bound.make_room(self._store, rays.origins_vox, rays.ends_vox, self._center())
             scan_id = self._store.begin_scan()
@@ -160,15 +151,101 @@ class Mapper:
             summary.new_voxels, summary.blocks_touched, summary.voxels_touched = (
                 self._store.finish_scan()
             )
-            self.last_stamp = (
-                float(stamp) if self.last_stamp is None else max(self.last_stamp, stamp)
-            )
-            self.last_origin = rays.origins_vox.mean(axis=0) * self.resolution + self._offset
-            self._bound.enforce(self._store, self._center())
-            self.version += 1
+            self._scan_added(rays, stamp)
         summary.seconds = time.perf_counter() - t0
         summary.cpu_seconds = time.thread_time() - cpu0 + self._worker_cpu
         return summary
+
+    def stage(
+        self,
+        points: ArrayLike,
+        origins: ArrayLike,
+        stamp: float,
+        no_return: ArrayLike | None = None,
+    ) -> StagedScan:
+        """Integrate one scan (as ``integrate``) into a store of its own, leaving the map
+        untouched: the long part of an integration, which needs no lock around the map
+        (readers may use it meanwhile; one ``stage`` at a time per Mapper). ``commit`` then
+        adds it to the map in one pass over the blocks it touched (``core.staging``)."""
+        t0, cpu0 = time.perf_counter(), time.thread_time()
+        self._worker_cpu = 0.0
+        pts, org, flags = _checked(points, origins, stamp, no_return)
+        origin = self._origin if self._origin is not None else self._origin_from(org)
+        offset = origin if origin is not None else np.zeros(3)
+        rays, summary = self._rays(pts, org, flags, offset)
+        store = BlockStore(shards=len(self._store.shards))
+        if len(rays):
+            # a scan too large for max_voxels is refused before it takes any memory
+            self._bound.make_room(store, rays.origins_vox, rays.ends_vox, None)
+            integrate_rays(
+                store, rays, 0, stamp, self.decay_time, self._stage_mailboxes, self._run_parallel
+            )
+        summary.seconds = time.perf_counter() - t0
+        summary.cpu_seconds = time.thread_time() - cpu0 + self._worker_cpu
+        return StagedScan(
+            (points, origins, no_return), origin, rays, store, float(stamp), summary
+        )
+
+    def commit(self, staged: StagedScan) -> IntegrationSummary:
+        """Add a scan prepared by ``stage`` to the map (the caller holds the map's lock):
+        the memory bound first, then one merge of its blocks; returns its summary. A scan
+        staged before ``reset`` cleared an origin it depended on is integrated again."""
+        t0, cpu0 = time.perf_counter(), time.thread_time()
+        summary = staged.summary
+        if staged.origin is not None and self._origin is not None:
+            if not np.array_equal(staged.origin, self._origin):  # reset in between
+                return self.integrate(*staged.inputs[:2], staged.stamp, staged.inputs[2])
+        elif staged.origin is not None:
+            self._origin = staged.origin
+        rays = staged.rays
+        self._worker_cpu = 0.0
+        if len(rays):
+            self._bound.make_room(self._store, rays.origins_vox, rays.ends_vox, self._center())
+            scan_id = self._store.begin_scan()
+            shards = self._store.shards
+
+            def merge(k: int) -> None:
+                merge_shard(staged.store.shards[k], shards[k], scan_id, staged.stamp, self.decay_time)
+
+            self._run_parallel(merge, range(len(shards)))
+            summary.new_voxels, summary.blocks_touched, _ = self._store.finish_scan()
+            summary.voxels_touched = staged_updates(staged.store)
+            self._scan_added(rays, staged.stamp)
+        summary.commit_seconds = time.perf_counter() - t0
+        summary.seconds += summary.commit_seconds
+        summary.cpu_seconds += time.thread_time() - cpu0 + self._worker_cpu
+        return summary
+
+    def _rays(
+        self,
+        pts: FloatArray,
+        org: FloatArray,
+        flags: NDArray[np.bool_] | None,
+        offset: FloatArray,
+    ) -> tuple[Rays, IntegrationSummary]:
+        """The scan's rays in voxel units of a map at ``offset``, and its summary so far."""
+        if offset.any():
+            pts, org = pts - offset, org - offset
+        walk_limit = MAX_RAY_VOXELS * self.resolution
+        reach = min(self.max_range, walk_limit)
+        rays, dropped = prepare_rays(pts, org, self.resolution, self.min_range, reach, flags)
+        summary = IntegrationSummary(rays_in=pts.shape[0], dropped=dropped)
+        summary.rays_used = len(rays)
+        summary.rays_unindexable = dropped["out_of_bounds"]
+        summary.rays_no_return = rays.no_return_flagged
+        cut = int(np.count_nonzero(~rays.has_return)) - rays.no_return_flagged
+        if self.max_range > walk_limit:
+            summary.rays_beyond_walk_limit = cut
+        else:
+            summary.rays_truncated = cut
+        return rays, summary
+
+    def _scan_added(self, rays: Rays, stamp: float) -> None:
+        """After a scan went into the store: its stamp and place, the memory bound."""
+        self.last_stamp = float(stamp) if self.last_stamp is None else max(self.last_stamp, stamp)
+        self.last_origin = rays.origins_vox.mean(axis=0) * self.resolution + self._offset
+        self._bound.enforce(self._store, self._center())
+        self.version += 1
 
     def _origin_from(self, sensor_origins: FloatArray) -> FloatArray | None:
         """The origin a first scan gives the map: its first finite sensor position, rounded
@@ -386,6 +463,24 @@ class Mapper:
         if self._pool is not None:
             self._pool.shutdown()
             self._pool = None
+
+
+def _checked(
+    points: ArrayLike, origins: ArrayLike, stamp: float, no_return: ArrayLike | None
+) -> tuple[FloatArray, FloatArray, NDArray[np.bool_] | None]:
+    """A scan's arrays as float64 / bool, with their shapes checked (ValueError)."""
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3), got {pts.shape}")
+    org = np.asarray(origins, dtype=np.float64)
+    if org.shape != (3,) and org.shape != pts.shape:
+        raise ValueError(f"origins must have shape (3,) or {pts.shape}, got {org.shape}")
+    if not math.isfinite(stamp):
+        raise ValueError(f"stamp must be finite seconds, got {stamp}")
+    flags = None if no_return is None else np.asarray(no_return, dtype=np.bool_)
+    if flags is not None and flags.shape != (pts.shape[0],):
+        raise ValueError(f"no_return must have shape ({pts.shape[0]},), got {flags.shape}")
+    return pts, org, flags
 
 
 def _shard_count(threads: int) -> int:

@@ -3,7 +3,9 @@
 The node hands it received clouds (``submit``) and odometry (``add_odometry``) from its
 executor thread; one worker thread takes the clouds in order, waits (at most ``odom_wait``
 seconds) until the poses cover a cloud, runs it through the scan pipeline and integrates
-it under ``map_lock``. Between two scans it calls ``publish`` when ``request_publish``
+it: walked into a store of its own without any lock (``Mapper.stage``), then added to the
+map under ``map_lock`` in one merge (``Mapper.commit``), so services wait at most for a
+merge, never for a scan, and see whole scans only. Between two scans it calls ``publish`` when ``request_publish``
 asked for it, so publishing never waits for an integration and the executor never waits
 for the map. Everything is counted under the pipeline's names (``pipeline.DROP_REASONS``).
 """
@@ -267,8 +269,14 @@ class LiveIntegrator(PoseInputs):
             item.cloud, item.stamp, placement.poses, placement.extrinsic, cfg
         )
         own_cpu = time.thread_time()
+        mapper = self.mapper
+        # the scan is walked into a store of its own without the map lock (services keep
+        # reading the map), then added in one merge: readers see whole scans only
+        staged = mapper.stage(placed.points, placed.origins, placed.stamp, placed.no_return)
+        pipeline.require_rays(staged.summary, placed)
         with self.map_lock:
-            summary = pipeline.integrate_scan(self.mapper, placed)
+            summary = mapper.commit(staged)
+        del staged  # its store's memory goes back now, not at the next scan
         own_cpu = time.thread_time() - own_cpu
         latency = self._now() - item.stamp
         with self._cv:

@@ -229,7 +229,14 @@ def integrate_scan(mapper: Mapper, placed: PlacedScan) -> IntegrationSummary:
     """Integrate placed rays; ScanDropped ``no_usable_rays`` when the core used none
     (the map is then unchanged; the drop carries the placed scan's and the core's point
     drops; on success ``ScanCounts.add`` counts both)."""
-    summary = mapper.integrate(placed.points, placed.origins, placed.stamp, placed.no_return)
+    return require_rays(
+        mapper.integrate(placed.points, placed.origins, placed.stamp, placed.no_return), placed
+    )
+
+
+def require_rays(summary: IntegrationSummary, placed: PlacedScan) -> IntegrationSummary:
+    """``summary``, or ScanDropped ``no_usable_rays`` when the core used none of the placed
+    scan's rays (see ``integrate_scan``)."""
     if summary.rays_used == 0:
         lost = ", ".join(f"{k} {v}" for k, v in summary.dropped.items() if v) or "none"
         dropped = Counter(placed.points_dropped)
