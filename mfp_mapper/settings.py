@@ -217,9 +217,11 @@ SETTINGS: tuple[Setting, ...] = (
           "resolution / (1 + resolution).", -1.0, 1.0, dynamic=True),
     _node("tf_buffer", 10.0, "Seconds of /tf kept per transform.", 0.1, 3600.0),
     # --- map file, health ------------------------------------------------------------------
-    _node("map_path", "", "Map file (.npz) for ~/save_map, loaded at start when it exists. "
-          "Empty: none."),
+    _node("map_path", "", "Map file (.npz), or tiled map (a directory), for ~/save_map, "
+          "loaded at start when it exists. Empty: none."),
     _node("save_on_shutdown", False, "Save the map to map_path when the node stops."),
+    _node("autosave_period", 0.0, "Save the map to map_path in the background at most this "
+          "often (s), when it changed; mapping goes on meanwhile. 0: off.", 0.0, 86400.0),
     _node("status_period", 10.0, "Period (s) of the status log line and of ~/status. 0: "
           "off.", 0.0, 3600.0),
     # --- the offline replay only -------------------------------------------------------------
@@ -379,6 +381,7 @@ class NodeConfig:
     tf_buffer: float
     map_path: str
     save_on_shutdown: bool
+    autosave_period: float
     status_period: float
 
     @property

@@ -23,8 +23,8 @@ from mfp_mapper.core.mapfile import (
     write_map,
 )
 from mfp_mapper.core.memory_bound import MemoryBound
-from mfp_mapper.core.store import BLOCK_EDGE, MAX_VOXEL_INDEX, BlockStore, VoxelArrays, index_box
 from mfp_mapper.core.staging import merge_shard, staged_updates
+from mfp_mapper.core.store import BLOCK_EDGE, MAX_VOXEL_INDEX, BlockStore, VoxelArrays, index_box
 from mfp_mapper.core.traversal import Rays, integrate_rays, prepare_rays
 from mfp_mapper.core.voxel_stats import IntegrationSummary, VoxelStats
 
@@ -205,7 +205,8 @@ class Mapper:
             shards = self._store.shards
 
             def merge(k: int) -> None:
-                merge_shard(staged.store.shards[k], shards[k], scan_id, staged.stamp, self.decay_time)
+                stamp, decay = staged.stamp, self.decay_time
+                merge_shard(staged.store.shards[k], shards[k], scan_id, stamp, decay)
 
             self._run_parallel(merge, range(len(shards)))
             summary.new_voxels, summary.blocks_touched, _ = self._store.finish_scan()

@@ -372,3 +372,15 @@ def load_map(
         keep = np.all((arrays["ijk"] >= lo_i) & (arrays["ijk"] <= hi_i), axis=1)
         arrays = {**arrays, **{k: arrays[k][keep] for k in VOXEL_KEYS}}
     return mapper_from_arrays(arrays, p, **overrides)
+
+
+def write_map_path(path: str | Path, arrays: MapArrays, compress: bool = True) -> int:
+    """Write map-file ``arrays`` where ``path`` says: a tiled map when ``path`` is a
+    directory (or ends with a slash; an existing tiled map keeps its tile edge), else one
+    map file; both atomically. Returns the number of voxels written."""
+    if str(path).endswith(("/", "\\")) or Path(path).is_dir():
+        tile_blocks = TiledMap(path).tile_blocks if is_tiled(path) else DEFAULT_TILE_BLOCKS
+        write_tiled(path, arrays, tile_blocks, compress)
+    else:
+        write_map_arrays(path, arrays, compress)
+    return int(np.asarray(arrays["s"]).shape[0])

@@ -8,8 +8,11 @@ parameters are in ``mfp_mapper.settings``.
 
 Threads: one executor thread runs every ROS callback (rclpy's multi-threaded executor
 cost about 70% of a core in overhead); subscription callbacks only queue clouds and store
-poses. The worker thread integrates and publishes between scans; ``~/save_map`` writes in
-a thread of its own. One lock (``worker.map_lock``) guards the Mapper.
+poses. The worker thread integrates and publishes between scans; ``~/save_map`` and the
+autosave write in a thread of their own. One lock (``worker.map_lock``) guards the Mapper;
+the worker holds it only to merge a scan it walked without it (``Mapper.stage``/``commit``),
+so services answer during a long scan and see whole scans only. SIGINT / SIGTERM stop it
+as ``ros.shutdown`` says: the executor stops between callbacks, then the final save.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from typing import Any
 import numpy as np
 import rclpy
 import rclpy.exceptions
+import rclpy.logging
 import rclpy.task
 import rclpy.time
 import rclpy.utilities
@@ -41,18 +45,21 @@ from rclpy.qos import (
     ReliabilityPolicy,
     qos_profile_sensor_data,
 )
+from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 from std_srvs.srv import Empty, Trigger
 from tf2_msgs.msg import TFMessage
 
 from mfp_mapper.core.atomic import remove_stale_temp_files
-from mfp_mapper.core.mapfile import MapFileError, map_arrays, write_map_arrays
+from mfp_mapper.core.mapfile import MapFileError, map_arrays
 from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.core.tiles import is_tiled, write_map_path
 from mfp_mapper.ros.guarded_node import GuardedNode, tracked
 from mfp_mapper.ros.map_outputs import MapOutputs
 from mfp_mapper.ros.messages import cloud_msg
 from mfp_mapper.ros.params import declare_parameters, usage
+from mfp_mapper.ros.shutdown import SpinUntilSignal
 from mfp_mapper.ros.status import (
     StatusWindow,
     diagnostics,
@@ -72,6 +79,8 @@ RESULT_FIELDS = (
 )  # fmt: skip
 
 """The fields of a ~/hit_probability/result cloud."""
+INFO_KEYS = frozenset({"placement", "no_return", "odom_frame"})
+"""Keys of the worker's log lines that inform (logged at INFO), not warn."""
 
 
 def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, bool]:
@@ -80,9 +89,16 @@ def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, bool]:
     path = cfg.map_path
     if path:  # temporary files of a save that was killed midway
         target = os.path.realpath(path)
-        for stale in remove_stale_temp_files(os.path.dirname(target), os.path.basename(target)):
-            logger.warning(f"removed {stale}, left by an interrupted save")
-    if not (path and os.path.exists(path)):
+        stale = remove_stale_temp_files(os.path.dirname(target), os.path.basename(target))
+        if os.path.isdir(target):  # a tiled map: its index and tiles
+            stale += remove_stale_temp_files(target) + remove_stale_temp_files(
+                os.path.join(target, "tiles")
+            )
+        for name in stale:
+            logger.info(f"removed {name}, left by an interrupted save")
+    if not (path and os.path.exists(path)) or (
+        os.path.isdir(path) and not is_tiled(path) and not os.listdir(path)
+    ):  # nothing yet, or an empty directory for a tiled map
         return _empty_map(cfg), False
     try:
         mapper = Mapper.load(path, **cfg.mapper_settings())
@@ -126,7 +142,7 @@ class MfpMapperNode(GuardedNode):
             LiveSettings.of(self.cfg),
             PoseBuffer(max_age=self.cfg.odom_buffer, max_gap=self.cfg.odom_max_gap),
             tree=TfTree(buffer_length=self.cfg.tf_buffer),
-            log=self.warn_throttled,
+            log=self._worker_log,
             now=self._now,
         )
         self.outputs = MapOutputs(self, self.worker, lambda: self.cfg, self.warn_throttled)
@@ -178,6 +194,9 @@ class MfpMapperNode(GuardedNode):
         self.create_service(Trigger, "~/save_map", self._on_save, callback_group=group)
         self.create_service(Empty, "~/reset", self._on_reset, callback_group=group)
         self._save_lock = threading.Lock()
+        self._saved_version: int | None = None  # the map version last saved (autosave)
+        if self.cfg.autosave_period > 0.0 and self.cfg.map_path:
+            self.create_timer(self.cfg.autosave_period, self._on_autosave_timer)
         if self.cfg.publish_rate > 0.0:
             self.create_timer(1.0 / self.cfg.publish_rate, self._on_publish_timer)
         if self.cfg.status_period > 0.0:
@@ -213,6 +232,13 @@ class MfpMapperNode(GuardedNode):
 
     def _now(self) -> float:
         return float(self.get_clock().now().nanoseconds) * 1e-9
+
+    def _worker_log(self, key: str, text: str, error: bool) -> None:
+        """The worker's throttled lines: informational ones at INFO."""
+        if key in INFO_KEYS and not error:
+            self.info_throttled(key, text)
+        else:
+            self.warn_throttled(key, text, error)
 
     # --- inputs ----------------------------------------------------------------------------
 
@@ -324,23 +350,44 @@ class MfpMapperNode(GuardedNode):
             response.success, response.message = False, f"saving failed: {err!r}"
         return response
 
-    def save_map(self) -> tuple[bool, str]:
-        """Write the map to ``map_path`` (one save at a time); returns (success, message)."""
+    def save_map(self, only_if_changed: bool = False) -> tuple[bool, str]:
+        """Write the map to ``map_path`` (one save at a time): one map file, or a tiled map
+        when ``map_path`` is a directory; stored uncompressed, so that a large map is saved
+        within ``ros2 launch``'s grace period. Returns (success, message)."""
         path = self.cfg.map_path
         if not path:
             return False, "parameter map_path is empty: nowhere to save"
+        t0 = time.perf_counter()
         try:
             with self._save_lock:
-                with self.worker.map_lock:  # snapshot only: compressing and writing run unlocked
+                with self.worker.map_lock:  # snapshot only: writing runs unlocked
+                    version = self.mapper.version
+                    if only_if_changed and version == self._saved_version:
+                        return True, "map unchanged since the last save"
                     self.mapper.frame_id = self.map_frame
                     arrays = map_arrays(self.mapper)
-                write_map_arrays(path, arrays)
-            count = len(arrays["s"])
+                count = write_map_path(path, arrays, compress=False)
+                self._saved_version = version
         except (OSError, ValueError, MapFileError) as err:
             self.get_logger().error(f"saving the map to {path!r} failed: {err}")
             return False, f"saving to {path!r} failed: {err}"
-        self.get_logger().info(f"saved {count} voxels to {path!r}")
+        seconds = time.perf_counter() - t0
+        self.get_logger().info(f"saved {count} voxels to {path!r} in {seconds:.2f} s")
         return True, f"saved {count} voxels to {path}"
+
+    @tracked
+    def _on_autosave_timer(self) -> None:
+        """Save in the background when the map changed, unless a save is running."""
+        if self._load_failed or self._save_lock.locked() or not self._begin_work():
+            return
+
+        def run() -> None:
+            try:
+                self.save_map(only_if_changed=True)
+            finally:
+                self._end_work()
+
+        threading.Thread(target=run, name="mfp_autosave", daemon=True).start()
 
     @tracked
     async def _on_reset(self, request: Empty.Request, response: Empty.Response) -> Empty.Response:
@@ -392,9 +439,12 @@ class MfpMapperNode(GuardedNode):
         self._diag_pub.publish(diagnostics(s, self._last_window, name, self.get_name(), stamp))
 
     def close(self) -> None:
-        """Stop the worker; save the map when save_on_shutdown (not over an unreadable file)."""
-        self.wait_idle()
-        self.worker.stop()
+        """Stop the worker; save the map when save_on_shutdown (not over an unreadable file).
+
+        A scan being walked is not waited for (it is not in the map yet: the saved map holds
+        whole scans); callbacks in flight get a short grace."""
+        self.wait_idle(timeout=2.0)
+        self.worker.stop(timeout=0.5)
         if self.cfg.save_on_shutdown:
             if self._load_failed:
                 self.get_logger().error(
@@ -402,7 +452,8 @@ class MfpMapperNode(GuardedNode):
                 )
             else:
                 self.save_map()
-        self.mapper.close()
+        if not self.worker.running:
+            self.mapper.close()
 
 
 def main(args: list[str] | None = None) -> int:
@@ -411,27 +462,35 @@ def main(args: list[str] | None = None) -> int:
     if any(a in ("-h", "--help") for a in own_args):
         print(usage())
         return 0
-    rclpy.init(args=args)
+    # rclpy's handlers would shut the context down under a running executor: ros.shutdown
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node: MfpMapperNode | None = None
     executor: SingleThreadedExecutor | None = None
     code = 0
-    try:
-        node = MfpMapperNode()
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (ValueError, rclpy.exceptions.ParameterException) as err:
-        print(f"mfp_mapper: invalid parameters: {err}", file=sys.stderr)
-        code = 2
-    finally:
-        if executor is not None:
-            executor.shutdown(timeout_sec=5.0)  # no callback may run past the context
-        if node is not None:
-            node.close()
-            node.destroy_node()
-        rclpy.try_shutdown()
+    logger = rclpy.logging.get_logger(NODE_NAME)
+    with SpinUntilSignal(logger.info) as stopper:
+        try:
+            node = MfpMapperNode()
+            executor = SingleThreadedExecutor()
+            executor.add_node(node)
+            stopper.spin(executor)
+        except (KeyboardInterrupt, ExternalShutdownException):
+            pass
+        except (ValueError, rclpy.exceptions.ParameterException) as err:
+            print(f"mfp_mapper: invalid parameters: {err}", file=sys.stderr)
+            code = 2
+        finally:
+            if executor is not None:
+                executor.shutdown(timeout_sec=5.0)  # no callback may run past the context
+            if node is not None:
+                node.close()
+                node.destroy_node()
+            rclpy.try_shutdown()
+    if node is not None and node.worker.running:
+        # a scan still being walked (not in the map, which is saved): do not wait for it
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
     return code
 
 

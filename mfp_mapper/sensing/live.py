@@ -5,9 +5,10 @@ executor thread; one worker thread takes the clouds in order, waits (at most ``o
 seconds) until the poses cover a cloud, runs it through the scan pipeline and integrates
 it: walked into a store of its own without any lock (``Mapper.stage``), then added to the
 map under ``map_lock`` in one merge (``Mapper.commit``), so services wait at most for a
-merge, never for a scan, and see whole scans only. Between two scans it calls ``publish`` when ``request_publish``
-asked for it, so publishing never waits for an integration and the executor never waits
-for the map. Everything is counted under the pipeline's names (``pipeline.DROP_REASONS``).
+merge, never for a scan, and see whole scans only. Between two scans it calls ``publish``
+when ``request_publish`` asked for it, so publishing never waits for an integration and
+the executor never waits for the map. Everything is counted under the pipeline's names
+(``pipeline.DROP_REASONS``).
 """
 
 from __future__ import annotations
@@ -165,6 +166,11 @@ class LiveIntegrator(PoseInputs):
     def start(self) -> None:
         self._thread = threading.Thread(target=self.run, name="mfp_integration", daemon=True)
         self._thread.start()
+
+    @property
+    def running(self) -> bool:
+        """Whether the worker thread is still alive (e.g. walking a long scan)."""
+        return self._thread is not None and self._thread.is_alive()
 
     def stop(self, timeout: float = 10.0) -> None:
         self._stop.set()
