@@ -23,7 +23,7 @@ from mfp_mapper.core.mapfile import (
     write_map,
 )
 from mfp_mapper.core.memory_bound import MemoryBound
-from mfp_mapper.core.staging import merge_shard, staged_updates
+from mfp_mapper.core.staging import merge_shard, prefault, staged_updates
 from mfp_mapper.core.store import BLOCK_EDGE, MAX_VOXEL_INDEX, BlockStore, VoxelArrays, index_box
 from mfp_mapper.core.traversal import Rays, integrate_rays, prepare_rays
 from mfp_mapper.core.voxel_stats import IntegrationSummary, VoxelStats
@@ -180,16 +180,22 @@ class Mapper:
             integrate_rays(
                 store, rays, 0, stamp, self.decay_time, self._stage_mailboxes, self._run_parallel
             )
+            for staged_shard, shard in zip(store.shards, self._store.shards, strict=True):
+                prefault(staged_shard, shard)
         summary.seconds = time.perf_counter() - t0
         summary.cpu_seconds = time.thread_time() - cpu0 + self._worker_cpu
-        return StagedScan(
-            (points, origins, no_return), origin, rays, store, float(stamp), summary
-        )
+        return StagedScan((points, origins, no_return), origin, rays, store, float(stamp), summary)
 
-    def commit(self, staged: StagedScan) -> IntegrationSummary:
+    def commit(
+        self, staged: StagedScan, pause: Callable[[], None] | None = None
+    ) -> IntegrationSummary:
         """Add a scan prepared by ``stage`` to the map (the caller holds the map's lock):
         the memory bound first, then one merge of its blocks; returns its summary. A scan
-        staged before ``reset`` cleared an origin it depended on is integrated again."""
+        staged before ``reset`` cleared an origin it depended on is integrated again.
+
+        ``pause``: called between chunks of ``staging.MERGE_CHUNK_BLOCKS`` blocks (a caller
+        may let readers in there: they then see the scan in part, each voxel before or
+        after it)."""
         t0, cpu0 = time.perf_counter(), time.thread_time()
         summary = staged.summary
         if staged.origin is not None and self._origin is not None:
@@ -198,23 +204,20 @@ class Mapper:
         elif staged.origin is not None:
             self._origin = staged.origin
         rays = staged.rays
-        self._worker_cpu = 0.0
         if len(rays):
             self._bound.make_room(self._store, rays.origins_vox, rays.ends_vox, self._center())
             scan_id = self._store.begin_scan()
-            shards = self._store.shards
-
-            def merge(k: int) -> None:
-                stamp, decay = staged.stamp, self.decay_time
-                merge_shard(staged.store.shards[k], shards[k], scan_id, stamp, decay)
-
-            self._run_parallel(merge, range(len(shards)))
+            # one shard after the other: pause is not thread-safe; merging is memory-bound
+            for k, shard in enumerate(self._store.shards):
+                merge_shard(
+                    staged.store.shards[k], shard, scan_id, staged.stamp, self.decay_time, pause
+                )
             summary.new_voxels, summary.blocks_touched, _ = self._store.finish_scan()
             summary.voxels_touched = staged_updates(staged.store)
             self._scan_added(rays, staged.stamp)
         summary.commit_seconds = time.perf_counter() - t0
         summary.seconds += summary.commit_seconds
-        summary.cpu_seconds += time.thread_time() - cpu0 + self._worker_cpu
+        summary.cpu_seconds += time.thread_time() - cpu0
         return summary
 
     def _rays(

@@ -9,9 +9,10 @@ parameters are in ``mfp_mapper.settings``.
 Threads: one executor thread runs every ROS callback (rclpy's multi-threaded executor
 cost about 70% of a core in overhead); subscription callbacks only queue clouds and store
 poses. The worker thread integrates and publishes between scans; ``~/save_map`` and the
-autosave write in a thread of their own. One lock (``worker.map_lock``) guards the Mapper;
-the worker holds it only to merge a scan it walked without it (``Mapper.stage``/``commit``),
-so services answer during a long scan and see whole scans only. SIGINT / SIGTERM stop it
+autosave write in a thread of their own. ``worker.map_lock`` guards the Mapper; the worker
+holds it only to merge a scan it walked without it (``Mapper.stage``/``commit``), letting
+queries in between chunks; GetMap, saving and reset take ``worker.whole_map()`` (no scan
+half merged). So services answer during a long scan. SIGINT / SIGTERM stop it
 as ``ros.shutdown`` says: the executor stops between callbacks, then the final save.
 """
 
@@ -360,7 +361,7 @@ class MfpMapperNode(GuardedNode):
         t0 = time.perf_counter()
         try:
             with self._save_lock:
-                with self.worker.map_lock:  # snapshot only: writing runs unlocked
+                with self.worker.whole_map():  # snapshot only: writing runs unlocked
                     version = self.mapper.version
                     if only_if_changed and version == self._saved_version:
                         return True, "map unchanged since the last save"
@@ -392,7 +393,7 @@ class MfpMapperNode(GuardedNode):
     @tracked
     async def _on_reset(self, request: Empty.Request, response: Empty.Response) -> Empty.Response:
         def reset() -> None:
-            with self.worker.map_lock:
+            with self.worker.whole_map():
                 self.mapper.reset()
 
         await self.off_executor(reset)

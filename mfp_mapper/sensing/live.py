@@ -4,21 +4,23 @@ The node hands it received clouds (``submit``) and odometry (``add_odometry``) f
 executor thread; one worker thread takes the clouds in order, waits (at most ``odom_wait``
 seconds) until the poses cover a cloud, runs it through the scan pipeline and integrates
 it: walked into a store of its own without any lock (``Mapper.stage``), then added to the
-map under ``map_lock`` in one merge (``Mapper.commit``), so services wait at most for a
-merge, never for a scan, and see whole scans only. Between two scans it calls ``publish``
-when ``request_publish`` asked for it, so publishing never waits for an integration and
-the executor never waits for the map. Everything is counted under the pipeline's names
-(``pipeline.DROP_REASONS``).
+map in one merge (``Mapper.commit``, a few percent of the scan's time). A reader that needs
+whole scans (GetMap, saving) takes ``whole_map()``: it waits at most for a merge, never for
+a scan; a query takes ``map_lock`` alone, which the merge lets go between chunks. Between
+two scans it calls ``publish`` when ``request_publish`` asked for it, so publishing never
+waits for an integration and the executor never waits for the map. Everything is counted
+under the pipeline's names (``pipeline.DROP_REASONS``).
 """
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import math
 import threading
 import time
 from collections import Counter, deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -34,6 +36,10 @@ from mfp_mapper.sensing.tf_tree import TfTree
 
 if TYPE_CHECKING:
     from mfp_mapper.settings import NodeConfig
+
+
+MERGE_PAUSE_S = 0.0005
+"""How long a merge lets go of the map between two chunks (a waiting reader takes it)."""
 
 
 @dataclass
@@ -112,6 +118,7 @@ class LiveIntegrator(PoseInputs):
         self.poses = poses
         self.counters = LiveCounters()
         self.map_lock = threading.Lock()
+        self.scan_gate = threading.Lock()  # held through a merge (``whole_map``)
         self.pose_lock = threading.Lock()
         self.odom_frame: str | None = None
         self.odom_child: str | None = None
@@ -280,8 +287,8 @@ class LiveIntegrator(PoseInputs):
         # reading the map), then added in one merge: readers see whole scans only
         staged = mapper.stage(placed.points, placed.origins, placed.stamp, placed.no_return)
         pipeline.require_rays(staged.summary, placed)
-        with self.map_lock:
-            summary = mapper.commit(staged)
+        with self.scan_gate, self.map_lock:
+            summary = mapper.commit(staged, pause=self._let_readers_in)
         del staged  # its store's memory goes back now, not at the next scan
         own_cpu = time.thread_time() - own_cpu
         latency = self._now() - item.stamp
@@ -293,6 +300,23 @@ class LiveIntegrator(PoseInputs):
             c.latency_max = max(c.latency_max, latency)
             c.integration_cpu += max(summary.cpu_seconds - own_cpu, 0.0)  # the core's threads
         return True
+
+    def _let_readers_in(self) -> None:
+        """Between two chunks of a merge: a reader waiting for ``map_lock`` takes it."""
+        self.map_lock.release()
+        try:
+            time.sleep(MERGE_PAUSE_S)
+        finally:
+            self.map_lock.acquire()
+
+    @contextlib.contextmanager
+    def whole_map(self) -> Iterator[None]:
+        """The map lock, at a time no scan is half merged: what a reader that must see
+        whole scans (GetMap, saving) or that replaces the map (reset) holds. A merge
+        takes a few percent of its scan's integration; ``map_lock`` alone (a query) is
+        also free between chunks of a merge."""
+        with self.scan_gate, self.map_lock:
+            yield
 
     def _placement(self, cloud_frame: str) -> Placement:
         """Pose source and extrinsic of a cloud, from copies taken under the pose lock (the

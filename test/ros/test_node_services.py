@@ -124,7 +124,8 @@ def test_services_answer_during_a_long_scan_and_see_whole_scans(
         assert f.wait(lambda: f.status is not None, 10.0)
         _odom(f, T0 - 1.0, T0 + 3.0)
         _send(f, _room_scan(20_000, 1), T0)
-        assert f.wait_status(lambda s: s["clouds_integrated"] == 1, 30.0)["clouds_integrated"] == 1
+        status = f.wait_status(lambda s: s["clouds_integrated"] == 1, 60.0)
+        assert status["clouds_integrated"] == 1, (status, node.log()[-3000:])
         before = _grid(f.call(f.get_map, GetMap.Request()))
         voxels_before = f.status["voxels"]
 
