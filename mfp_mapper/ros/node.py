@@ -362,6 +362,7 @@ class MfpMapperNode(GuardedNode):
         try:
             with self._save_lock:
                 with self.worker.whole_map():  # snapshot only: writing runs unlocked
+                    started = time.perf_counter() - t0
                     version = self.mapper.version
                     if only_if_changed and version == self._saved_version:
                         return True, "map unchanged since the last save"
@@ -373,8 +374,9 @@ class MfpMapperNode(GuardedNode):
             self.get_logger().error(f"saving the map to {path!r} failed: {err}")
             return False, f"saving to {path!r} failed: {err}"
         seconds = time.perf_counter() - t0
-        self.get_logger().info(f"saved {count} voxels to {path!r} in {seconds:.2f} s")
-        return True, f"saved {count} voxels to {path}"
+        timing = f"started after {started:.3f} s, done in {seconds:.2f} s"
+        self.get_logger().info(f"saved {count} voxels to {path!r} ({timing})")
+        return True, f"saved {count} voxels to {path} ({timing})"
 
     @tracked
     def _on_autosave_timer(self) -> None:

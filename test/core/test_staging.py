@@ -95,3 +95,20 @@ def test_too_large_scan_is_refused_at_stage() -> None:
     with pytest.raises(ScanTooLargeError):
         mapper.stage(points, np.zeros(3), 1.0)
     assert mapper.num_voxels == 0
+
+
+def test_a_merge_in_chunks_pauses_and_equals_integrate(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``commit(pause=...)`` merges in chunks (here of 16 blocks) and calls ``pause``
+    between them; the map is the same."""
+    import mfp_mapper.core.staging as staging
+
+    monkeypatch.setattr(staging, "MERGE_CHUNK_BLOCKS", 16)
+    rng = np.random.default_rng(11)
+    direct, staged = Mapper(0.2, decay_time=5.0), Mapper(0.2, decay_time=5.0)
+    pauses = []
+    for points, origin, stamp in _scans(rng, 3):
+        direct.integrate(points, origin, stamp)
+        scan = staged.stage(points, origin, stamp)
+        staged.commit(scan, pause=lambda: pauses.append(staged.num_voxels))
+    assert len(pauses) > 10
+    _same_map(direct, staged)

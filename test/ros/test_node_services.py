@@ -2,7 +2,8 @@
 node as a user runs it (``python -m mfp_mapper.node``), over real DDS on loopback.
 
 - a hit-probability query, GetMap and ``~/save_map`` answer while a scan of a million
-  points is being integrated, and what they see is the map before that scan (whole scans);
+  points (``MFP_TEST_BIG_SCAN_POINTS``) is being integrated, and GetMap and the saved file
+  hold the map before that scan (whole scans);
 - a map of ``MFP_TEST_SHUTDOWN_VOXELS`` voxels (20 M by default) loaded at start is saved
   intact under ``ros2 launch``'s escalation: SIGINT, SIGTERM 5 s later, SIGKILL 5 s after;
 - ``autosave_period`` saves in the background; a directory ``map_path`` saves a tiled map;
@@ -80,11 +81,17 @@ def ros_domain() -> Iterator[int]:
 
 
 def _room_scan(count: int, seed: int) -> dict[str, np.ndarray]:
-    """``count`` returns 10-30 m around a sensor at the base_link origin."""
-    rng = np.random.default_rng(seed)
-    d = rng.normal(size=(count, 3))
-    d /= np.linalg.norm(d, axis=1)[:, None]
-    xyz = (d * rng.uniform(10.0, 30.0, count)[:, None]).astype(np.float32)
+    """About ``count`` returns of a lidar (elevations -30..30 deg, 2048 azimuths) at the
+    base_link origin in a box room 30 x 30 m, floor 2 m below, ceiling 6 m above."""
+    rows = max(1, count // 2048)
+    el = np.radians(np.linspace(-30.0, 30.0, rows))
+    az = np.linspace(-np.pi, np.pi, 2048, endpoint=False) + seed * 1e-3
+    e, a = np.meshgrid(el, az, indexing="ij")
+    d = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1).reshape(-1, 3)
+    with np.errstate(divide="ignore"):
+        up = np.where(d[:, 2] > 0, 6.0 / d[:, 2], 2.0 / np.abs(d[:, 2]))
+        t = np.minimum(np.minimum(15.0 / np.abs(d[:, 0]), 15.0 / np.abs(d[:, 1])), up)
+    xyz = (d * t[:, None]).astype(np.float32)
     return {a: xyz[:, k] for k, a in enumerate("xyz")}
 
 
@@ -156,8 +163,7 @@ def test_services_answer_during_a_long_scan_and_see_whole_scans(
         assert np.array_equal(_grid(get_map.result()), before)
         assert save.result().success, save.result().message
         assert read_map_file(path).voxels.s.shape[0] == voxels_before
-        result = f.results[0]
-        assert result.width == 10
+        assert f.results[0].width == len(query_cols["x"])
         status = f.wait_status(lambda s: s["voxels"] > voxels_before, 10.0)
         assert status["voxels"] > voxels_before and node.alive()
     finally:
