@@ -38,7 +38,7 @@ def _scene(name: str) -> list[tuple[np.ndarray, np.ndarray]]:
 
     if name == "anchors":
         return anchors_scene()
-    from mfp_mapper.offline.scan_files import read_pcd
+    from mfp_mapper.sources.scan_files import read_pcd
 
     cols = read_pcd(NEBULA / name)
     points = np.stack([cols["x"], cols["y"], cols["z"]], axis=1).astype(np.float64)

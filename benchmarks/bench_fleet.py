@@ -5,7 +5,7 @@
     python benchmarks/bench_fleet.py --merge-voxels 10000000   # merge and tile figures only
     python benchmarks/bench_fleet.py --json out.json
 
-Part 1 (fleet): simulated VLP-16 recordings of the built-in scene (``offline.simulate``),
+Part 1 (fleet): simulated VLP-16 recordings of the built-in scene (``sources.simulate``),
 mapped four ways in the same run: ``replay`` of each recording into its own map with
 nothing else (the baseline: the work a fleet cannot avoid), the sequential fleet (partial
 maps as tiles + the exact reduction, in this process), and Dask LocalClusters of each
@@ -39,7 +39,7 @@ sys.path.insert(0, str(ROOT))
 
 
 def make_recordings(root: Path, count: int, scans: int) -> list[Path]:
-    from mfp_mapper.offline.simulate import preset, simulate
+    from mfp_mapper.sources.simulate import preset, simulate
 
     cfg = replace(preset("demo"), scans=scans)
     return [
@@ -49,8 +49,8 @@ def make_recordings(root: Path, count: int, scans: int) -> list[Path]:
 
 
 def bench_fleet(args: argparse.Namespace, root: Path) -> dict[str, Any]:
-    from mfp_mapper.offline.fleet import FleetOptions, map_fleet
-    from mfp_mapper.offline.replay import ReplayOptions, replay
+    from mfp_mapper.mapping.fleet import FleetOptions, map_fleet
+    from mfp_mapper.mapping.replay import ReplayOptions, replay
 
     bags = make_recordings(root / "bags", args.recordings, args.scans)
     opts = ReplayOptions(resolution=args.resolution, max_range=args.max_range)
@@ -119,10 +119,10 @@ def _run_figures(result: Any, seconds: float) -> dict[str, Any]:
 
 
 def bench_merge(voxels: int, root: Path) -> dict[str, Any]:
-    from mfp_mapper.core.mapfile import FORMAT_NAME, FORMAT_VERSION
     from mfp_mapper.core.merge import merge_voxels
     from mfp_mapper.core.store import VoxelArrays
-    from mfp_mapper.core.tiles import TiledMap, write_tiled
+    from mfp_mapper.mapio.mapfile import FORMAT_NAME, FORMAT_VERSION
+    from mfp_mapper.mapio.tiles import TiledMap, write_tiled
 
     rng = np.random.default_rng(0)
     side = int(math.ceil((voxels / 2 / 0.3) ** (1 / 3) * 1.6))  # a third of a cube occupied

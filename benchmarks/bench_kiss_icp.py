@@ -26,13 +26,13 @@ sys.path[:0] = [str(ROOT), str(ROOT / "test")]
 
 from odometry_scenes import lidar_truth, pose_errors, structured_recording  # noqa: E402
 
-from mfp_mapper.offline.bags import open_reader  # noqa: E402
-from mfp_mapper.offline.lidar_odometry import estimate_poses  # noqa: E402
-from mfp_mapper.offline.pose_files import read_odometry_csv  # noqa: E402
-from mfp_mapper.offline.replay import ReplayOptions, replay  # noqa: E402
-from mfp_mapper.offline.scan_folder import open_scan_folder  # noqa: E402
-from mfp_mapper.offline.simulate import simulate  # noqa: E402
+from mfp_mapper.mapping.replay import ReplayOptions, replay  # noqa: E402
 from mfp_mapper.sensing.poses import quaternion_to_matrix  # noqa: E402
+from mfp_mapper.sources.bags import open_reader  # noqa: E402
+from mfp_mapper.sources.lidar_odometry import estimate_poses  # noqa: E402
+from mfp_mapper.sources.pose_files import read_odometry_csv  # noqa: E402
+from mfp_mapper.sources.scan_folder import open_scan_folder  # noqa: E402
+from mfp_mapper.sources.simulate import simulate  # noqa: E402
 
 
 def _line(
@@ -88,7 +88,7 @@ def norlab() -> None:
         j = int(np.argmin(np.abs(odometry["stamp"] - stamp)))
         ref[k, :3, :3] = quaternion_to_matrix(odometry["quaternion"][j])
         ref[k, :3, 3] = odometry["position"][j]
-    from mfp_mapper.offline.folder_replay import replay_folder
+    from mfp_mapper.mapping.folder_replay import replay_folder
 
     t0 = time.perf_counter()
     replay_folder(

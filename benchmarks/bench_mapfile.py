@@ -27,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from mfp_mapper.mapio.loading import load_map, save_map
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT)]
 
@@ -48,8 +50,8 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=2, help="best of this many runs")
     args = parser.parse_args()
     from mfp_mapper import Mapper
-    from mfp_mapper.core.mapfile import map_arrays, write_map_arrays
     from mfp_mapper.core.store import VoxelArrays
+    from mfp_mapper.mapio.mapfile import map_arrays, write_map_arrays
 
     count = int(args.voxels)
     side = round(count ** (1 / 3))
@@ -73,25 +75,25 @@ def main() -> None:
 
         save, np_save, node, snap = [], [], [], []
         for _ in range(args.repeat):  # interleaved
-            save.append(_timed(lambda: mapper.save(path))[0])
+            save.append(_timed(lambda: save_map(mapper, path))[0])
             np_save.append(_timed(lambda: np.savez(plain, **arrays))[0])
             node.append(_timed(node_save)[0])
             snap.append(_timed(lambda: map_arrays(mapper))[0])
         np_read, load, node_load = [], [], []
         for _ in range(args.repeat):
             np_read.append(_timed(lambda: _numpy_read(stored))[0])
-            load.append(_timed(lambda: Mapper.load(path))[0])
-            node_load.append(_timed(lambda: Mapper.load(stored))[0])
+            load.append(_timed(lambda: load_map(path))[0])
+            node_load.append(_timed(lambda: load_map(stored))[0])
         save, np_save, node_s, snap = min(save), min(np_save), min(node), min(snap)
         np_read, load, node_load = min(np_read), min(load), min(node_load)
-        loaded = Mapper.load(path)
+        loaded = load_map(path)
         points = (rng.uniform(-side / 2, side / 2, (10, 3)) + 0.5) * 0.1
         loaded.query(points)  # compiles nothing new; first-call overhead excluded
         query = min(_timed(lambda: loaded.query(points))[0] for _ in range(5))
         size, stored_size = path.stat().st_size, stored.stat().st_size
-        from mfp_mapper.offline.export import export_ply
-        from mfp_mapper.offline.nav2_map import write_nav2_map
-        from mfp_mapper.offline.render import render_map
+        from mfp_mapper.outputs.export import export_ply
+        from mfp_mapper.outputs.nav2_map import write_nav2_map
+        from mfp_mapper.outputs.render import render_map
 
         ply = _timed(lambda: export_ply(loaded, Path(tmp) / "map.ply", min_doo=0.1))[0]
         nav2 = _timed(lambda: write_nav2_map(loaded, Path(tmp) / "nav.yaml", -1.0, 1.0))[0]

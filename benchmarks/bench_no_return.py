@@ -36,7 +36,7 @@ sys.path[:0] = [str(ROOT)]
 
 
 def _scan_records(organized: bool) -> np.ndarray:
-    from mfp_mapper.offline.simulate import VELODYNE_DTYPE, generate_scans, preset
+    from mfp_mapper.sources.simulate import VELODYNE_DTYPE, generate_scans, preset
 
     cfg = replace(preset("open"), scans=1, azimuths=1800, seed=0)
     scan = next(generate_scans(cfg))
@@ -72,9 +72,9 @@ def _timings(steps: dict[str, Any], repeat: int) -> dict[str, float]:
 
 def measure(organized: bool, repeat: int, no_return_range: float) -> dict[str, float]:
     from mfp_mapper.core.mapper import Mapper
-    from mfp_mapper.offline.scan_files import cloud_message
     from mfp_mapper.sensing.no_return import with_no_return_rays
     from mfp_mapper.sensing.pointcloud import parse_pointcloud2
+    from mfp_mapper.sources.scan_files import cloud_message
 
     msg = cloud_message(_scan_records(organized), 0.0, "velodyne")
     cloud = parse_pointcloud2(msg)
@@ -110,7 +110,7 @@ def real_frame_ms(repeat: int) -> float | None:
     if not NEBULA_VLP16.exists():
         return None
     from mfp_mapper.core.mapper import Mapper
-    from mfp_mapper.offline.scan_files import read_pcd
+    from mfp_mapper.sources.scan_files import read_pcd
 
     cols = read_pcd(NEBULA_VLP16)
     points = np.stack([cols["x"], cols["y"], cols["z"]], axis=1).astype(np.float64)

@@ -62,7 +62,7 @@ from ros_helpers import (  # noqa: E402
     yaw_quaternion,
 )
 
-from mfp_mapper.offline.scan_pattern import scan_directions  # noqa: E402
+from mfp_mapper.sources.scan_pattern import scan_directions  # noqa: E402
 
 STREAMS: dict[str, dict[str, Any]] = {
     "vlp16": {

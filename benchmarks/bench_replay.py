@@ -31,7 +31,7 @@ sys.path.insert(0, str(ROOT))
 
 def extract(bag: Path, out: Path) -> int:
     """De-skewed map-frame points and one origin per cloud, placed by the replay itself."""
-    from mfp_mapper.offline.replay import ReplayOptions, replay
+    from mfp_mapper.mapping.replay import ReplayOptions, replay
 
     arrays: dict[str, np.ndarray] = {}
 
@@ -79,7 +79,7 @@ def run_child(kind: str, data: Path, resolution: float, max_range: float) -> dic
 
 
 def main() -> int:
-    from mfp_mapper.offline.simulate import BAG_FORMATS
+    from mfp_mapper.sources.simulate import BAG_FORMATS
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--scans", type=int, default=120)
@@ -96,8 +96,8 @@ def main() -> int:
         return 0
 
     from mfp_mapper.core.mapper import Mapper
-    from mfp_mapper.offline.replay import ReplayOptions, replay
-    from mfp_mapper.offline.simulate import preset, simulate
+    from mfp_mapper.mapping.replay import ReplayOptions, replay
+    from mfp_mapper.sources.simulate import preset, simulate
 
     with tempfile.TemporaryDirectory() as tmp:
         if args.bag:

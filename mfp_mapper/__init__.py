@@ -10,10 +10,12 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
+from mfp_mapper.config.names import VERSION
+
 if TYPE_CHECKING:
     from mfp_mapper.core.errors import CoreError, ScanTooLargeError
-    from mfp_mapper.core.mapfile import MapFileError
     from mfp_mapper.core.mapper import IntegrationSummary, Mapper, VoxelStats
+    from mfp_mapper.mapio.mapfile import MapFileError
 
 __all__ = [
     "CoreError",
@@ -23,13 +25,13 @@ __all__ = [
     "ScanTooLargeError",
     "VoxelStats",
 ]
-__version__ = "0.2.0"
+__version__ = VERSION
 
 _LAZY = {
     "IntegrationSummary": "mfp_mapper.core.mapper",
     "Mapper": "mfp_mapper.core.mapper",
     "VoxelStats": "mfp_mapper.core.mapper",
-    "MapFileError": "mfp_mapper.core.mapfile",
+    "MapFileError": "mfp_mapper.mapio.mapfile",
     "CoreError": "mfp_mapper.core.errors",
     "ScanTooLargeError": "mfp_mapper.core.errors",
 }

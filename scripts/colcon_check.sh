@@ -91,8 +91,8 @@ check_exe() { # check_exe NAME MODULE: installed where `ros2 run` looks; `--help
         problems+=("lib/$PKG/$1 not installed (setup.cfg script_dir / console_scripts)")
         return 0
     fi
-    if [[ ! -f "$ROOT/${module//.//}.py" ]]; then
-        checked+=("$1 (installed; $module not written yet)")
+    if [[ ! -f "$ROOT/${module//.//}.py" && ! -f "$ROOT/${module//.//}/__init__.py" ]]; then
+        problems+=("$module (console script $1) does not exist")
         return 0
     fi
     local out rc=0

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from mfp_mapper.offline.scan_pattern import scan_directions
-from mfp_mapper.offline.simulate import Scene, Solid
+from mfp_mapper.sources.scan_pattern import scan_directions
+from mfp_mapper.sources.simulate import Scene, Solid
 
 FloatArray = NDArray[np.float64]
 

@@ -1,12 +1,10 @@
-"""Helpers of the tests that drive the live worker (``sensing.live``) without ROS."""
+"""Helpers of the tests that drive the live worker (``mapping.live``) without ROS."""
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 
-from mfp_mapper.sensing.live import LiveIntegrator
+from mfp_mapper.mapping.live import LiveIntegrator
 from mfp_mapper.sensing.poses import OdometrySample
 
 
@@ -17,7 +15,4 @@ def odom_sample(stamp: float, frame: str = "odom") -> OdometrySample:
 
 def drain(worker: LiveIntegrator) -> None:
     """Process every queued cloud on this thread (what ``run()`` does), waiting when told to."""
-    while worker._queue:
-        item = worker._queue.popleft()
-        while not worker.process(item):
-            time.sleep(0.01)
+    worker.drain()

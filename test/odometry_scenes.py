@@ -14,8 +14,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from mfp_mapper.offline.simulate import Circle, Scene, SimulationConfig, Solid
 from mfp_mapper.sensing.poses import quaternion_to_matrix, rpy_to_quaternion
+from mfp_mapper.sources.simulate import Circle, Scene, SimulationConfig, Solid
 
 FloatArray = NDArray[np.float64]
 

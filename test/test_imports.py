@@ -36,7 +36,7 @@ def _heavy_modules_after(code: str) -> list[str]:
     [
         "import mfp_mapper",
         "import mfp_mapper.cli",
-        "import mfp_mapper.settings",
+        "import mfp_mapper.config.schema",
         HELP.format(argv=["--help"]),
         HELP.format(argv=["replay", "--help"]),
     ],

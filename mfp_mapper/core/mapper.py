@@ -8,23 +8,27 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from pathlib import Path
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from mfp_mapper.config.schema import MapSettings
 from mfp_mapper.core import model
 from mfp_mapper.core.errors import CoreError, ScanTooLargeError
 from mfp_mapper.core.gridmap import HitGrid, band_grid
 from mfp_mapper.core.mailbox import Mailbox
-from mfp_mapper.core.mapfile import (
-    MAX_RESOLUTION,
-    MIN_RESOLUTION,
-    write_map,
-)
 from mfp_mapper.core.memory_bound import MemoryBound
 from mfp_mapper.core.staging import merge_shard, prefault, staged_updates
-from mfp_mapper.core.store import BLOCK_EDGE, MAX_VOXEL_INDEX, BlockStore, VoxelArrays, index_box
+from mfp_mapper.core.store import (
+    BLOCK_EDGE,
+    MAX_RESOLUTION,
+    MAX_VOXEL_INDEX,
+    MIN_RESOLUTION,
+    BlockStore,
+    VoxelArrays,
+    index_box,
+    voxel_problem,
+)
 from mfp_mapper.core.traversal import Rays, integrate_rays, prepare_rays
 from mfp_mapper.core.voxel_stats import IntegrationSummary, VoxelStats
 
@@ -66,8 +70,9 @@ def _cpu_of(fn: Callable[[int], None], item: int) -> float:
 class Mapper:
     """A degree-of-occupancy voxel map built from lidar rays (Berquin & Zell 2021).
 
-    ``integrate`` adds rays; ``query`` and ``voxels`` read the map; ``save``/``load`` keep
-    it in an .npz file (see ``mfp_mapper.core.mapfile``). Not thread-safe: callers that share a
+    ``integrate`` adds rays; ``query`` and ``voxels`` read the map; ``from_arrays`` builds
+    one from voxel arrays (map files: ``mfp_mapper.mapio.load_map``/``save_map``). Not
+    thread-safe: callers that share a
     Mapper between threads hold a lock around every call.
     """
 
@@ -113,6 +118,15 @@ class Mapper:
         self._worker_cpu = 0.0  # CPU seconds of the pool threads in the current integrate()
         self._mailboxes = [Mailbox() for _ in self._store.shards]
         self._stage_mailboxes = [Mailbox() for _ in self._store.shards]
+
+    @classmethod
+    def of(
+        cls, settings: MapSettings, frame_id: str = "map", origin: ArrayLike | None = None
+    ) -> Mapper:
+        """An empty map with the settings of the map section (``config.MapSettings``)."""
+        return cls(
+            settings.resolution, frame_id=frame_id, origin=origin, **settings.mapper_kwargs()
+        )
 
     # --- writing ----------------------------------------------------------------------
 
@@ -424,27 +438,7 @@ class Mapper:
     def memory_bytes(self) -> int:
         return self._store.nbytes
 
-    # --- files ------------------------------------------------------------------------
-
-    def save(self, path: str | Path) -> None:
-        """Write the map to an .npz file atomically (see ``mfp_mapper.core.mapfile``)."""
-        write_map(path, self)
-
-    @classmethod
-    def load(
-        cls,
-        path: str | Path,
-        bounds: tuple[ArrayLike, ArrayLike] | None = None,
-        **overrides: object,
-    ) -> Mapper:
-        """Read a map written by ``save``, or a tiled map (a directory: ``core.tiles``);
-        with ``bounds`` = (lower, upper) corners in metres, only the voxels whose centres
-        lie inside (of a tiled map, only the tiles reaching into them are read). Keyword
-        arguments override stored settings (not ``resolution`` or ``origin``). Raises
-        ``MapFileError`` naming the file and the problem."""
-        from mfp_mapper.core.map_loading import load_map
-
-        return load_map(cls, path, bounds, **overrides)
+    # --- arrays -------------------------------------------------------------------------
 
     @classmethod
     def from_arrays(
@@ -458,9 +452,20 @@ class Mapper:
         """A Mapper holding these voxels (indices relative to ``origin``, as in the map file;
         each voxel once). ``settings`` are the constructor's keyword arguments. Raises
         ``ValueError`` on bad settings or voxels."""
-        from mfp_mapper.core.map_loading import from_arrays
-
-        return from_arrays(cls, voxels, resolution=resolution, origin=origin, **settings)
+        problem = voxel_problem(voxels.ijk, voxels.s, voxels.n, voxels.t_last)
+        if problem:
+            raise ValueError(problem)
+        count = voxels.ijk.shape[0]
+        if voxels.ijk.shape != (count, 3) or any(
+            a.shape != (count,) for a in (voxels.s, voxels.n, voxels.t_last)
+        ):
+            raise ValueError("voxels need ijk (N, 3) and s, n, t_last (N,)")
+        mapper = cls(resolution, origin=origin, **settings)  # type: ignore[arg-type]
+        mapper._store.assign(voxels, mapper.decay_time)
+        finite_t = voxels.t_last[np.isfinite(voxels.t_last)]
+        mapper.last_stamp = float(finite_t.max()) if finite_t.size else None
+        mapper.version += 1
+        return mapper
 
     def close(self) -> None:
         """Stop the worker threads (the map stays readable)."""

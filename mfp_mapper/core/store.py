@@ -47,6 +47,11 @@ from mfp_mapper.core.blocks import (
 )
 from mfp_mapper.core.shard import Shard, ShardArrays, open_block
 
+MIN_RESOLUTION = 1e-3
+"""Smallest voxel edge (metres) a map may have."""
+MAX_RESOLUTION = 1e3
+"""Largest voxel edge (metres) a map may have."""
+
 __all__ = ["BLOCK_EDGE", "MAX_VOXEL_INDEX", "BlockStore", "VoxelArrays", "index_box"]
 
 
@@ -374,3 +379,18 @@ class BlockStore:
     @property
     def nbytes(self) -> int:
         return sum(sh.nbytes for sh in self.shards)
+
+
+def voxel_problem(
+    ijk: NDArray[np.integer], s: NDArray[np.floating], n: NDArray[np.floating], t: NDArray
+) -> str | None:
+    """What is wrong with these voxel arrays (values only; duplicates are found when they are
+    stored), or None."""
+    for key, arr in (("s", s), ("n", n)):
+        if not (np.isfinite(arr).all() and arr.min(initial=0.0) >= 0):
+            return f"{key} holds negative, NaN or infinite values"
+    if not np.isfinite(t).all():
+        return "t_last holds NaN or infinite values (seconds expected)"
+    if ijk.shape[0] and max(-int(ijk.min()), int(ijk.max())) > MAX_VOXEL_INDEX:
+        return f"ijk holds indices beyond +-{MAX_VOXEL_INDEX}, the map's range"
+    return None

@@ -19,11 +19,11 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
+from mfp_mapper.config.schema import NodeConfig
 from mfp_mapper.core.gridmap import GridTooLarge, unobserved_hit_probability
+from mfp_mapper.mapping.live import LiveIntegrator
 from mfp_mapper.ros.messages import cloud_msg, grid_msg, stamp_msg
-from mfp_mapper.sensing.live import LiveIntegrator
 from mfp_mapper.sensing.pointcloud import pack_cloud
-from mfp_mapper.settings import NodeConfig
 
 PUBLISH_DUTY = 0.1
 """Largest share of wall time the map outputs may take: after a publication that took
@@ -84,11 +84,11 @@ class MapOutputs:
             return  # nobody listens: publish when someone does (latched, so they get it)
         if time.monotonic() < self._not_before:
             return  # the last publication was slow: keep publishing under PUBLISH_DUTY
-        worker, cfg = self._worker, self._config()
+        worker = self._worker
         with worker.map_lock:
             version = worker.mapper.version
-            if not (cfg.frame_id or worker.odom_frame or worker.mapper.num_voxels):
-                return  # an empty map in a frame not known yet: nothing worth latching
+            if not worker.map_frame:
+                return  # the map frame is not decided yet (no cloud placed): nothing to latch
         due = {k for k, n in listening.items() if n and self.published[k] != version}
         if not due:
             return
@@ -113,7 +113,7 @@ class MapOutputs:
     def _timed_map_lock(self, times: list[float] | None) -> Iterator[None]:
         """The map lock; adds the seconds waited for it and held to ``times`` (if given)."""
         t0 = time.perf_counter()
-        with self._worker.whole_map():
+        with self._worker.whole_map:
             t1 = time.perf_counter()
             try:
                 yield
@@ -190,5 +190,10 @@ class MapOutputs:
                 )
         now = self._node.get_clock().now().to_msg()
         return grid_msg(
-            grid, resolution, worker.map_frame, self._header_stamp(stamp), now, cfg.occupancy_min_z
+            grid,
+            resolution,
+            worker.map_frame or worker.mapper.frame_id,
+            self._header_stamp(stamp),
+            now,
+            cfg.occupancy_min_z,
         )

@@ -1,17 +1,17 @@
 """The ``mfp_mapper`` ROS 2 node: live mapping from PointCloud2 + Odometry.
 
 ROS wiring only: subscriptions hand clouds and odometry to the ROS-free worker
-(``mfp_mapper.sensing.live``: queue, odometry wait, the scan pipeline, drops, counters);
+(``mfp_mapper.mapping.live``: queue, odometry wait, the scan pipeline, drops, counters);
 ``map_outputs`` publishes the map; services query, save and reset it. Run it with
 ``python -m mfp_mapper.node --ros-args ...`` or ``ros2 run mfp_mapper mfp_mapper``;
-parameters are in ``mfp_mapper.settings``.
+parameters are in ``mfp_mapper.config.schema``.
 
 Threads: one executor thread runs every ROS callback (rclpy's multi-threaded executor
 cost about 70% of a core in overhead); subscription callbacks only queue clouds and store
 poses. The worker thread integrates and publishes between scans; ``~/save_map`` and the
 autosave write in a thread of their own. ``worker.map_lock`` guards the Mapper; the worker
 holds it only to merge a scan it walked without it (``Mapper.stage``/``commit``), letting
-queries in between chunks; GetMap, saving and reset take ``worker.whole_map()`` (no scan
+queries in between chunks; GetMap, saving and reset take ``worker.whole_map`` (no scan
 half merged). So services answer during a long scan. SIGINT / SIGTERM stop it
 as ``ros.shutdown`` says: the executor stops between callbacks, then the final save.
 """
@@ -23,6 +23,7 @@ import os
 import sys
 import threading
 import time
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -37,6 +38,7 @@ from nav_msgs.msg import OccupancyGrid, Odometry
 from nav_msgs.srv import GetMap
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.qos import (
@@ -52,10 +54,13 @@ from std_msgs.msg import String
 from std_srvs.srv import Empty, Trigger
 from tf2_msgs.msg import TFMessage
 
-from mfp_mapper.core.atomic import remove_stale_temp_files
-from mfp_mapper.core.mapfile import MapFileError, map_arrays
+from mfp_mapper.config.schema import SPECS, NodeConfig
 from mfp_mapper.core.mapper import Mapper
-from mfp_mapper.core.tiles import is_tiled, write_map_path
+from mfp_mapper.mapio.atomic import remove_stale_temp_files
+from mfp_mapper.mapio.loading import load_map
+from mfp_mapper.mapio.mapfile import MapFileError, map_arrays
+from mfp_mapper.mapio.tiles import is_tiled, write_map_path
+from mfp_mapper.mapping.live import LiveIntegrator, LiveSettings
 from mfp_mapper.ros.guarded_node import GuardedNode, tracked
 from mfp_mapper.ros.map_outputs import MapOutputs
 from mfp_mapper.ros.messages import cloud_msg
@@ -68,11 +73,9 @@ from mfp_mapper.ros.status import (
     startup_text,
     status_report,
 )
-from mfp_mapper.sensing.live import LiveIntegrator, LiveSettings
 from mfp_mapper.sensing.pointcloud import CloudFormatError, pack_cloud, read_xyz, stamp_seconds
 from mfp_mapper.sensing.poses import PoseBuffer, odometry_sample
 from mfp_mapper.sensing.tf_tree import TfTree, TransformUnavailable
-from mfp_mapper.settings import SPECS, NodeConfig
 
 NODE_NAME = "mfp_mapper"
 RESULT_FIELDS = (
@@ -80,8 +83,10 @@ RESULT_FIELDS = (
 )  # fmt: skip
 
 """The fields of a ~/hit_probability/result cloud."""
-INFO_KEYS = frozenset({"placement", "no_return", "odom_frame"})
+INFO_KEYS = frozenset({"no_return", "odom_frame"})
 """Keys of the worker's log lines that inform (logged at INFO), not warn."""
+CLOCK_GRACE = 3.0
+"""Wall seconds after start before a missing /clock (use_sim_time) is reported."""
 
 
 def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, bool]:
@@ -102,7 +107,7 @@ def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, bool]:
     ):  # nothing yet, or an empty directory for a tiled map
         return _empty_map(cfg), False
     try:
-        mapper = Mapper.load(path, **cfg.mapper_settings())
+        mapper = load_map(path, **cfg.map_settings().mapper_kwargs())
     except (MapFileError, ValueError, OSError) as err:
         logger.error(
             f"cannot load map_path {path!r}: {err}; starting an empty map (and not "
@@ -121,7 +126,7 @@ def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, bool]:
 
 
 def _empty_map(cfg: NodeConfig) -> Mapper:
-    return Mapper(cfg.resolution, frame_id=cfg.frame_id or "map", **cfg.mapper_settings())
+    return Mapper.of(cfg.map_settings(), frame_id=cfg.frame_id or "map")
 
 
 class MfpMapperNode(GuardedNode):
@@ -138,20 +143,25 @@ class MfpMapperNode(GuardedNode):
         self._queries = 0
         self._maps_served = 0
         mapper, self._load_failed = initial_mapper(self.cfg, self.get_logger())
+        self._warn_slashes()
         self.worker = LiveIntegrator(
             mapper,
             LiveSettings.of(self.cfg),
             PoseBuffer(max_age=self.cfg.odom_buffer, max_gap=self.cfg.odom_max_gap),
             tree=TfTree(buffer_length=self.cfg.tf_buffer),
             log=self._worker_log,
+            info=self.get_logger().info,
             now=self._now,
+            map_frame=self.cfg.frame_id or (mapper.frame_id if mapper.num_voxels else ""),
         )
         self.outputs = MapOutputs(self, self.worker, lambda: self.cfg, self.warn_throttled)
-        self.worker._publish = self.outputs.publish
+        self.worker.set_publish(self.outputs.publish)
 
         self._create_interfaces()
         self.worker.start()
-        self.get_logger().info(startup_text(self.cfg, self.resolve_topic_name, self.mapper))
+        self.get_logger().info(
+            startup_text(self.cfg, self.resolve_topic_name, self.mapper, self.map_frame)
+        )
 
     def _create_interfaces(self) -> None:
         self.create_subscription(
@@ -198,10 +208,15 @@ class MfpMapperNode(GuardedNode):
         self._saved_version: int | None = None  # the map version last saved (autosave)
         if self.cfg.autosave_period > 0.0 and self.cfg.map_path:
             self.create_timer(self.cfg.autosave_period, self._on_autosave_timer)
+        # wall-clock timers: with use_sim_time and no /clock the ROS clock stands still,
+        # and the map, ~/status and /diagnostics must still go out
+        wall = Clock(clock_type=ClockType.STEADY_TIME)
         if self.cfg.publish_rate > 0.0:
-            self.create_timer(1.0 / self.cfg.publish_rate, self._on_publish_timer)
+            self.create_timer(1.0 / self.cfg.publish_rate, self._on_publish_timer, clock=wall)
         if self.cfg.status_period > 0.0:
-            self.create_timer(self.cfg.status_period, self._on_status)
+            self.create_timer(self.cfg.status_period, self._on_status, clock=wall)
+        self._clock_warned = False
+        self.create_timer(1.0, self._check_clock, clock=wall)
 
     # --- set-up ----------------------------------------------------------------------------
 
@@ -211,7 +226,42 @@ class MfpMapperNode(GuardedNode):
 
     @property
     def map_frame(self) -> str:
+        """The run's map frame ("" until decided at the first cloud placed)."""
         return self.worker.map_frame
+
+    def _warn_slashes(self) -> None:
+        for name in ("frame_id", "base_frame_id", "cloud_frame_id"):
+            value = getattr(self.cfg, name)
+            if value.startswith("/"):
+                self.get_logger().warning(
+                    f"parameter {name} {value!r} has a leading slash: using "
+                    f"{value.lstrip('/')!r} (tf2 and RViz reject such frame names)"
+                )
+        self.cfg = replace(
+            self.cfg,
+            frame_id=self.cfg.frame_id.lstrip("/"),
+            base_frame_id=self.cfg.base_frame_id.lstrip("/"),
+            cloud_frame_id=self.cfg.cloud_frame_id.lstrip("/"),
+        )
+
+    @tracked
+    def _check_clock(self) -> None:
+        """One clear line when use_sim_time is true and /clock never came (a bag played
+        without --clock); one more when it comes."""
+        sim = self.get_parameter("use_sim_time").value
+        if not sim or time.monotonic() - self._started < CLOCK_GRACE:
+            return
+        stopped = self.get_clock().now().nanoseconds == 0
+        if stopped and not self._clock_warned:
+            self._clock_warned = True
+            self.get_logger().error(
+                f"use_sim_time is true and /clock has not been received in {CLOCK_GRACE:g} s: "
+                "stamps cannot be checked and clouds wait for a clock that stands still "
+                "(play the bag with --clock, or set use_sim_time false)"
+            )
+        elif not stopped and self._clock_warned:
+            self._clock_warned = False
+            self.get_logger().info("/clock received: simulated time runs")
 
     def _on_set_parameters(self, params: list[Any]) -> SetParametersResult:
         values = self.cfg.values()
@@ -287,7 +337,9 @@ class MfpMapperNode(GuardedNode):
             self._answer_nothing(msg)
             return
         try:
-            in_map = self.worker.to_map_frame(points, frame, stamp_seconds(msg.header.stamp))
+            in_map = self.worker.pose_inputs.to_map_frame(
+                points, frame, stamp_seconds(msg.header.stamp)
+            )
         except TransformUnavailable as err:
             self.warn_throttled(
                 "query_frame",
@@ -332,7 +384,7 @@ class MfpMapperNode(GuardedNode):
             response.map = await self.off_executor(self.outputs.grid)
         except Exception:
             response.map = OccupancyGrid()  # an empty map, in the map frame: never silence
-            response.map.header.frame_id = self.map_frame
+            response.map.header.frame_id = self.map_frame or self.mapper.frame_id
             response.map.header.stamp = self.get_clock().now().to_msg()
             raise
         self._maps_served += 1
@@ -361,12 +413,11 @@ class MfpMapperNode(GuardedNode):
         t0 = time.perf_counter()
         try:
             with self._save_lock:
-                with self.worker.whole_map():  # snapshot only: writing runs unlocked
+                with self.worker.whole_map:  # snapshot only: writing runs unlocked
                     started = time.perf_counter() - t0
                     version = self.mapper.version
                     if only_if_changed and version == self._saved_version:
                         return True, "map unchanged since the last save"
-                    self.mapper.frame_id = self.map_frame
                     arrays = map_arrays(self.mapper)
                 count = write_map_path(path, arrays, compress=False)
                 self._saved_version = version
@@ -395,7 +446,7 @@ class MfpMapperNode(GuardedNode):
     @tracked
     async def _on_reset(self, request: Empty.Request, response: Empty.Response) -> Empty.Response:
         def reset() -> None:
-            with self.worker.whole_map():
+            with self.worker.whole_map:
                 self.mapper.reset()
 
         await self.off_executor(reset)
@@ -416,7 +467,8 @@ class MfpMapperNode(GuardedNode):
                 self.worker.map_lock.release()
         extra = {
             "uptime_s": round(time.monotonic() - self._started, 3),
-            "map_frame": self.map_frame,
+            **self.worker.pose_inputs.describe(),
+            "sim_time_without_clock": self._clock_warned,
             "queries": self._queries,
             "maps_served": self._maps_served,
         }

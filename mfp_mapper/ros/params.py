@@ -1,4 +1,4 @@
-"""The node's ROS parameters, declared from the settings schema (``mfp_mapper.settings``)."""
+"""The node's ROS parameters, declared from the settings schema (``mfp_mapper.config.schema``)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from typing import Any
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.node import Node
 
-from mfp_mapper.settings import (
+from mfp_mapper.config.schema import (
     PARAMS,
     SPECS,
     NodeConfig,
@@ -45,7 +45,7 @@ def declare_parameters(node: Node) -> NodeConfig:
 
     An override naming no parameter (a typo) is an error, as in ``mfp-mapper --config``; a
     value of the wrong type or out of range is rejected by rclpy (``ParameterException``),
-    with the message ``mfp_mapper.settings.check_value`` gives the CLI.
+    with the message ``mfp_mapper.config.schema.check_value`` gives the CLI.
     """
     unknown = [
         n for n in unknown_parameters(list(parameter_overrides(node))) if not node.has_parameter(n)

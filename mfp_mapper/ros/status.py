@@ -9,10 +9,10 @@ from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
+from mfp_mapper.config.schema import NodeConfig
 from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.mapping.live import LiveCounters, finite_or_none
 from mfp_mapper.ros.map_outputs import PublishCounters
-from mfp_mapper.sensing.live import LiveCounters, finite_or_none
-from mfp_mapper.settings import NodeConfig
 
 
 @dataclass
@@ -63,6 +63,8 @@ def status_report(
         "latency_max_s": c.latency_max if c.clouds_integrated else None,
         "odom_in": c.odom_in,
         "odom_rejected": dict(c.odom_rejected),
+        "tf_in": c.tf_in,
+        "tf_rejected": dict(c.tf_rejected),
         "voxels": voxels,
         "memory_bytes": memory,
         "map_version": version,
@@ -136,10 +138,11 @@ def diagnostics(
     return out
 
 
-def startup_text(cfg: NodeConfig, topic: Callable[[str], str], mapper: Mapper) -> str:
-    """The start-up log line: what a robot integrator needs to check (topics, frames, pose
-    and extrinsic sources, map file, outputs); ``topic`` resolves a topic name."""
-    if cfg.extrinsic_override() is not None:
+def startup_text(cfg: NodeConfig, topic: Callable[[str], str], mapper: Mapper, frame: str) -> str:
+    """The start-up log line: what a robot integrator needs to check (topics, the map frame
+    and the rule that decides it, pose and extrinsic sources, map file, outputs); ``topic``
+    resolves a topic name; ``frame`` is the map frame when already decided."""
+    if cfg.lidar_override() is not None:
         extrinsic = (
             f"lidar.* parameters (translation {list(cfg.lidar_translation)}, rpy "
             f"{list(cfg.lidar_rpy)}) unless the cloud frame is the odometry child"
@@ -150,16 +153,25 @@ def startup_text(cfg: NodeConfig, topic: Callable[[str], str], mapper: Mapper) -
             f"/tf_static {body} -> cloud frame (identity when the cloud frame is the "
             "odometry child; a cloud it cannot place is dropped)"
         )
+    if cfg.frame_id:
+        map_frame = f"{frame!r} (frame_id; clouds wait for TF to reach it)"
+    elif frame:
+        map_frame = f"{frame!r} (the loaded map's)"
+    else:
+        map_frame = (
+            "decided at the first cloud placed (the odometry frame, else the root of the "
+            "cloud's TF tree; logged) and then fixed for the run"
+        )
     poses = (
-        f"{topic('odom')} (nav_msgs/Odometry) when it publishes, else TF "
-        f"{cfg.frame_id or '<root>'} <- cloud frame; /tf and /tf_static "
-        f"(tf2_msgs/TFMessage, {cfg.tf_buffer} s kept)"
+        f"{topic('odom')} (nav_msgs/Odometry) when it publishes, linked to the map frame "
+        f"through TF; else TF map frame <- cloud frame; /tf and /tf_static "
+        f"(tf2_msgs/TFMessage, cache {cfg.tf_buffer} s)"
     )
     path = cfg.map_path or "<none>"
     loaded = f", {mapper.num_voxels} voxels loaded" if mapper.num_voxels else ""
     return (
         f"mfp_mapper ready: clouds from {topic('cloud_in')}, poses from {poses}; map frame "
-        f"{cfg.frame_id or '<the odometry frame>'}; extrinsic: {extrinsic}; resolution "
+        f"{map_frame}; extrinsic: {extrinsic}; resolution "
         f"{mapper.resolution} m, max_range {cfg.max_range} m, decay_time "
         f"{cfg.decay} s, deskew {cfg.deskew}; map_path {path}{loaded}, save_on_shutdown "
         f"{cfg.save_on_shutdown}; outputs {topic('~/degree_of_occupancy')}, "

@@ -1,2 +1,3 @@
-"""ROS-free sensing: PointCloud2 parsing on plain buffers, poses and transforms, de-skew and
-the one scan pipeline that turns a parsed cloud into placed rays (or a drop with a reason)."""
+"""ROS-free sensing: PointCloud2 parsing on plain buffers, poses and the TF buffer, de-skew,
+no-return recovery and placement: a parsed cloud becomes placed rays (or a drop with a reason).
+Never touches the Mapper."""

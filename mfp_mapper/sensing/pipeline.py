@@ -1,8 +1,7 @@
-"""The one scan pipeline: a received cloud -> placed rays in the map, or a drop with a reason.
-
-The live node's worker (``sensing.live``) and the offline replay (``offline.replay``) both
-run every cloud through these steps, so they drop the same clouds for the same reasons and
-count them under the same names (``DROP_REASONS``):
+"""The stages of the scan pipeline: a received cloud -> placed rays in the map frame, or a
+drop with a reason. No Mapper here: the one loop (``mapping.loop.ScanLoop``), which the live
+node's worker and every offline replay run, chains these stages, integrates the placed rays
+and counts everything under the names of ``DROP_REASONS``:
 
 1. ``parse_scan``: PointCloud2 (any object with its attributes) -> ``ParsedCloud``
    (``malformed``, ``empty``); ``add_no_return_rays`` (``no_return_range`` > 0) appends
@@ -12,22 +11,21 @@ count them under the same names (``DROP_REASONS``):
    time when de-skewing) — the live worker waits for odometry up to it;
 3. ``place_scan``: points into the map frame at the poses of their times, then the height
    band (``no_poses``, ``too_new``, ``too_old``, ``gap``);
-4. ``integrate_scan``: into the Mapper (``no_usable_rays`` when the core used no ray).
+4. (``mapping.loop``) integration into the Mapper (``no_usable_rays`` when the core used
+   no ray).
 
 A drop is a ``ScanDropped`` exception carrying its ``reason``; point-level losses
-(NaN, zero range, height band, the core's own) are counted per reason in ``ScanCounts``.
+(NaN, zero range, height band, the core's own) are counted per reason by the loop.
 """
 
 from __future__ import annotations
 
-from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-from mfp_mapper.core.mapper import IntegrationSummary, Mapper
 from mfp_mapper.sensing.deskew import PoseSource, cloud_to_map
 from mfp_mapper.sensing.no_return import with_no_return_rays
 from mfp_mapper.sensing.pointcloud import (
@@ -46,7 +44,11 @@ DROP_REASONS: dict[str, str] = {
     "malformed": "not a parsable cloud: no x/y/z, fields beyond point_step, truncated data, "
     "unknown datatypes",
     "empty": "no valid point (all NaN/Inf or zero range), or none in the height band",
+    "no_frame": "the cloud's header.frame_id is empty (parameter cloud_frame_id says what it "
+    "means)",
+    "ahead_of_clock": "stamped further ahead of the node clock than any pose can be (live only)",
     "no_poses": "no pose at all (no odometry or transform received)",
+    "tf_conflict": "a frame of the TF chain gets its parent alternately from two publishers",
     "too_new": "the poses never reached the cloud's time (live: within odom_wait)",
     "too_old": "the cloud is older than the poses kept",
     "gap": "the cloud lies between two poses further apart than odom_max_gap",
@@ -105,49 +107,6 @@ class PlacedScan:
     points_dropped: dict[str, int] = field(default_factory=dict)
     no_return: NDArray[np.bool_] | None = None
     """Rays that end without a return (recovered firings), or None."""
-
-
-@dataclass
-class ScanCounts:
-    """What the pipeline did, under the names of ``DROP_REASONS`` (node ~/status and the
-    replay summary report these)."""
-
-    clouds_in: int = 0
-    clouds_integrated: int = 0
-    clouds_dropped: Counter[str] = field(default_factory=Counter)
-    points_in: int = 0
-    points_dropped: Counter[str] = field(default_factory=Counter)
-    rays_in: int = 0
-    rays_used: int = 0
-    rays_truncated: int = 0
-    rays_no_return: int = 0
-    """Recovered firings with no return that were integrated (``no_return_range``)."""
-    no_return_note: str = ""
-    """Why firings were not (all) recovered, the first time it happened; "" if never."""
-
-    def drop(self, reason: str) -> int:
-        """Count one dropped cloud; returns how many were dropped for that reason."""
-        self.clouds_dropped[reason] += 1
-        return self.clouds_dropped[reason]
-
-    def dropped_scan(self, drop: ScanDropped) -> int:
-        """Count a dropped cloud and its points; returns the count for its reason."""
-        self.points_in += drop.points_in
-        self.count_points(drop.points_dropped)
-        return self.drop(drop.reason)
-
-    def count_points(self, dropped: dict[str, int]) -> None:
-        self.points_dropped.update({k: v for k, v in dropped.items() if v})
-
-    def add(self, placed: PlacedScan, summary: IntegrationSummary) -> None:
-        """Count one integrated cloud, its points dropped before the core and the core's."""
-        self.count_points(placed.points_dropped)
-        self.clouds_integrated += 1
-        self.rays_in += summary.rays_in
-        self.rays_used += summary.rays_used
-        self.rays_truncated += summary.rays_truncated
-        self.rays_no_return += summary.rays_no_return
-        self.count_points(summary.dropped)
 
 
 def parse_scan(msg: Any) -> ParsedCloud:
@@ -223,30 +182,6 @@ def place_scan(
         )
     deskewed = bool(settings.deskew and cloud.time_offset is not None)
     return PlacedScan(stamp, points, origins, deskewed, dropped, flags)
-
-
-def integrate_scan(mapper: Mapper, placed: PlacedScan) -> IntegrationSummary:
-    """Integrate placed rays; ScanDropped ``no_usable_rays`` when the core used none
-    (the map is then unchanged; the drop carries the placed scan's and the core's point
-    drops; on success ``ScanCounts.add`` counts both)."""
-    return require_rays(
-        mapper.integrate(placed.points, placed.origins, placed.stamp, placed.no_return), placed
-    )
-
-
-def require_rays(summary: IntegrationSummary, placed: PlacedScan) -> IntegrationSummary:
-    """``summary``, or ScanDropped ``no_usable_rays`` when the core used none of the placed
-    scan's rays (see ``integrate_scan``)."""
-    if summary.rays_used == 0:
-        lost = ", ".join(f"{k} {v}" for k, v in summary.dropped.items() if v) or "none"
-        dropped = Counter(placed.points_dropped)
-        dropped.update({k: v for k, v in summary.dropped.items() if v})
-        raise ScanDropped(
-            "no_usable_rays",
-            f"the core used none of its {summary.rays_in} rays (dropped: {lost})",
-            points_dropped=dict(dropped),
-        )
-    return summary
 
 
 def z_band(

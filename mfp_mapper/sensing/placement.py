@@ -13,7 +13,7 @@
   odometry child (or ``base_frame_id``); else the ``lidar.*`` parameters when set (an
   override); else TF (``/tf_static``); else the cloud is dropped (``no_extrinsic``).
 
-``StampGuard`` keeps one far-off stamp from stopping a stream (see its docstring).
+``StampGuard`` (in ``poses``) keeps one far-off stamp from stopping a stream.
 """
 
 from __future__ import annotations
@@ -27,7 +27,13 @@ from numpy.typing import ArrayLike, NDArray
 from mfp_mapper.sensing.deskew import PoseSource
 from mfp_mapper.sensing.pipeline import ScanDropped
 from mfp_mapper.sensing.poses import Extrinsic
-from mfp_mapper.sensing.tf_tree import TfChain, TfTree, TransformUnavailable, compose
+from mfp_mapper.sensing.tf_tree import (
+    TfChain,
+    TfTree,
+    TransformUnavailable,
+    compose,
+    frame_list,
+)
 
 FloatArray = NDArray[np.float64]
 
@@ -41,6 +47,8 @@ class Placement:
     map_frame: str
     source: str
     """In words, for the log: e.g. "odometry odom -> base_link, map -> odom from TF"."""
+    source_moves: bool = True
+    """False when ``poses`` is not the robot's (a cloud already in the map/odometry frame)."""
 
 
 class ComposedPoses:
@@ -99,7 +107,7 @@ def resolve_placement(
         _require_chain(tree, map_frame, odometry.frame, "the map frame", "the odometry frame")
     if cloud_frame in (map_frame, odometry.frame):  # already placed: not moved twice
         poses: PoseSource = FixedPose() if cloud_frame == map_frame else (outer or FixedPose())
-        return Placement(poses, Extrinsic(), map_frame, f"cloud already in {cloud_frame}")
+        return Placement(poses, Extrinsic(), map_frame, f"cloud already in {cloud_frame}", False)
     poses = odometry.poses if outer is None else ComposedPoses(outer, odometry.poses)
     via = f"odometry {odometry.frame} -> {odometry.child}"
     if outer is not None:
@@ -117,7 +125,7 @@ def _tf_only(cloud_frame: str, tree: TfTree, frame_id: str) -> Placement:
         raise ScanDropped(
             "no_poses",
             f"no odometry, and TF has no transform for the cloud frame {cloud_frame!r} "
-            f"(frames known: {', '.join(sorted(tree.frames())) or 'none'})",
+            f"(frames known: {frame_list(tree.frames())})",
         )
     try:
         root = tree.ancestors(cloud_frame)[-1]
@@ -125,7 +133,9 @@ def _tf_only(cloud_frame: str, tree: TfTree, frame_id: str) -> Placement:
         raise ScanDropped("no_poses", str(err)) from None
     map_frame = frame_id or root
     if map_frame == cloud_frame:
-        return Placement(FixedPose(), Extrinsic(), map_frame, f"cloud already in {cloud_frame}")
+        return Placement(
+            FixedPose(), Extrinsic(), map_frame, f"cloud already in {cloud_frame}", False
+        )
     _require_chain(tree, map_frame, cloud_frame, "the map frame", "the cloud frame")
     return Placement(
         TfChain(tree, map_frame, cloud_frame),
@@ -176,35 +186,3 @@ def _extrinsic(
             )
         extrinsic = Extrinsic(*compose(upper, chain))
     return extrinsic, f"/tf_static {body} -> {cloud_frame}"
-
-
-class StampGuard:
-    """Accepts a stream's stamps unless one is far off: a stamp more than ``max_jump``
-    seconds from the latest accepted one (ahead or behind) is held back until a second stamp
-    confirms the jump (then ``jumped`` is True: the caller clears its buffer and the stream
-    goes on from there). A stamp more than ``max_future`` ahead of the reference clock
-    ``now`` is refused. One poisoned stamp therefore costs one message, never the stream."""
-
-    def __init__(self, max_jump: float = 5.0, max_future: float = 10.0) -> None:
-        self.max_jump, self.max_future = max_jump, max_future
-        self.latest: float | None = None
-        self._pending: float | None = None
-        self.jumped = False
-
-    def check(self, stamp: float, now: float | None = None) -> str | None:
-        """None when ``stamp`` is accepted, else why not ("future_outlier", ...)."""
-        self.jumped = False
-        if now is not None and stamp > now + self.max_future:
-            return "ahead_of_clock"
-        if self.latest is None or abs(stamp - self.latest) <= self.max_jump:
-            self._pending = None
-            self.latest = stamp if self.latest is None else max(self.latest, stamp)
-            return None
-        if self._pending is not None and abs(stamp - self._pending) <= self.max_jump:
-            self._pending, self.latest, self.jumped = None, stamp, True
-            return None
-        self._pending = stamp
-        return "future_outlier" if stamp > self.latest else "past_outlier"
-
-    def reset(self) -> None:
-        self.latest, self._pending, self.jumped = None, None, False

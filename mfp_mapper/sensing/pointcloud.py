@@ -123,7 +123,7 @@ class PackedCloud:
 
     One packer (``pack_records``, ``pack_columns``, ``pack_cloud``) for the node's outputs,
     the bag writers, the scan files and the tests; the message adapters only copy these
-    attributes into their own type (rclpy, rosbags, ``offline.scan_files.CloudMessage``).
+    attributes into their own type (rclpy, rosbags, ``sources.scan_files.CloudMessage``).
     """
 
     fields: list[FieldSpec]

@@ -324,3 +324,35 @@ def transform_sample(msg: Any) -> TransformSample:
         np.array([t.x, t.y, t.z], dtype=np.float64),
         np.array([r.x, r.y, r.z, r.w], dtype=np.float64),
     )
+
+
+class StampGuard:
+    """Accepts a stream's stamps unless one is far off: a stamp more than ``max_jump``
+    seconds from the latest accepted one (ahead or behind) is held back until a second stamp
+    confirms the jump (then ``jumped`` is True: the caller clears its buffer and the stream
+    goes on from there). A stamp more than ``max_future`` ahead of the reference clock
+    ``now`` is refused. One poisoned stamp therefore costs one message, never the stream."""
+
+    def __init__(self, max_jump: float = 5.0, max_future: float = 10.0) -> None:
+        self.max_jump, self.max_future = max_jump, max_future
+        self.latest: float | None = None
+        self._pending: float | None = None
+        self.jumped = False
+
+    def check(self, stamp: float, now: float | None = None) -> str | None:
+        """None when ``stamp`` is accepted, else why not ("future_outlier", ...)."""
+        self.jumped = False
+        if now is not None and stamp > now + self.max_future:
+            return "ahead_of_clock"
+        if self.latest is None or abs(stamp - self.latest) <= self.max_jump:
+            self._pending = None
+            self.latest = stamp if self.latest is None else max(self.latest, stamp)
+            return None
+        if self._pending is not None and abs(stamp - self._pending) <= self.max_jump:
+            self._pending, self.latest, self.jumped = None, stamp, True
+            return None
+        self._pending = stamp
+        return "future_outlier" if stamp > self.latest else "past_outlier"
+
+    def reset(self) -> None:
+        self.latest, self._pending, self.jumped = None, None, False

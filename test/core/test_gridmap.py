@@ -15,7 +15,7 @@ from mfp_mapper.core.gridmap import (
     band_mask,
     unobserved_hit_probability,
 )
-from mfp_mapper.offline.scan_pattern import scan_directions
+from mfp_mapper.sources.scan_pattern import scan_directions
 
 
 def test_band_uses_voxel_centres() -> None:

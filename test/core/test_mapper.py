@@ -11,7 +11,7 @@ from box_world import BoxWorld, anchors_scene
 
 from mfp_mapper import Mapper
 from mfp_mapper.core import model
-from mfp_mapper.offline.scan_pattern import scan_directions
+from mfp_mapper.sources.scan_pattern import scan_directions
 
 
 def test_bad_points_are_dropped_and_counted_by_reason() -> None:

@@ -9,9 +9,9 @@ import pytest
 from box_world import anchors_scene
 
 from mfp_mapper import Mapper
-from mfp_mapper.core.mapfile import map_arrays, mapper_from_arrays, read_map_arrays
 from mfp_mapper.core.merge import MergeError, merge_map_arrays, merge_voxels
 from mfp_mapper.core.store import VoxelArrays
+from mfp_mapper.mapio.mapfile import map_arrays, mapper_from_arrays, read_map_arrays
 
 RES = 0.2
 
@@ -113,7 +113,7 @@ def test_maps_of_other_settings_are_refused(scans) -> None:  # type: ignore[no-u
 
 
 def test_merged_arrays_are_a_map_file(scans, tmp_path) -> None:  # type: ignore[no-untyped-def]
-    from mfp_mapper.core.mapfile import write_map_arrays
+    from mfp_mapper.mapio.mapfile import write_map_arrays
 
     parts = [map_arrays(_map(scans[i::2], [float(k) for k in range(i, 9, 2)], 5.0)) for i in (0, 1)]
     path = tmp_path / "merged.npz"

@@ -30,8 +30,10 @@ FLOAT64 = 8
 
 
 def domain_id() -> int:
-    """A ROS domain id derived from this process id (10..99)."""
-    return os.getpid() % 90 + 10
+    """A ROS domain id: ``ROS_DOMAIN_ID`` when set (``./run test`` sets a private one), else
+    derived from this process id (10..99)."""
+    chosen = os.environ.get("ROS_DOMAIN_ID")
+    return int(chosen) if chosen else os.getpid() % 90 + 10
 
 
 def ros_env(domain: int) -> dict[str, str]:
@@ -60,7 +62,7 @@ def _param_arg(name: str, value: Any) -> str:
     elif isinstance(value, float):
         text = repr(value)
     else:
-        text = str(value)
+        text = str(value) or "''"  # an empty string: quoted, or rcl cannot parse the rule
     return f"{name}:={text}"
 
 

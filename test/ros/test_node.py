@@ -27,8 +27,8 @@ from ros_helpers import (
     simulate_scan,
 )
 
-from mfp_mapper.offline.scan_pattern import scan_directions
-from mfp_mapper.settings import SPECS
+from mfp_mapper.config.schema import SPECS
+from mfp_mapper.sources.scan_pattern import scan_directions
 
 pytestmark = pytest.mark.ros
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from mfp_mapper.settings import PARAMS, SPECS, NodeConfig, defaults
+from mfp_mapper.config.schema import PARAMS, SPECS, NodeConfig, defaults
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -121,7 +121,7 @@ def test_services_answer_during_a_long_scan_and_see_whole_scans(
     from nav_msgs.srv import GetMap
     from std_srvs.srv import Trigger
 
-    from mfp_mapper.core.mapfile import read_map_file
+    from mfp_mapper.mapio.mapfile import read_map_file
 
     path = tmp_path / "map.npz"
     node = NodeProcess(ros_domain, {**PARAMS, "map_path": str(path)}, tmp_path / "node.log")
@@ -176,8 +176,8 @@ def _write_box_map(path: Path, voxels: float) -> tuple[int, np.ndarray]:
     """A map file of a dense box of about ``voxels`` voxels (stored uncompressed); returns
     the voxel count and their ``s``."""
     from mfp_mapper import Mapper
-    from mfp_mapper.core.mapfile import map_arrays, write_map_arrays
     from mfp_mapper.core.store import VoxelArrays
+    from mfp_mapper.mapio.mapfile import map_arrays, write_map_arrays
 
     side = round(voxels ** (1 / 3))
     grid = np.stack(np.meshgrid(*(np.arange(side),) * 3, indexing="ij"), -1).reshape(-1, 3)
@@ -208,7 +208,7 @@ def _launch_escalation(proc: subprocess.Popen[bytes]) -> int:
 def test_large_map_saved_intact_under_launch_escalation(ros_domain: int, tmp_path: Path) -> None:
     """A map of ``SHUTDOWN_VOXELS`` voxels loaded at start, ``save_on_shutdown``: after the
     escalation the file holds that map, and no temporary file is left."""
-    from mfp_mapper.core.mapfile import read_map_file
+    from mfp_mapper.mapio.mapfile import read_map_file
 
     path = tmp_path / "big.npz"
     count, s = _write_box_map(path, SHUTDOWN_VOXELS)
@@ -239,7 +239,7 @@ def test_large_map_saved_intact_under_launch_escalation(ros_domain: int, tmp_pat
 
 def test_sigterm_during_the_save_lets_it_finish(ros_domain: int, tmp_path: Path) -> None:
     """SIGINT starts the final save; a SIGTERM right after does not cut it short."""
-    from mfp_mapper.core.mapfile import read_map_file
+    from mfp_mapper.mapio.mapfile import read_map_file
 
     path = tmp_path / "map.npz"
     count, _ = _write_box_map(path, 2e6)
@@ -267,7 +267,7 @@ def test_sigterm_during_the_save_lets_it_finish(ros_domain: int, tmp_path: Path)
 def test_autosave_and_a_tiled_map_path(ros_domain: int, tmp_path: Path) -> None:
     """``autosave_period`` writes the map without a service call; ``map_path`` a directory:
     ``~/save_map`` and the autosave write a tiled map there, which a new node loads."""
-    from mfp_mapper import Mapper
+    from mfp_mapper.mapio.loading import load_map
 
     tiled = tmp_path / "tiled"
     tiled.mkdir()
@@ -283,7 +283,7 @@ def test_autosave_and_a_tiled_map_path(ros_domain: int, tmp_path: Path) -> None:
         assert status["clouds_integrated"] == 1, node.log()
         assert f.wait(lambda: (tiled / "index.json").is_file(), 10.0), node.log()
         assert f.wait(lambda: "saved" in node.log(), 10.0)
-        saved = Mapper.load(tiled)
+        saved = load_map(tiled)
         assert saved.num_voxels == status["voxels"]
         index_mtime = (tiled / "index.json").stat().st_mtime
         f.wait(lambda: False, 1.5)  # three autosave periods with no new scan: not rewritten

@@ -1,5 +1,5 @@
 """``mfp-mapper --config`` reads a parameter file exactly as the node does: the same files
-through real rcl/rclpy (and the real node) and through ``mfp_mapper.offline.param_file``."""
+through real rcl/rclpy (and the real node) and through ``mfp_mapper.config.param_file``."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ from typing import Any
 
 import pytest
 
-from mfp_mapper.offline.options import options_from_yaml
-from mfp_mapper.offline.param_file import ParamFileError, load_node_parameters
-from mfp_mapper.settings import check_parameters
+from mfp_mapper.config.param_file import ParamFileError, load_node_parameters
+from mfp_mapper.config.replay_options import options_from_yaml
+from mfp_mapper.config.schema import check_parameters
 
 pytestmark = pytest.mark.ros
 rclpy = pytest.importorskip("rclpy")

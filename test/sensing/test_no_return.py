@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from mfp_mapper.offline.scan_files import cloud_message, cloud_message_from_columns, read_pcd
 from mfp_mapper.sensing.no_return import recover_no_return, with_no_return_rays
 from mfp_mapper.sensing.pointcloud import parse_pointcloud2
+from mfp_mapper.sources.scan_files import cloud_message, cloud_message_from_columns, read_pcd
 
 VLP16_ELEVATIONS = np.arange(-15.0, 16.0, 2.0)
 OUSTER_ELEVATIONS = np.sort(np.random.default_rng(5).uniform(-22.5, 22.5, 64))

@@ -12,14 +12,14 @@ from live_helpers import drain, odom_sample
 from scipy.spatial.transform import Rotation
 
 from mfp_mapper.core.mapper import Mapper
-from mfp_mapper.offline.scan_files import cloud_message_from_columns
+from mfp_mapper.mapping.live import LiveIntegrator, LiveSettings
 from mfp_mapper.sensing.deskew import cloud_to_map
-from mfp_mapper.sensing.live import LiveIntegrator, LiveSettings
 from mfp_mapper.sensing.pipeline import ScanDropped
-from mfp_mapper.sensing.placement import Odometry, StampGuard, resolve_placement
+from mfp_mapper.sensing.placement import Odometry, resolve_placement
 from mfp_mapper.sensing.pointcloud import ParsedCloud
-from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer
+from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer, StampGuard
 from mfp_mapper.sensing.tf_tree import TfTree
+from mfp_mapper.sources.scan_files import cloud_message_from_columns
 
 T0 = 100.0
 MAP_ODOM = (np.array([10.0, -5.0, 0.0]), Rotation.from_euler("z", 0.5).as_quat())
@@ -191,7 +191,7 @@ def test_clock_jump_back_clears_buffers_and_mapping_resumes() -> None:
     worker.submit(cloud(T0 - 20.0))
     assert worker.observe_clock(T0) is False  # first observation: no jump
     assert worker.observe_clock(T0 - 20.0) is True
-    assert worker.counters.clouds_dropped["clock_jump"] == 1 and len(worker.poses) == 0
+    assert worker.counters.clouds_dropped["clock_jump"] == 1 and len(worker.pose_inputs.poses) == 0
     assert sum("clock jumped back" in line for line in logs) == 1
     t0 = time.monotonic()
     worker.add_odometry(odom_sample(T0 - 20.1))
@@ -204,7 +204,7 @@ def test_clock_jump_back_clears_buffers_and_mapping_resumes() -> None:
 def test_tf_only_worker_maps_in_the_root_frame() -> None:
     now = [T0]
     worker, logs = worker_and_logs(now)
-    worker.tree = robot_tree()
+    worker.pose_inputs.tree = robot_tree()
     worker.submit(cloud(T0, frame="lidar"))
     drain(worker)
     assert worker.counters.clouds_integrated == 1

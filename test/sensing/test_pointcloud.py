@@ -13,18 +13,18 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numpy.typing import NDArray
 
-from mfp_mapper.offline.scan_files import (
-    CloudMessage,
-    cloud_message,
-    cloud_message_from_columns,
-    read_pcd,
-)
 from mfp_mapper.sensing import pointcloud as pc
 from mfp_mapper.sensing.pointcloud import (
     CloudFormatError,
     FieldSpec,
     ParsedCloud,
     parse_pointcloud2,
+)
+from mfp_mapper.sources.scan_files import (
+    CloudMessage,
+    cloud_message,
+    cloud_message_from_columns,
+    read_pcd,
 )
 
 STAMP = 1_700_000_000.25

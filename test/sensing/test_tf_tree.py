@@ -10,9 +10,18 @@ import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
 from mfp_mapper.sensing.deskew import cloud_to_map
+from mfp_mapper.sensing.pipeline import ScanDropped
+from mfp_mapper.sensing.placement import resolve_placement
 from mfp_mapper.sensing.pointcloud import ParsedCloud
 from mfp_mapper.sensing.poses import Extrinsic
-from mfp_mapper.sensing.tf_tree import TfChain, TfTree, TransformUnavailable
+from mfp_mapper.sensing.tf_tree import (
+    TfChain,
+    TfTree,
+    TransformUnavailable,
+    compose,
+    frame_list,
+    invert,
+)
 
 
 def matrix(t: np.ndarray, q: np.ndarray) -> np.ndarray:
@@ -112,8 +121,10 @@ def test_buffer_length_keeps_one_sample_before_the_cut() -> None:
     # out of order inside the buffer is inserted in place
     tree.add("odom", "base_link", 9.5, [100, 0, 0], [0, 0, 0, 1])
     assert tree.lookup("odom", "base_link", [9.5])[0][0, 0] == 100.0
-    # older than the buffer: dropped and counted
+    # older than the buffer: dropped and counted (9 s back is also a jump to confirm)
     assert not tree.add("odom", "base_link", 1.0, [0, 0, 0], [0, 0, 0, 1])
+    assert tree.rejected["past_outlier"] == 1
+    assert not tree.add("odom", "base_link", 6.0, [0, 0, 0], [0, 0, 0, 1])
     assert tree.rejected["old"] == 1
 
 
@@ -191,3 +202,137 @@ def test_tf_message_duck_typed_and_chain_as_pose_source() -> None:
     points, origins = cloud_to_map(cloud, 1.0, TfChain(tree, "odom", "lidar"), Extrinsic())
     np.testing.assert_allclose(points, [[1.5, 0, 0], [3.0, 0, 0]], atol=1e-12)
     np.testing.assert_allclose(origins, [[0.5, 0, 0], [1.0, 0, 0]], atol=1e-12)
+
+
+# --- tf2 semantics: expiry, one parent per frame, loops, jumps, churn ----------------------
+
+UNIT = [0.0, 0.0, 0.0, 1.0]
+
+
+def streaming(tree: TfTree, start: float, stop: float, rate: float = 50.0) -> float:
+    """map -> odom -> base_link at ``rate`` Hz from ``start`` to ``stop``; the last stamp."""
+    t = start
+    while t <= stop + 1e-9:
+        tree.add("map", "odom", t, [1.0, 0, 0], UNIT)
+        tree.add("odom", "base_link", t, [t, 0, 0], UNIT)
+        t += 1.0 / rate
+    return t - 1.0 / rate
+
+
+def test_a_loop_closing_message_is_refused_never_stored() -> None:
+    tree = TfTree()
+    tree.add("base_link", "velodyne", 0.0, [0, 0, 1.0], UNIT, static=True)
+    streaming(tree, 10.0, 11.0)
+    assert not tree.add("base_link", "odom", 11.0, [0, 0, 0], UNIT)  # odom is above base_link
+    assert not tree.add("velodyne", "map", 0.0, [0, 0, 0], UNIT, static=True)
+    assert tree.rejected["loop"] == 2
+    kinds = [k for k, _ in tree.take_events()]
+    assert kinds.count("tf_loop") == 2
+    streaming(tree, 11.02, 11.5)
+    assert tree.lookup_matrix("map", "velodyne", 11.4)[:3, 3].tolist() == [12.4, 0.0, 1.0]
+
+
+def test_a_stray_parent_on_a_static_frame_expires_after_the_cache_time() -> None:
+    """One dynamic odom -> velodyne beside the static base_link -> velodyne: the frame
+    has the new parent (tf2) with one warning, and the static edge is back once the stray
+    edge is older than the cache time."""
+    tree = TfTree(buffer_length=2.0)
+    tree.add("base_link", "velodyne", 0.0, [0, 0, 1.0], UNIT, static=True)
+    streaming(tree, 10.0, 11.0)
+    assert tree.add("odom", "velodyne", 11.0, [5.0, 0, 0], UNIT)
+    events = tree.take_events()
+    assert [k for k, _ in events] == ["tf_parent"]
+    assert "'base_link'" in events[0][1] and "'odom'" in events[0][1]
+    with pytest.raises(TransformUnavailable):  # one message never places a cloud
+        tree.lookup("map", "velodyne", [11.0])
+    end = streaming(tree, 11.02, 12.9)
+    with pytest.raises(TransformUnavailable):  # only one stray sample: not at 12.9
+        tree.lookup("map", "velodyne", [end])
+    end = streaming(tree, end + 0.02, 13.2)  # the stray edge is > 2 s old now
+    assert tree.parent("velodyne") == ("base_link", True)
+    assert tree.lookup_matrix("map", "velodyne", end)[:3, 3].tolist() == pytest.approx(
+        [end + 1.0, 0.0, 1.0]
+    )
+
+
+def test_a_single_stray_parent_on_a_dynamic_frame_costs_nothing() -> None:
+    tree = TfTree()
+    streaming(tree, 10.0, 11.0)
+    tree.add("map", "base_link", 11.0, [99.0, 0, 0], UNIT)  # one message from a stray node
+    end = streaming(tree, 11.02, 11.5)
+    assert tree.parent("base_link") == ("odom", False) and not tree.conflicts()
+    # the samples from before the stray are still there
+    np.testing.assert_allclose(
+        tree.lookup("map", "base_link", [10.5, 11.01])[0][:, 0], [11.5, 12.01]
+    )
+    assert end > 11.4
+
+
+def test_alternating_parents_are_a_conflict_until_one_publisher_stops() -> None:
+    tree = TfTree(buffer_length=2.0)
+    t = 10.0
+    for _ in range(20):  # two localizers: base_link in odom, then in map, ...
+        tree.add("map", "odom", t, [1.0, 0, 0], UNIT)
+        tree.add("odom", "base_link", t, [t, 0, 0], UNIT)
+        tree.add("map", "base_link", t + 0.01, [t + 1.0, 0, 0], UNIT)
+        t += 0.05
+    assert tree.conflicts() == {"base_link": ("map", "odom")}
+    with pytest.raises(TransformUnavailable) as err:
+        tree.lookup("map", "base_link", [t - 0.1])
+    assert err.value.reason == "tf_conflict"
+    assert "'map'" in str(err.value) and "'odom'" in str(err.value)
+    assert "tf_conflict" in [k for k, _ in tree.take_events()]
+    end = streaming(tree, t, t + 2.5)  # one localizer left
+    assert not tree.conflicts()
+    assert tree.lookup("map", "base_link", [end])[0][0, 0] == pytest.approx(end + 1.0)
+
+
+def test_a_stream_jumping_back_starts_over_after_a_second_message() -> None:
+    tree = TfTree()
+    streaming(tree, 100.0, 101.0)
+    assert not tree.add("map", "odom", 80.0, [1.0, 0, 0], UNIT)  # one message 20 s back: held
+    assert tree.rejected["past_outlier"] == 1
+    end = streaming(tree, 80.0, 80.5)  # the publisher restarted with its clock 20 s back
+    assert tree.lookup("map", "base_link", [end - 0.1])[0][0, 0] == pytest.approx(end + 0.9)
+    assert "tf_jump" in [k for k, _ in tree.take_events()]
+    # one far-future message does not move the stream
+    assert not tree.add("map", "odom", 5000.0, [1.0, 0, 0], UNIT)
+    end = streaming(tree, end + 0.02, end + 0.5)
+    assert tree.lookup("map", "base_link", [end])[0][0, 0] == pytest.approx(end + 1.0)
+
+
+def test_churned_frame_names_are_forgotten_and_errors_stay_short() -> None:
+    """60k frame names, each published for a moment: the tree holds only the last cache
+    time's worth, and an error line names at most a handful of frames."""
+    tree = TfTree(buffer_length=1.0)
+    for k in range(60_000):
+        t = 1000.0 + 0.001 * k  # 60 s of stream, 1000 new names per second
+        tree.add("map", f"frame_{k}", t, [0, 0, 0], UNIT)
+    assert len(tree.frames()) <= 1 + 2 * 1000 + 64
+    with pytest.raises(TransformUnavailable) as err:
+        tree.lookup("map", "nowhere", [1059.0])
+    assert len(str(err.value)) < 300 and "more" in str(err.value)
+    for k in range(3000):  # 3000 live frames: the placement's drop line stays short too
+        tree.add("map", f"live_{k}", 1060.0, [0, 0, 0], UNIT)
+    with pytest.raises(ScanDropped) as drop:
+        resolve_placement("nowhere", tree, None)
+    assert len(drop.value.detail) < 300 and " more)" in drop.value.detail, drop.value.detail
+    assert frame_list(["c", "a", "b"], limit=2) == "'a', 'b' and 1 more"
+
+
+def test_rotations_compose_like_matrix_products() -> None:
+    rng = np.random.default_rng(1)
+    q1, q2 = (
+        Rotation.random(50, random_state=2).as_quat(),
+        Rotation.random(50, random_state=3).as_quat(),
+    )
+    t1, t2 = rng.normal(size=(50, 3)), rng.normal(size=(50, 3))
+    t, q = compose((t1, q1), (t2, q2))
+    for k in range(50):
+        expected = matrix(t1[k], q1[k]) @ matrix(t2[k], q2[k])
+        np.testing.assert_allclose(matrix(t[k], q[k]), expected, atol=1e-12)
+    ti, qi = invert((t1, q1))
+    for k in range(5):
+        np.testing.assert_allclose(
+            matrix(ti[k], qi[k]), np.linalg.inv(matrix(t1[k], q1[k])), atol=1e-12
+        )

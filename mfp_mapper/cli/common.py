@@ -1,0 +1,92 @@
+"""What the subcommands share: the error they report, map loading for a command, output
+checks, argparse number types. Imports no numpy (``mfp-mapper --help`` stays cheap)."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+TILE_BLOCKS_HELP = "tile edge of a tiled output, in 8x8x8-voxel blocks (default 32)"
+
+
+class CliError(Exception):
+    """A failure to report on stderr with exit status 1."""
+
+
+def error(text: str) -> None:
+    print(f"mfp-mapper: error: {text}", file=sys.stderr)
+
+
+def warn(text: str) -> None:
+    print(f"mfp-mapper: {text}", file=sys.stderr)
+
+
+def jsonable(value: Any) -> Any:
+    from mfp_mapper.outputs.report import jsonable
+
+    return jsonable(value)
+
+
+def load_map_arg(path: str, bounds: Any = None, lazy_tiles: bool = False) -> Any:
+    """A Mapper (only ``bounds`` when given); with ``lazy_tiles``, a tiled map is opened as a
+    ``TiledMap`` that reads its tiles when asked."""
+    from mfp_mapper.mapio.loading import load_map
+    from mfp_mapper.mapio.mapfile import MapFileError
+    from mfp_mapper.mapio.tiles import TiledMap
+
+    try:
+        if lazy_tiles and Path(path).is_dir():
+            return TiledMap(path)
+        return load_map(path, bounds=bounds)
+    except FileNotFoundError:
+        raise CliError(f"{path}: no such map file") from None
+    except (MapFileError, OSError, ValueError) as err:
+        raise CliError(str(err)) from None
+
+
+def check_writable(path: Path, tiled_ok: bool = False) -> None:
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        raise CliError(f"{path}: the folder {parent} does not exist")
+    if tiled_ok and path.suffix != ".npz":
+        from mfp_mapper.mapio.mapfile import MapFileError
+        from mfp_mapper.mapio.tiles import check_tiled_output
+
+        try:
+            check_tiled_output(path)
+        except MapFileError as err:
+            raise CliError(str(err)) from None
+    elif path.is_dir():
+        raise CliError(f"{path} is a directory, expected a file name")
+
+
+def unit_interval(text: str) -> float:
+    """An argparse type: a number in [0, 1]."""
+    value = float(text)
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"must lie in [0, 1], got {text}")
+    return value
+
+
+def positive(text: str) -> float:
+    value = float(text)
+    if not (value > 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text}")
+    return value
+
+
+def nonneg_int(text: str) -> int:
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text}")
+    return value
+
+
+def positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text}")
+    return value

@@ -1,0 +1,413 @@
+"""Fleet mapping: many recordings into one map, exactly, in this process or on Dask.
+
+The work is split into tasks: one per recording, or one per time window of a long recording
+(``ReplayOptions.start``/``end``: half-open windows of cloud stamps that tile the time
+axis, so every cloud lands in exactly one task). Each task replays its window with the
+same scan pipeline as ``mfp-mapper replay`` (``mapping.replay.replay``) and writes its
+partial map as a tiled map (``mapio.tiles``) into a work folder. The reduction is a shuffle
+by tile: each reduce task merges one group of tiles of every partial exactly
+(``core.merge``: per-voxel sums, each block brought to its latest time with decay), so no
+worker holds the whole map. The result equals the sequential replay of all scans up to
+the rounding of the summation order.
+
+A recording that fails (unreadable, no poses...) fails the run, naming it, and nothing is
+written; with ``skip_bad`` its partials are dropped and the run goes on. The output (a map
+file ``.npz`` or a tiled map directory) is written only at the end, atomically.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import resource
+import shutil
+import tempfile
+import time
+from collections import Counter
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+from mfp_mapper.core.merge import MergeError, check_mergeable
+from mfp_mapper.mapio.mapfile import map_arrays
+from mfp_mapper.mapio.tiles import (
+    DEFAULT_TILE_BLOCKS,
+    TILE_DIR,
+    TiledMap,
+    TileEntry,
+    TileKey,
+    check_tiled_output,
+    merge_tile,
+    new_generation,
+    write_index,
+    write_map_file,
+    write_tile,
+    write_tiled,
+)
+from mfp_mapper.mapping.executors import Executor, StageProgress, make_executor
+from mfp_mapper.mapping.replay import NothingMapped, ReplayOptions, ReplaySummary, replay
+from mfp_mapper.sources.bags import ReplayError, open_reader, resolve_bag_path
+
+SCRATCH_MERGED = "merged"
+"""The work folder's tiled map that a ``.npz`` output is assembled from."""
+
+
+class FleetError(RuntimeError):
+    """The fleet run failed: names the recording and why; no map was written."""
+
+
+@dataclass(frozen=True)
+class Task:
+    """Replay of one recording, or of its clouds with stamps in [start, end)."""
+
+    index: int
+    recording: str
+    start: float | None = None
+    end: float | None = None
+
+    @property
+    def chunked(self) -> bool:
+        return self.start is not None or self.end is not None
+
+    @property
+    def label(self) -> str:
+        if not self.chunked:
+            return self.recording
+        lo = "-inf" if self.start is None else f"{self.start:.3f}"
+        hi = "inf" if self.end is None else f"{self.end:.3f}"
+        return f"{self.recording} [{lo}, {hi}) s"
+
+
+@dataclass
+class TaskResult:
+    """What a replay task did: its partial map (None: nothing in its window) and figures."""
+
+    task: Task
+    partial: str | None
+    tiles: list[TileKey]
+    summary: ReplaySummary | None
+    note: str = ""
+    seconds: float = 0.0
+    peak_rss_bytes: int = 0
+
+
+@dataclass
+class FleetOptions:
+    """How to run: where (``workers``/``scheduler``; neither: this process), how to split
+    recordings (``chunk_seconds``: None = one task per recording) and what to do with a
+    failing recording."""
+
+    workers: int | None = None
+    scheduler: str | None = None
+    chunk_seconds: float | None = None
+    skip_bad: bool = False
+    tile_blocks: int = DEFAULT_TILE_BLOCKS
+    work_dir: str | None = None
+    """Folder for the partial maps (every worker must see it); default: beside the output."""
+    progress: bool = True
+
+
+@dataclass
+class FleetResult:
+    """The run: tasks, recordings skipped (with ``skip_bad``), the map, times."""
+
+    output: Path
+    executor: str
+    tasks: list[TaskResult] = field(default_factory=list)
+    skipped: dict[str, str] = field(default_factory=dict)
+    voxels: int = 0
+    tiles: int = 0
+    seconds_start: float = 0.0
+    """Planning, starting the cluster and loading the kernels in its workers."""
+    seconds_replay: float = 0.0
+    seconds_reduce: float = 0.0
+    seconds_write: float = 0.0
+    seconds: float = 0.0
+
+    @property
+    def summaries(self) -> list[ReplaySummary]:
+        return [r.summary for r in self.tasks if r.summary is not None]
+
+    def format(self) -> str:
+        sums = self.summaries
+        recordings = {r.task.recording for r in self.tasks}
+        dropped = Counter[str]()
+        for s in sums:
+            dropped.update(s.clouds_dropped)
+        task_seconds = sum(r.seconds for r in self.tasks)
+        lines = [
+            f"inputs       {len(recordings)} recordings in {len(self.tasks)} tasks; "
+            f"{self.executor}",
+            f"scans        {sum(s.scans_used for s in sums):,} used"
+            + (f"; dropped {', '.join(f'{k} {v}' for k, v in sorted(dropped.items()))}"
+               if dropped else ""),
+            f"rays         {sum(s.rays_used for s in sums):,}",
+            f"map          {self.output} ({self.voxels:,} voxels in {self.tiles} tiles)",
+            f"time         {self.seconds:.2f} s: start {self.seconds_start:.2f} s, "
+            f"replay {self.seconds_replay:.2f} s "
+            f"({task_seconds:.2f} s of tasks), reduce {self.seconds_reduce:.2f} s, "
+            f"write {self.seconds_write:.2f} s",
+        ]  # fmt: skip
+        lines += [f"skipped      {name}: {why}" for name, why in sorted(self.skipped.items())]
+        return "\n".join(lines)
+
+
+# --- planning ---------------------------------------------------------------------------
+
+
+def recording_span(path: str | Path) -> tuple[float, float]:
+    """First and last message time (s) of a recording, from its metadata."""
+    reader = open_reader(resolve_bag_path(path))
+    try:
+        return reader.start_time * 1e-9, reader.end_time * 1e-9
+    finally:
+        reader.close()
+
+
+def plan_tasks(
+    recordings: Sequence[str], chunk_seconds: float | None
+) -> tuple[list[Task], dict[str, str]]:
+    """Tasks for ``recordings``; and the recordings that cannot even be opened (why).
+
+    With ``chunk_seconds``, a recording longer than that is split at multiples of it from
+    its first message time; the first window is open below and the last open above, so
+    windows cover every stamp whatever the clock of the clouds' headers.
+    """
+    tasks: list[Task] = []
+    failed: dict[str, str] = {}
+    for recording in recordings:
+        bounds: list[float] = []
+        if chunk_seconds is not None and chunk_seconds > 0:
+            try:
+                first, last = recording_span(recording)
+            except Exception as err:
+                failed[recording] = str(err)
+                continue
+            count = max(1, math.ceil((last - first) / chunk_seconds))
+            bounds = [first + k * chunk_seconds for k in range(1, count)]
+        edges: list[float | None] = [None, *bounds, None]
+        for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+            tasks.append(Task(len(tasks), recording, lo, hi))
+    return tasks, failed
+
+
+# --- the tasks (run in workers) -----------------------------------------------------------
+
+
+def replay_task(task: Task, opts: ReplayOptions, work_dir: str, tile_blocks: int) -> TaskResult:
+    """Replay ``task`` and write its partial map as tiles under ``work_dir``."""
+    t0 = time.perf_counter()
+    window = replace(
+        opts,  # the task's window within the one asked for (--start/--end), if any
+        start=_latest(opts.start, task.start),
+        end=_earliest(opts.end, task.end),
+    )
+    try:
+        result = replay(task.recording, window, progress=False)
+    except NothingMapped as err:
+        if not task.chunked:
+            raise
+        return TaskResult(task, None, [], None, note=str(err), seconds=time.perf_counter() - t0)
+    try:
+        partial = Path(work_dir) / "partials" / f"task{task.index:05d}"
+        entries = write_tiled(partial, map_arrays(result.mapper), tile_blocks, compress=False)
+    finally:
+        result.mapper.close()
+    return TaskResult(
+        task,
+        str(partial),
+        [e.key for e in entries],
+        result.summary,
+        seconds=time.perf_counter() - t0,
+        peak_rss_bytes=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+    )
+
+
+def _latest(a: float | None, b: float | None) -> float | None:
+    return b if a is None else a if b is None else max(a, b)
+
+
+def _earliest(a: float | None, b: float | None) -> float | None:
+    return b if a is None else a if b is None else min(a, b)
+
+
+def reduce_task(
+    keys: Sequence[TileKey],
+    partials: Sequence[str],
+    out_dir: str,
+    generation: str,
+    compress: bool = True,
+) -> list[TileEntry]:
+    """Merge tiles ``keys`` of the partial maps and write them into ``out_dir``."""
+    tiled = [TiledMap(p) for p in partials]
+    return [write_tile(out_dir, k, merge_tile(tiled, k), generation, compress) for k in keys]
+
+
+# --- the run ------------------------------------------------------------------------------
+
+
+def map_fleet(
+    recordings: Sequence[str | Path],
+    output: str | Path,
+    opts: ReplayOptions | None = None,
+    fleet: FleetOptions | None = None,
+    log: Callable[[str], None] | None = None,
+) -> FleetResult:
+    """Map ``recordings`` into ``output`` (``.npz``: one map file; otherwise a tiled map
+    directory). FleetError when a recording fails (unless ``fleet.skip_bad``), when none
+    could be mapped, or when the partial maps cannot be merged (other frames...)."""
+    opts = opts or ReplayOptions()
+    fleet = fleet or FleetOptions()
+    t0 = time.perf_counter()
+    out = Path(output)
+    names = [str(Path(r).absolute()) for r in recordings]
+    if not names:
+        raise FleetError("no recording given")
+    if out.suffix != ".npz":
+        check_tiled_output(out)
+    tasks, failed = plan_tasks(names, fleet.chunk_seconds)
+    evicting = [k for k in ("max_voxels", "keep_radius") if getattr(opts, k, None) is not None]
+    if evicting and len(tasks) > 1:
+        raise FleetError(
+            f"{' and '.join(evicting)} evict(s) blocks during a replay: partial maps would not "
+            "add up to the map of all scans; leave it unset to map several recordings or windows"
+        )
+    if getattr(opts, "every", 1) not in (None, 1) and fleet.chunk_seconds:
+        raise FleetError("--every counts the clouds of one replay: not with --chunk-seconds")
+    if opts.max_scans is not None and len(tasks) > 1:
+        raise FleetError("max_scans counts the clouds of one replay: use it with one recording")
+    _fail_or_skip(failed, fleet.skip_bad)
+    parent = out.parent if str(out.parent) else Path(".")
+    work = Path(tempfile.mkdtemp(prefix=".mfp-fleet-", dir=fleet.work_dir or parent))
+    executor = make_executor(fleet.workers, fleet.scheduler)
+    result = FleetResult(out, executor.description, skipped=dict(failed))
+    try:
+        executor.warm_up()
+        result.seconds_start = time.perf_counter() - t0
+        results = _replay_all(executor, tasks, opts, fleet, str(work), result.skipped)
+        result.tasks = sorted(results, key=lambda r: r.task.index)
+        result.seconds_replay = time.perf_counter() - t0 - result.seconds_start
+        partials = [r for r in result.tasks if r.partial is not None]
+        if not partials:
+            raise FleetError("no cloud could be mapped from any recording (no map written)")
+        _check_same_settings(partials)
+        t1 = time.perf_counter()
+        tiled_out = out if out.suffix != ".npz" else work / SCRATCH_MERGED
+        generation = new_generation()
+        entries = _reduce_all(
+            executor, partials, tiled_out, generation, fleet, compress=tiled_out == out
+        )
+        result.seconds_reduce = time.perf_counter() - t1
+        t2 = time.perf_counter()
+        settings = TiledMap(partials[0].partial).settings()  # type: ignore[arg-type]
+        if out.suffix == ".npz":
+            write_index(tiled_out, settings, fleet.tile_blocks, entries)
+            write_map_file(TiledMap(tiled_out), out)
+        else:
+            write_index(out, settings, fleet.tile_blocks, entries)
+        result.seconds_write = time.perf_counter() - t2
+        result.voxels = sum(e.voxels for e in entries)
+        result.tiles = len(entries)
+    except BaseException:
+        if out.suffix != ".npz" and "generation" in locals():
+            for stale in (out / TILE_DIR).glob(f"*.{generation}.npz"):
+                stale.unlink(missing_ok=True)
+        raise
+    finally:
+        executor.close()
+        shutil.rmtree(work, ignore_errors=True)
+    result.seconds = time.perf_counter() - t0
+    if log is not None and result.skipped:
+        log(f"skipped {len(result.skipped)} recording(s): " + "; ".join(
+            f"{k}: {v}" for k, v in sorted(result.skipped.items())))  # fmt: skip
+    return result
+
+
+def _fail_or_skip(failed: dict[str, str], skip_bad: bool) -> None:
+    if failed and not skip_bad:
+        name, why = next(iter(failed.items()))
+        raise FleetError(f"{name}: {why} (no map written; --skip-bad goes on without it)")
+
+
+def _replay_all(
+    executor: Executor,
+    tasks: list[Task],
+    opts: ReplayOptions,
+    fleet: FleetOptions,
+    work: str,
+    skipped: dict[str, str],
+) -> list[TaskResult]:
+    """Run the replay tasks; drop the recordings that fail (or raise, without skip_bad)."""
+    progress = StageProgress("replay", len(tasks), fleet.progress)
+    results: list[TaskResult] = []
+    runs = executor.run(replay_task, tasks, opts, work, fleet.tile_blocks)
+    try:
+        for done, (task, outcome, error) in enumerate(runs, 1):
+            if error is not None:
+                why = str(error) if isinstance(error, ReplayError) else f"{error!r}"
+                skipped.setdefault(task.recording, why)
+                _fail_or_skip({task.label: why}, fleet.skip_bad)
+            else:
+                results.append(outcome)
+            progress.update(done, task.label)
+    finally:
+        progress.close()
+    mapped = {r.task.recording for r in results if r.partial is not None}
+    for r in results:  # every window of a recording empty: nothing of it could be mapped
+        if r.task.recording not in mapped and r.task.recording not in skipped:
+            skipped[r.task.recording] = r.note
+            _fail_or_skip({r.task.recording: r.note}, fleet.skip_bad)
+    return [r for r in results if r.task.recording not in skipped]
+
+
+def _check_same_settings(partials: list[TaskResult]) -> None:
+    maps = [TiledMap(r.partial).settings() for r in partials]  # type: ignore[arg-type]
+    try:
+        check_mergeable(maps, [r.task.label for r in partials])
+    except MergeError as err:
+        raise FleetError(f"{err} (no map written)") from None
+
+
+def _reduce_all(
+    executor: Executor,
+    partials: list[TaskResult],
+    out_dir: Path,
+    generation: str,
+    fleet: FleetOptions,
+    compress: bool,
+) -> list[TileEntry]:
+    """The shuffle: tiles grouped into about 4 reduce tasks per worker; ``compress``: the
+    tiles are the output (deflated), not scratch for a map file (stored)."""
+    holders: dict[TileKey, list[str]] = {}
+    for r in partials:
+        for key in r.tiles:
+            holders.setdefault(key, []).append(r.partial)  # type: ignore[arg-type]
+    (out_dir / TILE_DIR).mkdir(parents=True, exist_ok=True)
+    keys = sorted(holders)
+    count = max(1, min(len(keys), 4 * executor.workers))
+    groups = [keys[i::count] for i in range(count)]
+    jobs = [(group, sorted({p for k in group for p in holders[k]})) for group in groups if group]
+    progress = StageProgress("reduce", len(jobs), fleet.progress)
+    entries: list[TileEntry] = []
+    runs = executor.run(_reduce_job, jobs, str(out_dir), generation, compress)
+    try:
+        for done, (_, outcome, error) in enumerate(runs, 1):
+            if error is not None:
+                raise FleetError(f"merging the partial maps failed: {error!r} (no map written)")
+            entries.extend(outcome)
+            progress.update(done)
+    finally:
+        progress.close()
+    return entries
+
+
+def _reduce_job(
+    job: tuple[list[TileKey], list[str]], out_dir: str, generation: str, compress: bool
+) -> list[TileEntry]:
+    keys, partials = job
+    return reduce_task(keys, partials, out_dir, generation, compress)
+
+
+def default_workers() -> int:
+    """Worker processes for ``--workers 0``: the CPU cores this process may use."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1

@@ -1,0 +1,470 @@
+"""The live integration worker, without ROS: queue, waiting, drops and counters.
+
+The node hands it received clouds (``submit``) from its executor thread, and odometry and
+transforms to its pose inputs (``worker.pose_inputs``, a ``PoseInputs``). One worker thread takes
+the clouds in order and runs each through the scan pipeline. A scan is walked into a store
+of its own without any lock (``Mapper.stage``), then added to the map in one merge
+(``Mapper.commit``, a few percent of the scan's time). A reader that needs whole scans
+(GetMap, saving, reset) takes ``whole_map``: it waits at most for a merge, never for a scan;
+a query takes ``map_lock`` alone, which the merge lets go between chunks. A cloud its
+poses do not cover yet waits (at most ``odom_wait`` seconds) in a list of its own while
+the clouds behind it go on: **no head-of-line blocking**, and when
+the queue is full the oldest *waiting* cloud is dropped before any placeable one. Between
+two scans it calls ``publish`` (given to the constructor or ``set_publish``) when
+``request_publish`` asked for it, so publishing never waits for an integration and the
+executor never waits for the map. Everything is counted under the pipeline's names
+(``pipeline.DROP_REASONS``).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.mapping.loop import PreparedScan, ScanCounts, ScanLoop
+from mfp_mapper.mapping.whole_map import MERGE_PAUSE_S, WholeMap
+from mfp_mapper.sensing import pipeline
+from mfp_mapper.sensing.pointcloud import ParsedCloud
+from mfp_mapper.sensing.pose_inputs import Log, PoseCounters, PoseInputs
+from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer
+from mfp_mapper.sensing.tf_tree import TfTree
+
+if TYPE_CHECKING:
+    from mfp_mapper.config.schema import NodeConfig, XyzRpy
+
+RETRY_PERIOD = 0.02
+"""Seconds between two tries of a waiting cloud (sooner when new poses arrived)."""
+
+
+@dataclass
+class LiveSettings:
+    """What the worker reads of the node's settings (replaced whole on a change)."""
+
+    frame_id: str
+    deskew: bool
+    point_cloud_min_z: float
+    point_cloud_max_z: float
+    cloud_queue_size: int
+    odom_wait: float
+    no_return_range: float = 0.0
+    """> 0: recover the firings with no return as rays this long (``sensing.no_return``)."""
+    base_frame_id: str = ""
+    extrinsic_override: Extrinsic | None = None
+    cloud_frame_id: str = ""
+    """The frame of a cloud whose header.frame_id is empty ("": such a cloud is dropped)."""
+
+    @classmethod
+    def of(cls, cfg: NodeConfig) -> LiveSettings:
+        """What the worker reads of the node's parameters."""
+        return cls(
+            frame_id=cfg.frame_id,
+            deskew=cfg.deskew,
+            point_cloud_min_z=cfg.point_cloud_min_z,
+            point_cloud_max_z=cfg.point_cloud_max_z,
+            cloud_queue_size=cfg.cloud_queue_size,
+            odom_wait=cfg.odom_wait,
+            base_frame_id=cfg.base_frame_id.lstrip("/"),
+            cloud_frame_id=cfg.cloud_frame_id.lstrip("/"),
+            extrinsic_override=_extrinsic(cfg.lidar_override()),
+            no_return_range=cfg.sensor_model_no_return_range,
+        )
+
+
+@dataclass
+class _Pending:
+    """A received cloud on its way to the map."""
+
+    received: float  # time.monotonic()
+    msg: Any
+    prepared: PreparedScan | None = None
+    tried: int = -1  # the pose generation of the last try (-1: never tried)
+    next_try: float = 0.0  # time.monotonic()
+
+
+@dataclass
+class LiveCounters(ScanCounts, PoseCounters):
+    """The pipeline's counts, the pose inputs' and what only a live stream has."""
+
+    clouds_lost: int = 0  # reported lost by the middleware (never received)
+    integration_cpu: float = 0.0  # CPU seconds: parse + place + integrate (+ core threads)
+    integration_wall: float = 0.0
+    latency_sum: float = 0.0
+    latency_max: float = 0.0
+    latency_last: float = float("nan")
+
+
+class LiveIntegrator:
+    """Queue and worker thread of the live node (see the module docstring); its pose
+    inputs (odometry, TF, the clock, the map frame) are ``self.pose_inputs``."""
+
+    def __init__(
+        self,
+        mapper: Mapper,
+        settings: LiveSettings,
+        poses: PoseBuffer,
+        *,
+        tree: TfTree | None = None,
+        log: Log,
+        now: Callable[[], float],
+        info: Callable[[str], None] | None = None,
+        publish: Callable[[], None] | None = None,
+        map_frame: str = "",
+    ) -> None:
+        """``map_frame``: the run's map frame when known at start (``frame_id``, a loaded
+        map's frame); empty: decided at the first cloud placed (``PoseInputs``)."""
+        self.mapper = mapper
+        self.settings = settings
+        self.counters = LiveCounters()
+        self.map_lock = threading.Lock()
+        self.whole_map = WholeMap(threading.Lock(), self.map_lock)
+        self.pose_inputs = PoseInputs(
+            poses,
+            tree if tree is not None else TfTree(),
+            self.counters,
+            frame_id=map_frame or settings.frame_id,
+            log=log,
+            info=info or (lambda text: log("info", text, False)),
+            now=now,
+        )
+        if self.pose_inputs.map_frame is not None:
+            mapper.frame_id = self.pose_inputs.map_frame
+        self._warned: set[str] = set()
+        self._log = log
+        self._now = now
+        self._publish = publish
+        self._cv = threading.Condition()
+        self._queue: deque[_Pending] = deque()
+        self._waiting: list[_Pending] = []
+        self._publish_due = False
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.loop = ScanLoop(
+            mapper,
+            settings,
+            counts=self.counters,
+            counts_lock=self._cv,
+            map_lock=self.map_lock,
+            merge_lock=self.whole_map,
+            pause=self._let_readers_in,
+        )
+
+    def _let_readers_in(self) -> None:
+        """Between two chunks of a merge: a reader waiting for ``map_lock`` takes it."""
+        self.map_lock.release()
+        try:
+            time.sleep(MERGE_PAUSE_S)
+        finally:
+            self.map_lock.acquire()
+
+    @property
+    def running(self) -> bool:
+        """Whether the worker thread is still alive (e.g. walking a long scan)."""
+        return self._thread is not None and self._thread.is_alive()
+
+    def set_publish(self, publish: Callable[[], None] | None) -> None:
+        """What the worker calls between two scans after ``request_publish``."""
+        self._publish = publish
+
+    @property
+    def map_frame(self) -> str:
+        """The run's map frame ("" until decided)."""
+        return self.pose_inputs.map_frame or ""
+
+    @property
+    def robot_position(self) -> Any:
+        return self.pose_inputs.robot_position
+
+    # --- inputs (any thread) ----------------------------------------------------------------
+
+    def submit(self, msg: Any) -> None:
+        """Queue a received cloud; when the queue is full the oldest waiting cloud (one its
+        poses do not cover yet) is dropped, else the oldest."""
+        item = _Pending(time.monotonic(), msg)
+        with self._cv:
+            self.counters.clouds_in += 1
+            if len(self._queue) + len(self._waiting) >= self.settings.cloud_queue_size:
+                if self._waiting:
+                    self._waiting.pop(0)
+                    detail = "the oldest cloud still waiting for its poses was dropped"
+                else:
+                    self._queue.popleft()
+                    detail = "integration is behind; dropped the oldest cloud"
+                self._drop_locked("queue_full", detail)
+            self._queue.append(item)
+            self._cv.notify_all()
+
+    def add_odometry(self, sample: Any) -> bool:
+        """``poses.add_odometry``, then wake the worker."""
+        ok = self.pose_inputs.add_odometry(sample)
+        self._wake()
+        return ok
+
+    def add_transforms(self, msg: Any, static: bool) -> int:
+        """``poses.add_transforms``, then wake the worker."""
+        kept = self.pose_inputs.add_transforms(msg, static)
+        self._wake()
+        return kept
+
+    def observe_clock(self, now: float) -> bool:
+        """Note the node clock; on a jump back (bag loop) clear poses, TF and the queue."""
+        jump = self.pose_inputs.observe_clock(now)
+        if jump is None:
+            return False
+        with self._cv:
+            dropped = len(self._queue) + len(self._waiting)
+            self._queue.clear()
+            self._waiting.clear()
+            for _ in range(dropped):
+                self.counters.drop("clock_jump")
+        self._log(
+            "clock_jump",
+            f"clock jumped back {jump:.3f} s (to {now:.3f}): pose and TF buffers "
+            f"cleared, {dropped} queued cloud(s) dropped; the map is kept",
+            False,
+        )
+        return True
+
+    def _wake(self) -> None:
+        with self._cv:
+            self._cv.notify_all()
+
+    def clouds_lost(self, count: int) -> int:
+        """Count clouds the middleware lost; returns the total."""
+        with self._cv:
+            self.counters.clouds_lost += count
+            return self.counters.clouds_lost
+
+    @property
+    def queued(self) -> int:
+        with self._cv:
+            return len(self._queue) + len(self._waiting)
+
+    def request_publish(self) -> None:
+        """Ask the worker to publish between two scans."""
+        with self._cv:
+            self._publish_due = True
+            self._cv.notify_all()
+
+    # --- the worker thread ------------------------------------------------------------------
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self.run, name="mfp_integration", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout: float = 10.0) -> None:
+        self._stop.set()
+        with self._cv:
+            self._cv.notify_all()
+        if self._thread is not None:
+            self._thread.join(timeout=timeout)
+
+    def _next(self) -> _Pending | None:
+        """The next cloud to try (under ``_cv``): a new one first, else a waiting one that
+        is due (new poses since its last try, or ``RETRY_PERIOD`` passed)."""
+        if self._queue:
+            return self._queue.popleft()
+        now, generation = time.monotonic(), self.pose_inputs.generation
+        for i, item in enumerate(self._waiting):
+            if item.next_try <= now and (
+                item.tried != generation or now - item.received > self.settings.odom_wait
+            ):
+                return self._waiting.pop(i)
+        return None
+
+    def run(self) -> None:
+        """Integrate clouds in order, a waiting one not blocking those behind it; publish
+        between scans when asked."""
+        while not self._stop.is_set():
+            with self._cv:
+                item = self._next()
+                while item is None and not (self._publish_due or self._stop.is_set()):
+                    self._cv.wait(RETRY_PERIOD if self._waiting else 0.5)
+                    item = self._next()
+                if self._stop.is_set():
+                    return
+                publish, self._publish_due = self._publish_due, False
+            if publish and self._publish is not None:
+                try:
+                    self._publish()
+                except Exception as err:  # a failed publication must not stop the worker
+                    self._log("publish", f"publishing the map failed: {err!r}", False)
+            if item is not None:
+                self._try(item)
+
+    def _try(self, item: _Pending) -> None:
+        generation = self.pose_inputs.generation
+        try:
+            done = self.process(item)
+        except Exception as err:  # keep the node alive whatever a message holds
+            self._drop("error", f"{type(err).__name__}: {err}")
+            done = True
+        if not done:
+            item.tried, item.next_try = generation, time.monotonic() + RETRY_PERIOD
+            with self._cv:
+                self._waiting.append(item)
+
+    def drain(self, timeout: float = 10.0) -> None:
+        """Process every queued and waiting cloud on the calling thread (what ``run`` does;
+        for tests and tools that do not start the thread)."""
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            with self._cv:
+                item = self._next()
+                if item is None and not self._waiting:
+                    return
+            if item is None:
+                time.sleep(0.005)
+            else:
+                self._try(item)
+
+    def process(self, item: _Pending) -> bool:
+        """Try to integrate one cloud; False when it must wait for poses."""
+        cpu0, wall0 = time.thread_time(), time.perf_counter()
+        try:
+            return self._process(item)
+        except pipeline.ScanDropped as drop:
+            self._log_drop(drop.reason, drop.detail, self.loop.count_drop(drop))
+            return True
+        finally:
+            self.counters.integration_cpu += time.thread_time() - cpu0
+            self.counters.integration_wall += time.perf_counter() - wall0
+
+    def _process(self, item: _Pending) -> bool:
+        cfg = self.settings
+        if item.prepared is None:
+            item.prepared = self.loop.prepare(item.msg)
+            if self.counters.no_return_note:
+                self._warn_once("no_return", f"no-return rays: {self.counters.no_return_note}")
+            self._warn_time_field(item.prepared.cloud)
+            self._check_stamp(item.prepared)
+        prepared = item.prepared
+        parse_drops = dict(prepared.cloud.dropped)
+        frame = self._cloud_frame(prepared.frame_id, parse_drops)
+        waited = time.monotonic() - item.received
+        try:
+            placement = self.pose_inputs.placement(frame, cfg.base_frame_id, cfg.extrinsic_override)
+        except pipeline.ScanDropped as drop:
+            if waited <= cfg.odom_wait and drop.reason != "tf_conflict":
+                return False  # the transforms may still come
+            raise pipeline.ScanDropped(drop.reason, drop.detail, 0, parse_drops) from None
+        latest = placement.poses.latest_stamp
+        if latest is None or latest < prepared.deadline:
+            if waited <= cfg.odom_wait:
+                return False
+            if latest is None:
+                raise pipeline.ScanDropped(
+                    "no_poses",
+                    f"no pose ({placement.source}) within odom_wait {cfg.odom_wait} s",
+                    0,
+                    parse_drops,
+                )
+            raise pipeline.ScanDropped(
+                "too_new",
+                f"stamp {prepared.deadline:.3f} (the cloud's last point, time base "
+                f"{prepared.cloud.time_base or 'none'}) not covered by the poses "
+                f"({placement.source}; latest {latest:.3f}) within odom_wait {cfg.odom_wait} s",
+                0,
+                parse_drops,
+            )
+        if self.mapper.frame_id != placement.map_frame:
+            self.mapper.frame_id = placement.map_frame  # the run's frame, decided once
+        own_cpu = time.thread_time()
+        _, summary = self.loop.finish(prepared, placement.poses, placement.extrinsic)
+        own_cpu = time.thread_time() - own_cpu
+        self.pose_inputs.note_robot(placement, prepared.stamp, cfg.base_frame_id)
+        latency = self._now() - prepared.stamp
+        with self._cv:
+            c = self.counters
+            c.latency_last = latency
+            c.latency_sum += latency
+            c.latency_max = max(c.latency_max, latency)
+            c.integration_cpu += max(summary.cpu_seconds - own_cpu, 0.0)  # the core's threads
+        return True
+
+    def _check_stamp(self, prepared: PreparedScan) -> None:
+        """A cloud stamped further ahead of the node clock than a pose may be is dropped
+        at once (it would only wait: ``ahead_of_clock``)."""
+        now = self._now()
+        limit = self.pose_inputs.tree.max_future
+        if now > 0.0 and prepared.stamp > now + limit:
+            raise pipeline.ScanDropped(
+                "ahead_of_clock",
+                f"stamp {prepared.stamp:.3f} is {prepared.stamp - now:.1f} s ahead of the node "
+                "clock "
+                f"({now:.3f}; at most {limit:g} s allowed): check the sensor's clock or "
+                "use_sim_time",
+                0,
+                dict(prepared.cloud.dropped),
+            )
+
+    def _cloud_frame(self, frame: str, parse_drops: dict[str, int]) -> str:
+        """The cloud's frame: tf1's leading slash stripped (warned once); an empty one is
+        ``cloud_frame_id`` or a drop (``no_frame``)."""
+        if frame.startswith("/"):
+            self._warn_once(
+                "cloud_slash",
+                f"cloud frame_id {frame!r} has a leading slash: read as {frame.lstrip('/')!r} "
+                "(tf2 rejects such names; fix the driver)",
+            )
+            frame = frame.lstrip("/")
+        if frame:
+            return frame
+        if self.settings.cloud_frame_id:
+            return self.settings.cloud_frame_id
+        raise pipeline.ScanDropped(
+            "no_frame",
+            "the cloud's header.frame_id is empty: set the parameter cloud_frame_id to the "
+            "frame such clouds are in (e.g. the lidar frame)",
+            0,
+            parse_drops,
+        )
+
+    def _warn_once(self, key: str, text: str) -> None:
+        if key not in self._warned:
+            self._warned.add(key)
+            self._log(key, text, False)
+
+    def _warn_time_field(self, cloud: ParsedCloud) -> None:
+        if cloud.unknown_time_field and self.settings.deskew:
+            self._warn_once(
+                "time_field",
+                f"clouds have a field {cloud.unknown_time_field!r} that looks like per-point "
+                "time but is not one of t, time, time_stamp, timestamp: de-skew is off for "
+                "them",
+            )
+
+    def _drop_locked(self, reason: str, detail: str) -> None:
+        self._log_drop(reason, detail, self.counters.drop(reason))
+
+    def _log_drop(self, reason: str, detail: str, count: int) -> None:
+        self._log(
+            f"drop_{reason}",
+            f"dropped cloud ({reason}): {detail} [{count} so far]",
+            reason in ("malformed", "error", "no_extrinsic"),
+        )
+
+    def _drop(self, reason: str, detail: str) -> None:
+        with self._cv:
+            self._drop_locked(reason, detail)
+
+    def snapshot(self) -> tuple[LiveCounters, int]:
+        """A copy of the counters and the queue length, taken together."""
+        with self._cv:
+            return copy.deepcopy(self.counters), len(self._queue) + len(self._waiting)
+
+
+def finite_or_none(value: float) -> float | None:
+    """JSON-friendly: None for NaN/Inf."""
+    return value if math.isfinite(value) else None
+
+
+def _extrinsic(mounting: XyzRpy | None) -> Extrinsic | None:
+    """The configured ``lidar.*`` mounting as an ``Extrinsic`` (None when not set)."""
+    return None if mounting is None else Extrinsic.from_xyz_rpy(*mounting)

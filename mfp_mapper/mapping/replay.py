@@ -1,0 +1,445 @@
+"""Replay a recorded bag (ROS 1 ``.bag``, ROS 2 sqlite3 or mcap) into a Mapper, offline.
+
+Bags are read with rosbags (``sources.bags``): no ROS installation is needed. The cloud
+topic (``sensor_msgs/PointCloud2``) and the odometry topic (``nav_msgs/Odometry``) are found
+automatically when the bag holds exactly one of each. Without an odometry topic, poses come
+from ``/tf``: the chain of transforms from the cloud frame up to the odometry frame
+(``odom``, or the root of the tree). The lidar extrinsic comes from ``/tf_static``; it is
+the identity when the cloud frame is the odometry child frame; otherwise it must be given
+(``--extrinsic`` or ``lidar.translation``/``lidar.rpy`` in the node's YAML).
+
+Every cloud goes through the node's scan pipeline (``sensing.pipeline``): the same parsing,
+interpolation, de-skew and height band, and the same drop reasons. Nothing is written here:
+the caller saves the map (atomically) only when the replay succeeded, so a failed replay
+never leaves a map that looks complete.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mfp_mapper.config.replay_options import ConfigError as ConfigError  # re-exported
+from mfp_mapper.config.replay_options import ReplayOptions, options_from_yaml
+from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.mapping.loop import ScanCallback, ScanCounts, ScanLoop
+from mfp_mapper.mapping.progress import Progress
+from mfp_mapper.sensing import pipeline
+from mfp_mapper.sensing.poses import Extrinsic, frame_name
+from mfp_mapper.sensing.tf_tree import TfTree
+from mfp_mapper.sources import lidar_odometry
+from mfp_mapper.sources.bags import (
+    CLOUD_TYPE,
+    ODOM_TYPE,
+    TF_TYPE,
+    Poses,
+    ReplayError,
+    extrinsic_for,
+    odometry_poses,
+    open_reader,
+    pick_topic,
+    read_transforms,
+    resolve_bag_path,
+    tf_poses,
+)
+
+FloatArray = NDArray[np.float64]
+
+__all__ = [
+    "ConfigError",
+    "NothingMapped",
+    "Progress",
+    "ReplayError",
+    "ReplayOptions",
+    "ReplayResult",
+    "ReplaySummary",
+    "options_from_yaml",
+    "replay",
+]
+
+
+class NothingMapped(ReplayError):
+    """The bag was read, but no cloud (in the ``start``/``end`` window) could be mapped."""
+
+
+# --- summary and progress ---------------------------------------------------------------------
+
+
+@dataclass
+class ReplaySummary:
+    """What a replay did; ``format()`` gives the lines printed at the end."""
+
+    bag: str
+    cloud_topic: str = ""
+    pose_source: str = ""
+    map_frame: str = ""
+    cloud_frame: str = ""
+    extrinsic_source: str = ""
+    deskew: bool = False
+    scans_total: int = 0
+    scans_selected: int = 0
+    scans_used: int = 0
+    clouds_dropped: dict[str, int] = field(default_factory=dict)
+    """Clouds not integrated, by reason (``sensing.pipeline.DROP_REASONS``, as ``~/status``)."""
+    points_in: int = 0
+    rays_used: int = 0
+    rays_truncated: int = 0
+    rays_no_return: int = 0
+    """Recovered firings with no return that were integrated (``--no-return-range``)."""
+    no_return_note: str = ""
+    """Why firings were not (all) recovered, the first time it happened."""
+    points_dropped: dict[str, int] = field(default_factory=dict)
+    """Points and rays not used, by reason (as ``~/status``)."""
+    voxels: int = 0
+    memory_bytes: int = 0
+    seconds: float = 0.0
+    seconds_core: float = 0.0
+    seconds_poses: float = 0.0
+    first_stamp: float | None = None
+    last_stamp: float | None = None
+
+    @property
+    def rays_per_second(self) -> float:
+        return self.rays_used / self.seconds if self.seconds > 0 else 0.0
+
+    @property
+    def share_outside_core(self) -> float:
+        """Share of the replay time spent outside Mapper.integrate (reading, parsing, poses)."""
+        return 1.0 - self.seconds_core / self.seconds if self.seconds > 0 else 0.0
+
+    def format(self) -> str:
+        n_dropped = sum(self.clouds_dropped.values())
+        dropped = {k: v for k, v in self.points_dropped.items() if v}
+        lines = [
+            f"bag          {self.bag}",
+            f"clouds       {self.cloud_topic} (frame {self.cloud_frame or '?'})",
+            f"poses        {self.pose_source}; map frame {self.map_frame or '?'}",
+            f"extrinsic    {self.extrinsic_source}",
+            f"de-skew      {'yes (per-point time)' if self.deskew else 'no'}",
+            f"scans        {self.scans_used} used of {self.scans_total}"
+            + (
+                f" ({self.scans_selected} selected)"
+                if self.scans_selected != self.scans_total
+                else ""
+            )
+            + (f"; dropped {n_dropped}: {_counts(self.clouds_dropped)}" if n_dropped else ""),
+            f"rays         {self.rays_used:,} used of {self.points_in:,} points"
+            + (f"; {self.rays_truncated:,} cut at max range" if self.rays_truncated else "")
+            + (f"; {self.rays_no_return:,} with no return" if self.rays_no_return else ""),
+            f"points lost  {_counts(dropped) if dropped else 'none'}",
+            *([f"no-return    {self.no_return_note}"] if self.no_return_note else []),
+            f"voxels       {self.voxels:,} ({self.memory_bytes / 2**20:.1f} MiB)",
+            f"time         {self.seconds:.2f} s, {self.rays_per_second:,.0f} rays/s; "
+            f"{100 * self.share_outside_core:.0f}% outside the core "
+            f"(+{self.seconds_poses:.2f} s reading poses)",
+        ]
+        return "\n".join(lines)
+
+
+def _counts(d: dict[str, int]) -> str:
+    return ", ".join(f"{k} {v:,}" for k, v in sorted(d.items()))
+
+
+# --- the replay -------------------------------------------------------------------------------
+
+
+@dataclass
+class ReplayResult:
+    mapper: Mapper
+    summary: ReplaySummary
+
+
+def replay(
+    bag: str | Path,
+    opts: ReplayOptions | None = None,
+    progress: bool | Progress = True,
+    log: Callable[[str], None] | None = None,
+    on_scan: ScanCallback | None = None,
+) -> ReplayResult:
+    """Map every cloud of ``bag``; ReplayError (with the reason) when it cannot be done.
+
+    ``on_scan(stamp, points, origins)`` sees every placed cloud (map frame) just before it
+    is integrated, e.g. to feed the same rays to another mapper.
+    """
+    opts = opts or ReplayOptions()
+    path = resolve_bag_path(bag)
+    reader = open_reader(path)
+    try:
+        return _replay(reader, path, opts, progress, log, on_scan)
+    finally:
+        reader.close()
+
+
+def _replay(
+    reader: Any,
+    path: Path,
+    opts: ReplayOptions,
+    progress: bool | Progress,
+    log: Callable[[str], None] | None,
+    on_scan: ScanCallback | None,
+) -> ReplayResult:
+    summary = ReplaySummary(bag=str(path))
+    cloud_topic = pick_topic(reader, CLOUD_TYPE, opts.cloud_topic, "PointCloud2", "--cloud-topic")
+    if cloud_topic is None:
+        listing = ", ".join(sorted({f"{c.topic} ({c.msgtype})" for c in reader.connections}))
+        raise ReplayError(
+            f"the bag has no sensor_msgs/PointCloud2 topic; topics: {listing or 'none'}"
+        )
+    odom_topic = None
+    if not opts.use_tf:
+        odom_topic = pick_topic(reader, ODOM_TYPE, opts.odom_topic, "Odometry", "--odom-topic")
+    summary.cloud_topic = cloud_topic
+    cloud_conns = [c for c in reader.connections if c.topic == cloud_topic]
+    summary.scans_total = sum(c.msgcount for c in cloud_conns)
+    if summary.scans_total == 0:
+        raise ReplayError(f"the cloud topic {cloud_topic} has no messages")
+
+    t_poses = time.perf_counter()
+    if opts.odometry is not None:
+        poses, tfs, cloud_frame = _estimated_poses(reader, opts, cloud_conns, log)
+    else:
+        poses, tfs, cloud_frame = _read_poses(reader, path, opts, odom_topic, cloud_conns)
+    summary.seconds_poses = time.perf_counter() - t_poses
+    summary.pose_source = poses.source
+    summary.map_frame = poses.map_frame
+    summary.cloud_frame = cloud_frame
+    extrinsics: dict[str, Extrinsic] = {}
+    ext, summary.extrinsic_source = extrinsic_for(cloud_frame, poses.body, tfs, opts)
+    extrinsics[cloud_frame] = ext
+
+    mapper = new_mapper(opts, poses.map_frame)
+
+    def clouds() -> Iterator[tuple[int, Callable[[], Any]]]:
+        for index, (conn, _, raw) in enumerate(reader.messages(connections=cloud_conns)):
+            yield index, partial(reader.deserialize, raw, conn.msgtype)
+
+    def extrinsic_of(frame: str) -> Extrinsic:
+        if frame not in extrinsics:
+            extrinsics[frame], _ = extrinsic_for(frame, poses.body, tfs, opts)
+        return extrinsics[frame]
+
+    map_scans(clouds(), poses, extrinsic_of, opts, mapper, summary, progress, log, on_scan)
+    return ReplayResult(mapper, summary)
+
+
+def new_mapper(opts: ReplayOptions, frame_id: str) -> Mapper:
+    """An empty Mapper with the options' map section."""
+    return Mapper.of(opts.map_settings(), frame_id=frame_id)
+
+
+class ScanSelection:
+    """Which clouds a replay maps: ``start_index``/``end_index``, ``start``/``end``
+    (absolute, or ``*_offset`` after the first cloud), one in ``every``, ``max_scans``."""
+
+    def __init__(self, opts: ReplayOptions) -> None:
+        if opts.every < 1:
+            raise ReplayError(f"every must be >= 1, got {opts.every}")
+        if opts.start_index < 0 or (opts.end_index is not None and opts.end_index < 0):
+            raise ReplayError("scan indices start at 0")
+        self.opts = opts
+        self.first_stamp: float | None = None
+        self.taken = 0
+        self.in_window = 0
+
+    def by_index(self, index: int) -> bool:
+        """False when ``index`` is outside ``[start_index, end_index)`` (cheap: no read)."""
+        end = self.opts.end_index
+        return index >= self.opts.start_index and (end is None or index < end)
+
+    def past_end(self, index: int) -> bool:
+        end, cap = self.opts.end_index, self.opts.max_scans
+        return (end is not None and index >= end) or (cap is not None and self.taken >= cap)
+
+    def by_stamp(self, stamp: float, index: int) -> bool:
+        """True when the cloud at ``stamp`` is in the time window and its turn in ``every``."""
+        if self.first_stamp is None:
+            self.first_stamp = stamp
+        lo, hi = self._window()
+        if stamp < lo or stamp >= hi:
+            return False
+        turn = self.in_window % self.opts.every == 0
+        self.in_window += 1
+        return turn
+
+    def _window(self) -> tuple[float, float]:
+        o, first = self.opts, self.first_stamp or 0.0
+        lo = max(
+            o.start if o.start is not None else -math.inf,
+            first + o.start_offset if o.start_offset is not None else -math.inf,
+        )
+        hi = min(
+            o.end if o.end is not None else math.inf,
+            first + o.end_offset if o.end_offset is not None else math.inf,
+        )
+        return lo, hi
+
+
+def map_scans(
+    clouds: Iterable[tuple[int, Callable[[], Any]]],
+    poses: Poses,
+    extrinsic_of: Callable[[str], Extrinsic],
+    opts: ReplayOptions,
+    mapper: Mapper,
+    summary: ReplaySummary,
+    progress: bool | Progress,
+    log: Callable[[str], None] | None,
+    on_scan: ScanCallback | None,
+) -> None:
+    """Run the selected clouds ``(position, load message)`` through the scan pipeline into
+    ``mapper``; fills ``summary``; ReplayError when no cloud could be mapped."""
+    select = ScanSelection(opts)
+    if opts.max_scans is not None:
+        summary.scans_total = min(summary.scans_total, opts.max_scans)
+    bar = (
+        progress
+        if isinstance(progress, Progress)
+        else Progress(summary.scans_total, enabled=bool(progress))
+    )
+    loop = ScanLoop(mapper, opts, on_placed=on_scan, fatal=(ReplayError,))
+    counts = loop.counts
+    bad_example = error_example = ""
+    cloud_span = [math.inf, -math.inf]
+    t_loop = time.perf_counter()
+    try:
+        for index, load in clouds:
+            if select.past_end(index):
+                break
+            if not select.by_index(index):
+                continue
+            try:
+                msg = load()
+                stamp = pipeline.scan_stamp(msg)
+            except Exception as err:  # a damaged message: skip, count, say what it was
+                counts.clouds_in += 1
+                counts.drop("malformed")
+                bad_example = bad_example or f"{type(err).__name__}: {err}"
+                continue
+            if not select.by_stamp(stamp, index):
+                continue
+            select.taken += 1
+            cloud_span = [min(cloud_span[0], stamp), max(cloud_span[1], stamp)]
+            outcome = loop.map_cloud(msg, poses.buffer, extrinsic_of)
+            if outcome.reason == "malformed":
+                bad_example = bad_example or outcome.detail
+            elif outcome.reason == "error":
+                error_example = error_example or outcome.detail
+            if outcome.placed is None or outcome.summary is None:
+                continue
+            summary.seconds_core += outcome.summary.seconds
+            summary.deskew |= outcome.placed.deskewed
+            first = summary.first_stamp if summary.first_stamp is not None else stamp
+            last = summary.last_stamp if summary.last_stamp is not None else stamp
+            summary.first_stamp, summary.last_stamp = min(first, stamp), max(last, stamp)
+            bar.update(index + 1, counts.rays_used)
+        bar.update(summary.scans_total, counts.rays_used, force=True)
+    finally:
+        bar.close()
+    _fill(summary, counts, mapper)
+    summary.scans_selected = counts.clouds_in
+    summary.seconds = time.perf_counter() - t_loop
+    examples = "".join(
+        f"; first {what}: {text}"
+        for what, text in (("bad cloud", bad_example), ("error", error_example))
+        if text
+    )
+    if summary.scans_used == 0:
+        raise NothingMapped(_nothing_mapped(summary, poses, examples, cloud_span, opts))
+    if summary.clouds_dropped and log is not None:
+        log(
+            f"warning: {sum(summary.clouds_dropped.values())} of {summary.scans_selected} "
+            f"scans dropped ({_counts(summary.clouds_dropped)}){examples}"
+        )
+
+
+def _estimated_poses(
+    reader: Any, opts: ReplayOptions, cloud_conns: list[Any], log: Callable[[str], None] | None
+) -> tuple[Poses, TfTree, str]:
+    """Poses from the clouds (KISS-ICP): the map frame is the first scan's lidar frame."""
+    first = next(reader.messages(connections=cloud_conns))
+    cloud_frame = frame_name(reader.deserialize(first[2], first[0].msgtype).header.frame_id)
+    clouds = (
+        (None, partial(reader.deserialize, raw, conn.msgtype))
+        for conn, _, raw in reader.messages(connections=cloud_conns)
+    )
+    total = sum(c.msgcount for c in cloud_conns)
+    poses = lidar_odometry.odometry_poses(clouds, opts, cloud_frame, total, log)
+    return poses, read_transforms(), cloud_frame
+
+
+def _read_poses(
+    reader: Any, path: Path, opts: ReplayOptions, odom_topic: str | None, cloud_conns: list[Any]
+) -> tuple[Poses, TfTree, str]:
+    """Poses, transforms and the cloud frame: small, read first, so a bag without them
+    fails fast."""
+    tfs = read_transforms()
+    tf_conns = [
+        c for c in reader.connections if c.msgtype == TF_TYPE and c.topic in ("/tf", "/tf_static")
+    ]
+    read_conns = [c for c in tf_conns if c.topic == "/tf_static" or odom_topic is None]
+    try:
+        if read_conns:
+            for conn, _, raw in reader.messages(connections=read_conns):
+                tfs.add_message(
+                    reader.deserialize(raw, conn.msgtype), static=conn.topic == "/tf_static"
+                )
+        first_cloud = next(reader.messages(connections=cloud_conns))
+        cloud_frame = frame_name(
+            reader.deserialize(first_cloud[2], first_cloud[0].msgtype).header.frame_id
+        )
+        if odom_topic is not None:
+            poses = odometry_poses(reader, odom_topic, opts)
+        else:
+            poses = tf_poses(cloud_frame, tfs, opts)
+    except ReplayError:
+        raise
+    except Exception as err:
+        raise ReplayError(f"{path}: cannot read poses: {type(err).__name__}: {err}") from None
+    if len(poses.buffer) == 0:
+        raise ReplayError(f"no usable pose in {poses.source}")
+    return poses, tfs, cloud_frame
+
+
+def _fill(summary: ReplaySummary, counts: ScanCounts, mapper: Mapper) -> None:
+    summary.scans_used = counts.clouds_integrated
+    summary.clouds_dropped = dict(counts.clouds_dropped)
+    summary.points_in = counts.points_in
+    summary.rays_used = counts.rays_used
+    summary.rays_truncated = counts.rays_truncated
+    summary.rays_no_return = counts.rays_no_return
+    summary.no_return_note = counts.no_return_note
+    summary.points_dropped = dict(counts.points_dropped)
+    summary.voxels = mapper.num_voxels
+    summary.memory_bytes = mapper.memory_bytes
+
+
+def _nothing_mapped(
+    summary: ReplaySummary,
+    poses: Poses,
+    examples: str,
+    cloud_span: list[float],
+    opts: ReplayOptions,
+) -> str:
+    reasons = _counts(summary.clouds_dropped) or "none"
+    text = (
+        f"no cloud could be mapped ({summary.scans_selected} of {summary.scans_total} clouds "
+        f"selected; dropped: {reasons})"
+    )
+    if (opts.start is not None or opts.end is not None) and cloud_span[0] > cloud_span[1]:
+        text += f"; no cloud stamp lies in the window [{opts.start}, {opts.end}) s"
+    text += examples
+    if {"no_poses", "too_new", "too_old", "gap"} & set(summary.clouds_dropped):
+        text += (
+            f". No pose covers the clouds: poses from {poses.source} span "
+            f"[{poses.buffer.earliest_stamp:.3f}, {poses.buffer.latest_stamp:.3f}] s, "
+            f"the clouds (header stamps) [{cloud_span[0]:.3f}, {cloud_span[1]:.3f}] s"
+            f" (max gap between poses {poses.buffer.max_gap} s)"
+        )
+    return text

@@ -1,1 +1,0 @@
-"""Offline tools without a ROS graph: bag replay, simulation, render, evaluate, export."""

@@ -1,7 +1,0 @@
-"""Names the CLI offers as choices, kept apart so that ``mfp-mapper --help`` imports no numpy."""
-
-BAG_FORMATS = ("mcap", "sqlite3", "ros1")
-"""Bag storages the simulator writes (ROS 2 mcap, ROS 2 sqlite3, ROS 1 .bag)."""
-
-SCENES = ("demo", "small", "open")
-"""The simulator's scene presets (``simulate.preset``)."""

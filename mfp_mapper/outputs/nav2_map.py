@@ -1,0 +1,111 @@
+"""A Nav2 ``map_server`` map of a height band: ``NAME.pgm`` + ``NAME.yaml``.
+
+The band ``[z_min, z_max]`` is projected exactly as the node's ``~/projected_map``
+(``Mapper.hit_probability_grid(..., trinary=...)``, the same thresholds and defaults): per
+cell ``p``, the largest hit probability (the probability that a ray crossing one voxel edge
+is reflected, Eq. 31-34) among the observed voxels of the column. A cell is then
+
+- occupied (pixel 0, OccupancyGrid 100) when ``p >= occupied_threshold``,
+- free (pixel 254, OccupancyGrid 0) when ``p < free_threshold``,
+- unknown (pixel 205, OccupancyGrid -1) otherwise, or when no voxel of the band was observed.
+
+The YAML says ``mode: trinary``, ``negate: 0``, ``occupied_thresh: 0.65`` and
+``free_thresh: 0.196``: map_server reads a pixel as ``occ = (255 - pixel) / 255`` and marks it
+occupied when ``occ > occupied_thresh``, free when ``occ < free_thresh``: 0 -> 100, 254 -> 0,
+205 (occ = 0.196078...) -> -1. The image's first row is the top (largest y) of the map.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mfp_mapper.core.gridmap import DEFAULT_OCCUPIED_THRESHOLD, unobserved_hit_probability
+from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.mapio.atomic import atomic_output, write_text_atomic
+
+OCCUPIED_PIXEL, FREE_PIXEL, UNKNOWN_PIXEL = 0, 254, 205
+MAP_SERVER_OCCUPIED_THRESH = 0.65
+MAP_SERVER_FREE_THRESH = 0.196
+
+
+@dataclass
+class Nav2Map:
+    image: Path
+    yaml: Path
+    occupancy: NDArray[np.int8]
+    """The OccupancyGrid values (100, 0, -1), row 0 = smallest y."""
+    origin: tuple[float, float]
+    resolution: float
+
+
+def write_nav2_map(
+    mapper: Mapper,
+    path: str | Path,
+    z_min: float,
+    z_max: float,
+    occupied_threshold: float | None = None,
+    free_threshold: float | None = None,
+) -> Nav2Map:
+    """Write ``path`` (.yaml; the .pgm beside it) for the band ``[z_min, z_max]``.
+
+    Thresholds default to the node's (``projected_map.occupied_threshold``; free: the hit
+    probability of a never-observed voxel, ``resolution / (1 + resolution)``).
+    """
+    yaml_path = Path(path).with_suffix(".yaml")
+    image_path = yaml_path.with_suffix(".pgm")
+    if occupied_threshold is None:
+        occupied_threshold = DEFAULT_OCCUPIED_THRESHOLD
+    if free_threshold is None or free_threshold < 0.0:
+        free_threshold = min(unobserved_hit_probability(mapper.resolution), occupied_threshold)
+    grid = mapper.hit_probability_grid(z_min, z_max, trinary=(occupied_threshold, free_threshold))
+    if grid.data.size == 0:
+        raise ValueError(f"no observed voxel in the band [{z_min}, {z_max}] m: no map")
+    occupancy = grid.data
+    pixels: NDArray[np.uint8] = np.full(occupancy.shape, UNKNOWN_PIXEL, dtype=np.uint8)
+    pixels[occupancy == 100] = OCCUPIED_PIXEL
+    pixels[occupancy == 0] = FREE_PIXEL
+    height, width = occupancy.shape[0], occupancy.shape[1]
+    with atomic_output(image_path) as f:
+        f.write(f"P5\n# mfp_mapper {mapper.frame_id}\n{width} {height}\n255\n".encode("ascii"))
+        f.write(np.flipud(pixels).tobytes())
+    x0, y0 = grid.origin
+    text = (
+        f"image: {image_path.name}\n"
+        f"mode: trinary\n"
+        f"resolution: {grid.resolution!r}\n"
+        f"origin: [{x0!r}, {y0!r}, 0.0]\n"
+        f"negate: 0\n"
+        f"occupied_thresh: {MAP_SERVER_OCCUPIED_THRESH}\n"
+        f"free_thresh: {MAP_SERVER_FREE_THRESH}\n"
+        f"# band z in [{z_min}, {z_max}] m of {mapper.frame_id or 'map'}; hit probability "
+        f">= {occupied_threshold} occupied, < {free_threshold:.6g} free\n"
+    )
+    write_text_atomic(yaml_path, text)
+    return Nav2Map(image_path, yaml_path, occupancy, (x0, y0), grid.resolution)
+
+
+def read_pgm(path: str | Path) -> NDArray[np.uint8]:
+    """The pixels of a binary 8-bit PGM (P5), first row = top of the image."""
+    raw = Path(path).read_bytes()
+    tokens: list[bytes] = []
+    position = 0
+    while len(tokens) < 4:
+        while raw[position : position + 1].isspace():
+            position += 1
+        if raw[position : position + 1] == b"#":
+            position = raw.index(b"\n", position) + 1
+            continue
+        end = position
+        while not raw[end : end + 1].isspace():
+            end += 1
+        tokens.append(raw[position:end])
+        position = end
+    if tokens[0] != b"P5" or int(tokens[3]) != 255:
+        raise ValueError(f"{path}: not an 8-bit binary PGM")
+    width, height = int(tokens[1]), int(tokens[2])
+    body = raw[position + 1 : position + 1 + width * height]
+    return np.frombuffer(body, dtype=np.uint8).reshape(height, width)

@@ -1,0 +1,198 @@
+"""Reading bags: open them (rosbags), pick topics, and the poses and transforms they hold.
+
+Poses come from a nav_msgs/Odometry topic, or from the ``/tf`` chain above the cloud frame;
+the lidar extrinsic from ``/tf_static`` (or the options). Errors are ``ReplayError`` with
+the reason, before any cloud is read.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mfp_mapper.config.replay_options import ReplayError as ReplayError  # defined with the options
+from mfp_mapper.config.replay_options import ReplayOptions
+from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer, odometry_sample
+from mfp_mapper.sensing.tf_tree import TfTree, TransformUnavailable, frame_list
+
+FloatArray = NDArray[np.float64]
+
+CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
+ODOM_TYPE = "nav_msgs/msg/Odometry"
+TF_TYPE = "tf2_msgs/msg/TFMessage"
+
+
+# --- reading the bag --------------------------------------------------------------------------
+
+
+def resolve_bag_path(path: str | Path) -> Path:
+    """The path AnyReader wants: a ROS 1 ``.bag`` file or a ROS 2 bag directory.
+
+    A ``.db3``/``.mcap`` file inside a ROS 2 bag directory means that directory.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise ReplayError(f"{p}: no such file or directory")
+    if p.is_file() and p.suffix in (".db3", ".mcap"):
+        if (p.parent / "metadata.yaml").exists():
+            return p.parent
+        raise ReplayError(
+            f"{p}: a ROS 2 bag is a directory with metadata.yaml; this file has none beside it"
+        )
+    if p.is_dir() and not (p / "metadata.yaml").exists():
+        raise ReplayError(f"{p}: not a ROS 2 bag (no metadata.yaml in this directory)")
+    if p.is_file() and p.suffix != ".bag":
+        raise ReplayError(f"{p}: not a bag (ROS 1 bags end in .bag, ROS 2 bags are directories)")
+    return p
+
+
+def open_reader(path: Path) -> Any:
+    """An opened AnyReader; ReplayError when the bag cannot be read."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    try:
+        reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_JAZZY))
+        reader.open()
+    except Exception as err:  # rosbags raises several error types for broken files
+        raise ReplayError(f"{path}: cannot read the bag: {err}") from None
+    return reader
+
+
+def pick_topic(reader: Any, msgtype: str, wanted: str | None, what: str, flag: str) -> str | None:
+    topics = {c.topic: c.msgtype for c in reader.connections}
+    listing = ", ".join(f"{t} ({m})" for t, m in sorted(topics.items())) or "none"
+    if wanted is not None:
+        if wanted not in topics:
+            raise ReplayError(f"topic {wanted} is not in the bag; topics: {listing}")
+        if topics[wanted] != msgtype:
+            raise ReplayError(f"topic {wanted} has type {topics[wanted]}, expected {msgtype}")
+        return wanted
+    candidates = sorted(t for t, m in topics.items() if m == msgtype)
+    if len(candidates) > 1:
+        raise ReplayError(
+            f"the bag has several {what} topics ({', '.join(candidates)}): choose one with {flag}"
+        )
+    return candidates[0] if candidates else None
+
+
+def read_transforms() -> TfTree:
+    """A TF tree for a whole bag: every /tf sample kept (no buffer length, no stream
+    checks: the bag is read in one go), interpolated without a gap limit."""
+    return TfTree(buffer_length=math.inf, max_jump=math.inf, max_future=math.inf)
+
+
+def extrinsic_for(
+    cloud_frame: str, body: str, tfs: TfTree, opts: ReplayOptions
+) -> tuple[Extrinsic, str]:
+    if opts.extrinsic is not None:
+        return Extrinsic.from_xyz_rpy(*opts.extrinsic), "given on the command line"
+    if cloud_frame == body:
+        return Extrinsic(), f"identity (the cloud frame is the odometry child frame {body})"
+    chain = tfs.static_chain(body, cloud_frame)
+    if chain is not None:
+        t, q = chain
+        return Extrinsic(t, q), f"/tf_static {body} <- {cloud_frame}: " + _describe(t, q)
+    if opts.config_extrinsic is not None:
+        return Extrinsic.from_xyz_rpy(
+            *opts.config_extrinsic
+        ), "lidar.translation / lidar.rpy of the configuration"
+    raise ReplayError(
+        f"no lidar extrinsic: the cloud frame {cloud_frame!r} is not the odometry child frame "
+        f"{body!r} and /tf_static has no chain {body} <- {cloud_frame}; give it with "
+        "--extrinsic X Y Z ROLL PITCH YAW (or lidar.translation / lidar.rpy in --config)"
+    )
+
+
+def _describe(t: FloatArray, q: FloatArray) -> str:
+    x, y, z, w = q
+    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
+    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return (
+        f"xyz ({t[0]:.3f}, {t[1]:.3f}, {t[2]:.3f}) m, rpy ({roll:.3f}, {pitch:.3f}, {yaw:.3f}) rad"
+    )
+
+
+@dataclass
+class Poses:
+    buffer: PoseBuffer
+    body: str
+    map_frame: str
+    source: str
+
+
+def odometry_poses(reader: Any, topic: str, opts: ReplayOptions) -> Poses:
+    conns = [c for c in reader.connections if c.topic == topic]
+    samples: list[tuple[float, FloatArray, FloatArray]] = []
+    frames: Counter[tuple[str, str]] = Counter()
+    for conn, _, raw in reader.messages(connections=conns):
+        sample = odometry_sample(reader.deserialize(raw, conn.msgtype))
+        samples.append((sample.stamp, sample.position, sample.quaternion))
+        frames[(sample.frame_id, sample.child_frame_id)] += 1
+    if not samples:
+        raise ReplayError(f"the odometry topic {topic} has no messages")
+    (map_frame, body), _ = frames.most_common(1)[0]
+    if len(frames) > 1:
+        raise ReplayError(
+            f"odometry on {topic} changes frames ({', '.join(f'{a}->{b}' for a, b in frames)}): "
+            "cannot chain them"
+        )
+    buffer = _buffer(samples, opts.max_gap)
+    return Poses(buffer, body, map_frame, f"{topic} (nav_msgs/Odometry {map_frame} -> {body})")
+
+
+def _buffer(samples: list[tuple[float, FloatArray, FloatArray]], max_gap: float) -> PoseBuffer:
+    buffer = PoseBuffer(max_age=math.inf, max_gap=max_gap)
+    for stamp, t, q in sorted(samples, key=lambda s: s[0]):
+        buffer.add(stamp, t, q)
+    return buffer
+
+
+def tf_poses(cloud_frame: str, tfs: TfTree, opts: ReplayOptions) -> Poses:
+    """Poses of the lowest moving frame above the cloud frame, from the /tf chain."""
+    moving = sorted(c for c in tfs.frames() if tfs.is_dynamic(c))
+    if not moving:
+        raise ReplayError(
+            "the bag has no nav_msgs/Odometry topic and no /tf transforms: no poses "
+            "(give --odom-topic if the odometry topic has another type name)"
+        )
+    try:
+        above = tfs.ancestors(cloud_frame)
+    except TransformUnavailable as err:
+        raise ReplayError(f"/tf: {err}") from None
+    # the first frame that moves, then up to the fixed frame: odom by default, else the root
+    body = next((f for f in above if tfs.is_dynamic(f)), None)
+    if body is None:
+        raise ReplayError(
+            f"/tf does not connect the cloud frame {cloud_frame!r} to a moving frame "
+            f"(frames moved by /tf: {frame_list(moving)}); give --odom-topic"
+        )
+    chain = above[above.index(body) :]
+    fixed = opts.fixed_frame
+    if fixed is not None and fixed not in chain:
+        raise ReplayError(f"the fixed frame {fixed!r} is not above {body!r} in /tf")
+    if fixed is None:
+        fixed = "odom" if "odom" in chain else chain[-1]
+    chain = chain[: chain.index(fixed) + 1]
+    if len(chain) < 2:
+        raise ReplayError(f"the fixed frame {fixed!r} is the moving frame {body!r} itself")
+    stamps = tfs.edge_stamps(body)
+    keep = np.ones(stamps.size, dtype=bool)
+    for child in chain[1:-1]:  # every other moving edge must cover the stamp
+        covered = tfs.edge_stamps(child)
+        if covered.size:
+            keep &= (stamps >= covered[0]) & (stamps <= covered[-1])
+    stamps = stamps[keep]
+    samples: list[tuple[float, FloatArray, FloatArray]] = []
+    if stamps.size:
+        t, q = tfs.lookup(fixed, body, stamps)
+        samples = [(float(s), t[i], q[i]) for i, s in enumerate(stamps)]
+    text = " -> ".join(reversed(chain))
+    return Poses(_buffer(samples, opts.max_gap), body, fixed, f"/tf chain {text}")

@@ -1,0 +1,168 @@
+"""A folder of scan files as a recording: the scans in order, with their stamps.
+
+Scan files: ``.pcd`` (binary or ascii), ``.ply`` (ascii or binary little-endian), ``.bin``
+(KITTI: float32 x y z intensity) and ``.vtk`` (legacy ASCII POLYDATA); one kind per folder.
+Stamps, in order of preference:
+
+1. a times file: ``--times FILE``, else ``times.txt`` in the folder or beside it (KITTI):
+   one stamp (seconds) per line, line k for the k-th scan in name order;
+2. the file names: ``cloud_<sec>_<nanosec>.<ext>`` (nanoseconds not zero-padded), or a
+   numeric stem: with a decimal point it is seconds (``1700000000.25.pcd``), an integer of
+   18 or more digits (alone or after ``_``, ``vlp16_1673400149711850138.pcd``) nanoseconds;
+3. none of these (``000042.bin``): the scan's position times ``scan_period`` (0.1 s).
+
+Scans are taken in time order when the names carry the time, else in natural name order
+(``2.pcd`` before ``10.pcd``). Every file becomes a PointCloud2-like message with all its
+columns, so a per-point time field (``time_stamp``, ``time``, ``t``...) reaches the de-skew
+exactly as from a bag.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mfp_mapper.sources.scan_files import (
+    CloudMessage,
+    DatasetFormatError,
+    cloud_message_from_columns,
+    read_kitti_bin,
+    read_pcd,
+    read_ply,
+    read_vtk,
+)
+
+READERS: Mapping[str, Callable[[Path], dict[str, NDArray[np.generic]]]] = {
+    ".pcd": read_pcd,
+    ".ply": read_ply,
+    ".bin": read_kitti_bin,
+    ".vtk": read_vtk,
+}
+"""Scan readers by file extension."""
+
+DEFAULT_SCAN_PERIOD = 0.1
+_SEC_NSEC = re.compile(r"^[A-Za-z_]*?_?(\d+)_(\d+)$")
+_SECONDS = re.compile(r"^\d+\.\d+$")
+_NANOSECONDS = re.compile(r"(?:^|_)(\d{18,})$")
+
+
+@dataclass(frozen=True)
+class ScanFile:
+    path: Path
+    stamp: float
+
+
+@dataclass
+class ScanFolder:
+    """The scans of a folder, in order, and where their stamps came from."""
+
+    directory: Path
+    scans: list[ScanFile]
+    stamp_source: str
+    frame_id: str = "lidar"
+
+    def __len__(self) -> int:
+        return len(self.scans)
+
+    @property
+    def kind(self) -> str:
+        return self.scans[0].path.suffix.lower() if self.scans else ""
+
+    def message(self, index: int) -> CloudMessage:
+        """Scan ``index`` as a PointCloud2-like message stamped with its time."""
+        scan = self.scans[index]
+        columns = READERS[scan.path.suffix.lower()](scan.path)
+        return cloud_message_from_columns(columns, scan.stamp, self.frame_id)
+
+
+def is_scan_folder(path: str | Path) -> bool:
+    """True for a directory holding scan files (and no ROS 2 bag metadata)."""
+    p = Path(path)
+    return (
+        p.is_dir()
+        and not (p / "metadata.yaml").exists()
+        and any(f.suffix.lower() in READERS for f in p.iterdir() if f.is_file())
+    )
+
+
+def open_scan_folder(
+    directory: str | Path,
+    times_file: str | Path | None = None,
+    scan_period: float = DEFAULT_SCAN_PERIOD,
+    frame_id: str = "lidar",
+) -> ScanFolder:
+    """The scans of ``directory`` (one file kind) with their stamps; DatasetFormatError
+    when there are none, several kinds, or a times file that does not match."""
+    folder = Path(directory)
+    if not folder.is_dir():
+        raise DatasetFormatError(f"{folder}: not a directory")
+    files = [f for f in folder.iterdir() if f.is_file() and f.suffix.lower() in READERS]
+    kinds = sorted({f.suffix.lower() for f in files})
+    if not files:
+        raise DatasetFormatError(
+            f"{folder}: no scan files ({', '.join(sorted(READERS))}) in this directory"
+        )
+    if len(kinds) > 1:
+        raise DatasetFormatError(f"{folder}: several scan kinds ({', '.join(kinds)}): keep one")
+    files.sort(key=_natural_key)
+    times = _times_path(folder, times_file)
+    if times is not None:
+        stamps = _read_times(times, len(files))
+        source = f"times file {times}"
+    else:
+        named = [_stamp_from_name(f.stem) for f in files]
+        if all(s is not None for s in named):
+            stamps = [float(s) for s in named if s is not None]
+            source = "file names"
+        else:
+            stamps = [k * scan_period for k in range(len(files))]
+            source = f"none found: position x {scan_period:g} s"
+    scans = [ScanFile(f, s) for f, s in zip(files, stamps, strict=True)]
+    if source == "file names":
+        scans.sort(key=lambda scan: scan.stamp)
+    if len({s.stamp for s in scans}) != len(scans):
+        raise DatasetFormatError(f"{folder}: two scans have the same stamp ({source})")
+    return ScanFolder(folder, scans, source, frame_id)
+
+
+def _natural_key(path: Path) -> list[object]:
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path.name)]
+
+
+def _stamp_from_name(stem: str) -> float | None:
+    match = _SEC_NSEC.match(stem)
+    if match:
+        return int(match[1]) + int(match[2]) * 1e-9
+    if _SECONDS.match(stem):
+        return float(stem)
+    match = _NANOSECONDS.search(stem)
+    if match:
+        return int(match[1]) * 1e-9
+    return None
+
+
+def _times_path(folder: Path, given: str | Path | None) -> Path | None:
+    if given is not None:
+        path = Path(given)
+        if not path.is_file():
+            raise DatasetFormatError(f"{path}: times file not found")
+        return path
+    for candidate in (folder / "times.txt", folder.parent / "times.txt"):
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def _read_times(path: Path, scans: int) -> list[float]:
+    try:
+        values = [float(line.split()[0]) for line in path.read_text().splitlines() if line.strip()]
+    except ValueError:
+        raise DatasetFormatError(f"{path}: a line does not start with a number") from None
+    if len(values) != scans:
+        raise DatasetFormatError(f"{path}: {len(values)} stamps for {scans} scan files")
+    return values

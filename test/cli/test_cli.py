@@ -1,0 +1,180 @@
+"""The `mfp-mapper` command line: every subcommand on a small simulated bag."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mfp_mapper.cli import build_parser, main
+from mfp_mapper.mapio.loading import load_map
+from mfp_mapper.outputs.export import read_ply
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    root = tmp_path_factory.mktemp("cli")
+    bag = root / "sim"
+    assert (
+        main(["simulate", str(bag), "--scene", "small", "--scans", "12", "--azimuths", "360"]) == 0
+    )
+    out = root / "map.npz"
+    assert main(["replay", str(bag), "-o", str(out), "--resolution", "0.2", "-q"]) == 0
+    return {"root": root, "bag": bag, "map": out, "truth": root / "sim.truth.json"}
+
+
+def test_help_lists_subcommands_and_examples(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as info:
+        main(["--help"])
+    assert info.value.code == 0
+    text = capsys.readouterr().out
+    for cmd in (
+        "replay",
+        "simulate",
+        "export",
+        "render",
+        "plot-convergence",
+        "query",
+        "evaluate",
+        "demo",
+    ):
+        assert cmd in text
+    assert "examples:" in text
+    for cmd in ("replay", "simulate", "export", "render", "plot-convergence", "query", "evaluate"):
+        with pytest.raises(SystemExit) as info:
+            build_parser().parse_args([cmd, "--help"])
+        assert info.value.code == 0
+    assert "--cloud-topic" in capsys.readouterr().out
+
+
+def test_replay_writes_a_loadable_map(run: dict[str, Path]) -> None:
+    m = load_map(run["map"])
+    assert m.resolution == 0.2 and m.frame_id == "odom" and m.num_voxels > 1000
+
+
+def test_replay_prints_summary(
+    run: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "m.npz"
+    js = tmp_path / "s.json"
+    code = main(["replay", str(run["bag"]), "-o", str(out), "--resolution", "0.5",
+                 "--max-scans", "3", "--summary-json", str(js)])  # fmt: skip
+    assert code == 0
+    text = capsys.readouterr()
+    assert "scans        3 used of 3" in text.out
+    assert "replay [" in text.err  # the progress bar
+    assert json.loads(js.read_text())["scans_used"] == 3
+
+
+def test_replay_bad_bag_exits_nonzero_and_writes_no_map(
+    run: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "m.npz"
+    assert main(["replay", str(run["bag"]), "-o", str(out), "--cloud-topic", "/nope", "-q"]) == 1
+    err = capsys.readouterr().err
+    assert "/nope is not in the bag" in err and "no map written" in err
+    assert not out.exists()
+    junk = tmp_path / "junk.bag"
+    junk.write_bytes(b"not a bag")
+    assert main(["replay", str(junk), "-o", str(out), "-q"]) == 1
+    assert not out.exists()
+    assert main(["replay", str(run["bag"]), "-o", str(tmp_path / "no" / "m.npz"), "-q"]) == 1
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_export_ply(run: dict[str, Path], tmp_path: Path) -> None:
+    ply = tmp_path / "map.ply"
+    assert main(["export", str(run["map"]), "-o", str(ply), "--min-doo", "0.1"]) == 0
+    data = read_ply(ply)
+    assert data["x"].size > 100 and np.all(data["degree_of_occupancy"] >= 0.1)
+
+
+def test_render_pictures(run: dict[str, Path], tmp_path: Path) -> None:
+    out = tmp_path / "pics"
+    assert main(["render", str(run["map"]), "-o", str(out), "--slice-y", "0"]) == 0
+    for name in ("doo_topdown.png", "std_topdown.png", "slice.png", "histogram.png"):
+        data = (out / name).read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
+
+
+def test_plot_convergence(tmp_path: Path) -> None:
+    assert main(["plot-convergence", "-o", str(tmp_path / "fig9.png")]) == 0
+    assert (tmp_path / "fig9.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_query(run: dict[str, Path], capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["query", str(run["map"]), "0", "0", "1", "0", "0", "100", "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert len(rows) == 2
+    assert rows[0]["observed"] and rows[0]["n"] > 0  # inside the cube of medium
+    assert not rows[1]["observed"] and rows[1]["degree_of_occupancy"] == 0.5
+    assert main(["query", str(run["map"]), "0", "0", "1"]) == 0
+    assert "DoO" in capsys.readouterr().out
+    assert main(["query", str(run["map"]), "0", "0"]) == 1
+
+
+def test_evaluate(run: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    js = tmp_path / "ev.json"
+    assert main(["evaluate", str(run["map"]), str(run["truth"]), "--json", str(js)]) == 0
+    assert "cube: lambda 1.000" in capsys.readouterr().out
+    (cube,) = json.loads(js.read_text())["media"]
+    assert abs(cube["pooled"] - 1.0) < 0.1
+
+
+def test_bad_map_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"nope")
+    assert main(["export", str(bad), "-o", str(tmp_path / "x.ply")]) == 1
+    assert main(["render", str(tmp_path / "missing.npz"), "-o", str(tmp_path)]) == 1
+    assert "missing.npz: no such" in capsys.readouterr().err
+
+
+def test_demo_runs_end_to_end(tmp_path: Path) -> None:
+    """`python -m mfp_mapper.cli demo`, shrunk: prints its findings and where the pictures are."""
+    out = tmp_path / "example_output"
+    proc = subprocess.run(
+        [sys.executable, "-m", "mfp_mapper.cli", "demo", "-o", str(out), "--scans", "30", "-q"],
+        capture_output=True, text=True, timeout=300, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert "what it found:" in proc.stdout
+    assert "bush: estimated extinction" in proc.stdout
+    assert f"pictures are in {(out / 'pictures').resolve()}" in proc.stdout
+    for name in ("doo_topdown.png", "slice.png", "histogram.png", "convergence.png"):
+        assert (out / "pictures" / name).is_file()
+    assert (out / "map.npz").is_file() and (out / "map.ply").is_file()
+    assert json.loads((out / "evaluation.json").read_text())["media"]
+
+
+def test_replay_of_a_scan_folder_with_selection(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    from folder_helpers import write_pcd
+
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    angles = np.linspace(0, 2 * np.pi, 360, endpoint=False)
+    ring = {"x": (4 * np.cos(angles)).astype("<f4"), "y": (4 * np.sin(angles)).astype("<f4"),
+            "z": np.zeros(360, "<f4")}  # fmt: skip
+    for k in range(6):
+        write_pcd(folder / f"{k:03d}.pcd", ring)
+    out = tmp_path / "m.npz"
+    argv = ["replay", str(folder), "-o", str(out), "--poses", "identity", "--resolution", "0.5",
+            "--start", "#1", "--every", "2", "-q"]  # fmt: skip
+    assert main(argv) == 0
+    text = capsys.readouterr().out
+    assert "scans        3 used of 6" in text and "identity" in text and out.exists()
+    assert main(["replay", str(folder), "-o", str(out), "-q"]) == 1
+    assert "--poses FILE" in capsys.readouterr().err
+    assert main(["replay", str(tmp_path / "m.npz"), "-o", str(out), "--poses", "x"]) == 1
+
+
+def test_version(capsys) -> None:  # type: ignore[no-untyped-def]
+    import mfp_mapper
+
+    with pytest.raises(SystemExit) as info:
+        main(["--version"])
+    assert info.value.code == 0
+    assert capsys.readouterr().out.strip() == f"mfp-mapper {mfp_mapper.__version__}"

@@ -1,0 +1,163 @@
+"""The settings schema: one entry per setting, and what derives from it (YAML, ReplayOptions,
+NodeConfig, the node's type and range checks as the CLI applies them). No ROS."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import fields
+from pathlib import Path
+
+import pytest
+
+from mfp_mapper.config.param_file import load_node_parameters
+from mfp_mapper.config.replay_options import EXTRINSIC_PARAMETERS, ReplayOptions
+from mfp_mapper.config.schema import (
+    BY_NAME,
+    PARAMS,
+    SETTINGS,
+    SPECS,
+    NodeConfig,
+    check_parameters,
+    check_value,
+    defaults,
+    defaults_yaml,
+    python_type_name,
+)
+
+ROOT = Path(__file__).resolve().parents[2]
+CONFIG = ROOT / "config" / "mfp_mapper.yaml"
+
+
+def test_each_setting_is_defined_once_with_a_consistent_entry() -> None:
+    assert len(BY_NAME) == len(SETTINGS)
+    flags = [s.flag for s in SETTINGS if s.flag]
+    assert len(flags) == len(set(flags))
+    for s in SETTINGS:
+        assert s.applies in ("node", "replay", "both"), s.name
+        assert len(s.description) > 20 and s.description.endswith("."), s.name
+        if s.default is not None:
+            assert python_type_name(s.default) == s.ros_type, s.name
+        if s.type is list:
+            assert s.length is not None and (s.default is None or len(s.default) == s.length)
+        if s.lo is not None:
+            assert s.hi is not None and s.lo < s.hi, s.name
+            if s.default is not None:
+                assert s.check_range(s.default) is None, s.name
+        if s.dynamic:
+            assert s.applies == "node", f"{s.name}: only the node changes settings at run time"
+    assert [p.name for p in PARAMS] == list(SPECS)
+    assert all(not s.is_parameter for s in SETTINGS if s.name not in SPECS)
+
+
+def test_config_yaml_is_generated_from_the_schema() -> None:
+    assert CONFIG.read_text() == defaults_yaml(), (
+        "config/mfp_mapper.yaml is stale: "
+        "python -m mfp_mapper.config.schema > config/mfp_mapper.yaml"
+    )
+    # both ways, with the node's own reading of the file: every entry, no extra key, same types
+    values = load_node_parameters(CONFIG)
+    assert list(values) == list(defaults())
+    for name, value in values.items():
+        assert type(value) is type(SPECS[name].default) and value == SPECS[name].default, name
+    assert check_parameters(values) == NodeConfig.from_values({})
+
+
+def test_replay_options_derive_from_the_schema() -> None:
+    opts = ReplayOptions()
+    field_names = {f.name for f in fields(ReplayOptions)}
+    for s in SETTINGS:
+        if not s.in_replay:
+            continue
+        if s.name in EXTRINSIC_PARAMETERS:
+            assert "config_extrinsic" in field_names
+            continue
+        assert s.option in field_names, s.name
+        assert getattr(opts, s.option) == s.core_default, s.name
+    # the fields the replay loop reads keep their names
+    for name in ("resolution", "max_range", "min_range", "decay_time", "threads", "max_voxels",
+                 "deskew", "max_gap", "point_cloud_min_z", "point_cloud_max_z", "extrinsic",
+                 "config_extrinsic", "cloud_topic", "odom_topic", "use_tf", "fixed_frame",
+                 "max_scans", "keep_radius"):  # fmt: skip
+        assert name in field_names
+    assert math.isinf(opts.decay_time) and opts.max_voxels is None and opts.keep_radius is None
+
+
+def test_no_limit_rules_come_from_the_schema() -> None:
+    assert math.isinf(BY_NAME["sensor_model.max_range"].core_value(-1.0))
+    assert math.isinf(BY_NAME["decay_time"].core_value(0.0))
+    assert BY_NAME["max_voxels"].core_value(0) is None
+    assert BY_NAME["keep_radius"].core_value(0.0) is None
+    assert BY_NAME["keep_radius"].core_value(2.5) == 2.5
+    assert BY_NAME["resolution"].core_value(0.2) == 0.2
+
+
+def test_node_config_keeps_its_attributes_and_gives_keep_radius() -> None:
+    cfg = NodeConfig.from_values({"keep_radius": 30.0, "max_voxels": 1000})
+    assert cfg.resolution == 0.1 and cfg.deskew and cfg.sensor_model_max_range == 100.0
+    assert cfg.max_range == 100.0 and math.isinf(cfg.decay)
+    settings = cfg.map_settings()
+    assert settings.keep_radius == 30.0 and settings.max_voxels == 1000
+    assert NodeConfig.from_values({}).map_settings().keep_radius is None
+    assert cfg.values()["keep_radius"] == 30.0
+    from mfp_mapper.core.mapper import Mapper
+
+    mapper = Mapper.of(settings)
+    assert (mapper.keep_radius, mapper.max_voxels, mapper.resolution) == (30.0, 1000, 0.1)
+
+
+def test_the_replay_and_the_node_build_the_same_map_section() -> None:
+    from mfp_mapper.config.replay_options import ReplayOptions
+    from mfp_mapper.config.schema import MAP_SECTION, MapSettings
+
+    assert ReplayOptions().map_settings() == NodeConfig.from_values({}).map_settings()
+    assert ReplayOptions().map_settings() == MapSettings()
+    values = {"resolution": 0.2, "decay_time": 30.0, "sensor_model.max_range": -1.0}
+    node = NodeConfig.from_values(values).map_settings()
+    replay = ReplayOptions(resolution=0.2, decay_time=30.0, max_range=math.inf).map_settings()
+    assert node == replay and math.isinf(node.max_range)
+    assert set(MAP_SECTION.values()) <= set(BY_NAME)
+
+
+@pytest.mark.parametrize(
+    ("name", "value", "message"),
+    [
+        ("resolution", 1, "Trying to set parameter 'resolution' to '1' of type 'INTEGER', "
+         "expecting type 'DOUBLE': resolution"),
+        ("threads", 2.0, "Trying to set parameter 'threads' to '2.0' of type 'DOUBLE', "
+         "expecting type 'INTEGER': threads"),
+        ("lidar.rpy", [0, 0, 0], "of type 'INTEGER_ARRAY', expecting type 'DOUBLE_ARRAY'"),
+        ("resolution", 0.001, "Invalid parameter value (0.001) for parameter. Reason: Parameter "
+         "resolution out of range Min: 0.01, Max: 10.0, value: 0.001: resolution"),
+        ("threads", 0, "Reason: Parameter threads out of range. Min: 1, Max: 64, value: 0"),
+    ],
+)  # fmt: skip
+def test_values_are_checked_with_rclpys_rules_and_words(
+    name: str, value: object, message: str
+) -> None:
+    with pytest.raises(ValueError) as info:
+        check_value(SPECS[name], value)
+    assert message in str(info.value)
+
+
+def test_range_edges_pass_as_in_rclpy() -> None:
+    check_value(SPECS["resolution"], 10.0 * (1 + 1e-9))  # rclpy's relative tolerance
+    check_value(SPECS["threads"], 64)
+
+
+def test_unknown_names_are_an_error_and_rclpys_own_are_not() -> None:
+    with pytest.raises(ValueError, match="unknown parameter.*resolutoin"):
+        check_parameters({"resolutoin": 0.2})
+    cfg = check_parameters({"use_sim_time": True, "qos_overrides./odom.subscription.depth": 5})
+    assert cfg == NodeConfig.from_values({})
+    with pytest.raises(ValueError, match="unknown parameter.*cloud_topic"):
+        check_parameters({"cloud_topic": "/points"})  # a replay setting, not a node parameter
+
+
+def test_node_config_has_one_typed_attribute_per_parameter() -> None:
+    from mfp_mapper.config.schema import attr_name
+
+    assert [f.name for f in fields(NodeConfig)] == [attr_name(p.name) for p in PARAMS]
+    cfg = NodeConfig.from_values({})
+    for p in PARAMS:
+        value = getattr(cfg, attr_name(p.name))
+        assert isinstance(value, tuple if p.type is list else p.type), p.name

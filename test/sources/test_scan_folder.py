@@ -1,0 +1,116 @@
+"""Scan files (PLY, KITTI .bin, VTK, PCD) and scan folders: order, stamps, per-point time."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import pytest
+from folder_helpers import write_pcd, write_ply
+
+from mfp_mapper.cli.input_args import input_options, parse_bound
+from mfp_mapper.sensing import pipeline
+from mfp_mapper.sources.scan_files import DatasetFormatError, read_kitti_bin, read_ply
+from mfp_mapper.sources.scan_folder import is_scan_folder, open_scan_folder
+
+COLUMNS = {
+    "x": np.array([1.0, 2.5, -3.0], "<f4"),
+    "y": np.array([0.5, -1.0, 4.0], "<f4"),
+    "z": np.array([0.0, 0.25, 1.0], "<f4"),
+    "intensity": np.array([10, 20, 30], "u1"),
+    "time": np.array([0.0, 0.05, 0.099], "<f8"),
+}
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_ply_round_trip(tmp_path: Path, binary: bool) -> None:
+    path = tmp_path / "a.ply"
+    write_ply(path, COLUMNS, binary=binary)
+    columns = read_ply(path)
+    assert list(columns) == list(COLUMNS)
+    for name, values in COLUMNS.items():
+        np.testing.assert_array_equal(columns[name], values)
+        assert columns[name].dtype == values.dtype.newbyteorder("<")
+
+
+def test_bad_ply(tmp_path: Path) -> None:
+    path = tmp_path / "b.ply"
+    header = "ply\nformat binary_big_endian 1.0\nelement vertex 1\nproperty float x\nend_header\n"
+    path.write_bytes(header.encode())
+    with pytest.raises(DatasetFormatError, match="binary_big_endian"):
+        read_ply(path)
+    write_ply(path, COLUMNS)
+    path.write_bytes(path.read_bytes()[:-10])
+    with pytest.raises(DatasetFormatError, match="truncated"):
+        read_ply(path)
+
+
+def test_kitti_bin(tmp_path: Path) -> None:
+    records = np.arange(12, dtype="<f4").reshape(3, 4)
+    records.tofile(tmp_path / "000000.bin")
+    columns = read_kitti_bin(tmp_path / "000000.bin")
+    np.testing.assert_array_equal(columns["x"], records[:, 0])
+    np.testing.assert_array_equal(columns["intensity"], records[:, 3])
+    (tmp_path / "bad.bin").write_bytes(b"\0" * 20)
+    with pytest.raises(DatasetFormatError, match="16-byte"):
+        read_kitti_bin(tmp_path / "bad.bin")
+
+
+def test_folder_order_and_stamps(tmp_path: Path) -> None:
+    for name in ("10.pcd", "2.pcd", "1.pcd"):
+        write_pcd(tmp_path / name, COLUMNS)
+    folder = open_scan_folder(tmp_path)
+    assert [s.path.name for s in folder.scans] == ["1.pcd", "2.pcd", "10.pcd"]  # natural order
+    assert [s.stamp for s in folder.scans] == pytest.approx([0.0, 0.1, 0.2])
+    assert folder.stamp_source.startswith("none")
+    (tmp_path / "times.txt").write_text("5.0\n5.1 extra\n5.3\n")
+    folder = open_scan_folder(tmp_path)
+    assert [s.stamp for s in folder.scans] == [5.0, 5.1, 5.3]
+    (tmp_path / "times.txt").write_text("5.0\n")
+    with pytest.raises(DatasetFormatError, match="1 stamps for 3 scan files"):
+        open_scan_folder(tmp_path)
+
+
+def test_stamps_from_names(tmp_path: Path) -> None:
+    names = ["cloud_1700000000_900000000.pcd", "cloud_1700000001_50000000.pcd"]
+    for name in names:  # nanoseconds not zero-padded: name order is not time order
+        write_pcd(tmp_path / name, COLUMNS)
+    folder = open_scan_folder(tmp_path)
+    assert [s.stamp for s in folder.scans] == pytest.approx([1700000000.9, 1700000001.05])
+    other = tmp_path / "ns"
+    other.mkdir()
+    write_pcd(other / "vlp16_1673400149711850138.pcd", COLUMNS)
+    write_pcd(other / "1673400149.25.pcd", COLUMNS)
+    stamps = [s.stamp for s in open_scan_folder(other).scans]
+    assert stamps == pytest.approx([1673400149.25, 1673400149.711850138])
+
+
+def test_folder_errors(tmp_path: Path) -> None:
+    write_pcd(tmp_path / "a.pcd", COLUMNS)
+    write_ply(tmp_path / "b.ply", COLUMNS)
+    with pytest.raises(DatasetFormatError, match="several scan kinds"):
+        open_scan_folder(tmp_path)
+    assert is_scan_folder(tmp_path) and not is_scan_folder(tmp_path / "a.pcd")
+
+
+def test_per_point_time_reaches_the_pipeline(shared_data: Path) -> None:
+    """Nebula's Velodyne frame carries time_stamp (u32 ns): the parsed cloud has offsets."""
+    folder = open_scan_folder(shared_data / "nebula_frames")
+    vlp16 = next(k for k, s in enumerate(folder.scans) if "vlp16" in s.path.name.lower())
+    cloud = pipeline.parse_scan(folder.message(vlp16))
+    assert cloud.time_offset is not None
+    assert 0.0 <= cloud.time_offset.min() < cloud.time_offset.max() < 0.2  # ns -> s
+    others = [k for k, s in enumerate(folder.scans) if "hesai" in s.path.name.lower()]
+    assert pipeline.parse_scan(folder.message(others[0])).time_offset is None
+
+
+def test_start_end_syntax() -> None:
+    assert parse_bound("12.5") == ("offset", 12.5)
+    assert parse_bound("@1700000012.5") == ("stamp", 1700000012.5)
+    assert parse_bound("#40") == ("index", 40)
+    for bad in ("#-1", "x", "@", "#1.5"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            parse_bound(bad)
+    args = argparse.Namespace(start=("index", 3), end=("stamp", 9.0), odometry=None)
+    assert input_options(args) == {"start_index": 3, "end": 9.0}
