@@ -182,12 +182,7 @@ class ScanLoop:
             with self.map_lock:
                 summary = integrate_scan(self.mapper, placed)
         else:
-            mapper = self.mapper
-            staged = mapper.stage(placed.points, placed.origins, placed.stamp, placed.no_return)
-            require_rays(staged.summary, placed)
-            with self.merge_lock:
-                summary = mapper.commit(staged, pause=self.pause)
-            del staged  # its store's memory goes back now, not at the next scan
+            summary = merge_scan(self.mapper, placed, self.merge_lock, self.pause)
         with self.counts_lock:
             self.counts.add(placed, summary)
         return placed, summary
@@ -235,6 +230,20 @@ def integrate_scan(mapper: Mapper, placed: PlacedScan) -> IntegrationSummary:
     return require_rays(
         mapper.integrate(placed.points, placed.origins, placed.stamp, placed.no_return), placed
     )
+
+
+def merge_scan(
+    mapper: Mapper,
+    placed: PlacedScan,
+    merge_lock: AbstractContextManager[Any],
+    pause: Callable[[], None] | None = None,
+) -> IntegrationSummary:
+    """``integrate_scan`` in two steps: walked without any lock (``Mapper.stage``), merged
+    under ``merge_lock`` (``Mapper.commit``, ``pause`` between chunks)."""
+    staged = mapper.stage(placed.points, placed.origins, placed.stamp, placed.no_return)
+    require_rays(staged.summary, placed)
+    with merge_lock:
+        return mapper.commit(staged, pause=pause)
 
 
 def require_rays(summary: IntegrationSummary, placed: PlacedScan) -> IntegrationSummary:
