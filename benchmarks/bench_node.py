@@ -294,6 +294,7 @@ def run_big_scan(points: int, workdir: Path) -> dict[str, Any]:
     feeder = Feeder()
     t0 = 1_700_000_000.0
     lat: dict[str, list[float]] = {"query": [], "get_map": [], "save_map": []}
+    when: dict[str, list[float]] = {k: [] for k in lat}  # sent, s after the cloud arrived
     try:
         if not feeder.wait_connected(60.0):
             raise RuntimeError(f"node not discovered:\n{node.log()[-2000:]}")
@@ -310,6 +311,7 @@ def run_big_scan(points: int, workdir: Path) -> dict[str, Any]:
         query = cloud_from_columns(_room_scan(2048), "odom", t0 + 1.0)
         pending: dict[str, Any] = {}
         sent: dict[str, float] = {}
+        saves: list[Any] = []
         next_round = received
         while (feeder.status or {}).get("clouds_integrated", 0) < 2:
             now = time.monotonic()
@@ -318,10 +320,12 @@ def run_big_scan(points: int, workdir: Path) -> dict[str, Any]:
             if now >= next_round and not pending:
                 n_results = len(feeder.results)
                 feeder.query_pub.publish(query)
+                save = feeder.save.call_async(Trigger.Request())
+                saves.append(save)
                 pending = {
                     "query": lambda n=n_results: len(feeder.results) > n,
                     "get_map": feeder.get_map.call_async(GetMap.Request()).done,
-                    "save_map": feeder.save.call_async(Trigger.Request()).done,
+                    "save_map": save.done,
                 }
                 sent = dict.fromkeys(pending, now)
                 next_round = now + 0.5
@@ -329,9 +333,15 @@ def run_big_scan(points: int, workdir: Path) -> dict[str, Any]:
             for name, done in list(pending.items()):
                 if done():
                     lat[name].append(time.monotonic() - sent[name])
+                    when[name].append(round(sent[name] - received, 1))
                     del pending[name]
         integration = time.monotonic() - received
         status = dict(feeder.status or {})
+        started = [  # "started after X s" of each save's answer: the wait for the map
+            float(f.result().message.split("started after ")[1].split(" s")[0])
+            for f in saves
+            if f.done() and "started after" in f.result().message
+        ]
     finally:
         feeder.destroy()
         node.stop()
@@ -346,6 +356,13 @@ def run_big_scan(points: int, workdir: Path) -> dict[str, Any]:
                 "median": round(float(np.median(v)), 3) if v else None,
             }
             for name, v in lat.items()
+        },
+        "save_map_started_s": {
+            "max": round(max(started), 3) if started else None,
+            "median": round(float(np.median(started)), 3) if started else None,
+        },
+        "slowest_sent_at_s": {
+            name: when[name][int(np.argmax(v))] if v else None for name, v in lat.items()
         },
     }
     print(json.dumps(result, indent=2), flush=True)

@@ -1,8 +1,8 @@
 """Staged integration (``Mapper.stage`` + ``commit``, what the live node does) against the
 direct ``Mapper.integrate``, on the same scans, interleaved in one run.
 
-Each round integrates one large scan (``--points``, 2 M by default: points at 5-40 m around
-a sensor that moves 1 m a scan, so the scan overlaps the map already built) into two maps
+Each round integrates one large scan (``--points``, 2 M by default: a lidar in a 30 x 30 m
+room, moving 0.7 m a scan, so the scan overlaps the map already built) into two maps
 that hold the same earlier scans: one directly, one staged. Reported: the wall time of
 both (the throughput cost of staging), the time ``commit`` holds the map (what a service
 may wait for during an integration, against the whole integration that held it before),
@@ -27,11 +27,20 @@ sys.path[:0] = [str(ROOT)]
 
 
 def _scan(rng: np.random.Generator, count: int, k: int) -> tuple[np.ndarray, np.ndarray]:
-    origin = np.array([1.0 * k, 0.0, 1.5])
-    directions = rng.normal(size=(count, 3))
-    directions /= np.linalg.norm(directions, axis=1)[:, None]
-    ranges = rng.uniform(5.0, 40.0, count)
-    return origin + directions * ranges[:, None], origin
+    """About ``count`` returns of a lidar (-30..30 deg, 2048 azimuths) in a 30 x 30 m room
+    (floor 2 m below the sensor, ceiling 6 m above), the sensor 0.7 m further each scan."""
+    rows = max(1, count // 2048)
+    el = np.radians(np.linspace(-30.0, 30.0, rows))
+    az = np.linspace(-np.pi, np.pi, 2048, endpoint=False) + rng.uniform(0, 1e-3)
+    e, a = np.meshgrid(el, az, indexing="ij")
+    d = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1).reshape(-1, 3)
+    origin = np.array([0.7 * k - 5.0, 0.3 * k - 2.0, 0.0])
+    with np.errstate(divide="ignore"):
+        up = np.where(d[:, 2] > 0, 6.0 / d[:, 2], 2.0 / np.abs(d[:, 2]))
+        wx = np.where(d[:, 0] > 0, 15.0 - origin[0], 15.0 + origin[0]) / np.abs(d[:, 0])
+        wy = np.where(d[:, 1] > 0, 15.0 - origin[1], 15.0 + origin[1]) / np.abs(d[:, 1])
+    t = np.minimum(np.minimum(wx, wy), up)
+    return origin + d * t[:, None], origin
 
 
 def main() -> None:
