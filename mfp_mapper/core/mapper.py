@@ -332,6 +332,11 @@ class Mapper:
         raw.t_last[~valid] = -np.inf
         return self._stats(raw, stamp)
 
+    def stored_voxels(self) -> VoxelArrays:
+        """Every observed voxel as stored (index relative to ``origin``, s, n, the time they
+        refer to), without the derived statistics of ``voxels``: what a map file holds."""
+        return self._store.export()
+
     def voxels(
         self,
         stamp: float | None = None,
