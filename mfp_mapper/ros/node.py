@@ -205,7 +205,8 @@ class MfpMapperNode(GuardedNode):
         self.create_service(Trigger, "~/save_map", self._on_save, callback_group=group)
         self.create_service(Empty, "~/reset", self._on_reset, callback_group=group)
         self._save_lock = threading.Lock()
-        self._saved_version: int | None = None  # the map version last saved (autosave)
+        # the map version last saved: the autosave writes only a map that changed since
+        self._saved_version: int | None = self.mapper.version
         if self.cfg.autosave_period > 0.0 and self.cfg.map_path:
             self.create_timer(self.cfg.autosave_period, self._on_autosave_timer)
         # wall-clock timers: with use_sim_time and no /clock the ROS clock stands still,

@@ -282,9 +282,8 @@ def test_autosave_and_a_tiled_map_path(ros_domain: int, tmp_path: Path) -> None:
         status = f.wait_status(lambda s: s["clouds_integrated"] == 1, 30.0)
         assert status["clouds_integrated"] == 1, node.log()
         assert f.wait(lambda: (tiled / "index.json").is_file(), 10.0), node.log()
-        assert f.wait(lambda: "saved" in node.log(), 10.0)
-        saved = load_map(tiled)
-        assert saved.num_voxels == status["voxels"]
+        assert "saved" in node.log()
+        assert load_map(tiled).num_voxels == status["voxels"]
         index_mtime = (tiled / "index.json").stat().st_mtime
         f.wait(lambda: False, 1.5)  # three autosave periods with no new scan: not rewritten
         assert (tiled / "index.json").stat().st_mtime == index_mtime
