@@ -27,10 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
-from mfp_mapper.mapio.loading import load_map, save_map
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT)]
+
+from mfp_mapper.mapio.loading import load_map, save_map  # noqa: E402
 
 
 def _timed(fn):  # type: ignore[no-untyped-def]
