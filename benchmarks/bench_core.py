@@ -1,4 +1,4 @@
-"""Core insertion benchmark: mfp_mapper against OctoMap on identical rays, in one run.
+"""Core insertion benchmark: mfp_mapper against OctoMap (and Bonxai) on identical rays.
 
 Each measurement runs in its own subprocess, so peak memory is that mapper's alone.
 Prints rays/s, the ratio to OctoMap measured in the same run, peak memory and voxel
@@ -6,11 +6,22 @@ counts; then the latency of one VLP-16 scan, cold and warm start, and a real fra
 
     python benchmarks/bench_core.py            # the ANCHORS.md scene at 0.4, 0.2, 0.1 m
     python benchmarks/bench_core.py --quick    # 0.2 m only, fewer repetitions
+    python benchmarks/bench_core.py --bonxai ~/src/Bonxai --rounds 5 --resolutions 0.2 0.1
+
+``--bonxai DIR`` takes a Bonxai source tree (https://github.com/facontidavide/Bonxai, not
+part of this project: clone it yourself; Eigen 3 headers are needed, e.g.
+``apt install libeigen3-dev``). The benchmark writes a small driver (``BONXAI_DRIVER``
+below: one ``ProbabilisticMap::insertPointCloud`` per scan), compiles it with that tree's
+``probabilistic_map.cpp`` (``$CXX``, default ``c++``, ``-O3 -march=native``) into a cache
+directory outside the repository, and runs it on the same rays as the other mappers.
+With ``--rounds N`` the mappers run interleaved, one process each per round, and the
+ratios are per round (median and range).
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import subprocess
@@ -23,6 +34,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 NEBULA = ROOT.parent / "shared" / "data" / "nebula_frames"
+OUSTER = ROOT.parent / "shared" / "data" / "ouster_street"
+"""Three real OS1-128 scans with KITTI poses (``--ouster``): a real recording's rays."""
 sys.path[:0] = [str(ROOT), str(ROOT / "test")]  # the package and the test scenes
 
 
@@ -38,6 +51,15 @@ def _scene(name: str) -> list[tuple[np.ndarray, np.ndarray]]:
 
     if name == "anchors":
         return anchors_scene()
+    if name == "ouster_street":
+        poses = np.loadtxt(OUSTER / "poses.txt").reshape(-1, 3, 4)
+        scans = []
+        for k, pose in enumerate(poses):
+            xyz = np.fromfile(OUSTER / "scans" / f"{k:06d}.bin", dtype=np.float32)
+            xyz = xyz.reshape(-1, 4)[:, :3].astype(np.float64)
+            xyz = xyz[np.linalg.norm(xyz, axis=1) > 0.3]
+            scans.append((xyz @ pose[:, :3].T + pose[:, 3], pose[:, 3].copy()))
+        return scans
     from mfp_mapper.sources.scan_files import read_pcd
 
     cols = read_pcd(NEBULA / name)
@@ -55,11 +77,12 @@ def child(kind: str, scene: str, resolution: float, threads: int, max_range: flo
 
         tree = octomap.OcTree(resolution)
         base = _rss_kib("VmRSS")
-        per_scan = []
+        per_scan, cpu = [], []
         for points, origin in scans:
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             tree.insertPointCloud(points, origin, maxrange=max_range)
             per_scan.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
         voxels = tree.getNumLeafNodes()
     else:
         from mfp_mapper import Mapper
@@ -69,11 +92,12 @@ def child(kind: str, scene: str, resolution: float, threads: int, max_range: flo
         warm.close()
         mapper = Mapper(resolution, threads=threads, max_range=max_range)
         base = _rss_kib("VmRSS")
-        per_scan = []
+        per_scan, cpu = [], []
         for k, (points, origin) in enumerate(scans):
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             mapper.integrate(points, origin, float(k))
             per_scan.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
         voxels = mapper.num_voxels
         mapper.close()
     peak_mb = (_rss_kib("VmHWM") - base) / 1024.0
@@ -84,6 +108,7 @@ def child(kind: str, scene: str, resolution: float, threads: int, max_range: flo
         "rays": rays,
         "seconds": sum(per_scan),
         "later_scan_ms": 1e3 * later,
+        "later_scan_cpu_ms": 1e3 * float(np.median(cpu[1:] if len(cpu) > 1 else cpu)),
         "voxels": voxels,
         "peak_mb": peak_mb,
     }
@@ -118,6 +143,126 @@ def start_time() -> dict:
     return {"seconds": time.perf_counter() - t0}
 
 
+BONXAI_DRIVER = r"""
+// Insert scans into Bonxai's ProbabilisticMap, one insertPointCloud per scan.
+// argv[1] = resolution, argv[2] = max_range, argv[3] = rays file
+// (int64 scans; per scan: int64 n, 3 doubles origin, n*3 doubles points).
+#include <chrono>
+#include <ctime>
+#include <cstdio>
+#include <fstream>
+#include <string>
+#include <vector>
+#include "bonxai_map/probabilistic_map.hpp"
+static long rss_kib(const char* field) {
+  std::ifstream f("/proc/self/status");
+  std::string line;
+  size_t n = std::string(field).size();
+  while (std::getline(f, line))
+    if (line.compare(0, n, field) == 0 && line[n] == ':') return std::stol(line.substr(n + 1));
+  return 0;
+}
+int main(int argc, char** argv) {
+  if (argc != 4) { std::fprintf(stderr, "usage: driver RES MAX_RANGE RAYS\n"); return 2; }
+  const double res = std::stod(argv[1]), max_range = std::stod(argv[2]);
+  std::FILE* in = std::fopen(argv[3], "rb");
+  if (!in) { std::perror(argv[3]); return 2; }
+  long long scans = 0;
+  if (std::fread(&scans, 8, 1, in) != 1) return 2;
+  std::vector<std::vector<Eigen::Vector3d>> clouds(scans);
+  std::vector<Eigen::Vector3d> origins(scans);
+  long long rays = 0;
+  for (long long k = 0; k < scans; ++k) {
+    long long n = 0;
+    double o[3];
+    if (std::fread(&n, 8, 1, in) != 1 || std::fread(o, 8, 3, in) != 3) return 2;
+    origins[k] = Eigen::Vector3d(o[0], o[1], o[2]);
+    std::vector<double> buf(3 * n);
+    if (std::fread(buf.data(), 8, 3 * n, in) != size_t(3 * n)) return 2;
+    clouds[k].resize(n);
+    for (long long i = 0; i < n; ++i)
+      clouds[k][i] = Eigen::Vector3d(buf[3 * i], buf[3 * i + 1], buf[3 * i + 2]);
+    rays += n;
+  }
+  std::fclose(in);
+  const long base = rss_kib("VmRSS");
+  Bonxai::ProbabilisticMap map(res);
+  std::vector<double> wall(scans), cpu(scans);
+  for (long long k = 0; k < scans; ++k) {
+    auto t0 = std::chrono::steady_clock::now();
+    std::clock_t c0 = std::clock();
+    map.insertPointCloud(clouds[k], origins[k], max_range);
+    cpu[k] = double(std::clock() - c0) / CLOCKS_PER_SEC;
+    wall[k] = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  }
+  std::printf("{\"rays\": %lld, \"per_scan\": [", rays);
+  for (long long k = 0; k < scans; ++k) std::printf("%s%.9f", k ? ", " : "", wall[k]);
+  std::printf("], \"cpu\": [");
+  for (long long k = 0; k < scans; ++k) std::printf("%s%.9f", k ? ", " : "", cpu[k]);
+  std::printf("], \"voxels\": %zu, \"peak_mb\": %.3f}\n", map.grid().activeCellsCount(),
+              (rss_kib("VmHWM") - base) / 1024.0);
+  return 0;
+}
+"""
+"""C++ source of the Bonxai driver: argv = resolution, max_range, rays file (int64 scans;
+per scan int64 n, origin as 3 float64, n x 3 float64 points); prints one JSON line."""
+
+
+def build_bonxai(tree: Path) -> Path:
+    """Compile ``BONXAI_DRIVER`` against the Bonxai source ``tree`` (cached by content)."""
+    include_core = tree / "bonxai_core" / "include"
+    include_map = tree / "bonxai_map" / "include"
+    source = tree / "bonxai_map" / "src" / "probabilistic_map.cpp"
+    if not (include_core / "bonxai" / "bonxai.hpp").exists() or not source.exists():
+        raise SystemExit(f"--bonxai: {tree} is not a Bonxai source tree (no {source})")
+    cxx = os.environ.get("CXX", "c++")
+    flags = ["-O3", "-march=native", "-std=c++17", "-DNDEBUG"]
+    digest = hashlib.sha256(
+        "\0".join([BONXAI_DRIVER, cxx, *flags, str(tree.resolve())]).encode()
+        + (include_core / "bonxai" / "bonxai.hpp").read_bytes()
+        + source.read_bytes()
+    ).hexdigest()[:16]
+    out_dir = Path(tempfile.gettempdir()) / f"mfp_bench_bonxai_{digest}"
+    exe = out_dir / "bonxai_driver"
+    if exe.exists():
+        return exe
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "driver.cpp").write_text(BONXAI_DRIVER)
+    eigen = [f"-I{d}" for d in ("/usr/include/eigen3", "/usr/local/include/eigen3")]
+    cmd = [cxx, *flags, f"-I{include_core}", f"-I{include_map}", *eigen,
+           str(out_dir / "driver.cpp"), str(source), "-o", str(exe) + ".tmp"]  # fmt: skip
+    done = subprocess.run(cmd, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise SystemExit(f"--bonxai: compiling the driver failed:\n{done.stderr[-2000:]}")
+    os.replace(str(exe) + ".tmp", exe)
+    return exe
+
+
+def write_rays(scans: list[tuple[np.ndarray, np.ndarray]], path: Path) -> None:
+    """The scans in the driver's input format."""
+    with path.open("wb") as f:
+        f.write(np.int64(len(scans)).tobytes())
+        for points, origin in scans:
+            f.write(np.int64(len(points)).tobytes())
+            f.write(np.ascontiguousarray(origin, dtype=np.float64).tobytes())
+            f.write(np.ascontiguousarray(points, dtype=np.float64).tobytes())
+
+
+def run_bonxai(exe: Path, rays: Path, resolution: float, max_range: float) -> dict:
+    out = subprocess.run(
+        [str(exe), repr(resolution), repr(max_range), str(rays)],
+        check=True,
+        capture_output=True,
+        text=True,
+    )
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    per_scan, cpu = r.pop("per_scan"), r.pop("cpu")
+    r["seconds"] = sum(per_scan)
+    r["later_scan_ms"] = 1e3 * float(np.median(per_scan[1:] if len(per_scan) > 1 else per_scan))
+    r["later_scan_cpu_ms"] = 1e3 * float(np.median(cpu[1:] if len(cpu) > 1 else cpu))
+    return dict(r)
+
+
 def run_child(args: list[str], env: dict[str, str] | None = None) -> dict:
     out = subprocess.run(
         [sys.executable, __file__, "--child", *args],
@@ -130,6 +275,70 @@ def run_child(args: list[str], env: dict[str, str] | None = None) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+def _insertion_rows(
+    args: argparse.Namespace,
+    env: dict[str, str],
+    scene: str,
+    res: float,
+    bonxai: Path | None,
+    rays_file: Path,
+    row: str,
+) -> None:
+    """Run every mapper ``args.rounds`` times, interleaved, and print one row per mapper."""
+    runs: dict[str, list[dict]] = {}
+    for _ in range(args.rounds):
+        if not args.no_octomap:
+            runs.setdefault("OctoMap (1 thread)", []).append(
+                run_child(["insert", "octomap", scene, str(res), "1"], env)
+            )
+        if bonxai:
+            runs.setdefault("Bonxai (1 thread)", []).append(
+                run_bonxai(bonxai, rays_file, res, 100.0)
+            )
+        for threads in args.threads:
+            runs.setdefault(f"mfp_mapper ({threads} thr)", []).append(
+                run_child(["insert", "mfp", scene, str(res), str(threads)], env)
+            )
+    base = runs.get("OctoMap (1 thread)")
+
+    def median(name: str, key: str) -> float:
+        return float(np.median([r[key] for r in runs[name]]))
+
+    for name, rs in runs.items():
+        seconds, later = median(name, "seconds"), median(name, "later_scan_ms")
+        ratio = later_ratio = "-"
+        if base:
+            ratio = f"{median('OctoMap (1 thread)', 'seconds') / seconds:.1f}"
+            later_ratio = f"{median('OctoMap (1 thread)', 'later_scan_ms') / later:.1f}"
+        peak = median(name, "peak_mb")
+        print(
+            row.format(
+                f"{res:.2f}", name, f"{seconds:.3f}", f"{rs[0]['rays'] / seconds:.0f}", ratio,
+                f"{later:.1f}", later_ratio, f"{peak:.0f}", rs[0]["voxels"],
+                f"{1e6 * peak / max(rs[0]['voxels'], 1):.1f}",
+            )
+        )  # fmt: skip
+    if bonxai:
+        for name in runs:
+            if name.startswith("mfp_mapper"):
+                for key, what in (("later_scan_ms", "wall"), ("later_scan_cpu_ms", "CPU")):
+                    per_round = [
+                        b[key] / m[key]
+                        for b, m in zip(runs["Bonxai (1 thread)"], runs[name], strict=True)
+                    ]
+                    print(
+                        f"{res:.2f}   Bonxai / {name}, later scans ({what} time), per round: "
+                        f"{_spread(per_round)} (> 1: mfp_mapper faster)"
+                    )
+
+
+def _spread(values: list[float]) -> str:
+    """Median (min-max) of per-round values."""
+    if len(values) == 1:
+        return f"{values[0]:.2f}"
+    return f"{np.median(values):.2f} ({min(values):.2f}-{max(values):.2f})"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -137,6 +346,15 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="0.2 m only, fewer repetitions")
     parser.add_argument("--resolutions", type=float, nargs="+", default=None)
     parser.add_argument("--no-octomap", action="store_true", help="skip the baseline (no ratios)")
+    parser.add_argument(
+        "--bonxai", type=Path, metavar="DIR", help="a Bonxai source tree: also run Bonxai"
+    )
+    parser.add_argument("--rounds", type=int, default=1, help="interleaved rounds (default 1)")
+    parser.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="mfp_mapper's")
+    parser.add_argument("--no-extras", action="store_true", help="only the insertion table")
+    parser.add_argument(
+        "--ouster", action="store_true", help=f"also the real OS1-128 scans of {OUSTER} at 0.2 m"
+    )
     parser.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
@@ -153,50 +371,32 @@ def main() -> None:
 
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
     resolutions = args.resolutions or ([0.2] if args.quick else [0.4, 0.2, 0.1])
+    bonxai = build_bonxai(args.bonxai) if args.bonxai else None
     print("scene: VLP-16 pattern, 16 x 1800 rays, 11 scans (ANCHORS.md); one process per row")
+    if args.rounds > 1:
+        print(f"{args.rounds} rounds, mappers interleaved; times are medians over the rounds")
     row = "{:>5} {:<18} {:>8} {:>10} {:>9} {:>10} {:>9} {:>8} {:>11} {:>8}"
     header = ("res", "mapper", "seconds", "rays/s", "x OctoMap", "ms/scan*", "x OctoMap")
     print(row.format(*header, "peak MB", "voxels", "B/voxel"))
     scenes = [("anchors", resolutions)]
     vlp32 = NEBULA / "velodyne_vlp32_1713492677464078412.pcd"
-    if vlp32.exists():
+    if vlp32.exists() and not args.no_extras:
         scenes.append((vlp32.name, [0.1]))
-    for scene, scene_res in scenes:
-        if scene != "anchors":
-            print(f"real frame: {scene}")
-        for res in scene_res:
-            base = (
-                None
-                if args.no_octomap
-                else run_child(["insert", "octomap", scene, str(res), "1"], env)
-            )
-            rows = [("OctoMap (1 thread)", base)] if base else []
-            for threads in (1, 2):
-                rows.append(
-                    (
-                        f"mfp_mapper ({threads} thr)",
-                        run_child(["insert", "mfp", scene, str(res), str(threads)], env),
-                    )
-                )
-            for name, r in rows:
-                rate = r["rays"] / r["seconds"]
-                ratio = f"{base['seconds'] / r['seconds']:.1f}" if base else "-"
-                later = f"{base['later_scan_ms'] / r['later_scan_ms']:.1f}" if base else "-"
-                per_voxel = 1e6 * r["peak_mb"] / max(r["voxels"], 1)
-                print(
-                    row.format(
-                        f"{res:.2f}",
-                        name,
-                        f"{r['seconds']:.3f}",
-                        f"{rate:.0f}",
-                        ratio,
-                        f"{r['later_scan_ms']:.1f}",
-                        later,
-                        f"{r['peak_mb']:.0f}",
-                        r["voxels"],
-                        f"{per_voxel:.1f}",
-                    )
-                )
+    if args.ouster:
+        if not OUSTER.exists():
+            raise SystemExit(f"--ouster: {OUSTER} not found")
+        scenes.append(("ouster_street", [0.2]))
+    with tempfile.TemporaryDirectory() as tmp:
+        for scene, scene_res in scenes:
+            if scene != "anchors":
+                print(f"real scans: {scene}")
+            rays_file = Path(tmp) / "rays.bin"
+            if bonxai:
+                write_rays(_scene(scene), rays_file)
+            for res in scene_res:
+                _insertion_rows(args, env, scene, res, bonxai, rays_file, row)
+    if args.no_extras:
+        return
     repeats = "5" if args.quick else "20"
     for threads in (1, 2):
         lat = run_child(["latency", "0.1", str(threads), repeats], env)

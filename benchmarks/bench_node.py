@@ -8,8 +8,10 @@ driver: odometry at 50 Hz and one de-skewable sweep every 0.1 s, stamped with th
 clock at the start of the sweep, from a robot driving and turning through
 ``synthetic.BoxWorld``. Subscribers to ``~/degree_of_occupancy`` and ``~/projected_map``
 make the node publish them (1 Hz), so publishing is part of the bill. Both processes use
-``config/fastdds_large_data.xml`` unless ``--default-dds`` (with Fast DDS's defaults about
-half of the VLP-16 clouds are lost between the processes; ``clouds_lost_in_transport``).
+``config/fastdds_large_data.xml`` (``--dds all``) unless ``--dds mapper`` (the node only, as
+the launch file does when the driver has no profile) or ``--dds none`` (Fast DDS's defaults;
+``--default-dds``): clouds the middleware lost are ``clouds_lost_in_transport``
+(``benchmarks/bench_transport.py`` compares the three).
 Figures come from the node's ``~/status`` (its own counters) and from /proc for the node's
 total CPU:
 
@@ -138,7 +140,13 @@ class TfPoses:
 
 
 def run_stream(
-    name: str, duration: float, n_scans: int, workdir: Path, threads: int, tf_poses: bool = False
+    name: str,
+    duration: float,
+    n_scans: int,
+    workdir: Path,
+    threads: int,
+    tf_poses: bool = False,
+    node_env: dict[str, str] | None = None,
 ) -> dict[str, Any]:
 
     stream = STREAMS[name]
@@ -158,7 +166,7 @@ def run_stream(
         params["frame_id"] = "odom"
     else:
         params["lidar.translation"] = [0.0, 0.0, LIDAR_HEIGHT]
-    node = NodeProcess(domain, params, workdir / f"{name}.log")
+    node = NodeProcess(domain, params, workdir / f"{name}.log", env=node_env)
     feeder = Feeder()
     tf = TfPoses(feeder) if tf_poses else None
 
@@ -244,7 +252,8 @@ def _report(
         "points_per_scan": points,
         "clouds_sent": sent,
         "clouds_received": after["clouds_in"] - before["clouds_in"],
-        "clouds_lost_in_transport": after["clouds_lost"] - before["clouds_lost"],
+        "clouds_lost_in_transport": after["clouds_lost_transport"]
+        - before["clouds_lost_transport"],
         "clouds_integrated": integrated,
         "clouds_dropped": drops,
         "rate_hz": round(integrated / duration, 2),
@@ -382,9 +391,11 @@ def main() -> int:
         help="poses on /tf and the lidar mount on /tf_static instead of odometry",
     )
     parser.add_argument(
-        "--default-dds",
-        action="store_true",
-        help="keep Fast DDS's default transports (not config/fastdds_large_data.xml)",
+        "--dds",
+        choices=["all", "mapper", "none"],
+        default="all",
+        help="which processes get config/fastdds_large_data.xml: this driver and the node "
+        "(all), the node only (mapper), neither (none: Fast DDS defaults)",
     )
     parser.add_argument(
         "--big-scan",
@@ -392,15 +403,27 @@ def main() -> int:
         metavar="POINTS",
         help="instead of the streams: service latency while a scan of POINTS integrates",
     )
+    parser.add_argument("--default-dds", action="store_true", help="the same as --dds none")
+    parser.add_argument("--json", type=Path, help="also write the results to this file")
     args = parser.parse_args()
+    if args.default_dds:
+        args.dds = "none"
     import rclpy
 
-    domain = os.getpid() % 90 + 10
+    domain = int(os.environ.get("ROS_DOMAIN_ID") or os.getpid() % 90 + 10)  # a set one is kept
     set_ros_env(domain)
-    if not args.default_dds and "FASTRTPS_DEFAULT_PROFILES_FILE" not in os.environ:
-        # node and feeder alike (the node inherits this environment)
+    node_env: dict[str, str] = {}
+    if args.dds == "all":  # node and feeder alike (the node inherits this environment)
         os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(DDS_PROFILE)
-    dds = os.environ.get("FASTRTPS_DEFAULT_PROFILES_FILE", "Fast DDS defaults")
+    else:
+        os.environ.pop("FASTRTPS_DEFAULT_PROFILES_FILE", None)
+        if args.dds == "mapper":
+            node_env["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(DDS_PROFILE)
+    dds = {
+        "all": f"{DDS_PROFILE} (driver and node)",
+        "mapper": f"{DDS_PROFILE} (node only)",
+        "none": "Fast DDS defaults",
+    }[args.dds]
     source = "/tf + /tf_static" if args.tf_poses else "odometry + lidar.* parameters"
     print(f"node threads: {args.threads}; DDS profile: {dds}; poses: {source}")
     rclpy.init(domain_id=domain)
@@ -414,10 +437,14 @@ def main() -> int:
                 return 0
             for name in STREAMS if args.stream == "all" else [args.stream]:
                 results.append(
-                    run_stream(name, args.duration, args.scans, logs, args.threads, args.tf_poses)
+                    run_stream(
+                        name, args.duration, args.scans, logs, args.threads, args.tf_poses, node_env
+                    )
                 )
     finally:
         rclpy.try_shutdown()
+    if args.json:
+        args.json.write_text(json.dumps(results))
     print("\nstream      res   pts/scan  rate(Hz)  latency mean/max (s)  integ. CPU  node CPU")
     for r in results:
         print(

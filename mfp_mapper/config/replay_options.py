@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -23,6 +24,8 @@ from mfp_mapper.config.schema import (
     Setting,
     XyzRpy,
     check_parameters,
+    octomap_only_parameters,
+    octomap_only_warning,
     xyz_rpy,
 )
 
@@ -56,6 +59,10 @@ class ReplayOptions:
     """From the YAML (``lidar.*``): used when /tf_static has no chain."""
     deskew: bool = _default("deskew")
     max_gap: float = _default("odom_max_gap")
+    point_cloud_min_x: float = _default("point_cloud_min_x")
+    point_cloud_max_x: float = _default("point_cloud_max_x")
+    point_cloud_min_y: float = _default("point_cloud_min_y")
+    point_cloud_max_y: float = _default("point_cloud_max_y")
     point_cloud_min_z: float = _default("point_cloud_min_z")
     point_cloud_max_z: float = _default("point_cloud_max_z")
     max_scans: int | None = _default("max_scans")
@@ -120,6 +127,9 @@ def options_from_yaml(path: str | Path) -> dict[str, Any]:
         cfg = check_parameters(values)
     except ValueError as err:
         raise ConfigError(f"{path}: {err}") from None
+    octomap_only = octomap_only_parameters(list(values))
+    if octomap_only:
+        print(f"mfp-mapper: {path}: {octomap_only_warning(octomap_only)}", file=sys.stderr)
     return options_from_config(cfg, {n for n in values if n in BY_NAME})
 
 

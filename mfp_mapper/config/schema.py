@@ -169,7 +169,8 @@ SETTINGS: tuple[Setting, ...] = (
     # --- the sensor ------------------------------------------------------------------------
     _both("sensor_model.max_range", 100.0, "Rays are cut at this range (m); a return beyond "
           "it clears space up to it but counts no return. <= 0: no limit (octomap_server's "
-          "-1).", -1.0, 1.0e5, flag="--max-range", field="max_range", unlimited="inf"),
+          "-1).", -1.0, 1.0e5, dynamic=True, flag="--max-range", field="max_range",
+          unlimited="inf"),
     _both("sensor_model.min_range", 0.0, "Returns closer than this (m) are dropped with "
           "their rays (robot body, dust).", 0.0, 1.0e3, flag="--min-range", field="min_range"),
     _both("sensor_model.no_return_range", 0.0, "Firings that returned nothing (NaN/zero "
@@ -178,10 +179,18 @@ SETTINGS: tuple[Setting, ...] = (
           "return may also be a dark or glossy obstacle, or one closer than the minimum "
           "range (README, 'Rays with no return').", 0.0, 1.0e5, flag="--no-return-range",
           field="no_return_range"),
+    _both("point_cloud_min_x", -NO_LIMIT_Z, "Returns whose map-frame x (m) is below this are "
+          "dropped with their rays.", -NO_LIMIT_Z, NO_LIMIT_Z, dynamic=True, flag="--min-x"),
+    _both("point_cloud_max_x", NO_LIMIT_Z, "Returns whose map-frame x (m) is above this are "
+          "dropped with their rays.", -NO_LIMIT_Z, NO_LIMIT_Z, dynamic=True, flag="--max-x"),
+    _both("point_cloud_min_y", -NO_LIMIT_Z, "Returns whose map-frame y (m) is below this are "
+          "dropped with their rays.", -NO_LIMIT_Z, NO_LIMIT_Z, dynamic=True, flag="--min-y"),
+    _both("point_cloud_max_y", NO_LIMIT_Z, "Returns whose map-frame y (m) is above this are "
+          "dropped with their rays.", -NO_LIMIT_Z, NO_LIMIT_Z, dynamic=True, flag="--max-y"),
     _both("point_cloud_min_z", -NO_LIMIT_Z, "Returns whose map-frame z (m) is below this are "
-          "dropped with their rays.", -NO_LIMIT_Z, NO_LIMIT_Z, flag="--min-z"),
+          "dropped with their rays.", -NO_LIMIT_Z, NO_LIMIT_Z, dynamic=True, flag="--min-z"),
     _both("point_cloud_max_z", NO_LIMIT_Z, "Returns whose map-frame z (m) is above this are "
-          "dropped with their rays.", -NO_LIMIT_Z, NO_LIMIT_Z, flag="--max-z"),
+          "dropped with their rays.", -NO_LIMIT_Z, NO_LIMIT_Z, dynamic=True, flag="--max-z"),
     _both("lidar.translation", [0.0, 0.0, 0.0], "Lidar position [x, y, z] (m) in the "
           "odometry child frame; when set (not all zero with lidar.rpy) it overrides "
           "/tf_static. Ignored when the cloud's frame_id is the odometry child_frame_id "
@@ -231,6 +240,11 @@ SETTINGS: tuple[Setting, ...] = (
     _node("projected_map.free_threshold", -1.0, "Hit probability below which an observed "
           "~/projected_map cell is free (0). Negative: that of a never-observed voxel, "
           "resolution / (1 + resolution).", -1.0, 1.0, dynamic=True),
+    _node("octomap_topics", False, "Publish under octomap_server's topic names, relative "
+          "to the node's namespace: projected_map (the grid) and octomap_point_cloud_centers "
+          "(the degree-of-occupancy cloud) instead of ~/projected_map and "
+          "~/degree_of_occupancy, so Nav2/RViz configs made for octomap_server work "
+          "unchanged."),
     _node("tf_buffer", 10.0, "TF cache time (s; tf2's default 10): /tf samples kept per "
           "transform; a transform not received for this long (stream time) is forgotten.",
           0.1, 3600.0),
@@ -240,6 +254,9 @@ SETTINGS: tuple[Setting, ...] = (
     _node("save_on_shutdown", False, "Save the map to map_path when the node stops."),
     _node("autosave_period", 0.0, "Save the map to map_path in the background at most this "
           "often (s), when it changed; mapping goes on meanwhile. 0: off.", 0.0, 86400.0),
+    _node("autostart", True, "Configure and activate the node when it starts (a plain "
+          "node). false: it waits unconfigured for a lifecycle manager (Nav2's "
+          "lifecycle_manager, ros2 lifecycle set) to configure and activate it."),
     _node("status_period", 10.0, "Period (s) of the status log line and of ~/status. 0: "
           "off.", 0.0, 3600.0),
     # --- the offline replay only -------------------------------------------------------------
@@ -283,6 +300,19 @@ ParamSpec = Setting
 ROS_OWN_PARAMETERS = ("use_sim_time", "start_type_description_service")
 """Parameters rclpy declares on every node: accepted in a parameter file, not ours."""
 
+OCTOMAP_ONLY = (
+    "color.a", "color.b", "color.g", "color.r", "color_factor",
+    "color_free.a", "color_free.b", "color_free.g", "color_free.r", "colored_map",
+    "compress_map", "filter_ground_plane", "filter_speckles", "ground_filter.angle",
+    "ground_filter.distance", "ground_filter.plane_distance",
+    "incremental_2D_projection", "max_depth", "min_x_size", "min_y_size", "octomap_path",
+    "publish_free_space", "sensor_model.hit", "sensor_model.max", "sensor_model.min",
+    "sensor_model.miss", "use_height_map",
+)  # fmt: skip
+"""octomap_server (ROS 2) parameters with no meaning here (occupancy log-odds, colours,
+ground filtering, octree depth, its .bt/.ot file): a parameter file naming them starts the
+node with one warning listing them (``octomap_only_parameters``)."""
+
 
 # --- checking parameter values with the node's rules ------------------------------------------
 
@@ -312,11 +342,27 @@ def python_type_name(value: Any) -> str:
 
 
 def unknown_parameters(names: list[str]) -> list[str]:
-    """The names that are neither our parameters nor rclpy's own, sorted."""
+    """The names that are neither our parameters, rclpy's own nor octomap_server's, sorted."""
     return sorted(
         n
         for n in names
-        if n not in SPECS and n not in ROS_OWN_PARAMETERS and not n.startswith("qos_overrides.")
+        if n not in SPECS
+        and n not in ROS_OWN_PARAMETERS
+        and n not in OCTOMAP_ONLY
+        and not n.startswith("qos_overrides.")
+    )
+
+
+def octomap_only_parameters(names: list[str]) -> list[str]:
+    """The octomap_server parameters among ``names`` that mean nothing here, sorted."""
+    return sorted(n for n in names if n in OCTOMAP_ONLY)
+
+
+def octomap_only_warning(names: list[str]) -> str:
+    """The one warning for octomap_server-only names in a parameter file."""
+    return (
+        f"ignoring octomap_server parameter(s) with no meaning in mfp_mapper: {', '.join(names)} "
+        "(README 'Migrating from octomap_server')"
     )
 
 
@@ -414,6 +460,10 @@ class NodeConfig:
     sensor_model_max_range: float
     sensor_model_min_range: float
     sensor_model_no_return_range: float
+    point_cloud_min_x: float
+    point_cloud_max_x: float
+    point_cloud_min_y: float
+    point_cloud_max_y: float
     point_cloud_min_z: float
     point_cloud_max_z: float
     lidar_translation: tuple[float, float, float]
@@ -436,10 +486,12 @@ class NodeConfig:
     projected_map_trinary: bool
     projected_map_occupied_threshold: float
     projected_map_free_threshold: float
+    octomap_topics: bool
     tf_buffer: float
     map_path: str
     save_on_shutdown: bool
     autosave_period: float
+    autostart: bool
     status_period: float
 
     @property
@@ -502,8 +554,10 @@ class NodeConfig:
                 raise ValueError(f"{spec.name}={value} outside [{spec.lo}, {spec.hi}]")
         if self.sensor_model_min_range >= self.max_range:
             raise ValueError("sensor_model.min_range must be below sensor_model.max_range")
-        if self.point_cloud_min_z >= self.point_cloud_max_z:
-            raise ValueError("point_cloud_min_z must be below point_cloud_max_z")
+        for axis in "xyz":
+            lo, hi = (getattr(self, f"point_cloud_{end}_{axis}") for end in ("min", "max"))
+            if lo >= hi:
+                raise ValueError(f"point_cloud_min_{axis} must be below point_cloud_max_{axis}")
         if self.occupancy_min_z >= self.occupancy_max_z:
             raise ValueError("occupancy_min_z must be below occupancy_max_z")
 

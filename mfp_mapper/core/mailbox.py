@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numba as nb
 import numpy as np
 from numpy.typing import NDArray
@@ -9,6 +11,17 @@ from numpy.typing import NDArray
 from mfp_mapper.core.blocks import BLOCK_VOXELS, block_of_key, shard_of
 from mfp_mapper.core.shard import Shard, ShardArrays, open_block
 from mfp_mapper.core.visits import BATCH_VISITS, CACHE_BITS, CACHE_MASK, CACHE_SIZE, apply_visits
+
+
+class MailArrays(NamedTuple):
+    """A mailbox's arrays, as compiled kernels take them (see ``Mailbox``)."""
+
+    block: NDArray[np.int64]
+    local: NDArray[np.int16]
+    chord: NDArray[np.float32]
+    returns: NDArray[np.float32]
+    used: NDArray[np.int64]
+    """Entries in use (one element)."""
 
 
 class Mailbox:
@@ -25,6 +38,10 @@ class Mailbox:
         """Make room for ``capacity`` entries in all."""
         if capacity > self.block.shape[0]:
             self.grow(capacity - int(self.count[0]))
+
+    def arrays(self) -> MailArrays:
+        """The arrays the compiled kernels work on (valid until the mailbox grows)."""
+        return MailArrays(self.block, self.local, self.chord, self.returns, self.count)
 
     def grow(self, min_free: int) -> None:
         used = int(self.count[0])

@@ -297,6 +297,20 @@ class Mapper:
             self._origin = None
         self.version += 1
 
+    def clear_box(self, corner_a: ArrayLike, corner_b: ArrayLike) -> int:
+        """Reset to unknown (never observed) every voxel whose centre lies in the axis-aligned
+        box between two corners (metres, map frame, any order; +-inf for an open side), as
+        octomap_server's ``clear_bbox``; returns how many observed voxels were cleared."""
+        a = np.asarray(corner_a, dtype=np.float64).reshape(3)
+        b = np.asarray(corner_b, dtype=np.float64).reshape(3)
+        if np.isnan(a).any() or np.isnan(b).any():
+            raise ValueError(f"box corners must be numbers, got {a.tolist()}, {b.tolist()}")
+        lo, hi = self._index_bounds((np.minimum(a, b), np.maximum(a, b)))
+        cleared = self._store.clear_box(lo, hi)
+        if cleared:
+            self.version += 1
+        return cleared
+
     # --- reading ----------------------------------------------------------------------
 
     @property

@@ -229,6 +229,37 @@ def _gather_voxels(
                 j += 1
 
 
+@nb.njit(cache=True, nogil=True)
+def _clear_voxels(
+    block_ijk: NDArray[np.int32],
+    block_sn: NDArray[np.float32],
+    used: int,
+    lo: IndexBox,
+    hi: IndexBox,
+    emptied: NDArray[np.bool_],
+) -> int:
+    """Zero the observed voxels with index in [lo, hi]; returns how many. ``emptied[b]``
+    becomes True for each block that no longer holds an observed voxel."""
+    count = 0
+    for b in range(used):
+        x0, y0, z0 = block_origin(block_ijk, b)
+        if block_outside(x0, y0, z0, lo, hi):
+            continue
+        left = 0
+        for i in range(BLOCK_VOXELS):
+            if block_sn[b, i, 0] == 0.0 and block_sn[b, i, 1] == 0.0:
+                continue
+            dx, dy, dz = local_coords(i)
+            if voxel_inside(x0 + dx, y0 + dy, z0 + dz, lo, hi):
+                block_sn[b, i, 0] = 0.0
+                block_sn[b, i, 1] = 0.0
+                count += 1
+            else:
+                left += 1
+        emptied[b] = left == 0
+    return count
+
+
 class BlockStore:
     """All shards together: the map's memory, with lookup, export, loading and eviction."""
 
@@ -340,6 +371,19 @@ class BlockStore:
             )  # fmt: skip
             start += count
         return out
+
+    def clear_box(self, lo: NDArray[np.int64], hi: NDArray[np.int64]) -> int:
+        """Make the voxels with index in [lo, hi] unobserved (s = n = 0); blocks left
+        with no observed voxel are dropped. Returns how many observed voxels were cleared."""
+        lo_, hi_ = index_box(lo), index_box(hi)
+        cleared = 0
+        for sh in self.shards:
+            emptied = np.zeros(sh.used, dtype=np.bool_)
+            cleared += _clear_voxels(sh.block_ijk, sh.block_sn, sh.used, lo_, hi_, emptied)
+            if emptied.any():
+                sh.keep_blocks(~emptied)
+        self.num_voxels -= cleared
+        return cleared
 
     def evict_beyond(self, center: NDArray[np.float64], radius: float) -> int:
         """Drop the blocks whose centre is farther than ``radius`` from ``center`` (both in

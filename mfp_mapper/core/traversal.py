@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
@@ -32,14 +33,17 @@ from mfp_mapper.core.blocks import (
     local_index,
     shard_of,
 )
-from mfp_mapper.core.mailbox import Mailbox, deliver_mail
+from mfp_mapper.core.mailbox import MailArrays, Mailbox, deliver_mail
 from mfp_mapper.core.shard import Shard, ShardArrays, open_block
 from mfp_mapper.core.store import BlockStore
-from mfp_mapper.core.visits import BATCH_VISITS, CACHE_BITS, CACHE_MASK, CACHE_SIZE, apply_visits
+from mfp_mapper.core.visits import BATCH_VISITS, CACHE_BITS, CACHE_MASK, CACHE_SIZE, apply_chords
 
 _LOCAL_MASK = (1 << BLOCK_BITS) - 1
 _SPREAD = np.array([local_index(0, 0, z) for z in range(1 << BLOCK_BITS)], dtype=np.int64)
 """Morton bits of an index in a block along one axis (z; y is this << 1, x this << 2)."""
+_Z_BITS = int(_SPREAD[-1])
+_Y_BITS = _Z_BITS << 1
+_X_BITS = _Z_BITS << 2
 _RAYS_PER_CHUNK = 256
 """Rays are dealt to threads in chunks of neighbours, so each thread's rays stay coherent."""
 
@@ -187,10 +191,10 @@ def integrate_rays(
     for mail in mailboxes:
         mail.count[0] = 0
 
+    scan = ScanStamp(scan_id, float(stamp), float(decay_time))
+
     def walk(k: int) -> None:
-        _walk_part(
-            parts[k], store.shards[k], k, store.shard_mask, mailboxes[k], scan_id, stamp, decay_time
-        )
+        _walk_part(parts[k], store.shards[k], k, store.shard_mask, mailboxes[k], scan)
 
     def deliver(k: int) -> None:
         for sender, mail in enumerate(mailboxes):
@@ -218,28 +222,44 @@ def visit_bounds(
     return np.abs(np.floor(ends_vox) - np.floor(origins_vox)).sum(axis=1).astype(np.int64) + 1
 
 
+class RayArrays(NamedTuple):
+    """The rays of one walk, as the compiled walk takes them (voxel units)."""
+
+    origins_vox: NDArray[np.float64]
+    ends_vox: NDArray[np.float64]
+    lengths: NDArray[np.float64]
+    has_return: NDArray[np.bool_]
+    room_needed: NDArray[np.int64]
+    """Upper bound of the blocks each ray can create (``block_bounds``)."""
+    visits_needed: NDArray[np.int64]
+    """Upper bound of the voxels each ray visits (``visit_bounds``)."""
+
+
+class ScanStamp(NamedTuple):
+    """The scan being integrated: its id, its time, and the map's decay time (s)."""
+
+    scan_id: int
+    stamp: float
+    decay_time: float
+
+
 def _walk_part(
     rays: Rays,
     shard: Shard,
     shard_id: int,
     shard_mask: int,
     mail: Mailbox,
-    scan_id: int,
-    stamp: float,
-    decay_time: float,
+    scan: ScanStamp,
 ) -> None:
     """Walk ``rays`` into ``shard`` (and ``mail``), growing either when it runs out of room."""
     room = block_bounds(rays.origins_vox, rays.ends_vox)
     visits = visit_bounds(rays.origins_vox, rays.ends_vox)
     if shard_mask:  # room for the worst case up front: pages are committed only when written
         mail.reserve(int(visits.sum()))
+    walk = RayArrays(rays.origins_vox, rays.ends_vox, rays.lengths, rays.has_return, room, visits)
     first = 0
     while first < len(rays):
-        first = _walk_rays(
-            rays.origins_vox, rays.ends_vox, rays.lengths, rays.has_return, room, visits, first,
-            shard_id, shard_mask, shard.arrays(), scan_id, stamp, decay_time, mail.block,
-            mail.local, mail.chord, mail.returns, mail.count,
-        )  # fmt: skip
+        first = _walk_rays(walk, first, shard_id, shard_mask, shard.arrays(), scan, mail.arrays())
         if first < len(rays):
             if mail.count[0] + visits[first] > mail.block.shape[0]:
                 mail.grow(int(visits[first]))
@@ -249,24 +269,13 @@ def _walk_part(
 
 @nb.njit(cache=True, nogil=True)
 def _walk_rays(
-    origins_vox: NDArray[np.float64],
-    ends_vox: NDArray[np.float64],
-    lengths: NDArray[np.float64],
-    has_return: NDArray[np.bool_],
-    room_needed: NDArray[np.int64],
-    visits_needed: NDArray[np.int64],
+    rays: RayArrays,
     first: int,
     shard: int,
     shard_mask: int,
     shard_arrays: ShardArrays,
-    scan_id: int,
-    stamp: float,
-    decay_time: float,
-    mail_block: NDArray[np.int64],
-    mail_local: NDArray[np.int16],
-    mail_chord: NDArray[np.float32],
-    mail_return: NDArray[np.float32],
-    mail_count: NDArray[np.int64],
+    scan: ScanStamp,
+    mailbox: MailArrays,
 ) -> int:
     """Walk rays ``first..`` (voxel units): visits to ``shard`` are added to its blocks,
     visits to other shards are appended to the mailbox.
@@ -274,6 +283,9 @@ def _walk_rays(
     Before each ray, checks there is room for the blocks and mail it may create; returns
     the index of the first ray not walked (the caller grows and calls again), or N.
     """
+    origins_vox, ends_vox, lengths, has_return, room_needed, visits_needed = rays
+    scan_id, stamp, decay_time = scan
+    mail_block, mail_local, mail_chord, mail_return, mail_count = mailbox
     table_keys, _, _, block_sn, block_t, _, block_hit, counters, block_scale = shard_arrays
     capacity = min(block_t.shape[0], table_keys.shape[0] // 2)
     # blocks opened in this call, direct-mapped by their low index bits: neighbouring rays
@@ -284,23 +296,30 @@ def _walk_rays(
     for r in range(first, lengths.shape[0]):
         longest = max(longest, visits_needed[r])
     visit_voxel = np.empty(BATCH_VISITS + longest, dtype=np.int64)
-    visit_chord = np.empty(BATCH_VISITS + longest, dtype=np.float32)
-    visit_return = np.empty(BATCH_VISITS + longest, dtype=np.float32)
+    # float64: converting to float32 in the walk made a bare walk 1.4x slower; the
+    # conversion is done where the visits are added, to the same float32 value
+    visit_chord = np.empty(BATCH_VISITS + longest)
+    # the returns, apart: (visit, weight) of each ray that ends in a return
+    return_of = np.empty(BATCH_VISITS + longest, dtype=np.int64)
+    return_weight = np.empty(BATCH_VISITS + longest)
     count = 0
-    mail = mail_count[0]
+    returned = 0
+    mailed = mail_count[0]
     for r in range(first, lengths.shape[0] + 1):
         stop = (
             r == lengths.shape[0]
             or counters[0] + room_needed[r] > capacity
-            or mail + visits_needed[r] > mail_block.shape[0]
+            or mailed + visits_needed[r] > mail_block.shape[0]
         )
         if count >= BATCH_VISITS or stop:
-            apply_visits(
-                block_sn, block_hit, visit_voxel, visit_chord, visit_return, count, counters
-            )
+            apply_chords(
+                block_sn, block_hit, visit_voxel, visit_chord, count, return_of, return_weight,
+                returned, counters,
+            )  # fmt: skip
             count = 0
+            returned = 0
             if stop:
-                mail_count[0] = mail
+                mail_count[0] = mailed
                 return r
         ox = origins_vox[r, 0]
         oy = origins_vox[r, 1]
@@ -331,14 +350,15 @@ def _walk_rays(
         t_prev = 0.0
         # the voxel's index in its block (Morton order), kept per axis as the walk steps;
         # stepping along an axis enters a new block when that axis' index in the block wraps
-        morton_x = _SPREAD[vx & _LOCAL_MASK] << 2
-        morton_y = _SPREAD[vy & _LOCAL_MASK] << 1
-        morton_z = _SPREAD[vz & _LOCAL_MASK]
-        wrap_x = 0 if step_x > 0 else _LOCAL_MASK
-        wrap_y = 0 if step_y > 0 else _LOCAL_MASK
-        wrap_z = 0 if step_z > 0 else _LOCAL_MASK
+        # (one register: the walk's integer state must fit the processor's registers)
+        local = (
+            (_SPREAD[vx & _LOCAL_MASK] << 2)
+            | (_SPREAD[vy & _LOCAL_MASK] << 1)
+            | _SPREAD[vz & _LOCAL_MASK]
+        )
         bx = by = bz = 0
         block = -1
+        base = 0
         key = -1
         scale = 1.0  # the scan's weight in the current block (< 1 for a late scan)
         new_block = True
@@ -364,62 +384,62 @@ def _walk_rays(
                         cache_keys[slot] = key
                         cache_blocks[slot] = block
                     scale = block_scale[block] if block >= 0 else 1.0
+                    base = block * BLOCK_VOXELS
             if steps == 0:
                 break
             # leave the voxel through its nearest face; its chord ends there
-            local = morton_x | morton_y | morton_z
+            here = local
             if t_max_x <= t_max_y and t_max_x <= t_max_z:
                 t_next = t_max_x
+                new_block = ((vx + step_x) >> BLOCK_BITS) != (vx >> BLOCK_BITS)
                 vx += step_x
                 t_max_x = t_max_x + t_delta_x if vx != ex else np.inf
-                axis_local = vx & _LOCAL_MASK
-                morton_x = _SPREAD[axis_local] << 2
-                new_block = axis_local == wrap_x
+                local = (local & ~_X_BITS) | (_SPREAD[vx & _LOCAL_MASK] << 2)
             elif t_max_y <= t_max_z:
                 t_next = t_max_y
+                new_block = ((vy + step_y) >> BLOCK_BITS) != (vy >> BLOCK_BITS)
                 vy += step_y
                 t_max_y = t_max_y + t_delta_y if vy != ey else np.inf
-                axis_local = vy & _LOCAL_MASK
-                morton_y = _SPREAD[axis_local] << 1
-                new_block = axis_local == wrap_y
+                local = (local & ~_Y_BITS) | (_SPREAD[vy & _LOCAL_MASK] << 1)
             else:
                 t_next = t_max_z
+                new_block = ((vz + step_z) >> BLOCK_BITS) != (vz >> BLOCK_BITS)
                 vz += step_z
                 t_max_z = t_max_z + t_delta_z if vz != ez else np.inf
-                axis_local = vz & _LOCAL_MASK
-                morton_z = _SPREAD[axis_local]
-                new_block = axis_local == wrap_z
+                local = (local & ~_Z_BITS) | _SPREAD[vz & _LOCAL_MASK]
             t_next = min(t_next, 1.0)
             chord = (t_next - t_prev) * length
             t_prev = t_next
             steps -= 1
             if chord > 0.0:
                 if block >= 0:
-                    visit_voxel[count] = block * BLOCK_VOXELS + local
+                    visit_voxel[count] = base + here
                     visit_chord[count] = chord * scale
-                    visit_return[count] = 0.0
                     count += 1
                 else:
-                    mail_block[mail] = key
-                    mail_local[mail] = local
-                    mail_chord[mail] = chord
-                    mail_return[mail] = 0.0
-                    mail += 1
+                    mail_block[mailed] = key
+                    mail_local[mailed] = here
+                    mail_chord[mailed] = chord
+                    mail_return[mailed] = 0.0
+                    mailed += 1
         # the end voxel takes the rest of the ray and the return; an end point exactly on a
         # face gets a zero chord there, still with its return
         chord = (1.0 - t_prev) * length
         returns = 1.0 if has_return[r] else 0.0
         if chord > 0.0 or returns > 0.0:
             if block >= 0:
-                visit_voxel[count] = block * BLOCK_VOXELS + (morton_x | morton_y | morton_z)
+                visit_voxel[count] = base + local
                 visit_chord[count] = chord * scale
-                visit_return[count] = returns * scale
+                if returns > 0.0:
+                    return_of[returned] = count
+                    return_weight[returned] = returns * scale
+                    returned += 1
                 count += 1
             else:
-                mail_block[mail] = key
-                mail_local[mail] = morton_x | morton_y | morton_z
-                mail_chord[mail] = chord
-                mail_return[mail] = returns
-                mail += 1
-    mail_count[0] = mail
+                mail_block[mailed] = key
+                mail_local[mailed] = local
+                mail_chord[mailed] = chord
+                mail_return[mailed] = returns
+                mailed += 1
+    mail_count[0] = mailed
     return lengths.shape[0]

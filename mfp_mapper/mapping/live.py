@@ -53,6 +53,12 @@ class LiveSettings:
     point_cloud_max_z: float
     cloud_queue_size: int
     odom_wait: float
+    point_cloud_min_x: float = -math.inf
+    point_cloud_max_x: float = math.inf
+    point_cloud_min_y: float = -math.inf
+    point_cloud_max_y: float = math.inf
+    max_range: float | None = None
+    """The core's ray length (m, inf = no limit); None: the Mapper's own, unchanged."""
     no_return_range: float = 0.0
     """> 0: recover the firings with no return as rays this long (``sensing.no_return``)."""
     base_frame_id: str = ""
@@ -66,8 +72,13 @@ class LiveSettings:
         return cls(
             frame_id=cfg.frame_id,
             deskew=cfg.deskew,
+            point_cloud_min_x=cfg.point_cloud_min_x,
+            point_cloud_max_x=cfg.point_cloud_max_x,
+            point_cloud_min_y=cfg.point_cloud_min_y,
+            point_cloud_max_y=cfg.point_cloud_max_y,
             point_cloud_min_z=cfg.point_cloud_min_z,
             point_cloud_max_z=cfg.point_cloud_max_z,
+            max_range=cfg.max_range,
             cloud_queue_size=cfg.cloud_queue_size,
             odom_wait=cfg.odom_wait,
             base_frame_id=cfg.base_frame_id.lstrip("/"),
@@ -92,7 +103,7 @@ class _Pending:
 class LiveCounters(ScanCounts, PoseCounters):
     """The pipeline's counts, the pose inputs' and what only a live stream has."""
 
-    clouds_lost: int = 0  # reported lost by the middleware (never received)
+    clouds_lost_transport: int = 0  # reported lost by the middleware (never received)
     integration_cpu: float = 0.0  # CPU seconds: parse + place + integrate (+ core threads)
     integration_wall: float = 0.0
     latency_sum: float = 0.0
@@ -238,8 +249,8 @@ class LiveIntegrator:
     def clouds_lost(self, count: int) -> int:
         """Count clouds the middleware lost; returns the total."""
         with self._cv:
-            self.counters.clouds_lost += count
-            return self.counters.clouds_lost
+            self.counters.clouds_lost_transport += count
+            return self.counters.clouds_lost_transport
 
     @property
     def queued(self) -> int:
@@ -255,6 +266,8 @@ class LiveIntegrator:
     # --- the worker thread ------------------------------------------------------------------
 
     def start(self) -> None:
+        """Start the worker thread (again after ``stop``: a lifecycle node reactivated)."""
+        self._stop.clear()
         self._thread = threading.Thread(target=self.run, name="mfp_integration", daemon=True)
         self._thread.start()
 
@@ -264,6 +277,8 @@ class LiveIntegrator:
             self._cv.notify_all()
         if self._thread is not None:
             self._thread.join(timeout=timeout)
+        with self._cv:
+            self._queue.clear()  # stale when the worker starts again
 
     def _next(self) -> _Pending | None:
         """The next cloud to try (under ``_cv``): a new one first, else a waiting one that
@@ -338,6 +353,7 @@ class LiveIntegrator:
 
     def _process(self, item: _Pending) -> bool:
         cfg = self.settings
+        self.loop.settings = cfg  # parameters changed at run time reach the pipeline
         if item.prepared is None:
             item.prepared = self.loop.prepare(item.msg)
             if self.counters.no_return_note:
@@ -365,17 +381,28 @@ class LiveIntegrator:
                     0,
                     parse_drops,
                 )
+            lost = self.counters.clouds_lost_transport
+            starved = (
+                f"; {lost} cloud(s) were lost in transport: DDS may starve /tf and odometry "
+                "too (the large-data profile, README 'Large clouds over DDS')"
+                if lost
+                else ""
+            )
             raise pipeline.ScanDropped(
                 "too_new",
                 f"stamp {prepared.deadline:.3f} (the cloud's last point, time base "
                 f"{prepared.cloud.time_base or 'none'}) not covered by the poses "
-                f"({placement.source}; latest {latest:.3f}) within odom_wait {cfg.odom_wait} s",
+                f"({placement.source}; latest {latest:.3f}) within odom_wait {cfg.odom_wait} s"
+                f"{starved}",
                 0,
                 parse_drops,
             )
         if self.mapper.frame_id != placement.map_frame:
             self.mapper.frame_id = placement.map_frame  # the run's frame, decided once
         own_cpu = time.thread_time()
+        if cfg.max_range is not None and self.mapper.max_range != cfg.max_range:
+            with self.map_lock:  # sensor_model.max_range changed at run time
+                self.mapper.max_range = cfg.max_range
         _, summary = self.loop.finish(prepared, placement.poses, placement.extrinsic)
         own_cpu = time.thread_time() - own_cpu
         self.pose_inputs.note_robot(placement, prepared.stamp, cfg.base_frame_id)

@@ -5,6 +5,7 @@
 - ``off_executor``: a job run in a thread and awaited, so the executor keeps serving other
   callbacks meanwhile (service callbacks that need the map while a long scan holds it).
 - ``warn_throttled``: one log line per key every few seconds.
+- ``GuardedLifecycleNode``: the same as an ``rclpy.lifecycle.LifecycleNode``.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from collections.abc import Callable
 from typing import Any
 
 import rclpy.task
+from rclpy.lifecycle import LifecycleNode
 from rclpy.node import Node
 
 THROTTLE_S = 5.0
@@ -138,3 +140,13 @@ class GuardedNode(Node):
         with self._inflight_cv:
             self._closing = True
             self._inflight_cv.wait_for(lambda: self._inflight == 0, timeout=timeout)
+
+    def reopen(self) -> None:
+        """Accept callbacks again after ``wait_idle`` (a lifecycle node configured again)."""
+        with self._inflight_cv:
+            self._closing = False
+
+
+class GuardedLifecycleNode(GuardedNode, LifecycleNode):
+    """A ``GuardedNode`` that is an ``rclpy.lifecycle.LifecycleNode`` (managed states and
+    the ``~/change_state``, ``~/get_state``... services)."""

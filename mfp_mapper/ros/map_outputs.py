@@ -30,6 +30,21 @@ PUBLISH_DUTY = 0.1
 ``dt`` seconds, the next one waits at least ``dt * (1 / PUBLISH_DUTY - 1)``."""
 
 
+TOPICS = {
+    "degree_of_occupancy": "~/degree_of_occupancy",
+    "std": "~/std",
+    "projected_map": "~/projected_map",
+}
+"""The map outputs' topics (node-private names)."""
+OCTOMAP_TOPICS = {
+    "degree_of_occupancy": "octomap_point_cloud_centers",
+    "std": "~/std",
+    "projected_map": "projected_map",
+}
+"""With ``octomap_topics``: octomap_server's names (relative: in the node's namespace) for
+the voxel-centre cloud and the grid; ``~/std`` has no octomap_server counterpart."""
+
+
 @dataclass
 class PublishCounters:
     seconds: float = 0.0  # building and sending, without waiting for the map lock
@@ -40,7 +55,8 @@ class PublishCounters:
 
 
 class MapOutputs:
-    """Publishers of ``~/degree_of_occupancy``, ``~/std`` and ``~/projected_map``."""
+    """Publishers of ``~/degree_of_occupancy``, ``~/std`` and ``~/projected_map`` (or
+    octomap_server's names, ``OCTOMAP_TOPICS``, with ``octomap_topics``)."""
 
     def __init__(
         self,
@@ -60,9 +76,11 @@ class MapOutputs:
             reliability=ReliabilityPolicy.RELIABLE,
             durability=DurabilityPolicy.TRANSIENT_LOCAL if latch else DurabilityPolicy.VOLATILE,
         )
-        self._doo_pub = node.create_publisher(PointCloud2, "~/degree_of_occupancy", qos)
-        self._std_pub = node.create_publisher(PointCloud2, "~/std", qos)
-        self._grid_pub = node.create_publisher(OccupancyGrid, "~/projected_map", qos)
+        names = OCTOMAP_TOPICS if config().octomap_topics else TOPICS
+        self._doo_pub = node.create_publisher(PointCloud2, names["degree_of_occupancy"], qos)
+        self._std_pub = node.create_publisher(PointCloud2, names["std"], qos)
+        self._grid_pub = node.create_publisher(OccupancyGrid, names["projected_map"], qos)
+        self.publishers = [self._doo_pub, self._std_pub, self._grid_pub]
         self.counters = PublishCounters()
         # the map version each output last went out with: a late transient-local subscriber
         # of one output gets it even when the other already went out for this version

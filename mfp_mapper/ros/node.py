@@ -2,9 +2,11 @@
 
 ROS wiring only: subscriptions hand clouds and odometry to the ROS-free worker
 (``mfp_mapper.mapping.live``: queue, odometry wait, the scan pipeline, drops, counters);
-``map_outputs`` publishes the map; services query, save and reset it. Run it with
+``map_outputs`` publishes the map; services query, save, reset and clear it. Run it with
 ``python -m mfp_mapper.node --ros-args ...`` or ``ros2 run mfp_mapper mfp_mapper``;
-parameters are in ``mfp_mapper.config.schema``.
+parameters are in ``mfp_mapper.config.schema``. A lifecycle node: with ``autostart`` (the
+default) it configures and activates itself; else a lifecycle manager drives it
+(``on_configure``... below).
 
 Threads: one executor thread runs every ROS callback (rclpy's multi-threaded executor
 cost about 70% of a core in overhead); subscription callbacks only queue clouds and store
@@ -34,6 +36,7 @@ import rclpy.task
 import rclpy.time
 import rclpy.utilities
 from diagnostic_msgs.msg import DiagnosticArray
+from mfp_mapper_msgs.srv import ClearBbox
 from nav_msgs.msg import OccupancyGrid, Odometry
 from nav_msgs.srv import GetMap
 from rcl_interfaces.msg import SetParametersResult
@@ -41,6 +44,8 @@ from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
+from rclpy.publisher import Publisher
 from rclpy.qos import (
     DurabilityPolicy,
     HistoryPolicy,
@@ -48,7 +53,10 @@ from rclpy.qos import (
     ReliabilityPolicy,
     qos_profile_sensor_data,
 )
+from rclpy.service import Service
 from rclpy.signals import SignalHandlerOptions
+from rclpy.subscription import Subscription
+from rclpy.timer import Timer
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 from std_srvs.srv import Empty, Trigger
@@ -61,7 +69,7 @@ from mfp_mapper.mapio.loading import load_map
 from mfp_mapper.mapio.mapfile import MapFileError, map_arrays
 from mfp_mapper.mapio.tiles import is_tiled, write_map_path
 from mfp_mapper.mapping.live import LiveIntegrator, LiveSettings
-from mfp_mapper.ros.guarded_node import GuardedNode, tracked
+from mfp_mapper.ros.guarded_node import GuardedLifecycleNode, tracked
 from mfp_mapper.ros.map_outputs import MapOutputs
 from mfp_mapper.ros.messages import cloud_msg
 from mfp_mapper.ros.params import declare_parameters, usage
@@ -73,6 +81,7 @@ from mfp_mapper.ros.status import (
     startup_text,
     status_report,
 )
+from mfp_mapper.ros.transport import transport_loss_text
 from mfp_mapper.sensing.pointcloud import CloudFormatError, pack_cloud, read_xyz, stamp_seconds
 from mfp_mapper.sensing.poses import PoseBuffer, odometry_sample
 from mfp_mapper.sensing.tf_tree import TfTree, TransformUnavailable
@@ -129,19 +138,58 @@ def _empty_map(cfg: NodeConfig) -> Mapper:
     return Mapper.of(cfg.map_settings(), frame_id=cfg.frame_id or "map")
 
 
-class MfpMapperNode(GuardedNode):
-    """Mean-free-path mapping node (see the module docstring and README "## The node")."""
+class StartError(RuntimeError):
+    """``autostart``: configuring or activating the node failed (logged)."""
+
+
+class MfpMapperNode(GuardedLifecycleNode):
+    """Mean-free-path mapping node (see the module docstring and README "## The node").
+
+    A lifecycle node (``rclpy.lifecycle``): parameters are declared at construction;
+    configure loads the map and creates the outputs and services; activate subscribes and
+    starts the integration worker; deactivate stops both; cleanup saves (``save_on_shutdown``)
+    and drops the map. With ``autostart`` (the default) it configures and activates itself at
+    construction, a plain node as before.
+    """
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
         self.cfg: NodeConfig = declare_parameters(self)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._started = time.monotonic()
+        self._queries = 0
+        self._maps_served = 0
+        self._save_lock = threading.Lock()
+        self._transport_explained = False
+        self._clock_warned = False
+        self.worker: LiveIntegrator  # set by configure
+        self.outputs: MapOutputs
+        self._configured = False
+        self._configured_once = False
+        self._entities: list[Any] = []  # what configure creates (cleanup destroys)
+        self._active: list[Any] = []  # what activate creates (deactivate destroys)
+        if self.cfg.autostart:
+            steps = (("configure", self.trigger_configure), ("activate", self.trigger_activate))
+            for step, trigger in steps:
+                if trigger() != TransitionCallbackReturn.SUCCESS:
+                    raise StartError(f"the node could not {step} (see the log above)")
+
+    # --- lifecycle transitions ---------------------------------------------------------------
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Load the map (``map_path``), create the worker, the outputs and the services."""
+        try:
+            self._configure()
+        except Exception as err:  # rclpy would turn it into ERROR without a word
+            self.get_logger().error(f"configure failed: {type(err).__name__}: {err}")
+            self._release(save=False)
+            return TransitionCallbackReturn.FAILURE
+        return TransitionCallbackReturn.SUCCESS
+
+    def _configure(self) -> None:
         self._map_figures = (0, 0, 0)
         self._status_window = StatusWindow(time.monotonic())
         self._last_window = self._status_window
-        self._queries = 0
-        self._maps_served = 0
         mapper, self._load_failed = initial_mapper(self.cfg, self.get_logger())
         self._warn_slashes()
         self.worker = LiveIntegrator(
@@ -154,27 +202,121 @@ class MfpMapperNode(GuardedNode):
             now=self._now,
             map_frame=self.cfg.frame_id or (mapper.frame_id if mapper.num_voxels else ""),
         )
+        # the map version last saved: the autosave writes only a map that changed since
+        self._saved_version: int | None = mapper.version
         self.outputs = MapOutputs(self, self.worker, lambda: self.cfg, self.warn_throttled)
         self.worker.set_publish(self.outputs.publish)
-
-        self._create_interfaces()
-        self.worker.start()
+        self._entities += self.outputs.publishers
+        self._configured = self._configured_once = True
+        self.reopen()
+        self._create_services()
         self.get_logger().info(
             startup_text(self.cfg, self.resolve_topic_name, self.mapper, self.map_frame)
         )
 
-    def _create_interfaces(self) -> None:
-        self.create_subscription(
-            PointCloud2,
-            "cloud_in",
-            self._on_cloud,
-            qos_profile_sensor_data,
-            event_callbacks=SubscriptionEventCallbacks(message_lost=self._on_clouds_lost),
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Subscribe to clouds, odometry and TF; start integrating and publishing."""
+        self._create_interfaces()
+        self.worker.start()
+        self.outputs.invalidate()  # latch the map again for whoever subscribed meanwhile
+        if not self.cfg.autostart:
+            self.get_logger().info("active: mapping")
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Stop taking clouds (the map, its services and queries stay)."""
+        self._destroy(self._active)
+        self.worker.stop()
+        self.get_logger().info("inactive: not mapping (services answer)")
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Save (``save_on_shutdown``), then drop the map, the outputs and the services."""
+        self._release(save=True)
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """From any state: stop mapping, save (``save_on_shutdown``) and release the map."""
+        self._release(save=True)
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """A transition failed: release everything, back to unconfigured (nothing saved)."""
+        self._release(save=False)
+        return TransitionCallbackReturn.SUCCESS
+
+    def _release(self, save: bool) -> None:
+        """Undo configure (and activate): stop, wait for jobs, save when asked, release."""
+        self._destroy(self._active)
+        if self._configured:
+            # a scan being walked is not waited for: it is not in the map yet, and the map
+            # saved holds whole scans; callbacks in flight get a short grace
+            self.wait_idle(timeout=2.0)
+            self.worker.stop(timeout=0.5)
+            if save:
+                self._save_on_shutdown()
+            if not self.worker.running:
+                self.mapper.close()
+            self._configured = False
+        self._destroy(self._entities)
+
+    def _destroy(self, entities: list[Any]) -> None:
+        for entity in entities:
+            if isinstance(entity, Subscription):
+                self.destroy_subscription(entity)
+            elif isinstance(entity, Service):
+                self.destroy_service(entity)
+            elif isinstance(entity, Timer):
+                self.destroy_timer(entity)
+            elif isinstance(entity, Publisher):
+                self.destroy_publisher(entity)
+        entities.clear()
+
+    def _create_services(self) -> None:
+        """What configure creates: status and map outputs, queries and services (answered
+        while inactive too)."""
+        status_qos = QoSProfile(
+            depth=1,
+            reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL,
         )
+        self._status_pub = self.create_publisher(String, "~/status", status_qos)
+        self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self._result_pub = self.create_publisher(PointCloud2, "~/hit_probability/result", 10)
+        self._entities += [self._status_pub, self._diag_pub, self._result_pub]
+        # what needs the map runs in a thread of its own and is awaited (a coroutine), so the
+        # executor keeps taking odometry and clouds while a long scan holds the map; their
+        # own group: a pending call must not hold the default group
+        group = ReentrantCallbackGroup()
+        self._entities += [
+            self.create_subscription(
+                PointCloud2, "~/hit_probability/query", self._on_query, 10, callback_group=group
+            ),
+            self.create_service(
+                GetMap, "~/hit_probability_map", self._on_get_map, callback_group=group
+            ),
+            self.create_service(Trigger, "~/save_map", self._on_save, callback_group=group),
+            self.create_service(Empty, "~/reset", self._on_reset, callback_group=group),
+            self.create_service(
+                ClearBbox, "~/clear_bbox", self._on_clear_bbox, callback_group=group
+            ),
+        ]
+
+    def _create_interfaces(self) -> None:
+        """What activate creates: the inputs and the timers."""
+        self._active += [
+            self.create_subscription(
+                PointCloud2,
+                "cloud_in",
+                self._on_cloud,
+                qos_profile_sensor_data,
+                event_callbacks=SubscriptionEventCallbacks(message_lost=self._on_clouds_lost),
+            )
+        ]
         odom_qos = QoSProfile(
             history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.BEST_EFFORT
         )
-        self.create_subscription(Odometry, "odom", self._on_odom, odom_qos)
+        self._active.append(self.create_subscription(Odometry, "odom", self._on_odom, odom_qos))
         tf_qos = QoSProfile(
             history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE
         )
@@ -184,40 +326,27 @@ class MfpMapperNode(GuardedNode):
             reliability=ReliabilityPolicy.RELIABLE,
             durability=DurabilityPolicy.TRANSIENT_LOCAL,
         )
-        self.create_subscription(TFMessage, "/tf", self._on_tf, tf_qos)
-        self.create_subscription(TFMessage, "/tf_static", self._on_tf_static, tf_static_qos)
-        status_qos = QoSProfile(
-            depth=1,
-            reliability=ReliabilityPolicy.RELIABLE,
-            durability=DurabilityPolicy.TRANSIENT_LOCAL,
+        self._active.append(self.create_subscription(TFMessage, "/tf", self._on_tf, tf_qos))
+        self._active.append(
+            self.create_subscription(TFMessage, "/tf_static", self._on_tf_static, tf_static_qos)
         )
-        self._status_pub = self.create_publisher(String, "~/status", status_qos)
-        self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self._result_pub = self.create_publisher(PointCloud2, "~/hit_probability/result", 10)
-        # what needs the map runs in a thread of its own and is awaited (a coroutine), so the
-        # executor keeps taking odometry and clouds while a long scan holds the map; their
-        # own group: a pending call must not hold the default group
-        group = ReentrantCallbackGroup()
-        self.create_subscription(
-            PointCloud2, "~/hit_probability/query", self._on_query, 10, callback_group=group
-        )
-        self.create_service(GetMap, "~/hit_probability_map", self._on_get_map, callback_group=group)
-        self.create_service(Trigger, "~/save_map", self._on_save, callback_group=group)
-        self.create_service(Empty, "~/reset", self._on_reset, callback_group=group)
-        self._save_lock = threading.Lock()
-        # the map version last saved: the autosave writes only a map that changed since
-        self._saved_version: int | None = self.mapper.version
-        if self.cfg.autosave_period > 0.0 and self.cfg.map_path:
-            self.create_timer(self.cfg.autosave_period, self._on_autosave_timer)
         # wall-clock timers: with use_sim_time and no /clock the ROS clock stands still,
         # and the map, ~/status and /diagnostics must still go out
         wall = Clock(clock_type=ClockType.STEADY_TIME)
         if self.cfg.publish_rate > 0.0:
-            self.create_timer(1.0 / self.cfg.publish_rate, self._on_publish_timer, clock=wall)
+            self._active.append(
+                self.create_timer(1.0 / self.cfg.publish_rate, self._on_publish_timer, clock=wall)
+            )
         if self.cfg.status_period > 0.0:
-            self.create_timer(self.cfg.status_period, self._on_status, clock=wall)
+            self._active.append(
+                self.create_timer(self.cfg.status_period, self._on_status, clock=wall)
+            )
         self._clock_warned = False
-        self.create_timer(1.0, self._check_clock, clock=wall)
+        self._active.append(self.create_timer(1.0, self._check_clock, clock=wall))
+        if self.cfg.autosave_period > 0.0 and self.cfg.map_path:
+            self._active.append(
+                self.create_timer(self.cfg.autosave_period, self._on_autosave_timer, clock=wall)
+            )
 
     # --- set-up ----------------------------------------------------------------------------
 
@@ -278,8 +407,9 @@ class MfpMapperNode(GuardedNode):
         except (ValueError, TypeError) as err:
             return SetParametersResult(successful=False, reason=str(err))
         self.cfg = new  # one assignment: a reader never sees half of a change
-        self.worker.settings = LiveSettings.of(new)
-        self.outputs.invalidate()  # republish with the new filter
+        if self._configured:
+            self.worker.settings = LiveSettings.of(new)  # the next scan uses it
+            self.outputs.invalidate()  # republish with the new filter
         return SetParametersResult(successful=True)
 
     def _now(self) -> float:
@@ -309,12 +439,18 @@ class MfpMapperNode(GuardedNode):
         self.worker.add_transforms(msg, static=True)
 
     def _on_clouds_lost(self, info: Any) -> None:
-        """The middleware reports clouds that never reached this node (transport losses)."""
+        """The middleware reports clouds that never reached this node (transport losses,
+        told apart from the node's own backlog, which drops queued clouds as queue_full)."""
         total = self.worker.clouds_lost(info.total_count_change)
+        if not self._transport_explained:  # the first time: the whole story, once
+            self._transport_explained = True
+            queue = (self.worker.queued, self.cfg.cloud_queue_size)
+            self.warn_throttled("clouds_lost", transport_loss_text(info.total_count_change, queue))
+            return
         self.warn_throttled(
             "clouds_lost",
             f"{info.total_count_change} cloud(s) lost in transport before reaching the node "
-            f"[{total} so far]",
+            f"[clouds_lost_transport {total}]",
         )
 
     @tracked
@@ -454,6 +590,29 @@ class MfpMapperNode(GuardedNode):
         self.get_logger().info("map reset")
         return response
 
+    @tracked
+    async def _on_clear_bbox(
+        self, request: ClearBbox.Request, response: ClearBbox.Response
+    ) -> ClearBbox.Response:
+        """Reset the voxels in the box to unknown (octomap_server's ``~/clear_bbox``)."""
+        corners = [(p.x, p.y, p.z) for p in (request.min, request.max)]
+
+        def clear() -> int:
+            with self.worker.whole_map:  # never between two chunks of a merge
+                return self.mapper.clear_box(*corners)
+
+        try:
+            response.cleared = await self.off_executor(clear)
+        except ValueError as err:  # NaN corners: an answer, never a traceback
+            response.success, response.message = False, f"not cleared: {err}"
+            return response
+        response.success = True
+        response.message = (
+            f"reset {response.cleared} voxels between {corners[0]} and {corners[1]} to unknown"
+        )
+        self.get_logger().info(f"clear_bbox: {response.message}")
+        return response
+
     # --- health ----------------------------------------------------------------------------
 
     def status(self) -> dict[str, Any]:
@@ -494,13 +653,16 @@ class MfpMapperNode(GuardedNode):
         stamp = self.get_clock().now().to_msg()
         self._diag_pub.publish(diagnostics(s, self._last_window, name, self.get_name(), stamp))
 
-    def close(self) -> None:
-        """Stop the worker; save the map when save_on_shutdown (not over an unreadable file).
+    @property
+    def worker_running(self) -> bool:
+        """Whether the integration thread is still alive (a long scan being walked)."""
+        return self._configured_once and self.worker.running
 
-        A scan being walked is not waited for (it is not in the map yet: the saved map holds
-        whole scans); callbacks in flight get a short grace."""
-        self.wait_idle(timeout=2.0)
-        self.worker.stop(timeout=0.5)
+    def close(self) -> None:
+        """Stop the worker; save the map when save_on_shutdown (not over an unreadable file)."""
+        self._release(save=True)
+
+    def _save_on_shutdown(self) -> None:
         if self.cfg.save_on_shutdown:
             if self._load_failed:
                 self.get_logger().error(
@@ -508,8 +670,6 @@ class MfpMapperNode(GuardedNode):
                 )
             else:
                 self.save_map()
-        if not self.worker.running:
-            self.mapper.close()
 
 
 def main(args: list[str] | None = None) -> int:
@@ -535,6 +695,9 @@ def main(args: list[str] | None = None) -> int:
         except (ValueError, rclpy.exceptions.ParameterException) as err:
             print(f"mfp_mapper: invalid parameters: {err}", file=sys.stderr)
             code = 2
+        except StartError as err:
+            print(f"mfp_mapper: {err}", file=sys.stderr)
+            code = 1
         finally:
             if executor is not None:
                 executor.shutdown(timeout_sec=5.0)  # no callback may run past the context
@@ -542,7 +705,7 @@ def main(args: list[str] | None = None) -> int:
                 node.close()
                 node.destroy_node()
             rclpy.try_shutdown()
-    if node is not None and node.worker.running:
+    if node is not None and node.worker_running:
         # a scan still being walked (not in the map, which is saved): do not wait for it
         sys.stdout.flush()
         sys.stderr.flush()

@@ -12,6 +12,8 @@ from mfp_mapper.config.schema import (
     SPECS,
     NodeConfig,
     Setting,
+    octomap_only_parameters,
+    octomap_only_warning,
     unknown_parameters,
     unknown_parameters_error,
 )
@@ -43,15 +45,18 @@ def parameter_overrides(node: Node) -> dict[str, Any]:
 def declare_parameters(node: Node) -> NodeConfig:
     """Declare every parameter on an rclpy node and return the validated values.
 
-    An override naming no parameter (a typo) is an error, as in ``mfp-mapper --config``; a
+    An override naming no parameter (a typo) is an error, as in ``mfp-mapper --config``;
+    octomap_server's names with no meaning here (``settings.OCTOMAP_ONLY``) get one warning; a
     value of the wrong type or out of range is rejected by rclpy (``ParameterException``),
     with the message ``mfp_mapper.config.schema.check_value`` gives the CLI.
     """
-    unknown = [
-        n for n in unknown_parameters(list(parameter_overrides(node))) if not node.has_parameter(n)
-    ]
+    given = list(parameter_overrides(node))
+    unknown = [n for n in unknown_parameters(given) if not node.has_parameter(n)]
     if unknown:
         raise ValueError(unknown_parameters_error(unknown))
+    octomap_only = octomap_only_parameters(given)
+    if octomap_only:  # an octomap_server file: one line, the node starts
+        node.get_logger().warning(octomap_only_warning(octomap_only))
     values: dict[str, Any] = {}
     for spec in PARAMS:
         param = node.declare_parameter(spec.name, spec.default, descriptor(spec))

@@ -12,7 +12,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from mfp_mapper.config.schema import NodeConfig
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.mapping.live import LiveCounters, finite_or_none
-from mfp_mapper.ros.map_outputs import PublishCounters
+from mfp_mapper.ros.map_outputs import OCTOMAP_TOPICS, TOPICS, PublishCounters
 
 
 @dataclass
@@ -25,7 +25,7 @@ class StatusWindow:
     clouds_in: int = 0
     clouds_integrated: int = 0
     clouds_dropped: int = 0
-    clouds_lost: int = 0
+    clouds_lost_transport: int = 0
 
 
 def status_report(
@@ -44,7 +44,7 @@ def status_report(
     return {
         **extra,
         "clouds_in": c.clouds_in,
-        "clouds_lost": c.clouds_lost,
+        "clouds_lost_transport": c.clouds_lost_transport,
         "clouds_integrated": c.clouds_integrated,
         "clouds_dropped": dict(c.clouds_dropped),
         "points_in": c.points_in,
@@ -84,7 +84,7 @@ def next_window(c: LiveCounters) -> StatusWindow:
         c.clouds_in,
         c.clouds_integrated,
         sum(c.clouds_dropped.values()),
-        c.clouds_lost,
+        c.clouds_lost_transport,
     )
 
 
@@ -93,7 +93,7 @@ def health(status: dict[str, Any], window: StatusWindow) -> tuple[bytes, str]:
     arrived = status["clouds_in"] - window.clouds_in
     integrated = status["clouds_integrated"] - window.clouds_integrated
     dropped = sum(status["clouds_dropped"].values()) - window.clouds_dropped
-    lost = status["clouds_lost"] - window.clouds_lost
+    lost = status["clouds_lost_transport"] - window.clouds_lost_transport
     if arrived == 0:
         return DiagnosticStatus.WARN, "no cloud received"
     if integrated == 0:
@@ -105,7 +105,8 @@ def health(status: dict[str, Any], window: StatusWindow) -> tuple[bytes, str]:
     if dropped or lost:
         return (
             DiagnosticStatus.WARN,
-            f"{integrated} of {arrived} clouds integrated, {dropped} dropped, {lost} lost",
+            f"{integrated} of {arrived} clouds integrated, {dropped} dropped, "
+            f"{lost} lost in transport",
         )
     return DiagnosticStatus.OK, f"{integrated} clouds integrated"
 
@@ -142,6 +143,7 @@ def startup_text(cfg: NodeConfig, topic: Callable[[str], str], mapper: Mapper, f
     """The start-up log line: what a robot integrator needs to check (topics, the map frame
     and the rule that decides it, pose and extrinsic sources, map file, outputs); ``topic``
     resolves a topic name; ``frame`` is the map frame when already decided."""
+    names = OCTOMAP_TOPICS if cfg.octomap_topics else TOPICS
     if cfg.lidar_override() is not None:
         extrinsic = (
             f"lidar.* parameters (translation {list(cfg.lidar_translation)}, rpy "
@@ -174,7 +176,7 @@ def startup_text(cfg: NodeConfig, topic: Callable[[str], str], mapper: Mapper, f
         f"{map_frame}; extrinsic: {extrinsic}; resolution "
         f"{mapper.resolution} m, max_range {cfg.max_range} m, decay_time "
         f"{cfg.decay} s, deskew {cfg.deskew}; map_path {path}{loaded}, save_on_shutdown "
-        f"{cfg.save_on_shutdown}; outputs {topic('~/degree_of_occupancy')}, "
-        f"{topic('~/std')}, {topic('~/projected_map')} (trinary "
+        f"{cfg.save_on_shutdown}; outputs {topic(names['degree_of_occupancy'])}, "
+        f"{topic(names['std'])}, {topic(names['projected_map'])} (trinary "
         f"{cfg.projected_map_trinary}) at {cfg.publish_rate} Hz, latched {cfg.latch}"
     )

@@ -89,6 +89,18 @@ class PlacementSettings(Protocol):
     def deskew(self) -> bool: ...
 
     @property
+    def point_cloud_min_x(self) -> float: ...
+
+    @property
+    def point_cloud_max_x(self) -> float: ...
+
+    @property
+    def point_cloud_min_y(self) -> float: ...
+
+    @property
+    def point_cloud_max_y(self) -> float: ...
+
+    @property
     def point_cloud_min_z(self) -> float: ...
 
     @property
@@ -164,36 +176,37 @@ def place_scan(
     except PoseUnavailable as err:
         raise ScanDropped(err.reason, str(err), points_dropped=dict(cloud.dropped)) from None
     dropped = dict(cloud.dropped)
+    lo = tuple(getattr(settings, f"point_cloud_min_{a}") for a in "xyz")
+    hi = tuple(getattr(settings, f"point_cloud_max_{a}") for a in "xyz")
+    keep, outside = band_mask(points, lo, hi)
+    dropped.update({k: v for k, v in outside.items() if v})
     flags = cloud.no_return
-    if flags is not None:
-        lo, hi = settings.point_cloud_min_z, settings.point_cloud_max_z
-        flags = flags[(points[:, 2] >= lo) & (points[:, 2] <= hi)]
-    points, origins, outside = z_band(
-        points, origins, settings.point_cloud_min_z, settings.point_cloud_max_z
-    )
-    if outside:
-        dropped["z_band"] = outside
+    if keep is not None:
+        points = points[keep]
+        origins = origins[keep] if origins.ndim == 2 else origins
+        flags = flags[keep] if flags is not None else None
     if points.shape[0] == 0:
+        bounds = ", ".join(f"{a} [{lo[k]}, {hi[k]}]" for k, a in enumerate("xyz"))
         raise ScanDropped(
             "empty",
-            f"all {outside} rays end outside the height band [{settings.point_cloud_min_z}, "
-            f"{settings.point_cloud_max_z}] m",
+            f"all {sum(outside.values())} rays end outside the bounds ({bounds} m)",
             points_dropped=dropped,
         )
     deskewed = bool(settings.deskew and cloud.time_offset is not None)
     return PlacedScan(stamp, points, origins, deskewed, dropped, flags)
 
 
-def z_band(
-    points: FloatArray, origins: FloatArray, lo: float, hi: float
-) -> tuple[FloatArray, FloatArray, int]:
-    """Keep the rays whose end point's z (map frame) lies in [lo, hi]; returns the kept
-    points, their origins ((3,) stays (3,)) and how many rays were dropped."""
-    keep = (points[:, 2] >= lo) & (points[:, 2] <= hi)
+def band_mask(
+    points: FloatArray, lo: tuple[float, ...], hi: tuple[float, ...]
+) -> tuple[NDArray[np.bool_] | None, dict[str, int]]:
+    """Which rays end inside the box ``[lo, hi]`` (map frame x, y, z); None when all do.
+    The others are counted as ``xy_band`` (outside in x or y) or ``z_band`` (in x and y,
+    outside in z)."""
+    xy = (points[:, 0] >= lo[0]) & (points[:, 0] <= hi[0])
+    xy &= (points[:, 1] >= lo[1]) & (points[:, 1] <= hi[1])
+    z = (points[:, 2] >= lo[2]) & (points[:, 2] <= hi[2])
+    keep = xy & z
     if keep.all():
-        return points, origins, 0
-    return (
-        points[keep],
-        (origins[keep] if origins.ndim == 2 else origins),
-        int(keep.size - keep.sum()),
-    )
+        return None, {}
+    xy_out = int(keep.size - xy.sum())
+    return keep, {"xy_band": xy_out, "z_band": int(keep.size - keep.sum()) - xy_out}

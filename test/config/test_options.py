@@ -93,3 +93,22 @@ def test_cli_reports_a_bad_config_and_writes_nothing(
     err = capsys.readouterr().err
     assert "unknown parameter(s) resolutoin" in err and "no map written" in err
     assert not out.exists()
+
+
+def test_an_octomap_server_file_configures_the_replay_with_one_warning(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from mfp_mapper.config.replay_options import options_from_yaml
+
+    path = tmp_path / "octomap_server.yaml"
+    path.write_text(
+        "/**:\n  ros__parameters:\n    resolution: 0.2\n    point_cloud_max_x: 12.0\n"
+        "    sensor_model.hit: 0.7\n    filter_ground_plane: false\n"
+    )
+    opts = options_from_yaml(path)
+    assert opts["resolution"] == 0.2 and opts["point_cloud_max_x"] == 12.0
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "filter_ground_plane, sensor_model.hit" in err
+    path.write_text("/**:\n  ros__parameters:\n    filter_grond_plane: false\n")
+    with pytest.raises(ConfigError, match="filter_grond_plane"):
+        options_from_yaml(path)

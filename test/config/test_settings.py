@@ -44,7 +44,8 @@ def test_each_setting_is_defined_once_with_a_consistent_entry() -> None:
             if s.default is not None:
                 assert s.check_range(s.default) is None, s.name
         if s.dynamic:
-            assert s.applies == "node", f"{s.name}: only the node changes settings at run time"
+            # only the node changes settings at run time (a replay setting it shares may be one)
+            assert s.is_parameter, f"{s.name}: only the node changes settings at run time"
     assert [p.name for p in PARAMS] == list(SPECS)
     assert all(not s.is_parameter for s in SETTINGS if s.name not in SPECS)
 
@@ -161,3 +162,26 @@ def test_node_config_has_one_typed_attribute_per_parameter() -> None:
     for p in PARAMS:
         value = getattr(cfg, attr_name(p.name))
         assert isinstance(value, tuple if p.type is list else p.type), p.name
+
+
+def test_octomap_server_names_pass_with_a_warning_and_typos_do_not() -> None:
+    from mfp_mapper.config.schema import OCTOMAP_ONLY, octomap_only_parameters
+
+    octomap = {"sensor_model.hit": 0.7, "filter_ground_plane": False, "resolution": 0.2}
+    cfg = check_parameters(octomap)  # octomap-only names are no error
+    assert cfg.resolution == 0.2
+    assert octomap_only_parameters(list(octomap)) == ["filter_ground_plane", "sensor_model.hit"]
+    # an octomap-only name never shadows one of ours
+    assert not set(OCTOMAP_ONLY) & set(SPECS)
+    with pytest.raises(ValueError, match="unknown parameter.*sensor_model.hitt"):
+        check_parameters({"sensor_model.hitt": 0.7})
+
+
+def test_the_point_cloud_box_and_its_run_time_changes_are_checked() -> None:
+    for axis in "xyz":
+        assert SPECS[f"point_cloud_min_{axis}"].dynamic
+        with pytest.raises(ValueError, match=f"point_cloud_min_{axis} must be below"):
+            NodeConfig.from_values({f"point_cloud_min_{axis}": 5.0, f"point_cloud_max_{axis}": 1.0})
+    assert SPECS["sensor_model.max_range"].dynamic
+    with pytest.raises(ValueError, match="min_range must be below"):
+        NodeConfig.from_values({"sensor_model.min_range": 5.0, "sensor_model.max_range": 4.0})

@@ -21,6 +21,10 @@ T0 = 1000.0
 @dataclass
 class Settings:
     deskew: bool = True
+    point_cloud_min_x: float = -1e6
+    point_cloud_max_x: float = 1e6
+    point_cloud_min_y: float = -1e6
+    point_cloud_max_y: float = 1e6
     point_cloud_min_z: float = -1e6
     point_cloud_max_z: float = 1e6
 
@@ -66,6 +70,8 @@ def test_reasons_of_the_pipeline() -> None:
     assert _run(_cloud(stamp=T0 + 0.5), _poses(T0, T0 + 1.0)) == "gap"
     band = Settings(point_cloud_min_z=10.0, point_cloud_max_z=11.0)
     assert _run(_cloud(), poses, band) == "empty"
+    assert _run(_cloud(), poses, Settings(point_cloud_max_x=0.5)) == "empty"  # x/y too
+    assert _run(_cloud(), poses, Settings(point_cloud_min_y=6.0)) == "empty"
 
 
 def test_deskew_needs_poses_up_to_the_last_point() -> None:

@@ -77,6 +77,7 @@ class NodeProcess:
         *,
         name: str | None = None,
         params_file: Path | None = PARAMS_FILE,
+        env: dict[str, str] | None = None,
     ) -> None:
         args = [sys.executable, "-m", "mfp_mapper.node", "--ros-args"]
         if name:
@@ -88,7 +89,11 @@ class NodeProcess:
         self.log_path = log_path
         self._log = open(log_path, "wb")  # noqa: SIM115 - closed in stop()
         self.proc = subprocess.Popen(
-            args, env=ros_env(domain), stdout=self._log, stderr=subprocess.STDOUT, cwd=ROOT
+            args,
+            env={**ros_env(domain), **(env or {})},
+            stdout=self._log,
+            stderr=subprocess.STDOUT,
+            cwd=ROOT,
         )
 
     @property
@@ -361,3 +366,20 @@ def tf_publishers(node: Any) -> tuple[Any, Any]:
         node.create_publisher(TFMessage, "/tf", QoSProfile(depth=100)),
         node.create_publisher(TFMessage, "/tf_static", static),
     )
+
+
+def clear_bbox(feeder: Feeder, node_name: str, corner_a: Any, corner_b: Any) -> Any:
+    """Call ``~/clear_bbox`` (mfp_mapper_msgs/srv/ClearBbox) of ``node_name``; the response."""
+    from geometry_msgs.msg import Point
+    from mfp_mapper_msgs.srv import ClearBbox
+
+    client = feeder.node.create_client(ClearBbox, f"/{node_name}/clear_bbox")
+    try:
+        assert client.wait_for_service(10.0), f"/{node_name}/clear_bbox not found"
+        request = ClearBbox.Request()
+        request.min, request.max = (
+            Point(x=float(c[0]), y=float(c[1]), z=float(c[2])) for c in (corner_a, corner_b)
+        )
+        return feeder.call(client, request)
+    finally:
+        feeder.node.destroy_client(client)

@@ -1,4 +1,4 @@
-"""tf2_msgs built by ``./run setup`` (scripts/build_tf2_msgs.sh): same type as real Jazzy."""
+"""tf2_msgs built by ``./run setup`` (scripts/build_interface.sh): same type as real Jazzy."""
 
 from __future__ import annotations
 

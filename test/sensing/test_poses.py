@@ -363,13 +363,15 @@ def test_deskew_of_131k_points_is_fast() -> None:
     assert min(durations) < 0.1, f"best of 3 took {min(durations) * 1e3:.1f} ms"
 
 
-def test_z_band_keeps_rays_whose_end_lies_in_the_band() -> None:
-    from mfp_mapper.sensing.pipeline import z_band
+def test_band_mask_keeps_rays_whose_end_lies_in_the_box() -> None:
+    from mfp_mapper.sensing.pipeline import band_mask
 
-    points = np.array([[0.0, 0.0, -1.0], [1.0, 0.0, 0.5], [2.0, 0.0, 3.0]])
-    origins = np.arange(9, dtype=float).reshape(3, 3)
-    kept, kept_origins, dropped = z_band(points, origins, 0.0, 2.0)
-    assert dropped == 2 and kept.tolist() == [[1.0, 0.0, 0.5]]
-    assert kept_origins.tolist() == [[3.0, 4.0, 5.0]]
-    _, single, none = z_band(points, np.zeros(3), -5.0, 5.0)
-    assert none == 0 and single.shape == (3,)
+    points = np.array(
+        [[0.0, 0.0, -1.0], [1.0, 0.0, 0.5], [2.0, 0.0, 3.0], [9.0, 0.0, 0.5], [1.0, -4.0, 9.0]]
+    )
+    lo, hi = (-5.0, -2.0, 0.0), (5.0, 2.0, 2.0)
+    keep, dropped = band_mask(points, lo, hi)
+    assert keep is not None and keep.tolist() == [False, True, False, False, False]
+    # outside in x or y: xy_band (whatever z); inside in x and y, outside in z: z_band
+    assert dropped == {"xy_band": 2, "z_band": 2}
+    assert band_mask(points, (-10.0, -10.0, -10.0), (10.0, 10.0, 10.0)) == (None, {})

@@ -1,9 +1,11 @@
 #!/usr/bin/env bash
-# Build the tf2_msgs interface package (TFMessage, interfaces/tf2_msgs) into a venv with the
-# ROS 2 Jazzy rosidl wheels: tf2_msgs is not on PyPI. Called by `./run setup` when
-# `import tf2_msgs` fails; a sourced ROS 2 install brings its own tf2_msgs instead.
+# Build an interface package of interfaces/ into a venv with the ROS 2 Jazzy rosidl wheels:
+# tf2_msgs (TFMessage, for /tf and /tf_static; not on PyPI; a sourced ROS 2 install brings
+# its own) and mfp_mapper_msgs (the node's ClearBbox service). Called by `./run setup` when
+# the package does not import.
 #
-#   scripts/build_tf2_msgs.sh            (PYTHON=/path/to/venv/bin/python, default .venv)
+#   scripts/build_interface.sh [PKG]     (PKG: tf2_msgs (default) or mfp_mapper_msgs;
+#                                         PYTHON=/path/to/venv/bin/python, default .venv)
 #
 # Needs cmake and a C/C++ compiler. The build wheels are pinned to Jazzy (an unpinned name
 # resolves to a later distribution): scripts/tf2_msgs-build-requirements.txt.
@@ -11,9 +13,11 @@ set -euo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 PY="${PYTHON:-$ROOT/.venv/bin/python}"
+PKG="${1:-tf2_msgs}"
+[[ -d "$ROOT/interfaces/$PKG" ]] || { printf 'build_interface: no interfaces/%s\n' "$PKG" >&2; exit 1; }
 
 fail() {
-    printf 'build_tf2_msgs: %s\n' "$*" >&2
+    printf 'build_interface: %s: %s\n' "$PKG" "$*" >&2
     exit 1
 }
 
@@ -30,9 +34,10 @@ PREFIX="$("$PY" -c 'import sys; print(sys.prefix)')"
 INCLUDES="$("$PY" -c 'import sysconfig, numpy
 print(sysconfig.get_paths()["include"] + ";" + numpy.get_include())')"
 
-WORK="$(mktemp -d "${TMPDIR:-/tmp}/mfp_tf2_msgs.XXXXXX")"
+WORK="$(mktemp -d "${TMPDIR:-/tmp}/mfp_$PKG.XXXXXX")"
 trap 'rm -rf "$WORK"' EXIT
-cp -r "$ROOT/interfaces/tf2_msgs" "$WORK/src"
+cp -r "$ROOT/interfaces/$PKG" "$WORK/src"
+rm -f "$WORK/src/COLCON_IGNORE"
 
 export AMENT_PREFIX_PATH="$PREFIX"
 export CMAKE_PREFIX_PATH="$PREFIX"
@@ -49,4 +54,4 @@ if ! {
     tail -n 40 "$WORK/build.log" >&2
     fail "build failed"
 fi
-"$PY" -c 'from tf2_msgs.msg import TFMessage; TFMessage()' || fail "built, but it does not import"
+"$PY" -c "import $PKG" || fail "built, but it does not import"

@@ -1,0 +1,77 @@
+"""Transport losses over real DDS: told apart from the node's backlog, one line naming the profile.
+
+Both processes run with Fast DDS's defaults (no large-data profile): 3 MB clouds published
+back to back overflow the 208 KiB UDP socket buffer, and the node learns of the lost ones
+from the next cloud's sequence number (the middleware's sample-lost event).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from ros_helpers import Feeder, NodeProcess, cloud_from_columns, set_ros_env
+
+from mfp_mapper.ros.transport import PROFILE_ENV
+
+pytestmark = pytest.mark.ros
+
+
+@pytest.fixture(scope="module")
+def ros_domain() -> Iterator[int]:
+    """This module's own DDS domain (60-69), Fast DDS defaults in this process."""
+    import rclpy
+
+    domain = 60 + (os.getpid() + 5) % 10
+    keys = ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", PROFILE_ENV)
+    saved = {k: os.environ.get(k) for k in keys}
+    os.environ.pop(PROFILE_ENV, None)
+    set_ros_env(domain)
+    rclpy.init(domain_id=domain)
+    try:
+        yield domain
+    finally:
+        rclpy.try_shutdown()
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def test_clouds_lost_in_transport_are_counted_and_explained_once(
+    ros_domain: int, tmp_path: Path
+) -> None:
+    params = {"status_period": 0.25, "publish_rate": 0.0, "cloud_queue_size": 1000}
+    node = NodeProcess(ros_domain, params, tmp_path / "node.log")
+    feeder = Feeder()
+    try:
+        assert feeder.wait_connected(30.0), node.log()
+        assert feeder.wait(lambda: feeder.status is not None, 10.0)
+        rng = np.random.default_rng(0)
+        xyz = rng.uniform(-20.0, 20.0, (250_000, 3)).astype(np.float32)  # 3 MB
+        big = cloud_from_columns({a: xyz[:, k] for k, a in enumerate("xyz")}, "lidar", 1.0)
+        for _ in range(30):
+            feeder.cloud_pub.publish(big)
+            feeder.spin(0.0)
+        small = cloud_from_columns({a: xyz[:10, k] for k, a in enumerate("xyz")}, "lidar", 2.0)
+        for _ in range(5):  # a loss is seen when a later cloud arrives
+            feeder.wait(lambda: False, 0.5)
+            feeder.cloud_pub.publish(small)
+        status = feeder.wait_status(lambda s: s["clouds_in"] + s["clouds_lost_transport"] >= 31)
+    finally:
+        feeder.destroy()
+        code = node.stop()
+    log = node.log()
+    assert code == 0, log[-3000:]
+    lost = status["clouds_lost_transport"]
+    if lost == 0:
+        pytest.skip("no cloud was lost in transport on this run (nothing to tell apart)")
+    # the node's own backlog is not what lost them: its queue had room for every cloud
+    assert status["clouds_dropped"].get("queue_full", 0) == 0
+    explained = [line for line in log.splitlines() if "lost in transport before" in line]
+    assert "fastdds_large_data.xml" in explained[0] and "queue_full" in explained[0]
+    assert sum("large-data profile" in line for line in explained) == 1, log[-3000:]
