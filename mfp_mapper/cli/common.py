@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -45,12 +46,18 @@ def load_map_arg(path: str, bounds: Any = None, lazy_tiles: bool = False) -> Any
         raise CliError(f"{path}: no such map file") from None
     except (MapFileError, OSError, ValueError) as err:
         raise CliError(str(err)) from None
+    except MemoryError:
+        raise CliError(f"{path}: not enough memory to load this map") from None
 
 
 def check_writable(path: Path, tiled_ok: bool = False) -> None:
+    """CliError, before any work, when ``path`` cannot be written (no folder, read-only)."""
     parent = path.parent if str(path.parent) else Path(".")
     if not parent.is_dir():
         raise CliError(f"{path}: the folder {parent} does not exist")
+    target = path if path.is_dir() else parent
+    if not os.access(target, os.W_OK | os.X_OK):
+        raise CliError(f"{path}: cannot write in {target} (read-only or not permitted)")
     if tiled_ok and path.suffix != ".npz":
         from mfp_mapper.mapio.mapfile import MapFileError
         from mfp_mapper.mapio.tiles import check_tiled_output
@@ -61,6 +68,25 @@ def check_writable(path: Path, tiled_ok: bool = False) -> None:
             raise CliError(str(err)) from None
     elif path.is_dir():
         raise CliError(f"{path} is a directory, expected a file name")
+
+
+def check_folder_writable(folder: Path) -> None:
+    """CliError when ``folder`` (made if missing) could not be written in."""
+    existing = folder.absolute()
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise CliError(f"{folder}: {existing} is not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise CliError(f"{folder}: cannot write in {existing} (read-only or not permitted)")
+
+
+def one_line(err: BaseException) -> str:
+    """The error's message on one line (a Dask or OS error may span several)."""
+    text = " ".join(str(err).split()) or type(err).__name__
+    if isinstance(err, OSError) and err.filename is not None and str(err.filename) not in text:
+        text = f"{err.filename}: {text}"
+    return text
 
 
 def unit_interval(text: str) -> float:

@@ -56,19 +56,19 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.output)
     fmt = args.format or _export_format(out)
     if fmt == "ply":
-        from mfp_mapper.mapio.mapfile import MapFileError
         from mfp_mapper.mapio.tiles import TiledMap
         from mfp_mapper.outputs.export import export_ply, export_ply_tiled
 
-        mapper = load_map_arg(args.map, lazy_tiles=True)  # a tiled map: one tile at a time
         check_writable(out)
+        mapper = load_map_arg(args.map, lazy_tiles=True)  # a tiled map: one tile at a time
         export = export_ply_tiled if isinstance(mapper, TiledMap) else export_ply
         try:
             count = export(mapper, out, args.min_doo, args.min_evidence)
-        except MapFileError as err:  # a damaged tile
+        except ValueError as err:  # a damaged tile (MapFileError), values beyond float32
             raise CliError(f"{err} (nothing written)") from None
         print(f"wrote {out}: {count:,} voxels (x y z degree_of_occupancy std mean_free_path n s)")
         return 0
+    check_writable(out)
     mapper = load_map_arg(args.map)
     z_min, z_max = _export_band(mapper, args)
     try:

@@ -1,7 +1,8 @@
 """``mfp-mapper``: the offline command line (bags, the built-in example, exports, pictures).
 
 One module per subcommand (``cli.replay``, ``cli.merge``, ``cli.simulate``, ``cli.export``,
-``cli.render``, ``cli.plot_convergence``, ``cli.query``, ``cli.evaluate``, ``cli.demo``), each
+``cli.render``, ``cli.plot_convergence``, ``cli.query``, ``cli.evaluate``, ``cli.score``,
+``cli.fit_prior``, ``cli.demo``), each
 with ``add_parser(sub)`` and ``run(args)``; the work is in mapping/, sources/ and outputs/.
 The modules import no numpy at the top, so ``mfp-mapper --help`` stays cheap.
 Exit status: 0 success, 1 the job failed (bad bag, bad map file...), 2 bad usage,
@@ -11,24 +12,31 @@ Exit status: 0 success, 1 the job failed (bad bag, bad map file...), 2 bad usage
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 from collections.abc import Sequence
+from typing import Any
 
 from mfp_mapper.cli import (
     demo,
     evaluate,
     export,
+    fit_prior,
     merge,
     plot_convergence,
     query,
     render,
     replay,
+    score,
     simulate,
 )
 from mfp_mapper.cli.common import CliError, error
 from mfp_mapper.config.names import VERSION
 
-COMMANDS = (replay, merge, simulate, export, render, plot_convergence, query, evaluate, demo)
+COMMANDS = (
+    replay, merge, simulate, export, render, plot_convergence, query, evaluate, score, fit_prior,
+    demo,
+)  # fmt: skip
 """The subcommand modules, in the order ``--help`` lists them."""
 
 EPILOG = """\
@@ -46,6 +54,8 @@ examples:
   mfp-mapper plot-convergence -o pictures/
   mfp-mapper query map.npz 1.0 0.0 1.2  4.0 2.0 0.5
   mfp-mapper evaluate map.npz sim_bag.truth.json
+  mfp-mapper score --split even-odd run.bag --json score.json   # held-out likelihood
+  mfp-mapper fit-prior run.bag                        # the prior that predicts best
 """
 
 
@@ -65,19 +75,38 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _terminated(signum: int, _frame: Any) -> None:
+    """SIGTERM ends the command as Ctrl-C does: cleanup runs, nothing half-written stays."""
+    raise KeyboardInterrupt
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        previous = signal.signal(signal.SIGTERM, _terminated)
+    except ValueError:  # not the main thread: leave signals alone
+        previous = None
+    try:
         return int(args.run(args))
     except CliError as err:
         error(str(err))
+        return 1
+    except ValueError as err:  # a damaged tile found while a command runs
+        from mfp_mapper.mapio.mapfile import MapFileError
+
+        if not isinstance(err, MapFileError):
+            raise
+        error(f"{err} (nothing written)")
         return 1
     except KeyboardInterrupt:
         error("interrupted (nothing written for the step in progress)")
         return 130
     except BrokenPipeError:
         return 1
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

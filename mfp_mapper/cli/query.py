@@ -42,6 +42,6 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(jsonable(rows), indent=2))
         return 0
     print(f"map {args.map}: frame {mapper.frame_id}, {mapper.resolution:g} m voxels")
-    for line in query_lines(rows):
+    for line in query_lines(rows, mapper.prior):
         print(line)
     return 0

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import Any
 
-from mfp_mapper.cli.common import CliError, load_map_arg
+from mfp_mapper.cli.common import CliError, check_folder_writable, load_map_arg
 
 
 def add_parser(sub: Any) -> argparse.ArgumentParser:
@@ -36,6 +37,7 @@ def run(args: argparse.Namespace) -> int:
     from mfp_mapper.outputs.render import render_map
 
     bounds = (args.bounds[:3], args.bounds[3:]) if args.bounds else None
+    check_folder_writable(Path(args.output))
     mapper = load_map_arg(args.map, bounds)
     try:
         result = render_map(

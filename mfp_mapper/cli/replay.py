@@ -15,6 +15,7 @@ from mfp_mapper.cli.common import (
     check_writable,
     jsonable,
     nonneg_int,
+    one_line,
     positive,
     positive_int,
     warn,
@@ -106,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_fleet(args: argparse.Namespace, out: Path) -> int:
-    """Several recordings (or windows, or Dask): ``mapping.fleet``."""
+    """Several inputs (or windows, or Dask): ``mapping.fleet``."""
     from mfp_mapper.mapping.fleet import FleetOptions, default_workers, map_fleet
     from mfp_mapper.mapping.replay import ReplayError
 
@@ -119,12 +120,15 @@ def run_fleet(args: argparse.Namespace, out: Path) -> int:
         tile_blocks=args.tile_blocks,
         work_dir=args.work_dir,
         progress=not args.quiet,
+        allow_duplicates=args.allow_duplicates,
+        poses=None if args.poses is None else str(args.poses),
+        times=None if args.times is None else str(args.times),
     )
     try:
         opts = replay_options(args)
         result = map_fleet(args.inputs, out, opts, fleet, log=warn)
-    except (ReplayError, RuntimeError, ValueError) as err:  # FleetError, MergeError, Dask
-        text = str(err)
+    except (ReplayError, RuntimeError, ValueError, OSError) as err:  # FleetError, Dask...
+        text = one_line(err)
         raise CliError(text if "no map written" in text else f"{text} (no map written)") from None
     print(result.format())
     if args.summary_json:
@@ -142,12 +146,19 @@ def _fleet_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("several recordings, Dask (docs/FLEET.md)")
     g.add_argument(
         "--workers", type=nonneg_int, metavar="N",
-        help="run on a local Dask cluster of N worker processes (0: one per core)",
+        help="run on a local Dask cluster of N worker processes (0: one per core; at most "
+        "one per core and per task)",
     )  # fmt: skip
     g.add_argument("--scheduler", metavar="ADDRESS", help="run on this existing Dask cluster")
     g.add_argument(
         "--chunk-seconds", type=positive, metavar="S",
-        help="also split each recording into windows of S seconds of cloud stamps",
+        help="also split each recording into windows of S seconds of cloud stamps (widened "
+        "to at most one window per cloud and 16 per worker)",
+    )  # fmt: skip
+    g.add_argument(
+        "--allow-duplicates", action="store_true",
+        help="map an input given twice twice (refused by default: its evidence would count "
+        "twice)",
     )  # fmt: skip
     g.add_argument(
         "--skip-bad", action="store_true",

@@ -187,6 +187,16 @@ def node_name_matches(pattern: str, fqn: str) -> bool:
     return re.fullmatch(regex, fqn) is not None
 
 
+def yaml_error_line(err: Exception) -> str:
+    """A YAML error on one line: ``line L, column C: what`` (1-based, as editors count)."""
+    mark = getattr(err, "problem_mark", None) or getattr(err, "context_mark", None)
+    what = " ".join(
+        str(part) for part in (getattr(err, "context", None), getattr(err, "problem", None)) if part
+    ) or " ".join(str(err).split())
+    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+    return f"not YAML: {where}{what}"
+
+
 def read_sections(path: str | Path) -> dict[str, dict[str, Any]]:
     """Section name -> parameters, in the order the sections first appear (ParamFileError)."""
     import yaml
@@ -197,7 +207,7 @@ def read_sections(path: str | Path) -> dict[str, dict[str, Any]]:
     except OSError as err:
         raise ParamFileError(f"cannot read the parameter file: {err}") from None
     except yaml.YAMLError as err:
-        raise ParamFileError(f"not YAML: {err}") from None
+        raise ParamFileError(yaml_error_line(err)) from None
     sections: dict[str, dict[str, Any]] = {}
     if root is None:
         return sections

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from collections.abc import Collection
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -47,6 +48,8 @@ class ReplayOptions:
     threads: int = _default("threads")
     max_voxels: int | None = _default("max_voxels")
     keep_radius: float | None = _default("keep_radius")
+    prior_shape: float = _default("prior.shape")
+    prior_rate: float = _default("prior.rate")
     cloud_topic: str | None = _default("cloud_topic")
     odom_topic: str | None = _default("odom_topic")
     use_tf: bool = _default("use_tf_poses")
@@ -168,13 +171,30 @@ def _flag_help(setting: Setting) -> str:
     return text
 
 
-def add_replay_flags(parser: argparse.ArgumentParser) -> None:
-    """One flag per schema entry that has one; every flag defaults to None (not given)."""
+def _comma_list(setting: Setting) -> Any:
+    """An argparse type: comma-separated values, each of the setting's type and range."""
+    one = _flag_type(setting)
+
+    def parse(text: str) -> list[Any]:
+        return [one(part) for part in text.split(",") if part.strip()]
+
+    parse.__name__ = "list"
+    return parse
+
+
+def add_replay_flags(parser: argparse.ArgumentParser, lists: Collection[str] = ()) -> None:
+    """One flag per schema entry that has one; every flag defaults to None (not given).
+    Settings named in ``lists`` take comma-separated values (a list; ``score`` compares
+    them)."""
     for setting in SETTINGS:
         if setting.flag is None:
             continue
         dest = setting.name.replace(".", "_")
         common: dict[str, Any] = {"dest": dest, "default": None, "help": _flag_help(setting)}
+        if setting.name in lists:
+            common["help"] += "; several, comma-separated: one row each"
+            parser.add_argument(setting.flag, type=_comma_list(setting), **common)
+            continue
         if setting.type is bool:
             on = not setting.flag.startswith("--no-")
             parser.add_argument(setting.flag, action="store_const", const=on, **common)

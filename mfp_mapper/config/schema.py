@@ -166,6 +166,15 @@ SETTINGS: tuple[Setting, ...] = (
     _both("keep_radius", 0.0, "Keep only the map blocks within this distance (m) of the "
           "latest sensor position; farther ones are evicted after each scan. 0: keep all.",
           0.0, 1.0e6, flag="--keep-radius", unlimited="none"),
+    _both("prior.shape", 1.0, "Shape alpha (returns) of the Gamma prior on each voxel's "
+          "extinction (docs/PRIOR.md); with prior.rate = 1, the paper's uniform prior on m. "
+          "Used by every estimate but the most likely DoO (mean, std, intervals, hit "
+          "probability, the grids' thresholds); never stored in the statistics. "
+          "`mfp-mapper fit-prior` fits it to a recording.", 1.0e-6, 1.0e6,
+          flag="--prior-shape", field="prior_shape"),
+    _both("prior.rate", 1.0, "Rate beta (metres of ray) of the Gamma prior on the "
+          "extinction: the prior weighs like beta metres of ray with alpha returns.",
+          1.0e-6, 1.0e6, flag="--prior-rate", field="prior_rate"),
     # --- the sensor ------------------------------------------------------------------------
     _both("sensor_model.max_range", 100.0, "Rays are cut at this range (m); a return beyond "
           "it clears space up to it but counts no return. <= 0: no limit (octomap_server's "
@@ -412,6 +421,8 @@ MAP_SECTION: dict[str, str] = {
     "threads": "threads",
     "max_voxels": "max_voxels",
     "keep_radius": "keep_radius",
+    "prior_shape": "prior.shape",
+    "prior_rate": "prior.rate",
 }
 """``MapSettings`` field -> the setting it holds."""
 
@@ -429,6 +440,8 @@ class MapSettings:
     threads: int = BY_NAME["threads"].core_default
     max_voxels: int | None = BY_NAME["max_voxels"].core_default
     keep_radius: float | None = BY_NAME["keep_radius"].core_default
+    prior_shape: float = BY_NAME["prior.shape"].core_default
+    prior_rate: float = BY_NAME["prior.rate"].core_default
 
     @classmethod
     def of(cls, core_value: Callable[[str], Any]) -> MapSettings:
@@ -457,6 +470,8 @@ class NodeConfig:
     threads: int
     max_voxels: int
     keep_radius: float
+    prior_shape: float
+    prior_rate: float
     sensor_model_max_range: float
     sensor_model_min_range: float
     sensor_model_no_return_range: float

@@ -49,10 +49,11 @@ DEFAULT_OCCUPIED_THRESHOLD = 0.25
 scans at 0.1 m reaches 0.32-0.38, in 40 scans 0.98; see README, "Which map is which")."""
 
 
-def unobserved_hit_probability(resolution: float) -> float:
-    """p_hit of a never-observed voxel, ``s0 / (1 + s0)``: every voxel crossed by rays but
-    never hit is below it, so it is the default free threshold."""
-    return float(hit_probability_one(0.0, 0.0, resolution))
+def unobserved_hit_probability(resolution: float, shape: float = 1.0, rate: float = 1.0) -> float:
+    """p_hit of a never-observed voxel, ``1 - (rate / (rate + s0))^shape`` (``s0 / (1 +
+    s0)`` with the uniform prior): every voxel crossed by rays but never hit is below it,
+    so it is the default free threshold."""
+    return float(hit_probability_one(0.0, 0.0, resolution, shape, rate))
 
 
 def check_trinary(trinary: tuple[float, float] | None) -> tuple[bool, float, float]:
@@ -156,6 +157,7 @@ def band_grid(
     radius: float = 0.0,
     max_cells: int | None = None,
     trinary: tuple[float, float] | None = None,
+    prior: tuple[float, float] = (1.0, 1.0),
 ) -> HitGrid:
     """The hit-probability grid of the observed voxels with index in ``[lo, hi]``, computed
     in one compiled pass over the store's blocks (no per-voxel arrays of the map).
@@ -164,6 +166,7 @@ def band_grid(
     the observed voxels in ``[lo, hi]``; cells take the voxels whose centre is in the band.
     ``GridTooLarge`` before anything is allocated when it would exceed ``max_cells``.
     ``trinary=(occupied, free)``: cells 100 / 0 / -1 instead of percentages (module doc).
+    ``prior``: (shape, rate) of the map's Gamma prior on the extinction.
     """
     _check_band(resolution, z_min, z_max)
     use_trinary, occupied, free = check_trinary(trinary)
@@ -201,6 +204,8 @@ def band_grid(
             use_trinary,
             occupied,
             free,
+            prior[0],
+            prior[1],
         )
     if use_trinary:
         cells = finish_trinary(cells)
@@ -248,6 +253,8 @@ def _band_max_percent(
     trinary: bool,
     occupied: float,
     free: float,
+    shape: float,
+    rate: float,
 ) -> None:
     """Raise each cell of ``cells`` (row j - j0, column i - i0) to round(100 p_hit) of the
     observed voxels in [lo, hi] whose centre height lies in [z_min, z_max]; with
@@ -276,7 +283,7 @@ def _band_max_percent(
             col, row = x - i0, y - j0
             if zc < z_min or zc > z_max or not (0 <= col < width and 0 <= row < height):
                 continue
-            p = min(max(hit_probability_one(s, n, resolution), 0.0), 1.0)
+            p = min(max(hit_probability_one(s, n, resolution, shape, rate), 0.0), 1.0)
             if trinary:
                 code = OCCUPIED if p >= occupied else (FREE if p < free else _UNCERTAIN)
                 percent = np.int8(code)

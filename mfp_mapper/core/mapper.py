@@ -17,7 +17,7 @@ from mfp_mapper.core import model
 from mfp_mapper.core.errors import CoreError, ScanTooLargeError
 from mfp_mapper.core.gridmap import HitGrid, band_grid
 from mfp_mapper.core.mailbox import Mailbox
-from mfp_mapper.core.memory_bound import MemoryBound
+from mfp_mapper.core.memory_bound import MemoryBound, fit_scan_budget, scan_block_budget
 from mfp_mapper.core.staging import merge_shard, prefault, staged_updates
 from mfp_mapper.core.store import (
     BLOCK_EDGE,
@@ -29,7 +29,7 @@ from mfp_mapper.core.store import (
     index_box,
     voxel_problem,
 )
-from mfp_mapper.core.traversal import Rays, integrate_rays, prepare_rays
+from mfp_mapper.core.traversal import Rays, StoreView, integrate_rays, prepare_rays, store_view
 from mfp_mapper.core.voxel_stats import IntegrationSummary, VoxelStats
 
 MAX_RAY_VOXELS = 1 << 15
@@ -88,10 +88,16 @@ class Mapper:
         max_voxels: int | None = None,
         keep_radius: float | None = None,
         origin: ArrayLike | None = None,
+        prior_shape: float = 1.0,
+        prior_rate: float = 1.0,
     ) -> None:
         _check_settings(
             resolution, max_range, min_range, decay_time, threads, max_voxels, keep_radius
         )
+        self.prior = model.Prior(float(prior_shape), float(prior_rate))
+        """Gamma prior on the extinction (``model.Prior``; 1, 1: the paper's uniform prior):
+        read by every estimate (mean, std, intervals, p_hit, grids, likelihood), never stored
+        in the statistics, so it may be changed at any time."""
         self.resolution = float(resolution)
         self.max_range = float(max_range)
         self.min_range = float(min_range)
@@ -146,11 +152,13 @@ class Mapper:
         """
         t0, cpu0 = time.perf_counter(), time.thread_time()
         self._worker_cpu = 0.0
-        pts, org, flags = _checked(points, origins, stamp, no_return)
-        if self._origin is None:
-            self._origin = self._origin_from(org)
-        rays, summary = self._rays(pts, org, flags, self._offset)
+        if not math.isfinite(stamp):
+            raise ValueError(f"stamp must be finite seconds, got {stamp}")
+        rays, pts, dropped = self._place(points, origins, no_return, set_origin=True)
+        summary = self._summary(rays, pts, dropped)
         if len(rays):
+            budget = scan_block_budget(self.max_voxels)
+            rays, summary.rays_cut_by_budget = fit_scan_budget(rays, budget, self.resolution)
             self._bound.make_room(self._store, rays.origins_vox, rays.ends_vox, self._center())
             scan_id = self._store.begin_scan()
             integrate_rays(
@@ -165,7 +173,12 @@ class Mapper:
             summary.new_voxels, summary.blocks_touched, summary.voxels_touched = (
                 self._store.finish_scan()
             )
-            self._scan_added(rays, stamp)
+            self.last_stamp = (
+                float(stamp) if self.last_stamp is None else max(self.last_stamp, stamp)
+            )
+            self.last_origin = rays.origins_vox.mean(axis=0) * self.resolution + self._offset
+            self._bound.enforce(self._store, self._center())
+            self.version += 1
         summary.seconds = time.perf_counter() - t0
         summary.cpu_seconds = time.thread_time() - cpu0 + self._worker_cpu
         return summary
@@ -183,12 +196,17 @@ class Mapper:
         adds it to the map in one pass over the blocks it touched (``core.staging``)."""
         t0, cpu0 = time.perf_counter(), time.thread_time()
         self._worker_cpu = 0.0
-        pts, org, flags = _checked(points, origins, stamp, no_return)
-        origin = self._origin if self._origin is not None else self._origin_from(org)
-        offset = origin if origin is not None else np.zeros(3)
-        rays, summary = self._rays(pts, org, flags, offset)
+        if not math.isfinite(stamp):
+            raise ValueError(f"stamp must be finite seconds, got {stamp}")
+        origin, org = self._origin, np.asarray(origins, dtype=np.float64)
+        if origin is None and org.shape[-1:] == (3,):  # bad shapes: _place names them
+            origin = self._origin_from(org.reshape(-1, 3))
+        rays, pts, dropped = self._place(points, origins, no_return, set_origin=False, at=origin)
+        summary = self._summary(rays, pts, dropped)
         store = BlockStore(shards=len(self._store.shards))
         if len(rays):
+            budget = scan_block_budget(self.max_voxels)
+            rays, summary.rays_cut_by_budget = fit_scan_budget(rays, budget, self.resolution)
             # a scan too large for max_voxels is refused before it takes any memory
             self._bound.make_room(store, rays.origins_vox, rays.ends_vox, None)
             integrate_rays(
@@ -234,29 +252,18 @@ class Mapper:
         summary.cpu_seconds += time.thread_time() - cpu0
         return summary
 
-    def _rays(
-        self,
-        pts: FloatArray,
-        org: FloatArray,
-        flags: NDArray[np.bool_] | None,
-        offset: FloatArray,
-    ) -> tuple[Rays, IntegrationSummary]:
-        """The scan's rays in voxel units of a map at ``offset``, and its summary so far."""
-        if offset.any():
-            pts, org = pts - offset, org - offset
-        walk_limit = MAX_RAY_VOXELS * self.resolution
-        reach = min(self.max_range, walk_limit)
-        rays, dropped = prepare_rays(pts, org, self.resolution, self.min_range, reach, flags)
+    def _summary(self, rays: Rays, pts: FloatArray, dropped: dict[str, int]) -> IntegrationSummary:
+        """What a scan's placement says of its rays (``integrate`` and ``stage``)."""
         summary = IntegrationSummary(rays_in=pts.shape[0], dropped=dropped)
         summary.rays_used = len(rays)
         summary.rays_unindexable = dropped["out_of_bounds"]
         summary.rays_no_return = rays.no_return_flagged
         cut = int(np.count_nonzero(~rays.has_return)) - rays.no_return_flagged
-        if self.max_range > walk_limit:
+        if self.max_range > MAX_RAY_VOXELS * self.resolution:
             summary.rays_beyond_walk_limit = cut
         else:
             summary.rays_truncated = cut
-        return rays, summary
+        return summary
 
     def _scan_added(self, rays: Rays, stamp: float) -> None:
         """After a scan went into the store: its stamp and place, the memory bound."""
@@ -264,6 +271,58 @@ class Mapper:
         self.last_origin = rays.origins_vox.mean(axis=0) * self.resolution + self._offset
         self._bound.enforce(self._store, self._center())
         self.version += 1
+
+    def place_rays(
+        self, points: ArrayLike, origins: ArrayLike, no_return: ArrayLike | None = None
+    ) -> tuple[Rays, dict[str, int]]:
+        """The rays ``integrate`` would walk for this scan (voxel units of the store, the
+        same checks, cuts and drops), and the drops by reason; the map is not changed
+        (an empty map's origin is not set). ``Rays.source`` indexes the input points."""
+        rays, _, dropped = self._place(points, origins, no_return, set_origin=False)
+        return rays, dropped
+
+    def _place(
+        self,
+        points: ArrayLike,
+        origins: ArrayLike,
+        no_return: ArrayLike | None,
+        set_origin: bool,
+        at: FloatArray | None = None,
+    ) -> tuple[Rays, FloatArray, dict[str, int]]:
+        """The rays in voxel units of the store (``at``: of a map with that origin, when
+        the map has none yet), the points as float64 and the drops by reason."""
+        pts = np.asarray(points, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise ValueError(f"points must have shape (N, 3), got {pts.shape}")
+        org = np.asarray(origins, dtype=np.float64)
+        if org.shape != (3,) and org.shape != pts.shape:
+            raise ValueError(f"origins must have shape (3,) or {pts.shape}, got {org.shape}")
+        if self._origin is None and set_origin:
+            self._origin = self._origin_from(org)
+        offset = self._origin if self._origin is not None else at
+        if offset is not None and offset.any():
+            pts_rel, org = pts - offset, org - offset
+        else:
+            pts_rel = pts
+        reach = min(self.max_range, MAX_RAY_VOXELS * self.resolution)
+        flags = None if no_return is None else np.asarray(no_return, dtype=np.bool_)
+        if flags is not None and flags.shape != (pts.shape[0],):
+            raise ValueError(f"no_return must have shape ({pts.shape[0]},), got {flags.shape}")
+        rays, dropped = prepare_rays(pts_rel, org, self.resolution, self.min_range, reach, flags)
+        return rays, pts, dropped
+
+    def store_view(self) -> tuple[StoreView, int]:
+        """The store's arrays for read-only compiled kernels (``traversal.read_walk``) and
+        its shard mask; valid until the next ``integrate``, ``reset`` or eviction."""
+        return store_view(self._store), self._store.shard_mask
+
+    @property
+    def prior_shape(self) -> float:
+        return self.prior.shape
+
+    @property
+    def prior_rate(self) -> float:
+        return self.prior.rate
 
     def _origin_from(self, sensor_origins: FloatArray) -> FloatArray | None:
         """The origin a first scan gives the map: its first finite sensor position, rounded
@@ -400,11 +459,12 @@ class Mapper:
     ) -> HitGrid:
         """The height band ``[z_min, z_max]`` projected onto a 2D grid (``gridmap``): per
         cell ``round(100 p)``, ``p`` the largest hit probability of a voxel edge in the
-        column, -1 where never observed; the square of half side ``radius`` around
-        ``center``, or the extent of the observed band. Statistics at their last update
-        (no decay to a later stamp), read straight from the blocks. ``gridmap.GridTooLarge``
-        (nothing allocated) when the grid would exceed ``max_cells``. ``trinary=(occupied,
-        free)``: cells 100 / 0 / -1 by those hit-probability thresholds (Nav2)."""
+        column (with the map's prior), -1 where never observed; the square of half side
+        ``radius`` around ``center``, or the extent of the observed band. Statistics at their
+        last update (no decay to a later stamp), read straight from the blocks.
+        ``gridmap.GridTooLarge`` (nothing allocated) when the grid would exceed
+        ``max_cells``. ``trinary=(occupied, free)``: cells 100 / 0 / -1 by those
+        hit-probability thresholds (Nav2)."""
         lo_m, hi_m = [-math.inf, -math.inf, z_min], [math.inf, math.inf, z_max]
         if center is not None and radius > 0.0:  # only the blocks near the window are read
             margin = radius + self.resolution
@@ -424,6 +484,7 @@ class Mapper:
             radius=radius,
             max_cells=max_cells,
             trinary=trinary,
+            prior=(self.prior.shape, self.prior.rate),
         )
         if ox == 0.0 and oy == 0.0:
             return grid
@@ -443,6 +504,7 @@ class Mapper:
             t_last=raw.t_last,
             observed=model.observed(s, n),
             resolution=self.resolution,
+            prior=self.prior,
         )
 
     @property
@@ -491,24 +553,6 @@ class Mapper:
         if self._pool is not None:
             self._pool.shutdown()
             self._pool = None
-
-
-def _checked(
-    points: ArrayLike, origins: ArrayLike, stamp: float, no_return: ArrayLike | None
-) -> tuple[FloatArray, FloatArray, NDArray[np.bool_] | None]:
-    """A scan's arrays as float64 / bool, with their shapes checked (ValueError)."""
-    pts = np.asarray(points, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise ValueError(f"points must have shape (N, 3), got {pts.shape}")
-    org = np.asarray(origins, dtype=np.float64)
-    if org.shape != (3,) and org.shape != pts.shape:
-        raise ValueError(f"origins must have shape (3,) or {pts.shape}, got {org.shape}")
-    if not math.isfinite(stamp):
-        raise ValueError(f"stamp must be finite seconds, got {stamp}")
-    flags = None if no_return is None else np.asarray(no_return, dtype=np.bool_)
-    if flags is not None and flags.shape != (pts.shape[0],):
-        raise ValueError(f"no_return must have shape ({pts.shape[0]},), got {flags.shape}")
-    return pts, org, flags
 
 
 def _shard_count(threads: int) -> int:

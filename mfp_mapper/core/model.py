@@ -2,14 +2,17 @@
 
 Every function is vectorised over numpy arrays of the sufficient statistics:
 ``s`` — metres travelled by rays inside the voxel, ``n`` — first returns inside it (real
-valued after decay). The extinction ``u = -log m`` has a Gamma(shape n+1, rate s+1)
-posterior (uniform prior on m, Eq. 24-26); ``m`` is the probability of crossing one metre
-unreflected and the degree of occupancy (DoO) is ``1 - m``.
+valued after decay). With a Gamma(shape alpha, rate beta) prior on the extinction
+``u = -log m`` (``Prior``; alpha = beta = 1 is the paper's uniform prior on m, Eq. 24) the
+posterior of u is Gamma(n + alpha, s + beta) (Eq. 25-26 generalised, docs/PRIOR.md); ``m``
+is the probability of crossing one metre unreflected and the degree of occupancy (DoO) is
+``1 - m``. The prior is applied when statistics are read, never stored in ``s`` and ``n``.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
@@ -17,6 +20,45 @@ from numpy.typing import ArrayLike, NDArray
 
 FloatArray = NDArray[np.float64]
 
+
+@dataclass(frozen=True)
+class Prior:
+    """Gamma(``shape`` alpha, ``rate`` beta) prior on the extinction u = -log m (per metre).
+
+    ``beta`` is in metres of ray and ``alpha`` in returns: the prior weighs as much as
+    ``beta`` metres of ray with ``alpha`` returns. ``Prior()`` (1, 1) is the uniform prior
+    on m of the paper (Eq. 24)."""
+
+    shape: float = 1.0
+    rate: float = 1.0
+
+    def __post_init__(self) -> None:
+        finite = math.isfinite(self.shape) and math.isfinite(self.rate)
+        if not (finite and self.shape > 0 and self.rate > 0):
+            raise ValueError(
+                f"the prior's shape and rate must be finite and > 0, got shape={self.shape}, "
+                f"rate={self.rate}"
+            )
+
+    @property
+    def is_uniform(self) -> bool:
+        return self.shape == 1.0 and self.rate == 1.0
+
+    @property
+    def unknown_doo(self) -> float:
+        """Mean DoO of a never-observed voxel, ``1 - (beta / (beta + 1))^alpha``."""
+        return float(1.0 - (self.rate / (self.rate + 1.0)) ** self.shape)
+
+    @property
+    def unknown_std(self) -> float:
+        """Std of the DoO of a never-observed voxel."""
+        m1 = (self.rate / (self.rate + 1.0)) ** self.shape
+        m2 = (self.rate / (self.rate + 2.0)) ** self.shape
+        return float(math.sqrt(max(m2 - m1 * m1, 0.0)))
+
+
+UNIFORM = Prior()
+"""The paper's uniform prior on m: Gamma(1, 1) on the extinction."""
 UNKNOWN_DOO = 0.5
 """Degree of occupancy shown for voxels never observed (the uniform prior's mean)."""
 UNKNOWN_STD = 1.0 / math.sqrt(12.0)
@@ -35,16 +77,16 @@ def observed(s: ArrayLike, n: ArrayLike) -> NDArray[np.bool_]:
     return (s_arr > 0.0) | (n_arr > 0.0)
 
 
-def _log_moment(s: ArrayLike, n: ArrayLike, z: ArrayLike) -> FloatArray:
-    """log E[m^z] = (n+1) (log(s+1) - log(s+1+z)) (Eq. 26)."""
+def _log_moment(s: ArrayLike, n: ArrayLike, z: ArrayLike, prior: Prior = UNIFORM) -> FloatArray:
+    """log E[m^z] = (n+alpha) (log(s+beta) - log(s+beta+z)) (Eq. 26, Gamma prior)."""
     s_arr, n_arr = _stats(s, n)
     z_arr = np.asarray(z, dtype=np.float64)
-    return (n_arr + 1.0) * (np.log1p(s_arr) - np.log(s_arr + 1.0 + z_arr))
+    return -(n_arr + prior.shape) * np.log1p(z_arr / (s_arr + prior.rate))
 
 
-def moment_m(s: ArrayLike, n: ArrayLike, z: ArrayLike) -> FloatArray:
-    """E[m^z] = ((s+1)/(s+1+z))^(n+1) (Eq. 26)."""
-    return np.exp(_log_moment(s, n, z))
+def moment_m(s: ArrayLike, n: ArrayLike, z: ArrayLike, prior: Prior = UNIFORM) -> FloatArray:
+    """E[m^z] = ((s+beta)/(s+beta+z))^(n+alpha) (Eq. 26; alpha = beta = 1: uniform prior)."""
+    return np.exp(_log_moment(s, n, z, prior))
 
 
 def most_likely_doo(s: ArrayLike, n: ArrayLike) -> FloatArray:
@@ -59,38 +101,45 @@ def most_likely_doo(s: ArrayLike, n: ArrayLike) -> FloatArray:
     return np.where(observed(s_arr, n_arr), doo, UNKNOWN_DOO)
 
 
-def mean_doo(s: ArrayLike, n: ArrayLike) -> FloatArray:
+def mean_doo(s: ArrayLike, n: ArrayLike, prior: Prior = UNIFORM) -> FloatArray:
     """Posterior mean of the degree of occupancy, ``1 - E[m]``."""
-    return 1.0 - moment_m(s, n, 1.0)
+    return 1.0 - moment_m(s, n, 1.0, prior)
 
 
-def std_doo(s: ArrayLike, n: ArrayLike) -> FloatArray:
+def std_doo(s: ArrayLike, n: ArrayLike, prior: Prior = UNIFORM) -> FloatArray:
     """Posterior standard deviation of the degree of occupancy (equal to that of m)."""
-    m1 = moment_m(s, n, 1.0)
-    m2 = moment_m(s, n, 2.0)
+    m1 = moment_m(s, n, 1.0, prior)
+    m2 = moment_m(s, n, 2.0, prior)
     return np.sqrt(np.maximum(m2 - m1 * m1, 0.0))
 
 
-def hit_probability(s: ArrayLike, n: ArrayLike, length: ArrayLike) -> FloatArray:
+def hit_probability(
+    s: ArrayLike, n: ArrayLike, length: ArrayLike, prior: Prior = UNIFORM
+) -> FloatArray:
     """Probability that a ray travelling ``length`` metres in the voxel is reflected (Eq. 34),
     ``1 - E[m^length]``.
 
     With ``length`` = the voxel edge this is the cell's p_hit (Eq. 31-33).
     """
-    return -np.expm1(_log_moment(s, n, length))
+    return -np.expm1(_log_moment(s, n, length, prior))
 
 
 @nb.njit(cache=True)
-def hit_probability_one(s: float, n: float, length: float) -> float:
-    """``hit_probability`` of one voxel, for compiled kernels (the same expression)."""
+def hit_probability_one(
+    s: float, n: float, length: float, shape: float = 1.0, rate: float = 1.0
+) -> float:
+    """``hit_probability`` of one voxel, for compiled kernels (the same expression), with
+    the prior's ``shape`` and ``rate``."""
     s = max(s, 0.0)
     n = max(n, 0.0)
-    return -math.expm1((n + 1.0) * (math.log1p(s) - math.log(s + 1.0 + length)))
+    return -math.expm1(-(n + shape) * math.log1p(length / (s + rate)))
 
 
-def path_pass_probability(s: ArrayLike, n: ArrayLike, lengths: ArrayLike) -> FloatArray:
+def path_pass_probability(
+    s: ArrayLike, n: ArrayLike, lengths: ArrayLike, prior: Prior = UNIFORM
+) -> FloatArray:
     """Probability that a ray crosses voxels (last axis) with chord ``lengths`` unreflected."""
-    return np.exp(np.sum(np.log(moment_m(s, n, lengths)), axis=-1))
+    return np.exp(np.sum(_log_moment(s, n, lengths, prior), axis=-1))
 
 
 def mean_free_path(s: ArrayLike, n: ArrayLike) -> FloatArray:
@@ -185,22 +234,23 @@ def gamma_quantile(shape: ArrayLike, rate: ArrayLike, q: float) -> FloatArray:
 
 
 def extinction_interval(
-    s: ArrayLike, n: ArrayLike, level: float = 0.9
+    s: ArrayLike, n: ArrayLike, level: float = 0.9, prior: Prior = UNIFORM
 ) -> tuple[FloatArray, FloatArray]:
-    """Central credible interval of the extinction u = -log m (returns per metre)."""
+    """Central credible interval of the extinction u = -log m (returns per metre):
+    quantiles of Gamma(n + alpha, s + beta)."""
     if not 0.0 < level < 1.0:
         raise ValueError(f"credible level must lie in (0, 1), got {level}")
     s_arr, n_arr = _stats(s, n)
     tail = 0.5 * (1.0 - level)
-    return (
-        gamma_quantile(n_arr + 1.0, s_arr + 1.0, tail),
-        gamma_quantile(n_arr + 1.0, s_arr + 1.0, 1.0 - tail),
-    )
+    shape, rate = n_arr + prior.shape, s_arr + prior.rate
+    return gamma_quantile(shape, rate, tail), gamma_quantile(shape, rate, 1.0 - tail)
 
 
-def doo_interval(s: ArrayLike, n: ArrayLike, level: float = 0.9) -> tuple[FloatArray, FloatArray]:
+def doo_interval(
+    s: ArrayLike, n: ArrayLike, level: float = 0.9, prior: Prior = UNIFORM
+) -> tuple[FloatArray, FloatArray]:
     """Central credible interval of the degree of occupancy (monotone in the extinction)."""
-    u_lo, u_hi = extinction_interval(s, n, level)
+    u_lo, u_hi = extinction_interval(s, n, level, prior)
     return -np.expm1(-u_lo), -np.expm1(-u_hi)
 
 

@@ -30,6 +30,7 @@ from mfp_mapper.core.blocks import (
     BLOCK_VOXELS,
     MAX_VOXEL_INDEX,
     block_key,
+    find_block,
     local_index,
     shard_of,
 )
@@ -58,6 +59,8 @@ class Rays:
     has_return: NDArray[np.bool_]
     no_return_flagged: int = 0
     """How many of the rays had their ``no_return`` flag set (see ``prepare_rays``)."""
+    source: NDArray[np.int64] | None = None
+    """Index of each ray's input point (``prepare_rays`` drops some points)."""
 
     def __len__(self) -> int:
         return int(self.lengths.shape[0])
@@ -68,6 +71,7 @@ class Rays:
             np.ascontiguousarray(self.ends_vox[index]),
             self.lengths[index],
             self.has_return[index],
+            source=None if self.source is None else self.source[index],
         )
 
 
@@ -87,6 +91,7 @@ def prepare_rays(
     ``min_range`` (or zero), and reaching beyond the indexable range are dropped.
     """
     count = points.shape[0]
+    source = np.empty(count, dtype=np.int64)
     out = Rays(
         np.empty((count, 3)), np.empty((count, 3)), np.empty(count), np.empty(count, dtype=np.bool_)
     )
@@ -96,7 +101,7 @@ def prepare_rays(
         raise ValueError(f"no_return must have shape ({count},), got {flags.shape}")
     used = _prepare_rays(
         points, np.atleast_2d(origins), resolution, min_range, max_range, MAX_VOXEL_INDEX,
-        flags, out.origins_vox, out.ends_vox, out.lengths, out.has_return, drops,
+        flags, out.origins_vox, out.ends_vox, out.lengths, out.has_return, source, drops,
     )  # fmt: skip
     dropped = {
         "nonfinite": int(drops[0]),
@@ -109,6 +114,7 @@ def prepare_rays(
         out.lengths[:used],
         out.has_return[:used],
         int(drops[3]),
+        source[:used],
     )
     return rays, dropped
 
@@ -126,11 +132,12 @@ def _prepare_rays(
     ends_vox: NDArray[np.float64],
     lengths: NDArray[np.float64],
     has_return: NDArray[np.bool_],
+    source: NDArray[np.int64],
     drops: NDArray[np.int64],
 ) -> int:
     """One pass over the points: fill the first rays of the outputs, count the drops
     ([nonfinite, below_min_range, out_of_bounds], then the flagged rays kept); returns how
-    many rays are usable.
+    many rays are usable; ``source`` receives each ray's point index.
     ``no_return`` is empty (every point a return) or one flag per point."""
     k = 0
     per_point = origins.shape[0] > 1
@@ -166,6 +173,7 @@ def _prepare_rays(
             drops[3] += 1
         else:
             has_return[k] = length <= max_range
+        source[k] = i
         k += 1
     return k
 
@@ -443,3 +451,214 @@ def _walk_rays(
                 mailed += 1
     mail_count[0] = mailed
     return lengths.shape[0]
+
+
+StoreView = tuple[
+    tuple[NDArray[np.int64], ...],  # table_keys of each shard
+    tuple[NDArray[np.int32], ...],  # table_blocks of each shard
+    tuple[NDArray[np.float32], ...],  # block_sn of each shard
+    tuple[NDArray[np.float64], ...],  # block_t of each shard
+]
+"""The arrays of every shard that a read-only walk reads (``store_view``)."""
+
+
+def store_view(store: BlockStore) -> StoreView:
+    """The store's arrays for ``read_walk`` (valid until the store next changes)."""
+    return (
+        tuple(sh.table_keys for sh in store.shards),
+        tuple(sh.table_blocks for sh in store.shards),
+        tuple(sh.block_sn for sh in store.shards),
+        tuple(sh.block_t for sh in store.shards),
+    )
+
+
+@nb.njit(cache=True, nogil=True)
+def read_walk(
+    origins_vox: NDArray[np.float64],
+    ends_vox: NDArray[np.float64],
+    lengths: NDArray[np.float64],
+    has_return: NDArray[np.bool_],
+    view: StoreView,
+    shard_mask: int,
+    stamp: float,
+    decay_time: float,
+    shape: float,
+    rate: float,
+    ray_log_likelihood: NDArray[np.float64],
+    record: bool,
+    event_ray: NDArray[np.int64],
+    event_ijk: NDArray[np.int32],
+    event_s: NDArray[np.float64],
+    event_n: NDArray[np.float64],
+    event_chord: NDArray[np.float64],
+    event_hit: NDArray[np.bool_],
+) -> int:
+    """The read-only twin of ``_walk_rays``: the same steps and chords, nothing written
+    to the store. Returns the number of events.
+
+    Events of a ray: every voxel it crosses with a positive chord before its end voxel is a
+    pass over that chord; its end voxel is a return over the voxel's FULL chord (from where
+    the ray entered it to where it would leave it) when the ray has a return, else a pass
+    over the chord up to the end point. A voxel's statistics are its block's, decayed to
+    ``stamp`` by ``exp(-|stamp - t_block| / decay_time)`` (``model.decay``); absent blocks
+    are never observed (s = n = 0). With the Gamma(``shape``, ``rate``) prior on the
+    extinction the pass probability over a chord l is ``((s+rate)/(s+rate+l))^(n+shape)``
+    and a return's probability 1 minus that. ``ray_log_likelihood[r]`` receives the sum
+    of the log-probabilities of ray r's events. With ``record``, event k is written to the
+    ``event_*`` arrays (ray, voxel index, decayed s and n, chord, whether a return),
+    which must hold ``visit_bounds`` events per ray.
+    """
+    tables_keys, tables_blocks, blocks_sn, blocks_t = view
+    decays = math.isfinite(decay_time)
+    events = 0
+    # blocks found so far (block number, -1 when absent; shard), direct-mapped as in
+    # _walk_rays: neighbouring rays cross the same blocks and the hash costs more
+    cache_keys = np.full(CACHE_SIZE, -1, dtype=np.int64)
+    cache_blocks = np.empty(CACHE_SIZE, dtype=np.int64)
+    tiny = 1e-280
+    for r in range(lengths.shape[0]):
+        ox = origins_vox[r, 0]
+        oy = origins_vox[r, 1]
+        oz = origins_vox[r, 2]
+        dx = ends_vox[r, 0] - ox
+        dy = ends_vox[r, 1] - oy
+        dz = ends_vox[r, 2] - oz
+        length = lengths[r]
+        vx = int(np.floor(ox))
+        vy = int(np.floor(oy))
+        vz = int(np.floor(oz))
+        ex = int(np.floor(ends_vox[r, 0]))
+        ey = int(np.floor(ends_vox[r, 1]))
+        ez = int(np.floor(ends_vox[r, 2]))
+        # the stepping below is _walk_rays' (kept identical: test_likelihood checks chords)
+        step_x = 1 if ex > vx else -1
+        step_y = 1 if ey > vy else -1
+        step_z = 1 if ez > vz else -1
+        t_max_x = ((vx + (dx > 0)) - ox) / dx if ex != vx else np.inf
+        t_max_y = ((vy + (dy > 0)) - oy) / dy if ey != vy else np.inf
+        t_max_z = ((vz + (dz > 0)) - oz) / dz if ez != vz else np.inf
+        t_delta_x = abs(1.0 / dx) if ex != vx else 0.0
+        t_delta_y = abs(1.0 / dy) if ey != vy else 0.0
+        t_delta_z = abs(1.0 / dz) if ez != vz else 0.0
+        steps = abs(ex - vx) + abs(ey - vy) + abs(ez - vz)
+        t_prev = 0.0
+        morton_x = _SPREAD[vx & _LOCAL_MASK] << 2
+        morton_y = _SPREAD[vy & _LOCAL_MASK] << 1
+        morton_z = _SPREAD[vz & _LOCAL_MASK]
+        wrap_x = 0 if step_x > 0 else _LOCAL_MASK
+        wrap_y = 0 if step_y > 0 else _LOCAL_MASK
+        wrap_z = 0 if step_z > 0 else _LOCAL_MASK
+        shard = 0
+        block = -1
+        f = 1.0  # decay factor of the current block
+        total = 0.0
+        # passes of voxels without returns (exponent ``shape``): their ratios are
+        # multiplied, one log at the end (a division per voxel instead of a log)
+        product = 1.0
+        new_block = True
+        while True:
+            if new_block:
+                bx = vx >> BLOCK_BITS
+                by = vy >> BLOCK_BITS
+                bz = vz >> BLOCK_BITS
+                shard = shard_of(bx, by, bz, shard_mask)
+                key = block_key(bx, by, bz)
+                slot = (
+                    ((bx & CACHE_MASK) << (2 * CACHE_BITS))
+                    | ((by & CACHE_MASK) << CACHE_BITS)
+                    | (bz & CACHE_MASK)
+                )
+                if cache_keys[slot] == key:
+                    block = cache_blocks[slot]
+                else:
+                    block = find_block(tables_keys[shard], tables_blocks[shard], key)
+                    cache_keys[slot] = key
+                    cache_blocks[slot] = block
+                f = 1.0
+                if block >= 0 and decays:
+                    f = math.exp(-abs(stamp - blocks_t[shard][block]) / decay_time)
+            local = morton_x | morton_y | morton_z
+            cx, cy, cz = vx, vy, vz
+            s = 0.0
+            n = 0.0
+            if block >= 0:
+                s = blocks_sn[shard][block, local, 0] * f
+                n = blocks_sn[shard][block, local, 1] * f
+            if steps == 0:
+                break
+            if t_max_x <= t_max_y and t_max_x <= t_max_z:
+                t_next = t_max_x
+                vx += step_x
+                t_max_x = t_max_x + t_delta_x if vx != ex else np.inf
+                axis_local = vx & _LOCAL_MASK
+                morton_x = _SPREAD[axis_local] << 2
+                new_block = axis_local == wrap_x
+            elif t_max_y <= t_max_z:
+                t_next = t_max_y
+                vy += step_y
+                t_max_y = t_max_y + t_delta_y if vy != ey else np.inf
+                axis_local = vy & _LOCAL_MASK
+                morton_y = _SPREAD[axis_local] << 1
+                new_block = axis_local == wrap_y
+            else:
+                t_next = t_max_z
+                vz += step_z
+                t_max_z = t_max_z + t_delta_z if vz != ez else np.inf
+                axis_local = vz & _LOCAL_MASK
+                morton_z = _SPREAD[axis_local]
+                new_block = axis_local == wrap_z
+            t_next = min(t_next, 1.0)
+            chord = (t_next - t_prev) * length
+            t_prev = t_next
+            steps -= 1
+            if chord > 0.0:
+                # log P(pass) = (n + shape) log((s + rate) / (s + rate + chord))
+                if n == 0.0:
+                    product *= (s + rate) / (s + rate + chord)
+                    if product < tiny:
+                        total += shape * math.log(product)
+                        product = 1.0
+                else:
+                    total -= (n + shape) * math.log1p(chord / (s + rate))
+                if record:
+                    event_ray[events] = r
+                    event_ijk[events, 0] = cx
+                    event_ijk[events, 1] = cy
+                    event_ijk[events, 2] = cz
+                    event_s[events] = s
+                    event_n[events] = n
+                    event_chord[events] = chord
+                    event_hit[events] = False
+                events += 1
+        # the end voxel (vx, vy, vz)
+        if has_return[r]:
+            # where the ray would leave the end voxel: its nearest exit face beyond the end
+            t_exit = np.inf
+            if dx != 0.0:
+                t_exit = min(t_exit, ((vx + (dx > 0)) - ox) / dx)
+            if dy != 0.0:
+                t_exit = min(t_exit, ((vy + (dy > 0)) - oy) / dy)
+            if dz != 0.0:
+                t_exit = min(t_exit, ((vz + (dz > 0)) - oz) / dz)
+            chord = (max(t_exit, 1.0) - t_prev) * length
+            total += math.log(-math.expm1(-(n + shape) * math.log1p(chord / (s + rate))))
+            hit = True
+        else:
+            chord = (1.0 - t_prev) * length
+            hit = False
+            if chord > 0.0:
+                total -= (n + shape) * math.log1p(chord / (s + rate))
+        total += shape * math.log(product)
+        if hit or chord > 0.0:
+            if record:
+                event_ray[events] = r
+                event_ijk[events, 0] = vx
+                event_ijk[events, 1] = vy
+                event_ijk[events, 2] = vz
+                event_s[events] = s
+                event_n[events] = n
+                event_chord[events] = chord
+                event_hit[events] = hit
+            events += 1
+        ray_log_likelihood[r] = total
+    return events

@@ -25,6 +25,10 @@ class IntegrationSummary:
     rays_beyond_walk_limit: int = 0
     """Rays longer than ``MAX_RAY_VOXELS`` voxels (when max_range is longer still): walked
     that far, with no return."""
+    rays_cut_by_budget: int = 0
+    """Rays whose part beyond ``memory_bound.FREE_WALK_VOXELS`` was cut to keep the scan
+    within its block budget (``memory_bound.scan_block_budget``): walked that far, no
+    return."""
     rays_unindexable: int = 0
     """Rays dropped because they reach beyond the map's index range around its origin
     (also in ``dropped["out_of_bounds"]``): worth a log line."""
@@ -58,6 +62,9 @@ class VoxelStats:
     t_last: FloatArray
     observed: NDArray[np.bool_]
     resolution: float
+    prior: model.Prior = model.UNIFORM
+    """The map's prior on the extinction: every estimate below but the most likely DoO
+    and mean free path depends on it."""
 
     def __len__(self) -> int:
         return int(self.s.shape[0])
@@ -68,16 +75,20 @@ class VoxelStats:
 
     @property
     def mean_doo(self) -> FloatArray:
-        return model.mean_doo(self.s, self.n)
+        return model.mean_doo(self.s, self.n, self.prior)
 
     @property
     def std(self) -> FloatArray:
-        return model.std_doo(self.s, self.n)
+        return model.std_doo(self.s, self.n, self.prior)
 
     @property
     def hit_probability(self) -> FloatArray:
         """Probability that a ray crossing one voxel edge of this voxel is reflected."""
-        return model.hit_probability(self.s, self.n, self.resolution)
+        return model.hit_probability(self.s, self.n, self.resolution, self.prior)
+
+    def doo_interval(self, level: float = 0.9) -> tuple[FloatArray, FloatArray]:
+        """Central credible interval of the degree of occupancy."""
+        return model.doo_interval(self.s, self.n, level, self.prior)
 
     @property
     def mean_free_path(self) -> FloatArray:
@@ -86,4 +97,5 @@ class VoxelStats:
     def select(self, mask: NDArray[np.bool_] | NDArray[np.intp]) -> VoxelStats:
         """The subset of voxels picked by a boolean mask or index array."""
         values = {f.name: getattr(self, f.name) for f in fields(self)}
-        return VoxelStats(**{k: (v if k == "resolution" else v[mask]) for k, v in values.items()})
+        scalars = ("resolution", "prior")
+        return VoxelStats(**{k: (v if k in scalars else v[mask]) for k, v in values.items()})

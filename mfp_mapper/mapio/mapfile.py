@@ -17,20 +17,28 @@ An ``.npz`` archive (never pickles) holding
 ``version``    int64 ()        file format version (2)
 =============  ==============  ===================================================
 
-plus ``max_range`` and ``min_range`` (float64, metres). The centre of voxel ``ijk`` is
+plus ``max_range`` and ``min_range`` (float64, metres) and ``prior_shape``, ``prior_rate``
+(float64: the Gamma prior on the extinction the estimates use, docs/PRIOR.md; a file
+without them was written with the uniform prior, 1 and 1). The centre of voxel ``ijk`` is
 ``origin + (ijk + 0.5) * resolution`` (map frame, metres). Every voxel is listed once, in no
 particular order. Files are written atomically (``mapio.atomic``).
 
-Reading checks the archive before allocating: the arrays' shapes and dtypes from their
-``.npy`` headers, sizes against the archive's own sizes; then the values: resolution in
-[``MIN_RESOLUTION``, ``MAX_RESOLUTION``], indices within the store's range, no voxel twice
-(checked while the voxels are stored, in compiled code).
+Reading checks the file before allocating (``mapio.checks``): a regular file; the arrays'
+shapes and dtypes from their ``.npy`` headers, sizes against the archive's own sizes and
+together against the file's real size; then the settings (resolution in
+[``MIN_RESOLUTION``, ``MAX_RESOLUTION``], decay time, ranges, frame, origin), and only then
+the voxels: finite, indices within the store's range, stamps not in the future of the file
+under decay, no voxel twice (checked while the voxels are stored, in compiled code). Any
+problem is a ``MapFileError`` naming the file.
 """
 
 from __future__ import annotations
 
 import math
+import struct
 import zipfile
+import zlib
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -40,19 +48,37 @@ from numpy.typing import NDArray
 
 from mfp_mapper.core.errors import CoreError
 from mfp_mapper.core.mapper import Mapper
-from mfp_mapper.core.store import (
-    MAX_RESOLUTION,
-    MIN_RESOLUTION,
-    VoxelArrays,
-    voxel_problem,
-)
+from mfp_mapper.core.store import VoxelArrays, voxel_problem
 from mfp_mapper.mapio.atomic import atomic_output
+from mfp_mapper.mapio.checks import (
+    ALLOWED_COMPRESSION,
+    MEMBER_KINDS,
+    expansion_problem,
+    file_problem,
+    future_problem,
+    header_problem,
+    member_problem,
+    origin_problem,
+    prior_problem,
+    settings_problem,
+)
 
 FORMAT_NAME = "mfp_mapper.map"
 FORMAT_VERSION = 2
 REQUIRED_KEYS = ("ijk", "s", "n", "t_last", "resolution", "decay_time", "frame_id")
-_MAX_DEFLATE_RATIO = 1100  # deflate cannot expand data more than ~1032 times
-_SCALARS = {"resolution": "f", "decay_time": "f", "max_range": "f", "min_range": "f"}
+
+OPTIONAL_SETTINGS = {"max_range": None, "min_range": None, "prior_shape": 1.0, "prior_rate": 1.0}
+"""Settings a file may lack: None, the Mapper's default; else what an older file meant."""
+
+
+def optional_settings(arrays: Mapping[str, Any]) -> dict[str, float]:
+    """The ``OPTIONAL_SETTINGS`` of map-file arrays: as stored, else what their absence
+    means (the prior: uniform); ranges the file lacks are left out."""
+    out = {k: float(arrays[k]) for k in OPTIONAL_SETTINGS if k in arrays}
+    for key, meaning in OPTIONAL_SETTINGS.items():
+        if meaning is not None:
+            out.setdefault(key, meaning)
+    return out
 
 
 class MapFileError(CoreError, ValueError):
@@ -74,6 +100,12 @@ class MapSource(Protocol):
     frame_id: str
 
     @property
+    def prior_shape(self) -> float: ...
+
+    @property
+    def prior_rate(self) -> float: ...
+
+    @property
     def origin(self) -> tuple[float, float, float] | None: ...
 
     def stored_voxels(self) -> VoxelArrays: ...
@@ -88,7 +120,8 @@ class MapContents:
     decay_time: float
     frame_id: str
     ranges: dict[str, float]
-    """``max_range`` and ``min_range`` where the file has them."""
+    """``max_range`` and ``min_range`` where the file has them; ``prior_shape`` and
+    ``prior_rate`` always (1 and 1 where the file has none)."""
     voxels: VoxelArrays
 
 
@@ -112,6 +145,8 @@ def map_arrays(mapper: MapSource) -> dict[str, np.ndarray]:
         "decay_time": np.float64(mapper.decay_time),
         "max_range": np.float64(mapper.max_range),
         "min_range": np.float64(mapper.min_range),
+        "prior_shape": np.float64(mapper.prior_shape),
+        "prior_rate": np.float64(mapper.prior_rate),
         "frame_id": np.str_(mapper.frame_id),
         "format": np.str_(FORMAT_NAME),
         "version": np.int64(FORMAT_VERSION),
@@ -138,100 +173,118 @@ def write_map_arrays(path: str | Path, arrays: dict[str, Any], compress: bool = 
 
 
 def read_map_file(path: str | Path) -> MapContents:
-    """Read and check a map file; raises ``MapFileError`` naming the file and the problem."""
+    """Read and check a map file; raises ``MapFileError`` naming the file and the problem
+    (never another exception: a file is data, whatever it holds)."""
     path = Path(path)
-    if not path.is_file():
-        raise MapFileError(path, "no such file")
+    problem = file_problem(path)
+    if problem:
+        raise MapFileError(path, problem)
     try:
+        st = path.stat()
         with zipfile.ZipFile(path) as archive:
-            headers = _check_headers(path, archive)
-            arrays = {}
-            for name in headers:
-                with archive.open(f"{name}.npy") as member:
-                    arrays[name] = np.lib.format.read_array(member, allow_pickle=False)
+            headers = check_headers(path, archive, st.st_size)
+            small = {k: _read(archive, k) for k in headers if k not in VOXEL_MEMBERS}
+            settings = check_settings(path, small)
+            voxels = VoxelArrays(*(_read(archive, k) for k in VOXEL_MEMBERS))
     except MapFileError:
         raise
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as err:
+    except MemoryError:
+        raise MapFileError(path, "not enough memory to read its arrays") from None
+    except _READ_ERRORS as err:
         raise MapFileError(
             path, f"unreadable or truncated map file ({type(err).__name__}: {err})"
-        ) from err
-    return _contents(path, arrays)
+        ) from None
+    problem = voxel_problem(voxels.ijk, voxels.s, voxels.n, voxels.t_last)
+    if not problem and voxels.t_last.size:
+        t_max = float(voxels.t_last.max())
+        problem = future_problem(t_max, settings.decay_time, st.st_mtime, "t_last")
+    if problem:
+        raise MapFileError(path, problem)
+    settings.voxels = voxels
+    return settings
 
 
-def _check_headers(
-    path: Path, archive: zipfile.ZipFile
+VOXEL_MEMBERS = ("ijk", "s", "n", "t_last")
+_READ_ERRORS = (
+    zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, OSError, ValueError, KeyError,
+    IndexError, TypeError, ArithmeticError, UnicodeError, NotImplementedError, RuntimeError,
+    zlib.error, struct.error,
+)  # fmt: skip
+"""What a damaged archive can raise while read (RuntimeError: an encrypted member;
+zlib.error: a damaged deflate stream)."""
+
+
+def _read(archive: zipfile.ZipFile, name: str) -> np.ndarray:
+    with archive.open(f"{name}.npy") as member:
+        return np.lib.format.read_array(member, allow_pickle=False)
+
+
+def check_headers(
+    path: Path, archive: zipfile.ZipFile, file_size: int
 ) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
-    """Shapes and dtypes of the members, checked before any array is read."""
+    """Shapes and dtypes of the known members (``checks.MEMBER_KINDS``; others are never
+    read), checked before any array is read: against the zip's sizes, together against the
+    file's real size, and against the format (``checks.header_problem``)."""
     headers: dict[str, tuple[tuple[int, ...], np.dtype]] = {}
+    declared = 0
     for info in archive.infolist():
-        if not info.filename.endswith(".npy"):
+        name = info.filename[: -len(".npy")]
+        if not info.filename.endswith(".npy") or name not in MEMBER_KINDS:
             continue
+        if name in headers:
+            raise MapFileError(path, f"member {info.filename} appears twice")
+        if info.compress_type not in ALLOWED_COMPRESSION:
+            raise MapFileError(
+                path, f"{name} uses zip compression method {info.compress_type} "
+                "(only stored or deflated is read)"
+            )  # fmt: skip
         with archive.open(info) as member:
             version = np.lib.format.read_magic(member)
             if version == (1, 0):
                 shape, _, dtype = np.lib.format.read_array_header_1_0(member)
             else:
                 shape, _, dtype = np.lib.format.read_array_header_2_0(member)
-        name = info.filename[: -len(".npy")]
-        if dtype.hasobject:
-            raise MapFileError(path, f"unreadable or truncated map file ({name} holds objects)")
-        nbytes = math.prod(shape) * dtype.itemsize
-        limit = min(info.file_size, _MAX_DEFLATE_RATIO * info.compress_size + (1 << 20))
-        if nbytes > limit:
-            raise MapFileError(
-                path, f"{name} claims {nbytes} bytes ({shape} {dtype}) but holds at most {limit}"
-            )
+            header_bytes = member.tell()
+        problem = member_problem(
+            name, shape, dtype, info.file_size - header_bytes, info.compress_size,
+            info.compress_type,
+        )  # fmt: skip
+        if problem:
+            raise MapFileError(path, problem)
         headers[name] = (shape, dtype)
+        declared += math.prod(shape) * dtype.itemsize
     missing = [k for k in REQUIRED_KEYS if k not in headers]
     if missing:
         raise MapFileError(path, f"not an mfp_mapper map: missing {', '.join(missing)}")
-    shape, dtype = headers["ijk"]
-    if len(shape) != 2 or shape[1] != 3 or dtype.kind not in "iu":
-        raise MapFileError(path, f"ijk must be an integer (N, 3) array, got {dtype} {shape}")
-    for key in ("s", "n", "t_last"):
-        if headers[key] != ((shape[0],), headers[key][1]) or headers[key][1].kind != "f":
-            raise MapFileError(
-                path,
-                f"{key} must be a float array of length {shape[0]}, got "
-                f"{headers[key][1]} {headers[key][0]}",
-            )
-    for key in ("resolution", "decay_time"):
-        if headers[key][0] != () or headers[key][1].kind not in "iuf":
-            raise MapFileError(path, f"{key} must be a number")
-    if headers["frame_id"][0] != () or headers["frame_id"][1].kind != "U":
-        raise MapFileError(path, "frame_id must be a string")
-    if "origin" in headers and (headers["origin"][0] != (3,) or headers["origin"][1].kind != "f"):
-        raise MapFileError(path, "origin must be a float array of 3 metres")
+    problem = header_problem(headers) or expansion_problem(declared, file_size)
+    if problem:
+        raise MapFileError(path, problem)
     return headers
 
 
-def _contents(path: Path, a: dict[str, np.ndarray]) -> MapContents:
+def check_settings(path: Path, a: dict[str, np.ndarray]) -> MapContents:
+    """The settings of a map file (its small members, read before the voxels), checked;
+    the voxels of the returned contents are empty."""
     if "format" in a and str(a["format"]) != FORMAT_NAME:
         raise MapFileError(path, f"format is {str(a['format'])!r}, expected {FORMAT_NAME!r}")
     version = int(a["version"]) if "version" in a else 1
-    if version > FORMAT_VERSION:
-        raise MapFileError(path, f"file format version {version} is newer than {FORMAT_VERSION}")
+    if not 1 <= version <= FORMAT_VERSION:
+        raise MapFileError(path, f"file format version {version} is not in [1, {FORMAT_VERSION}]")
     if version >= 2 and "origin" not in a:
         raise MapFileError(path, f"version {version} needs origin")
-    resolution = float(a["resolution"])
-    if not MIN_RESOLUTION <= resolution <= MAX_RESOLUTION:
-        raise MapFileError(
-            path,
-            f"resolution must be positive, within [{MIN_RESOLUTION}, {MAX_RESOLUTION}] m, "
-            f"got {resolution}",
-        )
-    origin = a.get("origin", np.zeros(3))
-    if not np.isfinite(origin).all():
-        raise MapFileError(path, f"origin must be finite metres, got {origin.tolist()}")
-    problem = voxel_problem(a["ijk"], a["s"], a["n"], a["t_last"])
+    resolution, decay_time = float(a["resolution"]), float(a["decay_time"])
+    ranges = optional_settings(a)
+    problem = settings_problem(
+        resolution, decay_time, ranges.get("max_range", math.inf), ranges.get("min_range", 0.0),
+        str(a["frame_id"]),
+    ) or prior_problem(ranges["prior_shape"], ranges["prior_rate"])  # fmt: skip
+    origin = np.asarray(a.get("origin", np.zeros(3)), dtype=np.float64)
+    problem = problem or origin_problem(origin, resolution)
     if problem:
         raise MapFileError(path, problem)
-    ranges: dict[str, float] = {k: float(a[k]) for k in ("max_range", "min_range") if k in a}
-    voxels = VoxelArrays(a["ijk"], a["s"], a["n"], a["t_last"])
     ox, oy, oz = (float(v) for v in origin)
-    return MapContents(
-        resolution, (ox, oy, oz), float(a["decay_time"]), str(a["frame_id"]), ranges, voxels
-    )
+    empty = VoxelArrays(np.zeros((0, 3), np.int32), np.zeros(0), np.zeros(0), np.zeros(0))
+    return MapContents(resolution, (ox, oy, oz), decay_time, str(a["frame_id"]), ranges, empty)
 
 
 def read_map_arrays(path: str | Path, check_duplicates: bool = True) -> dict[str, np.ndarray]:
@@ -268,7 +321,7 @@ def mapper_from_arrays(
     settings: dict[str, object] = {
         "decay_time": float(arrays["decay_time"]),
         "frame_id": str(arrays["frame_id"]),
-        **{k: float(arrays[k]) for k in ("max_range", "min_range") if k in arrays},
+        **optional_settings(arrays),
         **overrides,
     }
     for fixed, stored in (("resolution", resolution), ("origin", origin)):

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import secrets
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
@@ -28,8 +29,16 @@ from numpy.typing import ArrayLike, NDArray
 
 from mfp_mapper.core.mapper import Mapper, VoxelStats
 from mfp_mapper.core.merge import check_mergeable, merge_map_arrays
+from mfp_mapper.core.model import Prior
 from mfp_mapper.core.store import BLOCK_BITS
 from mfp_mapper.mapio.atomic import write_text_atomic
+from mfp_mapper.mapio.checks import (
+    TILE_DIR,
+    TILES_FORMAT,
+    TILES_VERSION,
+    future_problem,
+    read_index,
+)
 from mfp_mapper.mapio.mapfile import (
     FORMAT_NAME,
     FORMAT_VERSION,
@@ -39,13 +48,12 @@ from mfp_mapper.mapio.mapfile import (
     write_map_arrays,
 )
 
-TILES_FORMAT = "mfp_mapper.tiles"
-TILES_VERSION = 1
 INDEX_NAME = "index.json"
-TILE_DIR = "tiles"
 DEFAULT_TILE_BLOCKS = 32
 """Tile edge in blocks: 256 voxels, 25.6 m at 0.1 m."""
-SETTINGS = ("resolution", "decay_time", "frame_id", "max_range", "min_range")
+SETTINGS = (
+    "resolution", "decay_time", "frame_id", "max_range", "min_range", "prior_shape", "prior_rate",
+)  # fmt: skip
 VOXEL_KEYS = ("ijk", "s", "n", "t_last")
 
 TileKey = tuple[int, int, int]
@@ -135,6 +143,8 @@ def write_index(
         "frame_id": str(settings["frame_id"]),
         "max_range": _json_number(float(settings.get("max_range", math.inf))),
         "min_range": float(settings.get("min_range", 0.0)),
+        "prior_shape": float(settings.get("prior_shape", 1.0)),
+        "prior_rate": float(settings.get("prior_rate", 1.0)),
         "tile_blocks": tile_blocks,
         "voxels": sum(e.voxels for e in listed),
         "tiles": [e.to_json(tile_blocks) for e in listed],
@@ -189,34 +199,28 @@ class TiledMap:
     def __init__(self, directory: str | Path) -> None:
         self.root = Path(directory)
         index_path = self.root / INDEX_NAME
-        if not index_path.is_file():
+        if not self.root.is_dir():
+            raise MapFileError(self.root, "not a tiled map: not a directory")
+        if not os.path.lexists(index_path):
             raise MapFileError(self.root, f"not a tiled map: no {INDEX_NAME}")
         try:
-            index = json.loads(index_path.read_text())
-            if index.get("format") != TILES_FORMAT:
-                raise ValueError(f"format is {index.get('format')!r}, expected {TILES_FORMAT!r}")
-            if int(index["version"]) > TILES_VERSION:
-                raise ValueError(f"version {index['version']} is newer than {TILES_VERSION}")
-            self.tile_blocks = int(index["tile_blocks"])
-            self.resolution = float(index["resolution"])
-            self.decay_time = _from_json(index["decay_time"])
-            self.frame_id = str(index["frame_id"])
-            self.max_range = _from_json(index["max_range"])
-            self.min_range = float(index["min_range"])
-            self.origin = index.get("origin")
-            self.tiles = {
-                (int(e["tile"][0]), int(e["tile"][1]), int(e["tile"][2])): TileEntry(
-                    (int(e["tile"][0]), int(e["tile"][1]), int(e["tile"][2])),
-                    str(e["file"]),
-                    int(e["voxels"]),
-                    float(e["t_max"]),
-                )
-                for e in index["tiles"]
-            }
-        except (OSError, ValueError, KeyError, TypeError, IndexError) as err:
-            raise MapFileError(index_path, f"unreadable tile index ({err})") from None
-        if self.tile_blocks < 1 or not self.resolution > 0:
-            raise MapFileError(index_path, "tile_blocks and resolution must be positive")
+            index = read_index(index_path)
+            written_at = index_path.stat().st_mtime
+        except (OSError, ValueError) as err:  # UnicodeDecodeError is a ValueError
+            raise MapFileError(index_path, f"unreadable tile index: {err}") from None
+        self.tile_blocks: int = index["tile_blocks"]
+        self.resolution: float = index["resolution"]
+        self.decay_time: float = index["decay_time"]
+        self.frame_id: str = index["frame_id"]
+        self.max_range: float = index["max_range"]
+        self.min_range: float = index["min_range"]
+        self.prior = Prior(index["prior_shape"], index["prior_rate"])
+        self.origin: list[float] | None = index["origin"]
+        self.tiles = {key: TileEntry(key, *rest) for key, *rest in index["tiles"]}
+        t_max = max((e.t_max for e in self.tiles.values()), default=-math.inf)
+        problem = future_problem(t_max, self.decay_time, written_at, "t_max")
+        if problem:
+            raise MapFileError(index_path, problem)
 
     @property
     def num_voxels(self) -> int:
@@ -230,6 +234,8 @@ class TiledMap:
             "frame_id": np.str_(self.frame_id),
             "max_range": np.float64(self.max_range),
             "min_range": np.float64(self.min_range),
+            "prior_shape": np.float64(self.prior.shape),
+            "prior_rate": np.float64(self.prior.rate),
             "format": np.str_(FORMAT_NAME),
             "version": np.int64(FORMAT_VERSION),
         }
@@ -249,6 +255,12 @@ class TiledMap:
         inside = np.all(tile_keys(arrays["ijk"], self.tile_blocks) == key, axis=1)
         if arrays["s"].shape[0] != entry.voxels or not inside.all():
             raise MapFileError(path, f"does not hold the {entry.voxels} voxels of tile {key}")
+        t_last = arrays["t_last"]
+        if t_last.size and float(t_last.max()) > entry.t_max:
+            raise MapFileError(
+                path, f"t_last reaches {float(t_last.max())} s, after the index's t_max "
+                f"{entry.t_max} s for tile {key}"
+            )  # fmt: skip
         return arrays
 
     def keys_in(self, bounds: tuple[ArrayLike, ArrayLike] | None = None) -> list[TileKey]:
@@ -294,6 +306,8 @@ class TiledMap:
             decay_time=self.decay_time,
             frame_id=self.frame_id,
             origin=self.origin or (0.0, 0.0, 0.0),
+            prior_shape=self.prior.shape,
+            prior_rate=self.prior.rate,
         )
         out = empty.query(pts, stamp)  # the answer for unobserved voxels, and every ijk
         keys = tile_keys(out.ijk, self.tile_blocks)
@@ -304,10 +318,6 @@ class TiledMap:
                 for name in ("s", "n", "t_last", "observed"):
                     getattr(out, name)[rows] = getattr(part, name)
         return out
-
-
-def _from_json(value: float | None) -> float:
-    return math.inf if value is None else float(value)
 
 
 def index_bounds(

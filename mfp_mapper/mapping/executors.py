@@ -6,14 +6,17 @@ dependency of the offline tools, never of the node.
 
 from __future__ import annotations
 
+import contextlib
 import logging
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Generator, Sequence
 from typing import Any, TextIO
 
 from mfp_mapper.mapping.progress import stderr_bar
 
 Outcome = tuple[Any, Any, BaseException | None]
 """(item, result, error): exactly one of result and error is meaningful."""
+Runs = Generator[Outcome, None, None]
+"""The outcomes as tasks finish; ``close()`` it to cancel the rest."""
 
 
 UNSET_IN_WORKERS = "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_"
@@ -25,7 +28,7 @@ class SequentialExecutor:
     description = "sequential, in this process"
     workers = 1
 
-    def run(self, fn: Callable[..., Any], items: Sequence[Any], *args: Any) -> Iterator[Outcome]:
+    def run(self, fn: Callable[..., Any], items: Sequence[Any], *args: Any) -> Runs:
         for item in items:
             try:
                 yield item, fn(item, *args), None
@@ -73,7 +76,7 @@ class DaskExecutor:
                     threads_per_worker=1,
                     processes=True,
                     dashboard_address=None,
-                    silence_logs=logging.ERROR,
+                    silence_logs=logging.CRITICAL,  # a failing task is reported by the run
                 )
             self.client = Client(self._cluster)
             self.workers = count
@@ -83,7 +86,7 @@ class DaskExecutor:
         """Load the core's compiled kernels in every worker now, all at once."""
         self.client.run(warm_up_worker)
 
-    def run(self, fn: Callable[..., Any], items: Sequence[Any], *args: Any) -> Iterator[Outcome]:
+    def run(self, fn: Callable[..., Any], items: Sequence[Any], *args: Any) -> Runs:
         from distributed import as_completed
 
         futures = {
@@ -97,12 +100,19 @@ class DaskExecutor:
                 else:
                     yield item, future.result(), None
         finally:  # stopped early (a failure): the rest is not wanted
-            self.client.cancel([f for f in futures if not f.done()])
+            pending = [f for f in futures if not f.done()]
+            if pending and self.client.status == "running":
+                with contextlib.suppress(RuntimeError, OSError):  # the client is closing
+                    self.client.cancel(pending)
 
     def close(self) -> None:
-        self.client.close()
+        """Close the client and our cluster; a slow shutdown (workers still busy on a loaded
+        machine, a timeout) is not an error of the run: the processes are ended anyway."""
+        with contextlib.suppress(Exception):
+            self.client.close()
         if self._cluster is not None:
-            self._cluster.close()
+            with contextlib.suppress(Exception):
+                self._cluster.close()
 
 
 Executor = SequentialExecutor | DaskExecutor

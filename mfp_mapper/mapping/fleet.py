@@ -10,9 +10,21 @@ by tile: each reduce task merges one group of tiles of every partial exactly
 worker holds the whole map. The result equals the sequential replay of all scans up to
 the rounding of the summation order.
 
+Without workers, a scheduler or windows, one Mapper takes the recordings in turn in this
+process (``map_in_turn``): the same map (decay scales a late scan's data to its block's
+time, so the order does not matter up to rounding) at the cost of plain replays, with no
+partial maps and no reduction.
+
 A recording that fails (unreadable, no poses...) fails the run, naming it, and nothing is
 written; with ``skip_bad`` its partials are dropped and the run goes on. The output (a map
 file ``.npz`` or a tiled map directory) is written only at the end, atomically.
+
+Limits: the same input twice is refused (its evidence would count twice) unless
+``allow_duplicates``; a recording is cut into at most one window per cloud and
+``WINDOWS_PER_WORKER`` windows per worker (a smaller ``chunk_seconds`` is widened, with a
+line); a local cluster has at most one worker per task and per CPU core (clamped, with a
+line). Scratch folders (``.mfp-fleet-*``) of runs that died (SIGKILL, power loss) are
+removed by the next run that uses the same place (``remove_dead_scratch``).
 """
 
 from __future__ import annotations
@@ -21,6 +33,7 @@ import math
 import os
 import resource
 import shutil
+import socket
 import tempfile
 import time
 from collections import Counter
@@ -28,8 +41,10 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.core.merge import MergeError, check_mergeable
-from mfp_mapper.mapio.mapfile import map_arrays
+from mfp_mapper.mapio.loading import save_map
+from mfp_mapper.mapio.mapfile import MapFileError, map_arrays
 from mfp_mapper.mapio.tiles import (
     DEFAULT_TILE_BLOCKS,
     TILE_DIR,
@@ -45,11 +60,25 @@ from mfp_mapper.mapio.tiles import (
     write_tiled,
 )
 from mfp_mapper.mapping.executors import Executor, StageProgress, make_executor
-from mfp_mapper.mapping.replay import NothingMapped, ReplayOptions, ReplaySummary, replay
-from mfp_mapper.sources.bags import ReplayError, open_reader, resolve_bag_path
+from mfp_mapper.mapping.replay import (
+    NothingMapped,
+    OtherMapFrame,
+    ReplayOptions,
+    ReplayResult,
+    ReplaySummary,
+    replay,
+)
+from mfp_mapper.sources.bags import CLOUD_TYPE, ReplayError, open_reader, resolve_bag_path
 
 SCRATCH_MERGED = "merged"
 """The work folder's tiled map that a ``.npz`` output is assembled from."""
+SCRATCH_PREFIX = ".mfp-fleet-"
+SCRATCH_OWNER = "owner"
+"""File in a scratch folder: ``<host> <pid>`` of the run that made it."""
+SCRATCH_STALE_SECONDS = 3600.0
+"""A scratch folder of this host with no owner file is removed when untouched this long."""
+WINDOWS_PER_WORKER = 16
+"""At most this many windows of one recording per worker (``chunk_seconds`` is widened)."""
 
 
 class FleetError(RuntimeError):
@@ -105,6 +134,12 @@ class FleetOptions:
     work_dir: str | None = None
     """Folder for the partial maps (every worker must see it); default: beside the output."""
     progress: bool = True
+    allow_duplicates: bool = False
+    """Map an input given twice twice (its evidence counts twice); refused otherwise."""
+    poses: str | None = None
+    """Scan folders: ``--poses`` (``identity``, or a file when there is one folder)."""
+    times: str | None = None
+    """Scan folders: ``--times`` (only with one folder)."""
 
 
 @dataclass
@@ -142,7 +177,8 @@ class FleetResult:
             + (f"; dropped {', '.join(f'{k} {v}' for k, v in sorted(dropped.items()))}"
                if dropped else ""),
             f"rays         {sum(s.rays_used for s in sums):,}",
-            f"map          {self.output} ({self.voxels:,} voxels in {self.tiles} tiles)",
+            f"map          {self.output} ({self.voxels:,} voxels"
+            + (f" in {self.tiles} tiles)" if self.tiles else ")"),
             f"time         {self.seconds:.2f} s: start {self.seconds_start:.2f} s, "
             f"replay {self.seconds_replay:.2f} s "
             f"({task_seconds:.2f} s of tasks), reduce {self.seconds_reduce:.2f} s, "
@@ -157,34 +193,59 @@ class FleetResult:
 
 def recording_span(path: str | Path) -> tuple[float, float]:
     """First and last message time (s) of a recording, from its metadata."""
+    first, last, _ = _recording_facts(path)
+    return first, last
+
+
+def _recording_facts(path: str | Path) -> tuple[float, float, int]:
+    """First and last message time (s) and the number of clouds, from the metadata."""
     reader = open_reader(resolve_bag_path(path))
     try:
-        return reader.start_time * 1e-9, reader.end_time * 1e-9
+        clouds = sum(c.msgcount for c in reader.connections if c.msgtype == CLOUD_TYPE)
+        return reader.start_time * 1e-9, reader.end_time * 1e-9, clouds
     finally:
         reader.close()
 
 
 def plan_tasks(
-    recordings: Sequence[str], chunk_seconds: float | None
+    recordings: Sequence[str],
+    chunk_seconds: float | None,
+    max_windows: int | None = None,
+    log: Callable[[str], None] | None = None,
 ) -> tuple[list[Task], dict[str, str]]:
     """Tasks for ``recordings``; and the recordings that cannot even be opened (why).
 
     With ``chunk_seconds``, a recording longer than that is split at multiples of it from
     its first message time; the first window is open below and the last open above, so
-    windows cover every stamp whatever the clock of the clouds' headers.
+    windows cover every stamp whatever the clock of the clouds' headers. A recording gets
+    at most one window per cloud and ``max_windows`` windows: a smaller ``chunk_seconds``
+    is widened for it (said through ``log``). Scan folders are one task each.
     """
+    from mfp_mapper.sources.scan_folder import is_scan_folder
+
     tasks: list[Task] = []
     failed: dict[str, str] = {}
     for recording in recordings:
         bounds: list[float] = []
-        if chunk_seconds is not None and chunk_seconds > 0:
+        if chunk_seconds is not None and chunk_seconds > 0 and not is_scan_folder(recording):
             try:
-                first, last = recording_span(recording)
+                first, last, clouds = _recording_facts(recording)
             except Exception as err:
                 failed[recording] = str(err)
                 continue
-            count = max(1, math.ceil((last - first) / chunk_seconds))
-            bounds = [first + k * chunk_seconds for k in range(1, count)]
+            chunk = chunk_seconds
+            wanted = math.ceil(min((last - first) / chunk_seconds, 1e18))
+            limit = max(1, min(clouds, max_windows or clouds))
+            if wanted > limit:
+                chunk = (last - first) / limit
+                if log is not None:
+                    log(
+                        f"--chunk-seconds {chunk_seconds:g} would cut {recording} into "
+                        f"{wanted:,} windows for {clouds:,} clouds: using {chunk:.3g} s "
+                        f"({limit} windows)"
+                    )
+            count = max(1, min(limit, math.ceil((last - first) / chunk)))
+            bounds = [first + k * chunk for k in range(1, count)]
         edges: list[float | None] = [None, *bounds, None]
         for lo, hi in zip(edges[:-1], edges[1:], strict=True):
             tasks.append(Task(len(tasks), recording, lo, hi))
@@ -194,7 +255,14 @@ def plan_tasks(
 # --- the tasks (run in workers) -----------------------------------------------------------
 
 
-def replay_task(task: Task, opts: ReplayOptions, work_dir: str, tile_blocks: int) -> TaskResult:
+def replay_task(
+    task: Task,
+    opts: ReplayOptions,
+    work_dir: str,
+    tile_blocks: int,
+    poses: str | None = None,
+    times: str | None = None,
+) -> TaskResult:
     """Replay ``task`` and write its partial map as tiles under ``work_dir``."""
     t0 = time.perf_counter()
     window = replace(
@@ -203,7 +271,7 @@ def replay_task(task: Task, opts: ReplayOptions, work_dir: str, tile_blocks: int
         end=_earliest(opts.end, task.end),
     )
     try:
-        result = replay(task.recording, window, progress=False)
+        result = replay_input(task.recording, window, poses, times, progress=False)
     except NothingMapped as err:
         if not task.chunked:
             raise
@@ -221,6 +289,26 @@ def replay_task(task: Task, opts: ReplayOptions, work_dir: str, tile_blocks: int
         seconds=time.perf_counter() - t0,
         peak_rss_bytes=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
     )
+
+
+def replay_input(
+    recording: str,
+    opts: ReplayOptions,
+    poses: str | None,
+    times: str | None,
+    progress: bool = False,
+    log: Callable[[str], None] | None = None,
+    on_scan: Callable[..., None] | None = None,
+    into: Mapper | None = None,
+) -> ReplayResult:
+    """Replay a bag or a scan folder (``poses``, ``times``: as ``replay --poses/--times``)."""
+    from mfp_mapper.sources.scan_folder import is_scan_folder
+
+    if is_scan_folder(recording):
+        from mfp_mapper.mapping.folder_replay import replay_folder
+
+        return replay_folder(recording, poses, opts, times, progress, log, on_scan, into)
+    return replay(recording, opts, progress, log, on_scan, into)
 
 
 def _latest(a: float | None, b: float | None) -> float | None:
@@ -253,19 +341,31 @@ def map_fleet(
     fleet: FleetOptions | None = None,
     log: Callable[[str], None] | None = None,
 ) -> FleetResult:
-    """Map ``recordings`` into ``output`` (``.npz``: one map file; otherwise a tiled map
-    directory). FleetError when a recording fails (unless ``fleet.skip_bad``), when none
-    could be mapped, or when the partial maps cannot be merged (other frames...)."""
+    """Map ``recordings`` (bags or scan folders) into ``output`` (``.npz``: one map file;
+    otherwise a tiled map directory). FleetError when a recording fails (unless
+    ``fleet.skip_bad``), when none could be mapped, when the partial maps cannot be merged
+    (other frames...), or when the inputs or options cannot work (said before any mapping)."""
     opts = opts or ReplayOptions()
     fleet = fleet or FleetOptions()
     t0 = time.perf_counter()
     out = Path(output)
-    names = [str(Path(r).absolute()) for r in recordings]
-    if not names:
-        raise FleetError("no recording given")
+    names = check_inputs(recordings, fleet)
     if out.suffix != ".npz":
-        check_tiled_output(out)
-    tasks, failed = plan_tasks(names, fleet.chunk_seconds)
+        try:
+            check_tiled_output(out)
+        except MapFileError as err:
+            raise FleetError(str(err)) from None
+    if opts.max_scans is not None and len(names) > 1:
+        raise FleetError("max_scans counts the clouds of one replay: use it with one recording")
+    if fleet.workers is None and fleet.scheduler is None and not fleet.chunk_seconds:
+        return map_in_turn(names, out, opts, fleet, log)
+    workers = _worker_count(fleet, names, log)
+    max_windows = WINDOWS_PER_WORKER * (workers or 1)
+    tasks, failed = plan_tasks(names, fleet.chunk_seconds, max_windows, log)
+    if workers is not None and fleet.scheduler is None and workers > len(tasks):
+        if log is not None:
+            log(f"--workers {workers}: using {len(tasks)}, one per task")
+        workers = len(tasks)
     evicting = [k for k in ("max_voxels", "keep_radius") if getattr(opts, k, None) is not None]
     if evicting and len(tasks) > 1:
         raise FleetError(
@@ -277,9 +377,12 @@ def map_fleet(
     if opts.max_scans is not None and len(tasks) > 1:
         raise FleetError("max_scans counts the clouds of one replay: use it with one recording")
     _fail_or_skip(failed, fleet.skip_bad)
-    parent = out.parent if str(out.parent) else Path(".")
-    work = Path(tempfile.mkdtemp(prefix=".mfp-fleet-", dir=fleet.work_dir or parent))
-    executor = make_executor(fleet.workers, fleet.scheduler)
+    work = make_scratch(Path(fleet.work_dir) if fleet.work_dir else _parent(out), log)
+    try:
+        executor = make_executor(workers, fleet.scheduler)
+    except BaseException:
+        shutil.rmtree(work, ignore_errors=True)
+        raise
     result = FleetResult(out, executor.description, skipped=dict(failed))
     try:
         executor.warm_up()
@@ -314,19 +417,213 @@ def map_fleet(
                 stale.unlink(missing_ok=True)
         raise
     finally:
-        executor.close()
-        shutil.rmtree(work, ignore_errors=True)
+        try:
+            executor.close()
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
     result.seconds = time.perf_counter() - t0
+    _log_skipped(result, log)
+    return result
+
+
+def map_in_turn(
+    names: Sequence[str],
+    out: Path,
+    opts: ReplayOptions,
+    fleet: FleetOptions,
+    log: Callable[[str], None] | None = None,
+) -> FleetResult:
+    """One Mapper takes the recordings in turn, in this process: the fleet's map at the
+    cost of plain replays (no partial maps, no reduction). A recording that fails before
+    any of its clouds reached the map is skipped with ``skip_bad``; one that fails after
+    fails the run (its half could not be taken out again)."""
+    t0 = time.perf_counter()
+    result = FleetResult(out, "in turn, one mapper in this process")
+    mapper: Mapper | None = None
+    placed = [0]  # clouds of the current recording handed to the map
+
+    def count(*_: object) -> None:
+        placed[0] += 1
+
+    try:
+        for index, name in enumerate(names):
+            t_task = time.perf_counter()
+            placed[0] = 0
+            try:
+                done = replay_input(
+                    name, opts, fleet.poses, fleet.times, fleet.progress, log, count, mapper
+                )
+            except OtherMapFrame as err:
+                raise FleetError(f"{name}: {err} (no map written)") from None
+            except Exception as err:
+                why = str(err) if isinstance(err, ReplayError) else f"{err!r}"
+                if placed[0] and not isinstance(err, NothingMapped):
+                    raise FleetError(
+                        f"{name}: {why} (after {placed[0]} of its clouds were mapped; "
+                        "no map written)"
+                    ) from None
+                result.skipped[name] = why
+                _fail_or_skip({name: why}, fleet.skip_bad)
+                continue
+            mapper = done.mapper
+            result.tasks.append(
+                TaskResult(
+                    Task(index, name),
+                    None,
+                    [],
+                    done.summary,
+                    seconds=time.perf_counter() - t_task,
+                    peak_rss_bytes=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+                )
+            )
+        if mapper is None:
+            raise FleetError("no cloud could be mapped from any recording (no map written)")
+        result.seconds_replay = time.perf_counter() - t0
+        t_write = time.perf_counter()
+        if out.suffix == ".npz":
+            save_map(mapper, out)
+        else:
+            result.tiles = len(write_tiled(out, map_arrays(mapper), fleet.tile_blocks))
+        result.seconds_write = time.perf_counter() - t_write
+        result.voxels = mapper.num_voxels
+    finally:
+        if mapper is not None:
+            mapper.close()
+    result.seconds = time.perf_counter() - t0
+    _log_skipped(result, log)
+    return result
+
+
+def _log_skipped(result: FleetResult, log: Callable[[str], None] | None) -> None:
     if log is not None and result.skipped:
         log(f"skipped {len(result.skipped)} recording(s): " + "; ".join(
             f"{k}: {v}" for k, v in sorted(result.skipped.items())))  # fmt: skip
-    return result
+
+
+def _parent(out: Path) -> Path:
+    return out.parent if str(out.parent) else Path(".")
+
+
+def check_inputs(recordings: Sequence[str | Path], fleet: FleetOptions) -> list[str]:
+    """Absolute input names; FleetError for none, a missing one, the same one twice
+    (unless ``allow_duplicates``), or scan-folder options that cannot apply to all."""
+    from mfp_mapper.sources.scan_folder import is_scan_folder
+
+    names = [str(Path(r).absolute()) for r in recordings]
+    if not names:
+        raise FleetError("no recording given")
+    seen: dict[str, str] = {}
+    for name in names:
+        path = Path(name)
+        if not path.exists():
+            raise FleetError(f"{name}: no such file or folder (no map written)")
+        real = str(path.resolve())
+        if real in seen and not fleet.allow_duplicates:
+            raise FleetError(
+                f"{name} is given twice (as {seen[real]}): its evidence would count twice; "
+                "--allow-duplicates maps it again"
+            )
+        seen.setdefault(real, name)
+    folders = [n for n in names if is_scan_folder(n)]
+    if len(folders) > 1 and fleet.times is not None:
+        raise FleetError("--times names the stamps of one scan folder: give one folder with it")
+    if len(folders) > 1 and fleet.poses not in (None, "identity"):
+        raise FleetError(
+            "--poses FILE names the poses of one scan folder: give one folder with it "
+            "(or --poses identity, --odometry kiss-icp)"
+        )
+    if len(folders) < len(names) and (fleet.poses is not None or fleet.times is not None):
+        bag = next(n for n in names if n not in folders)
+        raise FleetError(f"{bag}: --poses and --times are for folders of scan files")
+    return names
+
+
+def _worker_count(
+    fleet: FleetOptions, names: Sequence[str], log: Callable[[str], None] | None
+) -> int | None:
+    """``fleet.workers`` for a local cluster, at most one per CPU core (said when cut)."""
+    if fleet.workers is None or fleet.scheduler is not None:
+        return fleet.workers
+    if fleet.workers < 1:
+        raise FleetError(f"--workers must be at least 1, got {fleet.workers}")
+    cores = default_workers()
+    if fleet.workers > cores:
+        if log is not None:
+            log(f"--workers {fleet.workers}: using {cores}, the CPU cores this process may use")
+        return cores
+    return fleet.workers
+
+
+def make_scratch(parent: Path, log: Callable[[str], None] | None = None) -> Path:
+    """A new scratch folder in ``parent`` (owned by this process, said in its owner file),
+    after removing those of dead runs there. FleetError when ``parent`` cannot hold it."""
+    if not parent.is_dir():
+        raise FleetError(f"work folder {parent}: not an existing directory (no map written)")
+    remove_dead_scratch(parent, log)
+    try:
+        work = Path(tempfile.mkdtemp(prefix=SCRATCH_PREFIX, dir=parent))
+        (work / SCRATCH_OWNER).write_text(f"{socket.gethostname()} {os.getpid()}\n")
+    except OSError as err:
+        if "work" in locals():
+            shutil.rmtree(work, ignore_errors=True)
+        raise FleetError(
+            f"work folder {parent}: cannot write the partial maps there "
+            f"({err.strerror or err}); give another with --work-dir (no map written)"
+        ) from None
+    return work
+
+
+def remove_dead_scratch(parent: Path, log: Callable[[str], None] | None = None) -> list[Path]:
+    """Remove the scratch folders in ``parent`` of runs that died: named ``.mfp-fleet-*``,
+    owned by this user, and either made on this host by a process that is gone, or without
+    an owner file and untouched for ``SCRATCH_STALE_SECONDS``. Those of other hosts stay."""
+    removed: list[Path] = []
+    host = socket.gethostname()
+    try:
+        candidates = list(parent.glob(SCRATCH_PREFIX + "*"))
+    except OSError:
+        return removed
+    for folder in candidates:
+        try:
+            info = folder.lstat()
+            if not folder.is_dir() or folder.is_symlink() or info.st_uid != os.getuid():
+                continue
+            owner = (folder / SCRATCH_OWNER).read_text().split()
+        except FileNotFoundError:
+            owner = []
+        except OSError:
+            continue
+        if owner:
+            if len(owner) != 2 or owner[0] != host or not owner[1].isdigit():
+                continue
+            if _process_alive(int(owner[1])):
+                continue
+        elif time.time() - info.st_mtime < SCRATCH_STALE_SECONDS:
+            continue
+        shutil.rmtree(folder, ignore_errors=True)
+        if not folder.exists():
+            removed.append(folder)
+    if removed and log is not None:
+        log(f"removed {len(removed)} scratch folder(s) of fleet runs that died: "
+            + ", ".join(str(f) for f in removed))  # fmt: skip
+    return removed
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True
+    return True
 
 
 def _fail_or_skip(failed: dict[str, str], skip_bad: bool) -> None:
     if failed and not skip_bad:
         name, why = next(iter(failed.items()))
-        raise FleetError(f"{name}: {why} (no map written; --skip-bad goes on without it)")
+        named = why if name.split(" [")[0] in why else f"{name}: {why}"
+        raise FleetError(f"{named} (no map written; --skip-bad goes on without it)")
 
 
 def _replay_all(
@@ -340,7 +637,7 @@ def _replay_all(
     """Run the replay tasks; drop the recordings that fail (or raise, without skip_bad)."""
     progress = StageProgress("replay", len(tasks), fleet.progress)
     results: list[TaskResult] = []
-    runs = executor.run(replay_task, tasks, opts, work, fleet.tile_blocks)
+    runs = executor.run(replay_task, tasks, opts, work, fleet.tile_blocks, fleet.poses, fleet.times)
     try:
         for done, (task, outcome, error) in enumerate(runs, 1):
             if error is not None:
@@ -351,6 +648,7 @@ def _replay_all(
                 results.append(outcome)
             progress.update(done, task.label)
     finally:
+        runs.close()  # cancels what is left while the executor still runs
         progress.close()
     mapped = {r.task.recording for r in results if r.partial is not None}
     for r in results:  # every window of a recording empty: nothing of it could be mapped
@@ -397,6 +695,7 @@ def _reduce_all(
             entries.extend(outcome)
             progress.update(done)
     finally:
+        runs.close()
         progress.close()
     return entries
 

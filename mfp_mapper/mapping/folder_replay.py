@@ -15,6 +15,8 @@ from typing import Any
 
 import numpy as np
 
+from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.mapping.loop import ScanConsumer
 from mfp_mapper.mapping.progress import Progress
 from mfp_mapper.mapping.replay import (
     ReplayOptions,
@@ -22,7 +24,7 @@ from mfp_mapper.mapping.replay import (
     ReplaySummary,
     ScanCallback,
     map_scans,
-    new_mapper,
+    mapper_for,
 )
 from mfp_mapper.sensing.poses import Extrinsic
 from mfp_mapper.sources import lidar_odometry, pose_files
@@ -41,14 +43,21 @@ def replay_folder(
     progress: bool | Progress = True,
     log: Callable[[str], None] | None = None,
     on_scan: ScanCallback | None = None,
+    into: Mapper | None = None,
+    consume: ScanConsumer | None = None,
 ) -> ReplayResult:
     """Map the scans of ``directory``; ``poses`` is a pose file, ``"identity"``, or None
-    with ``opts.odometry == "kiss-icp"``. ReplayError says why when it cannot be done."""
+    with ``opts.odometry == "kiss-icp"``. ReplayError says why when it cannot be done.
+    ``into``: add the scans to this map; ``consume``: instead of integrating each scan
+    (as ``mapping.replay.replay``)."""
     opts = opts or ReplayOptions()
     try:
         folder = open_scan_folder(directory, times_file)
     except (DatasetFormatError, OSError) as err:
         raise ReplayError(str(err)) from None
+    if folder.skipped and log is not None:
+        log(f"warning: {folder.directory}: skipped {len(folder.skipped)} entries named like "
+            f"scan files: {', '.join(folder.skipped)}")  # fmt: skip
     summary = ReplaySummary(bag=str(folder.directory))
     summary.cloud_topic = f"{len(folder)} {folder.kind} files (stamps: {folder.stamp_source})"
     summary.scans_total = len(folder)
@@ -61,13 +70,15 @@ def replay_folder(
     summary.extrinsic_source = (
         "given on the command line" if opts.extrinsic else "identity (poses are the lidar's)"
     )
-    mapper = new_mapper(opts, found.map_frame)
+    mapper = mapper_for(opts, found.map_frame, into)
 
     def clouds() -> Iterator[tuple[int, Callable[[], Any]]]:
         for index in range(len(folder)):
             yield index, partial(folder.message, index)
 
-    map_scans(clouds(), found, lambda _: extrinsic, opts, mapper, summary, progress, log, on_scan)
+    map_scans(
+        clouds(), found, lambda _: extrinsic, opts, mapper, summary, progress, log, on_scan, consume
+    )
     return ReplayResult(mapper, summary)
 
 
@@ -103,8 +114,10 @@ def folder_poses(
         if kind == "kitti":
             positions, quaternions = pose_files.read_kitti_poses(path)
             if len(positions) != len(stamps):
+                skipped = f"; skipped: {', '.join(folder.skipped)}" if folder.skipped else ""
                 raise DatasetFormatError(
-                    f"{path}: {len(positions)} KITTI poses for {len(stamps)} scans (one per scan)"
+                    f"{path}: {len(positions)} KITTI poses for {len(stamps)} scans (one per "
+                    f"scan){skipped}"
                 )
         elif kind == "tum":
             stamps, positions, quaternions = pose_files.read_tum_poses(path)

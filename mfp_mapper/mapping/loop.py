@@ -36,6 +36,10 @@ FloatArray = NDArray[np.float64]
 
 ScanCallback = Callable[[float, FloatArray, FloatArray], None]
 """Called with (stamp, points (N, 3), origins (3,) or (N, 3)) for every placed cloud."""
+ScanConsumer = Callable[[Mapper, PlacedScan], IntegrationSummary]
+"""What the loop does with a placed scan instead of integrating it (``integrate_scan``):
+e.g. the scorer (``outputs.score``); returns the summary of the rays used, raises
+``ScanDropped`` when none."""
 
 
 class LoopSettings(pipeline.PlacementSettings, Protocol):
@@ -130,6 +134,7 @@ class ScanLoop:
         map_lock: AbstractContextManager[Any] | None = None,
         on_placed: ScanCallback | None = None,
         fatal: tuple[type[Exception], ...] = (),
+        consume: ScanConsumer | None = None,
         merge_lock: AbstractContextManager[Any] | None = None,
         pause: Callable[[], None] | None = None,
     ) -> None:
@@ -143,11 +148,15 @@ class ScanLoop:
             map_lock if map_lock is not None else nullcontext()
         )
         self.on_placed = on_placed
+        self.consume: ScanConsumer = consume if consume is not None else integrate_scan
+        """What is done with each placed scan (default: integrated into ``mapper``)."""
         self.merge_lock = merge_lock
         """Given: each scan is walked without any lock (``Mapper.stage``) and merged under
         this lock (``Mapper.commit``, with ``pause`` between chunks), so readers of the map
-        wait for a merge, never for a scan. None: integrated under ``map_lock``."""
+        wait for a merge, never for a scan. None, or a ``consume`` given: ``consume``
+        under ``map_lock``."""
         self.pause = pause
+        self._staged = merge_lock is not None and consume is None
         self.fatal = fatal
         """Exceptions that end the loop instead of dropping one cloud (the replay's
         ``ReplayError``: no extrinsic for a frame, say)."""
@@ -178,11 +187,11 @@ class ScanLoop:
         )
         if self.on_placed is not None:
             self.on_placed(placed.stamp, placed.points, placed.origins)
-        if self.merge_lock is None:
-            with self.map_lock:
-                summary = integrate_scan(self.mapper, placed)
-        else:
+        if self._staged and self.merge_lock is not None:
             summary = merge_scan(self.mapper, placed, self.merge_lock, self.pause)
+        else:
+            with self.map_lock:
+                summary = self.consume(self.mapper, placed)
         with self.counts_lock:
             self.counts.add(placed, summary)
         return placed, summary

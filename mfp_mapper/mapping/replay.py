@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 from mfp_mapper.config.replay_options import ConfigError as ConfigError  # re-exported
 from mfp_mapper.config.replay_options import ReplayOptions, options_from_yaml
 from mfp_mapper.core.mapper import Mapper
-from mfp_mapper.mapping.loop import ScanCallback, ScanCounts, ScanLoop
+from mfp_mapper.mapping.loop import ScanCallback, ScanConsumer, ScanCounts, ScanLoop
 from mfp_mapper.mapping.progress import Progress
 from mfp_mapper.sensing import pipeline
 from mfp_mapper.sensing.poses import Extrinsic, frame_name
@@ -46,6 +46,7 @@ from mfp_mapper.sources.bags import (
     odometry_poses,
     open_reader,
     pick_topic,
+    read_messages,
     read_transforms,
     resolve_bag_path,
     tf_poses,
@@ -68,6 +69,10 @@ __all__ = [
 
 class NothingMapped(ReplayError):
     """The bag was read, but no cloud (in the ``start``/``end`` window) could be mapped."""
+
+
+class OtherMapFrame(ReplayError):
+    """The recording's map frame is not the one of the map it was to be added to."""
 
 
 # --- summary and progress ---------------------------------------------------------------------
@@ -163,17 +168,23 @@ def replay(
     progress: bool | Progress = True,
     log: Callable[[str], None] | None = None,
     on_scan: ScanCallback | None = None,
+    into: Mapper | None = None,
+    consume: ScanConsumer | None = None,
 ) -> ReplayResult:
     """Map every cloud of ``bag``; ReplayError (with the reason) when it cannot be done.
 
     ``on_scan(stamp, points, origins)`` sees every placed cloud (map frame) just before it
-    is integrated, e.g. to feed the same rays to another mapper.
+    is integrated, e.g. to feed the same rays to another mapper. ``into``: add the clouds
+    to this map (built with the same options) instead of a new one (OtherMapFrame, before
+    any cloud is read, when its frame is not the recording's). ``consume(mapper, placed)``
+    replaces the integration of each placed scan (``loop.ScanConsumer``), e.g. to score
+    the scans against another map.
     """
     opts = opts or ReplayOptions()
     path = resolve_bag_path(bag)
     reader = open_reader(path)
     try:
-        return _replay(reader, path, opts, progress, log, on_scan)
+        return _replay(reader, path, opts, progress, log, on_scan, into, consume)
     finally:
         reader.close()
 
@@ -185,6 +196,8 @@ def _replay(
     progress: bool | Progress,
     log: Callable[[str], None] | None,
     on_scan: ScanCallback | None,
+    into: Mapper | None,
+    consume: ScanConsumer | None = None,
 ) -> ReplayResult:
     summary = ReplaySummary(bag=str(path))
     cloud_topic = pick_topic(reader, CLOUD_TYPE, opts.cloud_topic, "PointCloud2", "--cloud-topic")
@@ -215,10 +228,10 @@ def _replay(
     ext, summary.extrinsic_source = extrinsic_for(cloud_frame, poses.body, tfs, opts)
     extrinsics[cloud_frame] = ext
 
-    mapper = new_mapper(opts, poses.map_frame)
+    mapper = mapper_for(opts, poses.map_frame, into)
 
     def clouds() -> Iterator[tuple[int, Callable[[], Any]]]:
-        for index, (conn, _, raw) in enumerate(reader.messages(connections=cloud_conns)):
+        for index, (conn, _, raw) in enumerate(read_messages(reader, cloud_conns, path)):
             yield index, partial(reader.deserialize, raw, conn.msgtype)
 
     def extrinsic_of(frame: str) -> Extrinsic:
@@ -226,13 +239,25 @@ def _replay(
             extrinsics[frame], _ = extrinsic_for(frame, poses.body, tfs, opts)
         return extrinsics[frame]
 
-    map_scans(clouds(), poses, extrinsic_of, opts, mapper, summary, progress, log, on_scan)
+    map_scans(clouds(), poses, extrinsic_of, opts, mapper, summary, progress, log, on_scan, consume)
     return ReplayResult(mapper, summary)
 
 
 def new_mapper(opts: ReplayOptions, frame_id: str) -> Mapper:
     """An empty Mapper with the options' map section."""
     return Mapper.of(opts.map_settings(), frame_id=frame_id)
+
+
+def mapper_for(opts: ReplayOptions, frame_id: str, into: Mapper | None) -> Mapper:
+    """``into`` when given (OtherMapFrame unless its frame is ``frame_id``), else a new map."""
+    if into is None:
+        return new_mapper(opts, frame_id)
+    if into.frame_id != frame_id:
+        raise OtherMapFrame(
+            f"its map frame {frame_id!r} is not {into.frame_id!r}, the frame of the "
+            "recordings before it: maps of different frames cannot be added up"
+        )
+    return into
 
 
 class ScanSelection:
@@ -292,9 +317,11 @@ def map_scans(
     progress: bool | Progress,
     log: Callable[[str], None] | None,
     on_scan: ScanCallback | None,
+    consume: ScanConsumer | None = None,
 ) -> None:
     """Run the selected clouds ``(position, load message)`` through the scan pipeline into
-    ``mapper``; fills ``summary``; ReplayError when no cloud could be mapped."""
+    ``mapper`` (or ``consume``); fills ``summary``; ReplayError when no cloud could be
+    mapped."""
     select = ScanSelection(opts)
     if opts.max_scans is not None:
         summary.scans_total = min(summary.scans_total, opts.max_scans)
@@ -303,9 +330,9 @@ def map_scans(
         if isinstance(progress, Progress)
         else Progress(summary.scans_total, enabled=bool(progress))
     )
-    loop = ScanLoop(mapper, opts, on_placed=on_scan, fatal=(ReplayError,))
+    loop = ScanLoop(mapper, opts, on_placed=on_scan, fatal=(ReplayError,), consume=consume)
     counts = loop.counts
-    bad_example = error_example = ""
+    bad_example = error_example = empty_example = ""
     cloud_span = [math.inf, -math.inf]
     t_loop = time.perf_counter()
     try:
@@ -331,6 +358,8 @@ def map_scans(
                 bad_example = bad_example or outcome.detail
             elif outcome.reason == "error":
                 error_example = error_example or outcome.detail
+            elif outcome.reason == "empty":
+                empty_example = empty_example or outcome.detail
             if outcome.placed is None or outcome.summary is None:
                 continue
             summary.seconds_core += outcome.summary.seconds
@@ -347,7 +376,11 @@ def map_scans(
     summary.seconds = time.perf_counter() - t_loop
     examples = "".join(
         f"; first {what}: {text}"
-        for what, text in (("bad cloud", bad_example), ("error", error_example))
+        for what, text in (
+            ("bad cloud", bad_example),
+            ("empty cloud", empty_example),
+            ("error", error_example),
+        )
         if text
     )
     if summary.scans_used == 0:
@@ -363,11 +396,12 @@ def _estimated_poses(
     reader: Any, opts: ReplayOptions, cloud_conns: list[Any], log: Callable[[str], None] | None
 ) -> tuple[Poses, TfTree, str]:
     """Poses from the clouds (KISS-ICP): the map frame is the first scan's lidar frame."""
-    first = next(reader.messages(connections=cloud_conns))
+    path = getattr(reader, "paths", ["the bag"])[0]
+    first = next(read_messages(reader, cloud_conns, path))
     cloud_frame = frame_name(reader.deserialize(first[2], first[0].msgtype).header.frame_id)
     clouds = (
         (None, partial(reader.deserialize, raw, conn.msgtype))
-        for conn, _, raw in reader.messages(connections=cloud_conns)
+        for conn, _, raw in read_messages(reader, cloud_conns, path)
     )
     total = sum(c.msgcount for c in cloud_conns)
     poses = lidar_odometry.odometry_poses(clouds, opts, cloud_frame, total, log)

@@ -146,7 +146,7 @@ def evaluate_map(
         s, n = stats.s[use], stats.n[use]
         if s.size:
             est = n / s
-            lo, hi = model.extinction_interval(s, n, level)
+            lo, hi = model.extinction_interval(s, n, level, mapper.prior)
             pooled = float(n.sum() / s.sum())
             abs_err = np.abs(est - lam)
             result = MediumResult(

@@ -27,13 +27,17 @@ PLY_DTYPE = np.dtype([(name, "<f4") for name in PLY_PROPERTIES])
 def ply_records(stats: VoxelStats) -> np.ndarray:
     """The PLY vertex records (binary body) of these voxels."""
     rec = np.empty(len(stats), dtype=PLY_DTYPE)
-    rec["x"], rec["y"], rec["z"] = stats.centers[:, 0], stats.centers[:, 1], stats.centers[:, 2]
-    rec["degree_of_occupancy"] = stats.most_likely_doo
-    rec["std"] = stats.std
-    mfp = stats.mean_free_path
-    rec["mean_free_path"] = np.where(np.isfinite(mfp), mfp, np.nan)
-    rec["n"] = stats.n
-    rec["s"] = stats.s
+    with np.errstate(over="ignore"):  # float64 -> float32 may overflow to inf: refused below
+        rec["x"], rec["y"], rec["z"] = stats.centers[:, 0], stats.centers[:, 1], stats.centers[:, 2]
+        rec["degree_of_occupancy"] = stats.most_likely_doo
+        rec["std"] = stats.std
+        mfp = stats.mean_free_path
+        rec["mean_free_path"] = np.where(np.isfinite(mfp), mfp, np.nan)
+        rec["n"] = stats.n
+        rec["s"] = stats.s
+    for name in ("x", "y", "z", "n", "s"):
+        if not np.isfinite(rec[name]).all():
+            raise ValueError(f"voxel {name} values beyond float32's range: no PLY written")
     return rec
 
 
@@ -93,30 +97,7 @@ def export_ply_tiled(
 
 
 def read_ply(path: str | Path) -> dict[str, np.ndarray]:
-    """Read a binary little-endian PLY vertex element (any float/int properties)."""
-    types = {
-        "char": "i1", "uchar": "u1", "short": "<i2", "ushort": "<u2", "int": "<i4",
-        "uint": "<u4", "float": "<f4", "double": "<f8", "int8": "i1", "uint8": "u1",
-        "int16": "<i2", "uint16": "<u2", "int32": "<i4", "uint32": "<u4", "float32": "<f4",
-        "float64": "<f8",
-    }  # fmt: skip
-    data = Path(path).read_bytes()
-    end = data.find(b"end_header\n")
-    if not data.startswith(b"ply\n") or end < 0:
-        raise ValueError(f"{path}: not a PLY file")
-    header = data[:end].decode("ascii").splitlines()
-    if "format binary_little_endian 1.0" not in header:
-        raise ValueError(f"{path}: only binary little-endian PLY is read here")
-    count, fields, in_vertex = 0, [], False
-    for line in header:
-        parts = line.split()
-        if parts[:1] == ["element"]:
-            in_vertex = parts[1] == "vertex"
-            if in_vertex:
-                count = int(parts[2])
-        elif parts[:1] == ["property"] and in_vertex:
-            fields.append((parts[2], types[parts[1]]))
-    body = np.frombuffer(
-        data, dtype=np.dtype(fields), count=count, offset=end + len("end_header\n")
-    )
-    return {name: body[name] for name, _ in fields}
+    """The vertex columns of a PLY file (``sources.scan_files.read_ply``, with plyfile)."""
+    from mfp_mapper.sources.scan_files import read_ply as read_vertices
+
+    return read_vertices(path)

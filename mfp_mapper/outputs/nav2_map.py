@@ -60,7 +60,10 @@ def write_nav2_map(
     if occupied_threshold is None:
         occupied_threshold = DEFAULT_OCCUPIED_THRESHOLD
     if free_threshold is None or free_threshold < 0.0:
-        free_threshold = min(unobserved_hit_probability(mapper.resolution), occupied_threshold)
+        unknown = unobserved_hit_probability(
+            mapper.resolution, mapper.prior.shape, mapper.prior.rate
+        )
+        free_threshold = min(unknown, occupied_threshold)
     grid = mapper.hit_probability_grid(z_min, z_max, trinary=(occupied_threshold, free_threshold))
     if grid.data.size == 0:
         raise ValueError(f"no observed voxel in the band [{z_min}, {z_max}] m: no map")

@@ -48,7 +48,7 @@ def simulation_lines(result: Any) -> list[str]:
 def query_rows(mapper: Mapper, points: NDArray[np.float64]) -> list[dict[str, Any]]:
     """The statistics of the voxel holding each point (90% credible DoO interval included)."""
     st = mapper.query(points)
-    lo, hi = model.doo_interval(st.s, st.n, 0.9)
+    lo, hi = st.doo_interval(0.9)
     return [
         {
             "point": points[k].tolist(),
@@ -67,16 +67,16 @@ def query_rows(mapper: Mapper, points: NDArray[np.float64]) -> list[dict[str, An
     ]
 
 
-def query_lines(rows: list[dict[str, Any]]) -> list[str]:
-    """One line per ``query_rows`` row."""
+def query_lines(rows: list[dict[str, Any]], prior: model.Prior = model.UNIFORM) -> list[str]:
+    """One line per ``query_rows`` row (``prior``: the map's, for never-observed voxels)."""
     lines = []
     for row in rows:
         x, y, z = row["point"]
         head = f"({x:.2f}, {y:.2f}, {z:.2f}) voxel {tuple(row['voxel'])}: "
         if not row["observed"]:
             lines.append(
-                head + f"unknown (never observed; prior DoO {model.UNKNOWN_DOO:g}, "
-                f"std {model.UNKNOWN_STD:.3f})"
+                head + f"unknown (never observed; prior DoO {prior.unknown_doo:g}, "
+                f"std {prior.unknown_std:.3f})"
             )
             continue
         mfp = row["mean_free_path"]

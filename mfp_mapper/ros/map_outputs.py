@@ -178,7 +178,8 @@ class MapOutputs:
             occupied = cfg.projected_map_occupied_threshold
             free = cfg.projected_map_free_threshold
             if free < 0.0:
-                free = unobserved_hit_probability(worker.mapper.resolution)
+                m = worker.mapper
+                free = unobserved_hit_probability(m.resolution, m.prior.shape, m.prior.rate)
             trinary = (occupied, min(free, occupied))
         robot = worker.robot_position
         radius = cfg.hit_probability_map_radius

@@ -26,6 +26,7 @@ import sys
 import threading
 import time
 from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -98,9 +99,10 @@ CLOCK_GRACE = 3.0
 """Wall seconds after start before a missing /clock (use_sim_time) is reported."""
 
 
-def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, bool]:
-    """The map to start from: ``map_path`` when it exists and loads, else an empty one; and
-    whether loading failed (then that file is never saved over)."""
+def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, str | None]:
+    """The map to start from: ``map_path`` when it exists and loads, else an empty one; and,
+    when loading failed, the path saves go to instead (``recovery_path``): that file is
+    never saved over."""
     path = cfg.map_path
     if path:  # temporary files of a save that was killed midway
         target = os.path.realpath(path)
@@ -111,18 +113,22 @@ def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, bool]:
             )
         for name in stale:
             logger.info(f"removed {name}, left by an interrupted save")
-    if not (path and os.path.exists(path)) or (
+    if not (path and os.path.lexists(path)) or (
         os.path.isdir(path) and not is_tiled(path) and not os.listdir(path)
     ):  # nothing yet, or an empty directory for a tiled map
-        return _empty_map(cfg), False
+        return _empty_map(cfg), None
     try:
         mapper = load_map(path, **cfg.map_settings().mapper_kwargs())
-    except (MapFileError, ValueError, OSError) as err:
+    except Exception as err:  # a map file never takes the node down (MemoryError included)
+        text = f"{type(err).__name__}: {err}"
+        if isinstance(err, MapFileError):  # it names its file: once is enough
+            text = err.problem if err.path == Path(path) else str(err)
+        other = recovery_path(path)
         logger.error(
-            f"cannot load map_path {path!r}: {err}; starting an empty map (and not "
-            "saving over that file on shutdown)"
+            f"cannot load map_path {path!r}: {text}; starting an empty map, saved to "
+            f"{other!r}, never over that file"
         )
-        return _empty_map(cfg), True
+        return _empty_map(cfg), other
     if mapper.resolution != cfg.resolution:
         logger.warning(
             f"map {path!r} has resolution {mapper.resolution} m, parameter "
@@ -131,7 +137,15 @@ def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, bool]:
     if cfg.frame_id:
         mapper.frame_id = cfg.frame_id
     logger.info(f"loaded {mapper.num_voxels} voxels from {path!r} (frame {mapper.frame_id})")
-    return mapper, False
+    return mapper, None
+
+
+def recovery_path(map_path: str) -> str:
+    """Where the node saves when ``map_path`` failed to load: beside it, named by the start
+    time (UTC), e.g. ``site.npz`` -> ``site.20261124T010203Z.npz``."""
+    stem = map_path.rstrip("/")
+    stem = stem[: -len(".npz")] if stem.endswith(".npz") else stem
+    return f"{stem}.{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}.npz"
 
 
 def _empty_map(cfg: NodeConfig) -> Mapper:
@@ -160,6 +174,7 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._queries = 0
         self._maps_served = 0
         self._save_lock = threading.Lock()
+        self._save_elsewhere: str | None = None  # where saves go when map_path failed to load
         self._transport_explained = False
         self._clock_warned = False
         self.worker: LiveIntegrator  # set by configure
@@ -190,7 +205,7 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._map_figures = (0, 0, 0)
         self._status_window = StatusWindow(time.monotonic())
         self._last_window = self._status_window
-        mapper, self._load_failed = initial_mapper(self.cfg, self.get_logger())
+        mapper, self._save_elsewhere = initial_mapper(self.cfg, self.get_logger())
         self._warn_slashes()
         self.worker = LiveIntegrator(
             mapper,
@@ -541,10 +556,11 @@ class MfpMapperNode(GuardedLifecycleNode):
         return response
 
     def save_map(self, only_if_changed: bool = False) -> tuple[bool, str]:
-        """Write the map to ``map_path`` (one save at a time): one map file, or a tiled map
-        when ``map_path`` is a directory; stored uncompressed, so that a large map is saved
-        within ``ros2 launch``'s grace period. Returns (success, message)."""
-        path = self.cfg.map_path
+        """Write the map to ``map_path`` (one save at a time), or beside it when it failed to
+        load at start (``recovery_path``): one map file, or a tiled map when ``map_path`` is
+        a directory; stored uncompressed, so that a large map is saved within ``ros2
+        launch``'s grace period. Returns (success, message)."""
+        path = self._save_elsewhere or self.cfg.map_path
         if not path:
             return False, "parameter map_path is empty: nowhere to save"
         t0 = time.perf_counter()
@@ -563,13 +579,16 @@ class MfpMapperNode(GuardedLifecycleNode):
             return False, f"saving to {path!r} failed: {err}"
         seconds = time.perf_counter() - t0
         timing = f"started after {started:.3f} s, done in {seconds:.2f} s"
-        self.get_logger().info(f"saved {count} voxels to {path!r} ({timing})")
-        return True, f"saved {count} voxels to {path} ({timing})"
+        kept = ""
+        if self._save_elsewhere:
+            kept = f" (map_path {self.cfg.map_path!r} failed to load at start: kept as it was)"
+        self.get_logger().info(f"saved {count} voxels to {path!r} ({timing}){kept}")
+        return True, f"saved {count} voxels to {path} ({timing}){kept}"
 
     @tracked
     def _on_autosave_timer(self) -> None:
         """Save in the background when the map changed, unless a save is running."""
-        if self._load_failed or self._save_lock.locked() or not self._begin_work():
+        if self._save_lock.locked() or not self._begin_work():
             return
 
         def run() -> None:
@@ -659,17 +678,13 @@ class MfpMapperNode(GuardedLifecycleNode):
         return self._configured_once and self.worker.running
 
     def close(self) -> None:
-        """Stop the worker; save the map when save_on_shutdown (not over an unreadable file)."""
+        """Stop the worker; save the map when save_on_shutdown (never over a map_path that
+        failed to load: beside it, ``recovery_path``)."""
         self._release(save=True)
 
     def _save_on_shutdown(self) -> None:
         if self.cfg.save_on_shutdown:
-            if self._load_failed:
-                self.get_logger().error(
-                    "save_on_shutdown: not overwriting the map file that failed to load"
-                )
-            else:
-                self.save_map()
+            self.save_map()  # beside map_path when it failed to load
 
 
 def main(args: list[str] | None = None) -> int:

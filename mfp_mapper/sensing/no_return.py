@@ -140,6 +140,14 @@ def _organized(cloud: ParsedCloud, height: int, width: int) -> Recovery:
             "from the fitted firing order): not a spinning lidar's row/column layout?",
             with_time,
         )
+    disorder = _column_disorder(cells, width, step, correction)
+    if disorder > MAX_OFF_GRID_SHARE:
+        return _none(
+            f"organized cloud ({height} x {width}) whose columns are not in firing order "
+            f"({100 * disorder:.0f}% of neighbouring columns more than half an azimuth step "
+            "off the next): the missing firings' directions cannot be trusted",
+            with_time,
+        )
     times = np.empty(0) if cloud.time_offset is None else cloud.time_offset
     directions, out_times = kernels.organized_missing(
         cells.astype(np.int64), height, width, step, offset, correction, row_elevation, times
@@ -152,6 +160,22 @@ def _organized(cloud: ParsedCloud, height: int, width: int) -> Recovery:
             "and their firings are not recovered"
         )
     return Recovery(directions, out_times if with_time else None, "organized", reason)
+
+
+def _column_disorder(
+    cells: NDArray[np.int64], width: int, step: float, correction: FloatArray
+) -> float:
+    """Share of neighbouring columns (both with points) whose fitted azimuths differ by more
+    than half a step from one step apart: 0 for a lidar's firing order, large when the
+    columns were shuffled (the per-column corrections then absorb any order)."""
+    seen = np.zeros(width, dtype=bool)
+    seen[np.asarray(cells) % width] = True
+    pairs = np.flatnonzero(seen[1:] & seen[:-1])
+    if not len(pairs) or step == 0:
+        return 0.0
+    jump = correction[pairs + 1] - correction[pairs]
+    jump = (jump + math.pi) % (2.0 * math.pi) - math.pi
+    return float(np.mean(np.abs(jump) > 0.5 * abs(step)))
 
 
 def _beams(cloud: ParsedCloud) -> Recovery:

@@ -128,9 +128,15 @@ def parse_scan(msg: Any) -> ParsedCloud:
     except CloudFormatError as err:
         raise ScanDropped("malformed", str(err)) from None
     if len(cloud) == 0:
+        why = (
+            f"; its per-point time field {cloud.time_field!r} is NaN/Inf at "
+            f"{cloud.bad_times} points with a valid position"
+            if cloud.bad_times
+            else ""
+        )
         raise ScanDropped(
             "empty",
-            f"none of its {cloud.points_in} points is valid",
+            f"none of its {cloud.points_in} points is valid{why}",
             cloud.points_in,
             cloud.dropped,
         )

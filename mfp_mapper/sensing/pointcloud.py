@@ -110,6 +110,10 @@ class ParsedCloud:
     """Points that end recovered rays with no return (None: every point is a return)."""
     time_base: str | None = None
     """One of ``TIME_BASES`` when the cloud has a recognised time field."""
+    time_field: str | None = None
+    """The per-point time field read (one of ``TIME_FIELDS``), if any."""
+    bad_times: int = 0
+    """Points with a finite position but a NaN/Inf time (counted in ``nonfinite``)."""
     unknown_time_field: str | None = None
     """A field that looks like per-point time but is not in ``TIME_FIELDS`` (no de-skew)."""
 
@@ -174,6 +178,9 @@ def parse_pointcloud2(msg: Any, header_stamp: float | None = None) -> ParsedClou
     cloud = _drop_invalid(xyz, time_offset, intensity, ring)
     cloud.grid_shape = (int(records.shape[0]), int(records.shape[1]))
     cloud.time_base = base
+    if time_offset is not None:
+        cloud.time_field = next(n for n in TIME_FIELDS if n in names)
+        cloud.bad_times = int((np.isfinite(xyz).all(axis=1) & ~np.isfinite(time_offset)).sum())
     cloud.unknown_time_field = unknown_time_field([str(f.name) for f in msg.fields])
     return cloud
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -63,6 +64,25 @@ def open_reader(path: Path) -> Any:
     except Exception as err:  # rosbags raises several error types for broken files
         raise ReplayError(f"{path}: cannot read the bag: {err}") from None
     return reader
+
+
+def read_messages(reader: Any, connections: list[Any], path: Path | str) -> Iterator[Any]:
+    """``reader.messages(connections=...)``; a file damaged part way (sqlite corruption, a
+    truncated chunk) raises ReplayError naming the bag and the message reached."""
+    count = 0
+    messages = reader.messages(connections=connections)
+    while True:
+        try:
+            item = next(messages)
+        except StopIteration:
+            return
+        except Exception as err:  # apsw.CorruptError, rosbags' reader errors...
+            text = " ".join(str(err).split())
+            raise ReplayError(
+                f"{path}: cannot read the bag after {count} messages: {type(err).__name__}: {text}"
+            ) from None
+        count += 1
+        yield item
 
 
 def pick_topic(reader: Any, msgtype: str, wanted: str | None, what: str, flag: str) -> str | None:

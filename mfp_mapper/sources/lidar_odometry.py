@@ -26,6 +26,8 @@ from mfp_mapper.sources.pose_files import matrix_to_quaternion, pose_buffer
 KISS_ICP = "kiss-icp"
 MAP_FRAME = "kiss_icp_map"
 """The map frame of estimated poses: the lidar frame at the first scan."""
+FEW_POINTS = 100
+"""A cloud with fewer points gives KISS-ICP too little to register: warned."""
 
 
 def kiss_icp_available() -> bool:
@@ -67,6 +69,7 @@ def estimate_poses(
     stamps: list[float] = []
     poses: list[np.ndarray] = []
     skipped = 0
+    sparse: list[int] = []  # point counts of the clouds too small to register
     started = time.perf_counter()
     for _, load in clouds:
         try:
@@ -79,6 +82,8 @@ def estimate_poses(
         if len(cloud) == 0:  # empty: likewise
             skipped += 1
             continue
+        if len(cloud) < FEW_POINTS:
+            sparse.append(len(cloud))
         times = cloud.time_offset
         deskew = bool(opts.deskew and times is not None and np.ptp(times) > 0)
         if icp is None:
@@ -103,6 +108,12 @@ def estimate_poses(
             f"{time.perf_counter() - started:.1f} s"
             + (f" ({skipped} unreadable)" if skipped else "")
         )
+        if sparse:
+            log(
+                f"warning: KISS-ICP: {len(sparse)} of {len(poses) + skipped} clouds have fewer "
+                f"than {FEW_POINTS} points (smallest {min(sparse)}): too few to register, "
+                "the poses estimated from them are unreliable"
+            )
     return np.array(stamps), np.array(poses)
 
 

@@ -19,9 +19,10 @@ exactly as from a bag.
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -65,6 +66,8 @@ class ScanFolder:
     scans: list[ScanFile]
     stamp_source: str
     frame_id: str = "lidar"
+    skipped: list[str] = field(default_factory=list)
+    """Entries with a scan file's name that are no readable file (dangling links, folders)."""
 
     def __len__(self) -> int:
         return len(self.scans)
@@ -101,7 +104,9 @@ def open_scan_folder(
     folder = Path(directory)
     if not folder.is_dir():
         raise DatasetFormatError(f"{folder}: not a directory")
-    files = [f for f in folder.iterdir() if f.is_file() and f.suffix.lower() in READERS]
+    entries = [f for f in folder.iterdir() if f.suffix.lower() in READERS]
+    files = [f for f in entries if f.is_file()]
+    skipped = sorted(f"{f.name} ({_not_a_file(f)})" for f in entries if not f.is_file())
     kinds = sorted({f.suffix.lower() for f in files})
     if not files:
         raise DatasetFormatError(
@@ -127,7 +132,13 @@ def open_scan_folder(
         scans.sort(key=lambda scan: scan.stamp)
     if len({s.stamp for s in scans}) != len(scans):
         raise DatasetFormatError(f"{folder}: two scans have the same stamp ({source})")
-    return ScanFolder(folder, scans, source, frame_id)
+    return ScanFolder(folder, scans, source, frame_id, skipped)
+
+
+def _not_a_file(path: Path) -> str:
+    if path.is_dir():
+        return "a folder"
+    return "a dangling link" if path.is_symlink() else "not a regular file"
 
 
 def _natural_key(path: Path) -> list[object]:
@@ -165,4 +176,9 @@ def _read_times(path: Path, scans: int) -> list[float]:
         raise DatasetFormatError(f"{path}: a line does not start with a number") from None
     if len(values) != scans:
         raise DatasetFormatError(f"{path}: {len(values)} stamps for {scans} scan files")
+    bad = next((k for k, v in enumerate(values) if not math.isfinite(v)), None)
+    if bad is not None:
+        raise DatasetFormatError(
+            f"{path}: stamp {bad + 1} is {values[bad]}, not a finite number of seconds"
+        )
     return values

@@ -167,7 +167,7 @@ def test_pickled_objects_are_never_loaded(tmp_path: Path) -> None:
     path.write_bytes(buf.getvalue())
     with zipfile.ZipFile(path) as z:
         assert "frame_id.npy" in z.namelist()
-    with pytest.raises(MapFileError, match="unreadable or truncated"):
+    with pytest.raises(MapFileError, match="pickles are never loaded"):
         load_map(path)
 
 
@@ -231,7 +231,7 @@ def test_huge_array_claimed_by_a_header_is_refused_before_reading(tmp_path: Path
     [
         ({"resolution": np.float64(1e-300)}, r"resolution must be positive, within"),
         ({"ijk": np.array([[0, 0, 0], [2**30, 0, 0]], dtype=np.int32)}, "beyond"),
-        ({"origin": np.array([0.0, np.nan, 0.0])}, "origin must be finite"),
+        ({"origin": np.array([0.0, np.nan, 0.0])}, "origin must be 3 finite metres"),
         ({"origin": np.zeros(2)}, "origin must be a float array of 3"),
         ({"version": np.int64(2)}, "needs origin"),
         ({"ijk": np.array([[5, 6, 7], [5, 6, 7]], dtype=np.int32)}, r"\[5, 6, 7\] more than"),

@@ -199,10 +199,200 @@ def test_progress_lines_name_the_stage_and_the_task(bags: list[Path], tmp_path: 
 
 
 def test_max_voxels_is_refused_for_several_tasks(bags: list[Path], tmp_path: Path) -> None:
+    windows = FleetOptions(chunk_seconds=CHUNK, progress=False)
     with pytest.raises(FleetError, match="max_voxels"):
-        map_fleet(bags, tmp_path / "m.npz", replace(OPTS, max_voxels=1000), FleetOptions())
+        map_fleet(bags, tmp_path / "m.npz", replace(OPTS, max_voxels=1000), windows)
     with pytest.raises(FleetError, match="max_scans"):
         map_fleet(bags, tmp_path / "m.npz", replace(OPTS, max_scans=3), FleetOptions())
+    # one mapper in turn evicts as one long replay does
+    bounded = replace(OPTS, max_voxels=20_000)
+    result = map_fleet(bags, tmp_path / "m.npz", bounded, FleetOptions(progress=False))
+    assert 0 < result.voxels <= 20_000
+
+
+# --- one mapper in turn, limits, cleanup ----------------------------------------------------
+
+
+def test_in_turn_equals_the_fleet_path_and_the_sequential_replay(
+    bags: list[Path], reference: dict[str, np.ndarray], tmp_path: Path
+) -> None:
+    in_turn = map_fleet(bags, tmp_path / "turn.npz", OPTS, FleetOptions(progress=False))
+    assert in_turn.executor.startswith("in turn") and len(in_turn.tasks) == 3
+    assert sum(s.scans_used for s in in_turn.summaries) == 3 * SMALL.scans
+    windows = FleetOptions(chunk_seconds=CHUNK, progress=False)
+    map_fleet(bags, tmp_path / "fleet.npz", OPTS, windows)
+    fleet_map = map_arrays(load_map(tmp_path / "fleet.npz"))
+    _assert_same_map(load_map(tmp_path / "turn.npz"), fleet_map)
+    _assert_same_map(load_map(tmp_path / "turn.npz"), reference)
+    tiles = map_fleet(bags, tmp_path / "tiles", OPTS, FleetOptions(progress=False, tile_blocks=2))
+    assert tiles.tiles == len(TiledMap(tmp_path / "tiles").tiles) > 1
+    _assert_same_map(load_map(tmp_path / "tiles"), reference)
+    assert not list(tmp_path.glob(".mfp-fleet-*"))
+
+
+def test_duplicate_inputs_are_refused_unless_allowed(bags: list[Path], tmp_path: Path) -> None:
+    twice = [bags[0], Path(str(bags[0]) + "/"), bags[1]]
+    with pytest.raises(FleetError, match="given twice.*--allow-duplicates"):
+        map_fleet(twice, tmp_path / "m.npz", OPTS, FleetOptions(progress=False))
+    link = tmp_path / "same"
+    link.symlink_to(bags[1])
+    with pytest.raises(FleetError, match="given twice"):
+        map_fleet([bags[1], link], tmp_path / "m.npz", OPTS, FleetOptions(progress=False))
+    assert not (tmp_path / "m.npz").exists()
+    allowed = FleetOptions(progress=False, allow_duplicates=True)
+    result = map_fleet([bags[0], bags[0]], tmp_path / "m.npz", OPTS, allowed)
+    assert len(result.tasks) == 2
+
+
+def test_tiny_chunks_and_many_workers_are_bounded(bags: list[Path]) -> None:
+    lines: list[str] = []
+    tasks, failed = plan_tasks([str(bags[0])], 1e-9, max_windows=16, log=lines.append)
+    assert not failed and len(tasks) == SMALL.scans  # one window per cloud at most
+    assert "1e-09" in lines[0] and f"{SMALL.scans} windows" in lines[0]
+    tasks, _ = plan_tasks([str(bags[0])], 1e-3, max_windows=4, log=lines.append)
+    assert len(tasks) == 4
+    from mfp_mapper.mapping.fleet import _worker_count, default_workers
+
+    cut = _worker_count(FleetOptions(workers=64), [], lines.append)
+    assert cut == default_workers() and "--workers 64: using" in lines[-1]
+
+
+def test_scratch_of_dead_runs_is_removed_and_live_ones_kept(tmp_path: Path) -> None:
+    import os
+    import socket
+    import time
+
+    from mfp_mapper.mapping.fleet import SCRATCH_STALE_SECONDS, remove_dead_scratch
+
+    host = socket.gethostname()
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True).stdout.strip()  # fmt: skip
+    folders = {}
+    for name, owner in [("dead", f"{host} {dead}"), ("alive", f"{host} {os.getpid()}"),
+                        ("remote", f"elsewhere {dead}"), ("old", None), ("new", None)]:  # fmt: skip
+        folders[name] = tmp_path / f".mfp-fleet-{name}"
+        (folders[name] / "partials").mkdir(parents=True)
+        if owner is not None:
+            (folders[name] / "owner").write_text(owner + "\n")
+    past = time.time() - SCRATCH_STALE_SECONDS - 10
+    os.utime(folders["old"], (past, past))
+    (tmp_path / ".mfp-fleet-file").write_text("not a folder")
+    (tmp_path / "keep").mkdir()
+    lines: list[str] = []
+    removed = remove_dead_scratch(tmp_path, lines.append)
+    assert sorted(p.name for p in removed) == [".mfp-fleet-dead", ".mfp-fleet-old"]
+    assert all(folders[k].exists() for k in ("alive", "remote", "new"))
+    assert (tmp_path / ".mfp-fleet-file").exists() and (tmp_path / "keep").exists()
+    assert "removed 2 scratch folder(s)" in lines[0]
+
+
+def test_a_killed_fleet_run_leaves_scratch_the_next_run_removes(
+    bags: list[Path], tmp_path: Path
+) -> None:
+    import os
+    import signal
+    import time
+
+    out = tmp_path / "m.npz"
+    cmd = [sys.executable, "-m", "mfp_mapper.cli", "replay", *map(str, bags), "-o", str(out),
+           "--chunk-seconds", str(CHUNK), *FLAGS]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 120
+    while not list(tmp_path.glob(".mfp-fleet-*/partials/task*")):
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert list(tmp_path.glob(".mfp-fleet-*")) and not out.exists()
+    run = subprocess.run([*cmd[:-1]], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert "removed 1 scratch folder" in run.stderr
+    assert not list(tmp_path.glob(".mfp-fleet-*")) and out.exists()
+
+
+def test_sigterm_ends_a_fleet_run_cleanly(bags: list[Path], tmp_path: Path) -> None:
+    import os
+    import signal
+    import time
+
+    out = tmp_path / "m.npz"
+    cmd = [sys.executable, "-m", "mfp_mapper.cli", "replay", *map(str, bags), "-o", str(out),
+           "--chunk-seconds", str(CHUNK), *FLAGS]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while not list(tmp_path.glob(".mfp-fleet-*/partials/task*")):
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and "Traceback" not in err and "interrupted" in err
+    assert not list(tmp_path.glob(".mfp-fleet-*")) and not out.exists()
+
+
+def test_bad_work_dir_and_read_only_output_are_one_line(
+    bags: list[Path], tmp_path: Path, capsys
+) -> None:  # type: ignore[no-untyped-def]
+    import os
+
+    from mfp_mapper.cli import main
+
+    out = str(tmp_path / "m.npz")
+    base = ["replay", str(bags[0]), str(bags[1]), "-o", out, "--chunk-seconds", "0.35", *FLAGS]
+    assert main([*base, "--work-dir", str(tmp_path / "missing")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "missing: not an existing directory" in err
+    (tmp_path / "afile").write_text("x")
+    assert main([*base, "--work-dir", str(tmp_path / "afile")]) == 1
+    assert "afile: not an existing directory" in capsys.readouterr().err
+    if os.geteuid() != 0:  # root writes anywhere: the permission check cannot fail then
+        locked = tmp_path / "locked"
+        locked.mkdir(mode=0o500)
+        assert main([*base, "--work-dir", str(locked)]) == 1
+        assert len(capsys.readouterr().err.strip().splitlines()) == 1
+        assert main(["replay", str(bags[0]), "-o", str(locked / "m.npz"), *FLAGS]) == 1
+        assert "cannot write in" in capsys.readouterr().err
+    assert not (tmp_path / "m.npz").exists()
+
+
+def test_a_failing_recording_on_workers_is_one_line(bags: list[Path], tmp_path: Path) -> None:
+    pytest.importorskip("distributed")
+    bad = tmp_path / "broken.bag"
+    bad.write_bytes(b"#ROSBAG V2.0\n" + b"\x00garbage" * 50)
+    cmd = [sys.executable, "-m", "mfp_mapper.cli", "replay", str(bags[0]), str(bad),
+           "-o", str(tmp_path / "m.npz"), "--workers", "2", *FLAGS]  # fmt: skip
+    run = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 1, run.stderr
+    assert run.stderr.count("broken.bag") == 1, run.stderr
+    assert len(run.stderr.strip().splitlines()) == 1, run.stderr  # no IOLoop traceback
+    left = list(tmp_path.glob(".mfp-fleet-*"))
+    assert not left and not (tmp_path / "m.npz").exists(), (left, run.stderr)
+
+
+def test_scan_folders_among_several_inputs(bags: list[Path], tmp_path: Path) -> None:
+    from folder_helpers import bag_contents, write_pcd
+
+    from mfp_mapper.mapping.folder_replay import replay_folder
+
+    folders = []
+    for i, bag in enumerate(bags[:2]):
+        clouds, _ = bag_contents(bag)
+        folder = tmp_path / f"frames{i}"
+        folder.mkdir()
+        for stamp, records in clouds[:2]:
+            sec, nsec = int(stamp), round((stamp - int(stamp)) * 1e9)
+            columns = {n: records[n] for n in ("x", "y", "z")}
+            write_pcd(folder / f"cloud_{sec}_{nsec}.pcd", columns)
+        folders.append(folder)
+    fleet = FleetOptions(progress=False, poses="identity")
+    result = map_fleet(folders, tmp_path / "m.npz", OPTS, fleet)
+    assert len(result.tasks) == 2 and sum(s.scans_used for s in result.summaries) == 4
+    mapper = replay_folder(folders[0], "identity", OPTS, progress=False).mapper
+    replay_folder(folders[1], "identity", OPTS, progress=False, into=mapper)
+    _assert_same_map(load_map(tmp_path / "m.npz"), map_arrays(mapper))
+    with pytest.raises(FleetError, match="--poses FILE names the poses of one scan folder"):
+        map_fleet(folders, tmp_path / "n.npz", OPTS, FleetOptions(poses=str(tmp_path / "p")))
+    with pytest.raises(FleetError, match="--poses and --times are for folders"):
+        map_fleet([folders[0], bags[0]], tmp_path / "n.npz", OPTS, fleet)
 
 
 def test_the_live_node_never_imports_dask() -> None:
@@ -235,6 +425,26 @@ def test_cli_replay_of_several_bags_on_two_workers(
     assert main([*args, *FLAGS]) == 0
     assert "3 recordings in 12 tasks" in capsys.readouterr().out
     _assert_same_map(load_map(out), reference)
+
+
+def test_the_launcher_runs_the_fleet_on_two_workers(
+    bags: list[Path], reference: dict[str, np.ndarray], tmp_path: Path
+) -> None:
+    """The command README gives, through the .venv/bin/mfp-mapper that ./run setup writes
+    (Dask's spawned workers re-run that script: it must not start the CLI again)."""
+    pytest.importorskip("distributed")
+    launcher = Path(__file__).resolve().parents[2] / ".venv" / "bin" / "mfp-mapper"
+    if not launcher.is_file():
+        pytest.skip(f"{launcher} is made by ./run setup; not there")
+    run = subprocess.run(
+        [str(launcher), "replay", *map(str, bags), "--workers", "2", "-o", "m.npz", *FLAGS],
+        capture_output=True, text=True, timeout=300, cwd=tmp_path,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert "Traceback" not in run.stderr and "Nanny" not in run.stderr
+    assert "3 recordings in 3 tasks" in run.stdout
+    _assert_same_map(load_map(tmp_path / "m.npz"), reference)
+    assert not list(tmp_path.glob(".mfp-fleet-*"))
 
 
 def test_cli_sequential_replay_merge_and_tiled_outputs(

@@ -36,13 +36,19 @@ def test_ply_round_trip(tmp_path: Path, binary: bool) -> None:
 
 def test_bad_ply(tmp_path: Path) -> None:
     path = tmp_path / "b.ply"
-    header = "ply\nformat binary_big_endian 1.0\nelement vertex 1\nproperty float x\nend_header\n"
-    path.write_bytes(header.encode())
-    with pytest.raises(DatasetFormatError, match="binary_big_endian"):
+    header = "ply\nformat binary_big_endian 1.0\nelement vertex 2\nproperty float x\nend_header\n"
+    path.write_bytes(header.encode() + np.array([1.5, -2.0], dtype=">f4").tobytes())
+    big = read_ply(path)  # big-endian (plyfile): native values
+    assert big["x"].tolist() == [1.5, -2.0] and big["x"].dtype == np.dtype("=f4")
+    path.write_bytes(header.encode() + b"\x00\x01")
+    with pytest.raises(DatasetFormatError, match="b.ply: not a readable PLY file"):
         read_ply(path)
     write_ply(path, COLUMNS)
     path.write_bytes(path.read_bytes()[:-10])
-    with pytest.raises(DatasetFormatError, match="truncated"):
+    with pytest.raises(DatasetFormatError, match="not a readable PLY file"):
+        read_ply(path)
+    path.write_bytes(b"ply\nformat ascii 1.0\nelement face 1\nproperty float a\nend_header\n1\n")
+    with pytest.raises(DatasetFormatError, match="no vertex element"):
         read_ply(path)
 
 

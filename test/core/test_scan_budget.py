@@ -1,0 +1,74 @@
+"""A scan's memory is bounded whatever max_range (issue 21): the far parts of its rays
+share a block budget (``core.memory_bound``); rays within the free walk are untouched."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mfp_mapper.core import memory_bound
+from mfp_mapper.core.blocks import BLOCK_EDGE
+from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.mapio.mapfile import map_arrays
+
+RES = 0.5
+
+
+def _far_rays(count: int, distance: float = 1e5) -> np.ndarray:
+    d = np.random.default_rng(0).normal(size=(count, 3))
+    return d / np.linalg.norm(d, axis=1, keepdims=True) * distance
+
+
+def test_far_rays_stay_within_the_budget(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(memory_bound, "DEFAULT_SCAN_BLOCKS", 2_000)
+    points = _far_rays(40)
+    mapper = Mapper(RES, max_range=math.inf)
+    summary = mapper.integrate(points, np.zeros(3), 0.0)
+    assert summary.rays_cut_by_budget == 40 and summary.rays_used == 40
+    free = memory_bound.FREE_WALK_VOXELS * math.sqrt(3) / BLOCK_EDGE + 2  # per ray, at most
+    assert mapper._store.num_blocks <= 2_000 + 40 * free
+    unbounded = Mapper(RES, max_range=math.inf)
+    monkeypatch.setattr(memory_bound, "DEFAULT_SCAN_BLOCKS", 10**9)
+    unbounded.integrate(points, np.zeros(3), 0.0)
+    assert unbounded._store.num_blocks > 3 * mapper._store.num_blocks
+
+
+def test_a_cut_ray_is_free_space_up_to_its_limit_with_no_return(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(memory_bound, "DEFAULT_SCAN_BLOCKS", 100)
+    end = np.array([[1e5, 0.3, 0.2]])
+    mapper = Mapper(RES, max_range=math.inf)
+    assert mapper.integrate(end, np.zeros(3), 0.0).rays_cut_by_budget == 1
+    free = memory_bound.FREE_WALK_VOXELS * RES
+    near, beyond = [[0.5 * free, 0.3, 0.2]], [[3 * free, 0.3, 0.2]]
+    assert mapper.query(near).s[0] > 0 and mapper.query(near).n[0] == 0
+    assert mapper.query(beyond).s[0] == 0
+    assert float(map_arrays(mapper)["n"].sum()) == 0.0  # no return anywhere
+
+
+def test_rays_within_the_free_walk_are_untouched(monkeypatch: pytest.MonkeyPatch) -> None:
+    points = _far_rays(500, 0.9 * memory_bound.FREE_WALK_VOXELS * RES)
+    monkeypatch.setattr(memory_bound, "DEFAULT_SCAN_BLOCKS", 1)
+    tight = Mapper(RES, max_range=math.inf)
+    assert tight.integrate(points, np.zeros(3), 0.0).rays_cut_by_budget == 0
+    monkeypatch.setattr(memory_bound, "DEFAULT_SCAN_BLOCKS", 10**9)
+    free = Mapper(RES, max_range=math.inf)
+    free.integrate(points, np.zeros(3), 0.0)
+    a, b = map_arrays(tight), map_arrays(free)
+    for key in ("ijk", "s", "n"):
+        np.testing.assert_array_equal(a[key], b[key])
+
+
+def test_the_budget_follows_max_voxels() -> None:
+    assert memory_bound.scan_block_budget(None) == memory_bound.DEFAULT_SCAN_BLOCKS
+    assert memory_bound.scan_block_budget(5_000) == 5_000
+    origins = np.zeros((3, 3))
+    ends = np.array([[1e4, 0, 0], [0, 1e4, 0], [10.0, 0, 0]])
+    limits = memory_bound.walk_limits(origins, ends, 100)
+    assert limits is not None and limits[2] == 10.0
+    far = limits[:2] - memory_bound.FREE_WALK_VOXELS
+    assert np.all(far >= 0) and np.ceil(far / BLOCK_EDGE).sum() + 4 <= 100
+    assert memory_bound.walk_limits(origins, ends, 10**6) is None

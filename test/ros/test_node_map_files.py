@@ -1,0 +1,127 @@
+"""The node never dies on a map file: on every hostile map (test/hostile_maps.py) it logs one
+line, starts empty and saves beside ``map_path``, never over it; real nodes over DDS."""
+
+from __future__ import annotations
+
+import os
+import stat
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from hostile_maps import KINDS
+from ros_helpers import Feeder, NodeProcess
+
+from mfp_mapper.config.schema import NodeConfig
+from mfp_mapper.mapio.loading import load_map
+from mfp_mapper.ros.node import initial_mapper
+
+
+class Recorder:
+    """A logger keeping (level, text) of each line."""
+
+    def __init__(self) -> None:
+        self.lines: list[tuple[str, str]] = []
+
+    def __getattr__(self, level: str) -> Any:
+        return lambda text, **_: self.lines.append((level, str(text)))
+
+
+def _entries(root: Path) -> dict[str, tuple[object, ...]]:
+    """Every entry under ``root``: type, size and modification time (FIFOs never opened)."""
+    out: dict[str, tuple[object, ...]] = {}
+    for folder, dirs, files in os.walk(root):
+        for name in dirs + files:
+            p = Path(folder) / name
+            st = p.lstat()
+            body = p.read_bytes() if stat.S_ISREG(st.st_mode) and st.st_size < 1 << 26 else b""
+            out[str(p.relative_to(root))] = (
+                stat.S_IFMT(st.st_mode),
+                st.st_size,
+                st.st_mtime_ns,
+                body,
+            )
+    return out
+
+
+@pytest.mark.parametrize("kind", sorted(KINDS))
+def test_node_start_on_each_hostile_map(kind: str, tmp_path: Path) -> None:
+    src = tmp_path / "in"
+    src.mkdir()
+    path = KINDS[kind][0](src)
+    before = _entries(src)
+    log = Recorder()
+    cfg = NodeConfig.from_values({"map_path": str(path), "save_on_shutdown": True})
+    mapper, elsewhere = initial_mapper(cfg, log)
+    assert len(log.lines) == 1, log.lines
+    level, text = log.lines[0]
+    assert level == "error" and "\n" not in text
+    assert f"cannot load map_path {str(path)!r}" in text and KINDS[kind][1] in text
+    assert "starting an empty map" in text and repr(elsewhere) in text
+    assert elsewhere is not None and Path(elsewhere).parent == path.parent
+    assert not os.path.lexists(elsewhere)
+    assert mapper.num_voxels == 0
+    summary = mapper.integrate(np.array([[2.0, 0.0, 0.0]]), np.zeros(3), 1.0)
+    assert summary.integrated and mapper.num_voxels > 0  # usable
+    assert _entries(src) == before
+
+
+SERVED = ("index_tile_blocks_1e400", "zip_bomb", "origin_1e15", "future_t_last", "symlink_to_fifo")
+"""The kinds the audit saw kill the node (OverflowError, MemoryError) or leave it unusable
+(every scan out of bounds, every scan decayed away), and one that would block its start."""
+
+
+@pytest.fixture()
+def hostile(tmp_path: Path) -> Iterator[dict[str, Path]]:
+    maps = {}
+    for kind in SERVED:
+        folder = tmp_path / kind
+        folder.mkdir()
+        maps[kind] = KINDS[kind][0](folder)
+    yield maps
+
+
+def test_nodes_on_hostile_maps_stay_up_and_save_beside_them(
+    ros_domain: int, tmp_path: Path, hostile: dict[str, Path]
+) -> None:
+    from nav_msgs.srv import GetMap
+    from std_srvs.srv import Trigger
+
+    before = {k: _entries(p.parent) for k, p in hostile.items()}
+    params = {"publish_rate": 0.0, "save_on_shutdown": True, "status_period": 0.5}
+    nodes, feeders = {}, {}
+    for k, (kind, path) in enumerate(hostile.items()):
+        name = f"mfp_hostile{k}"
+        nodes[kind] = NodeProcess(
+            ros_domain, {**params, "map_path": str(path)}, tmp_path / f"{kind}.log", name=name
+        )
+        feeders[kind] = Feeder(node_name=name, feeder_name=f"feeder_hostile{k}")
+    saved: dict[str, str] = {}
+    try:
+        for kind, f in feeders.items():
+            assert f.wait(f.save.service_is_ready, 90.0), nodes[kind].log()
+            info = f.call(f.get_map, GetMap.Request()).map.info
+            assert (info.width, info.height) == (0, 0)
+            answer = f.call(f.save, Trigger.Request())
+            assert answer.success, answer.message
+            assert "kept as it was" in answer.message and str(hostile[kind]) in answer.message
+            saved[kind] = answer.message.split("saved 0 voxels to ")[1].split(" (map_path")[0]
+            status = f.wait_status(lambda s: "voxels" in s, 10.0)
+            assert status is not None and status["voxels"] == 0
+            assert nodes[kind].alive()
+    finally:
+        for f in feeders.values():
+            f.destroy()
+        codes = {kind: node.stop() for kind, node in nodes.items()}
+    for kind, path in hostile.items():
+        log = nodes[kind].log()
+        assert codes[kind] == 0, log
+        assert log.count("cannot load map_path") == 1 and "Traceback" not in log, log
+        assert KINDS[kind][1] in log
+        other = Path(saved[kind])
+        assert other.parent == path.parent and other.is_file()  # saved again on shutdown
+        assert load_map(other).num_voxels == 0
+        other.unlink()
+        assert _entries(path.parent) == before[kind], kind  # the user's file untouched
