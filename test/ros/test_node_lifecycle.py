@@ -8,9 +8,7 @@ octomap_server parameter file under octomap_server's name and topic names.
 
 from __future__ import annotations
 
-import os
 import re
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -22,33 +20,12 @@ from ros_helpers import (
     clear_bbox,
     cloud_from_columns,
     read_cloud,
-    set_ros_env,
 )
 from test_node import NODE_PARAMS, T0, Sim
 
 pytestmark = pytest.mark.ros
 
 N_SCANS = 4
-
-
-@pytest.fixture(scope="module")
-def ros_domain() -> Iterator[int]:
-    """This module's own DDS domain (60-69) on this host."""
-    import rclpy
-
-    domain = 60 + os.getpid() % 10
-    saved = {k: os.environ.get(k) for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
-    set_ros_env(domain)
-    rclpy.init(domain_id=domain)
-    try:
-        yield domain
-    finally:
-        rclpy.try_shutdown()
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
 
 
 class Lifecycle:

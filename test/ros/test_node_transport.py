@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from ros_helpers import Feeder, NodeProcess, cloud_from_columns, set_ros_env
+from ros_helpers import Feeder, NodeProcess, cloud_from_columns, domain_id, set_ros_env
 
 from mfp_mapper.ros.transport import PROFILE_ENV
 
@@ -25,7 +25,7 @@ def ros_domain() -> Iterator[int]:
     """This module's own DDS domain (60-69), Fast DDS defaults in this process."""
     import rclpy
 
-    domain = 60 + (os.getpid() + 5) % 10
+    domain = domain_id()
     keys = ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", PROFILE_ENV)
     saved = {k: os.environ.get(k) for k in keys}
     os.environ.pop(PROFILE_ENV, None)
