@@ -23,6 +23,13 @@ total CPU:
 
 Streams: VLP-16 (16 x 1800 = 28.8k points, 0.1 m) and an OS1-128-like lidar
 (128 x 1024 = 131k points, 0.2 m, elevations -22.5..22.5 deg).
+
+``--big-scan 2e6``: service latency while one large scan integrates (item of issue 18).
+A static robot in a 30 x 30 m room (0.1 m voxels) sends a small scan, then one of that
+many points (1024 rows x 2048 azimuths, -30..30 deg); while the node integrates it, a
+hit-probability query, a GetMap call and a ``~/save_map`` call go out every 0.5 s, each
+once the previous one answered. Reported: the integration time (cloud received to
+integrated, from ~/status) and each service's latency (max and median) during it.
 """
 
 from __future__ import annotations
@@ -267,6 +274,110 @@ def _report(
     return result
 
 
+def _room_scan(count: int) -> dict[str, np.ndarray]:
+    """About ``count`` returns in a 30 x 30 m room (floor 2 m below, ceiling 6 m above)."""
+    rows = max(1, count // 2048)
+    el = np.radians(np.linspace(-30.0, 30.0, rows))
+    az = np.linspace(-np.pi, np.pi, 2048, endpoint=False)
+    e, a = np.meshgrid(el, az, indexing="ij")
+    d = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1).reshape(-1, 3)
+    with np.errstate(divide="ignore"):
+        up = np.where(d[:, 2] > 0, 6.0 / d[:, 2], 2.0 / np.abs(d[:, 2]))
+        t = np.minimum(np.minimum(15.0 / np.abs(d[:, 0]), 15.0 / np.abs(d[:, 1])), up)
+    xyz = (d * t[:, None]).astype(np.float32)
+    return {k: xyz[:, i] for i, k in enumerate("xyz")}
+
+
+def run_big_scan(points: int, workdir: Path) -> dict[str, Any]:
+    """Service latencies while one scan of ``points`` points integrates (``--big-scan``)."""
+    from nav_msgs.srv import GetMap
+    from std_srvs.srv import Trigger
+
+    domain = int(os.environ["ROS_DOMAIN_ID"])
+    params = {
+        "resolution": 0.1, "frame_id": "odom", "publish_rate": 0.0, "status_period": 0.1,
+        "odom_wait": 5.0, "sensor_model.max_range": 100.0, "point_cloud_min_z": -100.0,
+        "point_cloud_max_z": 100.0, "map_path": str(workdir / "big_scan_map.npz"),
+    }  # fmt: skip
+    node = NodeProcess(domain, params, workdir / "big_scan.log")
+    feeder = Feeder()
+    t0 = 1_700_000_000.0
+    lat: dict[str, list[float]] = {"query": [], "get_map": [], "save_map": []}
+    when: dict[str, list[float]] = {k: [] for k in lat}  # sent, s after the cloud arrived
+    try:
+        if not feeder.wait_connected(60.0):
+            raise RuntimeError(f"node not discovered:\n{node.log()[-2000:]}")
+        feeder.wait(lambda: feeder.status is not None, 10.0)
+        for t in np.arange(t0 - 1.0, t0 + 3.0, 0.05):
+            feeder.odom_pub.publish(odom_msg(float(t), np.zeros(3), 0.0))
+        for k, cols in enumerate((_room_scan(32_768), _room_scan(points))):
+            while (feeder.status or {}).get("clouds_in", 0) <= k:
+                feeder.cloud_pub.publish(cloud_from_columns(cols, "base_link", t0 + k))
+                feeder.wait(lambda k=k: (feeder.status or {}).get("clouds_in", 0) > k, 5.0)
+            if k == 0:
+                feeder.wait(lambda: (feeder.status or {}).get("clouds_integrated", 0) >= 1, 60)
+        received = time.monotonic()
+        query = cloud_from_columns(_room_scan(2048), "odom", t0 + 1.0)
+        pending: dict[str, Any] = {}
+        sent: dict[str, float] = {}
+        saves: list[Any] = []
+        next_round = received
+        while (feeder.status or {}).get("clouds_integrated", 0) < 2:
+            now = time.monotonic()
+            if now - received > 600:
+                raise RuntimeError("the large scan was not integrated in 600 s")
+            if now >= next_round and not pending:
+                n_results = len(feeder.results)
+                feeder.query_pub.publish(query)
+                save = feeder.save.call_async(Trigger.Request())
+                saves.append(save)
+                pending = {
+                    "query": lambda n=n_results: len(feeder.results) > n,
+                    "get_map": feeder.get_map.call_async(GetMap.Request()).done,
+                    "save_map": save.done,
+                }
+                sent = dict.fromkeys(pending, now)
+                next_round = now + 0.5
+            feeder.spin(0.005)
+            for name, done in list(pending.items()):
+                if done():
+                    lat[name].append(time.monotonic() - sent[name])
+                    when[name].append(round(sent[name] - received, 1))
+                    del pending[name]
+        integration = time.monotonic() - received
+        status = dict(feeder.status or {})
+        started = [  # "started after X s" of each save's answer: the wait for the map
+            float(f.result().message.split("started after ")[1].split(" s")[0])
+            for f in saves
+            if f.done() and "started after" in f.result().message
+        ]
+    finally:
+        feeder.destroy()
+        node.stop()
+    result = {
+        "points": points,
+        "integration_s": round(integration, 2),
+        "voxels": status.get("voxels"),
+        **{
+            f"{name}_s": {
+                "count": len(v),
+                "max": round(max(v), 3) if v else None,
+                "median": round(float(np.median(v)), 3) if v else None,
+            }
+            for name, v in lat.items()
+        },
+        "save_map_started_s": {
+            "max": round(max(started), 3) if started else None,
+            "median": round(float(np.median(started)), 3) if started else None,
+        },
+        "slowest_sent_at_s": {
+            name: when[name][int(np.argmax(v))] if v else None for name, v in lat.items()
+        },
+    }
+    print(json.dumps(result, indent=2), flush=True)
+    return result
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--stream", choices=[*STREAMS, "all"], default="all")
@@ -285,6 +396,12 @@ def main() -> int:
         default="all",
         help="which processes get config/fastdds_large_data.xml: this driver and the node "
         "(all), the node only (mapper), neither (none: Fast DDS defaults)",
+    )
+    parser.add_argument(
+        "--big-scan",
+        type=float,
+        metavar="POINTS",
+        help="instead of the streams: service latency while a scan of POINTS integrates",
     )
     parser.add_argument("--default-dds", action="store_true", help="the same as --dds none")
     parser.add_argument("--json", type=Path, help="also write the results to this file")
@@ -315,6 +432,9 @@ def main() -> int:
         with tempfile.TemporaryDirectory() as tmp:
             logs = args.logs or Path(tmp)
             logs.mkdir(parents=True, exist_ok=True)
+            if args.big_scan:
+                run_big_scan(int(args.big_scan), logs)
+                return 0
             for name in STREAMS if args.stream == "all" else [args.stream]:
                 results.append(
                     run_stream(

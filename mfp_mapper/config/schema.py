@@ -258,9 +258,11 @@ SETTINGS: tuple[Setting, ...] = (
           "transform; a transform not received for this long (stream time) is forgotten.",
           0.1, 3600.0),
     # --- map file, health ------------------------------------------------------------------
-    _node("map_path", "", "Map file (.npz) for ~/save_map, loaded at start when it exists. "
-          "Empty: none."),
+    _node("map_path", "", "Map file (.npz), or tiled map (a directory), for ~/save_map, "
+          "loaded at start when it exists. Empty: none."),
     _node("save_on_shutdown", False, "Save the map to map_path when the node stops."),
+    _node("autosave_period", 0.0, "Save the map to map_path in the background at most this "
+          "often (s), when it changed; mapping goes on meanwhile. 0: off.", 0.0, 86400.0),
     _node("autostart", True, "Configure and activate the node when it starts (a plain "
           "node). false: it waits unconfigured for a lifecycle manager (Nav2's "
           "lifecycle_manager, ros2 lifecycle set) to configure and activate it."),
@@ -503,6 +505,7 @@ class NodeConfig:
     tf_buffer: float
     map_path: str
     save_on_shutdown: bool
+    autosave_period: float
     autostart: bool
     status_period: float
 

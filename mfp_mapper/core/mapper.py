@@ -18,6 +18,7 @@ from mfp_mapper.core.errors import CoreError, ScanTooLargeError
 from mfp_mapper.core.gridmap import HitGrid, band_grid
 from mfp_mapper.core.mailbox import Mailbox
 from mfp_mapper.core.memory_bound import MemoryBound, fit_scan_budget, scan_block_budget
+from mfp_mapper.core.staging import merge_shard, prefault, staged_updates
 from mfp_mapper.core.store import (
     BLOCK_EDGE,
     MAX_RESOLUTION,
@@ -45,6 +46,18 @@ __all__ = [
 ]  # fmt: skip
 
 FloatArray = NDArray[np.float64]
+
+
+@dataclasses.dataclass
+class StagedScan:
+    """A scan integrated into a store of its own by ``Mapper.stage``, for ``commit``."""
+
+    inputs: tuple[ArrayLike, ArrayLike, ArrayLike | None]  # points, origins, no_return
+    origin: FloatArray | None  # the map origin its rays are relative to
+    rays: Rays
+    store: BlockStore
+    stamp: float
+    summary: IntegrationSummary
 
 
 def _cpu_of(fn: Callable[[int], None], item: int) -> float:
@@ -110,6 +123,7 @@ class Mapper:
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
         self._worker_cpu = 0.0  # CPU seconds of the pool threads in the current integrate()
         self._mailboxes = [Mailbox() for _ in self._store.shards]
+        self._stage_mailboxes = [Mailbox() for _ in self._store.shards]
 
     @classmethod
     def of(
@@ -141,15 +155,7 @@ class Mapper:
         if not math.isfinite(stamp):
             raise ValueError(f"stamp must be finite seconds, got {stamp}")
         rays, pts, dropped = self._place(points, origins, no_return, set_origin=True)
-        summary = IntegrationSummary(rays_in=pts.shape[0], dropped=dropped)
-        summary.rays_used = len(rays)
-        summary.rays_unindexable = dropped["out_of_bounds"]
-        summary.rays_no_return = rays.no_return_flagged
-        cut = int(np.count_nonzero(~rays.has_return)) - rays.no_return_flagged
-        if self.max_range > MAX_RAY_VOXELS * self.resolution:
-            summary.rays_beyond_walk_limit = cut
-        else:
-            summary.rays_truncated = cut
+        summary = self._summary(rays, pts, dropped)
         if len(rays):
             budget = scan_block_budget(self.max_voxels)
             rays, summary.rays_cut_by_budget = fit_scan_budget(rays, budget, self.resolution)
@@ -177,6 +183,95 @@ class Mapper:
         summary.cpu_seconds = time.thread_time() - cpu0 + self._worker_cpu
         return summary
 
+    def stage(
+        self,
+        points: ArrayLike,
+        origins: ArrayLike,
+        stamp: float,
+        no_return: ArrayLike | None = None,
+    ) -> StagedScan:
+        """Integrate one scan (as ``integrate``) into a store of its own, leaving the map
+        untouched: the long part of an integration, which needs no lock around the map
+        (readers may use it meanwhile; one ``stage`` at a time per Mapper). ``commit`` then
+        adds it to the map in one pass over the blocks it touched (``core.staging``)."""
+        t0, cpu0 = time.perf_counter(), time.thread_time()
+        self._worker_cpu = 0.0
+        if not math.isfinite(stamp):
+            raise ValueError(f"stamp must be finite seconds, got {stamp}")
+        origin, org = self._origin, np.asarray(origins, dtype=np.float64)
+        if origin is None and org.shape[-1:] == (3,):  # bad shapes: _place names them
+            origin = self._origin_from(org.reshape(-1, 3))
+        rays, pts, dropped = self._place(points, origins, no_return, set_origin=False, at=origin)
+        summary = self._summary(rays, pts, dropped)
+        store = BlockStore(shards=len(self._store.shards))
+        if len(rays):
+            budget = scan_block_budget(self.max_voxels)
+            rays, summary.rays_cut_by_budget = fit_scan_budget(rays, budget, self.resolution)
+            # a scan too large for max_voxels is refused before it takes any memory
+            self._bound.make_room(store, rays.origins_vox, rays.ends_vox, None)
+            integrate_rays(
+                store, rays, 0, stamp, self.decay_time, self._stage_mailboxes, self._run_parallel
+            )
+            for staged_shard, shard in zip(store.shards, self._store.shards, strict=True):
+                prefault(staged_shard, shard)
+        summary.seconds = time.perf_counter() - t0
+        summary.cpu_seconds = time.thread_time() - cpu0 + self._worker_cpu
+        return StagedScan((points, origins, no_return), origin, rays, store, float(stamp), summary)
+
+    def commit(
+        self, staged: StagedScan, pause: Callable[[], None] | None = None
+    ) -> IntegrationSummary:
+        """Add a scan prepared by ``stage`` to the map (the caller holds the map's lock):
+        the memory bound first, then one merge of its blocks; returns its summary. A scan
+        staged before ``reset`` cleared an origin it depended on is integrated again.
+
+        ``pause``: called between chunks of ``staging.MERGE_CHUNK_BLOCKS`` blocks (a caller
+        may let readers in there: they then see the scan in part, each voxel before or
+        after it)."""
+        t0, cpu0 = time.perf_counter(), time.thread_time()
+        summary = staged.summary
+        if staged.origin is not None and self._origin is not None:
+            if not np.array_equal(staged.origin, self._origin):  # reset in between
+                return self.integrate(*staged.inputs[:2], staged.stamp, staged.inputs[2])
+        elif staged.origin is not None:
+            self._origin = staged.origin
+        rays = staged.rays
+        if len(rays):
+            self._bound.make_room(self._store, rays.origins_vox, rays.ends_vox, self._center())
+            scan_id = self._store.begin_scan()
+            # one shard after the other: pause is not thread-safe; merging is memory-bound
+            for k, shard in enumerate(self._store.shards):
+                merge_shard(
+                    staged.store.shards[k], shard, scan_id, staged.stamp, self.decay_time, pause
+                )
+            summary.new_voxels, summary.blocks_touched, _ = self._store.finish_scan()
+            summary.voxels_touched = staged_updates(staged.store)
+            self._scan_added(rays, staged.stamp)
+        summary.commit_seconds = time.perf_counter() - t0
+        summary.seconds += summary.commit_seconds
+        summary.cpu_seconds += time.thread_time() - cpu0
+        return summary
+
+    def _summary(self, rays: Rays, pts: FloatArray, dropped: dict[str, int]) -> IntegrationSummary:
+        """What a scan's placement says of its rays (``integrate`` and ``stage``)."""
+        summary = IntegrationSummary(rays_in=pts.shape[0], dropped=dropped)
+        summary.rays_used = len(rays)
+        summary.rays_unindexable = dropped["out_of_bounds"]
+        summary.rays_no_return = rays.no_return_flagged
+        cut = int(np.count_nonzero(~rays.has_return)) - rays.no_return_flagged
+        if self.max_range > MAX_RAY_VOXELS * self.resolution:
+            summary.rays_beyond_walk_limit = cut
+        else:
+            summary.rays_truncated = cut
+        return summary
+
+    def _scan_added(self, rays: Rays, stamp: float) -> None:
+        """After a scan went into the store: its stamp and place, the memory bound."""
+        self.last_stamp = float(stamp) if self.last_stamp is None else max(self.last_stamp, stamp)
+        self.last_origin = rays.origins_vox.mean(axis=0) * self.resolution + self._offset
+        self._bound.enforce(self._store, self._center())
+        self.version += 1
+
     def place_rays(
         self, points: ArrayLike, origins: ArrayLike, no_return: ArrayLike | None = None
     ) -> tuple[Rays, dict[str, int]]:
@@ -187,8 +282,15 @@ class Mapper:
         return rays, dropped
 
     def _place(
-        self, points: ArrayLike, origins: ArrayLike, no_return: ArrayLike | None, set_origin: bool
+        self,
+        points: ArrayLike,
+        origins: ArrayLike,
+        no_return: ArrayLike | None,
+        set_origin: bool,
+        at: FloatArray | None = None,
     ) -> tuple[Rays, FloatArray, dict[str, int]]:
+        """The rays in voxel units of the store (``at``: of a map with that origin, when
+        the map has none yet), the points as float64 and the drops by reason."""
         pts = np.asarray(points, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise ValueError(f"points must have shape (N, 3), got {pts.shape}")
@@ -197,7 +299,7 @@ class Mapper:
             raise ValueError(f"origins must have shape (3,) or {pts.shape}, got {org.shape}")
         if self._origin is None and set_origin:
             self._origin = self._origin_from(org)
-        offset = self._origin
+        offset = self._origin if self._origin is not None else at
         if offset is not None and offset.any():
             pts_rel, org = pts - offset, org - offset
         else:
@@ -302,6 +404,11 @@ class Mapper:
             arr[~valid] = 0.0
         raw.t_last[~valid] = -np.inf
         return self._stats(raw, stamp)
+
+    def stored_voxels(self) -> VoxelArrays:
+        """Every observed voxel as stored (index relative to ``origin``, s, n, the time they
+        refer to), without the derived statistics of ``voxels``: what a map file holds."""
+        return self._store.export()
 
     def voxels(
         self,

@@ -41,6 +41,8 @@ class IntegrationSummary:
     seconds: float = 0.0
     cpu_seconds: float = 0.0
     """CPU time of the call, the core's worker threads included."""
+    commit_seconds: float = 0.0
+    """Of ``seconds``, the time ``Mapper.commit`` took (the map lock held) for a staged scan."""
 
     @property
     def integrated(self) -> bool:

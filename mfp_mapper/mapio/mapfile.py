@@ -108,7 +108,7 @@ class MapSource(Protocol):
     @property
     def origin(self) -> tuple[float, float, float] | None: ...
 
-    def voxels(self) -> Any: ...
+    def stored_voxels(self) -> VoxelArrays: ...
 
 
 @dataclass
@@ -133,7 +133,7 @@ def write_map(path: str | Path, mapper: MapSource) -> None:
 def map_arrays(mapper: MapSource) -> dict[str, np.ndarray]:
     """The arrays of the map file: a snapshot, independent of the mapper afterwards (so a
     caller can take it under a lock and compress and write it outside)."""
-    voxels = mapper.voxels()
+    voxels = mapper.stored_voxels()
     origin = mapper.origin if mapper.origin is not None else (0.0, 0.0, 0.0)
     return {
         "ijk": voxels.ijk.astype(np.int32, copy=False),

@@ -362,3 +362,15 @@ def merge_tile(tiled: Sequence[TiledMap], key: TileKey) -> MapArrays:
     return merge_map_arrays(
         [t.read_tile(key) for t in have], [str(t.root / t.tiles[key].file) for t in have]
     )
+
+
+def write_map_path(path: str | Path, arrays: MapArrays, compress: bool = True) -> int:
+    """Write map-file ``arrays`` where ``path`` says: a tiled map when ``path`` is a
+    directory (or ends with a slash; an existing tiled map keeps its tile edge), else one
+    map file; both atomically. Returns the number of voxels written."""
+    if str(path).endswith(("/", "\\")) or Path(path).is_dir():
+        tile_blocks = TiledMap(path).tile_blocks if is_tiled(path) else DEFAULT_TILE_BLOCKS
+        write_tiled(path, arrays, tile_blocks, compress)
+    else:
+        write_map_arrays(path, arrays, compress)
+    return int(np.asarray(arrays["s"]).shape[0])

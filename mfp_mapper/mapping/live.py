@@ -2,9 +2,13 @@
 
 The node hands it received clouds (``submit``) from its executor thread, and odometry and
 transforms to its pose inputs (``worker.pose_inputs``, a ``PoseInputs``). One worker thread takes
-the clouds in order and runs each through the scan pipeline, integrating it under
-``map_lock``. A cloud its poses do not cover yet waits (at most ``odom_wait`` seconds) in a
-list of its own while the clouds behind it go on: **no head-of-line blocking**, and when
+the clouds in order and runs each through the scan pipeline. A scan is walked into a store
+of its own without any lock (``Mapper.stage``), then added to the map in one merge
+(``Mapper.commit``, a few percent of the scan's time). A reader that needs whole scans
+(GetMap, saving, reset) takes ``whole_map``: it waits at most for a merge, never for a scan;
+a query takes ``map_lock`` alone, which the merge lets go between chunks. A cloud its
+poses do not cover yet waits (at most ``odom_wait`` seconds) in a list of its own while
+the clouds behind it go on: **no head-of-line blocking**, and when
 the queue is full the oldest *waiting* cloud is dropped before any placeable one. Between
 two scans it calls ``publish`` (given to the constructor or ``set_publish``) when
 ``request_publish`` asked for it, so publishing never waits for an integration and the
@@ -25,6 +29,7 @@ from typing import TYPE_CHECKING, Any
 
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.mapping.loop import PreparedScan, ScanCounts, ScanLoop
+from mfp_mapper.mapping.whole_map import MERGE_PAUSE_S, WholeMap
 from mfp_mapper.sensing import pipeline
 from mfp_mapper.sensing.pointcloud import ParsedCloud
 from mfp_mapper.sensing.pose_inputs import Log, PoseCounters, PoseInputs
@@ -129,6 +134,7 @@ class LiveIntegrator:
         self.settings = settings
         self.counters = LiveCounters()
         self.map_lock = threading.Lock()
+        self.whole_map = WholeMap(threading.Lock(), self.map_lock)
         self.pose_inputs = PoseInputs(
             poses,
             tree if tree is not None else TfTree(),
@@ -151,8 +157,27 @@ class LiveIntegrator:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.loop = ScanLoop(
-            mapper, settings, counts=self.counters, counts_lock=self._cv, map_lock=self.map_lock
+            mapper,
+            settings,
+            counts=self.counters,
+            counts_lock=self._cv,
+            map_lock=self.map_lock,
+            merge_lock=self.whole_map,
+            pause=self._let_readers_in,
         )
+
+    def _let_readers_in(self) -> None:
+        """Between two chunks of a merge: a reader waiting for ``map_lock`` takes it."""
+        self.map_lock.release()
+        try:
+            time.sleep(MERGE_PAUSE_S)
+        finally:
+            self.map_lock.acquire()
+
+    @property
+    def running(self) -> bool:
+        """Whether the worker thread is still alive (e.g. walking a long scan)."""
+        return self._thread is not None and self._thread.is_alive()
 
     def set_publish(self, publish: Callable[[], None] | None) -> None:
         """What the worker calls between two scans after ``request_publish``."""

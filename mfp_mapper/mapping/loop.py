@@ -135,6 +135,8 @@ class ScanLoop:
         on_placed: ScanCallback | None = None,
         fatal: tuple[type[Exception], ...] = (),
         consume: ScanConsumer | None = None,
+        merge_lock: AbstractContextManager[Any] | None = None,
+        pause: Callable[[], None] | None = None,
     ) -> None:
         self.mapper = mapper
         self.settings = settings
@@ -148,6 +150,13 @@ class ScanLoop:
         self.on_placed = on_placed
         self.consume: ScanConsumer = consume if consume is not None else integrate_scan
         """What is done with each placed scan (default: integrated into ``mapper``)."""
+        self.merge_lock = merge_lock
+        """Given: each scan is walked without any lock (``Mapper.stage``) and merged under
+        this lock (``Mapper.commit``, with ``pause`` between chunks), so readers of the map
+        wait for a merge, never for a scan. None, or a ``consume`` given: ``consume``
+        under ``map_lock``."""
+        self.pause = pause
+        self._staged = merge_lock is not None and consume is None
         self.fatal = fatal
         """Exceptions that end the loop instead of dropping one cloud (the replay's
         ``ReplayError``: no extrinsic for a frame, say)."""
@@ -188,10 +197,14 @@ class ScanLoop:
         return placed
 
     def commit(self, placed: PlacedScan) -> IntegrationSummary:
-        """Integrate placed rays (``consume``, under ``map_lock``) and count them; raises
+        """Integrate placed rays and count them: staged and merged in chunks when the loop
+        has a ``merge_lock`` (the live worker), else ``consume`` under ``map_lock``; raises
         ``ScanDropped`` (``no_usable_rays``)."""
-        with self.map_lock:
-            summary = self.consume(self.mapper, placed)
+        if self._staged and self.merge_lock is not None:
+            summary = merge_scan(self.mapper, placed, self.merge_lock, self.pause)
+        else:
+            with self.map_lock:
+                summary = self.consume(self.mapper, placed)
         with self.counts_lock:
             self.counts.add(placed, summary)
         return summary
@@ -236,7 +249,28 @@ def integrate_scan(mapper: Mapper, placed: PlacedScan) -> IntegrationSummary:
     """Integrate placed rays; ScanDropped ``no_usable_rays`` when the core used none
     (the map is then unchanged; the drop carries the placed scan's and the core's point
     drops; on success ``ScanCounts.add`` counts both)."""
-    summary = mapper.integrate(placed.points, placed.origins, placed.stamp, placed.no_return)
+    return require_rays(
+        mapper.integrate(placed.points, placed.origins, placed.stamp, placed.no_return), placed
+    )
+
+
+def merge_scan(
+    mapper: Mapper,
+    placed: PlacedScan,
+    merge_lock: AbstractContextManager[Any],
+    pause: Callable[[], None] | None = None,
+) -> IntegrationSummary:
+    """``integrate_scan`` in two steps: walked without any lock (``Mapper.stage``), merged
+    under ``merge_lock`` (``Mapper.commit``, ``pause`` between chunks)."""
+    staged = mapper.stage(placed.points, placed.origins, placed.stamp, placed.no_return)
+    require_rays(staged.summary, placed)
+    with merge_lock:
+        return mapper.commit(staged, pause=pause)
+
+
+def require_rays(summary: IntegrationSummary, placed: PlacedScan) -> IntegrationSummary:
+    """``summary``, or ScanDropped ``no_usable_rays`` when the core used none of the placed
+    scan's rays (see ``integrate_scan``)."""
     if summary.rays_used == 0:
         lost = ", ".join(f"{k} {v}" for k, v in summary.dropped.items() if v) or "none"
         dropped = Counter(placed.points_dropped)

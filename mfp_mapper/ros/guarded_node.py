@@ -87,6 +87,14 @@ class GuardedNode(Node):
         else:
             self.get_logger().warning(text)
 
+    def info_throttled(self, key: str, text: str) -> None:
+        """An informational line, at most one per key every few seconds."""
+        now = time.monotonic()
+        if now - self._warned.get(key, -math.inf) < THROTTLE_S:
+            return
+        self._warned[key] = now
+        self.get_logger().info(text)
+
     def _callback_failed(self, name: str, err: Exception) -> None:
         self.warn_throttled(
             f"callback_{name}", f"{name} failed: {type(err).__name__}: {err}", error=True

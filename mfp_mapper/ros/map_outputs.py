@@ -131,7 +131,7 @@ class MapOutputs:
     def _timed_map_lock(self, times: list[float] | None) -> Iterator[None]:
         """The map lock; adds the seconds waited for it and held to ``times`` (if given)."""
         t0 = time.perf_counter()
-        with self._worker.map_lock:
+        with self._worker.whole_map:
             t1 = time.perf_counter()
             try:
                 yield

@@ -10,8 +10,12 @@ default) it configures and activates itself; else a lifecycle manager drives it
 
 Threads: one executor thread runs every ROS callback (rclpy's multi-threaded executor
 cost about 70% of a core in overhead); subscription callbacks only queue clouds and store
-poses. The worker thread integrates and publishes between scans; ``~/save_map`` writes in
-a thread of its own. One lock (``worker.map_lock``) guards the Mapper.
+poses. The worker thread integrates and publishes between scans; ``~/save_map`` and the
+autosave write in a thread of their own. ``worker.map_lock`` guards the Mapper; the worker
+holds it only to merge a scan it walked without it (``Mapper.stage``/``commit``), letting
+queries in between chunks; GetMap, saving and reset take ``worker.whole_map`` (no scan
+half merged). So services answer during a long scan. SIGINT / SIGTERM stop it
+as ``ros.shutdown`` says: the executor stops between callbacks, then the final save.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ from typing import Any
 import numpy as np
 import rclpy
 import rclpy.exceptions
+import rclpy.logging
 import rclpy.task
 import rclpy.time
 import rclpy.utilities
@@ -50,6 +55,7 @@ from rclpy.qos import (
     qos_profile_sensor_data,
 )
 from rclpy.service import Service
+from rclpy.signals import SignalHandlerOptions
 from rclpy.subscription import Subscription
 from rclpy.timer import Timer
 from sensor_msgs.msg import PointCloud2
@@ -61,12 +67,14 @@ from mfp_mapper.config.schema import SPECS, NodeConfig
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.mapio.atomic import remove_stale_temp_files
 from mfp_mapper.mapio.loading import load_map
-from mfp_mapper.mapio.mapfile import MapFileError, map_arrays, write_map_arrays
+from mfp_mapper.mapio.mapfile import MapFileError, map_arrays
+from mfp_mapper.mapio.tiles import is_tiled, write_map_path
 from mfp_mapper.mapping.live import LiveIntegrator, LiveSettings
 from mfp_mapper.ros.guarded_node import GuardedLifecycleNode, tracked
 from mfp_mapper.ros.map_outputs import MapOutputs
 from mfp_mapper.ros.messages import cloud_msg
 from mfp_mapper.ros.params import declare_parameters, usage
+from mfp_mapper.ros.shutdown import SpinUntilSignal
 from mfp_mapper.ros.status import (
     StatusWindow,
     diagnostics,
@@ -85,6 +93,8 @@ RESULT_FIELDS = (
 )  # fmt: skip
 
 """The fields of a ~/hit_probability/result cloud."""
+INFO_KEYS = frozenset({"no_return", "odom_frame"})
+"""Keys of the worker's log lines that inform (logged at INFO), not warn."""
 CLOCK_GRACE = 3.0
 """Wall seconds after start before a missing /clock (use_sim_time) is reported."""
 
@@ -96,9 +106,16 @@ def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, str | None]:
     path = cfg.map_path
     if path:  # temporary files of a save that was killed midway
         target = os.path.realpath(path)
-        for stale in remove_stale_temp_files(os.path.dirname(target), os.path.basename(target)):
-            logger.warning(f"removed {stale}, left by an interrupted save")
-    if not (path and os.path.lexists(path)):
+        stale = remove_stale_temp_files(os.path.dirname(target), os.path.basename(target))
+        if os.path.isdir(target):  # a tiled map: its index and tiles
+            stale += remove_stale_temp_files(target) + remove_stale_temp_files(
+                os.path.join(target, "tiles")
+            )
+        for name in stale:
+            logger.info(f"removed {name}, left by an interrupted save")
+    if not (path and os.path.lexists(path)) or (
+        os.path.isdir(path) and not is_tiled(path) and not os.listdir(path)
+    ):  # nothing yet, or an empty directory for a tiled map
         return _empty_map(cfg), None
     try:
         mapper = load_map(path, **cfg.map_settings().mapper_kwargs())
@@ -163,6 +180,7 @@ class MfpMapperNode(GuardedLifecycleNode):
         self.worker: LiveIntegrator  # set by configure
         self.outputs: MapOutputs
         self._configured = False
+        self._configured_once = False
         self._entities: list[Any] = []  # what configure creates (cleanup destroys)
         self._active: list[Any] = []  # what activate creates (deactivate destroys)
         if self.cfg.autostart:
@@ -194,15 +212,17 @@ class MfpMapperNode(GuardedLifecycleNode):
             LiveSettings.of(self.cfg),
             PoseBuffer(max_age=self.cfg.odom_buffer, max_gap=self.cfg.odom_max_gap),
             tree=TfTree(buffer_length=self.cfg.tf_buffer),
-            log=self.warn_throttled,
+            log=self._worker_log,
             info=self.get_logger().info,
             now=self._now,
             map_frame=self.cfg.frame_id or (mapper.frame_id if mapper.num_voxels else ""),
         )
+        # the map version last saved: the autosave writes only a map that changed since
+        self._saved_version: int | None = mapper.version
         self.outputs = MapOutputs(self, self.worker, lambda: self.cfg, self.warn_throttled)
         self.worker.set_publish(self.outputs.publish)
         self._entities += self.outputs.publishers
-        self._configured = True
+        self._configured = self._configured_once = True
         self.reopen()
         self._create_services()
         self.get_logger().info(
@@ -244,11 +264,14 @@ class MfpMapperNode(GuardedLifecycleNode):
         """Undo configure (and activate): stop, wait for jobs, save when asked, release."""
         self._destroy(self._active)
         if self._configured:
-            self.wait_idle()
-            self.worker.stop()
+            # a scan being walked is not waited for: it is not in the map yet, and the map
+            # saved holds whole scans; callbacks in flight get a short grace
+            self.wait_idle(timeout=2.0)
+            self.worker.stop(timeout=0.5)
             if save:
                 self._save_on_shutdown()
-            self.mapper.close()
+            if not self.worker.running:
+                self.mapper.close()
             self._configured = False
         self._destroy(self._entities)
 
@@ -335,6 +358,10 @@ class MfpMapperNode(GuardedLifecycleNode):
             )
         self._clock_warned = False
         self._active.append(self.create_timer(1.0, self._check_clock, clock=wall))
+        if self.cfg.autosave_period > 0.0 and self.cfg.map_path:
+            self._active.append(
+                self.create_timer(self.cfg.autosave_period, self._on_autosave_timer, clock=wall)
+            )
 
     # --- set-up ----------------------------------------------------------------------------
 
@@ -402,6 +429,13 @@ class MfpMapperNode(GuardedLifecycleNode):
 
     def _now(self) -> float:
         return float(self.get_clock().now().nanoseconds) * 1e-9
+
+    def _worker_log(self, key: str, text: str, error: bool) -> None:
+        """The worker's throttled lines: informational ones at INFO."""
+        if key in INFO_KEYS and not error:
+            self.info_throttled(key, text)
+        else:
+            self.warn_throttled(key, text, error)
 
     # --- inputs ----------------------------------------------------------------------------
 
@@ -521,31 +555,54 @@ class MfpMapperNode(GuardedLifecycleNode):
             response.success, response.message = False, f"saving failed: {err!r}"
         return response
 
-    def save_map(self) -> tuple[bool, str]:
+    def save_map(self, only_if_changed: bool = False) -> tuple[bool, str]:
         """Write the map to ``map_path`` (one save at a time), or beside it when it failed to
-        load at start (``recovery_path``); returns (success, message)."""
+        load at start (``recovery_path``): one map file, or a tiled map when ``map_path`` is
+        a directory; stored uncompressed, so that a large map is saved within ``ros2
+        launch``'s grace period. Returns (success, message)."""
         path = self._save_elsewhere or self.cfg.map_path
         if not path:
             return False, "parameter map_path is empty: nowhere to save"
+        t0 = time.perf_counter()
         try:
             with self._save_lock:
-                with self.worker.map_lock:  # snapshot only: compressing and writing run unlocked
+                with self.worker.whole_map:  # snapshot only: writing runs unlocked
+                    started = time.perf_counter() - t0
+                    version = self.mapper.version
+                    if only_if_changed and version == self._saved_version:
+                        return True, "map unchanged since the last save"
                     arrays = map_arrays(self.mapper)
-                write_map_arrays(path, arrays)
-            count = len(arrays["s"])
+                count = write_map_path(path, arrays, compress=False)
+                self._saved_version = version
         except (OSError, ValueError, MapFileError) as err:
             self.get_logger().error(f"saving the map to {path!r} failed: {err}")
             return False, f"saving to {path!r} failed: {err}"
+        seconds = time.perf_counter() - t0
+        timing = f"started after {started:.3f} s, done in {seconds:.2f} s"
         kept = ""
         if self._save_elsewhere:
             kept = f" (map_path {self.cfg.map_path!r} failed to load at start: kept as it was)"
-        self.get_logger().info(f"saved {count} voxels to {path!r}{kept}")
-        return True, f"saved {count} voxels to {path}{kept}"
+        self.get_logger().info(f"saved {count} voxels to {path!r} ({timing}){kept}")
+        return True, f"saved {count} voxels to {path} ({timing}){kept}"
+
+    @tracked
+    def _on_autosave_timer(self) -> None:
+        """Save in the background when the map changed, unless a save is running."""
+        if self._save_lock.locked() or not self._begin_work():
+            return
+
+        def run() -> None:
+            try:
+                self.save_map(only_if_changed=True)
+            finally:
+                self._end_work()
+
+        threading.Thread(target=run, name="mfp_autosave", daemon=True).start()
 
     @tracked
     async def _on_reset(self, request: Empty.Request, response: Empty.Response) -> Empty.Response:
         def reset() -> None:
-            with self.worker.map_lock:
+            with self.worker.whole_map:
                 self.mapper.reset()
 
         await self.off_executor(reset)
@@ -560,7 +617,7 @@ class MfpMapperNode(GuardedLifecycleNode):
         corners = [(p.x, p.y, p.z) for p in (request.min, request.max)]
 
         def clear() -> int:
-            with self.worker.map_lock:
+            with self.worker.whole_map:  # never between two chunks of a merge
                 return self.mapper.clear_box(*corners)
 
         try:
@@ -615,6 +672,11 @@ class MfpMapperNode(GuardedLifecycleNode):
         stamp = self.get_clock().now().to_msg()
         self._diag_pub.publish(diagnostics(s, self._last_window, name, self.get_name(), stamp))
 
+    @property
+    def worker_running(self) -> bool:
+        """Whether the integration thread is still alive (a long scan being walked)."""
+        return self._configured_once and self.worker.running
+
     def close(self) -> None:
         """Stop the worker; save the map when save_on_shutdown (never over a map_path that
         failed to load: beside it, ``recovery_path``)."""
@@ -631,30 +693,38 @@ def main(args: list[str] | None = None) -> int:
     if any(a in ("-h", "--help") for a in own_args):
         print(usage())
         return 0
-    rclpy.init(args=args)
+    # rclpy's handlers would shut the context down under a running executor: ros.shutdown
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node: MfpMapperNode | None = None
     executor: SingleThreadedExecutor | None = None
     code = 0
-    try:
-        node = MfpMapperNode()
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (ValueError, rclpy.exceptions.ParameterException) as err:
-        print(f"mfp_mapper: invalid parameters: {err}", file=sys.stderr)
-        code = 2
-    except StartError as err:
-        print(f"mfp_mapper: {err}", file=sys.stderr)
-        code = 1
-    finally:
-        if executor is not None:
-            executor.shutdown(timeout_sec=5.0)  # no callback may run past the context
-        if node is not None:
-            node.close()
-            node.destroy_node()
-        rclpy.try_shutdown()
+    logger = rclpy.logging.get_logger(NODE_NAME)
+    with SpinUntilSignal(logger.info) as stopper:
+        try:
+            node = MfpMapperNode()
+            executor = SingleThreadedExecutor()
+            executor.add_node(node)
+            stopper.spin(executor)
+        except (KeyboardInterrupt, ExternalShutdownException):
+            pass
+        except (ValueError, rclpy.exceptions.ParameterException) as err:
+            print(f"mfp_mapper: invalid parameters: {err}", file=sys.stderr)
+            code = 2
+        except StartError as err:
+            print(f"mfp_mapper: {err}", file=sys.stderr)
+            code = 1
+        finally:
+            if executor is not None:
+                executor.shutdown(timeout_sec=5.0)  # no callback may run past the context
+            if node is not None:
+                node.close()
+                node.destroy_node()
+            rclpy.try_shutdown()
+    if node is not None and node.worker_running:
+        # a scan still being walked (not in the map, which is saved): do not wait for it
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
     return code
 
 

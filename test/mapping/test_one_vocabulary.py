@@ -169,13 +169,14 @@ def test_an_unexpected_failure_is_an_error_in_both(
     mixed_bag: tuple[Path, dict[str, int]], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     bag, expected = mixed_bag
-    integrate = loop.integrate_scan
+    integrate, merge = loop.integrate_scan, loop.merge_scan  # the replay's, the live one's
 
-    def failing(mapper: Mapper, placed: pipeline.PlacedScan) -> Any:
+    def failing(mapper: Mapper, placed: pipeline.PlacedScan, *lock: Any) -> Any:
         if abs(placed.stamp - (T + 3.5)) < 1e-6:
             raise RuntimeError("a bug in the core")
-        return integrate(mapper, placed)
+        return merge(mapper, placed, *lock) if lock else integrate(mapper, placed)
 
     monkeypatch.setattr(loop, "integrate_scan", failing)
+    monkeypatch.setattr(loop, "merge_scan", failing)
     summary, live = _both(bag)
     _assert_same(summary, live, {**expected, "integrated": expected["integrated"] - 1, "error": 1})

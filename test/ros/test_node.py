@@ -462,14 +462,14 @@ def test_a_slow_save_does_not_stall_odometry(
     import mfp_mapper.ros.node as node_module
 
     started, release = threading.Event(), threading.Event()
-    write = node_module.write_map_arrays
+    write = node_module.write_map_path
 
-    def held_write(path: Any, arrays: Any) -> None:
+    def held_write(path: Any, arrays: Any, compress: bool = True) -> int:
         started.set()
         release.wait(30.0)
-        write(path, arrays)
+        return write(path, arrays, compress)
 
-    monkeypatch.setattr(node_module, "write_map_arrays", held_write)
+    monkeypatch.setattr(node_module, "write_map_path", held_write)
     path = tmp_path / "slow.npz"
     mapper_node = node_module.MfpMapperNode(
         cli_args=["--ros-args", "-r", "__node:=mfp_slow_save"],
@@ -500,10 +500,10 @@ def test_a_slow_save_does_not_stall_odometry(
         assert pending.result().success, pending.result().message
         assert path.is_file()
 
-        def broken_write(path: Any, arrays: Any) -> None:
+        def broken_write(path: Any, arrays: Any, compress: bool = True) -> int:
             raise RuntimeError("unexpected")
 
-        monkeypatch.setattr(node_module, "write_map_arrays", broken_write)
+        monkeypatch.setattr(node_module, "write_map_path", broken_write)
         failed = f.call(f.save, Trigger.Request())  # answered, and the node keeps spinning
         assert not failed.success and "unexpected" in failed.message
         assert spinner.is_alive()

@@ -1,0 +1,316 @@
+"""Services during a long scan, saving at shutdown and in the background, clean stops: the
+node as a user runs it (``python -m mfp_mapper.node``), over real DDS on loopback.
+
+- a hit-probability query, GetMap and ``~/save_map`` answer while a scan of a million
+  points (``MFP_TEST_BIG_SCAN_POINTS``) is being integrated, and GetMap and the saved file
+  hold the map before that scan (whole scans);
+- a map of ``MFP_TEST_SHUTDOWN_VOXELS`` voxels (20 M by default) loaded at start is saved
+  intact under ``ros2 launch``'s escalation: SIGINT, SIGTERM 5 s later, SIGKILL 5 s after;
+- ``autosave_period`` saves in the background; a directory ``map_path`` saves a tiled map;
+- SIGINT during a burst of GetMap calls: exit code 0, no traceback.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from ros_helpers import (
+    ROOT,
+    Feeder,
+    NodeProcess,
+    cloud_from_columns,
+    domain_id,
+    odom_msg,
+    set_ros_env,
+)
+
+pytestmark = pytest.mark.ros
+
+T0 = 1_700_000_000.0
+RES = 0.05
+DDS_PROFILE = ROOT / "config" / "fastdds_large_data.xml"
+BIG_SCAN_POINTS = int(float(os.environ.get("MFP_TEST_BIG_SCAN_POINTS", "1e6")))
+SHUTDOWN_VOXELS = int(float(os.environ.get("MFP_TEST_SHUTDOWN_VOXELS", "20e6")))
+PARAMS = {
+    "resolution": RES,
+    "frame_id": "odom",
+    "publish_rate": 0.0,
+    "status_period": 0.2,
+    "odom_wait": 5.0,
+    "sensor_model.max_range": 100.0,
+    "point_cloud_min_z": -100.0,
+    "point_cloud_max_z": 100.0,
+}
+
+
+@pytest.fixture(scope="module")
+def ros_domain() -> Iterator[int]:
+    """rclpy on a private domain, with the large-data profile (clouds of 12 MB) in this
+    process and the nodes it starts (they inherit the environment)."""
+    import rclpy
+
+    saved = {
+        k: os.environ.get(k)
+        for k in (
+            "ROS_DOMAIN_ID",
+            "ROS_AUTOMATIC_DISCOVERY_RANGE",
+            "FASTRTPS_DEFAULT_PROFILES_FILE",
+        )
+    }
+    os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(DDS_PROFILE)
+    domain = domain_id()
+    set_ros_env(domain)
+    rclpy.init(domain_id=domain)
+    try:
+        yield domain
+    finally:
+        rclpy.try_shutdown()
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def _room_scan(count: int, seed: int) -> dict[str, np.ndarray]:
+    """About ``count`` returns of a lidar (elevations -30..30 deg, 2048 azimuths) at the
+    base_link origin in a box room 30 x 30 m, floor 2 m below, ceiling 6 m above."""
+    rows = max(1, count // 2048)
+    el = np.radians(np.linspace(-30.0, 30.0, rows))
+    az = np.linspace(-np.pi, np.pi, 2048, endpoint=False) + seed * 1e-3
+    e, a = np.meshgrid(el, az, indexing="ij")
+    d = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1).reshape(-1, 3)
+    with np.errstate(divide="ignore"):
+        up = np.where(d[:, 2] > 0, 6.0 / d[:, 2], 2.0 / np.abs(d[:, 2]))
+        t = np.minimum(np.minimum(15.0 / np.abs(d[:, 0]), 15.0 / np.abs(d[:, 1])), up)
+    xyz = (d * t[:, None]).astype(np.float32)
+    return {a: xyz[:, k] for k, a in enumerate("xyz")}
+
+
+def _odom(f: Feeder, start: float, end: float) -> None:
+    for t in np.arange(start, end, 0.05):
+        f.odom_pub.publish(odom_msg(float(t), np.zeros(3), 0.0))
+
+
+def _send(f: Feeder, cols: dict[str, np.ndarray], stamp: float) -> None:
+    """Publish until the node counts it (its cloud_in is best effort)."""
+    for _ in range(5):
+        seen = (f.status or {}).get("clouds_in", 0)
+        f.cloud_pub.publish(cloud_from_columns(cols, "base_link", stamp))
+        if f.wait(lambda seen=seen: (f.status or {}).get("clouds_in", 0) > seen, 5.0):
+            return
+    raise AssertionError("the node never received the cloud")
+
+
+def _grid(response: Any) -> np.ndarray:
+    info = response.map.info
+    return np.array(response.map.data, dtype=np.int8).reshape(info.height, info.width)
+
+
+def test_services_answer_during_a_long_scan_and_see_whole_scans(
+    ros_domain: int, tmp_path: Path
+) -> None:
+    from nav_msgs.srv import GetMap
+    from std_srvs.srv import Trigger
+
+    from mfp_mapper.mapio.mapfile import read_map_file
+
+    path = tmp_path / "map.npz"
+    node = NodeProcess(ros_domain, {**PARAMS, "map_path": str(path)}, tmp_path / "node.log")
+    f = Feeder()
+    try:
+        assert f.wait_connected(30.0), node.log()
+        assert f.wait(lambda: f.status is not None, 10.0)
+        _odom(f, T0 - 1.0, T0 + 3.0)
+        _send(f, _room_scan(20_000, 1), T0)
+        status = f.wait_status(lambda s: s["clouds_integrated"] == 1, 60.0)
+        assert status["clouds_integrated"] == 1, (status, node.log()[-3000:])
+        before = _grid(f.call(f.get_map, GetMap.Request()))
+        voxels_before = f.status["voxels"]
+
+        _send(f, _room_scan(BIG_SCAN_POINTS, 2), T0 + 1.0)
+        t_sent = time.monotonic()
+        query_cols = _room_scan(10, 3)
+        f.query_pub.publish(cloud_from_columns(query_cols, "odom", T0 + 1.0))
+        get_map = f.get_map.call_async(GetMap.Request())
+        save = f.save.call_async(Trigger.Request())
+        answered: dict[str, float] = {}
+        integrated_at: list[float] = []
+
+        def progress() -> bool:
+            now = time.monotonic() - t_sent
+            if f.results and "query" not in answered:
+                answered["query"] = now
+            for name, fut in (("get_map", get_map), ("save_map", save)):
+                if fut.done() and name not in answered:
+                    answered[name] = now
+            if (f.status or {}).get("clouds_integrated", 0) >= 2 and not integrated_at:
+                integrated_at.append(now)
+            return len(answered) == 3 and bool(integrated_at)
+
+        assert f.wait(progress, 300.0), (answered, integrated_at, node.log()[-3000:])
+        print(f"answered after {answered} s; the scan integrated after {integrated_at[0]:.2f} s")
+        # every service answered before the scan was in the map, with the map before it
+        assert max(answered.values()) < integrated_at[0], (answered, integrated_at)
+        assert np.array_equal(_grid(get_map.result()), before)
+        assert save.result().success, save.result().message
+        assert read_map_file(path).voxels.s.shape[0] == voxels_before
+        assert f.results[0].width == len(query_cols["x"])
+        status = f.wait_status(lambda s: s["voxels"] > voxels_before, 10.0)
+        assert status["voxels"] > voxels_before and node.alive()
+    finally:
+        f.destroy()
+        assert node.stop() == 0, node.log()[-3000:]
+    assert "Traceback" not in node.log()
+
+
+def _write_box_map(path: Path, voxels: float) -> tuple[int, np.ndarray]:
+    """A map file of a dense box of about ``voxels`` voxels (stored uncompressed); returns
+    the voxel count and their ``s``."""
+    from mfp_mapper import Mapper
+    from mfp_mapper.core.store import VoxelArrays
+    from mfp_mapper.mapio.mapfile import map_arrays, write_map_arrays
+
+    side = round(voxels ** (1 / 3))
+    grid = np.stack(np.meshgrid(*(np.arange(side),) * 3, indexing="ij"), -1).reshape(-1, 3)
+    rng = np.random.default_rng(0)
+    ijk = (grid - side // 2).astype(np.int32)
+    count = len(ijk)
+    s = rng.uniform(0.01, 5.0, count)
+    mapper = Mapper.from_arrays(
+        VoxelArrays(ijk, s, np.ones(count), np.full(count, T0)), resolution=RES, frame_id="odom"
+    )
+    write_map_arrays(path, map_arrays(mapper), compress=False)
+    return count, s
+
+
+def _launch_escalation(proc: subprocess.Popen[bytes]) -> int:
+    """What ``ros2 launch`` does on Ctrl-C: SIGINT, SIGTERM 5 s later, SIGKILL 5 s after."""
+    for sig, wait in ((signal.SIGINT, 5.0), (signal.SIGTERM, 5.0)):
+        proc.send_signal(sig)
+        try:
+            return proc.wait(wait)
+        except subprocess.TimeoutExpired:
+            continue
+    proc.kill()
+    return proc.wait(10.0)
+
+
+@pytest.mark.slow
+def test_large_map_saved_intact_under_launch_escalation(ros_domain: int, tmp_path: Path) -> None:
+    """A map of ``SHUTDOWN_VOXELS`` voxels loaded at start, ``save_on_shutdown``: after the
+    escalation the file holds that map, and no temporary file is left."""
+    from mfp_mapper.mapio.mapfile import read_map_file
+
+    path = tmp_path / "big.npz"
+    count, s = _write_box_map(path, SHUTDOWN_VOXELS)
+    os.utime(path, (1.0, 1.0))
+    params = {**PARAMS, "map_path": str(path), "save_on_shutdown": True, "status_period": 1.0}
+    node = NodeProcess(ros_domain, params, tmp_path / "node.log")
+    f = Feeder()
+    try:
+        assert f.wait(lambda: f.status is not None and f.status["voxels"] == count, 120.0), (
+            node.log()[-3000:]
+        )
+    finally:
+        f.destroy()
+    t0 = time.monotonic()
+    rc = _launch_escalation(node.proc)
+    took = time.monotonic() - t0
+    node.stop()
+    log = node.log()
+    print(f"{count} voxels: node exited {rc} after {took:.1f} s")
+    assert path.stat().st_mtime > 1.0, log[-3000:]  # saved at shutdown
+    saved = read_map_file(path)
+    assert saved.voxels.s.shape[0] == count
+    np.testing.assert_allclose(np.sort(saved.voxels.s), np.sort(s), rtol=1e-6)
+    assert not list(tmp_path.glob(".*mfp-tmp")), list(tmp_path.iterdir())
+    assert rc == 0, log[-3000:]
+    assert "Traceback" not in log
+
+
+def test_sigterm_during_the_save_lets_it_finish(ros_domain: int, tmp_path: Path) -> None:
+    """SIGINT starts the final save; a SIGTERM right after does not cut it short."""
+    from mfp_mapper.mapio.mapfile import read_map_file
+
+    path = tmp_path / "map.npz"
+    count, _ = _write_box_map(path, 2e6)
+    os.utime(path, (1.0, 1.0))
+    params = {**PARAMS, "map_path": str(path), "save_on_shutdown": True}
+    node = NodeProcess(ros_domain, params, tmp_path / "node.log")
+    f = Feeder()
+    try:
+        assert f.wait(lambda: f.status is not None and f.status["voxels"] == count, 120.0), (
+            node.log()
+        )
+    finally:
+        f.destroy()
+    node.proc.send_signal(signal.SIGINT)
+    assert f.wait(lambda: "SIGINT: stopping" in node.log(), 10.0), node.log()
+    node.proc.send_signal(signal.SIGTERM)
+    rc = node.proc.wait(20.0)
+    node.stop()
+    assert rc == 0, node.log()
+    assert path.stat().st_mtime > 1.0
+    assert read_map_file(path).voxels.s.shape[0] == count
+    assert not list(tmp_path.glob(".*mfp-tmp"))
+
+
+def test_autosave_and_a_tiled_map_path(ros_domain: int, tmp_path: Path) -> None:
+    """``autosave_period`` writes the map without a service call; ``map_path`` a directory:
+    ``~/save_map`` and the autosave write a tiled map there, which a new node loads."""
+    from mfp_mapper.mapio.loading import load_map
+
+    tiled = tmp_path / "tiled"
+    tiled.mkdir()
+    params = {**PARAMS, "map_path": str(tiled), "autosave_period": 0.5}
+    node = NodeProcess(ros_domain, params, tmp_path / "node.log")
+    f = Feeder()
+    try:
+        assert f.wait_connected(30.0), node.log()
+        assert f.wait(lambda: f.status is not None, 10.0)
+        _odom(f, T0 - 1.0, T0 + 2.0)
+        _send(f, _room_scan(5_000, 4), T0)
+        status = f.wait_status(lambda s: s["clouds_integrated"] == 1, 30.0)
+        assert status["clouds_integrated"] == 1, node.log()
+        assert f.wait(lambda: (tiled / "index.json").is_file(), 10.0), node.log()
+        assert "saved" in node.log()
+        assert load_map(tiled).num_voxels == status["voxels"]
+        index_mtime = (tiled / "index.json").stat().st_mtime
+        f.wait(lambda: False, 1.5)  # three autosave periods with no new scan: not rewritten
+        assert (tiled / "index.json").stat().st_mtime == index_mtime
+    finally:
+        f.destroy()
+        assert node.stop() == 0, node.log()
+    assert "Is a directory" not in node.log()
+
+
+def test_sigint_during_a_get_map_burst_exits_cleanly(ros_domain: int, tmp_path: Path) -> None:
+    from nav_msgs.srv import GetMap
+
+    for k in range(3):
+        log = tmp_path / f"node{k}.log"
+        node = NodeProcess(ros_domain, {**PARAMS, "save_on_shutdown": False}, log)
+        f = Feeder()
+        try:
+            assert f.wait(f.get_map.service_is_ready, 30.0), node.log()
+            pending = [f.get_map.call_async(GetMap.Request()) for _ in range(30)]
+            some = 5 + 5 * k
+            f.wait(lambda p=pending, n=some: sum(x.done() for x in p) >= n, 5.0)
+            node.proc.send_signal(signal.SIGINT)
+            rc = node.proc.wait(15.0)
+        finally:
+            f.destroy()
+            node.stop()
+        text = node.log()
+        assert rc == 0, text[-3000:]
+        assert "Traceback" not in text and "take_message" not in text, text[-3000:]
+        assert "[WARN]" not in text, text[-3000:]
