@@ -77,15 +77,21 @@ def _open_blocks_of(
     """Open the blocks of the voxels of ``shard`` from index ``start`` on, each at the
     latest ``t`` of its voxels. Returns ``len(ijk)``, or the index where blocks ran out."""
     block_t = shard_arrays[4]
+    last_key = np.int64(-1)  # map files list voxels block by block: one probe a block
+    block = -1
     for j in range(start, ijk.shape[0]):
         bx = ijk[j, 0] >> BLOCK_BITS
         by = ijk[j, 1] >> BLOCK_BITS
         bz = ijk[j, 2] >> BLOCK_BITS
-        if shard_of(bx, by, bz, shard_mask) != shard:
-            continue
-        block = open_block(bx, by, bz, shard_arrays, -1, t[j], math.inf)
-        if block < 0:
-            return j
+        key = block_key(bx, by, bz)
+        if key != last_key or block < 0:
+            if shard_of(bx, by, bz, shard_mask) != shard:
+                last_key, block = key, -1
+                continue
+            block = open_block(bx, by, bz, shard_arrays, -1, t[j], math.inf)
+            if block < 0:
+                return j
+            last_key = key
         block_t[block] = max(block_t[block], t[j])
     return ijk.shape[0]
 
@@ -109,13 +115,22 @@ def _set_voxels(
     table_keys, table_blocks, _, block_sn, block_t = shard_arrays[:5]
     block_hit = shard_arrays[6]
     observed = 0
+    last_key = np.int64(-1)  # map files list voxels block by block: one probe a block
+    block = -1
     for j in range(ijk.shape[0]):
         bx = ijk[j, 0] >> BLOCK_BITS
         by = ijk[j, 1] >> BLOCK_BITS
         bz = ijk[j, 2] >> BLOCK_BITS
-        if shard_of(bx, by, bz, shard_mask) != shard:
+        key = block_key(bx, by, bz)
+        if key != last_key:
+            last_key = key
+            block = (
+                find_block(table_keys, table_blocks, key)
+                if shard_of(bx, by, bz, shard_mask) == shard
+                else -1
+            )
+        if block < 0:
             continue
-        block = find_block(table_keys, table_blocks, block_key(bx, by, bz))
         local = local_index(ijk[j, 0], ijk[j, 1], ijk[j, 2])
         bit = np.uint64(1) << np.uint64(local & 63)
         if seen[block, local >> 6] & bit:
