@@ -4,6 +4,7 @@ line, starts empty and saves beside ``map_path``, never over it; real nodes over
 from __future__ import annotations
 
 import os
+import re
 import stat
 from collections.abc import Iterator
 from pathlib import Path
@@ -46,7 +47,12 @@ def _entries(root: Path) -> dict[str, tuple[object, ...]]:
     return out
 
 
-@pytest.mark.parametrize("kind", sorted(KINDS))
+NODE_ACCEPTS = {"directory_as_file"}
+"""Kinds the node takes as they are: an empty directory as map_path is a new tiled map,
+saved there (README, "Saving the map"); the CLI's commands, which read a map, refuse it."""
+
+
+@pytest.mark.parametrize("kind", sorted(set(KINDS) - NODE_ACCEPTS))
 def test_node_start_on_each_hostile_map(kind: str, tmp_path: Path) -> None:
     src = tmp_path / "in"
     src.mkdir()
@@ -107,7 +113,9 @@ def test_nodes_on_hostile_maps_stay_up_and_save_beside_them(
             answer = f.call(f.save, Trigger.Request())
             assert answer.success, answer.message
             assert "kept as it was" in answer.message and str(hostile[kind]) in answer.message
-            saved[kind] = answer.message.split("saved 0 voxels to ")[1].split(" (map_path")[0]
+            found = re.search(r"saved 0 voxels to (\S+)", answer.message)
+            assert found is not None, answer.message
+            saved[kind] = found.group(1)
             status = f.wait_status(lambda s: "voxels" in s, 10.0)
             assert status is not None and status["voxels"] == 0
             assert nodes[kind].alive()

@@ -48,6 +48,7 @@ MODULE_KEYS = {  # third-party module imported -> its rosdep key (None: delibera
     "yaml": "python3-yaml",
     "tqdm": "python3-tqdm",
     "scipy": "python3-scipy",
+    "plyfile": "python3-plyfile",
     "rosbags": None,  # pip only: see the comment in package.xml
     "dask": None,  # offline fleet mapping only (--workers/--scheduler): see package.xml
     "distributed": None,
