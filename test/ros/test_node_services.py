@@ -15,6 +15,7 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -100,13 +101,56 @@ def _odom(f: Feeder, start: float, end: float) -> None:
         f.odom_pub.publish(odom_msg(float(t), np.zeros(3), 0.0))
 
 
+PUBLISHER = """
+import sys, time
+import numpy as np, rclpy
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import PointCloud2
+sys.path.insert(0, sys.argv[4])
+from ros_helpers import cloud_from_columns
+rclpy.init(domain_id=int(sys.argv[1]))
+node = rclpy.create_node("big_cloud_publisher")
+reliable = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
+pub = node.create_publisher(PointCloud2, "cloud_in", reliable)
+cols = dict(np.load(sys.argv[2]))
+end = time.monotonic() + 20.0
+while pub.get_subscription_count() == 0 and time.monotonic() < end:
+    rclpy.spin_once(node, timeout_sec=0.05)
+pub.publish(cloud_from_columns(cols, "base_link", float(sys.argv[3])))
+end = time.monotonic() + 2.0
+while time.monotonic() < end:
+    rclpy.spin_once(node, timeout_sec=0.05)
+node.destroy_node()
+rclpy.shutdown()
+"""
+"""Publishes one cloud from a child process: Fast DDS reads its XML profile once per process,
+so this test process may have started DDS without the large-data profile (an earlier test
+module) while a child always has it (the fixture's environment)."""
+
+
 def _send(f: Feeder, cols: dict[str, np.ndarray], stamp: float) -> None:
-    """Publish until the node counts it (its cloud_in is best effort)."""
-    for _ in range(5):
-        seen = (f.status or {}).get("clouds_in", 0)
-        f.cloud_pub.publish(cloud_from_columns(cols, "base_link", stamp))
-        if f.wait(lambda seen=seen: (f.status or {}).get("clouds_in", 0) > seen, 5.0):
-            return
+    """Publish from a child process with the large-data profile until the node counts the
+    cloud (its cloud_in is best effort)."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as scratch:
+        columns = Path(scratch) / "cloud.npz"
+        np.savez(columns, **cols)
+        for _ in range(3):
+            seen = (f.status or {}).get("clouds_in", 0)
+            child = subprocess.Popen(
+                [sys.executable, "-c", PUBLISHER, str(domain_id()), str(columns), str(stamp),
+                 str(Path(__file__).parent)],
+            )  # fmt: skip
+            try:
+                if f.wait(lambda seen=seen: (f.status or {}).get("clouds_in", 0) > seen, 30.0):
+                    return
+            finally:
+                try:
+                    child.wait(timeout=30.0)
+                except subprocess.TimeoutExpired:
+                    child.kill()
+                    child.wait()
     raise AssertionError("the node never received the cloud")
 
 
