@@ -77,9 +77,15 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class Terminated(BaseException):
+    """Raised by the SIGTERM handler: ends the command as Ctrl-C does (cleanup runs, nothing
+    half-written stays). Not a ``KeyboardInterrupt``: CPython 3.11 marks one that passes
+    through ``exec`` of a string (dataclasses, rosbags' type store) as unhandled and then
+    exits by SIGINT (status -2) even after ``main`` caught it and returned 130."""
+
+
 def _terminated(signum: int, _frame: Any) -> None:
-    """SIGTERM ends the command as Ctrl-C does: cleanup runs, nothing half-written stays."""
-    raise KeyboardInterrupt
+    raise Terminated
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -101,7 +107,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         error(f"{err} (nothing written)")
         return 1
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, Terminated):
         error("interrupted (nothing written for the step in progress)")
         return 130
     except BrokenPipeError:
