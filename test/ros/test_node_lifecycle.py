@@ -39,9 +39,18 @@ class Lifecycle:
         self.get = feeder.node.create_client(GetState, f"/{node_name}/get_state")
 
     def state(self) -> str:
+        """The node's state. GetState is asked again when it goes unanswered: right after
+        discovery the server may not have matched this client's response reader yet (the
+        first request's answer is then lost), and asking is idempotent."""
         from lifecycle_msgs.srv import GetState
 
-        return str(self.feeder.call(self.get, GetState.Request()).current_state.label)
+        for _ in range(5):
+            try:
+                answer = self.feeder.call(self.get, GetState.Request(), timeout=5.0)
+            except TimeoutError:
+                continue
+            return str(answer.current_state.label)
+        raise TimeoutError("GetState went unanswered 5 times")
 
     def transition(self, transition_id: int) -> bool:
         from lifecycle_msgs.srv import ChangeState
