@@ -13,7 +13,8 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -52,6 +53,37 @@ def set_ros_env(domain: int) -> None:
     """Make this process use ``domain`` on loopback (call before rclpy.init)."""
     os.environ["ROS_DOMAIN_ID"] = str(domain)
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+
+
+@contextmanager
+def ros_context(domain: int, env: dict[str, str | None] | None = None) -> Iterator[int]:
+    """rclpy initialised on ``domain`` (on loopback), with ``env`` set in this process and
+    the nodes it starts (None: unset); the environment is restored afterwards. Fast DDS
+    reads its XML profile once per process: a profile set here applies only if no earlier
+    test started DDS in this process."""
+    import rclpy
+
+    changes: dict[str, str | None] = {
+        "ROS_DOMAIN_ID": str(domain),
+        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+        **(env or {}),
+    }
+    saved = {k: os.environ.get(k) for k in changes}
+    for key, value in changes.items():
+        if value is None:
+            os.environ.pop(key, None)
+        else:
+            os.environ[key] = value
+    rclpy.init(domain_id=domain)
+    try:
+        yield domain
+    finally:
+        rclpy.try_shutdown()
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
 
 
 def _param_arg(name: str, value: Any) -> str:

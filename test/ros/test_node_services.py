@@ -30,7 +30,7 @@ from ros_helpers import (
     cloud_from_columns,
     domain_id,
     odom_msg,
-    set_ros_env,
+    ros_context,
 )
 
 pytestmark = pytest.mark.ros
@@ -54,31 +54,10 @@ PARAMS = {
 
 @pytest.fixture(scope="module")
 def ros_domain() -> Iterator[int]:
-    """rclpy on a private domain, with the large-data profile (clouds of 12 MB) in this
-    process and the nodes it starts (they inherit the environment)."""
-    import rclpy
-
-    saved = {
-        k: os.environ.get(k)
-        for k in (
-            "ROS_DOMAIN_ID",
-            "ROS_AUTOMATIC_DISCOVERY_RANGE",
-            "FASTRTPS_DEFAULT_PROFILES_FILE",
-        )
-    }
-    os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(DDS_PROFILE)
-    domain = domain_id()
-    set_ros_env(domain)
-    rclpy.init(domain_id=domain)
-    try:
-        yield domain
-    finally:
-        rclpy.try_shutdown()
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
+    """rclpy on a private domain, with the large-data profile (clouds of 12 MB) for the nodes
+    it starts (they inherit the environment)."""
+    with ros_context(domain_id(), {"FASTRTPS_DEFAULT_PROFILES_FILE": str(DDS_PROFILE)}) as d:
+        yield d
 
 
 def _room_scan(count: int, seed: int) -> dict[str, np.ndarray]:

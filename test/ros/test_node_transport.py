@@ -7,13 +7,12 @@ from the next cloud's sequence number (the middleware's sample-lost event).
 
 from __future__ import annotations
 
-import os
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
-from ros_helpers import Feeder, NodeProcess, cloud_from_columns, domain_id, set_ros_env
+from ros_helpers import Feeder, NodeProcess, cloud_from_columns, domain_id, ros_context
 
 from mfp_mapper.ros.transport import PROFILE_ENV
 
@@ -22,24 +21,9 @@ pytestmark = pytest.mark.ros
 
 @pytest.fixture(scope="module")
 def ros_domain() -> Iterator[int]:
-    """This module's own DDS domain (60-69), Fast DDS defaults in this process."""
-    import rclpy
-
-    domain = domain_id()
-    keys = ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", PROFILE_ENV)
-    saved = {k: os.environ.get(k) for k in keys}
-    os.environ.pop(PROFILE_ENV, None)
-    set_ros_env(domain)
-    rclpy.init(domain_id=domain)
-    try:
+    """A DDS domain of this test run, Fast DDS defaults in this process and its nodes."""
+    with ros_context(domain_id(), {PROFILE_ENV: None}) as domain:
         yield domain
-    finally:
-        rclpy.try_shutdown()
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
 
 
 def test_clouds_lost_in_transport_are_counted_and_explained_once(
