@@ -4,7 +4,7 @@ For each case a map is built at 0.2 m from some scans at their known poses, and 
 other scan is aligned against it from its pose perturbed by exactly ``--shift`` metres in a
 random direction and ``--angle`` degrees about a random axis (``--trials`` draws per scan):
 
-- simulated scenes with exact truth (``sources.sim_localize``): the hall (``box``),
+- simulated scenes with exact truth (``test/localization_scenes.py``): the hall (``box``),
   ``vegetation`` (media only, no walls) and a featureless ``corridor`` (must be refused);
 - real recordings in ../shared/data: ouster_street (map scans 0 and 2, align scan 1; its
   poses are the SDK's, not survey truth) and norlab_sequence (map the even scans, align the
@@ -27,7 +27,15 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT)]
+sys.path[:0] = [str(ROOT), str(ROOT / "test")]  # the package and the test scenes
+
+from localization_scenes import (  # noqa: E402
+    Pose,
+    localization_scene,
+    perturb,
+    pose_at,
+    static_scan,
+)
 
 from mfp_mapper.core.alignment import AlignOptions, FieldPyramid, align_scan  # noqa: E402
 from mfp_mapper.core.mapper import Mapper  # noqa: E402
@@ -35,13 +43,6 @@ from mfp_mapper.sensing.poses import quaternion_to_matrix  # noqa: E402
 from mfp_mapper.sensing.scan_normals import scan_normals  # noqa: E402
 from mfp_mapper.sources.pose_files import read_kitti_poses, read_odometry_csv  # noqa: E402
 from mfp_mapper.sources.scan_files import read_kitti_bin, read_vtk_points  # noqa: E402
-from mfp_mapper.sources.sim_localize import (  # noqa: E402
-    Pose,
-    localization_scene,
-    perturb,
-    pose_at,
-    static_scan,
-)
 
 DATA = ROOT.parent / "shared" / "data"
 RES = 0.2

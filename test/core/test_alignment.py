@@ -6,6 +6,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from localization_scenes import (
+    Pose,
+    localization_scene,
+    perturb,
+    pose_at,
+    static_scan,
+)
 
 from mfp_mapper.core.alignment import (
     AlignOptions,
@@ -17,13 +24,6 @@ from mfp_mapper.core.alignment import (
 )
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.sensing.scan_normals import scan_normals
-from mfp_mapper.sources.sim_localize import (
-    Pose,
-    localization_scene,
-    perturb,
-    pose_at,
-    static_scan,
-)
 
 
 def _model(s: np.ndarray, n: np.ndarray, r: float, alpha: float, beta: float) -> tuple:
