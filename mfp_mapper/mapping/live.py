@@ -28,7 +28,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from mfp_mapper.core.mapper import Mapper
-from mfp_mapper.mapping.loop import PreparedScan, ScanCounts, ScanLoop
+from mfp_mapper.mapping.loop import PreparedScan, ScanCounts, ScanLoop, staged
 from mfp_mapper.mapping.whole_map import MERGE_PAUSE_S, WholeMap
 from mfp_mapper.sensing import pipeline
 from mfp_mapper.sensing.pointcloud import ParsedCloud
@@ -161,9 +161,7 @@ class LiveIntegrator:
             settings,
             counts=self.counters,
             counts_lock=self._cv,
-            map_lock=self.map_lock,
-            merge_lock=self.whole_map,
-            pause=self._let_readers_in,
+            consume=staged(self.whole_map, self._let_readers_in),
         )
 
     def _let_readers_in(self) -> None:

@@ -18,7 +18,7 @@ from __future__ import annotations
 import threading
 from collections import Counter
 from collections.abc import Callable
-from contextlib import AbstractContextManager, nullcontext
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -131,12 +131,9 @@ class ScanLoop:
         *,
         counts: ScanCounts | None = None,
         counts_lock: AbstractContextManager[Any] | None = None,
-        map_lock: AbstractContextManager[Any] | None = None,
         on_placed: ScanCallback | None = None,
         fatal: tuple[type[Exception], ...] = (),
         consume: ScanConsumer | None = None,
-        merge_lock: AbstractContextManager[Any] | None = None,
-        pause: Callable[[], None] | None = None,
     ) -> None:
         self.mapper = mapper
         self.settings = settings
@@ -144,19 +141,10 @@ class ScanLoop:
         self.counts_lock: AbstractContextManager[Any] = (
             counts_lock if counts_lock is not None else threading.RLock()
         )
-        self.map_lock: AbstractContextManager[Any] = (
-            map_lock if map_lock is not None else nullcontext()
-        )
         self.on_placed = on_placed
         self.consume: ScanConsumer = consume if consume is not None else integrate_scan
-        """What is done with each placed scan (default: integrated into ``mapper``)."""
-        self.merge_lock = merge_lock
-        """Given: each scan is walked without any lock (``Mapper.stage``) and merged under
-        this lock (``Mapper.commit``, with ``pause`` between chunks), so readers of the map
-        wait for a merge, never for a scan. None, or a ``consume`` given: ``consume``
-        under ``map_lock``."""
-        self.pause = pause
-        self._staged = merge_lock is not None and consume is None
+        """What is done with each placed scan (default: integrated into ``mapper``; the
+        live worker's: ``staged``, walked without a lock and merged under one)."""
         self.fatal = fatal
         """Exceptions that end the loop instead of dropping one cloud (the replay's
         ``ReplayError``: no extrinsic for a frame, say)."""
@@ -197,14 +185,9 @@ class ScanLoop:
         return placed
 
     def commit(self, placed: PlacedScan) -> IntegrationSummary:
-        """Integrate placed rays and count them: staged and merged in chunks when the loop
-        has a ``merge_lock`` (the live worker), else ``consume`` under ``map_lock``; raises
-        ``ScanDropped`` (``no_usable_rays``)."""
-        if self._staged and self.merge_lock is not None:
-            summary = merge_scan(self.mapper, placed, self.merge_lock, self.pause)
-        else:
-            with self.map_lock:
-                summary = self.consume(self.mapper, placed)
+        """Integrate placed rays (``consume``) and count them; raises ``ScanDropped``
+        (``no_usable_rays``)."""
+        summary = self.consume(self.mapper, placed)
         with self.counts_lock:
             self.counts.add(placed, summary)
         return summary
@@ -266,6 +249,14 @@ def merge_scan(
     require_rays(staged.summary, placed)
     with merge_lock:
         return mapper.commit(staged, pause=pause)
+
+
+def staged(
+    merge_lock: AbstractContextManager[Any], pause: Callable[[], None] | None = None
+) -> ScanConsumer:
+    """The consumer of a loop whose map is read while scans integrate (the live worker):
+    ``merge_scan`` with this lock and pause, so readers wait for a merge, never a scan."""
+    return lambda mapper, placed: merge_scan(mapper, placed, merge_lock, pause)
 
 
 def require_rays(summary: IntegrationSummary, placed: PlacedScan) -> IntegrationSummary:
