@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from mfp_mapper.config.replay_options import ReplayOptions
-from mfp_mapper.core.alignment import Alignment, AlignOptions, FieldPyramid, align_scan
+from mfp_mapper.core.alignment import Alignment, AlignOptions, FieldPyramid, align_scan, verify_exact
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.mapping.folder_replay import folder_poses
 from mfp_mapper.mapping.loop import ScanLoop
@@ -83,27 +83,6 @@ class LocalizeResult:
         return sum(1 for s in self.scans if s.alignment is not None and s.alignment.accepted)
 
 
-def _exact_gain(mapper: Mapper, placed: PlacedScan, al: Alignment, max_rays: int) -> float:
-    """Exact log-likelihood gain over an evenly spread subset of the scan's rays (NaN
-    without the likelihood kernel, ``core.likelihood``)."""
-    try:
-        from mfp_mapper.core.likelihood import total_log_likelihood
-    except ImportError:  # the likelihood issue's kernel is not merged yet
-        return math.nan
-    pts = placed.points
-    org = np.broadcast_to(placed.origins, pts.shape)
-    pick = np.unique(np.linspace(0, len(pts) - 1, min(max_rays, len(pts))).astype(int))
-    p, o = pts[pick], np.ascontiguousarray(org[pick])
-    before = total_log_likelihood(mapper, p, o, placed.stamp)
-    after = total_log_likelihood(
-        mapper,
-        p @ al.rotation.T + al.translation,
-        o @ al.rotation.T + al.translation,
-        placed.stamp,
-    )
-    return after - before
-
-
 def _prior(mapper: Mapper) -> dict[str, float]:
     """The map's Gamma prior (shape, rate) on the extinction; the uniform prior (1, 1) for
     a Mapper that has none."""
@@ -127,8 +106,11 @@ def refine_placed(
     pts = placed.points[ret]
     org = placed.origins if np.ndim(placed.origins) == 1 else placed.origins[ret]
     al = align_scan(pyramid, pts, org, options, normals=scan_normals(pts))
-    gain = _exact_gain(mapper, placed, al, options.max_rays) if al.accepted else 0.0
-    return al, gain
+    al = verify_exact(
+        mapper, al, placed.points, placed.origins, placed.stamp, options,
+        no_return=placed.no_return,
+    )  # fmt: skip
+    return al, al.exact_gain
 
 
 def _apply(
