@@ -106,6 +106,12 @@ class AlignOptions:
     it by moving a few centimetres, and lose in the exact model."""
     exact_rays: int = 3000
     """Rays scored by ``verify_exact`` (a deterministic, evenly spread subset)."""
+    refresh_growth: float = 0.5
+    """Aligning against a growing map (``replay --refine-poses``, ``mapping.localize``):
+    rebuild the pyramid when the scans integrated since the last build reach this share
+    of the scans it holds (builds after scans 1, 2, 3, 5, 8, 12, ...)."""
+    refresh_m: float = 2.0
+    """... or when the sensor is further than this (metres) from where it was built."""
 
 
 @dataclass
@@ -294,8 +300,10 @@ def _coarsen_blocks(
                 sel = np.flatnonzero(
                     (octant[:, 0] == ox) & (octant[:, 1] == oy) & (octant[:, 2] == oz)
                 )
-                xs, ys, zs = slice(ox * h, ox * h + h), slice(oy * h, oy * h + h), slice(
-                    oz * h, oz * h + h
+                xs, ys, zs = (
+                    slice(ox * h, ox * h + h),
+                    slice(oy * h, oy * h + h),
+                    slice(oz * h, oz * h + h),
                 )
                 s_c[pinv[sel], xs, ys, zs] = s_half[sel]
                 n_c[pinv[sel], xs, ys, zs] = n_half[sel]
@@ -375,9 +383,7 @@ class FieldPyramid:
         for k in range(levels):
             if k:
                 keys, s_b, n_b = _coarsen_blocks(keys, s_b, n_b)
-            fields.append(
-                _field_of_blocks(keys, s_b, n_b, resolution * 2**k, origin, shape, rate)
-            )
+            fields.append(_field_of_blocks(keys, s_b, n_b, resolution * 2**k, origin, shape, rate))
         return cls(fields)
 
     @classmethod
