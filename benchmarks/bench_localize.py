@@ -176,12 +176,20 @@ def main() -> None:
     ap.add_argument("--rays", type=int, default=3000)
     ap.add_argument("--levels", type=int, default=3)
     ap.add_argument("--cases", default=",".join(CASES))
+    ap.add_argument("--step", type=float, default=0.5, help="free-space samples (voxels)")
+    ap.add_argument("--probe-rays", type=int, default=1000)
     ap.add_argument("--no-verify", action="store_true", help="skip verify_exact")
     ap.add_argument("--verbose", action="store_true", help="print each wrong acceptance")
     args = ap.parse_args()
-    opts = AlignOptions(levels=args.levels, max_rays=args.rays)
+    opts = AlignOptions(
+        levels=args.levels,
+        max_rays=args.rays,
+        step=args.step,
+        probe_rays=args.probe_rays,
+        exact_rays=args.rays,
+    )
     print(f"initial error {args.shift} m, {args.angle} deg; map {RES} m; {args.rays} rays, "
-          f"{args.levels} levels")  # fmt: skip
+          f"{args.levels} levels, step {args.step}, {args.probe_rays} probe rays")  # fmt: skip
     for name in args.cases.split(","):
         run_case(name, args, opts)
 

@@ -275,8 +275,8 @@ def _voxel_blocks(
     blocks = np.floor_divide(ijk, _BLOCK)
     keys, inv = _unique_rows(blocks)
     loc = ijk - blocks * _BLOCK
-    s_b = np.zeros((len(keys), _BLOCK, _BLOCK, _BLOCK))
-    n_b = np.zeros((len(keys), _BLOCK, _BLOCK, _BLOCK))
+    s_b = np.zeros((len(keys), _BLOCK, _BLOCK, _BLOCK), dtype=np.float32)
+    n_b = np.zeros((len(keys), _BLOCK, _BLOCK, _BLOCK), dtype=np.float32)
     s_b[inv, loc[:, 0], loc[:, 1], loc[:, 2]] = np.asarray(s, dtype=np.float64).reshape(-1)
     n_b[inv, loc[:, 0], loc[:, 1], loc[:, 2]] = np.asarray(n, dtype=np.float64).reshape(-1)
     return keys, s_b, n_b
@@ -290,8 +290,8 @@ def _coarsen_blocks(
     parents = np.floor_divide(keys, 2)
     pkeys, pinv = _unique_rows(parents)
     octant = keys - 2 * parents
-    s_c = np.zeros((len(pkeys), _BLOCK, _BLOCK, _BLOCK))
-    n_c = np.zeros((len(pkeys), _BLOCK, _BLOCK, _BLOCK))
+    s_c = np.zeros((len(pkeys), _BLOCK, _BLOCK, _BLOCK), dtype=np.float32)
+    n_c = np.zeros((len(pkeys), _BLOCK, _BLOCK, _BLOCK), dtype=np.float32)
     s_half = s_b.reshape(-1, h, 2, h, 2, h, 2).sum(axis=(2, 4, 6))
     n_half = n_b.reshape(-1, h, 2, h, 2, h, 2).sum(axis=(2, 4, 6))
     for ox in range(2):
@@ -320,7 +320,10 @@ def _field_of_blocks(
     rate: float,
 ) -> LikelihoodField:
     """The field of dense blocks of statistics (unobserved voxels: s = n = 0, the prior)."""
-    a, b = _log_probabilities(s_b, n_b, res, shape, rate)
+    a = np.empty(s_b.shape, dtype=np.float32)
+    b = np.empty(s_b.shape, dtype=np.float32)
+    _fill_log_probabilities(s_b.reshape(-1), n_b.reshape(-1), res, shape, rate,
+                            a.reshape(-1), b.reshape(-1))  # fmt: skip
     prior_a, prior_b = (
         float(v[0]) for v in _log_probabilities(np.zeros(1), np.zeros(1), res, shape, rate)
     )
@@ -337,11 +340,22 @@ def _field_of_blocks(
         origin=np.asarray(origin, dtype=np.float64).reshape(3),
         block_lo=lo.astype(np.int64),
         index=index,
-        a=a.astype(np.float32),
-        b=b.astype(np.float32),
+        a=a,
+        b=b,
         prior_a=prior_a,
         prior_b=prior_b,
     )
+
+
+@nb.njit(cache=True, nogil=True)
+def _fill_log_probabilities(s, n, res, shape, rate, a, b):  # type: ignore[no-untyped-def]
+    """``_log_probabilities`` element by element into float32 ``a``, ``b`` (no
+    temporaries: 18M voxels of norlab's pyramid)."""
+    for i in range(s.shape[0]):
+        sv = np.float64(s[i])
+        log_pass = (np.float64(n[i]) + shape) * math.log((sv + rate) / (sv + rate + res))
+        a[i] = math.log(-math.expm1(log_pass))
+        b[i] = log_pass / res
 
 
 def _log_probabilities(
@@ -375,7 +389,8 @@ class FieldPyramid:
         """Fields at ``resolution * 2^k``, ``k < levels``, of voxels ``ijk`` (statistics
         ``s`` metres, ``n`` returns): exact sums of the statistics, as
         ``LikelihoodField.from_statistics`` with ``factor = 2^k``; built block by block
-        (one sort of the voxels, then 2x2x2 sums of 8^3 blocks: 6x faster on 3.6M voxels)."""
+        (one sort of the voxels, then 2x2x2 sums of 8^3 blocks: 1.4-2.1x faster than a
+        sort per level on norlab's 3.6M voxels, in the same run)."""
         if levels < 1:
             raise ValueError(f"levels must be at least 1, got {levels}")
         keys, s_b, n_b = _voxel_blocks(ijk, s, n)
@@ -450,6 +465,48 @@ def _interp(a, b, index, block_lo, prior_a, prior_b, res, origin, p, out):  # ty
     i0, j0, k0 = int(fx), int(fy), int(fz)
     for q in range(8):
         out[q] = 0.0
+    if (i0 & 7) < 7 and (j0 & 7) < 7 and (k0 & 7) < 7:
+        # the 8 corners lie in one block (2 in 3 lookups): find it once
+        bi = (i0 >> 3) - block_lo[0]
+        bj = (j0 >> 3) - block_lo[1]
+        bk = (k0 >> 3) - block_lo[2]
+        row = -1
+        if (
+            bi >= 0
+            and bj >= 0
+            and bk >= 0
+            and bi < index.shape[0]
+            and bj < index.shape[1]
+            and bk < index.shape[2]
+        ):
+            row = index[bi, bj, bk]
+        if row < 0:
+            out[0] = prior_a
+            out[1] = prior_b
+            return
+        li, lj, lk = i0 & 7, j0 & 7, k0 & 7
+        for di in range(2):
+            wx = tx if di else 1.0 - tx
+            gx = 1.0 if di else -1.0
+            for dj in range(2):
+                wy = ty if dj else 1.0 - ty
+                gy = 1.0 if dj else -1.0
+                for dk in range(2):
+                    wz = tz if dk else 1.0 - tz
+                    gz = 1.0 if dk else -1.0
+                    va = a[row, li + di, lj + dj, lk + dk]
+                    vb = b[row, li + di, lj + dj, lk + dk]
+                    w = wx * wy * wz
+                    out[0] += w * va
+                    out[1] += w * vb
+                    ex, ey, ez = gx * wy * wz * inv, wx * gy * wz * inv, wx * wy * gz * inv
+                    out[2] += ex * va
+                    out[3] += ey * va
+                    out[4] += ez * va
+                    out[5] += ex * vb
+                    out[6] += ey * vb
+                    out[7] += ez * vb
+        return
     for di in range(2):
         wx = tx if di else 1.0 - tx
         gx = 1.0 if di else -1.0
