@@ -178,6 +178,7 @@ def main() -> None:
     ap.add_argument("--cases", default=",".join(CASES))
     ap.add_argument("--step", type=float, default=0.5, help="free-space samples (voxels)")
     ap.add_argument("--probe-rays", type=int, default=1000)
+    ap.add_argument("--live", action="store_true", help="AlignOptions.live() (flags ignored)")
     ap.add_argument("--no-verify", action="store_true", help="skip verify_exact")
     ap.add_argument("--verbose", action="store_true", help="print each wrong acceptance")
     args = ap.parse_args()
@@ -188,6 +189,11 @@ def main() -> None:
         probe_rays=args.probe_rays,
         exact_rays=args.rays,
     )
+    if args.live:
+        opts = AlignOptions.live()
+        args.rays, args.levels, args.step, args.probe_rays = (
+            opts.max_rays, opts.levels, opts.step, opts.probe_rays,
+        )  # fmt: skip
     print(f"initial error {args.shift} m, {args.angle} deg; map {RES} m; {args.rays} rays, "
           f"{args.levels} levels, step {args.step}, {args.probe_rays} probe rays")  # fmt: skip
     for name in args.cases.split(","):
