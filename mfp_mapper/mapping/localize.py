@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -298,6 +298,10 @@ def _loop(
         if fixed is not None
         else None
     )
+    if fixed is None:  # the map this recording builds: sub-voxel corrections are aliasing
+        align = replace(
+            align, min_correction_voxels=max(align.min_correction_voxels, align.refine_min_voxels)
+        )
     cache = PyramidCache(mapper, align)
     result = LocalizeResult(map_frame=inp.map_frame, mapper=mapper)
     loop = ScanLoop(mapper, opts)
