@@ -393,6 +393,10 @@ def _walk_rays(
             | _SPREAD[vz & _LOCAL_MASK]
         )
         bx = by = bz = 0
+        # an axis' index in the block wraps to this when a step enters the next block
+        wrap_x = 0 if step_x > 0 else _LOCAL_MASK
+        wrap_y = 0 if step_y > 0 else _LOCAL_MASK
+        wrap_z = 0 if step_z > 0 else _LOCAL_MASK
         block = -1
         base = 0
         key = -1
@@ -427,20 +431,20 @@ def _walk_rays(
             here = local
             if t_max_x <= t_max_y and t_max_x <= t_max_z:
                 t_next = t_max_x
-                new_block = ((vx + step_x) >> BLOCK_BITS) != (vx >> BLOCK_BITS)
                 vx += step_x
+                new_block = (vx & _LOCAL_MASK) == wrap_x
                 t_max_x = t_max_x + t_delta_x if vx != ex else np.inf
                 local = (local & ~_X_BITS) | (_SPREAD[vx & _LOCAL_MASK] << 2)
             elif t_max_y <= t_max_z:
                 t_next = t_max_y
-                new_block = ((vy + step_y) >> BLOCK_BITS) != (vy >> BLOCK_BITS)
                 vy += step_y
+                new_block = (vy & _LOCAL_MASK) == wrap_y
                 t_max_y = t_max_y + t_delta_y if vy != ey else np.inf
                 local = (local & ~_Y_BITS) | (_SPREAD[vy & _LOCAL_MASK] << 1)
             else:
                 t_next = t_max_z
-                new_block = ((vz + step_z) >> BLOCK_BITS) != (vz >> BLOCK_BITS)
                 vz += step_z
+                new_block = (vz & _LOCAL_MASK) == wrap_z
                 t_max_z = t_max_z + t_delta_z if vz != ez else np.inf
                 local = (local & ~_Z_BITS) | _SPREAD[vz & _LOCAL_MASK]
             t_next = min(t_next, 1.0)
