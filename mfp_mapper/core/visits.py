@@ -1,5 +1,6 @@
-"""Applying voxel visits to blocks, in batches: one pass prefetches the visited cache lines
-(so their memory latencies overlap), a second pass adds. Shared by the walk and the mail."""
+"""Applying voxel visits to blocks, in batches, with the visited cache lines prefetched
+first (so their memory latencies overlap): by the walk as it records each visit
+(``apply_chords``), or by a pass of its own (``apply_visits``, for the mail)."""
 
 from __future__ import annotations
 
