@@ -24,7 +24,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from mfp_mapper.core.mapper import Mapper
@@ -38,6 +38,12 @@ from mfp_mapper.sensing.tf_tree import TfTree
 
 if TYPE_CHECKING:
     from mfp_mapper.config.schema import NodeConfig, XyzRpy
+
+STAGES = ("queued", "parse", "place", "walk", "merge")
+"""The stages of an integrated cloud timed in ``LiveCounters.stage_seconds``: waiting in the
+queue (and for poses), parse (with no-return rays), placement (poses, de-skew, band), the
+walk into a staged store (``Mapper.stage``), the merge into the map (``Mapper.commit``,
+with the wait for the map lock)."""
 
 RETRY_PERIOD = 0.02
 """Seconds between two tries of a waiting cloud (sooner when new poses arrived)."""
@@ -97,6 +103,8 @@ class _Pending:
     prepared: PreparedScan | None = None
     tried: int = -1  # the pose generation of the last try (-1: never tried)
     next_try: float = 0.0  # time.monotonic()
+    parse_s: float = 0.0  # wall seconds of its parse
+    started: float = 0.0  # time.monotonic() when the worker first took it
 
 
 @dataclass
@@ -109,6 +117,10 @@ class LiveCounters(ScanCounts, PoseCounters):
     latency_sum: float = 0.0
     latency_max: float = 0.0
     latency_last: float = float("nan")
+    received_latency_sum: float = 0.0  # cloud received -> integrated (s)
+    received_latency_max: float = 0.0
+    stage_seconds: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
+    """Wall seconds of the integrated clouds by stage (``STAGES``), summed."""
 
 
 class LiveIntegrator:
@@ -353,7 +365,9 @@ class LiveIntegrator:
         cfg = self.settings
         self.loop.settings = cfg  # parameters changed at run time reach the pipeline
         if item.prepared is None:
+            item.started = time.monotonic()
             item.prepared = self.loop.prepare(item.msg)
+            item.parse_s = time.monotonic() - item.started
             if self.counters.no_return_note:
                 self._warn_once("no_return", f"no-return rays: {self.counters.no_return_note}")
             self._warn_time_field(item.prepared.cloud)
@@ -401,15 +415,28 @@ class LiveIntegrator:
         if cfg.max_range is not None and self.mapper.max_range != cfg.max_range:
             with self.map_lock:  # sensor_model.max_range changed at run time
                 self.mapper.max_range = cfg.max_range
-        _, summary = self.loop.finish(prepared, placement.poses, placement.extrinsic)
+        t_place = time.monotonic()
+        placed = self.loop.place(prepared, placement.poses, placement.extrinsic)
+        t_commit = time.monotonic()
+        summary = self.loop.commit(placed)
+        done = time.monotonic()
         own_cpu = time.thread_time() - own_cpu
         self.pose_inputs.note_robot(placement, prepared.stamp, cfg.base_frame_id)
         latency = self._now() - prepared.stamp
+        walk = summary.seconds - summary.commit_seconds
         with self._cv:
             c = self.counters
             c.latency_last = latency
             c.latency_sum += latency
             c.latency_max = max(c.latency_max, latency)
+            c.received_latency_sum += done - item.received
+            c.received_latency_max = max(c.received_latency_max, done - item.received)
+            times = c.stage_seconds
+            times["queued"] += t_place - item.received - item.parse_s
+            times["parse"] += item.parse_s
+            times["place"] += t_commit - t_place
+            times["walk"] += walk
+            times["merge"] += done - t_commit - walk
             c.integration_cpu += max(summary.cpu_seconds - own_cpu, 0.0)  # the core's threads
         return True
 
