@@ -1,8 +1,10 @@
 """The live integration worker, without ROS: queue, waiting, drops and counters.
 
 The node hands it received clouds (``submit``) from its executor thread, and odometry and
-transforms to its pose inputs (``worker.pose_inputs``, a ``PoseInputs``). One worker thread takes
-the clouds in order and runs each through the scan pipeline. A scan is walked into a store
+transforms to its pose inputs (``worker.pose_inputs``, a ``PoseInputs``). Two threads run
+the scan pipeline, in order: the worker parses and places each cloud, then hands it to the
+walker, which integrates it while the worker prepares the next one (the walk releases the
+GIL; the worker stays at most one placed scan ahead). A scan is walked into a store
 of its own without any lock (``Mapper.stage``), then added to the map in one merge
 (``Mapper.commit``, a few percent of the scan's time). A reader that needs whole scans
 (GetMap, saving, reset) takes ``whole_map``: it waits at most for a merge, never for a scan;
@@ -31,6 +33,7 @@ from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.mapping.loop import PreparedScan, ScanCounts, ScanLoop, staged
 from mfp_mapper.mapping.whole_map import MERGE_PAUSE_S, WholeMap
 from mfp_mapper.sensing import pipeline
+from mfp_mapper.sensing.pipeline import PlacedScan
 from mfp_mapper.sensing.pointcloud import ParsedCloud
 from mfp_mapper.sensing.pose_inputs import Log, PoseCounters, PoseInputs
 from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer
@@ -39,11 +42,12 @@ from mfp_mapper.sensing.tf_tree import TfTree
 if TYPE_CHECKING:
     from mfp_mapper.config.schema import NodeConfig, XyzRpy
 
-STAGES = ("queued", "parse", "place", "walk", "merge")
+STAGES = ("queued", "parse", "place", "handoff", "walk", "merge")
 """The stages of an integrated cloud timed in ``LiveCounters.stage_seconds``: waiting in the
-queue (and for poses), parse (with no-return rays), placement (poses, de-skew, band), the
-walk into a staged store (``Mapper.stage``), the merge into the map (``Mapper.commit``,
-with the wait for the map lock)."""
+queue (and for poses), parse (with no-return rays), placement (poses, de-skew, band), placed
+and waiting for the walker (busy with the scan before), the walk into a staged store
+(``Mapper.stage``), the merge into the map (``Mapper.commit``, with the wait for the map
+lock)."""
 
 RETRY_PERIOD = 0.02
 """Seconds between two tries of a waiting cloud (sooner when new poses arrived)."""
@@ -108,6 +112,16 @@ class _Pending:
 
 
 @dataclass
+class _Placed:
+    """A cloud placed by the worker, on its way to the walker."""
+
+    item: _Pending
+    placed: PlacedScan
+    placing: float  # time.monotonic() when its placement began
+    placed_at: float  # and ended
+
+
+@dataclass
 class LiveCounters(ScanCounts, PoseCounters):
     """The pipeline's counts, the pose inputs' and what only a live stream has."""
 
@@ -168,6 +182,8 @@ class LiveIntegrator:
         self._publish_due = False
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._walker: threading.Thread | None = None
+        self._handoff: _Placed | None = None  # placed, waiting for the walker (under _cv)
         self.loop = ScanLoop(
             mapper,
             settings,
@@ -187,7 +203,7 @@ class LiveIntegrator:
     @property
     def running(self) -> bool:
         """Whether the worker thread is still alive (e.g. walking a long scan)."""
-        return self._thread is not None and self._thread.is_alive()
+        return any(t is not None and t.is_alive() for t in (self._thread, self._walker))
 
     def set_publish(self, publish: Callable[[], None] | None) -> None:
         """What the worker calls between two scans after ``request_publish``."""
@@ -279,20 +295,28 @@ class LiveIntegrator:
         """Start the worker thread (again after ``stop``: a lifecycle node reactivated)."""
         self._stop.clear()
         self._thread = threading.Thread(target=self.run, name="mfp_integration", daemon=True)
+        self._walker = threading.Thread(target=self._walk, name="mfp_walk", daemon=True)
         self._thread.start()
+        self._walker.start()
 
     def stop(self, timeout: float = 10.0) -> None:
         self._stop.set()
         with self._cv:
             self._cv.notify_all()
-        if self._thread is not None:
-            self._thread.join(timeout=timeout)
+        end = time.monotonic() + timeout
+        for thread in (self._thread, self._walker):
+            if thread is not None:
+                thread.join(timeout=max(end - time.monotonic(), 0.0))
         with self._cv:
             self._queue.clear()  # stale when the worker starts again
+            self._handoff = None
 
     def _next(self) -> _Pending | None:
         """The next cloud to try (under ``_cv``): a new one first, else a waiting one that
-        is due (new poses since its last try, or ``RETRY_PERIOD`` passed)."""
+        is due (new poses since its last try, or ``RETRY_PERIOD`` passed); none while the
+        walker has a placed scan still to take (the newest clouds go to the walk)."""
+        if self._handoff is not None:
+            return None
         if self._queue:
             return self._queue.popleft()
         now, generation = time.monotonic(), self.pose_inputs.generation
@@ -411,19 +435,66 @@ class LiveIntegrator:
             )
         if self.mapper.frame_id != placement.map_frame:
             self.mapper.frame_id = placement.map_frame  # the run's frame, decided once
+        t_place = time.monotonic()
+        placed = self.loop.place(prepared, placement.poses, placement.extrinsic)
+        self.pose_inputs.note_robot(placement, prepared.stamp, cfg.base_frame_id)
+        job = _Placed(item, placed, t_place, time.monotonic())
+        if self._walker is not None and self._walker.is_alive():
+            self._hand_over(job)
+        else:
+            self._integrate(job)  # drain(): everything on the calling thread
+        return True
+
+    # --- the walker thread: the placed scans into the map, in order --------------------------
+
+    def _hand_over(self, job: _Placed) -> None:
+        """Give a placed scan to the walker; waits while it still holds the previous one (so
+        the worker prepares at most one scan ahead of the walk)."""
+        with self._cv:
+            while self._handoff is not None and not self._stop.is_set():
+                self._cv.wait(0.5)
+            if not self._stop.is_set():
+                self._handoff = job
+                self._cv.notify_all()
+
+    def _walk(self) -> None:
+        """The walker thread: integrates the scans the worker placed, one after the other,
+        while the worker parses and places the next (the walk releases the GIL)."""
+        while True:
+            with self._cv:
+                while self._handoff is None and not self._stop.is_set():
+                    self._cv.wait(0.5)
+                job = self._handoff
+                if job is None or self._stop.is_set():
+                    return
+                self._handoff = None
+                self._cv.notify_all()
+            cpu0, wall0 = time.thread_time(), time.perf_counter()
+            try:
+                self._integrate(job)
+            except pipeline.ScanDropped as drop:
+                self._log_drop(drop.reason, drop.detail, self.loop.count_drop(drop))
+            except Exception as err:  # keep the node alive whatever a message holds
+                self._drop("error", f"{type(err).__name__}: {err}")
+            finally:
+                with self._cv:
+                    self.counters.integration_cpu += time.thread_time() - cpu0
+                    self.counters.integration_wall += time.perf_counter() - wall0
+
+    def _integrate(self, job: _Placed) -> None:
+        """A placed scan into the map (``ScanLoop.commit``), with its latency and timing."""
+        cfg = self.settings
+        t_commit = time.monotonic()
         own_cpu = time.thread_time()
         if cfg.max_range is not None and self.mapper.max_range != cfg.max_range:
             with self.map_lock:  # sensor_model.max_range changed at run time
                 self.mapper.max_range = cfg.max_range
-        t_place = time.monotonic()
-        placed = self.loop.place(prepared, placement.poses, placement.extrinsic)
-        t_commit = time.monotonic()
-        summary = self.loop.commit(placed)
+        summary = self.loop.commit(job.placed)
         done = time.monotonic()
         own_cpu = time.thread_time() - own_cpu
-        self.pose_inputs.note_robot(placement, prepared.stamp, cfg.base_frame_id)
-        latency = self._now() - prepared.stamp
+        latency = self._now() - job.placed.stamp
         walk = summary.seconds - summary.commit_seconds
+        item = job.item
         with self._cv:
             c = self.counters
             c.latency_last = latency
@@ -432,13 +503,13 @@ class LiveIntegrator:
             c.received_latency_sum += done - item.received
             c.received_latency_max = max(c.received_latency_max, done - item.received)
             times = c.stage_seconds
-            times["queued"] += t_place - item.received - item.parse_s
+            times["queued"] += job.placing - item.received - item.parse_s
             times["parse"] += item.parse_s
-            times["place"] += t_commit - t_place
+            times["place"] += job.placed_at - job.placing
+            times["handoff"] += t_commit - job.placed_at
             times["walk"] += walk
             times["merge"] += done - t_commit - walk
             c.integration_cpu += max(summary.cpu_seconds - own_cpu, 0.0)  # the core's threads
-        return True
 
     def _check_stamp(self, prepared: PreparedScan) -> None:
         """A cloud stamped further ahead of the node clock than a pose may be is dropped

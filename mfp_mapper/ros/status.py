@@ -26,6 +26,7 @@ class StatusWindow:
     clouds_integrated: int = 0
     clouds_dropped: int = 0
     clouds_lost_transport: int = 0
+    queue_full: int = 0
 
 
 def status_report(
@@ -50,6 +51,7 @@ def status_report(
         "points_in": c.points_in,
         "points_dropped": dict(c.points_dropped),
         "queued": queued,
+        "behind": c.clouds_dropped["queue_full"] > window.queue_full,
         "rays_in": c.rays_in,
         "rays_used": c.rays_used,
         "rays_truncated": c.rays_truncated,
@@ -88,6 +90,7 @@ def next_window(c: LiveCounters) -> StatusWindow:
         c.clouds_integrated,
         sum(c.clouds_dropped.values()),
         c.clouds_lost_transport,
+        c.clouds_dropped["queue_full"],
     )
 
 
@@ -104,6 +107,14 @@ def health(status: dict[str, Any], window: StatusWindow) -> tuple[bytes, str]:
         return (
             DiagnosticStatus.ERROR,
             f"{arrived} clouds received, none integrated (drops so far: {reasons or 'none'})",
+        )
+    skipped = status["clouds_dropped"].get("queue_full", 0) - window.queue_full
+    if skipped > 0:
+        return (
+            DiagnosticStatus.WARN,
+            f"integration is behind the input: {integrated} of {arrived} clouds integrated, "
+            f"{skipped} skipped (queue_full: the oldest queued dropped), {dropped - skipped} "
+            f"dropped otherwise, {lost} lost in transport",
         )
     if dropped or lost:
         return (
