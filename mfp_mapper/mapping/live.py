@@ -184,6 +184,9 @@ class LiveIntegrator:
         self._thread: threading.Thread | None = None
         self._walker: threading.Thread | None = None
         self._handoff: _Placed | None = None  # placed, waiting for the walker (under _cv)
+        self._prepare_at = 0.0  # time.monotonic() from which the worker takes the next cloud
+        self._walk_s = 0.0  # moving averages (s): a scan's walk + merge, its parse + place
+        self._prepare_s = 0.0
         self.loop = ScanLoop(
             mapper,
             settings,
@@ -314,8 +317,10 @@ class LiveIntegrator:
     def _next(self) -> _Pending | None:
         """The next cloud to try (under ``_cv``): a new one first, else a waiting one that
         is due (new poses since its last try, or ``RETRY_PERIOD`` passed); none while the
-        walker has a placed scan still to take (the newest clouds go to the walk)."""
-        if self._handoff is not None:
+        walker has a placed scan still to take, nor before ``_prepare_at``: the next cloud
+        is parsed and placed so as to be ready when the walker is, not earlier (a scan
+        placed early would wait for the walk, and a later pick may be a newer cloud)."""
+        if self._handoff is not None or time.monotonic() < self._prepare_at:
             return None
         if self._queue:
             return self._queue.popleft()
@@ -334,7 +339,10 @@ class LiveIntegrator:
             with self._cv:
                 item = self._next()
                 while item is None and not (self._publish_due or self._stop.is_set()):
-                    self._cv.wait(RETRY_PERIOD if self._waiting else 0.5)
+                    wait = RETRY_PERIOD if self._waiting else 0.5
+                    if self._queue and self._handoff is None:  # the walker is busy
+                        wait = min(wait, max(self._prepare_at - time.monotonic(), 0.001))
+                    self._cv.wait(wait)
                     item = self._next()
                 if self._stop.is_set():
                     return
@@ -468,6 +476,7 @@ class LiveIntegrator:
                 if job is None or self._stop.is_set():
                     return
                 self._handoff = None
+                self._prepare_at = time.monotonic() + self._walk_s - self._prepare_s
                 self._cv.notify_all()
             cpu0, wall0 = time.thread_time(), time.perf_counter()
             try:
@@ -480,6 +489,12 @@ class LiveIntegrator:
                 with self._cv:
                     self.counters.integration_cpu += time.thread_time() - cpu0
                     self.counters.integration_wall += time.perf_counter() - wall0
+                    self._walk_s = _average(self._walk_s, time.perf_counter() - wall0)
+                    self._prepare_s = _average(
+                        self._prepare_s, job.placed_at - job.placing + job.item.parse_s
+                    )
+                    self._prepare_at = 0.0
+                    self._cv.notify_all()
 
     def _integrate(self, job: _Placed) -> None:
         """A placed scan into the map (``ScanLoop.commit``), with its latency and timing."""
@@ -581,6 +596,11 @@ class LiveIntegrator:
         """A copy of the counters and the queue length, taken together."""
         with self._cv:
             return copy.deepcopy(self.counters), len(self._queue) + len(self._waiting)
+
+
+def _average(mean: float, value: float) -> float:
+    """A moving average (the last few values weigh most; the first one is taken whole)."""
+    return value if mean == 0.0 else 0.8 * mean + 0.2 * value
 
 
 def finite_or_none(value: float) -> float | None:
