@@ -278,6 +278,7 @@ def run_stream(
     threads: int,
     tf_poses: bool = False,
     node_env: dict[str, str] | None = None,
+    queue_size: int = 0,
 ) -> dict[str, Any]:
     from mfp_mapper.ros.messages import cloud_msg
 
@@ -290,6 +291,8 @@ def run_stream(
         "odom_wait": 1.0,
         "threads": threads,
     }
+    if queue_size:
+        params["cloud_queue_size"] = queue_size
     if tf_poses:
         params["frame_id"] = "odom"
     elif stream.frame != "base_link":
@@ -615,6 +618,9 @@ def main() -> int:
     parser.add_argument("--logs", type=Path, help="keep the node logs in this directory")
     parser.add_argument("--threads", type=int, default=1, help="the node's core threads")
     parser.add_argument(
+        "--queue-size", type=int, default=0, help="the node's cloud_queue_size (0: its default)"
+    )
+    parser.add_argument(
         "--tf-poses",
         action="store_true",
         help="poses on /tf and the lidar mount on /tf_static instead of odometry",
@@ -673,7 +679,13 @@ def main() -> int:
                 before = _core_child(name, args.scans, args.threads) if core else None
                 stream = make_stream(name, args.scans)
                 result = run_stream(
-                    stream, args.duration, logs, args.threads, args.tf_poses, node_env
+                    stream,
+                    args.duration,
+                    logs,
+                    args.threads,
+                    args.tf_poses,
+                    node_env,
+                    args.queue_size,
                 )
                 if before is not None:  # the core before and after the node: its time drifts
                     after = _core_child(name, args.scans, args.threads)
