@@ -320,7 +320,7 @@ def run_stream(
         # also load the compiled kernels) to the first one ``duration`` s later
         before: dict[str, Any] | None = None
         after: dict[str, Any] | None = None
-        cpu0 = wall0 = 0.0
+        cpu0 = wall0 = driver0 = load0 = 0.0
         samples: list[float | None] = []  # latency_last_s of each status in the window
         last_uptime = None
         start = time.time()
@@ -345,10 +345,12 @@ def run_stream(
             if before is None:
                 if now - start >= WARMUP_S and st.get("clouds_integrated", 0) >= 1:
                     before, cpu0, wall0 = dict(st), _cpu_seconds(node.pid), time.time()
+                    driver0, load0 = time.process_time(), os.getloadavg()[0]
             elif st.get("uptime_s", 0.0) >= before["uptime_s"] + duration:
                 after = dict(st)
         wall = time.time() - wall0
         cpu_node = _cpu_seconds(node.pid) - cpu0
+        driver = time.process_time() - driver0
         if before is None or after is None:
             raise RuntimeError(f"no status window: nothing integrated\n{node.log()[-2000:]}")
         if os.environ.get("BENCH_DEBUG"):
@@ -357,6 +359,8 @@ def run_stream(
         feeder.destroy()
         node.stop()
     after["latency_samples_s"] = [round(v, 3) for v in samples if v is not None]
+    after["driver_cpu_share"] = round(driver / wall, 3)  # this process: the lidar driver
+    after["load_average"] = [round(load0, 2), round(os.getloadavg()[0], 2)]
     return _report(stream, after["uptime_s"] - before["uptime_s"], wall, cpu_node, before, after)
 
 
@@ -414,6 +418,8 @@ def _report(
         "integration_cpu_share_of_one_core": round(cpu_int / duration, 3),
         "integration_cpu_per_scan_ms": round(1000 * cpu_int / max(integrated, 1), 1),
         "node_cpu_share_of_one_core": round(cpu_node / wall, 3),
+        "driver_cpu_share_of_one_core": after["driver_cpu_share"],
+        "load_average_start_end": after["load_average"],
         "publications": pub_n,
         "publish_ms_mean": round(1000 * pub_s / pub_n, 1) if pub_n else None,
         "publish_map_locked_ms_mean": round(1000 * pub_locked / pub_n, 1) if pub_n else None,
@@ -728,7 +734,9 @@ def _print_split(r: dict[str, Any]) -> None:
         + ", ".join(f"{k} {v:.1f}" for k, v in st.items())
         + f"; walker (walk + merge) {walker:.1f}, worker (parse + place) {worker:.1f}: at most "
         f"{1000 / max(walker, worker, 1e-9):.1f} Hz; cloud received -> integrated "
-        f"{r['received_latency_mean_s']} s mean"
+        f"{r['received_latency_mean_s']} s mean; load average {r['load_average_start_end'][0]}"
+        f" -> {r['load_average_start_end'][1]} on {os.cpu_count()} cores, the driver (this "
+        f"process) {100 * r['driver_cpu_share_of_one_core']:.0f}% of a core"
     )
     core = r.get("core_ms_per_scan")
     if core:
