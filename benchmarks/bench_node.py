@@ -392,9 +392,9 @@ def _report(
     pub_s = after["publish_total_s"] - before["publish_total_s"]
     pub_locked = after["publish_locked_total_s"] - before["publish_locked_total_s"]
     n = max(integrated, 1)
-    stages = {
+    stages = {  # (a node without these counters: none)
         k: round(1000 * (v - before["stage_s"].get(k, 0.0)) / n, 1)
-        for k, v in after["stage_s"].items()
+        for k, v in after.get("stage_s", {}).items()
     }
     received = _mean_since(before, after, "received_latency_mean_s")
     lost = after["clouds_lost_transport"] - before["clouds_lost_transport"]
@@ -714,7 +714,7 @@ def main() -> int:
             f"{100 * r['node_cpu_share_of_one_core']:>5.0f}%"
         )
     for r in results:
-        if r["clouds_integrated"]:
+        if r["clouds_integrated"] and r["stage_ms_per_scan"]:
             _print_split(r)
     return 0
 
