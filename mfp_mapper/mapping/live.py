@@ -205,7 +205,7 @@ class LiveIntegrator:
 
     @property
     def running(self) -> bool:
-        """Whether the worker thread is still alive (e.g. walking a long scan)."""
+        """Whether the worker or the walker thread is still alive (e.g. walking a long scan)."""
         return any(t is not None and t.is_alive() for t in (self._thread, self._walker))
 
     def set_publish(self, publish: Callable[[], None] | None) -> None:
@@ -283,8 +283,12 @@ class LiveIntegrator:
 
     @property
     def queued(self) -> int:
+        """Clouds received and not integrated or dropped yet (but the one being walked)."""
         with self._cv:
-            return len(self._queue) + len(self._waiting)
+            return self._queued_locked()
+
+    def _queued_locked(self) -> int:
+        return len(self._queue) + len(self._waiting) + (self._handoff is not None)
 
     def request_publish(self) -> None:
         """Ask the worker to publish between two scans."""
@@ -297,6 +301,7 @@ class LiveIntegrator:
     def start(self) -> None:
         """Start the worker thread (again after ``stop``: a lifecycle node reactivated)."""
         self._stop.clear()
+        self._prepare_at = 0.0
         self._thread = threading.Thread(target=self.run, name="mfp_integration", daemon=True)
         self._walker = threading.Thread(target=self._walk, name="mfp_walk", daemon=True)
         self._thread.start()
@@ -390,8 +395,9 @@ class LiveIntegrator:
             self._log_drop(drop.reason, drop.detail, self.loop.count_drop(drop))
             return True
         finally:
-            self.counters.integration_cpu += time.thread_time() - cpu0
-            self.counters.integration_wall += time.perf_counter() - wall0
+            with self._cv:  # the walker adds its own
+                self.counters.integration_cpu += time.thread_time() - cpu0
+                self.counters.integration_wall += time.perf_counter() - wall0
 
     def _process(self, item: _Pending) -> bool:
         cfg = self.settings
@@ -595,7 +601,7 @@ class LiveIntegrator:
     def snapshot(self) -> tuple[LiveCounters, int]:
         """A copy of the counters and the queue length, taken together."""
         with self._cv:
-            return copy.deepcopy(self.counters), len(self._queue) + len(self._waiting)
+            return copy.deepcopy(self.counters), self._queued_locked()
 
 
 def _average(mean: float, value: float) -> float:
