@@ -37,6 +37,7 @@ import rclpy.task
 import rclpy.time
 import rclpy.utilities
 from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseWithCovarianceStamped, TransformStamped
 from mfp_mapper_msgs.srv import ClearBbox
 from nav_msgs.msg import OccupancyGrid, Odometry
 from nav_msgs.srv import GetMap
@@ -58,6 +59,7 @@ from rclpy.service import Service
 from rclpy.signals import SignalHandlerOptions
 from rclpy.subscription import Subscription
 from rclpy.timer import Timer
+from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 from std_srvs.srv import Empty, Trigger
@@ -70,6 +72,7 @@ from mfp_mapper.mapio.loading import load_map
 from mfp_mapper.mapio.mapfile import MapFileError, map_arrays
 from mfp_mapper.mapio.tiles import is_tiled, write_map_path
 from mfp_mapper.mapping.live import LiveIntegrator, LiveSettings
+from mfp_mapper.mapping.live_localization import LiveLocalizer, LocalizationSettings
 from mfp_mapper.ros.guarded_node import GuardedLifecycleNode, tracked
 from mfp_mapper.ros.map_outputs import MapOutputs
 from mfp_mapper.ros.messages import cloud_msg
@@ -78,6 +81,7 @@ from mfp_mapper.ros.shutdown import SpinUntilSignal
 from mfp_mapper.ros.status import (
     StatusWindow,
     diagnostics,
+    localization_diagnostic,
     next_window,
     startup_text,
     status_report,
@@ -178,6 +182,7 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._transport_explained = False
         self._clock_warned = False
         self.worker: LiveIntegrator  # set by configure
+        self.localizer: LiveLocalizer | None = None  # localization.enabled
         self.outputs: MapOutputs
         self._configured = False
         self._configured_once = False
@@ -207,6 +212,7 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._last_window = self._status_window
         mapper, self._save_elsewhere = initial_mapper(self.cfg, self.get_logger())
         self._warn_slashes()
+        self.localizer = self._make_localizer(mapper)
         self.worker = LiveIntegrator(
             mapper,
             LiveSettings.of(self.cfg),
@@ -216,7 +222,10 @@ class MfpMapperNode(GuardedLifecycleNode):
             info=self.get_logger().info,
             now=self._now,
             map_frame=self.cfg.frame_id or (mapper.frame_id if mapper.num_voxels else ""),
+            localizer=self.localizer,
         )
+        if self.localizer is not None and mapper.num_voxels:
+            self.localizer.build_in_background(mapper, self.worker.whole_map, force=True)
         # the map version last saved: the autosave writes only a map that changed since
         self._saved_version: int | None = mapper.version
         self.outputs = MapOutputs(self, self.worker, lambda: self.cfg, self.warn_throttled)
@@ -228,6 +237,31 @@ class MfpMapperNode(GuardedLifecycleNode):
         self.get_logger().info(
             startup_text(self.cfg, self.resolve_topic_name, self.mapper, self.map_frame)
         )
+
+    def _make_localizer(self, mapper: Mapper) -> LiveLocalizer | None:
+        """The localization mode's state (``localization.enabled``), its map frame being
+        ``frame_id``, else the loaded map's."""
+        if not self.cfg.localization_enabled:
+            return None
+        global_frame = self.cfg.frame_id or mapper.frame_id or "map"
+        mapper.frame_id = global_frame
+        settings = LocalizationSettings.of(self.cfg, global_frame)
+        if not mapper.num_voxels:
+            self.get_logger().warning(
+                "localization.enabled but no map was loaded from map_path "
+                f"{self.cfg.map_path!r}: waiting for a map"
+                + (
+                    " (none will come: localization.freeze_map is true)"
+                    if settings.freeze_map
+                    else ""
+                )
+            )
+        if settings.odom_frame == global_frame:
+            raise ValueError(
+                f"localization.odom_frame and the map frame are both {global_frame!r}: the "
+                "correction map -> odom needs two frames"
+            )
+        return LiveLocalizer(settings, log=self.get_logger().info)
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Subscribe to clouds, odometry and TF; start integrating and publishing."""
@@ -299,6 +333,13 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._result_pub = self.create_publisher(PointCloud2, "~/hit_probability/result", 10)
         self._entities += [self._status_pub, self._diag_pub, self._result_pub]
+        if self.localizer is not None and self.cfg.localization_tf_publish:
+            tf_qos = QoSProfile(
+                history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE
+            )
+            self._tf_pub = self.create_publisher(TFMessage, "/tf", tf_qos)
+            self._entities.append(self._tf_pub)
+            self._tf_version = -1
         # what needs the map runs in a thread of its own and is awaited (a coroutine), so the
         # executor keeps taking odometry and clouds while a long scan holds the map; their
         # own group: a pending call must not hold the default group
@@ -358,6 +399,18 @@ class MfpMapperNode(GuardedLifecycleNode):
             )
         self._clock_warned = False
         self._active.append(self.create_timer(1.0, self._check_clock, clock=wall))
+        if self.localizer is not None:
+            self._active.append(
+                self.create_subscription(
+                    PoseWithCovarianceStamped, "initialpose", self._on_initial_pose, 10
+                )
+            )
+            if self.cfg.localization_tf_publish:
+                self._active.append(
+                    self.create_timer(
+                        1.0 / self.cfg.localization_tf_rate, self._on_tf_timer, clock=wall
+                    )
+                )
         if self.cfg.autosave_period > 0.0 and self.cfg.map_path:
             self._active.append(
                 self.create_timer(self.cfg.autosave_period, self._on_autosave_timer, clock=wall)
@@ -424,6 +477,9 @@ class MfpMapperNode(GuardedLifecycleNode):
         self.cfg = new  # one assignment: a reader never sees half of a change
         if self._configured:
             self.worker.settings = LiveSettings.of(new)  # the next scan uses it
+            if self.localizer is not None:
+                global_frame = self.localizer.settings.global_frame
+                self.localizer.settings = LocalizationSettings.of(new, global_frame)
             self.outputs.invalidate()  # republish with the new filter
         return SetParametersResult(successful=True)
 
@@ -474,6 +530,74 @@ class MfpMapperNode(GuardedLifecycleNode):
         self.worker.add_odometry(odometry_sample(msg))
 
     @tracked
+    def _on_initial_pose(self, msg: PoseWithCovarianceStamped) -> None:
+        """``/initialpose`` (RViz's "2D Pose Estimate"): the robot's pose in the map frame;
+        map -> odom is reset so that the robot's odometry pose maps to it."""
+        if self.localizer is None:
+            return
+        frame = msg.header.frame_id.lstrip("/")
+        expected = self.localizer.settings.global_frame
+        if frame != expected:
+            self.warn_throttled(
+                "initialpose_frame",
+                f"/initialpose in frame {frame!r} ignored: it must be in the map frame "
+                f"{expected!r} (RViz: set the Fixed Frame to {expected!r})",
+                error=True,
+            )
+            return
+        p, q = msg.pose.pose.position, msg.pose.pose.orientation
+        values = (p.x, p.y, p.z, q.x, q.y, q.z, q.w)
+        if (
+            not all(np.isfinite(values))
+            or abs(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w - 1) > 0.01
+        ):
+            self.warn_throttled(
+                "initialpose_bad",
+                f"/initialpose ignored: not finite or not a unit quaternion {values}",
+                error=True,
+            )
+            return
+        stamp = stamp_seconds(msg.header.stamp)
+        self.localizer.initial_pose(stamp, (p.x, p.y, p.z), (q.x, q.y, q.z, q.w))
+        self.get_logger().info(
+            f"/initialpose received: robot at x {p.x:.3f} y {p.y:.3f} z {p.z:.3f} in "
+            f"{expected!r}; applied at the next cloud"
+        )
+
+    @tracked
+    def _on_tf_timer(self) -> None:
+        """Publish map -> odom: a new correction stamped with its cloud's stamp, else the
+        last one stamped now; both future-dated by ``transform_tolerance`` (AMCL's rule)."""
+        if self.localizer is None:
+            return
+        m, stamp, version = self.localizer.transform()
+        if not np.isfinite(stamp):
+            return  # no correction yet (none accepted, no /initialpose): nothing to claim
+        now = self._now()
+        if version == self._tf_version:
+            if now <= 0.0:
+                return  # use_sim_time before /clock
+            stamp = max(now, stamp)
+        self._tf_version = version
+        self._tf_pub.publish(TFMessage(transforms=[self._map_to_odom(m, stamp)]))
+
+    def _map_to_odom(self, m: np.ndarray, stamp: float) -> TransformStamped:
+        settings = self.localizer.settings if self.localizer is not None else None
+        assert settings is not None
+        out = TransformStamped()
+        t = stamp + self.cfg.localization_transform_tolerance
+        out.header.stamp = rclpy.time.Time(nanoseconds=int(round(t * 1e9))).to_msg()
+        out.header.frame_id = settings.global_frame
+        out.child_frame_id = settings.odom_frame
+        out.transform.translation.x, out.transform.translation.y, out.transform.translation.z = (
+            float(v) for v in m[:3, 3]
+        )
+        q = Rotation.from_matrix(m[:3, :3]).as_quat()
+        r = out.transform.rotation
+        r.x, r.y, r.z, r.w = (float(v) for v in q)
+        return out
+
+    @tracked
     def _on_publish_timer(self) -> None:
         self.worker.request_publish()
 
@@ -489,9 +613,7 @@ class MfpMapperNode(GuardedLifecycleNode):
             self._answer_nothing(msg)
             return
         try:
-            in_map = self.worker.pose_inputs.to_map_frame(
-                points, frame, stamp_seconds(msg.header.stamp)
-            )
+            in_map = self.worker.to_map_frame(points, frame, stamp_seconds(msg.header.stamp))
         except TransformUnavailable as err:
             self.warn_throttled(
                 "query_frame",
@@ -651,6 +773,8 @@ class MfpMapperNode(GuardedLifecycleNode):
             "queries": self._queries,
             "maps_served": self._maps_served,
         }
+        if self.localizer is not None:
+            extra["localization"] = self.localizer.report()
         report = status_report(
             c, queued, self._map_figures, self.outputs.counters, self._status_window, extra
         )
@@ -670,7 +794,14 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._status_pub.publish(String(data=json.dumps(s)))
         name = f"{self.get_name()}: mapping"
         stamp = self.get_clock().now().to_msg()
-        self._diag_pub.publish(diagnostics(s, self._last_window, name, self.get_name(), stamp))
+        diag = diagnostics(s, self._last_window, name, self.get_name(), stamp)
+        if "localization" in s:
+            diag.status.append(
+                localization_diagnostic(
+                    s["localization"], f"{self.get_name()}: localization", self.get_name()
+                )
+            )
+        self._diag_pub.publish(diag)
 
     @property
     def worker_running(self) -> bool:
