@@ -299,6 +299,9 @@ SETTINGS: tuple[Setting, ...] = (
           "wider search range (degrees).", 0.0, 180.0, dynamic=True),
     _node("localization.lost_after", 10, "Consecutive refused corrections after which the "
           "state is 'lost' (the wider search is used again).", 1, 1_000_000, dynamic=True),
+    _node("localization.tracking_levels", 1, "While localized: pyramid levels the alignment "
+          "uses, finest first (before the first acceptance and when lost: all 3).", 1, 3,
+          dynamic=True),
     _node("localization.rebuild_period", 5.0, "With freeze_map false: the alignment's field "
           "is rebuilt from the growing map at most this often (s, in the background).", 0.1,
           86400.0, dynamic=True),
@@ -564,6 +567,7 @@ class NodeConfig:
     localization_initial_max_shift: float
     localization_initial_max_angle: float
     localization_lost_after: int
+    localization_tracking_levels: int
     localization_rebuild_period: float
     map_path: str
     save_on_shutdown: bool

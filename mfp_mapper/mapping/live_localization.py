@@ -67,6 +67,8 @@ class LocalizationSettings:
     initial_max_angle: float = AlignOptions.max_angle_deg
     lost_after: int = 10
     rebuild_period: float = 5.0
+    tracking_levels: int = 1
+    """Pyramid levels used while localized (finest first); the wide search uses all."""
 
     @classmethod
     def of(cls, cfg: NodeConfig, global_frame: str) -> LocalizationSettings:
@@ -85,6 +87,7 @@ class LocalizationSettings:
             initial_max_angle=cfg.localization_initial_max_angle,
             lost_after=cfg.localization_lost_after,
             rebuild_period=cfg.localization_rebuild_period,
+            tracking_levels=cfg.localization_tracking_levels,
         )
 
     def options(self, wide: bool) -> AlignOptions:
@@ -260,6 +263,8 @@ class LiveLocalizer:
             ret = ~moved.no_return
         pts = moved.points[ret]
         org = moved.origins if np.ndim(moved.origins) == 1 else moved.origins[ret]
+        if not wide:  # tracking: the correction is small, the coarse levels cost for nothing
+            pyramid = FieldPyramid(pyramid.fields[: max(cfg.tracking_levels, 1)])
         al = align_scan(pyramid, pts, org, cfg.options(wide), normals=scan_normals(pts))
         ms = 1e3 * (time.perf_counter() - t0)
         step = pose_matrix(al.translation, al.rotation)

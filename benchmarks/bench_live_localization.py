@@ -1,0 +1,164 @@
+"""The node's localization mode without ROS: time per VLP-16 scan against a saved 0.2 m map.
+
+Both paths go through the live worker (``mapping.live.LiveIntegrator.process``: parse,
+place, then either localize or integrate), interleaved scan by scan in one run, one core
+(``Mapper(threads=1)``, the worker thread's CPU time):
+
+- **localize**: ``localization.enabled`` with the map frozen: the cloud is placed in the
+  odometry frame, moved by map <- odom and aligned against the map's field;
+- **integrate**: the plain mapping worker integrating the same cloud into a copy of the map.
+
+The scene is the simulated hall (``test/localization_scenes.py``): the map from 12 static
+VLP-16 scans (16 x 1800 rays) on a 6 m circle; the stream is ``--scans`` scans on a 5 m
+circle (between the map's), seen through odometry that is off the truth by 0.3 m and
+3 degrees. The first scan searches wide (from that offset), the next ones track. Printed:
+the correction's error to the true offset after the stream, and per path the median and
+95th percentile of the CPU time per scan, with the ratio localize / integrate.
+
+    python benchmarks/bench_live_localization.py [--scans 40 --rays 3000 --min-period 0.2]
+
+The stream is stamped at 10 Hz; ``--min-period`` aligns at most one scan per that many
+seconds (``localization.min_period``), the others only placed with the last correction.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(ROOT), str(ROOT / "test")]
+
+from localization_scenes import localization_scene, pose_at, static_scan  # noqa: E402
+from scipy.spatial.transform import Rotation  # noqa: E402
+
+from mfp_mapper.core.mapper import Mapper  # noqa: E402
+from mfp_mapper.mapping.live import LiveIntegrator, LiveSettings  # noqa: E402
+from mfp_mapper.mapping.live_localization import (  # noqa: E402
+    LiveLocalizer,
+    LocalizationSettings,
+    pose_matrix,
+)
+from mfp_mapper.sensing.poses import OdometrySample, PoseBuffer  # noqa: E402
+from mfp_mapper.sources.scan_files import cloud_message_from_columns  # noqa: E402
+
+OFFSET = pose_matrix((0.3, -0.1, 0.0), Rotation.from_euler("z", 3.0, degrees=True).as_matrix())
+T0 = 1000.0
+
+
+def hall_map() -> tuple[Any, Mapper, Mapper]:
+    scene, pos = localization_scene("box")
+    rng = np.random.default_rng(0)
+    a, b = (Mapper(0.2, max_range=60.0, frame_id="map", threads=1) for _ in range(2))
+    for k in range(0, 24, 2):
+        pose = pose_at(pos[k], yaw=0.3 * k)
+        pts = pose.apply(static_scan(scene, pose, rng))
+        for m in (a, b):
+            m.integrate(pts, pose.translation, stamp=float(k))
+    return scene, a, b
+
+
+def worker(mapper: Mapper, localizer: LiveLocalizer | None) -> LiveIntegrator:
+    settings = LiveSettings(
+        frame_id="" if localizer is not None else "odom",
+        deskew=False,
+        point_cloud_min_z=-1e6,
+        point_cloud_max_z=1e6,
+        cloud_queue_size=5,
+        odom_wait=0.5,
+    )
+    return LiveIntegrator(
+        mapper,
+        settings,
+        PoseBuffer(max_age=1e6, max_gap=0.5),
+        log=lambda key, text, error: None,
+        now=lambda: T0 + 1e5,
+        map_frame="" if localizer is not None else "odom",
+        localizer=localizer,
+    )
+
+
+def feed(w: LiveIntegrator, odom: np.ndarray, msg: Any, stamp: float) -> float:
+    """Odometry around ``stamp``, then the cloud processed on this thread; CPU seconds."""
+    q = Rotation.from_matrix(odom[:3, :3]).as_quat()
+    for t in (stamp - 0.04, stamp + 0.04):
+        w.add_odometry(OdometrySample(t, "odom", "base_link", odom[:3, 3].copy(), q))
+    w.submit(msg)
+    with w._cv:  # noqa: SLF001 - the benchmark times one cloud through process()
+        item = w._queue.popleft()  # noqa: SLF001
+    cpu = time.thread_time()
+    assert w.process(item)
+    return time.thread_time() - cpu
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--scans", type=int, default=40)
+    ap.add_argument("--rays", type=int, default=3000)
+    ap.add_argument("--min-period", type=float, default=0.0)
+    ap.add_argument("--tracking-levels", type=int, default=1)
+    args = ap.parse_args()
+    scene, map_a, map_b = hall_map()
+    loc = LiveLocalizer(
+        LocalizationSettings(
+            global_frame="map",
+            max_rays=args.rays,
+            min_period=args.min_period,
+            tracking_levels=args.tracking_levels,
+        ),
+        log=lambda text: None,
+    )
+    t0 = time.perf_counter()
+    loc.build(map_a, worker(map_a, None).whole_map)
+    build_s = time.perf_counter() - t0
+    w_loc, w_int = worker(map_a, loc), worker(map_b, None)
+    rng = np.random.default_rng(3)
+    t_loc: list[float] = []
+    t_int: list[float] = []
+    for k in range(args.scans):
+        a = 2 * np.pi * k / args.scans
+        truth = pose_at(np.array([5.0 * np.cos(a), 5.0 * np.sin(a), 1.2]), yaw=a + 1.0)
+        pts = static_scan(scene, truth, rng).astype(np.float32)
+        stamp = T0 + 0.1 * k  # a 10 Hz stream
+        msg = cloud_message_from_columns({c: pts[:, i] for i, c in enumerate("xyz")}, stamp)
+        msg.header.frame_id = "base_link"
+        odom = np.linalg.inv(OFFSET) @ pose_matrix(truth.translation, truth.rotation)
+        truth_odom = pose_matrix(truth.translation, truth.rotation)
+        order = [(w_loc, odom, t_loc), (w_int, truth_odom, t_int)]
+        for w, pose, out in order if k % 2 == 0 else order[::-1]:
+            out.append(feed(w, pose, msg, stamp))
+    rep = loc.report()
+    d = np.linalg.inv(OFFSET) @ loc.correction
+    err_m = float(np.linalg.norm(d[:3, 3]))
+    err_deg = float(np.degrees(Rotation.from_matrix(d[:3, :3]).magnitude()))
+    ms_l, ms_i = 1e3 * np.array(t_loc), 1e3 * np.array(t_int)
+    print(
+        f"hall, VLP-16 ({len(pts)} returns/scan), 0.2 m map of {map_a.num_voxels} voxels "
+        f"(field built in {build_s:.2f} s), {args.scans} scans, {args.rays} rays aligned"
+    )
+    print(
+        f"correction error after the stream: {100 * err_m:.2f} cm, {err_deg:.3f} deg; "
+        f"state {rep['state']}; accepted {rep['accepted']}, refused {rep['refused']}"
+    )
+    print(f"first scan (wide search from 0.3 m / 3 deg): localize {ms_l[0]:.0f} ms CPU")
+    for name, ms in (("localize ", ms_l[1:]), ("integrate", ms_i[1:])):
+        print(
+            f"{name} median {np.median(ms):6.1f} ms CPU/scan, p95 {np.percentile(ms, 95):6.1f} "
+            f"ms -> {1e3 / np.median(ms):5.1f} Hz on one core"
+        )
+    print(f"ratio localize / integrate (median): {np.median(ms_l[1:]) / np.median(ms_i[1:]):.2f}")
+    share = float(np.sum(ms_l[1:])) / (1e3 * 0.1 * (args.scans - 1))
+    print(
+        f"a 10 Hz stream, min_period {args.min_period:g} s: {rep['aligned']} of {args.scans} "
+        f"scans aligned, localization CPU {100 * share:.0f}% of one core "
+        f"({'keeps up' if share < 1.0 else 'falls behind'})"
+    )
+
+
+if __name__ == "__main__":
+    main()
