@@ -208,6 +208,14 @@ def startup_text(cfg: NodeConfig, topic: Callable[[str], str], mapper: Mapper, f
         f"through TF; else TF map frame <- cloud frame; /tf and /tf_static "
         f"(tf2_msgs/TFMessage, cache {cfg.tf_buffer} s)"
     )
+    if cfg.localization_enabled:
+        odom = cfg.localization_odom_frame
+        map_frame = f"{frame!r} (frame_id, else the loaded map's)"
+        poses = (
+            f"{topic('odom')} or TF in {odom!r}, localized against the map (map -> {odom} "
+            f"on /tf: {cfg.localization_tf_publish}; freeze_map "
+            f"{cfg.localization_freeze_map}; {topic('initialpose')} resets it)"
+        )
     path = cfg.map_path or "<none>"
     loaded = f", {mapper.num_voxels} voxels loaded" if mapper.num_voxels else ""
     return (
