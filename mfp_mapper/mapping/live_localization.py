@@ -183,7 +183,10 @@ class LiveLocalizer:
             prior = getattr(mapper, "prior", None)
         shape = 1.0 if prior is None else float(prior.shape)
         rate = 1.0 if prior is None else float(prior.rate)
-        if len(stats.s) == 0:
+        if len(stats.s) == 0:  # an empty map (reset): nothing to localize against
+            with self.lock:
+                self.pyramid, self.pyramid_voxels = None, 0
+                self.state = "waiting_for_map"
             return
         pyramid = FieldPyramid.from_statistics(
             stats.ijk, stats.s, stats.n, resolution, origin, shape=shape, rate=rate

@@ -728,6 +728,7 @@ class MfpMapperNode(GuardedLifecycleNode):
                 self.mapper.reset()
 
         await self.off_executor(reset)
+        self._map_changed()
         self.get_logger().info("map reset")
         return response
 
@@ -748,11 +749,17 @@ class MfpMapperNode(GuardedLifecycleNode):
             response.success, response.message = False, f"not cleared: {err}"
             return response
         response.success = True
+        self._map_changed()
         response.message = (
             f"reset {response.cleared} voxels between {corners[0]} and {corners[1]} to unknown"
         )
         self.get_logger().info(f"clear_bbox: {response.message}")
         return response
+
+    def _map_changed(self) -> None:
+        """After a reset or a cleared box: the localization's field is rebuilt."""
+        if self.localizer is not None:
+            self.localizer.build_in_background(self.mapper, self.worker.whole_map, force=True)
 
     # --- health ----------------------------------------------------------------------------
 

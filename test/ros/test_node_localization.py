@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from diagnostic_msgs.msg import DiagnosticStatus
 from localization_scenes import Pose, localization_scene, pose_at, static_scan
 from ros_helpers import Feeder, NodeProcess, cloud_from_columns, odom_msg, stamp_msg
 from scipy.spatial.transform import Rotation
@@ -72,6 +73,15 @@ class LocFeeder(Feeder):
             QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE),
         )
         self.initial_pub = self.node.create_publisher(PoseWithCovarianceStamped, "initialpose", 10)
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        self.diagnostic: Any = None
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 10)
+
+    def _on_diagnostics(self, msg: Any) -> None:
+        for entry in msg.status:
+            if entry.name.endswith(": localization"):
+                self.diagnostic = entry
 
     def scan(self, scene: Any, truth: Pose, stamp: float, seed: int) -> None:
         """Odometry (truth seen through OFFSET) around ``stamp``, then the cloud at the truth."""
@@ -156,6 +166,12 @@ def test_map_to_odom_converges_republishes_and_follows_initialpose(
         assert status is not None and status["clouds_localized"] == 3
         assert status["clouds_integrated"] == 0  # the loaded map is frozen
         assert loc["ms_mean"] is not None and loc["last"]["sigma"][0] is not None
+        assert feeder.wait(
+            lambda: (
+                feeder.diagnostic is not None and feeder.diagnostic.message.startswith("localized")
+            )
+        )
+        assert feeder.diagnostic.level == DiagnosticStatus.OK
 
         # /initialpose in the wrong frame: one clear warning, nothing changed
         feeder.initial_pose(poses[7], frame="odom")
@@ -195,6 +211,9 @@ def test_corridor_is_refused_and_reported(ros_domain: int, tmp_path: Path) -> No
         refused = loc["refused"]
         assert refused.get("degenerate_geometry", 0) + refused.get("flat_likelihood", 0) == 2
         assert "degenerate" in loc["last"]["reason"]
+        assert feeder.wait(lambda: feeder.diagnostic is not None)
+        assert feeder.diagnostic.level == DiagnosticStatus.WARN
+        assert "refused: degenerate" in feeder.diagnostic.message
         feeder.spin(0.3)
         assert not feeder.tf  # a refused correction is never published
     finally:
