@@ -302,6 +302,13 @@ SETTINGS: tuple[Setting, ...] = (
     _node("localization.tracking_levels", 1, "While localized: pyramid levels the alignment "
           "uses, finest first (before the first acceptance and when lost: all 3).", 1, 3,
           dynamic=True),
+    _node("localization.update_min_d", 0.25, "While localized: align a cloud only after the "
+          "robot moved this far (m, odometry) since the last alignment, or turned "
+          "update_min_a (AMCL's update_min_d). 0 and 0: every cloud.", 0.0, 1000.0,
+          dynamic=True),
+    _node("localization.update_min_a", 11.5, "While localized: align a cloud only after the "
+          "robot turned this much (degrees, odometry) since the last alignment, or moved "
+          "update_min_d (AMCL's update_min_a, 0.2 rad).", 0.0, 360.0, dynamic=True),
     _node("localization.rebuild_period", 5.0, "With freeze_map false: the alignment's field "
           "is rebuilt from the growing map at most this often (s, in the background).", 0.1,
           86400.0, dynamic=True),
@@ -568,6 +575,8 @@ class NodeConfig:
     localization_initial_max_angle: float
     localization_lost_after: int
     localization_tracking_levels: int
+    localization_update_min_d: float
+    localization_update_min_a: float
     localization_rebuild_period: float
     map_path: str
     save_on_shutdown: bool

@@ -68,6 +68,10 @@ class LocalizationSettings:
     lost_after: int = 10
     rebuild_period: float = 5.0
     tracking_levels: int = 1
+    update_min_d: float = 0.25
+    """While localized: align only after the robot moved this far (m, odometry) or ..."""
+    update_min_a: float = 11.5
+    """... turned this much (degrees) since the last alignment (AMCL's update_min_d/_a)."""
     """Pyramid levels used while localized (finest first); the wide search uses all."""
 
     @classmethod
@@ -88,6 +92,8 @@ class LocalizationSettings:
             lost_after=cfg.localization_lost_after,
             rebuild_period=cfg.localization_rebuild_period,
             tracking_levels=cfg.localization_tracking_levels,
+            update_min_d=cfg.localization_update_min_d,
+            update_min_a=cfg.localization_update_min_a,
         )
 
     def options(self, wide: bool) -> AlignOptions:
@@ -160,6 +166,7 @@ class LiveLocalizer:
         self.accepted = 0
         self.refused: Counter[str] = Counter()
         self.skipped = 0
+        self.skipped_motion = 0
         self.initial_poses = 0
         self.consecutive_refused = 0
         self.last: dict[str, Any] = {}
@@ -167,6 +174,7 @@ class LiveLocalizer:
         self.ms_max = 0.0
         self.aligned = 0
         self._last_align_stamp = -math.inf
+        self._last_align_odom: FloatArray | None = None
         self._pending: tuple[float, FloatArray] | None = None
         self._building: threading.Thread | None = None
         self._built_at = -math.inf
@@ -259,7 +267,12 @@ class LiveLocalizer:
             with self.lock:
                 self.skipped += 1
             return moved
-        self._last_align_stamp = placed.stamp
+        odom = robot_pose(placed.stamp)
+        if not wide and self._still(odom):
+            with self.lock:
+                self.skipped_motion += 1
+            return moved
+        self._last_align_stamp, self._last_align_odom = placed.stamp, odom
         t0 = time.perf_counter()
         ret = np.ones(len(moved.points), dtype=bool)
         if moved.no_return is not None:
@@ -273,6 +286,17 @@ class LiveLocalizer:
         step = pose_matrix(al.translation, al.rotation)
         self._record(al, ms, placed.stamp, step, wide)
         return move_scan(moved, step) if al.accepted else moved
+
+    def _still(self, odom: FloatArray | None) -> bool:
+        """Whether the robot moved less than ``update_min_d`` and turned less than
+        ``update_min_a`` since the last alignment (odometry)."""
+        last = self._last_align_odom
+        if odom is None or last is None:
+            return False
+        d = np.linalg.inv(last) @ odom
+        moved = float(np.linalg.norm(d[:3, 3]))
+        turned = float(np.degrees(Rotation.from_matrix(d[:3, :3]).magnitude()))
+        return moved < self.settings.update_min_d and turned < self.settings.update_min_a
 
     def _apply_initial_pose(
         self,
@@ -366,6 +390,7 @@ class LiveLocalizer:
                 "accepted": self.accepted,
                 "refused": dict(self.refused),
                 "skipped_rate": self.skipped,
+                "skipped_motion": self.skipped_motion,
                 "consecutive_refused": self.consecutive_refused,
                 "initial_poses": self.initial_poses,
                 "ms_mean": round(self.ms_sum / self.aligned, 2) if self.aligned else None,
