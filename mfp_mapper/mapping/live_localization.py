@@ -17,7 +17,9 @@ start or the last ``/initialpose``), ``localized``, ``lost`` (``lost_after`` con
 refusals while localized). Before the first acceptance, and when lost, the search range is
 the wider ``initial_max_shift`` / ``initial_max_angle``. A refusal for lack of gain
 (``no_gain``: the scan's surfaces constrain every direction and the best pose in range is no
-better than the current one) confirms a localized pose rather than counting toward lost.
+better than the current one) confirms a localized or lost pose (lost -> localized) rather
+than counting toward lost; it does not end ``initializing``, which needs an accepted
+correction (a pose never confirmed by a gain is not claimed).
 """
 
 from __future__ import annotations
@@ -351,8 +353,11 @@ class LiveLocalizer:
                 return
             key = refusal_key(al.reason)
             self.refused[key] += 1
-            if key == "no_gain":
-                return  # the pose in range is no better: the current one stands
+            if key == "no_gain":  # the best pose in range is no better: the current one stands
+                self.consecutive_refused = 0
+                if self.state == "lost":  # localized before, and the scans agree again
+                    self.state = "localized"
+                return
             self.consecutive_refused += 1
             lost = (
                 self.state == "localized" and self.consecutive_refused >= self.settings.lost_after

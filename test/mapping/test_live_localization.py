@@ -175,3 +175,41 @@ def test_mapping_goes_on_at_the_corrected_poses_when_not_frozen() -> None:
 )
 def test_refusal_reasons_have_counter_names(reason: str, key: str) -> None:
     assert refusal_key(reason) == key
+
+
+def test_lost_after_consecutive_refusals_then_the_wide_search_again() -> None:
+    scene, poses, mapper = _scene_map("box")
+    worker, logs = _worker(mapper, lost_after=2, update_min_d=0.0, update_min_a=0.0)
+    loc = worker.localizer
+    assert loc is not None
+    loc.build(mapper, worker.whole_map)
+    _feed(worker, scene, poses[1], T0, seed=1)
+    assert loc.report()["state"] == "localized"
+    kept = loc.correction.copy()
+    corridor, _ = localization_scene("corridor")  # scans of another place: refused
+    for i in range(2):
+        _feed(worker, corridor, pose_at(np.array([0.0, 0.2, 1.2]), 0.0), T0 + 1 + i, seed=i)
+    report = loc.report()
+    assert report["state"] == "lost" and report["consecutive_refused"] == 2, report
+    assert not report["last"]["wide_search"]
+    np.testing.assert_array_equal(loc.correction, kept)  # a refusal never moves map -> odom
+    assert any("localization lost" in t for t in logs)
+    _feed(worker, scene, poses[3], T0 + 3, seed=3)
+    report = loc.report()
+    assert report["last"]["wide_search"] and report["state"] == "localized", report
+
+
+def test_a_robot_that_did_not_move_is_not_aligned_again() -> None:
+    scene, poses, mapper = _scene_map("box")
+    worker, _ = _worker(mapper, update_min_d=0.25, update_min_a=10.0)
+    loc = worker.localizer
+    assert loc is not None
+    loc.build(mapper, worker.whole_map)
+    for i in range(3):  # the same pose three times: aligned once (localized), then skipped
+        _feed(worker, scene, poses[1], T0 + i, seed=i)
+    report = loc.report()
+    assert report["aligned"] == 1 and report["skipped_motion"] == 2, report
+    _feed(worker, scene, poses[3], T0 + 3, seed=3)  # moved about 3 m: aligned again
+    report = loc.report()
+    assert report["aligned"] == 2 and report["skipped_motion"] == 2, report
+    assert worker.counters.clouds_localized == 4
