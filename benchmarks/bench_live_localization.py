@@ -9,7 +9,7 @@ place, then either localize or integrate), interleaved scan by scan in one run, 
 - **integrate**: the plain mapping worker integrating the same cloud into a copy of the map.
 
 The scene is the simulated hall (``test/localization_scenes.py``): the map from 12 static
-VLP-16 scans (16 x 1800 rays) on a 6 m circle; the stream is ``--scans`` scans at 10 Hz
+VLP-16 scans (16 x 1800 rays) on a 6 m circle, saved and loaded back; the stream is ``--scans`` scans at 10 Hz
 on a 5 m circle (inside the map's) at ``--speed`` m/s, seen through odometry that is off the
 truth by 0.3 m and 3 degrees. The first scan searches wide (from that offset), the next
 ones track. Printed:
@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -39,6 +40,7 @@ from localization_scenes import localization_scene, pose_at, static_scan  # noqa
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from mfp_mapper.core.mapper import Mapper  # noqa: E402
+from mfp_mapper.mapio.loading import load_map, save_map  # noqa: E402
 from mfp_mapper.mapping.live import LiveIntegrator, LiveSettings  # noqa: E402
 from mfp_mapper.mapping.live_localization import (  # noqa: E402
     LiveLocalizer,
@@ -53,14 +55,17 @@ T0 = 1000.0
 
 
 def hall_map() -> tuple[Any, Mapper, Mapper]:
+    """The scene, the saved map loaded back (localize) and a copy of it (integrate)."""
     scene, pos = localization_scene("box")
     rng = np.random.default_rng(0)
-    a, b = (Mapper(0.2, max_range=60.0, frame_id="map", threads=1) for _ in range(2))
+    built = Mapper(0.2, max_range=60.0, frame_id="map", threads=1)
     for k in range(0, 24, 2):
         pose = pose_at(pos[k], yaw=0.3 * k)
-        pts = pose.apply(static_scan(scene, pose, rng))
-        for m in (a, b):
-            m.integrate(pts, pose.translation, stamp=float(k))
+        built.integrate(pose.apply(static_scan(scene, pose, rng)), pose.translation, float(k))
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "hall.npz"
+        save_map(built, path)
+        a, b = (load_map(path, threads=1) for _ in range(2))
     return scene, a, b
 
 
