@@ -219,3 +219,51 @@ def test_corridor_is_refused_and_reported(ros_domain: int, tmp_path: Path) -> No
     finally:
         feeder.destroy()
         node.stop()
+
+
+def test_poses_from_tf_odom_to_base_link(ros_domain: int, tmp_path: Path) -> None:
+    """No Odometry topic: odom -> base_link on /tf (AMCL's usual input); the node's own
+    map -> odom comes back to it on /tf and must not disturb the placement."""
+    from ros_helpers import tf_publishers
+    from tf2_msgs.msg import TFMessage
+
+    scene, poses = _save_scene_map("box", tmp_path / "hall.npz")
+    node, feeder = _start(ros_domain, tmp_path, "hall_tf", tmp_path / "hall.npz")
+    tf_pub, _ = tf_publishers(feeder.node)
+    try:
+        assert feeder.wait(lambda: tf_pub.get_subscription_count() > 0)
+        t = time.time()
+        for i, k in enumerate((1, 3, 5)):
+            odom = np.linalg.inv(OFFSET) @ pose_matrix(poses[k].translation, poses[k].rotation)
+            q = Rotation.from_matrix(odom[:3, :3]).as_quat()
+            stamp = t + 0.2 * i
+            msgs = []
+            for dt in (-0.05, 0.0, 0.05):
+                tf = _transform("odom", "base_link", stamp + dt, odom[:3, 3], q)
+                msgs.append(tf)
+            tf_pub.publish(TFMessage(transforms=msgs))
+            pts = static_scan(scene, poses[k], np.random.default_rng(k)).astype(np.float32)
+            cols = {a: pts[:, c] for c, a in enumerate("xyz")}
+            feeder.cloud_pub.publish(cloud_from_columns(cols, "base_link", stamp))
+            loc = _aligned(feeder, i + 1, node)
+        assert loc["state"] == "localized", loc
+        assert feeder.status is not None and feeder.status["pose_source"].startswith("TF")
+        assert feeder.wait(lambda: bool(feeder.tf) and _error(_tf_matrix(feeder.tf[-1]))[0] < 0.05)
+        shift, angle = _error(_tf_matrix(feeder.tf[-1]))
+        assert shift < 0.05 and angle < 0.5, (shift, angle, loc)
+        assert not feeder.status["clouds_dropped"], feeder.status
+    finally:
+        feeder.destroy()
+        node.stop()
+
+
+def _transform(parent: str, child: str, stamp: float, t: np.ndarray, q: np.ndarray) -> Any:
+    from geometry_msgs.msg import TransformStamped
+
+    out = TransformStamped()
+    out.header.frame_id, out.child_frame_id = parent, child
+    out.header.stamp = stamp_msg(stamp)
+    tr, r = out.transform.translation, out.transform.rotation
+    tr.x, tr.y, tr.z = (float(v) for v in t)
+    r.x, r.y, r.z, r.w = (float(v) for v in q)
+    return out
