@@ -267,3 +267,24 @@ def _transform(parent: str, child: str, stamp: float, t: np.ndarray, q: np.ndarr
     tr.x, tr.y, tr.z = (float(v) for v in t)
     r.x, r.y, r.z, r.w = (float(v) for v in q)
     return out
+
+
+@pytest.mark.parametrize(
+    ("state", "level"),
+    [
+        ("waiting_for_map", DiagnosticStatus.WARN),
+        ("initializing", DiagnosticStatus.WARN),
+        ("localized", DiagnosticStatus.OK),
+        ("lost", DiagnosticStatus.ERROR),
+    ],
+)
+def test_diagnostic_level_follows_the_state(state: str, level: bytes) -> None:
+    from mfp_mapper.ros.status import localization_diagnostic
+
+    last = {"accepted": False, "reason": "no significant gain", "shift_m": 0.01, "angle_deg": 0.1}
+    entry = localization_diagnostic(
+        {"state": state, "refused": {"no_gain": 3}, "last": last}, "n: localization", "n"
+    )
+    assert entry.level == level and entry.message.startswith(state)
+    assert "refused: no significant gain" in entry.message
+    assert {v.key: v.value for v in entry.values}["refused.no_gain"] == "3"
