@@ -9,11 +9,12 @@ place, then either localize or integrate), interleaved scan by scan in one run, 
 - **integrate**: the plain mapping worker integrating the same cloud into a copy of the map.
 
 The scene is the simulated hall (``test/localization_scenes.py``): the map from 12 static
-VLP-16 scans (16 x 1800 rays) on a 6 m circle, saved and loaded back; the stream is ``--scans`` scans at 10 Hz
-on a 5 m circle (inside the map's) at ``--speed`` m/s, seen through odometry that is off the
-truth by 0.3 m and 3 degrees. The first scan searches wide (from that offset), the next
-ones track. Printed:
-the correction's error to the true offset after the stream, and per path the median and
+VLP-16 scans (16 x 1800 rays) on a 6 m circle, saved and loaded back; the stream is
+``--scans`` scans at 10 Hz on a 5 m circle (inside the map's) at ``--speed`` m/s, seen
+through odometry that is off the truth by 0.3 m and 3 degrees (``--drift``: and drifting
+by that much per metre travelled). The first scan searches wide (from that offset), the
+next ones track. Printed: the correction's error to the true offset after the stream
+(with drift: after each scan, against the drifting truth), and per path the median and
 95th percentile of the CPU time per scan, with the ratio localize / integrate.
 
     python benchmarks/bench_live_localization.py [--scans 40 --rays 3000 --min-period 0.2]
@@ -102,6 +103,13 @@ def feed(w: LiveIntegrator, odom: np.ndarray, msg: Any, stamp: float) -> float:
     return time.thread_time() - cpu
 
 
+def _error(m: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    d = np.linalg.inv(truth) @ m
+    return float(np.linalg.norm(d[:3, 3])), float(
+        np.degrees(Rotation.from_matrix(d[:3, :3]).magnitude())
+    )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--scans", type=int, default=40)
@@ -111,6 +119,14 @@ def main() -> None:
     ap.add_argument("--update-min-d", type=float, default=0.0)
     ap.add_argument("--update-min-a", type=float, default=0.0)
     ap.add_argument("--speed", type=float, default=1.0, help="m/s along the circle")
+    ap.add_argument(
+        "--drift",
+        type=float,
+        nargs=2,
+        default=(0.0, 0.0),
+        metavar=("M_PER_M", "DEG_PER_M"),
+        help="odometry drift: metres (along x) and degrees (yaw) per metre travelled",
+    )
     args = ap.parse_args()
     scene, map_a, map_b = hall_map()
     loc = LiveLocalizer(
@@ -131,6 +147,8 @@ def main() -> None:
     rng = np.random.default_rng(3)
     t_loc: list[float] = []
     t_int: list[float] = []
+    errors: list[tuple[float, float]] = []
+    true_c = OFFSET
     for k in range(args.scans):
         a = args.speed * 0.1 * k / 5.0  # radians along the 5 m circle, 10 scans per second
         truth = pose_at(np.array([5.0 * np.cos(a), 5.0 * np.sin(a), 1.2]), yaw=a + 1.0)
@@ -138,15 +156,21 @@ def main() -> None:
         stamp = T0 + 0.1 * k  # a 10 Hz stream
         msg = cloud_message_from_columns({c: pts[:, i] for i, c in enumerate("xyz")}, stamp)
         msg.header.frame_id = "base_link"
-        odom = np.linalg.inv(OFFSET) @ pose_matrix(truth.translation, truth.rotation)
+        travelled = args.speed * 0.1 * k
+        drift = pose_matrix(
+            (args.drift[0] * travelled, 0.0, 0.0),
+            Rotation.from_euler("z", args.drift[1] * travelled, degrees=True).as_matrix(),
+        )
+        true_c = OFFSET @ drift  # the true map <- odom of a drifting odometry
+        odom = np.linalg.inv(true_c) @ pose_matrix(truth.translation, truth.rotation)
         truth_odom = pose_matrix(truth.translation, truth.rotation)
         order = [(w_loc, odom, t_loc), (w_int, truth_odom, t_int)]
         for w, pose, out in order if k % 2 == 0 else order[::-1]:
             out.append(feed(w, pose, msg, stamp))
+        errors.append(_error(loc.correction, true_c))
     rep = loc.report()
-    d = np.linalg.inv(OFFSET) @ loc.correction
-    err_m = float(np.linalg.norm(d[:3, 3]))
-    err_deg = float(np.degrees(Rotation.from_matrix(d[:3, :3]).magnitude()))
+    err_m, err_deg = errors[-1]
+    e = np.array(errors[1:])
     ms_l, ms_i = 1e3 * np.array(t_loc), 1e3 * np.array(t_int)
     print(
         f"hall, VLP-16 ({len(pts)} returns/scan), 0.2 m map of {map_a.num_voxels} voxels "
@@ -156,6 +180,13 @@ def main() -> None:
         f"correction error after the stream: {100 * err_m:.2f} cm, {err_deg:.3f} deg; "
         f"state {rep['state']}; accepted {rep['accepted']}, refused {rep['refused']}"
     )
+    if args.drift[0] or args.drift[1]:
+        print(
+            f"odometry drift {args.drift[0]:g} m and {args.drift[1]:g} deg per metre over "
+            f"{args.speed * 0.1 * (args.scans - 1):.1f} m: correction error after each scan "
+            f"median {100 * np.median(e[:, 0]):.1f} cm / {np.median(e[:, 1]):.2f} deg, max "
+            f"{100 * e[:, 0].max():.1f} cm / {e[:, 1].max():.2f} deg"
+        )
     print(f"first scan (wide search from 0.3 m / 3 deg): localize {ms_l[0]:.0f} ms CPU")
     for name, ms in (("localize ", ms_l[1:]), ("integrate", ms_i[1:])):
         print(
