@@ -170,6 +170,8 @@ class LiveLocalizer:
         self.skipped = 0
         self.skipped_motion = 0
         self.initial_poses = 0
+        self.pose_version = 0
+        self.pose: tuple[float, FloatArray, FloatArray] | None = None
         self.consecutive_refused = 0
         self.last: dict[str, Any] = {}
         self.ms_sum = 0.0
@@ -286,7 +288,7 @@ class LiveLocalizer:
         al = align_scan(pyramid, pts, org, cfg.options(wide), normals=scan_normals(pts))
         ms = 1e3 * (time.perf_counter() - t0)
         step = pose_matrix(al.translation, al.rotation)
-        self._record(al, ms, placed.stamp, step, wide)
+        self._record(al, ms, placed.stamp, step, wide, odom)
         return move_scan(moved, step) if al.accepted else moved
 
     def _still(self, odom: FloatArray | None) -> bool:
@@ -325,7 +327,15 @@ class LiveLocalizer:
             f"{_describe(self.correction)}; refining from the next clouds"
         )
 
-    def _record(self, al: Alignment, ms: float, stamp: float, step: FloatArray, wide: bool) -> None:
+    def _record(
+        self,
+        al: Alignment,
+        ms: float,
+        stamp: float,
+        step: FloatArray,
+        wide: bool,
+        odom: FloatArray | None,
+    ) -> None:
         with self.lock:
             self.aligned += 1
             self.ms_sum += ms
@@ -350,6 +360,7 @@ class LiveLocalizer:
                 self.accepted += 1
                 self.consecutive_refused = 0
                 self.state = "localized"
+                self._vouch(stamp, odom, al.sigma)
                 return
             key = refusal_key(al.reason)
             self.refused[key] += 1
@@ -357,6 +368,8 @@ class LiveLocalizer:
                 self.consecutive_refused = 0
                 if self.state == "lost":  # localized before, and the scans agree again
                     self.state = "localized"
+                if self.state == "localized":
+                    self._vouch(stamp, odom, al.sigma)
                 return
             self.consecutive_refused += 1
             lost = (
@@ -369,6 +382,19 @@ class LiveLocalizer:
                 f"localization lost: {self.consecutive_refused} corrections refused in a row "
                 f"(last: {al.reason}); keeping map -> odom, searching wider"
             )
+
+    def _vouch(self, stamp: float, odom: FloatArray | None, sigma: FloatArray) -> None:
+        """(under the lock) The robot's pose in the map at ``stamp``, as the node vouches for
+        it (accepted, or confirmed while localized): for ``~/pose``."""
+        if odom is None:
+            return
+        self.pose_version += 1
+        self.pose = (stamp, self.correction @ odom, np.asarray(sigma, dtype=np.float64).copy())
+
+    def pose_estimate(self) -> tuple[int, tuple[float, FloatArray, FloatArray] | None]:
+        """(version, (stamp, map <- robot 4x4, sigma (6,): m, m, m, deg, deg, deg) or None)."""
+        with self.lock:
+            return self.pose_version, self.pose
 
     # --- health ---------------------------------------------------------------------------
 

@@ -333,13 +333,19 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._result_pub = self.create_publisher(PointCloud2, "~/hit_probability/result", 10)
         self._entities += [self._status_pub, self._diag_pub, self._result_pub]
-        if self.localizer is not None and self.cfg.localization_tf_publish:
-            tf_qos = QoSProfile(
-                history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE
-            )
-            self._tf_pub = self.create_publisher(TFMessage, "/tf", tf_qos)
-            self._entities.append(self._tf_pub)
+        if self.localizer is not None:
+            self._pose_pub = self.create_publisher(PoseWithCovarianceStamped, "~/pose", 10)
+            self._entities.append(self._pose_pub)
+            self._pose_version = 0
             self._tf_version = -1
+            if self.cfg.localization_tf_publish:
+                tf_qos = QoSProfile(
+                    history=HistoryPolicy.KEEP_LAST,
+                    depth=100,
+                    reliability=ReliabilityPolicy.RELIABLE,
+                )
+                self._tf_pub = self.create_publisher(TFMessage, "/tf", tf_qos)
+                self._entities.append(self._tf_pub)
         # what needs the map runs in a thread of its own and is awaited (a coroutine), so the
         # executor keeps taking odometry and clouds while a long scan holds the map; their
         # own group: a pending call must not hold the default group
@@ -405,12 +411,11 @@ class MfpMapperNode(GuardedLifecycleNode):
                     PoseWithCovarianceStamped, "initialpose", self._on_initial_pose, 10
                 )
             )
-            if self.cfg.localization_tf_publish:
-                self._active.append(
-                    self.create_timer(
-                        1.0 / self.cfg.localization_tf_rate, self._on_tf_timer, clock=wall
-                    )
+            self._active.append(
+                self.create_timer(
+                    1.0 / self.cfg.localization_tf_rate, self._on_tf_timer, clock=wall
                 )
+            )
         if self.cfg.autosave_period > 0.0 and self.cfg.map_path:
             self._active.append(
                 self.create_timer(self.cfg.autosave_period, self._on_autosave_timer, clock=wall)
@@ -566,9 +571,13 @@ class MfpMapperNode(GuardedLifecycleNode):
 
     @tracked
     def _on_tf_timer(self) -> None:
-        """Publish map -> odom: a new correction stamped with its cloud's stamp, else the
-        last one stamped now; both future-dated by ``transform_tolerance`` (AMCL's rule)."""
+        """Publish ``~/pose`` when an alignment vouched for a new one, and map -> odom: a new
+        correction stamped with its cloud's stamp, else the last one stamped now; both
+        future-dated by ``transform_tolerance`` (AMCL's rule)."""
         if self.localizer is None:
+            return
+        self._publish_pose()
+        if not self.cfg.localization_tf_publish:
             return
         m, stamp, version = self.localizer.transform()
         if not np.isfinite(stamp):
@@ -580,6 +589,26 @@ class MfpMapperNode(GuardedLifecycleNode):
             stamp = max(now, stamp)
         self._tf_version = version
         self._tf_pub.publish(TFMessage(transforms=[self._map_to_odom(m, stamp)]))
+
+    def _publish_pose(self) -> None:
+        """``~/pose`` (AMCL's amcl_pose): the robot in the map frame, at each alignment that
+        vouched for it, with the alignment's standard deviations on the diagonal."""
+        assert self.localizer is not None
+        version, estimate = self.localizer.pose_estimate()
+        if estimate is None or version == self._pose_version:
+            return
+        self._pose_version = version
+        stamp, m, sigma = estimate
+        msg = PoseWithCovarianceStamped()
+        msg.header.frame_id = self.localizer.settings.global_frame
+        msg.header.stamp = rclpy.time.Time(nanoseconds=int(round(stamp * 1e9))).to_msg()
+        p, o = msg.pose.pose.position, msg.pose.pose.orientation
+        p.x, p.y, p.z = (float(v) for v in m[:3, 3])
+        o.x, o.y, o.z, o.w = (float(v) for v in Rotation.from_matrix(m[:3, :3]).as_quat())
+        std = np.concatenate([sigma[:3], np.radians(sigma[3:])])
+        var = np.where(np.isfinite(std), std * std, 1e6)  # unbounded: a large variance
+        msg.pose.covariance = [float(v) for v in np.diag(var).ravel()]
+        self._pose_pub.publish(msg)
 
     def _map_to_odom(self, m: np.ndarray, stamp: float) -> TransformStamped:
         settings = self.localizer.settings if self.localizer is not None else None

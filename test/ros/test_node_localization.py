@@ -76,6 +76,10 @@ class LocFeeder(Feeder):
         from diagnostic_msgs.msg import DiagnosticArray
 
         self.diagnostic: Any = None
+        self.poses: list[Any] = []
+        self.node.create_subscription(
+            PoseWithCovarianceStamped, f"{self.ns}/pose", self.poses.append, 10
+        )
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 10)
 
     def _on_diagnostics(self, msg: Any) -> None:
@@ -157,6 +161,18 @@ def test_map_to_odom_converges_republishes_and_follows_initialpose(
         shift, angle = _error(_tf_matrix(last))
         assert shift < 0.05 and angle < 0.5, (shift, angle, loc)
         assert last.header.frame_id == "map" and last.child_frame_id == "odom"
+        # ~/pose (AMCL's amcl_pose): the robot in the map at the last cloud, with covariance
+        assert feeder.wait(lambda: bool(feeder.poses))
+        pose = feeder.poses[-1]
+        assert pose.header.frame_id == "map"
+        p, o = pose.pose.pose.position, pose.pose.pose.orientation
+        estimate = Pose(
+            Rotation.from_quat([o.x, o.y, o.z, o.w]).as_matrix(), np.array([p.x, p.y, p.z])
+        )
+        shift, angle = estimate.error_to(poses[5])
+        assert shift < 0.05 and angle < 0.5, (shift, angle)
+        variances = np.diag(np.reshape(pose.pose.covariance, (6, 6)))
+        assert np.all(variances > 0.0) and np.all(variances[:3] < 0.05**2), variances
         # republished at a fixed rate, future-dated by transform_tolerance: never expires
         seen = len(feeder.tf)
         assert feeder.wait(lambda: len(feeder.tf) >= seen + 5, 5.0)
