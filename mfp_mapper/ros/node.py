@@ -825,7 +825,7 @@ class MfpMapperNode(GuardedLifecycleNode):
             f"{s['rays_per_s']:.0f} rays/s, {s['clouds_integrated']}/{s['clouds_in']} clouds "
             f"integrated, drops: {drops}, {s['voxels']} voxels, "
             f"{s['memory_bytes'] / 1e6:.1f} MB, integration CPU "
-            f"{100 * s['integration_cpu_share']:.0f}%"
+            f"{100 * s['integration_cpu_share']:.0f}%{_localization_line(s)}"
         )
         self._status_pub.publish(String(data=json.dumps(s)))
         name = f"{self.get_name()}: mapping"
@@ -852,6 +852,20 @@ class MfpMapperNode(GuardedLifecycleNode):
     def _save_on_shutdown(self) -> None:
         if self.cfg.save_on_shutdown:
             self.save_map()  # beside map_path when it failed to load
+
+
+def _localization_line(status: dict[str, Any]) -> str:
+    """The status line's localization part ("" when not localizing)."""
+    loc = status.get("localization")
+    if not loc:
+        return ""
+    refused = ", ".join(f"{k} {v}" for k, v in sorted(loc["refused"].items())) or "none"
+    m = loc["map_to_odom"]
+    return (
+        f"; localization {loc['state']}: {loc['accepted']} of {loc['aligned']} alignments "
+        f"accepted (refused: {refused}), map -> odom x {m['x']:.3f} y {m['y']:.3f} yaw "
+        f"{m['yaw_deg']:.2f} deg"
+    )
 
 
 def main(args: list[str] | None = None) -> int:
