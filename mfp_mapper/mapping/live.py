@@ -36,7 +36,7 @@ from mfp_mapper.mapping.whole_map import MERGE_PAUSE_S, WholeMap
 from mfp_mapper.sensing import pipeline
 from mfp_mapper.sensing.pointcloud import ParsedCloud
 from mfp_mapper.sensing.pose_inputs import Log, PoseCounters, PoseInputs
-from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer
+from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer, PoseUnavailable
 from mfp_mapper.sensing.tf_tree import TfTree
 
 if TYPE_CHECKING:
@@ -218,6 +218,27 @@ class LiveIntegrator:
         in_odom = self.pose_inputs.to_map_frame(points, frame, stamp)
         m, _, _ = self.localizer.transform()
         return np.asarray(in_odom) @ m[:3, :3].T + m[:3, 3]
+
+    def robot_in_odom(self, stamp: float) -> np.ndarray | None:
+        """The robot (the odometry child) in the localizer's odometry frame (4x4) at ``stamp``,
+        or at the latest odometry when the stamp is not covered; None without odometry in
+        that frame (then ``/initialpose`` waits for the next cloud)."""
+        inputs = self.pose_inputs
+        if self.localizer is None:
+            return None
+        with inputs.lock:
+            if inputs.odom_frame != self.localizer.settings.odom_frame or not len(inputs.poses):
+                return None
+            poses = inputs.poses.snapshot()
+        latest, earliest = poses.latest_stamp, poses.earliest_stamp
+        if latest is None:
+            return None
+        covered = earliest is not None and earliest <= stamp <= latest
+        try:
+            t, r = poses.interpolate([stamp if covered else latest])
+        except PoseUnavailable:
+            return None
+        return pose_matrix(t[0], r[0])
 
     # --- inputs (any thread) ----------------------------------------------------------------
 

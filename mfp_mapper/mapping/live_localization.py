@@ -237,12 +237,21 @@ class LiveLocalizer:
 
     # --- inputs ---------------------------------------------------------------------------
 
-    def initial_pose(self, stamp: float, position: Any, quaternion: Any) -> None:
-        """``/initialpose``: the robot's pose in the map frame at ``stamp``; applied to the
-        next cloud (``localize``)."""
+    def initial_pose(
+        self, stamp: float, position: Any, quaternion: Any, odom_base: FloatArray | None = None
+    ) -> bool:
+        """``/initialpose``: the robot's pose in the map frame at ``stamp``. With the robot's
+        odometry pose at that stamp (``odom_base``) map <- odom is reset at once; without,
+        at the next cloud (``localize``, with its pose source). True when applied now."""
         m = pose_matrix(position, Rotation.from_quat(np.asarray(quaternion, float)).as_matrix())
+        if odom_base is None:
+            with self.lock:
+                self._pending = (float(stamp), m)
+            return False
         with self.lock:
-            self._pending = (float(stamp), m)
+            self._pending = None
+        self._reset(m, odom_base, float(stamp))
+        return True
 
     def transform(self) -> tuple[FloatArray, float, int]:
         """(map <- odom, the stamp of the cloud that set it, version)."""
@@ -264,6 +273,7 @@ class LiveLocalizer:
         with self.lock:
             correction, pyramid = self.correction.copy(), self.pyramid
             wide = self.state != "localized"
+            version = self.version
         moved = move_scan(placed, correction)
         if pyramid is None:
             return moved
@@ -288,7 +298,8 @@ class LiveLocalizer:
         al = align_scan(pyramid, pts, org, cfg.options(wide), normals=scan_normals(pts))
         ms = 1e3 * (time.perf_counter() - t0)
         step = pose_matrix(al.translation, al.rotation)
-        self._record(al, ms, placed.stamp, step, wide, odom)
+        if not self._record(al, ms, placed.stamp, step, wide, odom, version):
+            return moved  # an /initialpose came meanwhile: this correction is not used
         return move_scan(moved, step) if al.accepted else moved
 
     def _still(self, odom: FloatArray | None) -> bool:
@@ -314,9 +325,13 @@ class LiveLocalizer:
             odom_base = robot_pose(scan_stamp)
         if odom_base is None:
             odom_base = np.eye(4)
+        self._reset(map_base, odom_base, scan_stamp)
+
+    def _reset(self, map_base: FloatArray, odom_base: FloatArray, stamp: float) -> None:
+        """map <- odom such that the robot at ``odom_base`` is at ``map_base``."""
         with self.lock:
             self.correction = map_base @ np.linalg.inv(odom_base)
-            self.correction_stamp = scan_stamp
+            self.correction_stamp = stamp
             self.version += 1
             self.initial_poses += 1
             self.consecutive_refused = 0
@@ -335,7 +350,12 @@ class LiveLocalizer:
         step: FloatArray,
         wide: bool,
         odom: FloatArray | None,
-    ) -> None:
+        version: int,
+    ) -> bool:
+        """Count an alignment and apply it when accepted; False when the correction it
+        started from was replaced meanwhile (``/initialpose``): then it is counted as
+        ``superseded`` and not applied."""
+        lost = False
         with self.lock:
             self.aligned += 1
             self.ms_sum += ms
@@ -353,6 +373,9 @@ class LiveLocalizer:
                 "ms": round(ms, 2),
                 "wide_search": wide,
             }
+            if self.version != version:
+                self.refused["superseded"] += 1
+                return False
             if al.accepted:
                 self.correction = step @ self.correction
                 self.correction_stamp = stamp
@@ -361,7 +384,7 @@ class LiveLocalizer:
                 self.consecutive_refused = 0
                 self.state = "localized"
                 self._vouch(stamp, odom, al.sigma)
-                return
+                return True
             key = refusal_key(al.reason)
             self.refused[key] += 1
             if key == "no_gain":  # the best pose in range is no better: the current one stands
@@ -370,7 +393,7 @@ class LiveLocalizer:
                     self.state = "localized"
                 if self.state == "localized":
                     self._vouch(stamp, odom, al.sigma)
-                return
+                return True
             self.consecutive_refused += 1
             lost = (
                 self.state == "localized" and self.consecutive_refused >= self.settings.lost_after
@@ -382,6 +405,7 @@ class LiveLocalizer:
                 f"localization lost: {self.consecutive_refused} corrections refused in a row "
                 f"(last: {al.reason}); keeping map -> odom, searching wider"
             )
+        return True
 
     def _vouch(self, stamp: float, odom: FloatArray | None, sigma: FloatArray) -> None:
         """(under the lock) The robot's pose in the map at ``stamp``, as the node vouches for

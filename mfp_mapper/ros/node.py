@@ -563,10 +563,14 @@ class MfpMapperNode(GuardedLifecycleNode):
             )
             return
         stamp = stamp_seconds(msg.header.stamp)
-        self.localizer.initial_pose(stamp, (p.x, p.y, p.z), (q.x, q.y, q.z, q.w))
+        stamp = stamp if stamp > 0.0 else self._now()  # RViz may leave it 0
+        now = self.localizer.initial_pose(
+            stamp, (p.x, p.y, p.z), (q.x, q.y, q.z, q.w), self.worker.robot_in_odom(stamp)
+        )
+        when = "map -> odom reset now" if now else "applied at the next cloud (no odometry yet)"
         self.get_logger().info(
             f"/initialpose received: robot at x {p.x:.3f} y {p.y:.3f} z {p.z:.3f} in "
-            f"{expected!r}; applied at the next cloud"
+            f"{expected!r}; {when}"
         )
 
     @tracked

@@ -213,3 +213,25 @@ def test_a_robot_that_did_not_move_is_not_aligned_again() -> None:
     report = loc.report()
     assert report["aligned"] == 2 and report["skipped_motion"] == 2, report
     assert worker.counters.clouds_localized == 4
+
+
+def test_initial_pose_applies_at_once_when_odometry_gives_the_robot() -> None:
+    _, poses, mapper = _scene_map("box", 2)
+    worker, _ = _worker(mapper)
+    loc = worker.localizer
+    assert loc is not None
+    assert worker.robot_in_odom(T0) is None  # no odometry yet: the next cloud applies it
+    odom = np.linalg.inv(OFFSET) @ pose_matrix(poses[1].translation, poses[1].rotation)
+    q = Rotation.from_matrix(odom[:3, :3]).as_quat()
+    for t in (T0 - 0.1, T0 + 0.1):
+        worker.add_odometry(OdometrySample(t, "odom", "base_link", odom[:3, 3].copy(), q))
+    np.testing.assert_allclose(worker.robot_in_odom(T0), odom, atol=1e-9)
+    np.testing.assert_allclose(worker.robot_in_odom(T0 + 5.0), odom, atol=1e-9)  # the latest
+    truth = pose_matrix(poses[1].translation, poses[1].rotation)
+    applied = loc.initial_pose(
+        T0, truth[:3, 3], Rotation.from_matrix(truth[:3, :3]).as_quat(), worker.robot_in_odom(T0)
+    )
+    assert applied
+    _, stamp, version = loc.transform()
+    np.testing.assert_allclose(loc.correction, OFFSET, atol=1e-9)
+    assert stamp == T0 and version == 1 and loc.report()["initial_poses"] == 1
