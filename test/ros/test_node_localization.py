@@ -162,8 +162,17 @@ def test_map_to_odom_converges_republishes_and_follows_initialpose(
         assert shift < 0.05 and angle < 0.5, (shift, angle, loc)
         assert last.header.frame_id == "map" and last.child_frame_id == "odom"
         # ~/pose (AMCL's amcl_pose): the robot in the map at the last cloud, with covariance
-        assert feeder.wait(lambda: bool(feeder.poses))
-        pose = feeder.poses[-1]
+        last_stamp = t + 2 * 0.2  # the third cloud's: ~/pose is stamped with its cloud
+
+        def pose_of_last_cloud() -> Any:
+            for msg in feeder.poses:
+                st = msg.header.stamp
+                if abs(st.sec + 1e-9 * st.nanosec - last_stamp) < 1e-3:
+                    return msg
+            return None
+
+        assert feeder.wait(lambda: pose_of_last_cloud() is not None)
+        pose = pose_of_last_cloud()
         assert pose.header.frame_id == "map"
         p, o = pose.pose.pose.position, pose.pose.pose.orientation
         estimate = Pose(
