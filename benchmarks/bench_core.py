@@ -353,7 +353,9 @@ def main() -> None:
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="mfp_mapper's")
     parser.add_argument("--no-extras", action="store_true", help="only the insertion table")
     parser.add_argument(
-        "--ouster", action="store_true", help=f"also the real OS1-128 scans of {OUSTER} at 0.2 m"
+        "--ouster",
+        action="store_true",
+        help=f"also the real OS1-128 scans of {OUSTER} (at --resolutions, else 0.2 m)",
     )
     parser.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -385,7 +387,7 @@ def main() -> None:
     if args.ouster:
         if not OUSTER.exists():
             raise SystemExit(f"--ouster: {OUSTER} not found")
-        scenes.append(("ouster_street", [0.2]))
+        scenes.append(("ouster_street", resolutions if args.resolutions else [0.2]))
     with tempfile.TemporaryDirectory() as tmp:
         for scene, scene_res in scenes:
             if scene != "anchors":

@@ -114,6 +114,8 @@ def walk_limits(
 def fit_scan_budget(rays: Rays, budget: int, resolution: float) -> tuple[Rays, int]:
     """``rays`` with the far parts cut to ``walk_limits`` (walked that far, no return), and
     how many were cut; the same ``rays`` and 0 when they fit the budget."""
+    if not len(rays) or rays.lengths.max() < (FREE_WALK_VOXELS - 1) * resolution:
+        return rays, 0  # every ray walks free (a quick check: lengths are in metres)
     limits = walk_limits(rays.origins_vox, rays.ends_vox, budget)
     if limits is None:
         return rays, 0

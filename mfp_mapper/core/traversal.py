@@ -37,7 +37,15 @@ from mfp_mapper.core.blocks import (
 from mfp_mapper.core.mailbox import MailArrays, Mailbox, deliver_mail
 from mfp_mapper.core.shard import Shard, ShardArrays, open_block
 from mfp_mapper.core.store import BlockStore
-from mfp_mapper.core.visits import BATCH_VISITS, CACHE_BITS, CACHE_MASK, CACHE_SIZE, apply_chords
+from mfp_mapper.core.visits import (
+    BATCH_VISITS,
+    CACHE_BITS,
+    CACHE_MASK,
+    CACHE_SIZE,
+    PREFETCH,
+    apply_chords,
+    prefetch_voxel,
+)
 
 _LOCAL_MASK = (1 << BLOCK_BITS) - 1
 _SPREAD = np.array([local_index(0, 0, z) for z in range(1 << BLOCK_BITS)], dtype=np.int64)
@@ -218,16 +226,36 @@ def block_bounds(
     origins_vox: NDArray[np.float64], ends_vox: NDArray[np.float64]
 ) -> NDArray[np.int64]:
     """Upper bound of the blocks each ray can create: Manhattan block distance plus slack."""
-    lo = np.floor(origins_vox).astype(np.int64) >> BLOCK_BITS
-    hi = np.floor(ends_vox).astype(np.int64) >> BLOCK_BITS
-    return np.abs(hi - lo).sum(axis=1) + 2
+    return ray_bounds(origins_vox, ends_vox)[0]
 
 
 def visit_bounds(
     origins_vox: NDArray[np.float64], ends_vox: NDArray[np.float64]
 ) -> NDArray[np.int64]:
     """Upper bound of the voxels each ray visits: Manhattan voxel distance plus one."""
-    return np.abs(np.floor(ends_vox) - np.floor(origins_vox)).sum(axis=1).astype(np.int64) + 1
+    return ray_bounds(origins_vox, ends_vox)[1]
+
+
+@nb.njit(cache=True, nogil=True)
+def ray_bounds(
+    origins_vox: NDArray[np.float64], ends_vox: NDArray[np.float64]
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """``block_bounds`` and ``visit_bounds`` in one pass (ten numpy passes took 2 ms of a
+    50 ms scan at 0.2 m)."""
+    count = origins_vox.shape[0]
+    blocks = np.empty(count, dtype=np.int64)
+    visits = np.empty(count, dtype=np.int64)
+    for r in range(count):
+        block_steps = 0
+        steps = 0
+        for axis in range(3):
+            lo = int(np.floor(origins_vox[r, axis]))
+            hi = int(np.floor(ends_vox[r, axis]))
+            steps += abs(hi - lo)
+            block_steps += abs((hi >> BLOCK_BITS) - (lo >> BLOCK_BITS))
+        blocks[r] = block_steps + 2
+        visits[r] = steps + 1
+    return blocks, visits
 
 
 class RayArrays(NamedTuple):
@@ -260,8 +288,7 @@ def _walk_part(
     scan: ScanStamp,
 ) -> None:
     """Walk ``rays`` into ``shard`` (and ``mail``), growing either when it runs out of room."""
-    room = block_bounds(rays.origins_vox, rays.ends_vox)
-    visits = visit_bounds(rays.origins_vox, rays.ends_vox)
+    room, visits = ray_bounds(rays.origins_vox, rays.ends_vox)
     if shard_mask:  # room for the worst case up front: pages are committed only when written
         mail.reserve(int(visits.sum()))
     walk = RayArrays(rays.origins_vox, rays.ends_vox, rays.lengths, rays.has_return, room, visits)
@@ -313,6 +340,7 @@ def _walk_rays(
     count = 0
     returned = 0
     mailed = mail_count[0]
+    sn = block_sn.reshape((-1, 2))  # for prefetching
     for r in range(first, lengths.shape[0] + 1):
         stop = (
             r == lengths.shape[0]
@@ -365,6 +393,10 @@ def _walk_rays(
             | _SPREAD[vz & _LOCAL_MASK]
         )
         bx = by = bz = 0
+        # an axis' index in the block wraps to this when a step enters the next block
+        wrap_x = 0 if step_x > 0 else _LOCAL_MASK
+        wrap_y = 0 if step_y > 0 else _LOCAL_MASK
+        wrap_z = 0 if step_z > 0 else _LOCAL_MASK
         block = -1
         base = 0
         key = -1
@@ -399,20 +431,20 @@ def _walk_rays(
             here = local
             if t_max_x <= t_max_y and t_max_x <= t_max_z:
                 t_next = t_max_x
-                new_block = ((vx + step_x) >> BLOCK_BITS) != (vx >> BLOCK_BITS)
                 vx += step_x
+                new_block = (vx & _LOCAL_MASK) == wrap_x
                 t_max_x = t_max_x + t_delta_x if vx != ex else np.inf
                 local = (local & ~_X_BITS) | (_SPREAD[vx & _LOCAL_MASK] << 2)
             elif t_max_y <= t_max_z:
                 t_next = t_max_y
-                new_block = ((vy + step_y) >> BLOCK_BITS) != (vy >> BLOCK_BITS)
                 vy += step_y
+                new_block = (vy & _LOCAL_MASK) == wrap_y
                 t_max_y = t_max_y + t_delta_y if vy != ey else np.inf
                 local = (local & ~_Y_BITS) | (_SPREAD[vy & _LOCAL_MASK] << 1)
             else:
                 t_next = t_max_z
-                new_block = ((vz + step_z) >> BLOCK_BITS) != (vz >> BLOCK_BITS)
                 vz += step_z
+                new_block = (vz & _LOCAL_MASK) == wrap_z
                 t_max_z = t_max_z + t_delta_z if vz != ez else np.inf
                 local = (local & ~_Z_BITS) | _SPREAD[vz & _LOCAL_MASK]
             t_next = min(t_next, 1.0)
@@ -424,6 +456,8 @@ def _walk_rays(
                     visit_voxel[count] = base + here
                     visit_chord[count] = chord * scale
                     count += 1
+                    if PREFETCH:  # the line is loaded while the walk goes on
+                        prefetch_voxel(sn, base + here)  # type: ignore[call-arg]
                 else:
                     mail_block[mailed] = key
                     mail_local[mailed] = here
@@ -438,6 +472,8 @@ def _walk_rays(
             if block >= 0:
                 visit_voxel[count] = base + local
                 visit_chord[count] = chord * scale
+                if PREFETCH:
+                    prefetch_voxel(sn, base + local)  # type: ignore[call-arg]
                 if returns > 0.0:
                     return_of[returned] = count
                     return_weight[returned] = returns * scale

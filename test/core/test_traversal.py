@@ -8,6 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mfp_mapper import Mapper
+from mfp_mapper.core.traversal import ray_bounds
 
 RES = 0.25
 
@@ -137,3 +138,14 @@ def test_zero_length_ray_is_dropped_and_very_long_ray_is_cut_at_max_range() -> N
     assert vox.s.sum() == pytest.approx(50.0, rel=1e-6)
     assert vox.n.sum() == 0.0  # a ray cut at max_range carries no return
     assert vox.ijk[:, 0].max() == 500  # 0.05 + 50 m = 50.05 m -> voxel 500
+
+
+def test_ray_bounds_are_the_manhattan_distances_in_voxels_and_blocks() -> None:
+    rng = np.random.default_rng(3)
+    origins = rng.uniform(-5e3, 5e3, (500, 3))
+    ends = origins + rng.uniform(-300.0, 300.0, (500, 3))
+    ends[:5] = np.floor(origins[:5])  # on faces, in the origin's voxel or beside it
+    blocks, visits = ray_bounds(origins, ends)
+    lo, hi = np.floor(origins).astype(np.int64), np.floor(ends).astype(np.int64)
+    np.testing.assert_array_equal(visits, np.abs(hi - lo).sum(axis=1) + 1)
+    np.testing.assert_array_equal(blocks, np.abs((hi >> 3) - (lo >> 3)).sum(axis=1) + 2)
