@@ -27,13 +27,16 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.mapping.live_localization import LiveLocalizer, pose_matrix
 from mfp_mapper.mapping.loop import PreparedScan, ScanCounts, ScanLoop, staged
 from mfp_mapper.mapping.whole_map import MERGE_PAUSE_S, WholeMap
 from mfp_mapper.sensing import pipeline
 from mfp_mapper.sensing.pointcloud import ParsedCloud
 from mfp_mapper.sensing.pose_inputs import Log, PoseCounters, PoseInputs
-from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer
+from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer, PoseUnavailable
 from mfp_mapper.sensing.tf_tree import TfTree
 
 if TYPE_CHECKING:
@@ -104,6 +107,7 @@ class LiveCounters(ScanCounts, PoseCounters):
     """The pipeline's counts, the pose inputs' and what only a live stream has."""
 
     clouds_lost_transport: int = 0  # reported lost by the middleware (never received)
+    clouds_localized: int = 0  # localization with a frozen map: placed, aligned, not integrated
     integration_cpu: float = 0.0  # CPU seconds: parse + place + integrate (+ core threads)
     integration_wall: float = 0.0
     latency_sum: float = 0.0
@@ -127,10 +131,16 @@ class LiveIntegrator:
         info: Callable[[str], None] | None = None,
         publish: Callable[[], None] | None = None,
         map_frame: str = "",
+        localizer: LiveLocalizer | None = None,
     ) -> None:
         """``map_frame``: the run's map frame when known at start (``frame_id``, a loaded
-        map's frame); empty: decided at the first cloud placed (``PoseInputs``)."""
+        map's frame); empty: decided at the first cloud placed (``PoseInputs``).
+        ``localizer``: the localization mode (``mapping.live_localization``): clouds are
+        placed in its odometry frame, then moved into the map frame by its correction."""
         self.mapper = mapper
+        self.localizer = localizer
+        if localizer is not None:
+            map_frame = localizer.settings.odom_frame
         self.settings = settings
         self.counters = LiveCounters()
         self.map_lock = threading.Lock()
@@ -144,7 +154,7 @@ class LiveIntegrator:
             info=info or (lambda text: log("info", text, False)),
             now=now,
         )
-        if self.pose_inputs.map_frame is not None:
+        if self.pose_inputs.map_frame is not None and localizer is None:
             mapper.frame_id = self.pose_inputs.map_frame
         self._warned: set[str] = set()
         self._log = log
@@ -183,12 +193,52 @@ class LiveIntegrator:
 
     @property
     def map_frame(self) -> str:
-        """The run's map frame ("" until decided)."""
+        """The run's map frame ("" until decided; the global frame when localizing)."""
+        if self.localizer is not None:
+            return self.localizer.settings.global_frame
         return self.pose_inputs.map_frame or ""
 
     @property
     def robot_position(self) -> Any:
-        return self.pose_inputs.robot_position
+        position = self.pose_inputs.robot_position
+        if self.localizer is None or position is None:
+            return position
+        m, _, _ = self.localizer.transform()
+        return m[:3, :3] @ np.asarray(position, dtype=np.float64) + m[:3, 3]
+
+    def to_map_frame(self, points: np.ndarray, frame: str, stamp: float) -> np.ndarray:
+        """Points given in ``frame`` in the map frame (``PoseInputs.to_map_frame``; when
+        localizing: through the odometry frame and the correction); raises
+        TransformUnavailable."""
+        if self.localizer is None:
+            return self.pose_inputs.to_map_frame(points, frame, stamp)
+        frame = frame.lstrip("/")
+        if not frame or frame == self.localizer.settings.global_frame:
+            return points
+        in_odom = self.pose_inputs.to_map_frame(points, frame, stamp)
+        m, _, _ = self.localizer.transform()
+        return np.asarray(in_odom) @ m[:3, :3].T + m[:3, 3]
+
+    def robot_in_odom(self, stamp: float) -> np.ndarray | None:
+        """The robot (the odometry child) in the localizer's odometry frame (4x4) at ``stamp``,
+        or at the latest odometry when the stamp is not covered; None without odometry in
+        that frame (then ``/initialpose`` waits for the next cloud)."""
+        inputs = self.pose_inputs
+        if self.localizer is None:
+            return None
+        with inputs.lock:
+            if inputs.odom_frame != self.localizer.settings.odom_frame or not len(inputs.poses):
+                return None
+            poses = inputs.poses.snapshot()
+        latest, earliest = poses.latest_stamp, poses.earliest_stamp
+        if latest is None:
+            return None
+        covered = earliest is not None and earliest <= stamp <= latest
+        try:
+            t, r = poses.interpolate([stamp if covered else latest])
+        except PoseUnavailable:
+            return None
+        return pose_matrix(t[0], r[0])
 
     # --- inputs (any thread) ----------------------------------------------------------------
 
@@ -395,13 +445,21 @@ class LiveIntegrator:
                 0,
                 parse_drops,
             )
-        if self.mapper.frame_id != placement.map_frame:
+        if self.mapper.frame_id != placement.map_frame and self.localizer is None:
             self.mapper.frame_id = placement.map_frame  # the run's frame, decided once
         own_cpu = time.thread_time()
         if cfg.max_range is not None and self.mapper.max_range != cfg.max_range:
             with self.map_lock:  # sensor_model.max_range changed at run time
                 self.mapper.max_range = cfg.max_range
-        _, summary = self.loop.finish(prepared, placement.poses, placement.extrinsic)
+        placed = self.loop.place(prepared, placement.poses, placement.extrinsic)
+        summary = None
+        if self.localizer is None:
+            summary = self.loop.commit(placed)
+        else:
+            placed = self.localizer.localize(placed, _robot_pose(placement))
+            if not self.localizer.settings.freeze_map:
+                summary = self.loop.commit(placed)
+                self.localizer.build_in_background(self.mapper, self.whole_map)
         own_cpu = time.thread_time() - own_cpu
         self.pose_inputs.note_robot(placement, prepared.stamp, cfg.base_frame_id)
         latency = self._now() - prepared.stamp
@@ -410,7 +468,10 @@ class LiveIntegrator:
             c.latency_last = latency
             c.latency_sum += latency
             c.latency_max = max(c.latency_max, latency)
-            c.integration_cpu += max(summary.cpu_seconds - own_cpu, 0.0)  # the core's threads
+            if summary is None:
+                c.clouds_localized += 1
+            else:  # the core's threads
+                c.integration_cpu += max(summary.cpu_seconds - own_cpu, 0.0)
         return True
 
     def _check_stamp(self, prepared: PreparedScan) -> None:
@@ -483,6 +544,21 @@ class LiveIntegrator:
         """A copy of the counters and the queue length, taken together."""
         with self._cv:
             return copy.deepcopy(self.counters), len(self._queue) + len(self._waiting)
+
+
+def _robot_pose(placement: Any) -> Callable[[float], np.ndarray | None]:
+    """The robot's pose (4x4, placement frame) at a stamp, None where not covered."""
+
+    def pose(stamp: float) -> np.ndarray | None:
+        if not placement.source_moves:
+            return None
+        try:
+            t, r = placement.poses.interpolate([stamp])
+        except Exception:  # PoseUnavailable, or a stamp outside the poses
+            return None
+        return pose_matrix(t[0], r[0])
+
+    return pose
 
 
 def finite_or_none(value: float) -> float | None:
