@@ -70,11 +70,11 @@ class LocalizationSettings:
     lost_after: int = 10
     rebuild_period: float = 5.0
     tracking_levels: int = 1
+    """Pyramid levels used while localized (finest first); the wide search uses all."""
     update_min_d: float = 0.25
     """While localized: align only after the robot moved this far (m, odometry) or ..."""
     update_min_a: float = 11.5
     """... turned this much (degrees) since the last alignment (AMCL's update_min_d/_a)."""
-    """Pyramid levels used while localized (finest first); the wide search uses all."""
 
     @classmethod
     def of(cls, cfg: NodeConfig, global_frame: str) -> LocalizationSettings:
