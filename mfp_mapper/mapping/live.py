@@ -4,7 +4,8 @@ The node hands it received clouds (``submit``) from its executor thread, and odo
 transforms to its pose inputs (``worker.pose_inputs``, a ``PoseInputs``). Two threads run
 the scan pipeline, in order: the worker parses and places each cloud, then hands it to the
 walker, which integrates it while the worker prepares the next one (the walk releases the
-GIL; the worker stays at most one placed scan ahead). A scan is walked into a store
+GIL; the worker stays at most one placed scan ahead; in localization mode the worker aligns
+and integrates each scan itself). A scan is walked into a store
 of its own without any lock (``Mapper.stage``), then added to the map in one merge
 (``Mapper.commit``, a few percent of the scan's time). A reader that needs whole scans
 (GetMap, saving, reset) takes ``whole_map``: it waits at most for a merge, never for a scan;
@@ -29,14 +30,17 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.mapping.live_localization import LiveLocalizer, pose_matrix
 from mfp_mapper.mapping.loop import PreparedScan, ScanCounts, ScanLoop, staged
 from mfp_mapper.mapping.whole_map import MERGE_PAUSE_S, WholeMap
 from mfp_mapper.sensing import pipeline
 from mfp_mapper.sensing.pipeline import PlacedScan
 from mfp_mapper.sensing.pointcloud import ParsedCloud
 from mfp_mapper.sensing.pose_inputs import Log, PoseCounters, PoseInputs
-from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer
+from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer, PoseUnavailable
 from mfp_mapper.sensing.tf_tree import TfTree
 
 if TYPE_CHECKING:
@@ -126,6 +130,7 @@ class LiveCounters(ScanCounts, PoseCounters):
     """The pipeline's counts, the pose inputs' and what only a live stream has."""
 
     clouds_lost_transport: int = 0  # reported lost by the middleware (never received)
+    clouds_localized: int = 0  # localization with a frozen map: placed, aligned, not integrated
     integration_cpu: float = 0.0  # CPU seconds: parse + place + integrate (+ core threads)
     integration_wall: float = 0.0
     latency_sum: float = 0.0
@@ -153,10 +158,16 @@ class LiveIntegrator:
         info: Callable[[str], None] | None = None,
         publish: Callable[[], None] | None = None,
         map_frame: str = "",
+        localizer: LiveLocalizer | None = None,
     ) -> None:
         """``map_frame``: the run's map frame when known at start (``frame_id``, a loaded
-        map's frame); empty: decided at the first cloud placed (``PoseInputs``)."""
+        map's frame); empty: decided at the first cloud placed (``PoseInputs``).
+        ``localizer``: the localization mode (``mapping.live_localization``): clouds are
+        placed in its odometry frame, then moved into the map frame by its correction."""
         self.mapper = mapper
+        self.localizer = localizer
+        if localizer is not None:
+            map_frame = localizer.settings.odom_frame
         self.settings = settings
         self.counters = LiveCounters()
         self.map_lock = threading.Lock()
@@ -170,7 +181,7 @@ class LiveIntegrator:
             info=info or (lambda text: log("info", text, False)),
             now=now,
         )
-        if self.pose_inputs.map_frame is not None:
+        if self.pose_inputs.map_frame is not None and localizer is None:
             mapper.frame_id = self.pose_inputs.map_frame
         self._warned: set[str] = set()
         self._log = log
@@ -214,12 +225,52 @@ class LiveIntegrator:
 
     @property
     def map_frame(self) -> str:
-        """The run's map frame ("" until decided)."""
+        """The run's map frame ("" until decided; the global frame when localizing)."""
+        if self.localizer is not None:
+            return self.localizer.settings.global_frame
         return self.pose_inputs.map_frame or ""
 
     @property
     def robot_position(self) -> Any:
-        return self.pose_inputs.robot_position
+        position = self.pose_inputs.robot_position
+        if self.localizer is None or position is None:
+            return position
+        m, _, _ = self.localizer.transform()
+        return m[:3, :3] @ np.asarray(position, dtype=np.float64) + m[:3, 3]
+
+    def to_map_frame(self, points: np.ndarray, frame: str, stamp: float) -> np.ndarray:
+        """Points given in ``frame`` in the map frame (``PoseInputs.to_map_frame``; when
+        localizing: through the odometry frame and the correction); raises
+        TransformUnavailable."""
+        if self.localizer is None:
+            return self.pose_inputs.to_map_frame(points, frame, stamp)
+        frame = frame.lstrip("/")
+        if not frame or frame == self.localizer.settings.global_frame:
+            return points
+        in_odom = self.pose_inputs.to_map_frame(points, frame, stamp)
+        m, _, _ = self.localizer.transform()
+        return np.asarray(in_odom) @ m[:3, :3].T + m[:3, 3]
+
+    def robot_in_odom(self, stamp: float) -> np.ndarray | None:
+        """The robot (the odometry child) in the localizer's odometry frame (4x4) at ``stamp``,
+        or at the latest odometry when the stamp is not covered; None without odometry in
+        that frame (then ``/initialpose`` waits for the next cloud)."""
+        inputs = self.pose_inputs
+        if self.localizer is None:
+            return None
+        with inputs.lock:
+            if inputs.odom_frame != self.localizer.settings.odom_frame or not len(inputs.poses):
+                return None
+            poses = inputs.poses.snapshot()
+        latest, earliest = poses.latest_stamp, poses.earliest_stamp
+        if latest is None:
+            return None
+        covered = earliest is not None and earliest <= stamp <= latest
+        try:
+            t, r = poses.interpolate([stamp if covered else latest])
+        except PoseUnavailable:
+            return None
+        return pose_matrix(t[0], r[0])
 
     # --- inputs (any thread) ----------------------------------------------------------------
 
@@ -447,16 +498,18 @@ class LiveIntegrator:
                 0,
                 parse_drops,
             )
-        if self.mapper.frame_id != placement.map_frame:
+        if self.mapper.frame_id != placement.map_frame and self.localizer is None:
             self.mapper.frame_id = placement.map_frame  # the run's frame, decided once
         t_place = time.monotonic()
         placed = self.loop.place(prepared, placement.poses, placement.extrinsic)
+        if self.localizer is not None:  # localization: aligned, then integrated here
+            placed = self.localizer.localize(placed, _robot_pose(placement))
         self.pose_inputs.note_robot(placement, prepared.stamp, cfg.base_frame_id)
         job = _Placed(item, placed, t_place, time.monotonic())
-        if self._walker is not None and self._walker.is_alive():
+        if self.localizer is None and self._walker is not None and self._walker.is_alive():
             self._hand_over(job)
         else:
-            self._integrate(job)  # drain(): everything on the calling thread
+            self._integrate(job)  # drain(), localization: all on the calling thread
         return True
 
     # --- the walker thread: the placed scans into the map, in order --------------------------
@@ -510,11 +563,14 @@ class LiveIntegrator:
         if cfg.max_range is not None and self.mapper.max_range != cfg.max_range:
             with self.map_lock:  # sensor_model.max_range changed at run time
                 self.mapper.max_range = cfg.max_range
-        summary = self.loop.commit(job.placed)
+        summary = None  # None: localized against a frozen map, not integrated
+        if self.localizer is None or not self.localizer.settings.freeze_map:
+            summary = self.loop.commit(job.placed)
+            if self.localizer is not None:
+                self.localizer.build_in_background(self.mapper, self.whole_map)
         done = time.monotonic()
         own_cpu = time.thread_time() - own_cpu
         latency = self._now() - job.placed.stamp
-        walk = summary.seconds - summary.commit_seconds
         item = job.item
         with self._cv:
             c = self.counters
@@ -528,9 +584,13 @@ class LiveIntegrator:
             times["parse"] += item.parse_s
             times["place"] += job.placed_at - job.placing
             times["handoff"] += t_commit - job.placed_at
-            times["walk"] += walk
-            times["merge"] += done - t_commit - walk
-            c.integration_cpu += max(summary.cpu_seconds - own_cpu, 0.0)  # the core's threads
+            if summary is None:
+                c.clouds_localized += 1
+            else:  # the core's threads
+                walk = summary.seconds - summary.commit_seconds
+                times["walk"] += walk
+                times["merge"] += done - t_commit - walk
+                c.integration_cpu += max(summary.cpu_seconds - own_cpu, 0.0)
 
     def _check_stamp(self, prepared: PreparedScan) -> None:
         """A cloud stamped further ahead of the node clock than a pose may be is dropped
@@ -607,6 +667,21 @@ class LiveIntegrator:
 def _average(mean: float, value: float) -> float:
     """A moving average (the last few values weigh most; the first one is taken whole)."""
     return value if mean == 0.0 else 0.8 * mean + 0.2 * value
+
+
+def _robot_pose(placement: Any) -> Callable[[float], np.ndarray | None]:
+    """The robot's pose (4x4, placement frame) at a stamp, None where not covered."""
+
+    def pose(stamp: float) -> np.ndarray | None:
+        if not placement.source_moves:
+            return None
+        try:
+            t, r = placement.poses.interpolate([stamp])
+        except Exception:  # PoseUnavailable, or a stamp outside the poses
+            return None
+        return pose_matrix(t[0], r[0])
+
+    return pose
 
 
 def finite_or_none(value: float) -> float | None:
