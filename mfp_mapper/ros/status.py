@@ -27,6 +27,7 @@ class StatusWindow:
     clouds_dropped: int = 0
     clouds_lost_transport: int = 0
     clouds_localized: int = 0
+    queue_full: int = 0
 
 
 def status_report(
@@ -52,6 +53,7 @@ def status_report(
         "points_in": c.points_in,
         "points_dropped": dict(c.points_dropped),
         "queued": queued,
+        "behind": c.clouds_dropped["queue_full"] > window.queue_full,
         "rays_in": c.rays_in,
         "rays_used": c.rays_used,
         "rays_truncated": c.rays_truncated,
@@ -63,6 +65,9 @@ def status_report(
         "latency_last_s": finite_or_none(c.latency_last),
         "latency_mean_s": c.latency_sum / n_int if c.clouds_integrated else None,
         "latency_max_s": c.latency_max if c.clouds_integrated else None,
+        "received_latency_mean_s": c.received_latency_sum / n_int if c.clouds_integrated else None,
+        "received_latency_max_s": c.received_latency_max if c.clouds_integrated else None,
+        "stage_s": {k: round(v, 4) for k, v in c.stage_seconds.items()},
         "odom_in": c.odom_in,
         "odom_rejected": dict(c.odom_rejected),
         "tf_in": c.tf_in,
@@ -88,6 +93,7 @@ def next_window(c: LiveCounters) -> StatusWindow:
         sum(c.clouds_dropped.values()),
         c.clouds_lost_transport,
         c.clouds_localized,
+        c.clouds_dropped["queue_full"],
     )
 
 
@@ -113,6 +119,14 @@ def health(status: dict[str, Any], window: StatusWindow) -> tuple[bytes, str]:
         return (
             DiagnosticStatus.ERROR,
             f"{arrived} clouds received, none integrated (drops so far: {reasons or 'none'})",
+        )
+    skipped = status["clouds_dropped"].get("queue_full", 0) - window.queue_full
+    if skipped > 0:
+        return (
+            DiagnosticStatus.WARN,
+            f"integration is behind the input: {integrated} of {arrived} clouds integrated, "
+            f"{skipped} skipped (queue_full: the oldest queued dropped), {dropped - skipped} "
+            f"dropped otherwise, {lost} lost in transport",
         )
     if dropped or lost:
         return (
