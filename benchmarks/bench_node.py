@@ -17,12 +17,23 @@ total CPU:
 
 - latency: node clock when ``Mapper.integrate`` returned minus the cloud's header stamp
   (includes the 0.1 s sweep the de-skew has to wait odometry for, and DDS transport);
-- rate: clouds integrated / clouds sent, rays per second;
+- rate: clouds integrated a second in a window of ``--duration`` s between two status
+  messages, after ``WARMUP_S`` s of streaming; rays per second;
 - integration CPU: CPU time of the integration thread (parse, place, integrate) over
   wall time, as a share of one core; node CPU: the whole node process.
 
 Streams: VLP-16 (16 x 1800 = 28.8k points, 0.1 m) and an OS1-128-like lidar
-(128 x 1024 = 131k points, 0.2 m, elevations -22.5..22.5 deg).
+(128 x 1024 = 131k points, 0.2 m, elevations -22.5..22.5 deg), both simulated; ``--stream
+ouster``: the real OS1-128 scans of ``../shared/data/ouster_street`` (0.2 m), sent in the
+order 0 1 2 1 0 1 2 ... as the driver publishes them: organized 128 x 1024 clouds of 48-byte
+points (the ouster-ros layout; firings with no return are zeros, ~24k of 131k; a per-point
+time ``t`` from the column, so the node de-skews), odometry interpolated between the
+recording's poses. The node's own timing per integrated scan is printed by stage (queued,
+parse, place, walk, merge; ``~/status`` ``stage_s``) with the latency from the cloud's
+arrival to the map (``received_latency``). ``--core`` (the default for ``ouster``) first
+maps the same messages in a child process without ROS, through the same loop (parse,
+place, ``Mapper.integrate``, and ``Mapper.stage`` + ``commit`` as the node does), so the
+node's time per scan reads as a ratio of the core's, measured in the same run.
 
 ``--big-scan 2e6``: service latency while one large scan integrates (item of issue 18).
 A static robot in a 30 x 30 m room (0.1 m voxels) sends a small scan, then one of that
@@ -40,6 +51,8 @@ import os
 import sys
 import tempfile
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -64,6 +77,7 @@ from ros_helpers import (  # noqa: E402
     yaw_quaternion,
 )
 
+from mfp_mapper.sensing.pointcloud import PackedCloud  # noqa: E402
 from mfp_mapper.sources.scan_pattern import scan_directions  # noqa: E402
 
 STREAMS: dict[str, dict[str, Any]] = {
@@ -83,11 +97,81 @@ STREAMS: dict[str, dict[str, Any]] = {
 SCAN_PERIOD = 0.1
 ODOM_PERIOD = 0.02
 LIDAR_HEIGHT = 1.8
+OUSTER = ROOT.parent / "shared" / "data" / "ouster_street"
+OUSTER_SEQUENCE = (0, 1, 2, 1)
+"""``--stream ouster``: the recording's three scans sent back and forth, one every 0.1 s."""
+WARMUP_S = 3.0
+"""Seconds of streaming before the measured window."""
+CORE_SCANS = 12
+"""Clouds the ``--core`` child maps (the medians leave the first out)."""
+OUSTER_COLUMNS = 1024
+OUSTER_DTYPE = np.dtype(
+    {
+        "names": ["x", "y", "z", "intensity", "t", "reflectivity", "ring", "ambient", "range"],
+        "formats": ["<f4", "<f4", "<f4", "<f4", "<u4", "<u2", "<u2", "<u2", "<u4"],
+        "offsets": [0, 4, 8, 16, 20, 24, 26, 28, 32],
+        "itemsize": 48,
+    }
+)
+"""The point layout of the ouster-ros driver (x y z, padding, intensity, t in ns from the
+sweep's start, reflectivity, ring, ambient, range in mm): 48 bytes a point."""
 
 
 def _cpu_seconds(pid: int) -> float:
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _ouster_records(k: int) -> np.ndarray:
+    """Scan ``k`` of ``ouster_street`` as the driver's organized (128, 1024) cloud.
+
+    The files keep the firings that returned, beam after beam, each beam's along the sweep:
+    a beam ends where the column index falls back by more than half a turn; a point's column
+    is its azimuth from the sweep's start (kept increasing within a beam; the ~0.2% of
+    points that would pass column 1023 are left out). Empty cells are zeros."""
+    raw = np.fromfile(OUSTER / "scans" / f"{k:06d}.bin", dtype=np.float32).reshape(-1, 4)
+    az = np.degrees(np.arctan2(raw[:, 1], raw[:, 0]))
+    step = 360.0 / OUSTER_COLUMNS
+    col = np.floor(((az[0] + step / 2 - az) % 360.0) / step).astype(np.int64)
+    row = np.cumsum(np.r_[True, np.diff(col) < -OUSTER_COLUMNS // 2]) - 1
+    for i in range(1, len(col)):
+        if row[i] == row[i - 1] and col[i] <= col[i - 1]:
+            col[i] = col[i - 1] + 1
+    keep = (col < OUSTER_COLUMNS) & (row < 128)
+    rec = np.zeros((128, OUSTER_COLUMNS), OUSTER_DTYPE)
+    r, c, pts = row[keep], col[keep], raw[keep]
+    for i, axis in enumerate("xyz"):
+        rec[axis][r, c] = pts[:, i]
+    rec["reflectivity"][r, c] = np.clip(pts[:, 3], 0, 65535).astype(np.uint16)
+    rec["range"][r, c] = np.round(1000 * np.linalg.norm(pts[:, :3], axis=1)).astype(np.uint32)
+    rec["ring"] = np.arange(128, dtype=np.uint16)[:, None]
+    rec["t"] = np.round(np.arange(OUSTER_COLUMNS) * SCAN_PERIOD / OUSTER_COLUMNS * 1e9).astype(
+        np.uint32
+    )[None, :]
+    return rec
+
+
+class OusterPoses:
+    """Poses of ``--stream ouster``: the recording's, ``OUSTER_SEQUENCE`` at 10 Hz,
+    interpolated in between (position linearly, rotation by slerp)."""
+
+    def __init__(self) -> None:
+        from scipy.spatial.transform import Rotation
+
+        m = np.loadtxt(OUSTER / "poses.txt").reshape(-1, 3, 4)
+        self.positions = m[:, :, 3]
+        self.rotations = Rotation.from_matrix(m[:, :, :3])
+
+    def at(self, rel: float) -> tuple[np.ndarray, np.ndarray]:
+        """Position and quaternion (x y z w) ``rel`` seconds into the stream."""
+        from scipy.spatial.transform import Slerp
+
+        i, frac = divmod(rel / SCAN_PERIOD, 1.0)
+        a = OUSTER_SEQUENCE[int(i) % len(OUSTER_SEQUENCE)]
+        b = OUSTER_SEQUENCE[(int(i) + 1) % len(OUSTER_SEQUENCE)]
+        pos = (1 - frac) * self.positions[a] + frac * self.positions[b]
+        rot = Slerp([0.0, 1.0], self.rotations[[a, b]])([frac])[0]
+        return pos, rot.as_quat()
 
 
 def _precompute(stream: dict[str, Any], n_scans: int) -> tuple[Trajectory, list[dict]]:
@@ -114,122 +198,183 @@ class TfPoses:
     """``--tf-poses``: the base pose on /tf (odom -> base_link) and the lidar mount on
     /tf_static instead of an odometry topic and the lidar.* parameters."""
 
-    def __init__(self, feeder: Feeder) -> None:
+    def __init__(self, feeder: Feeder, mount: tuple[float, float, float]) -> None:
         from geometry_msgs.msg import TransformStamped
         from tf2_msgs.msg import TFMessage
 
         self.TFMessage, self.TransformStamped = TFMessage, TransformStamped
         self.tf_pub, self.static_pub = tf_publishers(feeder.node)
         self.static_pub.publish(
-            TFMessage(transforms=[self._tf("base_link", "lidar", 0.0, [0, 0, LIDAR_HEIGHT], 0.0)])
+            TFMessage(transforms=[self._tf("base_link", "lidar", 0.0, mount, (0, 0, 0, 1))])
         )
 
-    def _tf(self, parent: str, child: str, stamp: float, t: Any, yaw: float) -> Any:
+    def _tf(self, parent: str, child: str, stamp: float, t: Any, q: Any) -> Any:
         tf = self.TransformStamped()
         tf.header.frame_id, tf.child_frame_id = parent, child
         tf.header.stamp = stamp_msg(stamp)
         tr = tf.transform.translation
         tr.x, tr.y, tr.z = (float(v) for v in t)
         r = tf.transform.rotation
-        r.x, r.y, r.z, r.w = yaw_quaternion(yaw)
+        r.x, r.y, r.z, r.w = (float(v) for v in q)
         return tf
 
-    def publish(self, stamp: float, position: Any, yaw: float) -> None:
-        tf = self._tf("odom", "base_link", stamp, position, yaw)
+    def publish(self, stamp: float, position: Any, quaternion: Any) -> None:
+        tf = self._tf("odom", "base_link", stamp, position, quaternion)
         self.tf_pub.publish(self.TFMessage(transforms=[tf]))
 
 
+@dataclass
+class Stream:
+    """What the driver sends: ``clouds`` (packed, sent in turn, the ``k``-th at ``k *
+    SCAN_PERIOD``), the base pose ``pose(rel)`` (position, quaternion x y z w) ``rel``
+    seconds into the stream, the lidar's height on the base and the core resolution."""
+
+    name: str
+    clouds: list[PackedCloud]
+    pose: Callable[[float], tuple[np.ndarray, np.ndarray]]
+    resolution: float
+    mount_z: float
+    frame: str = "lidar"
+    """The clouds' frame: ``lidar`` (mounted ``mount_z`` above base_link) or base_link."""
+
+    @property
+    def points(self) -> int:
+        return int(np.mean([c.width * c.height for c in self.clouds]))
+
+
+def make_stream(name: str, n_scans: int) -> Stream:
+    """The clouds and poses of a stream (``STREAMS`` or ``ouster``)."""
+    from mfp_mapper.sensing.pointcloud import pack_columns, pack_records
+
+    if name == "ouster":
+        if not OUSTER.is_dir():
+            raise SystemExit(f"--stream ouster: {OUSTER} not found")
+        clouds = [pack_records(_ouster_records(k)) for k in OUSTER_SEQUENCE]
+        return Stream(name, clouds, OusterPoses().at, 0.2, 0.0, "base_link")
+    stream = STREAMS[name]
+    print(f"[{name}] precomputing {n_scans} sweeps ...", flush=True)
+    traj, scans = _precompute(stream, n_scans)
+    loop = n_scans * SCAN_PERIOD
+
+    def pose(rel: float) -> tuple[np.ndarray, np.ndarray]:
+        rel %= loop
+        return traj.position(rel), np.array(yaw_quaternion(float(traj.yaw(rel))))
+
+    clouds = [pack_columns(cols) for cols in scans]
+    return Stream(name, clouds, pose, stream["resolution"], LIDAR_HEIGHT)
+
+
+def _odom(stamp: float, position: np.ndarray, quaternion: np.ndarray) -> Any:
+    msg = odom_msg(stamp, position, 0.0)
+    o = msg.pose.pose.orientation
+    o.x, o.y, o.z, o.w = (float(v) for v in quaternion)
+    return msg
+
+
 def run_stream(
-    name: str,
+    stream: Stream,
     duration: float,
-    n_scans: int,
     workdir: Path,
     threads: int,
     tf_poses: bool = False,
     node_env: dict[str, str] | None = None,
+    queue_size: int = 0,
 ) -> dict[str, Any]:
+    from mfp_mapper.ros.messages import cloud_msg
 
-    stream = STREAMS[name]
-    print(f"[{name}] precomputing {n_scans} sweeps ...", flush=True)
-    traj, scans = _precompute(stream, n_scans)
-    points = int(np.mean([len(s["x"]) for s in scans]))
     domain = int(os.environ["ROS_DOMAIN_ID"])
     params: dict[str, Any] = {
-        "resolution": stream["resolution"],
+        "resolution": stream.resolution,
         "sensor_model.max_range": 100.0,
         "publish_rate": 1.0,
         "status_period": 1.0,
         "odom_wait": 1.0,
         "threads": threads,
     }
+    if queue_size:
+        params["cloud_queue_size"] = queue_size
     if tf_poses:
         params["frame_id"] = "odom"
-    else:
-        params["lidar.translation"] = [0.0, 0.0, LIDAR_HEIGHT]
-    node = NodeProcess(domain, params, workdir / f"{name}.log", env=node_env)
+    elif stream.frame != "base_link":
+        params["lidar.translation"] = [0.0, 0.0, stream.mount_z]
+    node = NodeProcess(domain, params, workdir / f"{stream.name}.log", env=node_env)
     feeder = Feeder()
-    tf = TfPoses(feeder) if tf_poses else None
+    tf = TfPoses(feeder, (0.0, 0.0, stream.mount_z)) if tf_poses else None
+    # built once: the driver's own CPU stays small (it shares the cores with the node)
+    msgs = [cloud_msg(c, stream.frame, stamp_msg(0.0)) for c in stream.clouds]
 
     def pose(stamp: float, rel: float) -> None:
+        position, quaternion = stream.pose(rel)
         if tf is not None:
-            tf.publish(stamp, traj.position(rel), float(traj.yaw(rel)))
+            tf.publish(stamp, position, quaternion)
         else:
-            feeder.odom_pub.publish(odom_msg(stamp, traj.position(rel), float(traj.yaw(rel))))
+            feeder.odom_pub.publish(_odom(stamp, position, quaternion))
 
     try:
         if not feeder.wait_connected(30.0):
             raise RuntimeError(f"node not discovered:\n{node.log()[-2000:]}")
         feeder.wait(lambda: feeder.status is not None, 10.0)
-        cpu0, before = _cpu_seconds(node.pid), dict(feeder.status or {})
         if os.environ.get("BENCH_DEBUG"):
             (workdir / "node.pid").write_text(str(node.pid))
+        # the window: from the first status after WARMUP_S of streaming (the first scans
+        # also load the compiled kernels) to the first one ``duration`` s later
+        before: dict[str, Any] | None = None
+        after: dict[str, Any] | None = None
+        cpu0 = wall0 = driver0 = load0 = 0.0
+        samples: list[float | None] = []  # latency_last_s of each status in the window
+        last_uptime = None
         start = time.time()
         next_odom, next_scan, sent, k = start, start, 0, 0
-        loop = n_scans * SCAN_PERIOD
-        while time.time() - start < duration:
+        while after is None and time.time() - start < WARMUP_S + duration + 30.0:
             now = time.time()
             if now >= next_odom:
-                pose(now, (now - start) % loop)
+                pose(now, now - start)
                 next_odom += ODOM_PERIOD
             if now >= next_scan:
-                cols = scans[k % n_scans]
-                stamp = start + k * SCAN_PERIOD
-                feeder.cloud_pub.publish(cloud_from_columns(cols, "lidar", stamp))
+                msg = msgs[k % len(msgs)]
+                msg.header.stamp = stamp_msg(start + k * SCAN_PERIOD)
+                feeder.cloud_pub.publish(msg)
                 sent += 1
                 k += 1
                 next_scan += SCAN_PERIOD
             feeder.spin(max(0.0, min(next_odom, next_scan) - time.time()))
-        # keep odometry flowing until the node has drained its queue
-        drain_end = time.time() + 3.0
-        while time.time() < drain_end:
-            now = time.time()
-            pose(now, (now - start) % loop)
-            feeder.spin(ODOM_PERIOD)
             st = feeder.status or {}
-            done = st.get("clouds_integrated", 0) + sum(st.get("clouds_dropped", {}).values())
-            if st.get("queued", 1) == 0 and done - _done(before) >= sent:
-                break
-        wall = time.time() - start
+            if before is not None and st.get("uptime_s") != last_uptime:
+                last_uptime = st.get("uptime_s")
+                samples.append(st.get("latency_last_s"))
+            if before is None:
+                if now - start >= WARMUP_S and st.get("clouds_integrated", 0) >= 1:
+                    before, cpu0, wall0 = dict(st), _cpu_seconds(node.pid), time.time()
+                    driver0, load0 = time.process_time(), os.getloadavg()[0]
+            elif st.get("uptime_s", 0.0) >= before["uptime_s"] + duration:
+                after = dict(st)
+        wall = time.time() - wall0
         cpu_node = _cpu_seconds(node.pid) - cpu0
-        feeder.wait(lambda: (feeder.status or {}).get("uptime_s", 0) > before["uptime_s"] + 1, 3)
-        after = dict(feeder.status or {})
+        driver = time.process_time() - driver0
+        if before is None or after is None:
+            raise RuntimeError(f"no status window: nothing integrated\n{node.log()[-2000:]}")
         if os.environ.get("BENCH_DEBUG"):
             print(json.dumps(after), node.log()[-3000:], sep="\n")
     finally:
         feeder.destroy()
         node.stop()
-    return _report(name, stream, points, sent, duration, wall, cpu_node, before, after)
+    after["latency_samples_s"] = [round(v, 3) for v in samples if v is not None]
+    after["driver_cpu_share"] = round(driver / wall, 3)  # this process: the lidar driver
+    after["load_average"] = [round(load0, 2), round(os.getloadavg()[0], 2)]
+    return _report(stream, after["uptime_s"] - before["uptime_s"], wall, cpu_node, before, after)
 
 
-def _done(status: dict[str, Any]) -> int:
-    return status.get("clouds_integrated", 0) + sum(status.get("clouds_dropped", {}).values())
+def _mean_since(before: dict[str, Any], after: dict[str, Any], key: str) -> float | None:
+    """The mean of ``key`` over the clouds integrated between two status messages."""
+    n0, n1 = before["clouds_integrated"], after["clouds_integrated"]
+    if n1 <= n0 or after.get(key) is None:
+        return None
+    total = after[key] * n1 - (before.get(key) or 0.0) * n0
+    return round(total / (n1 - n0), 3)
 
 
 def _report(
-    name: str,
-    stream: dict[str, Any],
-    points: int,
-    sent: int,
+    stream: Stream,
     duration: float,
     wall: float,
     cpu_node: float,
@@ -246,23 +391,35 @@ def _report(
     pub_n = after["publish_count"] - before["publish_count"]
     pub_s = after["publish_total_s"] - before["publish_total_s"]
     pub_locked = after["publish_locked_total_s"] - before["publish_locked_total_s"]
+    n = max(integrated, 1)
+    stages = {  # (a node without these counters: none)
+        k: round(1000 * (v - before["stage_s"].get(k, 0.0)) / n, 1)
+        for k, v in after.get("stage_s", {}).items()
+    }
+    received = _mean_since(before, after, "received_latency_mean_s")
+    lost = after["clouds_lost_transport"] - before["clouds_lost_transport"]
     result = {
-        "stream": name,
-        "resolution_m": stream["resolution"],
-        "points_per_scan": points,
-        "clouds_sent": sent,
+        "stream": stream.name,
+        "resolution_m": stream.resolution,
+        "points_per_scan": stream.points,
+        "window_s": round(duration, 2),
+        "clouds_sent": after["clouds_in"] - before["clouds_in"] + lost,
         "clouds_received": after["clouds_in"] - before["clouds_in"],
-        "clouds_lost_in_transport": after["clouds_lost_transport"]
-        - before["clouds_lost_transport"],
+        "clouds_lost_in_transport": lost,
         "clouds_integrated": integrated,
         "clouds_dropped": drops,
         "rate_hz": round(integrated / duration, 2),
         "rays_per_s": round((after["rays_used"] - before["rays_used"]) / duration),
-        "latency_mean_s": after["latency_mean_s"],
-        "latency_max_s": after["latency_max_s"],
+        "latency_mean_s": _mean_since(before, after, "latency_mean_s"),
+        "latency_max_s": max(after["latency_samples_s"], default=None),
+        "latency_samples_s": after["latency_samples_s"],
+        "received_latency_mean_s": received,
+        "stage_ms_per_scan": stages,
         "integration_cpu_share_of_one_core": round(cpu_int / duration, 3),
         "integration_cpu_per_scan_ms": round(1000 * cpu_int / max(integrated, 1), 1),
         "node_cpu_share_of_one_core": round(cpu_node / wall, 3),
+        "driver_cpu_share_of_one_core": after["driver_cpu_share"],
+        "load_average_start_end": after["load_average"],
         "publications": pub_n,
         "publish_ms_mean": round(1000 * pub_s / pub_n, 1) if pub_n else None,
         "publish_map_locked_ms_mean": round(1000 * pub_locked / pub_n, 1) if pub_n else None,
@@ -271,6 +428,75 @@ def _report(
         "memory_mb": round(after["memory_bytes"] / 1e6, 1),
     }
     print(json.dumps(result, indent=2), flush=True)
+    return result
+
+
+def core_times(name: str, n_scans: int, threads: int, count: int) -> dict[str, Any]:
+    """Without ROS, in this process: the stream's first ``count`` clouds through the
+    node's loop (parse, place) into two Mappers, one by ``Mapper.integrate`` (the core
+    alone), one by ``stage`` + ``commit`` (what the node does); median ms of the scans
+    after the first, per stage."""
+    from mfp_mapper import Mapper
+    from mfp_mapper.mapping.live import LiveSettings
+    from mfp_mapper.mapping.loop import ScanLoop
+    from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer
+    from mfp_mapper.sources.scan_files import CloudMessage, Header, Time
+
+    stream = make_stream(name, n_scans)
+    t0 = 1_000.0
+    poses = PoseBuffer(max_age=1e9)
+    for rel in np.arange(0.0, (count + 1) * SCAN_PERIOD + 1e-9, ODOM_PERIOD):
+        poses.add(t0 + rel, *stream.pose(float(rel)))
+    settings = LiveSettings("odom", True, -np.inf, np.inf, 5, 1.0)
+    extrinsic = Extrinsic(translation=np.array([0.0, 0.0, stream.mount_z]))
+    direct = Mapper(stream.resolution, threads=threads, max_range=100.0)
+    staged = Mapper(stream.resolution, threads=threads, max_range=100.0)
+    loop = ScanLoop(direct, settings)
+    times: dict[str, list[float]] = {k: [] for k in ("parse", "place", "core", "walk", "merge")}
+    for k in range(count):
+        c = stream.clouds[k % len(stream.clouds)]
+        sec = t0 + k * SCAN_PERIOD
+        header = Header(Time(int(sec), int(round((sec % 1) * 1e9))), "lidar")
+        msg = CloudMessage(header, c.height, c.width, c.fields, False, c.point_step,
+                           c.row_step, c.data)  # fmt: skip
+        clock = time.perf_counter()
+        prepared = loop.prepare(msg)
+        t_parse = time.perf_counter()
+        placed = loop.place(prepared, poses, extrinsic)
+        t_place = time.perf_counter()
+        direct.integrate(placed.points, placed.origins, placed.stamp, placed.no_return)
+        t_core = time.perf_counter()
+        scan = staged.stage(placed.points, placed.origins, placed.stamp, placed.no_return)
+        t_walk = time.perf_counter()
+        staged.commit(scan)
+        t_merge = time.perf_counter()
+        for key, a, b in (("parse", clock, t_parse), ("place", t_parse, t_place),
+                          ("core", t_place, t_core), ("walk", t_core, t_walk),
+                          ("merge", t_walk, t_merge)):  # fmt: skip
+            times[key].append(b - a)
+    same = direct.num_voxels == staged.num_voxels
+    direct.close()
+    staged.close()
+    return {
+        "scans": count,
+        "rays_per_scan": len(placed.points),
+        "ms_per_scan": {k: round(1000 * float(np.median(v[1:])), 1) for k, v in times.items()},
+        "staged_map_has_the_same_voxels": same,
+    }
+
+
+def _core_child(name: str, n_scans: int, threads: int) -> dict[str, Any]:
+    """``core_times`` in a fresh process (its own memory, as the node's)."""
+    import subprocess
+
+    out = subprocess.run(
+        [sys.executable, __file__, "--core-child", name, str(n_scans), str(threads)],
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stdout
+    result = json.loads(out.strip().splitlines()[-1])
+    print(f"[{name}] core without ROS: {json.dumps(result)}", flush=True)
     return result
 
 
@@ -380,11 +606,26 @@ def run_big_scan(points: int, workdir: Path) -> dict[str, Any]:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--stream", choices=[*STREAMS, "all"], default="all")
+    parser.add_argument(
+        "--stream",
+        choices=[*STREAMS, "ouster", "all"],
+        default="all",
+        help="all: the simulated streams (vlp16, os1-128); ouster: the real OS1-128 scans",
+    )
+    parser.add_argument(
+        "--core",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="also time the same clouds without ROS (default: with --stream ouster)",
+    )
+    parser.add_argument("--core-child", nargs=3, help=argparse.SUPPRESS)
     parser.add_argument("--duration", type=float, default=15.0, help="seconds per stream")
     parser.add_argument("--scans", type=int, default=20, help="distinct sweeps in the loop")
     parser.add_argument("--logs", type=Path, help="keep the node logs in this directory")
     parser.add_argument("--threads", type=int, default=1, help="the node's core threads")
+    parser.add_argument(
+        "--queue-size", type=int, default=0, help="the node's cloud_queue_size (0: its default)"
+    )
     parser.add_argument(
         "--tf-poses",
         action="store_true",
@@ -406,6 +647,10 @@ def main() -> int:
     parser.add_argument("--default-dds", action="store_true", help="the same as --dds none")
     parser.add_argument("--json", type=Path, help="also write the results to this file")
     args = parser.parse_args()
+    if args.core_child:
+        name, n_scans, threads = args.core_child
+        print(json.dumps(core_times(name, int(n_scans), int(threads), CORE_SCANS)))
+        return 0
     if args.default_dds:
         args.dds = "none"
     import rclpy
@@ -436,24 +681,72 @@ def main() -> int:
                 run_big_scan(int(args.big_scan), logs)
                 return 0
             for name in STREAMS if args.stream == "all" else [args.stream]:
-                results.append(
-                    run_stream(
-                        name, args.duration, args.scans, logs, args.threads, args.tf_poses, node_env
-                    )
+                core = args.core if args.core is not None else name == "ouster"
+                before = _core_child(name, args.scans, args.threads) if core else None
+                stream = make_stream(name, args.scans)
+                result = run_stream(
+                    stream,
+                    args.duration,
+                    logs,
+                    args.threads,
+                    args.tf_poses,
+                    node_env,
+                    args.queue_size,
                 )
+                if before is not None:  # the core before and after the node: its time drifts
+                    after = _core_child(name, args.scans, args.threads)
+                    result["core_ms_per_scan"] = _core_pair(before, after)
+                results.append(result)
     finally:
         rclpy.try_shutdown()
     if args.json:
         args.json.write_text(json.dumps(results))
+    print(f"load average at the end: {os.getloadavg()[0]:.2f} (1 min), on {os.cpu_count()} cores")
     print("\nstream      res   pts/scan  rate(Hz)  latency mean/max (s)  integ. CPU  node CPU")
     for r in results:
+        if not r["clouds_integrated"]:
+            print(f"{r['stream']:<10} nothing integrated: {r['clouds_dropped']}")
+            continue
         print(
             f"{r['stream']:<10} {r['resolution_m']:>4}  {r['points_per_scan']:>8}  "
             f"{r['rate_hz']:>8}  {r['latency_mean_s']:.3f} / {r['latency_max_s']:.3f}"
             f"          {100 * r['integration_cpu_share_of_one_core']:>5.0f}%    "
             f"{100 * r['node_cpu_share_of_one_core']:>5.0f}%"
         )
+    for r in results:
+        if r["clouds_integrated"] and r["stage_ms_per_scan"]:
+            _print_split(r)
     return 0
+
+
+def _core_pair(before: dict[str, Any], after: dict[str, Any]) -> dict[str, Any]:
+    """The core's ms per scan measured before and after the node ran: their mean, and both."""
+    b, a = before["ms_per_scan"], after["ms_per_scan"]
+    return {k: round((b[k] + a[k]) / 2, 1) for k in b} | {"before": b, "after": a}
+
+
+def _print_split(r: dict[str, Any]) -> None:
+    """Where an integrated scan's time went in the node; against the core's, same clouds."""
+    st = r["stage_ms_per_scan"]
+    walker, worker = st["walk"] + st["merge"], st["parse"] + st["place"]
+    print(
+        f"\n{r['stream']}: ms per integrated scan in the node: "
+        + ", ".join(f"{k} {v:.1f}" for k, v in st.items())
+        + f"; walker (walk + merge) {walker:.1f}, worker (parse + place) {worker:.1f}: at most "
+        f"{1000 / max(walker, worker, 1e-9):.1f} Hz; cloud received -> integrated "
+        f"{r['received_latency_mean_s']} s mean; load average {r['load_average_start_end'][0]}"
+        f" -> {r['load_average_start_end'][1]} on {os.cpu_count()} cores, the driver (this "
+        f"process) {100 * r['driver_cpu_share_of_one_core']:.0f}% of a core"
+    )
+    core = r.get("core_ms_per_scan")
+    if core:
+        print(
+            f"  the same clouds without ROS (mean of before/after the node): parse "
+            f"{core['parse']}, place {core['place']}, Mapper.integrate {core['core']} "
+            f"(stage {core['walk']} + commit {core['merge']}) ms a scan; node walker / "
+            f"Mapper.integrate = {walker / core['core']:.2f}; the core alone allows "
+            f"{1000 / core['core']:.1f} Hz"
+        )
 
 
 if __name__ == "__main__":

@@ -257,6 +257,61 @@ SETTINGS: tuple[Setting, ...] = (
     _node("tf_buffer", 10.0, "TF cache time (s; tf2's default 10): /tf samples kept per "
           "transform; a transform not received for this long (stream time) is forgotten.",
           0.1, 3600.0),
+    # --- localization against the loaded map (README "Localization mode") ---------------------
+    _node("localization.enabled", False, "Localize each cloud against the map loaded from "
+          "map_path (scan-to-map alignment by the forward model's likelihood) and publish the "
+          "map -> odom correction on /tf, as AMCL does; clouds are placed in "
+          "localization.odom_frame, the map frame is frame_id (or the loaded map's)."),
+    _node("localization.freeze_map", True, "true: the loaded map is not changed (localization "
+          "only); false: clouds are also integrated at their corrected poses."),
+    _node("localization.odom_frame", "odom", "The odometry frame (AMCL's odom_frame_id): "
+          "clouds are placed in it by odometry or TF, and the node publishes map -> "
+          "odom_frame."),
+    _node("localization.tf_publish", True, "Publish map -> odom on /tf (AMCL's tf_broadcast); "
+          "false: only ~/status reports the correction."),
+    _node("localization.transform_tolerance", 0.5, "Seconds the published map -> odom is "
+          "future-dated by (AMCL's transform_tolerance).", 0.0, 60.0, dynamic=True),
+    _node("localization.tf_rate", 20.0, "Rate (Hz) at which the last map -> odom is "
+          "republished, stamped now + transform_tolerance, so that it never expires.", 0.1,
+          1000.0),
+    _node("localization.min_period", 0.0, "Align at most one cloud per this many seconds "
+          "(stamp time); the others are placed with the last correction. 0: every cloud.",
+          0.0, 3600.0, dynamic=True),
+    _node("localization.max_rays", 3000, "Rays per cloud used by the alignment (an evenly "
+          "spread subset).", 10, 10_000_000, dynamic=True),
+    _node("localization.max_sigma", 0.05, "Refuse a correction whose standard deviation "
+          "along its weakest direction exceeds this (m): degenerate geometry.", 0.0, 100.0,
+          dynamic=True),
+    _node("localization.min_gain_per_ray", 0.02, "Refuse a correction that raises the "
+          "scan's log-likelihood by less than this per ray (nats).", 0.0, 100.0,
+          dynamic=True),
+    _node("localization.min_constraints", 5, "Refuse when fewer planar patches of the scan "
+          "than this constrain some direction (a corridor's axis).", 0, 1_000_000,
+          dynamic=True),
+    _node("localization.max_shift", 0.5, "While localized: refuse a correction that moves the "
+          "robot further than this (m).", 0.0, 100.0, dynamic=True),
+    _node("localization.max_angle", 5.0, "While localized: refuse a correction that turns the "
+          "robot by more than this (degrees).", 0.0, 180.0, dynamic=True),
+    _node("localization.initial_max_shift", 1.0, "Before the first accepted correction (at "
+          "start, after /initialpose, when lost): the wider search range (m).", 0.0, 100.0,
+          dynamic=True),
+    _node("localization.initial_max_angle", 10.0, "Before the first accepted correction: the "
+          "wider search range (degrees).", 0.0, 180.0, dynamic=True),
+    _node("localization.lost_after", 10, "Consecutive refused corrections after which the "
+          "state is 'lost' (the wider search is used again).", 1, 1_000_000, dynamic=True),
+    _node("localization.tracking_levels", 1, "While localized: pyramid levels the alignment "
+          "uses, finest first (before the first acceptance and when lost: all 3).", 1, 3,
+          dynamic=True),
+    _node("localization.update_min_d", 0.25, "While localized: align a cloud only after the "
+          "robot moved this far (m, odometry) since the last alignment, or turned "
+          "update_min_a (AMCL's update_min_d). 0 and 0: every cloud.", 0.0, 1000.0,
+          dynamic=True),
+    _node("localization.update_min_a", 11.5, "While localized: align a cloud only after the "
+          "robot turned this much (degrees, odometry) since the last alignment, or moved "
+          "update_min_d (AMCL's update_min_a, 0.2 rad).", 0.0, 360.0, dynamic=True),
+    _node("localization.rebuild_period", 5.0, "With freeze_map false: the alignment's field "
+          "is rebuilt from the growing map at most this often (s, in the background).", 0.1,
+          86400.0, dynamic=True),
     # --- map file, health ------------------------------------------------------------------
     _node("map_path", "", "Map file (.npz), or tiled map (a directory), for ~/save_map, "
           "loaded at start when it exists. Empty: none."),
@@ -503,6 +558,26 @@ class NodeConfig:
     projected_map_free_threshold: float
     octomap_topics: bool
     tf_buffer: float
+    localization_enabled: bool
+    localization_freeze_map: bool
+    localization_odom_frame: str
+    localization_tf_publish: bool
+    localization_transform_tolerance: float
+    localization_tf_rate: float
+    localization_min_period: float
+    localization_max_rays: int
+    localization_max_sigma: float
+    localization_min_gain_per_ray: float
+    localization_min_constraints: int
+    localization_max_shift: float
+    localization_max_angle: float
+    localization_initial_max_shift: float
+    localization_initial_max_angle: float
+    localization_lost_after: int
+    localization_tracking_levels: int
+    localization_update_min_d: float
+    localization_update_min_a: float
+    localization_rebuild_period: float
     map_path: str
     save_on_shutdown: bool
     autosave_period: float

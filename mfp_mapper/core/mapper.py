@@ -18,7 +18,7 @@ from mfp_mapper.core.errors import CoreError, ScanTooLargeError
 from mfp_mapper.core.gridmap import HitGrid, band_grid
 from mfp_mapper.core.mailbox import Mailbox
 from mfp_mapper.core.memory_bound import MemoryBound, fit_scan_budget, scan_block_budget
-from mfp_mapper.core.staging import merge_shard, prefault, staged_updates
+from mfp_mapper.core.staging import clear_staged, merge_shard, prefault, staged_updates
 from mfp_mapper.core.store import (
     BLOCK_EDGE,
     MAX_RESOLUTION,
@@ -124,6 +124,7 @@ class Mapper:
         self._worker_cpu = 0.0  # CPU seconds of the pool threads in the current integrate()
         self._mailboxes = [Mailbox() for _ in self._store.shards]
         self._stage_mailboxes = [Mailbox() for _ in self._store.shards]
+        self._spare_stage: BlockStore | None = None  # an emptied staged store, for reuse
 
     @classmethod
     def of(
@@ -203,7 +204,9 @@ class Mapper:
             origin = self._origin_from(org.reshape(-1, 3))
         rays, pts, dropped = self._place(points, origins, no_return, set_origin=False, at=origin)
         summary = self._summary(rays, pts, dropped)
-        store = BlockStore(shards=len(self._store.shards))
+        store, self._spare_stage = self._spare_stage, None
+        if store is None:
+            store = BlockStore(shards=len(self._store.shards))
         if len(rays):
             budget = scan_block_budget(self.max_voxels)
             rays, summary.rays_cut_by_budget = fit_scan_budget(rays, budget, self.resolution)
@@ -247,6 +250,8 @@ class Mapper:
             summary.new_voxels, summary.blocks_touched, _ = self._store.finish_scan()
             summary.voxels_touched = staged_updates(staged.store)
             self._scan_added(rays, staged.stamp)
+            if clear_staged(staged.store):  # merged whole: its memory serves the next stage
+                self._spare_stage = staged.store
         summary.commit_seconds = time.perf_counter() - t0
         summary.seconds += summary.commit_seconds
         summary.cpu_seconds += time.thread_time() - cpu0

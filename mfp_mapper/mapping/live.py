@@ -1,8 +1,11 @@
 """The live integration worker, without ROS: queue, waiting, drops and counters.
 
 The node hands it received clouds (``submit``) from its executor thread, and odometry and
-transforms to its pose inputs (``worker.pose_inputs``, a ``PoseInputs``). One worker thread takes
-the clouds in order and runs each through the scan pipeline. A scan is walked into a store
+transforms to its pose inputs (``worker.pose_inputs``, a ``PoseInputs``). Two threads run
+the scan pipeline, in order: the worker parses and places each cloud, then hands it to the
+walker, which integrates it while the worker prepares the next one (the walk releases the
+GIL; the worker stays at most one placed scan ahead; in localization mode the worker aligns
+and integrates each scan itself). A scan is walked into a store
 of its own without any lock (``Mapper.stage``), then added to the map in one merge
 (``Mapper.commit``, a few percent of the scan's time). A reader that needs whole scans
 (GetMap, saving, reset) takes ``whole_map``: it waits at most for a merge, never for a scan;
@@ -24,20 +27,31 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.mapping.live_localization import LiveLocalizer, pose_matrix
 from mfp_mapper.mapping.loop import PreparedScan, ScanCounts, ScanLoop, staged
 from mfp_mapper.mapping.whole_map import MERGE_PAUSE_S, WholeMap
 from mfp_mapper.sensing import pipeline
+from mfp_mapper.sensing.pipeline import PlacedScan
 from mfp_mapper.sensing.pointcloud import ParsedCloud
 from mfp_mapper.sensing.pose_inputs import Log, PoseCounters, PoseInputs
-from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer
+from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer, PoseUnavailable
 from mfp_mapper.sensing.tf_tree import TfTree
 
 if TYPE_CHECKING:
     from mfp_mapper.config.schema import NodeConfig, XyzRpy
+
+STAGES = ("queued", "parse", "place", "handoff", "walk", "merge")
+"""The stages of an integrated cloud timed in ``LiveCounters.stage_seconds``: waiting in the
+queue (and for poses), parse (with no-return rays), placement (poses, de-skew, band), placed
+and waiting for the walker (busy with the scan before), the walk into a staged store
+(``Mapper.stage``), the merge into the map (``Mapper.commit``, with the wait for the map
+lock)."""
 
 RETRY_PERIOD = 0.02
 """Seconds between two tries of a waiting cloud (sooner when new poses arrived)."""
@@ -97,6 +111,18 @@ class _Pending:
     prepared: PreparedScan | None = None
     tried: int = -1  # the pose generation of the last try (-1: never tried)
     next_try: float = 0.0  # time.monotonic()
+    parse_s: float = 0.0  # wall seconds of its parse
+    started: float = 0.0  # time.monotonic() when the worker first took it
+
+
+@dataclass
+class _Placed:
+    """A cloud placed by the worker, on its way to the walker."""
+
+    item: _Pending
+    placed: PlacedScan
+    placing: float  # time.monotonic() when its placement began
+    placed_at: float  # and ended
 
 
 @dataclass
@@ -104,11 +130,16 @@ class LiveCounters(ScanCounts, PoseCounters):
     """The pipeline's counts, the pose inputs' and what only a live stream has."""
 
     clouds_lost_transport: int = 0  # reported lost by the middleware (never received)
+    clouds_localized: int = 0  # localization with a frozen map: placed, aligned, not integrated
     integration_cpu: float = 0.0  # CPU seconds: parse + place + integrate (+ core threads)
     integration_wall: float = 0.0
     latency_sum: float = 0.0
     latency_max: float = 0.0
     latency_last: float = float("nan")
+    received_latency_sum: float = 0.0  # cloud received -> integrated (s)
+    received_latency_max: float = 0.0
+    stage_seconds: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
+    """Wall seconds of the integrated clouds by stage (``STAGES``), summed."""
 
 
 class LiveIntegrator:
@@ -127,10 +158,16 @@ class LiveIntegrator:
         info: Callable[[str], None] | None = None,
         publish: Callable[[], None] | None = None,
         map_frame: str = "",
+        localizer: LiveLocalizer | None = None,
     ) -> None:
         """``map_frame``: the run's map frame when known at start (``frame_id``, a loaded
-        map's frame); empty: decided at the first cloud placed (``PoseInputs``)."""
+        map's frame); empty: decided at the first cloud placed (``PoseInputs``).
+        ``localizer``: the localization mode (``mapping.live_localization``): clouds are
+        placed in its odometry frame, then moved into the map frame by its correction."""
         self.mapper = mapper
+        self.localizer = localizer
+        if localizer is not None:
+            map_frame = localizer.settings.odom_frame
         self.settings = settings
         self.counters = LiveCounters()
         self.map_lock = threading.Lock()
@@ -144,7 +181,7 @@ class LiveIntegrator:
             info=info or (lambda text: log("info", text, False)),
             now=now,
         )
-        if self.pose_inputs.map_frame is not None:
+        if self.pose_inputs.map_frame is not None and localizer is None:
             mapper.frame_id = self.pose_inputs.map_frame
         self._warned: set[str] = set()
         self._log = log
@@ -156,6 +193,11 @@ class LiveIntegrator:
         self._publish_due = False
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._walker: threading.Thread | None = None
+        self._handoff: _Placed | None = None  # placed, waiting for the walker (under _cv)
+        self._prepare_at = 0.0  # time.monotonic() from which the worker takes the next cloud
+        self._walk_s = 0.0  # moving averages (s): a scan's walk + merge, its parse + place
+        self._prepare_s = 0.0
         self.loop = ScanLoop(
             mapper,
             settings,
@@ -174,8 +216,8 @@ class LiveIntegrator:
 
     @property
     def running(self) -> bool:
-        """Whether the worker thread is still alive (e.g. walking a long scan)."""
-        return self._thread is not None and self._thread.is_alive()
+        """Whether the worker or the walker thread is still alive (e.g. walking a long scan)."""
+        return any(t is not None and t.is_alive() for t in (self._thread, self._walker))
 
     def set_publish(self, publish: Callable[[], None] | None) -> None:
         """What the worker calls between two scans after ``request_publish``."""
@@ -183,12 +225,52 @@ class LiveIntegrator:
 
     @property
     def map_frame(self) -> str:
-        """The run's map frame ("" until decided)."""
+        """The run's map frame ("" until decided; the global frame when localizing)."""
+        if self.localizer is not None:
+            return self.localizer.settings.global_frame
         return self.pose_inputs.map_frame or ""
 
     @property
     def robot_position(self) -> Any:
-        return self.pose_inputs.robot_position
+        position = self.pose_inputs.robot_position
+        if self.localizer is None or position is None:
+            return position
+        m, _, _ = self.localizer.transform()
+        return m[:3, :3] @ np.asarray(position, dtype=np.float64) + m[:3, 3]
+
+    def to_map_frame(self, points: np.ndarray, frame: str, stamp: float) -> np.ndarray:
+        """Points given in ``frame`` in the map frame (``PoseInputs.to_map_frame``; when
+        localizing: through the odometry frame and the correction); raises
+        TransformUnavailable."""
+        if self.localizer is None:
+            return self.pose_inputs.to_map_frame(points, frame, stamp)
+        frame = frame.lstrip("/")
+        if not frame or frame == self.localizer.settings.global_frame:
+            return points
+        in_odom = self.pose_inputs.to_map_frame(points, frame, stamp)
+        m, _, _ = self.localizer.transform()
+        return np.asarray(in_odom) @ m[:3, :3].T + m[:3, 3]
+
+    def robot_in_odom(self, stamp: float) -> np.ndarray | None:
+        """The robot (the odometry child) in the localizer's odometry frame (4x4) at ``stamp``,
+        or at the latest odometry when the stamp is not covered; None without odometry in
+        that frame (then ``/initialpose`` waits for the next cloud)."""
+        inputs = self.pose_inputs
+        if self.localizer is None:
+            return None
+        with inputs.lock:
+            if inputs.odom_frame != self.localizer.settings.odom_frame or not len(inputs.poses):
+                return None
+            poses = inputs.poses.snapshot()
+        latest, earliest = poses.latest_stamp, poses.earliest_stamp
+        if latest is None:
+            return None
+        covered = earliest is not None and earliest <= stamp <= latest
+        try:
+            t, r = poses.interpolate([stamp if covered else latest])
+        except PoseUnavailable:
+            return None
+        return pose_matrix(t[0], r[0])
 
     # --- inputs (any thread) ----------------------------------------------------------------
 
@@ -252,8 +334,12 @@ class LiveIntegrator:
 
     @property
     def queued(self) -> int:
+        """Clouds received and not integrated or dropped yet (but the one being walked)."""
         with self._cv:
-            return len(self._queue) + len(self._waiting)
+            return self._queued_locked()
+
+    def _queued_locked(self) -> int:
+        return len(self._queue) + len(self._waiting) + (self._handoff is not None)
 
     def request_publish(self) -> None:
         """Ask the worker to publish between two scans."""
@@ -266,21 +352,32 @@ class LiveIntegrator:
     def start(self) -> None:
         """Start the worker thread (again after ``stop``: a lifecycle node reactivated)."""
         self._stop.clear()
+        self._prepare_at = 0.0
         self._thread = threading.Thread(target=self.run, name="mfp_integration", daemon=True)
+        self._walker = threading.Thread(target=self._walk, name="mfp_walk", daemon=True)
         self._thread.start()
+        self._walker.start()
 
     def stop(self, timeout: float = 10.0) -> None:
         self._stop.set()
         with self._cv:
             self._cv.notify_all()
-        if self._thread is not None:
-            self._thread.join(timeout=timeout)
+        end = time.monotonic() + timeout
+        for thread in (self._thread, self._walker):
+            if thread is not None:
+                thread.join(timeout=max(end - time.monotonic(), 0.0))
         with self._cv:
             self._queue.clear()  # stale when the worker starts again
+            self._handoff = None
 
     def _next(self) -> _Pending | None:
         """The next cloud to try (under ``_cv``): a new one first, else a waiting one that
-        is due (new poses since its last try, or ``RETRY_PERIOD`` passed)."""
+        is due (new poses since its last try, or ``RETRY_PERIOD`` passed); none while the
+        walker has a placed scan still to take, nor before ``_prepare_at``: the next cloud
+        is parsed and placed so as to be ready when the walker is, not earlier (a scan
+        placed early would wait for the walk, and a later pick may be a newer cloud)."""
+        if self._handoff is not None or time.monotonic() < self._prepare_at:
+            return None
         if self._queue:
             return self._queue.popleft()
         now, generation = time.monotonic(), self.pose_inputs.generation
@@ -298,7 +395,10 @@ class LiveIntegrator:
             with self._cv:
                 item = self._next()
                 while item is None and not (self._publish_due or self._stop.is_set()):
-                    self._cv.wait(RETRY_PERIOD if self._waiting else 0.5)
+                    wait = RETRY_PERIOD if self._waiting else 0.5
+                    if self._queue and self._handoff is None:  # the walker is busy
+                        wait = min(wait, max(self._prepare_at - time.monotonic(), 0.001))
+                    self._cv.wait(wait)
                     item = self._next()
                 if self._stop.is_set():
                     return
@@ -346,14 +446,17 @@ class LiveIntegrator:
             self._log_drop(drop.reason, drop.detail, self.loop.count_drop(drop))
             return True
         finally:
-            self.counters.integration_cpu += time.thread_time() - cpu0
-            self.counters.integration_wall += time.perf_counter() - wall0
+            with self._cv:  # the walker adds its own
+                self.counters.integration_cpu += time.thread_time() - cpu0
+                self.counters.integration_wall += time.perf_counter() - wall0
 
     def _process(self, item: _Pending) -> bool:
         cfg = self.settings
         self.loop.settings = cfg  # parameters changed at run time reach the pipeline
         if item.prepared is None:
+            item.started = time.monotonic()
             item.prepared = self.loop.prepare(item.msg)
+            item.parse_s = time.monotonic() - item.started
             if self.counters.no_return_note:
                 self._warn_once("no_return", f"no-return rays: {self.counters.no_return_note}")
             self._warn_time_field(item.prepared.cloud)
@@ -395,23 +498,99 @@ class LiveIntegrator:
                 0,
                 parse_drops,
             )
-        if self.mapper.frame_id != placement.map_frame:
+        if self.mapper.frame_id != placement.map_frame and self.localizer is None:
             self.mapper.frame_id = placement.map_frame  # the run's frame, decided once
+        t_place = time.monotonic()
+        placed = self.loop.place(prepared, placement.poses, placement.extrinsic)
+        if self.localizer is not None:  # localization: aligned, then integrated here
+            placed = self.localizer.localize(placed, _robot_pose(placement))
+        self.pose_inputs.note_robot(placement, prepared.stamp, cfg.base_frame_id)
+        job = _Placed(item, placed, t_place, time.monotonic())
+        if self.localizer is None and self._walker is not None and self._walker.is_alive():
+            self._hand_over(job)
+        else:
+            self._integrate(job)  # drain(), localization: all on the calling thread
+        return True
+
+    # --- the walker thread: the placed scans into the map, in order --------------------------
+
+    def _hand_over(self, job: _Placed) -> None:
+        """Give a placed scan to the walker; waits while it still holds the previous one (so
+        the worker prepares at most one scan ahead of the walk)."""
+        with self._cv:
+            while self._handoff is not None and not self._stop.is_set():
+                self._cv.wait(0.5)
+            if not self._stop.is_set():
+                self._handoff = job
+                self._cv.notify_all()
+
+    def _walk(self) -> None:
+        """The walker thread: integrates the scans the worker placed, one after the other,
+        while the worker parses and places the next (the walk releases the GIL)."""
+        while True:
+            with self._cv:
+                while self._handoff is None and not self._stop.is_set():
+                    self._cv.wait(0.5)
+                job = self._handoff
+                if job is None or self._stop.is_set():
+                    return
+                self._handoff = None
+                self._prepare_at = time.monotonic() + self._walk_s - self._prepare_s
+                self._cv.notify_all()
+            cpu0, wall0 = time.thread_time(), time.perf_counter()
+            try:
+                self._integrate(job)
+            except pipeline.ScanDropped as drop:
+                self._log_drop(drop.reason, drop.detail, self.loop.count_drop(drop))
+            except Exception as err:  # keep the node alive whatever a message holds
+                self._drop("error", f"{type(err).__name__}: {err}")
+            finally:
+                with self._cv:
+                    self.counters.integration_cpu += time.thread_time() - cpu0
+                    self.counters.integration_wall += time.perf_counter() - wall0
+                    self._walk_s = _average(self._walk_s, time.perf_counter() - wall0)
+                    self._prepare_s = _average(
+                        self._prepare_s, job.placed_at - job.placing + job.item.parse_s
+                    )
+                    self._prepare_at = 0.0
+                    self._cv.notify_all()
+
+    def _integrate(self, job: _Placed) -> None:
+        """A placed scan into the map (``ScanLoop.commit``), with its latency and timing."""
+        cfg = self.settings
+        t_commit = time.monotonic()
         own_cpu = time.thread_time()
         if cfg.max_range is not None and self.mapper.max_range != cfg.max_range:
             with self.map_lock:  # sensor_model.max_range changed at run time
                 self.mapper.max_range = cfg.max_range
-        _, summary = self.loop.finish(prepared, placement.poses, placement.extrinsic)
+        summary = None  # None: localized against a frozen map, not integrated
+        if self.localizer is None or not self.localizer.settings.freeze_map:
+            summary = self.loop.commit(job.placed)
+            if self.localizer is not None:
+                self.localizer.build_in_background(self.mapper, self.whole_map)
+        done = time.monotonic()
         own_cpu = time.thread_time() - own_cpu
-        self.pose_inputs.note_robot(placement, prepared.stamp, cfg.base_frame_id)
-        latency = self._now() - prepared.stamp
+        latency = self._now() - job.placed.stamp
+        item = job.item
         with self._cv:
             c = self.counters
             c.latency_last = latency
             c.latency_sum += latency
             c.latency_max = max(c.latency_max, latency)
-            c.integration_cpu += max(summary.cpu_seconds - own_cpu, 0.0)  # the core's threads
-        return True
+            c.received_latency_sum += done - item.received
+            c.received_latency_max = max(c.received_latency_max, done - item.received)
+            times = c.stage_seconds
+            times["queued"] += job.placing - item.received - item.parse_s
+            times["parse"] += item.parse_s
+            times["place"] += job.placed_at - job.placing
+            times["handoff"] += t_commit - job.placed_at
+            if summary is None:
+                c.clouds_localized += 1
+            else:  # the core's threads
+                walk = summary.seconds - summary.commit_seconds
+                times["walk"] += walk
+                times["merge"] += done - t_commit - walk
+                c.integration_cpu += max(summary.cpu_seconds - own_cpu, 0.0)
 
     def _check_stamp(self, prepared: PreparedScan) -> None:
         """A cloud stamped further ahead of the node clock than a pose may be is dropped
@@ -482,7 +661,27 @@ class LiveIntegrator:
     def snapshot(self) -> tuple[LiveCounters, int]:
         """A copy of the counters and the queue length, taken together."""
         with self._cv:
-            return copy.deepcopy(self.counters), len(self._queue) + len(self._waiting)
+            return copy.deepcopy(self.counters), self._queued_locked()
+
+
+def _average(mean: float, value: float) -> float:
+    """A moving average (the last few values weigh most; the first one is taken whole)."""
+    return value if mean == 0.0 else 0.8 * mean + 0.2 * value
+
+
+def _robot_pose(placement: Any) -> Callable[[float], np.ndarray | None]:
+    """The robot's pose (4x4, placement frame) at a stamp, None where not covered."""
+
+    def pose(stamp: float) -> np.ndarray | None:
+        if not placement.source_moves:
+            return None
+        try:
+            t, r = placement.poses.interpolate([stamp])
+        except Exception:  # PoseUnavailable, or a stamp outside the poses
+            return None
+        return pose_matrix(t[0], r[0])
+
+    return pose
 
 
 def finite_or_none(value: float) -> float | None:

@@ -37,6 +37,7 @@ import rclpy.task
 import rclpy.time
 import rclpy.utilities
 from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseWithCovarianceStamped, TransformStamped
 from mfp_mapper_msgs.srv import ClearBbox
 from nav_msgs.msg import OccupancyGrid, Odometry
 from nav_msgs.srv import GetMap
@@ -58,6 +59,7 @@ from rclpy.service import Service
 from rclpy.signals import SignalHandlerOptions
 from rclpy.subscription import Subscription
 from rclpy.timer import Timer
+from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 from std_srvs.srv import Empty, Trigger
@@ -70,6 +72,7 @@ from mfp_mapper.mapio.loading import load_map
 from mfp_mapper.mapio.mapfile import MapFileError, map_arrays
 from mfp_mapper.mapio.tiles import is_tiled, write_map_path
 from mfp_mapper.mapping.live import LiveIntegrator, LiveSettings
+from mfp_mapper.mapping.live_localization import LiveLocalizer, LocalizationSettings
 from mfp_mapper.ros.guarded_node import GuardedLifecycleNode, tracked
 from mfp_mapper.ros.map_outputs import MapOutputs
 from mfp_mapper.ros.messages import cloud_msg
@@ -78,6 +81,7 @@ from mfp_mapper.ros.shutdown import SpinUntilSignal
 from mfp_mapper.ros.status import (
     StatusWindow,
     diagnostics,
+    localization_diagnostic,
     next_window,
     startup_text,
     status_report,
@@ -178,6 +182,7 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._transport_explained = False
         self._clock_warned = False
         self.worker: LiveIntegrator  # set by configure
+        self.localizer: LiveLocalizer | None = None  # localization.enabled
         self.outputs: MapOutputs
         self._configured = False
         self._configured_once = False
@@ -207,6 +212,7 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._last_window = self._status_window
         mapper, self._save_elsewhere = initial_mapper(self.cfg, self.get_logger())
         self._warn_slashes()
+        self.localizer = self._make_localizer(mapper)
         self.worker = LiveIntegrator(
             mapper,
             LiveSettings.of(self.cfg),
@@ -216,7 +222,10 @@ class MfpMapperNode(GuardedLifecycleNode):
             info=self.get_logger().info,
             now=self._now,
             map_frame=self.cfg.frame_id or (mapper.frame_id if mapper.num_voxels else ""),
+            localizer=self.localizer,
         )
+        if self.localizer is not None and mapper.num_voxels:
+            self.localizer.build_in_background(mapper, self.worker.whole_map, force=True)
         # the map version last saved: the autosave writes only a map that changed since
         self._saved_version: int | None = mapper.version
         self.outputs = MapOutputs(self, self.worker, lambda: self.cfg, self.warn_throttled)
@@ -228,6 +237,31 @@ class MfpMapperNode(GuardedLifecycleNode):
         self.get_logger().info(
             startup_text(self.cfg, self.resolve_topic_name, self.mapper, self.map_frame)
         )
+
+    def _make_localizer(self, mapper: Mapper) -> LiveLocalizer | None:
+        """The localization mode's state (``localization.enabled``), its map frame being
+        ``frame_id``, else the loaded map's."""
+        if not self.cfg.localization_enabled:
+            return None
+        global_frame = self.cfg.frame_id or mapper.frame_id or "map"
+        mapper.frame_id = global_frame
+        settings = LocalizationSettings.of(self.cfg, global_frame)
+        if not mapper.num_voxels:
+            self.get_logger().warning(
+                "localization.enabled but no map was loaded from map_path "
+                f"{self.cfg.map_path!r}: waiting for a map"
+                + (
+                    " (none will come: localization.freeze_map is true)"
+                    if settings.freeze_map
+                    else ""
+                )
+            )
+        if settings.odom_frame == global_frame:
+            raise ValueError(
+                f"localization.odom_frame and the map frame are both {global_frame!r}: the "
+                "correction map -> odom needs two frames"
+            )
+        return LiveLocalizer(settings, log=self.get_logger().info)
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Subscribe to clouds, odometry and TF; start integrating and publishing."""
@@ -299,6 +333,19 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._result_pub = self.create_publisher(PointCloud2, "~/hit_probability/result", 10)
         self._entities += [self._status_pub, self._diag_pub, self._result_pub]
+        if self.localizer is not None:
+            self._pose_pub = self.create_publisher(PoseWithCovarianceStamped, "~/pose", 10)
+            self._entities.append(self._pose_pub)
+            self._pose_version = 0
+            self._tf_version = -1
+            if self.cfg.localization_tf_publish:
+                tf_qos = QoSProfile(
+                    history=HistoryPolicy.KEEP_LAST,
+                    depth=100,
+                    reliability=ReliabilityPolicy.RELIABLE,
+                )
+                self._tf_pub = self.create_publisher(TFMessage, "/tf", tf_qos)
+                self._entities.append(self._tf_pub)
         # what needs the map runs in a thread of its own and is awaited (a coroutine), so the
         # executor keeps taking odometry and clouds while a long scan holds the map; their
         # own group: a pending call must not hold the default group
@@ -358,6 +405,17 @@ class MfpMapperNode(GuardedLifecycleNode):
             )
         self._clock_warned = False
         self._active.append(self.create_timer(1.0, self._check_clock, clock=wall))
+        if self.localizer is not None:
+            self._active.append(
+                self.create_subscription(
+                    PoseWithCovarianceStamped, "initialpose", self._on_initial_pose, 10
+                )
+            )
+            self._active.append(
+                self.create_timer(
+                    1.0 / self.cfg.localization_tf_rate, self._on_tf_timer, clock=wall
+                )
+            )
         if self.cfg.autosave_period > 0.0 and self.cfg.map_path:
             self._active.append(
                 self.create_timer(self.cfg.autosave_period, self._on_autosave_timer, clock=wall)
@@ -424,6 +482,9 @@ class MfpMapperNode(GuardedLifecycleNode):
         self.cfg = new  # one assignment: a reader never sees half of a change
         if self._configured:
             self.worker.settings = LiveSettings.of(new)  # the next scan uses it
+            if self.localizer is not None:
+                global_frame = self.localizer.settings.global_frame
+                self.localizer.settings = LocalizationSettings.of(new, global_frame)
             self.outputs.invalidate()  # republish with the new filter
         return SetParametersResult(successful=True)
 
@@ -474,6 +535,102 @@ class MfpMapperNode(GuardedLifecycleNode):
         self.worker.add_odometry(odometry_sample(msg))
 
     @tracked
+    def _on_initial_pose(self, msg: PoseWithCovarianceStamped) -> None:
+        """``/initialpose`` (RViz's "2D Pose Estimate"): the robot's pose in the map frame;
+        map -> odom is reset so that the robot's odometry pose maps to it."""
+        if self.localizer is None:
+            return
+        frame = msg.header.frame_id.lstrip("/")
+        expected = self.localizer.settings.global_frame
+        if frame != expected:
+            self.warn_throttled(
+                "initialpose_frame",
+                f"/initialpose in frame {frame!r} ignored: it must be in the map frame "
+                f"{expected!r} (RViz: set the Fixed Frame to {expected!r})",
+                error=True,
+            )
+            return
+        p, q = msg.pose.pose.position, msg.pose.pose.orientation
+        values = (p.x, p.y, p.z, q.x, q.y, q.z, q.w)
+        if (
+            not all(np.isfinite(values))
+            or abs(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w - 1) > 0.01
+        ):
+            self.warn_throttled(
+                "initialpose_bad",
+                f"/initialpose ignored: not finite or not a unit quaternion {values}",
+                error=True,
+            )
+            return
+        stamp = stamp_seconds(msg.header.stamp)
+        stamp = stamp if stamp > 0.0 else self._now()  # RViz may leave it 0
+        now = self.localizer.initial_pose(
+            stamp, (p.x, p.y, p.z), (q.x, q.y, q.z, q.w), self.worker.robot_in_odom(stamp)
+        )
+        when = "map -> odom reset now" if now else "applied at the next cloud (no odometry yet)"
+        self.get_logger().info(
+            f"/initialpose received: robot at x {p.x:.3f} y {p.y:.3f} z {p.z:.3f} in "
+            f"{expected!r}; {when}"
+        )
+
+    @tracked
+    def _on_tf_timer(self) -> None:
+        """Publish ``~/pose`` when an alignment vouched for a new one, and map -> odom: a new
+        correction stamped with its cloud's stamp, else the last one stamped now; both
+        future-dated by ``transform_tolerance`` (AMCL's rule)."""
+        if self.localizer is None:
+            return
+        self._publish_pose()
+        if not self.cfg.localization_tf_publish:
+            return
+        m, stamp, version = self.localizer.transform()
+        if not np.isfinite(stamp):
+            return  # no correction yet (none accepted, no /initialpose): nothing to claim
+        now = self._now()
+        if version == self._tf_version:
+            if now <= 0.0:
+                return  # use_sim_time before /clock
+            stamp = max(now, stamp)
+        self._tf_version = version
+        self._tf_pub.publish(TFMessage(transforms=[self._map_to_odom(m, stamp)]))
+
+    def _publish_pose(self) -> None:
+        """``~/pose`` (AMCL's amcl_pose): the robot in the map frame, at each alignment that
+        vouched for it, with the alignment's standard deviations on the diagonal."""
+        assert self.localizer is not None
+        version, estimate = self.localizer.pose_estimate()
+        if estimate is None or version == self._pose_version:
+            return
+        self._pose_version = version
+        stamp, m, sigma = estimate
+        msg = PoseWithCovarianceStamped()
+        msg.header.frame_id = self.localizer.settings.global_frame
+        msg.header.stamp = rclpy.time.Time(nanoseconds=int(round(stamp * 1e9))).to_msg()
+        p, o = msg.pose.pose.position, msg.pose.pose.orientation
+        p.x, p.y, p.z = (float(v) for v in m[:3, 3])
+        o.x, o.y, o.z, o.w = (float(v) for v in Rotation.from_matrix(m[:3, :3]).as_quat())
+        std = np.concatenate([sigma[:3], np.radians(sigma[3:])])
+        var = np.where(np.isfinite(std), std * std, 1e6)  # unbounded: a large variance
+        msg.pose.covariance = [float(v) for v in np.diag(var).ravel()]
+        self._pose_pub.publish(msg)
+
+    def _map_to_odom(self, m: np.ndarray, stamp: float) -> TransformStamped:
+        settings = self.localizer.settings if self.localizer is not None else None
+        assert settings is not None
+        out = TransformStamped()
+        t = stamp + self.cfg.localization_transform_tolerance
+        out.header.stamp = rclpy.time.Time(nanoseconds=int(round(t * 1e9))).to_msg()
+        out.header.frame_id = settings.global_frame
+        out.child_frame_id = settings.odom_frame
+        out.transform.translation.x, out.transform.translation.y, out.transform.translation.z = (
+            float(v) for v in m[:3, 3]
+        )
+        q = Rotation.from_matrix(m[:3, :3]).as_quat()
+        r = out.transform.rotation
+        r.x, r.y, r.z, r.w = (float(v) for v in q)
+        return out
+
+    @tracked
     def _on_publish_timer(self) -> None:
         self.worker.request_publish()
 
@@ -489,9 +646,7 @@ class MfpMapperNode(GuardedLifecycleNode):
             self._answer_nothing(msg)
             return
         try:
-            in_map = self.worker.pose_inputs.to_map_frame(
-                points, frame, stamp_seconds(msg.header.stamp)
-            )
+            in_map = self.worker.to_map_frame(points, frame, stamp_seconds(msg.header.stamp))
         except TransformUnavailable as err:
             self.warn_throttled(
                 "query_frame",
@@ -606,6 +761,7 @@ class MfpMapperNode(GuardedLifecycleNode):
                 self.mapper.reset()
 
         await self.off_executor(reset)
+        self._map_changed()
         self.get_logger().info("map reset")
         return response
 
@@ -626,11 +782,17 @@ class MfpMapperNode(GuardedLifecycleNode):
             response.success, response.message = False, f"not cleared: {err}"
             return response
         response.success = True
+        self._map_changed()
         response.message = (
             f"reset {response.cleared} voxels between {corners[0]} and {corners[1]} to unknown"
         )
         self.get_logger().info(f"clear_bbox: {response.message}")
         return response
+
+    def _map_changed(self) -> None:
+        """After a reset or a cleared box: the localization's field is rebuilt."""
+        if self.localizer is not None:
+            self.localizer.build_in_background(self.mapper, self.worker.whole_map, force=True)
 
     # --- health ----------------------------------------------------------------------------
 
@@ -651,6 +813,8 @@ class MfpMapperNode(GuardedLifecycleNode):
             "queries": self._queries,
             "maps_served": self._maps_served,
         }
+        if self.localizer is not None:
+            extra["localization"] = self.localizer.report()
         report = status_report(
             c, queued, self._map_figures, self.outputs.counters, self._status_window, extra
         )
@@ -665,12 +829,19 @@ class MfpMapperNode(GuardedLifecycleNode):
             f"{s['rays_per_s']:.0f} rays/s, {s['clouds_integrated']}/{s['clouds_in']} clouds "
             f"integrated, drops: {drops}, {s['voxels']} voxels, "
             f"{s['memory_bytes'] / 1e6:.1f} MB, integration CPU "
-            f"{100 * s['integration_cpu_share']:.0f}%"
+            f"{100 * s['integration_cpu_share']:.0f}%{_localization_line(s)}"
         )
         self._status_pub.publish(String(data=json.dumps(s)))
         name = f"{self.get_name()}: mapping"
         stamp = self.get_clock().now().to_msg()
-        self._diag_pub.publish(diagnostics(s, self._last_window, name, self.get_name(), stamp))
+        diag = diagnostics(s, self._last_window, name, self.get_name(), stamp)
+        if "localization" in s:
+            diag.status.append(
+                localization_diagnostic(
+                    s["localization"], f"{self.get_name()}: localization", self.get_name()
+                )
+            )
+        self._diag_pub.publish(diag)
 
     @property
     def worker_running(self) -> bool:
@@ -685,6 +856,20 @@ class MfpMapperNode(GuardedLifecycleNode):
     def _save_on_shutdown(self) -> None:
         if self.cfg.save_on_shutdown:
             self.save_map()  # beside map_path when it failed to load
+
+
+def _localization_line(status: dict[str, Any]) -> str:
+    """The status line's localization part ("" when not localizing)."""
+    loc = status.get("localization")
+    if not loc:
+        return ""
+    refused = ", ".join(f"{k} {v}" for k, v in sorted(loc["refused"].items())) or "none"
+    m = loc["map_to_odom"]
+    return (
+        f"; localization {loc['state']}: {loc['accepted']} of {loc['aligned']} alignments "
+        f"accepted (refused: {refused}), map -> odom x {m['x']:.3f} y {m['y']:.3f} yaw "
+        f"{m['yaw_deg']:.2f} deg"
+    )
 
 
 def main(args: list[str] | None = None) -> int:

@@ -26,6 +26,8 @@ class StatusWindow:
     clouds_integrated: int = 0
     clouds_dropped: int = 0
     clouds_lost_transport: int = 0
+    clouds_localized: int = 0
+    queue_full: int = 0
 
 
 def status_report(
@@ -46,10 +48,12 @@ def status_report(
         "clouds_in": c.clouds_in,
         "clouds_lost_transport": c.clouds_lost_transport,
         "clouds_integrated": c.clouds_integrated,
+        "clouds_localized": c.clouds_localized,
         "clouds_dropped": dict(c.clouds_dropped),
         "points_in": c.points_in,
         "points_dropped": dict(c.points_dropped),
         "queued": queued,
+        "behind": c.clouds_dropped["queue_full"] > window.queue_full,
         "rays_in": c.rays_in,
         "rays_used": c.rays_used,
         "rays_truncated": c.rays_truncated,
@@ -61,6 +65,9 @@ def status_report(
         "latency_last_s": finite_or_none(c.latency_last),
         "latency_mean_s": c.latency_sum / n_int if c.clouds_integrated else None,
         "latency_max_s": c.latency_max if c.clouds_integrated else None,
+        "received_latency_mean_s": c.received_latency_sum / n_int if c.clouds_integrated else None,
+        "received_latency_max_s": c.received_latency_max if c.clouds_integrated else None,
+        "stage_s": {k: round(v, 4) for k, v in c.stage_seconds.items()},
         "odom_in": c.odom_in,
         "odom_rejected": dict(c.odom_rejected),
         "tf_in": c.tf_in,
@@ -85,6 +92,8 @@ def next_window(c: LiveCounters) -> StatusWindow:
         c.clouds_integrated,
         sum(c.clouds_dropped.values()),
         c.clouds_lost_transport,
+        c.clouds_localized,
+        c.clouds_dropped["queue_full"],
     )
 
 
@@ -92,15 +101,32 @@ def health(status: dict[str, Any], window: StatusWindow) -> tuple[bytes, str]:
     """Level (DiagnosticStatus OK, WARN or ERROR) and message for the last window."""
     arrived = status["clouds_in"] - window.clouds_in
     integrated = status["clouds_integrated"] - window.clouds_integrated
+    localized = status.get("clouds_localized", 0) - window.clouds_localized
     dropped = sum(status["clouds_dropped"].values()) - window.clouds_dropped
     lost = status["clouds_lost_transport"] - window.clouds_lost_transport
     if arrived == 0:
         return DiagnosticStatus.WARN, "no cloud received"
+    if localized and not integrated:  # localization against a frozen map
+        if dropped or lost:
+            return (
+                DiagnosticStatus.WARN,
+                f"{localized} of {arrived} clouds localized, {dropped} dropped, "
+                f"{lost} lost in transport",
+            )
+        return DiagnosticStatus.OK, f"{localized} clouds localized (map frozen)"
     if integrated == 0:
         reasons = ", ".join(f"{k} {v}" for k, v in sorted(status["clouds_dropped"].items()))
         return (
             DiagnosticStatus.ERROR,
             f"{arrived} clouds received, none integrated (drops so far: {reasons or 'none'})",
+        )
+    skipped = status["clouds_dropped"].get("queue_full", 0) - window.queue_full
+    if skipped > 0:
+        return (
+            DiagnosticStatus.WARN,
+            f"integration is behind the input: {integrated} of {arrived} clouds integrated, "
+            f"{skipped} skipped (queue_full: the oldest queued dropped), {dropped - skipped} "
+            f"dropped otherwise, {lost} lost in transport",
         )
     if dropped or lost:
         return (
@@ -139,6 +165,33 @@ def diagnostics(
     return out
 
 
+def localization_diagnostic(
+    report: dict[str, Any], name: str, hardware_id: str
+) -> DiagnosticStatus:
+    """The localization's ``/diagnostics`` entry: OK when localized, WARN while waiting for
+    a map or a first accepted correction, ERROR when lost."""
+    state = report["state"]
+    level = {"localized": DiagnosticStatus.OK, "lost": DiagnosticStatus.ERROR}.get(
+        state, DiagnosticStatus.WARN
+    )
+    last = report.get("last") or {}
+    message = state
+    if last:
+        verdict = "accepted" if last["accepted"] else f"refused: {last['reason']}"
+        message += (
+            f"; last correction {last['shift_m']:.3f} m, {last['angle_deg']:.2f} deg ({verdict})"
+        )
+    values: list[KeyValue] = []
+    for key, value in report.items():
+        if isinstance(value, dict):
+            values += [KeyValue(key=f"{key}.{k}", value=str(v)) for k, v in sorted(value.items())]
+        else:
+            values.append(KeyValue(key=key, value=str(value)))
+    return DiagnosticStatus(
+        level=level, name=name, message=message, hardware_id=hardware_id, values=values
+    )
+
+
 def startup_text(cfg: NodeConfig, topic: Callable[[str], str], mapper: Mapper, frame: str) -> str:
     """The start-up log line: what a robot integrator needs to check (topics, the map frame
     and the rule that decides it, pose and extrinsic sources, map file, outputs); ``topic``
@@ -169,6 +222,14 @@ def startup_text(cfg: NodeConfig, topic: Callable[[str], str], mapper: Mapper, f
         f"through TF; else TF map frame <- cloud frame; /tf and /tf_static "
         f"(tf2_msgs/TFMessage, cache {cfg.tf_buffer} s)"
     )
+    if cfg.localization_enabled:
+        odom = cfg.localization_odom_frame
+        map_frame = f"{frame!r} (frame_id, else the loaded map's)"
+        poses = (
+            f"{topic('odom')} or TF in {odom!r}, localized against the map (map -> {odom} "
+            f"on /tf: {cfg.localization_tf_publish}; freeze_map "
+            f"{cfg.localization_freeze_map}; {topic('initialpose')} resets it)"
+        )
     path = cfg.map_path or "<none>"
     loaded = f", {mapper.num_voxels} voxels loaded" if mapper.num_voxels else ""
     return (

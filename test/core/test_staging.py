@@ -112,3 +112,30 @@ def test_a_merge_in_chunks_pauses_and_equals_integrate(monkeypatch: pytest.Monke
         staged.commit(scan, pause=lambda: pauses.append(staged.num_voxels))
     assert len(pauses) > 10
     _same_map(direct, staged)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_a_reused_staged_store_gives_the_map_of_fresh_ones(
+    threads: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """After its merge a staged store is emptied and staged into again (``clear_staged``):
+    bit for bit the map and counts of a fresh store per scan (late scans, decay)."""
+    from mfp_mapper.core import staging
+
+    def run() -> tuple[Mapper, list[tuple[int, int, int]]]:
+        mapper = Mapper(0.2, decay_time=3.0, threads=threads, max_range=30.0)
+        counts = []
+        for points, origin, stamp in _scans(np.random.default_rng(11), 7):
+            got = mapper.commit(mapper.stage(points, origin, stamp))
+            counts.append((got.new_voxels, got.blocks_touched, got.voxels_touched))
+        return mapper, counts
+
+    reused, reused_counts = run()
+    monkeypatch.setattr(staging, "SPARE_MAX_BLOCKS", -1)  # never kept: a fresh store each scan
+    fresh, fresh_counts = run()
+    assert reused_counts == fresh_counts
+    a, b = reused.stored_voxels(), fresh.stored_voxels()
+    for name in ("ijk", "s", "n", "t_last"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    reused.close()
+    fresh.close()

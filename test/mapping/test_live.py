@@ -253,3 +253,51 @@ def test_the_map_frame_is_decided_once() -> None:
     assert worker.map_frame == "odom" == worker.mapper.frame_id
     assert any("map frame 'odom'" in line for line in infos)
     assert worker.pose_inputs.describe()["map_frame"] == "odom"
+
+
+def test_the_two_threads_map_what_the_offline_loop_maps() -> None:
+    """Worker (parse, place) and walker (stage, merge) in their threads, clouds arriving
+    while earlier ones integrate: the map is the offline loop's of the same clouds (the
+    staged merge sums each scan first: s and n equal to float32 rounding)."""
+    from mfp_mapper.mapping.loop import ScanLoop
+    from mfp_mapper.sensing.poses import Extrinsic, OdometrySample
+
+    rng = np.random.default_rng(3)
+    clouds = []
+    for k in range(8):
+        xyz = rng.uniform(-6.0, 6.0, (2000, 3)).astype(np.float32)
+        cols = {a: xyz[:, i] for i, a in enumerate("xyz")}
+        cols["t"] = np.linspace(0, 0.09e9, len(xyz)).astype(np.uint32)
+        clouds.append(cloud_message_from_columns(cols, T0 + 0.1 * k, "base_link"))
+    stamps = T0 - 0.1 + 0.02 * np.arange(50)
+    samples = [
+        OdometrySample(float(t), "odom", "base_link", np.array([0.5 * (t - T0), 0.1, 0.0]),
+                       np.array([0.0, 0.0, np.sin(0.1 * (t - T0)), np.cos(0.1 * (t - T0))]))
+        for t in stamps
+    ]  # fmt: skip
+    worker, _ = _worker(cloud_queue_size=len(clouds), odom_wait=5.0)
+    worker.start()
+    try:
+        for sample in samples:
+            worker.add_odometry(sample)
+        for msg in clouds:
+            worker.submit(msg)
+        deadline = time.monotonic() + 30.0
+        while worker.counters.clouds_integrated < len(clouds) and time.monotonic() < deadline:
+            time.sleep(0.02)
+    finally:
+        worker.stop()
+    assert worker.counters.clouds_integrated == len(clouds), worker.counters
+    assert worker.counters.stage_seconds["walk"] > 0.0
+
+    poses = PoseBuffer(max_age=10.0, max_gap=0.5)
+    for sample in samples:
+        poses.add(sample.stamp, sample.position, sample.quaternion)
+    offline = Mapper(0.2)
+    loop = ScanLoop(offline, _settings())
+    for msg in clouds:
+        assert loop.map_cloud(msg, poses, lambda frame: Extrinsic()).integrated
+    live, ref = worker.mapper.voxels(), offline.voxels()
+    assert np.array_equal(live.ijk, ref.ijk)
+    np.testing.assert_allclose(live.s, ref.s, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(live.n, ref.n, rtol=1e-5, atol=1e-6)

@@ -234,3 +234,29 @@ def test_diagnostics_report_the_mapping_health(spun: Spun) -> None:
 )
 def test_clouds_lost_counted_when_the_loss_happens() -> None:
     """Issue 9 asks for clouds_lost at the moment of the loss; see the skip reason."""
+
+
+def test_status_says_when_integration_falls_behind() -> None:
+    """Clouds the worker skipped for being behind (queue_full) since the last report make
+    ``behind`` true and the health a warning that says so."""
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    from mfp_mapper.mapping.live import LiveCounters
+    from mfp_mapper.ros.map_outputs import PublishCounters
+    from mfp_mapper.ros.status import health, next_window, status_report
+
+    c = LiveCounters(clouds_in=10, clouds_integrated=8)
+    c.drop("gap")
+    c.drop("queue_full")
+    window = next_window(c)
+    c.clouds_in, c.clouds_integrated = 30, 14
+    for _ in range(12):
+        c.drop("queue_full")
+    c.drop("gap")
+    status = status_report(c, 5, (0, 0, 0), PublishCounters(), window, {})
+    assert status["behind"] is True
+    level, text = health(status, window)
+    assert level == DiagnosticStatus.WARN
+    assert "behind" in text and "6 of 20 clouds integrated, 12 skipped" in text, text
+    assert "1 dropped otherwise" in text, text
+    assert status_report(c, 0, (0, 0, 0), PublishCounters(), next_window(c), {})["behind"] is False

@@ -57,8 +57,8 @@ MODULE_KEYS = {  # third-party module imported -> its rosdep key (None: delibera
         name: name
         for name in (
             "rclpy", "rcl_interfaces", "builtin_interfaces", "sensor_msgs", "nav_msgs",
-            "std_msgs", "std_srvs", "diagnostic_msgs", "tf2_msgs", "mfp_mapper_msgs", "launch",
-            "launch_ros", "ament_index_python",
+            "std_msgs", "std_srvs", "diagnostic_msgs", "geometry_msgs", "tf2_msgs",
+            "mfp_mapper_msgs", "launch", "launch_ros", "ament_index_python",
         )
     },
 }  # fmt: skip

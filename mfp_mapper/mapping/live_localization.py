@@ -1,0 +1,461 @@
+"""The node's live localization mode, without ROS: each placed cloud aligned against the map.
+
+Clouds are placed in the odometry frame (odometry or TF ``odom -> base``, as AMCL takes
+them); the localizer keeps the correction ``map <- odom`` (4x4) and, for each cloud:
+
+1. applies a pending ``/initialpose`` (the robot's pose in the map at a stamp): the
+   correction becomes ``T_map_base * inv(T_odom_base)``, and the next clouds search wider;
+2. moves the placed rays by the correction (the initial guess in the map frame);
+3. aligns them against the map's field (``core.alignment.align_scan``, a ``FieldPyramid``
+   built in the background from the loaded map, rebuilt every ``rebuild_period`` seconds
+   when mapping goes on), on the worker thread, at most once per ``min_period``;
+4. on acceptance composes the correction with the alignment's; a refusal keeps the last
+   correction and is counted under its reason: never a silent wrong pose.
+
+State: ``waiting_for_map`` (no field yet), ``initializing`` (no correction accepted since the
+start or the last ``/initialpose``), ``localized``, ``lost`` (``lost_after`` consecutive
+refusals while localized). Before the first acceptance, and when lost, the search range is
+the wider ``initial_max_shift`` / ``initial_max_angle``. A refusal for lack of gain
+(``no_gain``: the scan's surfaces constrain every direction and the best pose in range is no
+better than the current one) confirms a localized or lost pose (lost -> localized) rather
+than counting toward lost; it does not end ``initializing``, which needs an accepted
+correction (a pose never confirmed by a gain is not claimed).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from mfp_mapper.core.alignment import Alignment, AlignOptions, FieldPyramid, align_scan
+from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.sensing.pipeline import PlacedScan
+from mfp_mapper.sensing.scan_normals import scan_normals
+
+if TYPE_CHECKING:
+    from mfp_mapper.config.schema import NodeConfig
+
+FloatArray = NDArray[np.float64]
+
+__all__ = ["LiveLocalizer", "LocalizationSettings", "refusal_key"]
+
+STATES = ("waiting_for_map", "initializing", "localized", "lost")
+
+
+@dataclass(frozen=True)
+class LocalizationSettings:
+    """The ``localization.*`` parameters the localizer reads (replaced whole on a change)."""
+
+    odom_frame: str = "odom"
+    global_frame: str = "map"
+    freeze_map: bool = True
+    min_period: float = 0.0
+    max_rays: int = AlignOptions.max_rays
+    max_sigma: float = AlignOptions.max_sigma_m
+    min_gain_per_ray: float = AlignOptions.min_gain_per_ray
+    min_constraints: int = AlignOptions.min_constraints
+    max_shift: float = 0.5
+    max_angle: float = 5.0
+    initial_max_shift: float = AlignOptions.max_shift_m
+    initial_max_angle: float = AlignOptions.max_angle_deg
+    lost_after: int = 10
+    rebuild_period: float = 5.0
+    tracking_levels: int = 1
+    """Pyramid levels used while localized (finest first); the wide search uses all."""
+    update_min_d: float = 0.25
+    """While localized: align only after the robot moved this far (m, odometry) or ..."""
+    update_min_a: float = 11.5
+    """... turned this much (degrees) since the last alignment (AMCL's update_min_d/_a)."""
+
+    @classmethod
+    def of(cls, cfg: NodeConfig, global_frame: str) -> LocalizationSettings:
+        return cls(
+            odom_frame=cfg.localization_odom_frame.lstrip("/"),
+            global_frame=global_frame,
+            freeze_map=cfg.localization_freeze_map,
+            min_period=cfg.localization_min_period,
+            max_rays=cfg.localization_max_rays,
+            max_sigma=cfg.localization_max_sigma,
+            min_gain_per_ray=cfg.localization_min_gain_per_ray,
+            min_constraints=cfg.localization_min_constraints,
+            max_shift=cfg.localization_max_shift,
+            max_angle=cfg.localization_max_angle,
+            initial_max_shift=cfg.localization_initial_max_shift,
+            initial_max_angle=cfg.localization_initial_max_angle,
+            lost_after=cfg.localization_lost_after,
+            rebuild_period=cfg.localization_rebuild_period,
+            tracking_levels=cfg.localization_tracking_levels,
+            update_min_d=cfg.localization_update_min_d,
+            update_min_a=cfg.localization_update_min_a,
+        )
+
+    def options(self, wide: bool) -> AlignOptions:
+        """The alignment's options: the wider search range before the first acceptance."""
+        return replace(
+            AlignOptions(),
+            max_rays=self.max_rays,
+            max_sigma_m=self.max_sigma,
+            min_gain_per_ray=self.min_gain_per_ray,
+            min_constraints=self.min_constraints,
+            max_shift_m=self.initial_max_shift if wide else self.max_shift,
+            max_angle_deg=self.initial_max_angle if wide else self.max_angle,
+        )
+
+
+_KEYS = (
+    ("too few rays", "too_few_rays"),
+    ("degenerate geometry: the likelihood is flat", "flat_likelihood"),
+    ("degenerate geometry", "degenerate_geometry"),
+    ("correction beyond the search range", "out_of_range"),
+    ("no significant gain", "no_gain"),
+)
+
+
+def refusal_key(reason: str) -> str:
+    """A short counter name for an ``Alignment.reason``."""
+    for start, key in _KEYS:
+        if reason.startswith(start):
+            return key
+    return "other"
+
+
+def pose_matrix(position: Any, rotation: Any) -> FloatArray:
+    m = np.eye(4)
+    m[:3, :3] = np.asarray(rotation, dtype=np.float64).reshape(3, 3)
+    m[:3, 3] = np.asarray(position, dtype=np.float64).reshape(3)
+    return m
+
+
+def move_scan(placed: PlacedScan, m: FloatArray) -> PlacedScan:
+    """The placed rays moved by the rigid transform ``m`` (4x4)."""
+    rot, t = m[:3, :3], m[:3, 3]
+    return replace(
+        placed,
+        points=np.asarray(placed.points, dtype=np.float64) @ rot.T + t,
+        origins=np.asarray(placed.origins, dtype=np.float64) @ rot.T + t,
+    )
+
+
+class LiveLocalizer:
+    """The correction ``map <- odom`` and its alignment state (module docstring).
+
+    ``localize`` runs on the worker thread; ``initial_pose``, ``transform`` and ``report``
+    from any thread (under ``self.lock``).
+    """
+
+    def __init__(self, settings: LocalizationSettings, *, log: Callable[[str], None]) -> None:
+        self.settings = settings
+        self.lock = threading.Lock()
+        self._log = log
+        self.correction = np.eye(4)
+        self.correction_stamp = math.nan
+        """The stamp of the cloud that last set the correction (NaN: never set)."""
+        self.version = 0
+        """Bumped at each change of the correction (the node publishes it then)."""
+        self.pyramid: FieldPyramid | None = None
+        self.pyramid_voxels = 0
+        self.pyramid_seconds = 0.0
+        self.state = "waiting_for_map"
+        self.accepted = 0
+        self.refused: Counter[str] = Counter()
+        self.skipped = 0
+        self.skipped_motion = 0
+        self.initial_poses = 0
+        self.pose_version = 0
+        self.pose: tuple[float, FloatArray, FloatArray] | None = None
+        self.consecutive_refused = 0
+        self.last: dict[str, Any] = {}
+        self.ms_sum = 0.0
+        self.ms_max = 0.0
+        self.aligned = 0
+        self._last_align_stamp = -math.inf
+        self._last_align_odom: FloatArray | None = None
+        self._pending: tuple[float, FloatArray] | None = None
+        self._building: threading.Thread | None = None
+        self._built_at = -math.inf
+
+    # --- the field ------------------------------------------------------------------------
+
+    def build(self, mapper: Mapper, whole_map: Any) -> None:
+        """Build the field from the map: its statistics copied under ``whole_map`` (a
+        merge is never half in), the pyramid computed without any lock. Blocking."""
+        t0 = time.perf_counter()
+        with whole_map:
+            stats = mapper.voxels()
+            resolution, origin = float(mapper.resolution), np.asarray(mapper.origin or (0, 0, 0))
+            prior = getattr(mapper, "prior", None)
+        shape = 1.0 if prior is None else float(prior.shape)
+        rate = 1.0 if prior is None else float(prior.rate)
+        if len(stats.s) == 0:  # an empty map (reset): nothing to localize against
+            with self.lock:
+                self.pyramid, self.pyramid_voxels = None, 0
+                self.state = "waiting_for_map"
+            return
+        pyramid = FieldPyramid.from_statistics(
+            stats.ijk, stats.s, stats.n, resolution, origin, shape=shape, rate=rate
+        )
+        with self.lock:
+            self.pyramid = pyramid
+            self.pyramid_voxels = len(stats.s)
+            self.pyramid_seconds = time.perf_counter() - t0
+            if self.state == "waiting_for_map":
+                self.state = "initializing"
+
+    def build_in_background(self, mapper: Mapper, whole_map: Any, force: bool = False) -> bool:
+        """Start ``build`` in a thread of its own unless one runs or (without ``force``) the
+        last started less than ``rebuild_period`` ago; True when started."""
+        now = time.monotonic()
+        if self._building is not None and self._building.is_alive():
+            return False
+        if not force and now - self._built_at < self.settings.rebuild_period:
+            return False
+        self._built_at = now
+
+        def run() -> None:
+            try:
+                self.build(mapper, whole_map)
+            except Exception as err:  # a failed build keeps the previous field
+                self._log(f"building the localization field failed: {type(err).__name__}: {err}")
+
+        self._building = threading.Thread(target=run, name="mfp_localization_field", daemon=True)
+        self._building.start()
+        return True
+
+    def wait_built(self, timeout: float) -> None:
+        """Wait for a background build (tests, tools)."""
+        if self._building is not None:
+            self._building.join(timeout)
+
+    # --- inputs ---------------------------------------------------------------------------
+
+    def initial_pose(
+        self, stamp: float, position: Any, quaternion: Any, odom_base: FloatArray | None = None
+    ) -> bool:
+        """``/initialpose``: the robot's pose in the map frame at ``stamp``. With the robot's
+        odometry pose at that stamp (``odom_base``) map <- odom is reset at once; without,
+        at the next cloud (``localize``, with its pose source). True when applied now."""
+        m = pose_matrix(position, Rotation.from_quat(np.asarray(quaternion, float)).as_matrix())
+        if odom_base is None:
+            with self.lock:
+                self._pending = (float(stamp), m)
+            return False
+        with self.lock:
+            self._pending = None
+        self._reset(m, odom_base, float(stamp))
+        return True
+
+    def transform(self) -> tuple[FloatArray, float, int]:
+        """(map <- odom, the stamp of the cloud that set it, version)."""
+        with self.lock:
+            return self.correction.copy(), self.correction_stamp, self.version
+
+    # --- the worker -----------------------------------------------------------------------
+
+    def localize(
+        self, placed: PlacedScan, robot_pose: Callable[[float], FloatArray | None]
+    ) -> PlacedScan:
+        """The placed cloud (odometry frame) in the map frame, at the corrected pose.
+        ``robot_pose(stamp)``: the robot in the odometry frame (4x4) or None."""
+        cfg = self.settings
+        with self.lock:
+            pending, self._pending = self._pending, None
+        if pending is not None:
+            self._apply_initial_pose(pending, placed.stamp, robot_pose)
+        with self.lock:
+            correction, pyramid = self.correction.copy(), self.pyramid
+            wide = self.state != "localized"
+            version = self.version
+        moved = move_scan(placed, correction)
+        if pyramid is None:
+            return moved
+        if cfg.min_period > 0.0 and placed.stamp - self._last_align_stamp < cfg.min_period:
+            with self.lock:
+                self.skipped += 1
+            return moved
+        odom = robot_pose(placed.stamp)
+        if not wide and self._still(odom):
+            with self.lock:
+                self.skipped_motion += 1
+            return moved
+        self._last_align_stamp, self._last_align_odom = placed.stamp, odom
+        t0 = time.perf_counter()
+        ret = np.ones(len(moved.points), dtype=bool)
+        if moved.no_return is not None:
+            ret = ~moved.no_return
+        pts = moved.points[ret]
+        org = moved.origins if np.ndim(moved.origins) == 1 else moved.origins[ret]
+        if not wide:  # tracking: the correction is small, the coarse levels cost for nothing
+            pyramid = FieldPyramid(pyramid.fields[: max(cfg.tracking_levels, 1)])
+        al = align_scan(pyramid, pts, org, cfg.options(wide), normals=scan_normals(pts))
+        ms = 1e3 * (time.perf_counter() - t0)
+        step = pose_matrix(al.translation, al.rotation)
+        if not self._record(al, ms, placed.stamp, step, wide, odom, version):
+            return moved  # an /initialpose came meanwhile: this correction is not used
+        return move_scan(moved, step) if al.accepted else moved
+
+    def _still(self, odom: FloatArray | None) -> bool:
+        """Whether the robot moved less than ``update_min_d`` and turned less than
+        ``update_min_a`` since the last alignment (odometry)."""
+        last = self._last_align_odom
+        if odom is None or last is None:
+            return False
+        d = np.linalg.inv(last) @ odom
+        moved = float(np.linalg.norm(d[:3, 3]))
+        turned = float(np.degrees(Rotation.from_matrix(d[:3, :3]).magnitude()))
+        return moved < self.settings.update_min_d and turned < self.settings.update_min_a
+
+    def _apply_initial_pose(
+        self,
+        pending: tuple[float, FloatArray],
+        scan_stamp: float,
+        robot_pose: Callable[[float], FloatArray | None],
+    ) -> None:
+        stamp, map_base = pending
+        odom_base = robot_pose(stamp) if stamp > 0.0 else None
+        if odom_base is None:
+            odom_base = robot_pose(scan_stamp)
+        if odom_base is None:
+            odom_base = np.eye(4)
+        self._reset(map_base, odom_base, scan_stamp)
+
+    def _reset(self, map_base: FloatArray, odom_base: FloatArray, stamp: float) -> None:
+        """map <- odom such that the robot at ``odom_base`` is at ``map_base``."""
+        with self.lock:
+            self.correction = map_base @ np.linalg.inv(odom_base)
+            self.correction_stamp = stamp
+            self.version += 1
+            self.initial_poses += 1
+            self.consecutive_refused = 0
+            if self.pyramid is not None:
+                self.state = "initializing"
+        self._log(
+            "initial pose set: map -> odom now "
+            f"{_describe(self.correction)}; refining from the next clouds"
+        )
+
+    def _record(
+        self,
+        al: Alignment,
+        ms: float,
+        stamp: float,
+        step: FloatArray,
+        wide: bool,
+        odom: FloatArray | None,
+        version: int,
+    ) -> bool:
+        """Count an alignment and apply it when accepted; False when the correction it
+        started from was replaced meanwhile (``/initialpose``): then it is counted as
+        ``superseded`` and not applied."""
+        lost = False
+        with self.lock:
+            self.aligned += 1
+            self.ms_sum += ms
+            self.ms_max = max(self.ms_max, ms)
+            self.last = {
+                "stamp": stamp,
+                "accepted": al.accepted,
+                "reason": al.reason,
+                "shift_m": round(float(np.linalg.norm(al.translation)), 4),
+                "angle_deg": round(al.angle_deg, 4),
+                "sigma": [round(float(v), 5) if math.isfinite(v) else None for v in al.sigma],
+                "gain_per_ray": round(float(al.gain_per_ray), 5),
+                "constraints": al.conditioning,
+                "rays": al.rays,
+                "ms": round(ms, 2),
+                "wide_search": wide,
+            }
+            if self.version != version:
+                self.refused["superseded"] += 1
+                return False
+            if al.accepted:
+                self.correction = step @ self.correction
+                self.correction_stamp = stamp
+                self.version += 1
+                self.accepted += 1
+                self.consecutive_refused = 0
+                self.state = "localized"
+                self._vouch(stamp, odom, al.sigma)
+                return True
+            key = refusal_key(al.reason)
+            self.refused[key] += 1
+            if key == "no_gain":  # the best pose in range is no better: the current one stands
+                self.consecutive_refused = 0
+                if self.state == "lost":  # localized before, and the scans agree again
+                    self.state = "localized"
+                if self.state == "localized":
+                    self._vouch(stamp, odom, al.sigma)
+                return True
+            self.consecutive_refused += 1
+            lost = (
+                self.state == "localized" and self.consecutive_refused >= self.settings.lost_after
+            )
+            if lost:
+                self.state = "lost"
+        if lost:
+            self._log(
+                f"localization lost: {self.consecutive_refused} corrections refused in a row "
+                f"(last: {al.reason}); keeping map -> odom, searching wider"
+            )
+        return True
+
+    def _vouch(self, stamp: float, odom: FloatArray | None, sigma: FloatArray) -> None:
+        """(under the lock) The robot's pose in the map at ``stamp``, as the node vouches for
+        it (accepted, or confirmed while localized): for ``~/pose``."""
+        if odom is None:
+            return
+        self.pose_version += 1
+        self.pose = (stamp, self.correction @ odom, np.asarray(sigma, dtype=np.float64).copy())
+
+    def pose_estimate(self) -> tuple[int, tuple[float, FloatArray, FloatArray] | None]:
+        """(version, (stamp, map <- robot 4x4, sigma (6,): m, m, m, deg, deg, deg) or None)."""
+        with self.lock:
+            return self.pose_version, self.pose
+
+    # --- health ---------------------------------------------------------------------------
+
+    def report(self) -> dict[str, Any]:
+        """What ``~/status`` says under ``localization``."""
+        with self.lock:
+            m = self.correction
+            yaw = float(Rotation.from_matrix(m[:3, :3]).as_euler("xyz", degrees=True)[2])
+            return {
+                "state": self.state,
+                "freeze_map": self.settings.freeze_map,
+                "global_frame": self.settings.global_frame,
+                "odom_frame": self.settings.odom_frame,
+                "map_to_odom": {
+                    "x": round(float(m[0, 3]), 4),
+                    "y": round(float(m[1, 3]), 4),
+                    "z": round(float(m[2, 3]), 4),
+                    "yaw_deg": round(yaw, 4),
+                    "angle_deg": round(
+                        float(np.degrees(Rotation.from_matrix(m[:3, :3]).magnitude())), 4
+                    ),
+                },
+                "aligned": self.aligned,
+                "accepted": self.accepted,
+                "refused": dict(self.refused),
+                "skipped_rate": self.skipped,
+                "skipped_motion": self.skipped_motion,
+                "consecutive_refused": self.consecutive_refused,
+                "initial_poses": self.initial_poses,
+                "ms_mean": round(self.ms_sum / self.aligned, 2) if self.aligned else None,
+                "ms_max": round(self.ms_max, 2) if self.aligned else None,
+                "field_voxels": self.pyramid_voxels,
+                "field_build_s": round(self.pyramid_seconds, 3),
+                "last": dict(self.last),
+            }
+
+
+def _describe(m: FloatArray) -> str:
+    yaw = float(Rotation.from_matrix(m[:3, :3]).as_euler("xyz", degrees=True)[2])
+    return f"x {m[0, 3]:.3f} y {m[1, 3]:.3f} z {m[2, 3]:.3f} m, yaw {yaw:.2f} deg"

@@ -1,0 +1,237 @@
+"""The live localization mode without ROS (``mapping.live_localization``): the worker places
+clouds in the odometry frame, the localizer aligns them against a frozen map and keeps the
+correction map <- odom; against known truth in the simulated hall and corridor."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+from localization_scenes import Pose, localization_scene, pose_at, static_scan
+from scipy.spatial.transform import Rotation
+
+from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.mapping.live import LiveIntegrator, LiveSettings
+from mfp_mapper.mapping.live_localization import (
+    LiveLocalizer,
+    LocalizationSettings,
+    pose_matrix,
+    refusal_key,
+)
+from mfp_mapper.sensing.poses import OdometrySample, PoseBuffer
+from mfp_mapper.sources.scan_files import cloud_message_from_columns
+
+T0 = 1000.0
+OFFSET = pose_matrix((0.3, -0.1, 0.0), Rotation.from_euler("z", 3.0, degrees=True).as_matrix())
+"""The true map <- odom: the odometry is off the truth by 0.3 m, 0.1 m and 3 degrees."""
+
+
+def _scene_map(name: str, count: int = 12) -> tuple[Any, list[Pose], Mapper]:
+    scene, pos = localization_scene(name)
+    rng = np.random.default_rng(0)
+    poses = [pose_at(p, yaw=0.3 * k) for k, p in enumerate(pos[:count])]
+    mapper = Mapper(0.2, max_range=60.0, frame_id="map")
+    for k in range(0, len(poses), 2):
+        pts = static_scan(scene, poses[k], rng)
+        mapper.integrate(poses[k].apply(pts), poses[k].translation, stamp=float(k))
+    return scene, poses, mapper
+
+
+def _worker(mapper: Mapper, **changes: Any) -> tuple[LiveIntegrator, list[str]]:
+    logs: list[str] = []
+    settings = LiveSettings(
+        frame_id="",
+        deskew=False,
+        point_cloud_min_z=-1e6,
+        point_cloud_max_z=1e6,
+        cloud_queue_size=5,
+        odom_wait=0.2,
+    )
+    localizer = LiveLocalizer(LocalizationSettings(global_frame="map", **changes), log=logs.append)
+    worker = LiveIntegrator(
+        mapper,
+        settings,
+        PoseBuffer(max_age=100.0, max_gap=0.5),
+        log=lambda key, text, error: logs.append(text),
+        now=lambda: T0 + 100.0,
+        localizer=localizer,
+    )
+    return worker, logs
+
+
+def _feed(worker: LiveIntegrator, scene: Any, truth: Pose, stamp: float, seed: int) -> None:
+    """Odometry around ``stamp`` at the truth seen through ``OFFSET``, then the scan taken
+    at the truth (sensor = base_link)."""
+    odom = np.linalg.inv(OFFSET) @ pose_matrix(truth.translation, truth.rotation)
+    q = Rotation.from_matrix(odom[:3, :3]).as_quat()
+    for t in (stamp - 0.05, stamp + 0.05):
+        worker.add_odometry(OdometrySample(t, "odom", "base_link", odom[:3, 3].copy(), q))
+    pts = static_scan(scene, truth, np.random.default_rng(seed)).astype(np.float32)
+    worker.submit(
+        cloud_message_from_columns({a: pts[:, k] for k, a in enumerate("xyz")}, stamp, "base_link")
+    )
+    worker.drain()
+
+
+def _error(m: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    d = np.linalg.inv(truth) @ m
+    return float(np.linalg.norm(d[:3, 3])), float(
+        np.degrees(Rotation.from_matrix(d[:3, :3]).magnitude())
+    )
+
+
+def test_hall_correction_converges_to_the_odometry_offset_and_the_map_stays_frozen() -> None:
+    scene, poses, mapper = _scene_map("box")
+    version, voxels = mapper.version, mapper.num_voxels
+    worker, _ = _worker(mapper)
+    loc = worker.localizer
+    assert loc is not None and loc.report()["state"] == "waiting_for_map"
+    loc.build(mapper, worker.whole_map)
+    assert loc.report()["state"] == "initializing"
+    for i, k in enumerate((1, 3, 5)):
+        _feed(worker, scene, poses[k], T0 + i, seed=k)
+    report = loc.report()
+    assert report["state"] == "localized", report
+    assert report["accepted"] >= 1 and report["aligned"] == 3
+    shift, angle = _error(loc.correction, OFFSET)
+    assert shift < 0.05 and angle < 0.5, (shift, angle, report)
+    assert worker.counters.clouds_localized == 3 and worker.counters.clouds_integrated == 0
+    assert mapper.version == version and mapper.num_voxels == voxels  # frozen
+    assert worker.map_frame == "map" and mapper.frame_id == "map"
+    # the robot position is reported in the map frame: the truth
+    np.testing.assert_allclose(worker.robot_position, poses[5].translation, atol=0.05)
+
+
+def test_initial_pose_resets_the_correction_then_scans_refine_it() -> None:
+    scene, poses, mapper = _scene_map("box")
+    worker, logs = _worker(mapper)
+    loc = worker.localizer
+    assert loc is not None
+    # no field yet: the initial pose alone sets map <- odom = T_map_base inv(T_odom_base)
+    given = pose_at(poses[1].translation + np.array([0.15, 0.0, 0.0]), yaw=0.3)
+    loc.initial_pose(T0, given.translation, Rotation.from_matrix(given.rotation).as_quat())
+    _feed(worker, scene, poses[1], T0, seed=1)
+    odom = np.linalg.inv(OFFSET) @ pose_matrix(poses[1].translation, poses[1].rotation)
+    expected = pose_matrix(given.translation, given.rotation) @ np.linalg.inv(odom)
+    np.testing.assert_allclose(loc.correction, expected, atol=1e-9)
+    assert loc.report()["initial_poses"] == 1 and any("initial pose" in t for t in logs)
+    # with the field, the next scans refine from there
+    loc.build(mapper, worker.whole_map)
+    for i, k in enumerate((3, 5)):
+        _feed(worker, scene, poses[k], T0 + 1 + i, seed=k)
+    shift, angle = _error(loc.correction, OFFSET)
+    assert shift < 0.05 and angle < 0.5, (shift, angle, loc.report())
+    assert loc.report()["state"] == "localized"
+
+
+def test_corridor_is_refused_and_the_correction_kept() -> None:
+    scene, poses, mapper = _scene_map("corridor")
+    worker, _ = _worker(mapper)
+    loc = worker.localizer
+    assert loc is not None
+    loc.build(mapper, worker.whole_map)
+    for i, k in enumerate((3, 5)):
+        _feed(worker, scene, poses[k], T0 + i, seed=k)
+    report = loc.report()
+    assert report["accepted"] == 0 and report["state"] == "initializing", report
+    assert (
+        report["refused"].get("degenerate_geometry", 0)
+        + report["refused"].get("flat_likelihood", 0)
+        == 2
+    ), report
+    assert "degenerate" in report["last"]["reason"]
+    np.testing.assert_array_equal(loc.correction, np.eye(4))
+
+
+def test_mapping_goes_on_at_the_corrected_poses_when_not_frozen() -> None:
+    scene, poses, mapper = _scene_map("box")
+    version = mapper.version
+    worker, _ = _worker(mapper, freeze_map=False, rebuild_period=0.0)
+    loc = worker.localizer
+    assert loc is not None
+    loc.build(mapper, worker.whole_map)
+    _feed(worker, scene, poses[1], T0, seed=1)
+    loc.wait_built(30.0)  # the background rebuild after the integration
+    assert worker.counters.clouds_integrated == 1 and mapper.version > version
+    assert loc.report()["field_voxels"] == mapper.num_voxels
+    shift, angle = _error(loc.correction, OFFSET)
+    assert shift < 0.05 and angle < 0.5, (shift, angle)
+
+
+@pytest.mark.parametrize(
+    ("reason", "key"),
+    [
+        ("too few rays (3) to align", "too_few_rays"),
+        (
+            "degenerate geometry: only 0 surface patches of the scan constrain x",
+            "degenerate_geometry",
+        ),
+        ("degenerate geometry: the likelihood is flat along x", "flat_likelihood"),
+        ("correction beyond the search range (2.00 m, 1.0 deg > 1 m or 10 deg)", "out_of_range"),
+        ("no significant gain (0.001 nats per ray < 0.02); kept", "no_gain"),
+        ("something new", "other"),
+    ],
+)
+def test_refusal_reasons_have_counter_names(reason: str, key: str) -> None:
+    assert refusal_key(reason) == key
+
+
+def test_lost_after_consecutive_refusals_then_the_wide_search_again() -> None:
+    scene, poses, mapper = _scene_map("box")
+    worker, logs = _worker(mapper, lost_after=2, update_min_d=0.0, update_min_a=0.0)
+    loc = worker.localizer
+    assert loc is not None
+    loc.build(mapper, worker.whole_map)
+    _feed(worker, scene, poses[1], T0, seed=1)
+    assert loc.report()["state"] == "localized"
+    kept = loc.correction.copy()
+    corridor, _ = localization_scene("corridor")  # scans of another place: refused
+    for i in range(2):
+        _feed(worker, corridor, pose_at(np.array([0.0, 0.2, 1.2]), 0.0), T0 + 1 + i, seed=i)
+    report = loc.report()
+    assert report["state"] == "lost" and report["consecutive_refused"] == 2, report
+    assert not report["last"]["wide_search"]
+    np.testing.assert_array_equal(loc.correction, kept)  # a refusal never moves map -> odom
+    assert any("localization lost" in t for t in logs)
+    _feed(worker, scene, poses[3], T0 + 3, seed=3)
+    report = loc.report()
+    assert report["last"]["wide_search"] and report["state"] == "localized", report
+
+
+def test_a_robot_that_did_not_move_is_not_aligned_again() -> None:
+    scene, poses, mapper = _scene_map("box")
+    worker, _ = _worker(mapper, update_min_d=0.25, update_min_a=10.0)
+    loc = worker.localizer
+    assert loc is not None
+    loc.build(mapper, worker.whole_map)
+    for i in range(3):  # the same pose three times: aligned once (localized), then skipped
+        _feed(worker, scene, poses[1], T0 + i, seed=i)
+    report = loc.report()
+    assert report["aligned"] == 1 and report["skipped_motion"] == 2, report
+    _feed(worker, scene, poses[3], T0 + 3, seed=3)  # moved about 3 m: aligned again
+    report = loc.report()
+    assert report["aligned"] == 2 and report["skipped_motion"] == 2, report
+    assert worker.counters.clouds_localized == 4
+
+
+def test_initial_pose_applies_at_once_when_odometry_gives_the_robot() -> None:
+    _, poses, mapper = _scene_map("box", 2)
+    worker, _ = _worker(mapper)
+    loc = worker.localizer
+    assert loc is not None
+    assert worker.robot_in_odom(T0) is None  # no odometry yet: the next cloud applies it
+    odom = np.linalg.inv(OFFSET) @ pose_matrix(poses[1].translation, poses[1].rotation)
+    q = Rotation.from_matrix(odom[:3, :3]).as_quat()
+    for t in (T0 - 0.1, T0 + 0.1):
+        worker.add_odometry(OdometrySample(t, "odom", "base_link", odom[:3, 3].copy(), q))
+    np.testing.assert_allclose(worker.robot_in_odom(T0), odom, atol=1e-9)
+    np.testing.assert_allclose(worker.robot_in_odom(T0 + 5.0), odom, atol=1e-9)  # the latest
+    truth = pose_matrix(poses[1].translation, poses[1].rotation)
+    applied = loc.initial_pose(
+        T0, truth[:3, 3], Rotation.from_matrix(truth[:3, :3]).as_quat(), worker.robot_in_odom(T0)
+    )
+    assert applied
+    _, stamp, version = loc.transform()
+    np.testing.assert_allclose(loc.correction, OFFSET, atol=1e-9)
+    assert stamp == T0 and version == 1 and loc.report()["initial_poses"] == 1
