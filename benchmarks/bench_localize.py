@@ -37,7 +37,12 @@ from localization_scenes import (  # noqa: E402
     static_scan,
 )
 
-from mfp_mapper.core.alignment import AlignOptions, FieldPyramid, align_scan  # noqa: E402
+from mfp_mapper.core.alignment import (  # noqa: E402
+    AlignOptions,
+    FieldPyramid,
+    align_scan,
+    verify_exact,
+)
 from mfp_mapper.core.mapper import Mapper  # noqa: E402
 from mfp_mapper.sensing.poses import quaternion_to_matrix  # noqa: E402
 from mfp_mapper.sensing.scan_normals import scan_normals  # noqa: E402
@@ -104,23 +109,38 @@ def run_case(name: str, args: argparse.Namespace, opts: AlignOptions) -> None:
         t0 = time.perf_counter()
         mapper.integrate(poses[k].apply(scans[k]), poses[k].translation, stamp=float(k))
         t_int.append(time.perf_counter() - t0)
+    t0 = time.perf_counter()
     pyramid = FieldPyramid.from_mapper(mapper, levels=opts.levels)
+    t_pyramid = time.perf_counter() - t0
     rng = np.random.default_rng(1)
     errs, wrong, refused, secs, total = [], 0, 0, [], 0
+    final = []  # every scan's error after localization (refused: its initial error)
+    parts = {"normals": 0.0, "align": 0.0, "verify": 0.0}
     for k in aligned:
         for _ in range(args.trials):
             init = perturb(poses[k], rng, args.shift, args.angle)
             pts = init.apply(scans[k])
             t0 = time.perf_counter()
-            al = align_scan(pyramid, pts, init.translation, opts, normals=scan_normals(pts))
-            secs.append(time.perf_counter() - t0)
+            nrm = scan_normals(pts)
+            t1 = time.perf_counter()
+            al = align_scan(pyramid, pts, init.translation, opts, normals=nrm)
+            t2 = time.perf_counter()
+            if not args.no_verify:
+                al = verify_exact(mapper, al, pts, init.translation, float(k), opts)
+            t3 = time.perf_counter()
+            parts["normals"] += t1 - t0
+            parts["align"] += t2 - t1
+            parts["verify"] += t3 - t2
+            secs.append(t3 - t0)
             total += 1
             if not al.accepted:
                 refused += 1
+                final.append(init.error_to(poses[k]))
                 continue
             ref = Pose(al.rotation @ init.rotation, al.rotation @ init.translation + al.translation)
             e = ref.error_to(poses[k])
             errs.append(e)
+            final.append(e)
             bad = e[0] > 0.1 or e[1] > 1.0
             wrong += int(bad)
             if bad and args.verbose:
@@ -132,12 +152,19 @@ def run_case(name: str, args: argparse.Namespace, opts: AlignOptions) -> None:
     e = np.array(errs).reshape(-1, 2)
     med = np.median(e, axis=0) if len(e) else np.array([np.nan, np.nan])
     within = float(np.mean((e[:, 0] <= 0.1) & (e[:, 1] <= 1.0))) if len(e) else float("nan")
+    f = np.array(final).reshape(-1, 2)
+    f_med = float(np.median(f[:, 0]))
+    f_within = float(np.mean((f[:, 0] <= 0.1) & (f[:, 1] <= 1.0)))
     ratio = float(np.median(secs) / np.median(t_int))
     print(
         f"{name:16s} {total:3d} scans  accepted {total - refused:3d}  "
         f"median {100 * med[0]:5.1f} cm "
         f"{med[1]:5.2f} deg  within 10 cm/1 deg {100 * within:5.1f}%  wrong {wrong:2d}  "
-        f"{1000 * np.median(secs):6.0f} ms/scan ({ratio:.1f}x integrating one scan)"
+        f"{1000 * np.median(secs):6.0f} ms/scan ({ratio:.1f}x integrating one scan)\n"
+        f"{'':16s} all scans after localization: median {100 * f_med:5.1f} cm, within "
+        f"10 cm/1 deg {100 * f_within:5.1f}%; ms/scan: "
+        + ", ".join(f"{k} {1000 * v / total:.0f}" for k, v in parts.items())
+        + f"; pyramid (once) {1000 * t_pyramid:.0f} ms"
     )
 
 
@@ -149,11 +176,26 @@ def main() -> None:
     ap.add_argument("--rays", type=int, default=3000)
     ap.add_argument("--levels", type=int, default=3)
     ap.add_argument("--cases", default=",".join(CASES))
+    ap.add_argument("--step", type=float, default=0.5, help="free-space samples (voxels)")
+    ap.add_argument("--probe-rays", type=int, default=1000)
+    ap.add_argument("--live", action="store_true", help="AlignOptions.live() (flags ignored)")
+    ap.add_argument("--no-verify", action="store_true", help="skip verify_exact")
     ap.add_argument("--verbose", action="store_true", help="print each wrong acceptance")
     args = ap.parse_args()
-    opts = AlignOptions(levels=args.levels, max_rays=args.rays)
+    opts = AlignOptions(
+        levels=args.levels,
+        max_rays=args.rays,
+        step=args.step,
+        probe_rays=args.probe_rays,
+        exact_rays=args.rays,
+    )
+    if args.live:
+        opts = AlignOptions.live()
+        args.rays, args.levels, args.step, args.probe_rays = (
+            opts.max_rays, opts.levels, opts.step, opts.probe_rays,
+        )  # fmt: skip
     print(f"initial error {args.shift} m, {args.angle} deg; map {RES} m; {args.rays} rays, "
-          f"{args.levels} levels")  # fmt: skip
+          f"{args.levels} levels, step {args.step}, {args.probe_rays} probe rays")  # fmt: skip
     for name in args.cases.split(","):
         run_case(name, args, opts)
 

@@ -9,6 +9,7 @@ from typing import Any
 
 from mfp_mapper.cli.common import CliError, check_writable, load_map_arg, warn
 from mfp_mapper.cli.input_args import add_input_arguments, input_options
+from mfp_mapper.config.replay_options import add_replay_flags
 
 ALIGN_HELP = "scan-to-map alignment (README, Localization)"
 
@@ -42,16 +43,18 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     p = sub.add_parser(
         "localize",
         help="refine the poses of a recording's scans against a fixed map",
-        description="Align each scan of INPUT (a folder of scan files) against MAP by the "
-        "forward model's likelihood, starting from its pose in --poses (TUM or KITTI, matched "
-        "by stamp like replay) or from --odometry kiss-icp; write the refined poses (TUM) and "
+        description="Align each scan of INPUT (a bag or a folder of scan files) against MAP by "
+        "the forward model's likelihood, starting from its pose in --poses (TUM matched by "
+        "stamp; KITTI for a folder), the bag's own odometry or /tf, or --odometry kiss-icp; "
+        "write the refined poses (TUM) and "
         "a per-scan confidence (FILE.confidence.jsonl). A correction the scan's geometry "
         "cannot support (a corridor, an open field) is refused: that scan keeps its pose.",
     )
     p.add_argument("map", help="the map (.npz or a tiled map directory)")
-    p.add_argument("input", help="a folder of scan files")
+    p.add_argument("input", help="a bag (ROS 1 .bag, ROS 2 directory) or a folder of scan files")
     p.add_argument("--poses-out", required=True, metavar="FILE", help="refined poses (TUM)")
     p.add_argument("--config", help="a node parameter file (read as the node reads it)")
+    add_replay_flags(p)  # the replay's settings flags (--extrinsic, topics, ...)
     add_input_arguments(p)
     add_align_arguments(p)
     return p
@@ -63,14 +66,9 @@ def run(args: argparse.Namespace) -> int:
     from mfp_mapper.config.replay_options import options_from_args
     from mfp_mapper.mapping.localize import localize_folder
     from mfp_mapper.mapping.replay import ReplayError
-    from mfp_mapper.sources.scan_folder import is_scan_folder
 
     out = Path(args.poses_out)
     check_writable(out)
-    if not is_scan_folder(args.input):
-        raise CliError(
-            f"{args.input}: localize reads folders of scan files (bags: not yet, see README)"
-        )
     align = align_options(args)
     mapper = load_map_arg(args.map)
     try:
@@ -80,6 +78,8 @@ def run(args: argparse.Namespace) -> int:
             mapper, args.input, args.poses, opts, times_file=args.times, align=align, log=warn
         )
     except ReplayError as err:
+        raise CliError(f"{err} (no poses written)") from None
+    except ValueError as err:  # invalid settings
         raise CliError(f"{err} (no poses written)") from None
     if not result.scans:
         raise CliError(f"{args.input}: no scan had an initial pose (no poses written)")

@@ -52,12 +52,13 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     add_input_arguments(p)  # folders, poses, odometry, --start/--end
     p.add_argument(
         "--refine-poses", action="store_true",
-        help="scan folder: align each scan against the map built so far (by the forward "
-        "model's likelihood) before integrating it; initial guess from --poses or --odometry",
+        help="align each scan against the map built so far (by the forward model's "
+        "likelihood) before integrating it; initial guess from the pose source (the bag's "
+        "odometry or /tf, --poses, --odometry kiss-icp)",
     )  # fmt: skip
     p.add_argument(
         "--poses-out", metavar="FILE",
-        help="scan folder: write the poses used (refined or not) as TUM, and a per-scan "
+        help="write the poses used (refined or not) as TUM, and a per-scan "
         "confidence file FILE.confidence.jsonl",
     )  # fmt: skip
     add_align_arguments(p)
@@ -133,11 +134,8 @@ def run_refined(args: argparse.Namespace, out: Path) -> int:
 
     if out.suffix != ".npz":
         raise CliError("--refine-poses/--poses-out write an .npz map")
-    if not is_scan_folder(args.inputs[0]):
-        raise CliError(
-            f"{args.inputs[0]}: --refine-poses/--poses-out read folders of scan files "
-            "(bags: not yet, see README)"
-        )
+    if not is_scan_folder(args.inputs[0]) and args.times is not None:
+        raise CliError(f"{args.inputs[0]}: --times is for folders of scan files")
     poses_out = Path(args.poses_out) if args.poses_out else None
     if poses_out is not None:
         check_writable(poses_out)

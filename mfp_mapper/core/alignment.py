@@ -31,12 +31,14 @@ Pure maths on the map's statistics and on rays in the map frame: no I/O, no ROS.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
+
+from mfp_mapper.core.likelihood import scan_log_likelihood
 
 FloatArray = NDArray[np.float64]
 
@@ -48,6 +50,7 @@ __all__ = [
     "align_scan",
     "geometric_conditioning",
     "surrogate_log_likelihood",
+    "verify_exact",
 ]
 
 _BLOCK = 8  # voxels per block edge in the field's sparse storage
@@ -95,6 +98,38 @@ class AlignOptions:
     probe: float = 2.0
     """Curvature for the confidence: gradient differences at +-``probe`` voxel edges (fine
     level): wide enough to average over the voxel-scale texture of the field."""
+    min_exact_z: float = 3.0
+    """``verify_exact``: refuse a correction unless the exact log-likelihood of the scan's
+    rays (``core.likelihood``, no smoothing) rises by more than this many standard errors
+    of its mean per-ray change (a paired test over the rays scored at both poses). The
+    smoothed field is biased at voxel scale: a scan already at its true pose can gain in
+    it by moving a few centimetres, and lose in the exact model."""
+    exact_rays: int = 3000
+    """Rays scored by ``verify_exact`` (a deterministic, evenly spread subset)."""
+    min_correction_voxels: float = 0.0
+    """Refuse a correction that moves the scan's returns by less than this many voxels of
+    the finest level (RMS): within the grid's aliasing range. Every likelihood on a voxel
+    grid (smoothed or exact) prefers surfaces at voxel centres: a room whose walls lie
+    off-centre is "explained better" shifted by up to half a voxel (measured: 6 cm at
+    0.2 m in the simulated room of test_localize_bag, 14 cm with walls on the voxel
+    boundaries), so a smaller correction cannot be told from that bias."""
+    refine_min_voxels: float = 0.5
+    """``min_correction_voxels`` when aligning against the map the same recording is
+    building (``replay --refine-poses``), whose initial poses are usually better than that."""
+    refresh_growth: float = 0.5
+    """Aligning against a growing map (``replay --refine-poses``, ``mapping.localize``):
+    rebuild the pyramid when the scans integrated since the last build reach this share
+    of the scans it holds (builds after scans 1, 2, 3, 5, 8, 12, ...)."""
+    refresh_m: float = 2.0
+    """... or when the sensor is further than this (metres) from where it was built."""
+
+    @classmethod
+    def live(cls, **changes: object) -> AlignOptions:
+        """Settings for aligning every scan at sensor rate (the node's localization mode,
+        README: Localization): 1500 rays, 2 levels (0.4, 0.2 m at a 0.2 m map),
+        free space sampled every voxel, 500 probe rays, 1000 rays for the exact check."""
+        base = cls(levels=2, max_rays=1500, step=1.0, probe_rays=500, exact_rays=1000)
+        return replace(base, **changes)  # type: ignore[arg-type]
 
 
 @dataclass
@@ -124,6 +159,11 @@ class Alignment:
     rays: int
     evaluations: int
     levels: list[dict[str, float]] = field(default_factory=list)
+    exact_gain: float = math.nan
+    """Exact log-likelihood gain (nats, ``core.likelihood``, the rays scored by
+    ``verify_exact``), corrected - initial; NaN when not verified."""
+    exact_z: float = math.nan
+    """That gain's mean per ray over its standard error (``verify_exact``)."""
 
     @property
     def shift_m(self) -> float:
@@ -245,6 +285,97 @@ def _unique_rows(keys: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np
     return np.stack([i, j, k], axis=1) + lo, inv.reshape(-1)
 
 
+def _voxel_blocks(
+    ijk: NDArray[np.integer], s: FloatArray, n: FloatArray
+) -> tuple[NDArray[np.int64], NDArray[np.float32], NDArray[np.float32]]:
+    """Voxel statistics into dense 8^3 blocks: block keys (B, 3), s and n (B, 8, 8, 8)."""
+    ijk = np.asarray(ijk, dtype=np.int64).reshape(-1, 3)
+    blocks = np.floor_divide(ijk, _BLOCK)
+    keys, inv = _unique_rows(blocks)
+    loc = ijk - blocks * _BLOCK
+    s_b = np.zeros((len(keys), _BLOCK, _BLOCK, _BLOCK), dtype=np.float32)
+    n_b = np.zeros((len(keys), _BLOCK, _BLOCK, _BLOCK), dtype=np.float32)
+    s_b[inv, loc[:, 0], loc[:, 1], loc[:, 2]] = np.asarray(s, dtype=np.float64).reshape(-1)
+    n_b[inv, loc[:, 0], loc[:, 1], loc[:, 2]] = np.asarray(n, dtype=np.float64).reshape(-1)
+    return keys, s_b, n_b
+
+
+def _coarsen_blocks(
+    keys: NDArray[np.int64], s_b: NDArray[np.float32], n_b: NDArray[np.float32]
+) -> tuple[NDArray[np.int64], NDArray[np.float32], NDArray[np.float32]]:
+    """Blocks of voxels twice as large: 2x2x2 sums (exact: chords and returns add up)."""
+    h = _BLOCK // 2
+    parents = np.floor_divide(keys, 2)
+    pkeys, pinv = _unique_rows(parents)
+    octant = keys - 2 * parents
+    s_c = np.zeros((len(pkeys), _BLOCK, _BLOCK, _BLOCK), dtype=np.float32)
+    n_c = np.zeros((len(pkeys), _BLOCK, _BLOCK, _BLOCK), dtype=np.float32)
+    s_half = s_b.reshape(-1, h, 2, h, 2, h, 2).sum(axis=(2, 4, 6))
+    n_half = n_b.reshape(-1, h, 2, h, 2, h, 2).sum(axis=(2, 4, 6))
+    for ox in range(2):
+        for oy in range(2):
+            for oz in range(2):
+                sel = np.flatnonzero(
+                    (octant[:, 0] == ox) & (octant[:, 1] == oy) & (octant[:, 2] == oz)
+                )
+                xs, ys, zs = (
+                    slice(ox * h, ox * h + h),
+                    slice(oy * h, oy * h + h),
+                    slice(oz * h, oz * h + h),
+                )
+                s_c[pinv[sel], xs, ys, zs] = s_half[sel]
+                n_c[pinv[sel], xs, ys, zs] = n_half[sel]
+    return pkeys, s_c, n_c
+
+
+def _field_of_blocks(
+    keys: NDArray[np.int64],
+    s_b: NDArray[np.float32],
+    n_b: NDArray[np.float32],
+    res: float,
+    origin: FloatArray,
+    shape: float,
+    rate: float,
+) -> LikelihoodField:
+    """The field of dense blocks of statistics (unobserved voxels: s = n = 0, the prior)."""
+    a = np.empty(s_b.shape, dtype=np.float32)
+    b = np.empty(s_b.shape, dtype=np.float32)
+    _fill_log_probabilities(s_b.reshape(-1), n_b.reshape(-1), res, shape, rate,
+                            a.reshape(-1), b.reshape(-1))  # fmt: skip
+    prior_a, prior_b = (
+        float(v[0]) for v in _log_probabilities(np.zeros(1), np.zeros(1), res, shape, rate)
+    )
+    if keys.shape[0]:
+        lo = keys.min(axis=0)
+        dims = keys.max(axis=0) - lo + 1
+    else:
+        lo, dims = np.zeros(3, np.int64), np.ones(3, np.int64)
+    index = np.full(tuple(int(d) for d in dims), -1, dtype=np.int32)
+    rel = keys - lo
+    index[rel[:, 0], rel[:, 1], rel[:, 2]] = np.arange(len(keys), dtype=np.int32)
+    return LikelihoodField(
+        resolution=res,
+        origin=np.asarray(origin, dtype=np.float64).reshape(3),
+        block_lo=lo.astype(np.int64),
+        index=index,
+        a=a,
+        b=b,
+        prior_a=prior_a,
+        prior_b=prior_b,
+    )
+
+
+@nb.njit(cache=True, nogil=True)
+def _fill_log_probabilities(s, n, res, shape, rate, a, b):  # type: ignore[no-untyped-def]
+    """``_log_probabilities`` element by element into float32 ``a``, ``b`` (no
+    temporaries: 18M voxels of norlab's pyramid)."""
+    for i in range(s.shape[0]):
+        sv = np.float64(s[i])
+        log_pass = (np.float64(n[i]) + shape) * math.log((sv + rate) / (sv + rate + res))
+        a[i] = math.log(-math.expm1(log_pass))
+        b[i] = log_pass / res
+
+
 def _log_probabilities(
     s: FloatArray, n: FloatArray, res: float, shape: float, rate: float
 ) -> tuple[FloatArray, FloatArray]:
@@ -273,16 +404,20 @@ class FieldPyramid:
         shape: float = 1.0,
         rate: float = 1.0,
     ) -> FieldPyramid:
+        """Fields at ``resolution * 2^k``, ``k < levels``, of voxels ``ijk`` (statistics
+        ``s`` metres, ``n`` returns): exact sums of the statistics, as
+        ``LikelihoodField.from_statistics`` with ``factor = 2^k``; built block by block
+        (one sort of the voxels, then 2x2x2 sums of 8^3 blocks: 1.4-2.1x faster than a
+        sort per level on norlab's 3.6M voxels, in the same run)."""
         if levels < 1:
             raise ValueError(f"levels must be at least 1, got {levels}")
-        return cls(
-            [
-                LikelihoodField.from_statistics(
-                    ijk, s, n, resolution, origin, shape=shape, rate=rate, factor=2**k
-                )
-                for k in range(levels)
-            ]
-        )
+        keys, s_b, n_b = _voxel_blocks(ijk, s, n)
+        fields = []
+        for k in range(levels):
+            if k:
+                keys, s_b, n_b = _coarsen_blocks(keys, s_b, n_b)
+            fields.append(_field_of_blocks(keys, s_b, n_b, resolution * 2**k, origin, shape, rate))
+        return cls(fields)
 
     @classmethod
     def from_mapper(
@@ -348,6 +483,48 @@ def _interp(a, b, index, block_lo, prior_a, prior_b, res, origin, p, out):  # ty
     i0, j0, k0 = int(fx), int(fy), int(fz)
     for q in range(8):
         out[q] = 0.0
+    if (i0 & 7) < 7 and (j0 & 7) < 7 and (k0 & 7) < 7:
+        # the 8 corners lie in one block (2 in 3 lookups): find it once
+        bi = (i0 >> 3) - block_lo[0]
+        bj = (j0 >> 3) - block_lo[1]
+        bk = (k0 >> 3) - block_lo[2]
+        row = -1
+        if (
+            bi >= 0
+            and bj >= 0
+            and bk >= 0
+            and bi < index.shape[0]
+            and bj < index.shape[1]
+            and bk < index.shape[2]
+        ):
+            row = index[bi, bj, bk]
+        if row < 0:
+            out[0] = prior_a
+            out[1] = prior_b
+            return
+        li, lj, lk = i0 & 7, j0 & 7, k0 & 7
+        for di in range(2):
+            wx = tx if di else 1.0 - tx
+            gx = 1.0 if di else -1.0
+            for dj in range(2):
+                wy = ty if dj else 1.0 - ty
+                gy = 1.0 if dj else -1.0
+                for dk in range(2):
+                    wz = tz if dk else 1.0 - tz
+                    gz = 1.0 if dk else -1.0
+                    va = a[row, li + di, lj + dj, lk + dk]
+                    vb = b[row, li + di, lj + dj, lk + dk]
+                    w = wx * wy * wz
+                    out[0] += w * va
+                    out[1] += w * vb
+                    ex, ey, ez = gx * wy * wz * inv, wx * gy * wz * inv, wx * wy * gz * inv
+                    out[2] += ex * va
+                    out[3] += ey * va
+                    out[4] += ez * va
+                    out[5] += ex * vb
+                    out[6] += ey * vb
+                    out[7] += ez * vb
+        return
     for di in range(2):
         wx = tx if di else 1.0 - tx
         gx = 1.0 if di else -1.0
@@ -657,6 +834,14 @@ def align_scan(
             f"correction beyond the search range ({shift:.2f} m, {angle:.1f} deg > "
             f"{opt.max_shift_m:g} m or {opt.max_angle_deg:g} deg): kept the initial pose"
         )
+    if not reason and opt.min_correction_voxels > 0.0:
+        moved = pts @ rot.T + trans - pts
+        rms = math.sqrt(float(np.mean(np.sum(moved * moved, axis=1))))
+        if rms < opt.min_correction_voxels * fine.resolution:
+            reason = (
+                f"correction within the grid's aliasing range ({100 * rms:.1f} cm RMS < "
+                f"{opt.min_correction_voxels:g} voxel); kept the initial pose"
+            )
     if not reason and f_final - f_init < opt.min_gain_per_ray * rays:
         reason = (
             f"no significant gain ({(f_final - f_init) / rays:.3g} nats per ray < "
@@ -759,6 +944,61 @@ def geometric_conditioning(
     _, evecs = np.linalg.eigh(jac.T @ jac)
     counts = np.count_nonzero(np.abs(jac @ evecs) > 0.3, axis=0).astype(np.int64)
     return counts, evecs
+
+
+def verify_exact(
+    mapper: object,
+    alignment: Alignment,
+    points: FloatArray,
+    origins: FloatArray,
+    stamp: float,
+    options: AlignOptions | None = None,
+    *,
+    no_return: NDArray[np.bool_] | None = None,
+) -> Alignment:
+    """``alignment`` checked against the exact likelihood of the scan under ``mapper`` (a
+    ``core.mapper.Mapper``; rays ``origins`` -> ``points`` in the map frame at the initial
+    pose, as ``Mapper.integrate`` takes them): an accepted correction is refused unless the
+    exact log-likelihood rises significantly (``AlignOptions.min_exact_z``). Fills
+    ``exact_gain`` and ``exact_z``; a refused alignment is returned unchanged."""
+    opt = options or AlignOptions()
+    if not alignment.accepted:
+        return alignment
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    org = np.broadcast_to(np.asarray(origins, dtype=np.float64), pts.shape)
+    pick = _spread_subset(pts.shape[0], opt.exact_rays)
+    p, o = pts[pick], np.ascontiguousarray(org[pick])
+    nr = None if no_return is None else np.asarray(no_return, dtype=bool)[pick]
+    rot, trans = alignment.rotation, alignment.translation
+    before = scan_log_likelihood(mapper, p, o, stamp, no_return=nr)  # type: ignore[arg-type]
+    after = scan_log_likelihood(
+        mapper,  # type: ignore[arg-type]
+        p @ rot.T + trans,
+        o @ rot.T + trans,
+        stamp,
+        no_return=nr,
+    )
+    both, ib, ia = np.intersect1d(before.ray_source, after.ray_source, return_indices=True)
+    diff = after.ray_log_likelihood[ia] - before.ray_log_likelihood[ib]
+    gain = float(diff.sum())
+    if both.size >= 2:
+        err = float(np.std(diff, ddof=1)) / math.sqrt(both.size)
+        z = float(np.mean(diff)) / err if err > 0.0 else math.copysign(math.inf, gain)
+    else:
+        z = math.nan
+    out = replace(alignment, exact_gain=gain, exact_z=z)
+    if not z > opt.min_exact_z:
+        return replace(
+            out,
+            rotation=np.eye(3),
+            translation=np.zeros(3),
+            accepted=False,
+            reason=(
+                f"no significant exact gain ({gain:.1f} nats over {both.size} rays, "
+                f"{z:.2g} standard errors <= {opt.min_exact_z:g}); kept the initial pose"
+            ),
+        )
+    return out
 
 
 def _refused(reason: str, rays: int) -> Alignment:

@@ -199,6 +199,38 @@ def _replay(
     into: Mapper | None,
     consume: ScanConsumer | None = None,
 ) -> ReplayResult:
+    inp = open_bag_input(reader, path, opts, log)
+    summary = inp.summary
+    mapper = mapper_for(opts, inp.poses.map_frame, into)
+    map_scans(
+        inp.clouds(), inp.poses, inp.extrinsic_of, opts, mapper, summary, progress, log,
+        on_scan, consume,
+    )  # fmt: skip
+    return ReplayResult(mapper, summary)
+
+
+@dataclass
+class BagInput:
+    """A bag's clouds (``clouds()``: (position, load message) pairs, in bag order), their
+    poses and the extrinsic of each cloud frame; the reader must stay open while used."""
+
+    clouds: Callable[[], Iterator[tuple[int, Callable[[], Any]]]]
+    poses: Poses
+    extrinsic_of: Callable[[str], Extrinsic]
+    summary: ReplaySummary
+
+
+def open_bag_input(
+    reader: Any,
+    path: Path,
+    opts: ReplayOptions,
+    log: Callable[[str], None] | None = None,
+    pose_buffer: Any = None,
+    pose_source: str = "",
+) -> BagInput:
+    """The clouds, poses and extrinsics a replay of ``reader`` (``open_reader(path)``)
+    would use: poses from the bag's odometry or /tf, ``opts.odometry``, or ``pose_buffer``
+    (a pose file's poses of the cloud frame, e.g. TUM matched by stamp) when given."""
     summary = ReplaySummary(bag=str(path))
     cloud_topic = pick_topic(reader, CLOUD_TYPE, opts.cloud_topic, "PointCloud2", "--cloud-topic")
     if cloud_topic is None:
@@ -207,16 +239,32 @@ def _replay(
             f"the bag has no sensor_msgs/PointCloud2 topic; topics: {listing or 'none'}"
         )
     odom_topic = None
-    if not opts.use_tf:
+    if not opts.use_tf and pose_buffer is None and opts.odometry is None:
         odom_topic = pick_topic(reader, ODOM_TYPE, opts.odom_topic, "Odometry", "--odom-topic")
     summary.cloud_topic = cloud_topic
     cloud_conns = [c for c in reader.connections if c.topic == cloud_topic]
     summary.scans_total = sum(c.msgcount for c in cloud_conns)
     if summary.scans_total == 0:
         raise ReplayError(f"the cloud topic {cloud_topic} has no messages")
+    return _bag_input(reader, path, opts, cloud_conns, odom_topic, summary, log, pose_buffer,
+                      pose_source)  # fmt: skip
 
+
+def _bag_input(
+    reader: Any,
+    path: Path,
+    opts: ReplayOptions,
+    cloud_conns: list[Any],
+    odom_topic: str | None,
+    summary: ReplaySummary,
+    log: Callable[[str], None] | None,
+    pose_buffer: Any = None,
+    pose_source: str = "",
+) -> BagInput:
     t_poses = time.perf_counter()
-    if opts.odometry is not None:
+    if pose_buffer is not None:
+        poses, tfs, cloud_frame = _file_poses(reader, path, cloud_conns, pose_buffer, pose_source)
+    elif opts.odometry is not None:
         poses, tfs, cloud_frame = _estimated_poses(reader, opts, cloud_conns, log)
     else:
         poses, tfs, cloud_frame = _read_poses(reader, path, opts, odom_topic, cloud_conns)
@@ -228,8 +276,6 @@ def _replay(
     ext, summary.extrinsic_source = extrinsic_for(cloud_frame, poses.body, tfs, opts)
     extrinsics[cloud_frame] = ext
 
-    mapper = mapper_for(opts, poses.map_frame, into)
-
     def clouds() -> Iterator[tuple[int, Callable[[], Any]]]:
         for index, (conn, _, raw) in enumerate(read_messages(reader, cloud_conns, path)):
             yield index, partial(reader.deserialize, raw, conn.msgtype)
@@ -239,8 +285,23 @@ def _replay(
             extrinsics[frame], _ = extrinsic_for(frame, poses.body, tfs, opts)
         return extrinsics[frame]
 
-    map_scans(clouds(), poses, extrinsic_of, opts, mapper, summary, progress, log, on_scan, consume)
-    return ReplayResult(mapper, summary)
+    return BagInput(clouds, poses, extrinsic_of, summary)
+
+
+def _file_poses(
+    reader: Any, path: Path, cloud_conns: list[Any], buffer: Any, source: str
+) -> tuple[Poses, TfTree, str]:
+    """Poses of the cloud frame from a pose file (as a scan folder's: the lidar's poses;
+    ``--extrinsic`` when they are another body's)."""
+    try:
+        first = next(read_messages(reader, cloud_conns, path))
+        cloud_frame = frame_name(reader.deserialize(first[2], first[0].msgtype).header.frame_id)
+    except ReplayError:
+        raise
+    except Exception as err:
+        raise ReplayError(f"{path}: cannot read the first cloud: {type(err).__name__}: {err}"
+                          ) from None  # fmt: skip
+    return Poses(buffer, cloud_frame, "world", source), read_transforms(), cloud_frame
 
 
 def new_mapper(opts: ReplayOptions, frame_id: str) -> Mapper:

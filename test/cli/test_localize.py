@@ -66,14 +66,14 @@ def test_localize_brings_a_perturbed_real_scan_back(shared_data: Path, tmp_path:
     assert all(v is not None and v < 0.05 for v in rows[0]["sigma"][:3])
 
 
-def test_localize_says_why_when_the_input_is_not_a_folder(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+def test_localize_says_why_when_the_map_is_broken(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
     empty_map = tmp_path / "m.npz"
     empty_map.write_bytes(b"")
     code = main(["localize", str(empty_map), str(tmp_path / "nothing.bag"), "--poses-out",
                  str(tmp_path / "o.tum")])  # fmt: skip
     assert code == 1
     err = capsys.readouterr().err
-    assert "localize reads folders of scan files" in err and "Traceback" not in err
+    assert "unreadable or truncated map file" in err and "Traceback" not in err
 
 
 def test_replay_refine_poses_keeps_good_poses_and_writes_them(
