@@ -21,10 +21,10 @@ State: ``waiting_for_map`` (no field yet), ``initializing`` (no correction accep
 start or the last ``/initialpose``), ``localized``, ``lost`` (``lost_after`` consecutive
 refusals while localized). Before the first acceptance, and when lost, the search range is
 the wider ``initial_max_shift`` / ``initial_max_angle``. A refusal for lack of gain
-(``no_gain``, or ``exact_check``: the scan's surfaces constrain every direction and the best pose in range is no
-better than the current one) confirms a localized or lost pose (lost -> localized) rather
-than counting toward lost; it does not end ``initializing``, which needs an accepted
-correction (a pose never confirmed by a gain is not claimed).
+(``no_gain``, or ``exact_check``: the scan's surfaces constrain every direction and the
+best pose in range is no better than the current one) confirms a localized or lost pose
+(lost -> localized) rather than counting toward lost; it does not end ``initializing``,
+which needs an accepted correction (a pose never confirmed by a gain is not claimed).
 """
 
 from __future__ import annotations
