@@ -118,7 +118,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--scans", type=int, default=40)
     ap.add_argument("--rays", type=int, default=3000, help="rays of the wide search")
-    ap.add_argument("--tracking-rays", type=int, default=1500, help="rays while localized")
+    ap.add_argument("--tracking-rays", type=int, default=1000, help="rays while localized")
     ap.add_argument("--tracking-iterations", type=int, default=10)
     ap.add_argument("--normals-refresh", type=float, default=0.5, help="m; 0: every scan")
     ap.add_argument("--no-exact-check", action="store_true", help="localization.exact_check off")

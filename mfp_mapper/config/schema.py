@@ -302,7 +302,7 @@ SETTINGS: tuple[Setting, ...] = (
     _node("localization.tracking_levels", 1, "While localized: pyramid levels the alignment "
           "uses, finest first (before the first acceptance and when lost: all 3).", 1, 3,
           dynamic=True),
-    _node("localization.tracking_rays", 1500, "While localized: rays per cloud used by the "
+    _node("localization.tracking_rays", 1000, "While localized: rays per cloud used by the "
           "alignment (localization.max_rays: the wide search).", 10, 10_000_000, dynamic=True),
     _node("localization.tracking_iterations", 10, "While localized: Levenberg-Marquardt steps "
           "per alignment (the wide search: 30).", 1, 1000, dynamic=True),

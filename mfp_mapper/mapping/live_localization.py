@@ -81,7 +81,7 @@ class LocalizationSettings:
     lost_after: int = 10
     rebuild_period: float = 5.0
     tracking_levels: int = 1
-    tracking_rays: int = AlignOptions.live().max_rays
+    tracking_rays: int = 1000
     """Rays per alignment while localized (``max_rays``: the wide search)."""
     tracking_iterations: int = 10
     """Levenberg-Marquardt steps per alignment while localized (the wide search: 30)."""
@@ -129,12 +129,16 @@ class LocalizationSettings:
 
     def options(self, wide: bool) -> AlignOptions:
         """The alignment's options: the wider search range before the first acceptance;
-        while tracking those of ``AlignOptions.live`` (free space sampled every voxel,
-        fewer curvature probe rays) with ``tracking_rays`` and ``tracking_iterations``."""
+        while tracking those of ``AlignOptions.live`` (fewer curvature probe rays) with
+        ``tracking_rays`` and ``tracking_iterations``."""
         base = (
             AlignOptions()
             if wide
-            else AlignOptions.live(max_iterations=max(self.tracking_iterations, 1))
+            else AlignOptions.live(  # free space sampled every half voxel, as the wide search:
+                # every voxel lets the hall's 7 cm aliasing gain (a wrong correction accepted)
+                max_iterations=max(self.tracking_iterations, 1),
+                step=AlignOptions.step,
+            )
         )
         return replace(
             base,
