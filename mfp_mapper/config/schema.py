@@ -277,8 +277,9 @@ SETTINGS: tuple[Setting, ...] = (
     _node("localization.min_period", 0.0, "Align at most one cloud per this many seconds "
           "(stamp time); the others are placed with the last correction. 0: every cloud.",
           0.0, 3600.0, dynamic=True),
-    _node("localization.max_rays", 3000, "Rays per cloud used by the alignment (an evenly "
-          "spread subset).", 10, 10_000_000, dynamic=True),
+    _node("localization.max_rays", 3000, "Rays per cloud used by the wide search's alignment "
+          "(an evenly spread subset; while localized: localization.tracking_rays).", 10,
+          10_000_000, dynamic=True),
     _node("localization.max_sigma", 0.05, "Refuse a correction whose standard deviation "
           "along its weakest direction exceeds this (m): degenerate geometry.", 0.0, 100.0,
           dynamic=True),
