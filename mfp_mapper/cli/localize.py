@@ -68,9 +68,11 @@ def run(args: argparse.Namespace) -> int:
     from mfp_mapper.mapping.replay import ReplayError
 
     out = Path(args.poses_out)
-    check_writable(out)
+    check_pose_outputs(out)
     align = align_options(args)
     mapper = load_map_arg(args.map)
+    if not mapper.num_voxels:
+        raise CliError(f"{args.map}: the map is empty: nothing to localize against")
     try:
         opts = replace(options_from_args(args), **input_options(args))
         opts = replace(opts, resolution=mapper.resolution)
@@ -88,7 +90,25 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def check_pose_outputs(out: Path) -> None:
+    """CliError, before any work, when the poses or their confidence file (``out`` +
+    ``.confidence.jsonl``) cannot be written."""
+    from mfp_mapper.outputs.pose_output import confidence_path_for
+
+    check_writable(out)
+    check_writable(confidence_path_for(out))
+
+
 def write_results(result: Any, out: Path) -> None:
+    """The poses (TUM) and their confidence file, each atomically; CliError when the disk
+    refuses one."""
+    try:
+        _write_results(result, out)
+    except OSError as err:
+        raise CliError(f"{out}: cannot write the poses ({err.strerror or err})") from None
+
+
+def _write_results(result: Any, out: Path) -> None:
     import numpy as np
 
     from mfp_mapper.outputs.pose_output import (

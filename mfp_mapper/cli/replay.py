@@ -126,7 +126,12 @@ def run(args: argparse.Namespace) -> int:
 def run_refined(args: argparse.Namespace, out: Path) -> int:
     """One scan folder, scan by scan, with ``--refine-poses`` and/or ``--poses-out``
     (``mapping.localize.replay_refined_folder``)."""
-    from mfp_mapper.cli.localize import align_options, print_summary, write_results
+    from mfp_mapper.cli.localize import (
+        align_options,
+        check_pose_outputs,
+        print_summary,
+        write_results,
+    )
     from mfp_mapper.mapio.loading import save_map
     from mfp_mapper.mapping.localize import replay_refined_folder
     from mfp_mapper.mapping.replay import ReplayError
@@ -138,7 +143,7 @@ def run_refined(args: argparse.Namespace, out: Path) -> int:
         raise CliError(f"{args.inputs[0]}: --times is for folders of scan files")
     poses_out = Path(args.poses_out) if args.poses_out else None
     if poses_out is not None:
-        check_writable(poses_out)
+        check_pose_outputs(poses_out)
     try:
         result = replay_refined_folder(
             args.inputs[0], args.poses, replay_options(args), times_file=args.times,

@@ -99,3 +99,41 @@ def test_replay_refine_poses_keeps_good_poses_and_writes_them(
     assert rows[0]["reason"].startswith("first scan")
     assert all(r["rays"] > 0 for r in rows[1:])
     assert (tmp_path / "m.npz").stat().st_size > 0
+
+
+def _empty_map(path: Path) -> Path:
+    from mfp_mapper.core.mapper import Mapper
+    from mfp_mapper.mapio.loading import save_map
+
+    save_map(Mapper(0.2, frame_id="map"), path)
+    return path
+
+
+def test_localize_refuses_an_unwritable_confidence_file_before_any_work(
+    tmp_path: Path,
+    capsys,  # type: ignore[no-untyped-def]
+) -> None:
+    """The confidence file (FILE.confidence.jsonl) is checked with the poses: no traceback
+    after the poses were written, nothing half written."""
+    out = tmp_path / "o.tum"
+    (tmp_path / "o.tum.confidence.jsonl").mkdir()
+    for argv in (
+        ["localize", str(_empty_map(tmp_path / "m.npz")), str(tmp_path / "in"),
+         "--poses-out", str(out)],
+        ["replay", str(tmp_path / "in"), "-o", str(tmp_path / "r.npz"), "--poses-out",
+         str(out)],
+    ):  # fmt: skip
+        assert main(argv) == 1
+        err = capsys.readouterr().err
+        assert "o.tum.confidence.jsonl is a directory" in err, err
+        assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+        assert not out.exists()
+
+
+def test_localize_refuses_an_empty_map(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    code = main(["localize", str(_empty_map(tmp_path / "m.npz")), str(tmp_path / "in"),
+                 "--poses-out", str(tmp_path / "o.tum")])  # fmt: skip
+    assert code == 1
+    err = capsys.readouterr().err
+    assert "the map is empty" in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "o.tum").exists()
