@@ -67,6 +67,7 @@ from tf2_msgs.msg import TFMessage
 
 from mfp_mapper.config.schema import SPECS, NodeConfig
 from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.core.store import MAX_VOXEL_INDEX
 from mfp_mapper.mapio.atomic import remove_stale_temp_files
 from mfp_mapper.mapio.loading import load_map
 from mfp_mapper.mapio.mapfile import MapFileError, map_arrays
@@ -559,6 +560,16 @@ class MfpMapperNode(GuardedLifecycleNode):
             self.warn_throttled(
                 "initialpose_bad",
                 f"/initialpose ignored: not finite or not a unit quaternion {values}",
+                error=True,
+            )
+            return
+        reach = MAX_VOXEL_INDEX * self.mapper.resolution
+        origin = np.asarray(self.mapper.origin or (0.0, 0.0, 0.0))
+        if float(np.max(np.abs(np.array((p.x, p.y, p.z)) - origin))) >= reach:
+            self.warn_throttled(
+                "initialpose_far",
+                f"/initialpose ignored: position ({p.x:.6g}, {p.y:.6g}, {p.z:.6g}) is beyond "
+                f"the map's reach ({reach:.6g} m from its origin at {self.mapper.resolution} m)",
                 error=True,
             )
             return

@@ -1,0 +1,88 @@
+"""The node's localization mode under bad input, over real DDS (issue 20; the project's rule:
+bad input gets one clear line and changes nothing, no callback takes the node down, never a
+silent wrong pose): ``/initialpose`` that is not finite, not a rotation or beyond the map's
+reach; parameters set to edge values at run time; ``~/reset`` while localizing; SIGINT."""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+from test_node_lifecycle import _set_parameters
+from test_node_localization import LocFeeder, _aligned, _save_scene_map, _start
+
+pytestmark = pytest.mark.ros
+
+
+def _raw_initial_pose(feeder: LocFeeder, position: Any, quaternion: Any) -> None:
+    from ros_helpers import stamp_msg
+
+    msg = feeder.PoseWithCovarianceStamped()
+    msg.header.frame_id = "map"
+    msg.header.stamp = stamp_msg(time.time())
+    p, o = msg.pose.pose.position, msg.pose.pose.orientation
+    p.x, p.y, p.z = (float(v) for v in position)
+    o.x, o.y, o.z, o.w = (float(v) for v in quaternion)
+    feeder.initial_pub.publish(msg)
+
+
+def test_bad_initial_poses_edge_parameters_and_reset_leave_the_node_standing(
+    ros_domain: int, tmp_path: Path
+) -> None:
+    scene, poses = _save_scene_map("box", tmp_path / "hall.npz")
+    node, feeder = _start(ros_domain, tmp_path, "faults", tmp_path / "hall.npz")
+    try:
+        # beyond what a map can hold (finite, a unit quaternion): refused, not claimed on /tf
+        _raw_initial_pose(feeder, (1e12, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+        assert feeder.wait(lambda: "beyond the map's reach" in node.log(), 10.0), node.log()
+        _raw_initial_pose(feeder, (math.nan, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+        assert feeder.wait(lambda: "not finite or not a unit quaternion" in node.log(), 10.0)
+        _raw_initial_pose(feeder, (1.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0))
+        feeder.spin(0.3)
+        assert feeder.localization()["initial_poses"] == 0, feeder.localization()
+        assert not feeder.tf  # nothing claimed
+        t = time.time()
+        for i, k in enumerate((1, 3, 5)):
+            feeder.scan(scene, poses[k], t + i * 0.2, seed=k)
+            loc = _aligned(feeder, i + 1, node)
+        assert loc["state"] == "localized", loc
+        assert all(abs(tf.transform.translation.x) < 10.0 for tf in feeder.tf)
+
+        # edge values at run time: the next clouds are aligned with them
+        results = _set_parameters(
+            feeder,
+            "mfp_mapper",
+            {
+                "localization.max_rays": 10,
+                "localization.tracking_levels": 3,
+                "localization.update_min_d": 0.0,
+                "localization.update_min_a": 0.0,
+                "localization.lost_after": 1,
+            },
+        )
+        assert all(r.successful for r in results), [r.reason for r in results]
+        feeder.scan(scene, poses[7], time.time(), seed=7)
+        loc = _aligned(feeder, 4, node)
+        assert loc["last"]["rays"] <= 10 or not loc["last"]["accepted"], loc
+
+        # ~/reset while localizing: the field goes with the map; clouds still come through
+        from std_srvs.srv import Empty
+
+        feeder.call(feeder.reset, Empty.Request())
+        assert feeder.wait(
+            lambda: feeder.localization().get("state") == "waiting_for_map", 10.0
+        ), feeder.localization()
+        localized = feeder.status["clouds_localized"] if feeder.status else 0
+        feeder.scan(scene, poses[9], time.time(), seed=9)
+        assert feeder.wait(
+            lambda: (feeder.status or {}).get("clouds_localized", 0) > localized, 10.0
+        ), feeder.status
+        assert node.alive()
+    finally:
+        feeder.destroy()
+        code = node.stop()
+    log = node.log()
+    assert code == 0 and "Traceback" not in log, log[-3000:]
