@@ -573,8 +573,11 @@ class MfpMapperNode(GuardedLifecycleNode):
                 error=True,
             )
             return
-        stamp = stamp_seconds(msg.header.stamp)
-        stamp = stamp if stamp > 0.0 else self._now()  # RViz may leave it 0
+        stamp, clock = stamp_seconds(msg.header.stamp), self._now()
+        stamp = stamp if stamp > 0.0 else clock  # RViz may leave it 0
+        ahead = stamp - clock if clock > 0.0 else 0.0
+        if ahead > 1.0:  # would stamp map -> odom ahead of every lookup until a correction
+            stamp = clock
         now = self.localizer.initial_pose(
             stamp, (p.x, p.y, p.z), (q.x, q.y, q.z, q.w), self.worker.robot_in_odom(stamp)
         )
@@ -582,6 +585,11 @@ class MfpMapperNode(GuardedLifecycleNode):
         self.get_logger().info(
             f"/initialpose received: robot at x {p.x:.3f} y {p.y:.3f} z {p.z:.3f} in "
             f"{expected!r}; {when}"
+            + (
+                f"; its stamp was {ahead:.6g} s ahead of the clock: taken as now"
+                if ahead > 1.0
+                else ""
+            )
         )
 
     @tracked

@@ -1,7 +1,8 @@
 """The node's localization mode under bad input, over real DDS (issue 20; the project's rule:
 bad input gets one clear line and changes nothing, no callback takes the node down, never a
 silent wrong pose): ``/initialpose`` that is not finite, not a rotation or beyond the map's
-reach; parameters set to edge values at run time; ``~/reset`` while localizing; SIGINT."""
+reach or stamped a year ahead; parameters set to edge values at run time; ``~/reset``
+while localizing; SIGINT."""
 
 from __future__ import annotations
 
@@ -11,18 +12,22 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from scipy.spatial.transform import Rotation
 from test_node_lifecycle import _set_parameters
 from test_node_localization import LocFeeder, _aligned, _save_scene_map, _start
 
 pytestmark = pytest.mark.ros
+YEAR = 365 * 86400.0
 
 
-def _raw_initial_pose(feeder: LocFeeder, position: Any, quaternion: Any) -> None:
+def _raw_initial_pose(
+    feeder: LocFeeder, position: Any, quaternion: Any, ahead: float = 0.0
+) -> None:
     from ros_helpers import stamp_msg
 
     msg = feeder.PoseWithCovarianceStamped()
     msg.header.frame_id = "map"
-    msg.header.stamp = stamp_msg(time.time())
+    msg.header.stamp = stamp_msg(time.time() + ahead)
     p, o = msg.pose.pose.position, msg.pose.pose.orientation
     p.x, p.y, p.z = (float(v) for v in position)
     o.x, o.y, o.z, o.w = (float(v) for v in quaternion)
@@ -51,6 +56,17 @@ def test_bad_initial_poses_edge_parameters_and_reset_leave_the_node_standing(
         assert loc["state"] == "localized", loc
         assert all(abs(tf.transform.translation.x) < 10.0 for tf in feeder.tf)
 
+        # stamped a year ahead (a clock gone wrong): map -> odom must not be stamped there
+        truth = poses[5]
+        quat = Rotation.from_matrix(truth.rotation).as_quat()
+        _raw_initial_pose(feeder, truth.translation, quat, ahead=YEAR)
+        assert feeder.wait(lambda: "/initialpose received" in node.log(), 10.0)
+        seen = len(feeder.tf)
+        assert feeder.wait(lambda: len(feeder.tf) >= seen + 3, 5.0)
+        newest = feeder.tf[-1].header.stamp
+        assert newest.sec + 1e-9 * newest.nanosec < time.time() + 5.0
+        assert "ahead of the clock: taken as now" in node.log()
+
         # edge values at run time: the next clouds are aligned with them
         results = _set_parameters(
             feeder,
@@ -72,9 +88,9 @@ def test_bad_initial_poses_edge_parameters_and_reset_leave_the_node_standing(
         from std_srvs.srv import Empty
 
         feeder.call(feeder.reset, Empty.Request())
-        assert feeder.wait(
-            lambda: feeder.localization().get("state") == "waiting_for_map", 10.0
-        ), feeder.localization()
+        assert feeder.wait(lambda: feeder.localization().get("state") == "waiting_for_map", 10.0), (
+            feeder.localization()
+        )
         localized = feeder.status["clouds_localized"] if feeder.status else 0
         feeder.scan(scene, poses[9], time.time(), seed=9)
         assert feeder.wait(
