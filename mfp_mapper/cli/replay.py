@@ -86,7 +86,10 @@ def run(args: argparse.Namespace) -> int:
     ) or (len(args.inputs) > 1)
     if fleet:
         if args.refine_poses or args.poses_out:
-            raise CliError("--refine-poses and --poses-out take one scan folder (no fleet)")
+            raise CliError(
+                "--refine-poses and --poses-out take one input, a scan folder or a bag (not "
+                "several inputs, --workers, --scheduler or --chunk-seconds)"
+            )
         return run_fleet(args, out)
     if args.refine_poses or args.poses_out:
         return run_refined(args, out)

@@ -137,3 +137,13 @@ def test_localize_refuses_an_empty_map(tmp_path: Path, capsys) -> None:  # type:
     err = capsys.readouterr().err
     assert "the map is empty" in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "o.tum").exists()
+
+
+def test_replay_refine_poses_refuses_a_fleet_in_one_line(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    for extra in (["b"], ["--workers", "2"]):
+        argv = ["replay", str(tmp_path / "a"), *extra, "--refine-poses", "-o",
+                str(tmp_path / "m.npz")]  # fmt: skip
+        assert main(argv) == 1
+        err = capsys.readouterr().err
+        assert "take one input, a scan folder or a bag" in err, err
+        assert len(err.strip().splitlines()) == 1 and not (tmp_path / "m.npz").exists()
