@@ -139,6 +139,11 @@ def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, str | None]:
             f"map {path!r} has resolution {mapper.resolution} m, parameter "
             f"resolution is {cfg.resolution} m: keeping the map's"
         )
+    if cfg.frame_id and mapper.frame_id and mapper.frame_id != cfg.frame_id:
+        logger.warning(
+            f"map {path!r} was built in frame {mapper.frame_id!r}, parameter frame_id is "
+            f"{cfg.frame_id!r}: its voxels are taken as coordinates in {cfg.frame_id!r}"
+        )
     if cfg.frame_id:
         mapper.frame_id = cfg.frame_id
     logger.info(f"loaded {mapper.num_voxels} voxels from {path!r} (frame {mapper.frame_id})")
