@@ -13,7 +13,7 @@ from typing import Any
 
 import pytest
 from scipy.spatial.transform import Rotation
-from test_node_lifecycle import _set_parameters
+from test_node_lifecycle import Lifecycle, _set_parameters
 from test_node_localization import LocFeeder, _aligned, _save_scene_map, _start
 
 pytestmark = pytest.mark.ros
@@ -97,6 +97,63 @@ def test_bad_initial_poses_edge_parameters_and_reset_leave_the_node_standing(
             lambda: (feeder.status or {}).get("clouds_localized", 0) > localized, 10.0
         ), feeder.status
         assert node.alive()
+    finally:
+        feeder.destroy()
+        code = node.stop()
+    log = node.log()
+    assert code == 0 and "Traceback" not in log, log[-3000:]
+
+
+def test_lifecycle_while_localizing(ros_domain: int, tmp_path: Path) -> None:
+    """deactivate/activate keeps the correction; cleanup/configure starts over from the map
+    file (a new field); clouds are localized after each; no traceback, a clean exit."""
+    from lifecycle_msgs.msg import Transition
+    from ros_helpers import NodeProcess
+    from test_node_localization import PARAMS
+
+    scene, poses = _save_scene_map("box", tmp_path / "hall.npz")
+    params = {**PARAMS, "autostart": False, "map_path": str(tmp_path / "hall.npz")}
+    node = NodeProcess(ros_domain, params, tmp_path / "life.log")
+    feeder = LocFeeder()
+    life = Lifecycle(feeder)
+    try:
+        assert feeder.wait(lambda: life.change.service_is_ready(), 30.0), node.log()
+        stamp = time.time()
+
+        def up(configure: bool) -> None:
+            if configure:
+                assert life.transition(Transition.TRANSITION_CONFIGURE), node.log()[-3000:]
+            assert life.transition(Transition.TRANSITION_ACTIVATE), node.log()[-3000:]
+            assert feeder.wait(
+                lambda: (
+                    feeder.cloud_pub.get_subscription_count() > 0
+                    and feeder.localization().get("state") in ("initializing", "localized")
+                ),
+                30.0,
+            ), feeder.localization()
+
+        def localize(k: int, count: int) -> dict[str, Any]:
+            nonlocal stamp
+            stamp += 0.2
+            feeder.scan(scene, poses[k], stamp, seed=k)
+            return _aligned(feeder, count, node)
+
+        up(configure=True)
+        localize(1, 1)
+        loc = localize(3, 2)
+        assert loc["state"] == "localized", loc
+        assert life.transition(Transition.TRANSITION_DEACTIVATE)
+        up(configure=False)
+        loc = localize(5, 3)  # the same localizer: its count goes on
+        assert loc["state"] == "localized" and loc["initial_poses"] == 0, loc
+        assert life.transition(Transition.TRANSITION_DEACTIVATE)
+        assert life.transition(Transition.TRANSITION_CLEANUP)
+        feeder.status = None
+        up(configure=True)
+        assert feeder.localization()["aligned"] == 0  # a new localizer
+        localize(7, 1)
+        assert life.transition(Transition.TRANSITION_DEACTIVATE)
+        assert life.transition(Transition.TRANSITION_INACTIVE_SHUTDOWN)
     finally:
         feeder.destroy()
         code = node.stop()
