@@ -7,6 +7,7 @@ while localizing; SIGINT."""
 from __future__ import annotations
 
 import math
+import signal
 import time
 from pathlib import Path
 from typing import Any
@@ -159,3 +160,40 @@ def test_lifecycle_while_localizing(ros_domain: int, tmp_path: Path) -> None:
         code = node.stop()
     log = node.log()
     assert code == 0 and "Traceback" not in log, log[-3000:]
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_during_the_field_build_exits_cleanly(
+    sig: int, ros_domain: int, shared_data: Path, tmp_path: Path
+) -> None:
+    """A map of 2.3 million voxels (two real Ouster scans at 0.2 m): the signal comes while
+    the alignment's field is built in the background, right after the map is loaded."""
+    from ros_helpers import NodeProcess, wait_for
+
+    from mfp_mapper.cli import main
+
+    src = shared_data / "ouster_street"
+    train = tmp_path / "train"
+    train.mkdir()
+    for name in ("000000.bin", "000002.bin"):
+        (train / name).symlink_to(src / "scans" / name)
+    lines = (src / "poses.txt").read_text().splitlines()
+    (tmp_path / "train.kitti").write_text(lines[0] + "\n" + lines[2] + "\n")
+    map_path = tmp_path / "street.npz"
+    assert main(["replay", str(train), "--poses", str(tmp_path / "train.kitti"), "-o",
+                 str(map_path), "--resolution", "0.2", "-q"]) == 0  # fmt: skip
+    params = {"resolution": 0.2, "localization.enabled": True, "map_path": str(map_path)}
+    node = NodeProcess(ros_domain, params, tmp_path / "node.log")
+    try:
+        loaded = wait_for(
+            lambda: "loaded" in node.log() or not node.alive(), 60.0, lambda: time.sleep(0.01)
+        )
+        assert loaded, node.log()
+        assert node.alive(), node.log()
+        node.proc.send_signal(sig)
+        node.proc.wait(30.0)
+    finally:
+        code = node.stop()
+    log = node.log()
+    assert code == 0 and "Traceback" not in log, log[-3000:]
+    assert f"{signal.Signals(sig).name}: stopping" in log, log[-3000:]
