@@ -68,7 +68,11 @@ def run(args: argparse.Namespace) -> int:
     from mfp_mapper.mapping.replay import ReplayError
 
     out = Path(args.poses_out)
-    check_pose_outputs(out)
+    check_pose_outputs(
+        out,
+        {"the map": args.map, "the input": args.input, "the --poses file": args.poses,
+         "the --times file": args.times},
+    )  # fmt: skip
     align = align_options(args)
     mapper = load_map_arg(args.map)
     if not mapper.num_voxels:
@@ -90,13 +94,24 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def check_pose_outputs(out: Path) -> None:
+def check_pose_outputs(out: Path, inputs: dict[str, Any]) -> None:
     """CliError, before any work, when the poses or their confidence file (``out`` +
-    ``.confidence.jsonl``) cannot be written."""
+    ``.confidence.jsonl``) cannot be written, or would replace one of ``inputs`` (what the
+    command reads or writes besides, by role: ``{"the map": path, ...}``; None: not given)."""
+    import os
+
     from mfp_mapper.outputs.pose_output import confidence_path_for
 
-    check_writable(out)
-    check_writable(confidence_path_for(out))
+    for path in (out, confidence_path_for(out)):
+        check_writable(path)
+        for role, other in inputs.items():
+            if other is None or not str(other):
+                continue
+            same = os.path.realpath(path) == os.path.realpath(other)
+            if not same and path.exists() and os.path.exists(other):
+                same = os.path.samefile(path, other)
+            if same:
+                raise CliError(f"{path} is {role}: it would be replaced (nothing written)")
 
 
 def write_results(result: Any, out: Path) -> None:

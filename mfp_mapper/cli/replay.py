@@ -146,7 +146,11 @@ def run_refined(args: argparse.Namespace, out: Path) -> int:
         raise CliError(f"{args.inputs[0]}: --times is for folders of scan files")
     poses_out = Path(args.poses_out) if args.poses_out else None
     if poses_out is not None:
-        check_pose_outputs(poses_out)
+        check_pose_outputs(
+            poses_out,
+            {"the map (-o)": out, "the input": args.inputs[0], "the --poses file": args.poses,
+             "the --times file": args.times},
+        )  # fmt: skip
     try:
         result = replay_refined_folder(
             args.inputs[0], args.poses, replay_options(args), times_file=args.times,

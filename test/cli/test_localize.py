@@ -147,3 +147,33 @@ def test_replay_refine_poses_refuses_a_fleet_in_one_line(tmp_path: Path, capsys)
         err = capsys.readouterr().err
         assert "take one input, a scan folder or a bag" in err, err
         assert len(err.strip().splitlines()) == 1 and not (tmp_path / "m.npz").exists()
+
+
+def test_poses_out_never_replaces_what_the_command_reads(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    """``--poses-out`` naming the map, the --poses file (or via a symlink) is refused before
+    any work: the file is kept byte for byte."""
+    from mfp_mapper.core.mapper import Mapper
+    from mfp_mapper.mapio.loading import save_map
+
+    mapper = Mapper(0.2, frame_id="map")
+    mapper.integrate(np.array([[2.0, 0.0, 0.0]]), np.zeros(3), 1.0)
+    save_map(mapper, tmp_path / "m.npz")
+    guess = tmp_path / "guess.tum"
+    guess.write_text("9.9 0 0 0 0 0 0 1\n10.1 0 0 0 0 0 0 1\n")
+    (tmp_path / "link.tum").symlink_to(guess)
+    before = {p: p.read_bytes() for p in (tmp_path / "m.npz", guess)}
+    cases = [
+        (["localize", str(tmp_path / "m.npz"), str(tmp_path / "in"), "--poses", str(guess),
+          "--poses-out", str(tmp_path / "m.npz")], "is the map"),
+        (["localize", str(tmp_path / "m.npz"), str(tmp_path / "in"), "--poses", str(guess),
+          "--poses-out", str(tmp_path / "link.tum")], "is the --poses file"),
+        (["replay", str(tmp_path / "in"), "-o", str(tmp_path / "m.npz"), "--poses",
+          str(guess), "--poses-out", str(guess)], "is the --poses file"),
+        (["replay", str(tmp_path / "in"), "-o", str(tmp_path / "m.npz"), "--poses-out",
+          str(tmp_path / "m.npz")], "is the map (-o)"),
+    ]  # fmt: skip
+    for argv, words in cases:
+        assert main(argv) == 1
+        err = capsys.readouterr().err
+        assert words in err and len(err.strip().splitlines()) == 1, (argv, err)
+        assert {p: p.read_bytes() for p in before} == before
