@@ -177,3 +177,32 @@ def test_poses_out_never_replaces_what_the_command_reads(tmp_path: Path, capsys)
         err = capsys.readouterr().err
         assert words in err and len(err.strip().splitlines()) == 1, (argv, err)
         assert {p: p.read_bytes() for p in before} == before
+
+
+def test_a_pose_far_beyond_the_map_says_where_the_scan_went(
+    shared_data: Path,
+    tmp_path: Path,
+    capsys,  # type: ignore[no-untyped-def]
+) -> None:
+    """An initial pose 10,000 km away (a pose file in another unit or frame): the scan is
+    not aligned, keeps its pose, and the summary says why, not just 'empty'."""
+    from mfp_mapper.core.mapper import Mapper
+    from mfp_mapper.mapio.loading import save_map
+
+    mapper = Mapper(0.2, frame_id="map")
+    mapper.integrate(np.array([[2.0, 0.0, 0.0]]), np.zeros(3), 1.0)
+    save_map(mapper, tmp_path / "m.npz")
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    (scans / "000001.bin").symlink_to(shared_data / "ouster_street" / "scans" / "000001.bin")
+    (tmp_path / "times.txt").write_text("10.0\n")
+    guess = tmp_path / "guess.tum"
+    guess.write_text("9.9 1e7 0 0 0 0 0 1\n10.1 1e7 0 0 0 0 0 1\n")
+    out = tmp_path / "o.tum"
+    assert main(["localize", str(tmp_path / "m.npz"), str(scans), "--poses", str(guess),
+                 "--times", str(tmp_path / "times.txt"), "--poses-out", str(out)]) == 0  # fmt: skip
+    printed = capsys.readouterr().out
+    assert "not aligned: dropped: empty (all" in printed and "outside the bounds" in printed
+    row = json.loads(out.with_name("o.tum.confidence.jsonl").read_text())
+    assert "outside the bounds" in str(row), row
+    assert read_tum_poses(out)[1][0][0] == 1e7  # kept as given
