@@ -256,12 +256,13 @@ class LiveLocalizer:
     def clock_jumped(self, now: float) -> None:
         """The node's clock jumped back (a bag loop): the rate and motion gates start over
         and the correction is stamped ``now`` (a stamp from before the jump would be in the
-        future of every lookup); the correction itself stands."""
+        future of every lookup); the correction itself stands. An alignment under way (of a
+        cloud from before the jump) is then ``superseded``."""
         with self.lock:
             self._last_align_stamp, self._last_align_odom = -math.inf, None
             if math.isfinite(self.correction_stamp):
                 self.correction_stamp = min(self.correction_stamp, now)
-                self.version += 1
+            self.version += 1
 
     def transform(self) -> tuple[FloatArray, float, int]:
         """(map <- odom, the stamp of the cloud that set it, version)."""
