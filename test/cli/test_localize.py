@@ -206,3 +206,21 @@ def test_a_pose_far_beyond_the_map_says_where_the_scan_went(
     row = json.loads(out.with_name("o.tum.confidence.jsonl").read_text())
     assert "outside the bounds" in str(row), row
     assert read_tum_poses(out)[1][0][0] == 1e7  # kept as given
+
+
+def test_align_flags_out_of_range_are_refused_in_one_line(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    """A level count that overflows a float (traceback before) or costs seconds for nothing,
+    and a max sigma of inf or nan (which would accept corrections along a corridor's axis)."""
+    base = ["localize", str(tmp_path / "m.npz"), str(tmp_path / "in"), "--poses-out",
+            str(tmp_path / "o.tum")]  # fmt: skip
+    for flags in (
+        ["--align-levels", "100000000"],
+        ["--align-levels", "13"],
+        ["--align-levels", "0"],
+        ["--align-max-sigma", "inf"],
+        ["--align-max-sigma", "nan"],
+        ["--align-rays", "5"],
+    ):
+        assert main([*base, *flags]) == 1, flags
+        err = capsys.readouterr().err
+        assert "--align-levels 1 to 12" in err and len(err.strip().splitlines()) == 1, err
