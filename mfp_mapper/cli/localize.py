@@ -32,9 +32,9 @@ def add_align_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def align_options(args: argparse.Namespace) -> Any:
-    from mfp_mapper.core.alignment import AlignOptions
-
     import math
+
+    from mfp_mapper.core.alignment import AlignOptions
 
     if (
         not 1 <= args.align_levels <= MAX_LEVELS
