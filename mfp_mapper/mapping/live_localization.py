@@ -288,8 +288,8 @@ class LiveLocalizer:
         moved = move_scan(placed, correction)
         if pyramid is None:
             return moved
-        since = placed.stamp - self._last_align_stamp  # < 0: stamps went back (a bag loop)
-        if cfg.min_period > 0.0 and 0.0 <= since < cfg.min_period:
+        since = placed.stamp - self._last_align_stamp  # far below 0: a bag loop
+        if cfg.min_period > 0.0 and -cfg.min_period < since < cfg.min_period:
             with self.lock:
                 self.skipped += 1
             return moved
