@@ -12,6 +12,8 @@ from mfp_mapper.cli.input_args import add_input_arguments, input_options
 from mfp_mapper.config.replay_options import add_replay_flags
 
 ALIGN_HELP = "scan-to-map alignment (README, Localization)"
+MAX_LEVELS = 12
+"""A coarsest voxel 2^11 times the map's (410 m at 0.2 m): more levels only cost time."""
 
 
 def add_align_arguments(p: argparse.ArgumentParser) -> None:
@@ -30,10 +32,19 @@ def add_align_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def align_options(args: argparse.Namespace) -> Any:
+    import math
+
     from mfp_mapper.core.alignment import AlignOptions
 
-    if args.align_levels < 1 or args.align_rays < 10 or not args.align_max_sigma > 0:
-        raise CliError("--align-levels >= 1, --align-rays >= 10, --align-max-sigma > 0")
+    if (
+        not 1 <= args.align_levels <= MAX_LEVELS
+        or args.align_rays < 10
+        or not 0 < args.align_max_sigma < math.inf
+    ):
+        raise CliError(
+            f"--align-levels 1 to {MAX_LEVELS}, --align-rays >= 10, --align-max-sigma a finite "
+            "number > 0 (metres)"
+        )
     return AlignOptions(
         levels=args.align_levels, max_rays=args.align_rays, max_sigma_m=args.align_max_sigma
     )
@@ -68,9 +79,15 @@ def run(args: argparse.Namespace) -> int:
     from mfp_mapper.mapping.replay import ReplayError
 
     out = Path(args.poses_out)
-    check_writable(out)
+    check_pose_outputs(
+        out,
+        {"the map": args.map, "the input": args.input, "the --poses file": args.poses,
+         "the --times file": args.times},
+    )  # fmt: skip
     align = align_options(args)
     mapper = load_map_arg(args.map)
+    if not mapper.num_voxels:
+        raise CliError(f"{args.map}: the map is empty: nothing to localize against")
     try:
         opts = replace(options_from_args(args), **input_options(args))
         opts = replace(opts, resolution=mapper.resolution)
@@ -88,7 +105,36 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def check_pose_outputs(out: Path, inputs: dict[str, Any]) -> None:
+    """CliError, before any work, when the poses or their confidence file (``out`` +
+    ``.confidence.jsonl``) cannot be written, or would replace one of ``inputs`` (what the
+    command reads or writes besides, by role: ``{"the map": path, ...}``; None: not given)."""
+    import os
+
+    from mfp_mapper.outputs.pose_output import confidence_path_for
+
+    for path in (out, confidence_path_for(out)):
+        check_writable(path)
+        for role, other in inputs.items():
+            if other is None or not str(other):
+                continue
+            same = os.path.realpath(path) == os.path.realpath(other)
+            if not same and path.exists() and os.path.exists(other):
+                same = os.path.samefile(path, other)
+            if same:
+                raise CliError(f"{path} is {role}: it would be replaced (nothing written)")
+
+
 def write_results(result: Any, out: Path) -> None:
+    """The poses (TUM) and their confidence file, each atomically; CliError when the disk
+    refuses one."""
+    try:
+        _write_results(result, out)
+    except OSError as err:
+        raise CliError(f"{out}: cannot write the poses ({err.strerror or err})") from None
+
+
+def _write_results(result: Any, out: Path) -> None:
     import numpy as np
 
     from mfp_mapper.outputs.pose_output import (

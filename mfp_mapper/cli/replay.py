@@ -86,7 +86,10 @@ def run(args: argparse.Namespace) -> int:
     ) or (len(args.inputs) > 1)
     if fleet:
         if args.refine_poses or args.poses_out:
-            raise CliError("--refine-poses and --poses-out take one scan folder (no fleet)")
+            raise CliError(
+                "--refine-poses and --poses-out take one input, a scan folder or a bag (not "
+                "several inputs, --workers, --scheduler or --chunk-seconds)"
+            )
         return run_fleet(args, out)
     if args.refine_poses or args.poses_out:
         return run_refined(args, out)
@@ -126,7 +129,12 @@ def run(args: argparse.Namespace) -> int:
 def run_refined(args: argparse.Namespace, out: Path) -> int:
     """One scan folder, scan by scan, with ``--refine-poses`` and/or ``--poses-out``
     (``mapping.localize.replay_refined_folder``)."""
-    from mfp_mapper.cli.localize import align_options, print_summary, write_results
+    from mfp_mapper.cli.localize import (
+        align_options,
+        check_pose_outputs,
+        print_summary,
+        write_results,
+    )
     from mfp_mapper.mapio.loading import save_map
     from mfp_mapper.mapping.localize import replay_refined_folder
     from mfp_mapper.mapping.replay import ReplayError
@@ -138,7 +146,11 @@ def run_refined(args: argparse.Namespace, out: Path) -> int:
         raise CliError(f"{args.inputs[0]}: --times is for folders of scan files")
     poses_out = Path(args.poses_out) if args.poses_out else None
     if poses_out is not None:
-        check_writable(poses_out)
+        check_pose_outputs(
+            poses_out,
+            {"the map (-o)": out, "the input": args.inputs[0], "the --poses file": args.poses,
+             "the --times file": args.times},
+        )  # fmt: skip
     try:
         result = replay_refined_folder(
             args.inputs[0], args.poses, replay_options(args), times_file=args.times,

@@ -669,6 +669,10 @@ class NodeConfig:
                 raise ValueError(f"point_cloud_min_{axis} must be below point_cloud_max_{axis}")
         if self.occupancy_min_z >= self.occupancy_max_z:
             raise ValueError("occupancy_min_z must be below occupancy_max_z")
+        if self.localization_enabled and not self.localization_odom_frame.strip("/ "):
+            raise ValueError(
+                "localization.odom_frame must name a frame: the node publishes map -> it"
+            )
 
     def values(self) -> dict[str, Any]:
         """Parameter name -> value."""

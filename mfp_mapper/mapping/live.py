@@ -314,6 +314,8 @@ class LiveIntegrator:
             self._waiting.clear()
             for _ in range(dropped):
                 self.counters.drop("clock_jump")
+        if self.localizer is not None:
+            self.localizer.clock_jumped(now)
         self._log(
             "clock_jump",
             f"clock jumped back {jump:.3f} s (to {now:.3f}): pose and TF buffers "

@@ -305,6 +305,18 @@ class LiveLocalizer:
         self._reset(m, odom_base, float(stamp))
         return True
 
+    def clock_jumped(self, now: float) -> None:
+        """The node's clock jumped back (a bag loop): the rate and motion gates start over
+        and the correction is stamped ``now`` (a stamp from before the jump would be in the
+        future of every lookup); the correction itself stands. An alignment under way (of a
+        cloud from before the jump) is then ``superseded``."""
+        with self.lock:
+            self._last_align_stamp, self._last_align_odom = -math.inf, None
+            self._normals = None
+            if math.isfinite(self.correction_stamp):
+                self.correction_stamp = min(self.correction_stamp, now)
+            self.version += 1
+
     def transform(self) -> tuple[FloatArray, float, int]:
         """(map <- odom, the stamp of the cloud that set it, version)."""
         with self.lock:
@@ -329,7 +341,8 @@ class LiveLocalizer:
         moved = move_scan(placed, correction)
         if pyramid is None:
             return moved
-        if cfg.min_period > 0.0 and placed.stamp - self._last_align_stamp < cfg.min_period:
+        since = placed.stamp - self._last_align_stamp  # far below 0: a bag loop
+        if cfg.min_period > 0.0 and -cfg.min_period < since < cfg.min_period:
             with self.lock:
                 self.skipped += 1
             return moved

@@ -340,7 +340,7 @@ def _loop(
             placed = loop.place(prepared, buffer, extrinsic)
         except ScanDropped as drop:
             loop.count_drop(drop)
-            entry.note = f"dropped: {drop.reason}"
+            entry.note = f"dropped: {drop.reason} ({drop.detail})"
             result.scans.append(entry)
             continue
         t0 = time.perf_counter()

@@ -67,6 +67,7 @@ from tf2_msgs.msg import TFMessage
 
 from mfp_mapper.config.schema import SPECS, NodeConfig
 from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.core.store import MAX_VOXEL_INDEX
 from mfp_mapper.mapio.atomic import remove_stale_temp_files
 from mfp_mapper.mapio.loading import load_map
 from mfp_mapper.mapio.mapfile import MapFileError, map_arrays
@@ -137,6 +138,11 @@ def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, str | None]:
         logger.warning(
             f"map {path!r} has resolution {mapper.resolution} m, parameter "
             f"resolution is {cfg.resolution} m: keeping the map's"
+        )
+    if cfg.frame_id and mapper.frame_id and mapper.frame_id != cfg.frame_id:
+        logger.warning(
+            f"map {path!r} was built in frame {mapper.frame_id!r}, parameter frame_id is "
+            f"{cfg.frame_id!r}: its voxels are taken as coordinates in {cfg.frame_id!r}"
         )
     if cfg.frame_id:
         mapper.frame_id = cfg.frame_id
@@ -562,8 +568,21 @@ class MfpMapperNode(GuardedLifecycleNode):
                 error=True,
             )
             return
-        stamp = stamp_seconds(msg.header.stamp)
-        stamp = stamp if stamp > 0.0 else self._now()  # RViz may leave it 0
+        reach = MAX_VOXEL_INDEX * self.mapper.resolution
+        origin = np.asarray(self.mapper.origin or (0.0, 0.0, 0.0))
+        if float(np.max(np.abs(np.array((p.x, p.y, p.z)) - origin))) >= reach:
+            self.warn_throttled(
+                "initialpose_far",
+                f"/initialpose ignored: position ({p.x:.6g}, {p.y:.6g}, {p.z:.6g}) is beyond "
+                f"the map's reach ({reach:.6g} m from its origin at {self.mapper.resolution} m)",
+                error=True,
+            )
+            return
+        stamp, clock = stamp_seconds(msg.header.stamp), self._now()
+        stamp = stamp if stamp > 0.0 else clock  # RViz may leave it 0
+        ahead = stamp - clock if clock > 0.0 else 0.0
+        if ahead > 1.0:  # would stamp map -> odom ahead of every lookup until a correction
+            stamp = clock
         now = self.localizer.initial_pose(
             stamp, (p.x, p.y, p.z), (q.x, q.y, q.z, q.w), self.worker.robot_in_odom(stamp)
         )
@@ -571,6 +590,11 @@ class MfpMapperNode(GuardedLifecycleNode):
         self.get_logger().info(
             f"/initialpose received: robot at x {p.x:.3f} y {p.y:.3f} z {p.z:.3f} in "
             f"{expected!r}; {when}"
+            + (
+                f"; its stamp was {ahead:.6g} s ahead of the clock: taken as now"
+                if ahead > 1.0
+                else ""
+            )
         )
 
     @tracked

@@ -62,7 +62,8 @@ def open_reader(path: Path) -> Any:
         reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_JAZZY))
         reader.open()
     except Exception as err:  # rosbags raises several error types for broken files
-        raise ReplayError(f"{path}: cannot read the bag: {err}") from None
+        text = " ".join(str(err).split())  # YAML errors span lines: one line
+        raise ReplayError(f"{path}: cannot read the bag: {text}") from None
     return reader
 
 

@@ -99,3 +99,128 @@ def test_replay_refine_poses_keeps_good_poses_and_writes_them(
     assert rows[0]["reason"].startswith("first scan")
     assert all(r["rays"] > 0 for r in rows[1:])
     assert (tmp_path / "m.npz").stat().st_size > 0
+
+
+def _empty_map(path: Path) -> Path:
+    from mfp_mapper.core.mapper import Mapper
+    from mfp_mapper.mapio.loading import save_map
+
+    save_map(Mapper(0.2, frame_id="map"), path)
+    return path
+
+
+def test_localize_refuses_an_unwritable_confidence_file_before_any_work(
+    tmp_path: Path,
+    capsys,  # type: ignore[no-untyped-def]
+) -> None:
+    """The confidence file (FILE.confidence.jsonl) is checked with the poses: no traceback
+    after the poses were written, nothing half written."""
+    out = tmp_path / "o.tum"
+    (tmp_path / "o.tum.confidence.jsonl").mkdir()
+    for argv in (
+        ["localize", str(_empty_map(tmp_path / "m.npz")), str(tmp_path / "in"),
+         "--poses-out", str(out)],
+        ["replay", str(tmp_path / "in"), "-o", str(tmp_path / "r.npz"), "--poses-out",
+         str(out)],
+    ):  # fmt: skip
+        assert main(argv) == 1
+        err = capsys.readouterr().err
+        assert "o.tum.confidence.jsonl is a directory" in err, err
+        assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+        assert not out.exists()
+
+
+def test_localize_refuses_an_empty_map(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    code = main(["localize", str(_empty_map(tmp_path / "m.npz")), str(tmp_path / "in"),
+                 "--poses-out", str(tmp_path / "o.tum")])  # fmt: skip
+    assert code == 1
+    err = capsys.readouterr().err
+    assert "the map is empty" in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "o.tum").exists()
+
+
+def test_replay_refine_poses_refuses_a_fleet_in_one_line(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    for extra in (["b"], ["--workers", "2"]):
+        argv = ["replay", str(tmp_path / "a"), *extra, "--refine-poses", "-o",
+                str(tmp_path / "m.npz")]  # fmt: skip
+        assert main(argv) == 1
+        err = capsys.readouterr().err
+        assert "take one input, a scan folder or a bag" in err, err
+        assert len(err.strip().splitlines()) == 1 and not (tmp_path / "m.npz").exists()
+
+
+def test_poses_out_never_replaces_what_the_command_reads(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    """``--poses-out`` naming the map, the --poses file (or via a symlink) is refused before
+    any work: the file is kept byte for byte."""
+    from mfp_mapper.core.mapper import Mapper
+    from mfp_mapper.mapio.loading import save_map
+
+    mapper = Mapper(0.2, frame_id="map")
+    mapper.integrate(np.array([[2.0, 0.0, 0.0]]), np.zeros(3), 1.0)
+    save_map(mapper, tmp_path / "m.npz")
+    guess = tmp_path / "guess.tum"
+    guess.write_text("9.9 0 0 0 0 0 0 1\n10.1 0 0 0 0 0 0 1\n")
+    (tmp_path / "link.tum").symlink_to(guess)
+    before = {p: p.read_bytes() for p in (tmp_path / "m.npz", guess)}
+    cases = [
+        (["localize", str(tmp_path / "m.npz"), str(tmp_path / "in"), "--poses", str(guess),
+          "--poses-out", str(tmp_path / "m.npz")], "is the map"),
+        (["localize", str(tmp_path / "m.npz"), str(tmp_path / "in"), "--poses", str(guess),
+          "--poses-out", str(tmp_path / "link.tum")], "is the --poses file"),
+        (["replay", str(tmp_path / "in"), "-o", str(tmp_path / "m.npz"), "--poses",
+          str(guess), "--poses-out", str(guess)], "is the --poses file"),
+        (["replay", str(tmp_path / "in"), "-o", str(tmp_path / "m.npz"), "--poses-out",
+          str(tmp_path / "m.npz")], "is the map (-o)"),
+    ]  # fmt: skip
+    for argv, words in cases:
+        assert main(argv) == 1
+        err = capsys.readouterr().err
+        assert words in err and len(err.strip().splitlines()) == 1, (argv, err)
+        assert {p: p.read_bytes() for p in before} == before
+
+
+def test_a_pose_far_beyond_the_map_says_where_the_scan_went(
+    shared_data: Path,
+    tmp_path: Path,
+    capsys,  # type: ignore[no-untyped-def]
+) -> None:
+    """An initial pose 10,000 km away (a pose file in another unit or frame): the scan is
+    not aligned, keeps its pose, and the summary says why, not just 'empty'."""
+    from mfp_mapper.core.mapper import Mapper
+    from mfp_mapper.mapio.loading import save_map
+
+    mapper = Mapper(0.2, frame_id="map")
+    mapper.integrate(np.array([[2.0, 0.0, 0.0]]), np.zeros(3), 1.0)
+    save_map(mapper, tmp_path / "m.npz")
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    (scans / "000001.bin").symlink_to(shared_data / "ouster_street" / "scans" / "000001.bin")
+    (tmp_path / "times.txt").write_text("10.0\n")
+    guess = tmp_path / "guess.tum"
+    guess.write_text("9.9 1e7 0 0 0 0 0 1\n10.1 1e7 0 0 0 0 0 1\n")
+    out = tmp_path / "o.tum"
+    assert main(["localize", str(tmp_path / "m.npz"), str(scans), "--poses", str(guess),
+                 "--times", str(tmp_path / "times.txt"), "--poses-out", str(out)]) == 0  # fmt: skip
+    printed = capsys.readouterr().out
+    assert "not aligned: dropped: empty (all" in printed and "outside the bounds" in printed
+    row = json.loads(out.with_name("o.tum.confidence.jsonl").read_text())
+    assert "outside the bounds" in str(row), row
+    assert read_tum_poses(out)[1][0][0] == 1e7  # kept as given
+
+
+def test_align_flags_out_of_range_are_refused_in_one_line(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    """A level count that overflows a float (traceback before) or costs seconds for nothing,
+    and a max sigma of inf or nan (which would accept corrections along a corridor's axis)."""
+    base = ["localize", str(tmp_path / "m.npz"), str(tmp_path / "in"), "--poses-out",
+            str(tmp_path / "o.tum")]  # fmt: skip
+    for flags in (
+        ["--align-levels", "100000000"],
+        ["--align-levels", "13"],
+        ["--align-levels", "0"],
+        ["--align-max-sigma", "inf"],
+        ["--align-max-sigma", "nan"],
+        ["--align-rays", "5"],
+    ):
+        assert main([*base, *flags]) == 1, flags
+        err = capsys.readouterr().err
+        assert "--align-levels 1 to 12" in err and len(err.strip().splitlines()) == 1, err

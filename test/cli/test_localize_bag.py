@@ -138,3 +138,17 @@ def test_localize_says_why_a_bag_cannot_be_used(
     err = capsys.readouterr().err
     assert code == 1 and "KITTI poses have no stamps" in err and "Traceback" not in err
     assert not (tmp_path / "o.tum").exists()
+
+
+def test_a_bag_with_broken_metadata_is_refused_in_one_line(
+    recordings: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: [\n")
+    code = main(["localize", str(recordings["map"]), str(bag), "--poses-out",
+                 str(tmp_path / "o.tum")])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 1 and "cannot read the bag" in err and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "o.tum").exists()

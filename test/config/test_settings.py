@@ -185,3 +185,13 @@ def test_the_point_cloud_box_and_its_run_time_changes_are_checked() -> None:
     assert SPECS["sensor_model.max_range"].dynamic
     with pytest.raises(ValueError, match="min_range must be below"):
         NodeConfig.from_values({"sensor_model.min_range": 5.0, "sensor_model.max_range": 4.0})
+
+
+def test_localization_needs_an_odometry_frame_name() -> None:
+    """An empty ``localization.odom_frame`` would publish map -> '' on /tf (tf2 rejects it)."""
+    from mfp_mapper.config.schema import NodeConfig
+
+    for name in ("", "/", " "):
+        with pytest.raises(ValueError, match="localization.odom_frame must name a frame"):
+            NodeConfig.from_values({"localization.enabled": True, "localization.odom_frame": name})
+    NodeConfig.from_values({"localization.odom_frame": ""})  # not localizing: unused

@@ -133,3 +133,23 @@ def test_nodes_on_hostile_maps_stay_up_and_save_beside_them(
         assert load_map(other).num_voxels == 0
         other.unlink()
         assert _entries(path.parent) == before[kind], kind  # the user's file untouched
+
+
+def test_a_map_of_another_frame_is_relabelled_with_a_warning(tmp_path: Path) -> None:
+    """frame_id 'map' and a map saved in 'world' (e.g. by ``replay``): the node relabels the
+    map (what the user asked) but says so, once; a map of the same frame is taken silently."""
+    from mfp_mapper.core.mapper import Mapper
+    from mfp_mapper.mapio.loading import save_map
+
+    mapper = Mapper(0.2, frame_id="world")
+    mapper.integrate(np.array([[2.0, 0.0, 0.0]]), np.zeros(3), 1.0)
+    save_map(mapper, tmp_path / "w.npz")
+    for frame_id, warned in (("map", True), ("world", False), ("", False)):
+        log = Recorder()
+        values = {"map_path": str(tmp_path / "w.npz"), "frame_id": frame_id, "resolution": 0.2}
+        loaded, _ = initial_mapper(NodeConfig.from_values(values), log)
+        warnings = [text for level, text in log.lines if level == "warning"]
+        assert bool(warnings) == warned, log.lines
+        if warned:
+            assert "built in frame 'world', parameter frame_id is 'map'" in warnings[0]
+        assert loaded.frame_id == (frame_id or "world")

@@ -1,0 +1,207 @@
+"""The node's localization mode under bad input, over real DDS (issue 20; the project's rule:
+bad input gets one clear line and changes nothing, no callback takes the node down, never a
+silent wrong pose): ``/initialpose`` that is not finite, not a rotation or beyond the map's
+reach or stamped a year ahead; parameters set to edge values at run time; ``~/reset``
+while localizing; SIGINT."""
+
+from __future__ import annotations
+
+import math
+import signal
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+from scipy.spatial.transform import Rotation
+from test_node_lifecycle import Lifecycle, _set_parameters
+from test_node_localization import LocFeeder, _aligned, _save_scene_map, _start
+
+pytestmark = pytest.mark.ros
+YEAR = 365 * 86400.0
+
+
+def _raw_initial_pose(
+    feeder: LocFeeder, position: Any, quaternion: Any, ahead: float = 0.0
+) -> None:
+    from ros_helpers import stamp_msg
+
+    msg = feeder.PoseWithCovarianceStamped()
+    msg.header.frame_id = "map"
+    msg.header.stamp = stamp_msg(time.time() + ahead)
+    p, o = msg.pose.pose.position, msg.pose.pose.orientation
+    p.x, p.y, p.z = (float(v) for v in position)
+    o.x, o.y, o.z, o.w = (float(v) for v in quaternion)
+    feeder.initial_pub.publish(msg)
+
+
+def test_bad_initial_poses_edge_parameters_and_reset_leave_the_node_standing(
+    ros_domain: int, tmp_path: Path
+) -> None:
+    scene, poses = _save_scene_map("box", tmp_path / "hall.npz")
+    node, feeder = _start(ros_domain, tmp_path, "faults", tmp_path / "hall.npz")
+    try:
+        # beyond what a map can hold (finite, a unit quaternion): refused, not claimed on /tf
+        _raw_initial_pose(feeder, (1e12, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+        assert feeder.wait(lambda: "beyond the map's reach" in node.log(), 10.0), node.log()
+        _raw_initial_pose(feeder, (math.nan, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+        assert feeder.wait(lambda: "not finite or not a unit quaternion" in node.log(), 10.0)
+        _raw_initial_pose(feeder, (1.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0))
+        feeder.spin(0.3)
+        assert feeder.localization()["initial_poses"] == 0, feeder.localization()
+        assert not feeder.tf  # nothing claimed
+        t = time.time()
+        for i, k in enumerate((1, 3, 5)):
+            feeder.scan(scene, poses[k], t + i * 0.2, seed=k)
+            loc = _aligned(feeder, i + 1, node)
+        assert loc["state"] == "localized", loc
+        assert all(abs(tf.transform.translation.x) < 10.0 for tf in feeder.tf)
+
+        # stamped a year ahead (a clock gone wrong): map -> odom must not be stamped there
+        truth = poses[5]
+        quat = Rotation.from_matrix(truth.rotation).as_quat()
+        _raw_initial_pose(feeder, truth.translation, quat, ahead=YEAR)
+        assert feeder.wait(lambda: "/initialpose received" in node.log(), 10.0)
+        seen = len(feeder.tf)
+        assert feeder.wait(lambda: len(feeder.tf) >= seen + 3, 5.0)
+        newest = feeder.tf[-1].header.stamp
+        assert newest.sec + 1e-9 * newest.nanosec < time.time() + 5.0
+        assert "ahead of the clock: taken as now" in node.log()
+
+        # edge values at run time: the next clouds are aligned with them
+        results = _set_parameters(
+            feeder,
+            "mfp_mapper",
+            {
+                "localization.max_rays": 10,
+                "localization.tracking_levels": 3,
+                "localization.update_min_d": 0.0,
+                "localization.update_min_a": 0.0,
+                "localization.lost_after": 1,
+            },
+        )
+        assert all(r.successful for r in results), [r.reason for r in results]
+        feeder.scan(scene, poses[7], time.time(), seed=7)
+        loc = _aligned(feeder, 4, node)
+        assert loc["last"]["rays"] <= 10 or not loc["last"]["accepted"], loc
+
+        # ~/clear_bbox while localizing: the field is rebuilt from what is left; clouds go on
+        from ros_helpers import clear_bbox
+
+        clear_bbox(feeder, "mfp_mapper", (-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
+        feeder.scan(scene, poses[9], time.time(), seed=9)
+        loc = _aligned(feeder, 5, node)
+        assert loc["state"] in ("localized", "lost", "initializing"), loc
+
+        # ~/reset while localizing: the field goes with the map; clouds still come through
+        from std_srvs.srv import Empty
+
+        feeder.call(feeder.reset, Empty.Request())
+        assert feeder.wait(lambda: feeder.localization().get("state") == "waiting_for_map", 10.0), (
+            feeder.localization()
+        )
+        localized = feeder.status["clouds_localized"] if feeder.status else 0
+        feeder.scan(scene, poses[11], time.time(), seed=11)
+        assert feeder.wait(
+            lambda: (feeder.status or {}).get("clouds_localized", 0) > localized, 10.0
+        ), feeder.status
+        assert node.alive()
+    finally:
+        feeder.destroy()
+        code = node.stop()
+    log = node.log()
+    assert code == 0 and "Traceback" not in log, log[-3000:]
+
+
+def test_lifecycle_while_localizing(ros_domain: int, tmp_path: Path) -> None:
+    """deactivate/activate keeps the correction; cleanup/configure starts over from the map
+    file (a new field); clouds are localized after each; no traceback, a clean exit."""
+    from lifecycle_msgs.msg import Transition
+    from ros_helpers import NodeProcess
+    from test_node_localization import PARAMS
+
+    scene, poses = _save_scene_map("box", tmp_path / "hall.npz")
+    params = {**PARAMS, "autostart": False, "map_path": str(tmp_path / "hall.npz")}
+    node = NodeProcess(ros_domain, params, tmp_path / "life.log")
+    feeder = LocFeeder()
+    life = Lifecycle(feeder)
+    try:
+        assert feeder.wait(lambda: life.change.service_is_ready(), 30.0), node.log()
+        stamp = time.time()
+
+        def up(configure: bool) -> None:
+            if configure:
+                assert life.transition(Transition.TRANSITION_CONFIGURE), node.log()[-3000:]
+            assert life.transition(Transition.TRANSITION_ACTIVATE), node.log()[-3000:]
+            assert feeder.wait(
+                lambda: (
+                    feeder.cloud_pub.get_subscription_count() > 0
+                    and feeder.localization().get("state") in ("initializing", "localized")
+                ),
+                30.0,
+            ), feeder.localization()
+
+        def localize(k: int, count: int) -> dict[str, Any]:
+            nonlocal stamp
+            stamp += 0.2
+            feeder.scan(scene, poses[k], stamp, seed=k)
+            return _aligned(feeder, count, node)
+
+        up(configure=True)
+        localize(1, 1)
+        loc = localize(3, 2)
+        assert loc["state"] == "localized", loc
+        assert life.transition(Transition.TRANSITION_DEACTIVATE)
+        up(configure=False)
+        loc = localize(5, 3)  # the same localizer: its count goes on
+        assert loc["state"] == "localized" and loc["initial_poses"] == 0, loc
+        assert life.transition(Transition.TRANSITION_DEACTIVATE)
+        assert life.transition(Transition.TRANSITION_CLEANUP)
+        feeder.status = None
+        up(configure=True)
+        assert feeder.localization()["aligned"] == 0  # a new localizer
+        localize(7, 1)
+        assert life.transition(Transition.TRANSITION_DEACTIVATE)
+        assert life.transition(Transition.TRANSITION_INACTIVE_SHUTDOWN)
+    finally:
+        feeder.destroy()
+        code = node.stop()
+    log = node.log()
+    assert code == 0 and "Traceback" not in log, log[-3000:]
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_during_the_field_build_exits_cleanly(
+    sig: int, ros_domain: int, shared_data: Path, tmp_path: Path
+) -> None:
+    """A map of 2.3 million voxels (two real Ouster scans at 0.2 m): the signal comes while
+    the alignment's field is built in the background, right after the map is loaded."""
+    from ros_helpers import NodeProcess, wait_for
+
+    from mfp_mapper.cli import main
+
+    src = shared_data / "ouster_street"
+    train = tmp_path / "train"
+    train.mkdir()
+    for name in ("000000.bin", "000002.bin"):
+        (train / name).symlink_to(src / "scans" / name)
+    lines = (src / "poses.txt").read_text().splitlines()
+    (tmp_path / "train.kitti").write_text(lines[0] + "\n" + lines[2] + "\n")
+    map_path = tmp_path / "street.npz"
+    assert main(["replay", str(train), "--poses", str(tmp_path / "train.kitti"), "-o",
+                 str(map_path), "--resolution", "0.2", "-q"]) == 0  # fmt: skip
+    params = {"resolution": 0.2, "localization.enabled": True, "map_path": str(map_path)}
+    node = NodeProcess(ros_domain, params, tmp_path / "node.log")
+    try:
+        loaded = wait_for(
+            lambda: "loaded" in node.log() or not node.alive(), 60.0, lambda: time.sleep(0.01)
+        )
+        assert loaded, node.log()
+        assert node.alive(), node.log()
+        node.proc.send_signal(sig)
+        node.proc.wait(30.0)
+    finally:
+        code = node.stop()
+    log = node.log()
+    assert code == 0 and "Traceback" not in log, log[-3000:]
+    assert f"{signal.Signals(sig).name}: stopping" in log, log[-3000:]
