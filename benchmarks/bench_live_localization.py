@@ -17,7 +17,11 @@ next ones track. Printed: the correction's error to the true offset after the st
 (with drift: after each scan, against the drifting truth), and per path the median and
 95th percentile of the CPU time per scan, with the ratio localize / integrate.
 
-    python benchmarks/bench_live_localization.py [--scans 40 --rays 3000 --min-period 0.2]
+    python benchmarks/bench_live_localization.py [--scans 40 --tracking-rays 1500 --drift 0.02 0.5]
+
+``--tracking-rays``, ``--tracking-iterations``, ``--normals-refresh``,
+``--exact-check-tracking``, ``--no-exact-check``: the ``localization.*`` settings of those
+names (defaults: the node's).
 
 The stream is stamped at 10 Hz; ``--min-period`` aligns at most one scan per that many
 seconds (``localization.min_period``), the others only placed with the last correction.
@@ -113,7 +117,14 @@ def _error(m: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--scans", type=int, default=40)
-    ap.add_argument("--rays", type=int, default=3000)
+    ap.add_argument("--rays", type=int, default=3000, help="rays of the wide search")
+    ap.add_argument("--tracking-rays", type=int, default=1000, help="rays while localized")
+    ap.add_argument("--tracking-iterations", type=int, default=10)
+    ap.add_argument("--normals-refresh", type=float, default=0.5, help="m; 0: every scan")
+    ap.add_argument("--no-exact-check", action="store_true", help="localization.exact_check off")
+    ap.add_argument(
+        "--exact-check-tracking", action="store_true", help="localization.exact_check_tracking"
+    )
     ap.add_argument("--min-period", type=float, default=0.0)
     ap.add_argument("--tracking-levels", type=int, default=1)
     ap.add_argument("--update-min-d", type=float, default=0.0)
@@ -133,6 +144,11 @@ def main() -> None:
         LocalizationSettings(
             global_frame="map",
             max_rays=args.rays,
+            tracking_rays=args.tracking_rays,
+            tracking_iterations=args.tracking_iterations,
+            normals_refresh=args.normals_refresh,
+            exact_check=not args.no_exact_check,
+            exact_check_tracking=args.exact_check_tracking,
             min_period=args.min_period,
             tracking_levels=args.tracking_levels,
             update_min_d=args.update_min_d,
@@ -174,11 +190,16 @@ def main() -> None:
     ms_l, ms_i = 1e3 * np.array(t_loc), 1e3 * np.array(t_int)
     print(
         f"hall, VLP-16 ({len(pts)} returns/scan), 0.2 m map of {map_a.num_voxels} voxels "
-        f"(field built in {build_s:.2f} s), {args.scans} scans, {args.rays} rays aligned"
+        f"(field built in {build_s:.2f} s), {args.scans} scans, {args.rays} rays in the wide "
+        f"search, {args.tracking_rays} while tracking ({args.tracking_iterations} iterations, "
+        f"normals every {args.normals_refresh:g} m, exact check "
+        f"{'off' if args.no_exact_check else 'on'}"
+        f"{', also tracking' if args.exact_check_tracking else ', wide search only'})"
     )
     print(
         f"correction error after the stream: {100 * err_m:.2f} cm, {err_deg:.3f} deg; "
-        f"state {rep['state']}; accepted {rep['accepted']}, refused {rep['refused']}"
+        f"state {rep['state']}; accepted {rep['accepted']}, refused {rep['refused']}; "
+        f"{rep['exact_checked']} exact checks, normals computed {rep['normals_computed']} times"
     )
     if args.drift[0] or args.drift[1]:
         print(

@@ -277,8 +277,9 @@ SETTINGS: tuple[Setting, ...] = (
     _node("localization.min_period", 0.0, "Align at most one cloud per this many seconds "
           "(stamp time); the others are placed with the last correction. 0: every cloud.",
           0.0, 3600.0, dynamic=True),
-    _node("localization.max_rays", 3000, "Rays per cloud used by the alignment (an evenly "
-          "spread subset).", 10, 10_000_000, dynamic=True),
+    _node("localization.max_rays", 3000, "Rays per cloud used by the wide search's alignment "
+          "(an evenly spread subset; while localized: localization.tracking_rays).", 10,
+          10_000_000, dynamic=True),
     _node("localization.max_sigma", 0.05, "Refuse a correction whose standard deviation "
           "along its weakest direction exceeds this (m): degenerate geometry.", 0.0, 100.0,
           dynamic=True),
@@ -302,6 +303,19 @@ SETTINGS: tuple[Setting, ...] = (
     _node("localization.tracking_levels", 1, "While localized: pyramid levels the alignment "
           "uses, finest first (before the first acceptance and when lost: all 3).", 1, 3,
           dynamic=True),
+    _node("localization.tracking_rays", 1000, "While localized: rays per cloud used by the "
+          "alignment (localization.max_rays: the wide search).", 10, 10_000_000, dynamic=True),
+    _node("localization.tracking_iterations", 10, "While localized: Levenberg-Marquardt steps "
+          "per alignment (the wide search: 30).", 1, 1000, dynamic=True),
+    _node("localization.exact_check", True, "Refuse a correction of the wide search (start, "
+          "/initialpose, lost) unless the exact likelihood of the scan under the map rises "
+          "significantly (refusal 'exact_check').", dynamic=True),
+    _node("localization.exact_check_tracking", False, "Also check the corrections found "
+          "while localized (sub-voxel corrections of drifting odometry are mostly refused).",
+          dynamic=True),
+    _node("localization.normals_refresh", 0.5, "While localized: recompute the scan's surface "
+          "normals (geometric conditioning) once the robot moved this far (m, odometry) since "
+          "they were; 0: every cloud.", 0.0, 1000.0, dynamic=True),
     _node("localization.update_min_d", 0.25, "While localized: align a cloud only after the "
           "robot moved this far (m, odometry) since the last alignment, or turned "
           "update_min_a (AMCL's update_min_d). 0 and 0: every cloud.", 0.0, 1000.0,
@@ -575,6 +589,11 @@ class NodeConfig:
     localization_initial_max_angle: float
     localization_lost_after: int
     localization_tracking_levels: int
+    localization_tracking_rays: int
+    localization_tracking_iterations: int
+    localization_exact_check: bool
+    localization_exact_check_tracking: bool
+    localization_normals_refresh: float
     localization_update_min_d: float
     localization_update_min_a: float
     localization_rebuild_period: float

@@ -728,10 +728,10 @@ def align_scan(
         rot1: FloatArray,
         trans1: FloatArray,
         acc1: FloatArray,
-    ) -> tuple[float, FloatArray, FloatArray]:
+    ) -> tuple[float, FloatArray, FloatArray, float]:
         """Objective (log-likelihood of the rays ``sub`` scaled to all rays, minus the
         prior; nats), its gradient and the BHHH information matrix, both in scaled
-        coordinates, at correction (rot1, trans1)."""
+        coordinates, at correction (rot1, trans1); and the rays' own log-likelihood sum."""
         nonlocal evaluations
         evaluations += 1
         per, grd = per_ray[: sub.size], grads[: sub.size]
@@ -752,13 +752,18 @@ def align_scan(
         value = weight * f - 0.5 * float(np.sum(prior_w * acc1**2))
         grad = weight * gs.sum(axis=0) - prior_w * acc1 * scale
         info = weight * (gs.T @ gs) + np.diag(prior_w * scale * scale)
-        return value, grad, info
+        return value, grad, info, float(f)
 
     acc = np.zeros(6)  # the correction so far, linearised (metres, radians), for the prior
+    # the finest level scores all rays with the same window and step as the gain below:
+    # its sums at the start (single level: the initial pose) and at the end are reused
+    f_start = f_end = math.nan
     for level in reversed(range(len(pyramid.fields))):
         fld = pyramid.fields[level]
         sub = _spread_subset(rays, max(rays >> level, min(rays, 200)))
-        value, grad, info = evaluate(fld, sub, rot, trans, acc)
+        value, grad, info, f_here = evaluate(fld, sub, rot, trans, acc)
+        if level == 0 and len(pyramid.fields) == 1 and sub.size == rays:
+            f_start = f_here
         start_value, damping, iterations = value, 1e-3, 0
         while iterations < opt.max_iterations:
             iterations += 1
@@ -767,7 +772,16 @@ def align_scan(
             # BHHH steps are short far from the optimum (inconsistent per-ray scores make
             # the information matrix large): double the step while the objective improves
             best: (
-                tuple[float, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]
+                tuple[
+                    float,
+                    FloatArray,
+                    FloatArray,
+                    FloatArray,
+                    FloatArray,
+                    FloatArray,
+                    FloatArray,
+                    float,
+                ]
                 | None
             ) = None
             mult = 1.0
@@ -776,14 +790,14 @@ def align_scan(
                     break  # at most one voxel of the level per doubled step
                 y = mult * x * scale
                 rot1, trans1 = _compose(y[3:], y[:3], center, rot, trans)
-                value1, grad1, info1 = evaluate(fld, sub, rot1, trans1, acc + y)
+                value1, grad1, info1, f1 = evaluate(fld, sub, rot1, trans1, acc + y)
                 if value1 <= (value if best is None else best[0]):
                     break
-                best = (value1, grad1, info1, rot1, trans1, acc + y, np.asarray(mult * x))
+                best = (value1, grad1, info1, rot1, trans1, acc + y, np.asarray(mult * x), f1)
                 mult *= 2.0
             if best is not None:
                 improved = best[0] - value
-                value, grad, info, rot, trans, acc, step_x = best
+                value, grad, info, rot, trans, acc, step_x, f_here = best
                 damping = max(damping / 3.0, 1e-7)
                 small = float(np.max(np.abs(step_x))) < opt.tolerance * fld.resolution
                 if small or improved < 1e-4 * rays:
@@ -792,6 +806,8 @@ def align_scan(
                 damping *= 4.0
                 if damping > 1e6:
                     break
+        if level == 0 and sub.size == rays:
+            f_end = f_here
         levels_done.append(
             {
                 "resolution": fld.resolution,
@@ -802,16 +818,13 @@ def align_scan(
             }
         )
     fine = pyramid.fields[0]
-    f_init = float(
-        np.sum(surrogate_log_likelihood(fine, pts, orgs, window=opt.window, step=opt.step)[0])
-    )
-    f_final = float(
-        np.sum(
-            surrogate_log_likelihood(fine, pts, orgs, rot, trans, window=opt.window, step=opt.step)[
-                0
-            ]
+    f_init = f_start
+    if math.isnan(f_init):
+        evaluations += 1
+        f_init = float(
+            np.sum(surrogate_log_likelihood(fine, pts, orgs, window=opt.window, step=opt.step)[0])
         )
-    )
+    f_final = f_end
     curv, dirs = _curvature(fine, pts, orgs, rot, trans, center, opt, scale, info)
     evaluations += 13
     sigma, weakest, reason = _confidence(curv, dirs, scale, opt)

@@ -8,7 +8,12 @@ them); the localizer keeps the correction ``map <- odom`` (4x4) and, for each cl
 2. moves the placed rays by the correction (the initial guess in the map frame);
 3. aligns them against the map's field (``core.alignment.align_scan``, a ``FieldPyramid``
    built in the background from the loaded map, rebuilt every ``rebuild_period`` seconds
-   when mapping goes on), on the worker thread, at most once per ``min_period``;
+   when mapping goes on), on the worker thread, at most once per ``min_period``; while
+   localized with the tracking options (``tracking_levels``, ``tracking_rays``,
+   ``tracking_iterations``, ``AlignOptions.live``) and the scan normals of the last
+   ``normals_refresh`` metres; a correction of the wide search (and with
+   ``exact_check_tracking`` every one) is checked against the exact likelihood
+   (``verify_exact``, refusal ``exact_check``);
 4. on acceptance composes the correction with the alignment's; a refusal keeps the last
    correction and is counted under its reason: never a silent wrong pose.
 
@@ -16,10 +21,10 @@ State: ``waiting_for_map`` (no field yet), ``initializing`` (no correction accep
 start or the last ``/initialpose``), ``localized``, ``lost`` (``lost_after`` consecutive
 refusals while localized). Before the first acceptance, and when lost, the search range is
 the wider ``initial_max_shift`` / ``initial_max_angle``. A refusal for lack of gain
-(``no_gain``: the scan's surfaces constrain every direction and the best pose in range is no
-better than the current one) confirms a localized or lost pose (lost -> localized) rather
-than counting toward lost; it does not end ``initializing``, which needs an accepted
-correction (a pose never confirmed by a gain is not claimed).
+(``no_gain``, or ``exact_check``: the scan's surfaces constrain every direction and the
+best pose in range is no better than the current one) confirms a localized or lost pose
+(lost -> localized) rather than counting toward lost; it does not end ``initializing``,
+which needs an accepted correction (a pose never confirmed by a gain is not claimed).
 """
 
 from __future__ import annotations
@@ -36,7 +41,13 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from mfp_mapper.core.alignment import Alignment, AlignOptions, FieldPyramid, align_scan
+from mfp_mapper.core.alignment import (
+    Alignment,
+    AlignOptions,
+    FieldPyramid,
+    align_scan,
+    verify_exact,
+)
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.sensing.pipeline import PlacedScan
 from mfp_mapper.sensing.scan_normals import scan_normals
@@ -70,6 +81,19 @@ class LocalizationSettings:
     lost_after: int = 10
     rebuild_period: float = 5.0
     tracking_levels: int = 1
+    tracking_rays: int = 1000
+    """Rays per alignment while localized (``max_rays``: the wide search)."""
+    tracking_iterations: int = 10
+    """Levenberg-Marquardt steps per alignment while localized (the wide search: 30)."""
+    exact_check: bool = True
+    """Refuse a correction of the wide search that the exact likelihood does not support
+    (``verify_exact``) ..."""
+    exact_check_tracking: bool = False
+    """... and one found while localized (off by default: README, Localization mode)."""
+    normals_refresh: float = 0.5
+    """While localized: the scan's surface normals (``scan_normals``, for the geometric
+    conditioning) are recomputed once the robot moved this far (m, odometry) since they
+    were; in between the last ones are used (0: every cloud)."""
     """Pyramid levels used while localized (finest first); the wide search uses all."""
     update_min_d: float = 0.25
     """While localized: align only after the robot moved this far (m, odometry) or ..."""
@@ -94,15 +118,31 @@ class LocalizationSettings:
             lost_after=cfg.localization_lost_after,
             rebuild_period=cfg.localization_rebuild_period,
             tracking_levels=cfg.localization_tracking_levels,
+            tracking_rays=cfg.localization_tracking_rays,
+            tracking_iterations=cfg.localization_tracking_iterations,
+            exact_check=cfg.localization_exact_check,
+            exact_check_tracking=cfg.localization_exact_check_tracking,
+            normals_refresh=cfg.localization_normals_refresh,
             update_min_d=cfg.localization_update_min_d,
             update_min_a=cfg.localization_update_min_a,
         )
 
     def options(self, wide: bool) -> AlignOptions:
-        """The alignment's options: the wider search range before the first acceptance."""
+        """The alignment's options: the wider search range before the first acceptance;
+        while tracking those of ``AlignOptions.live`` (fewer curvature probe rays) with
+        ``tracking_rays`` and ``tracking_iterations``."""
+        base = (
+            AlignOptions()
+            if wide
+            else AlignOptions.live(  # free space sampled every half voxel, as the wide search:
+                # every voxel lets the hall's 7 cm aliasing gain (a wrong correction accepted)
+                max_iterations=max(self.tracking_iterations, 1),
+                step=AlignOptions.step,
+            )
+        )
         return replace(
-            AlignOptions(),
-            max_rays=self.max_rays,
+            base,
+            max_rays=self.max_rays if wide else self.tracking_rays,
             max_sigma_m=self.max_sigma,
             min_gain_per_ray=self.min_gain_per_ray,
             min_constraints=self.min_constraints,
@@ -117,7 +157,12 @@ _KEYS = (
     ("degenerate geometry", "degenerate_geometry"),
     ("correction beyond the search range", "out_of_range"),
     ("no significant gain", "no_gain"),
+    ("no significant exact gain", "exact_check"),
 )
+
+CONFIRMING = ("no_gain", "exact_check")
+"""Refusals that say the current pose is as good as the best one found in range: they
+confirm a localized pose instead of counting toward ``lost``."""
 
 
 def refusal_key(reason: str) -> str:
@@ -180,6 +225,12 @@ class LiveLocalizer:
         self._last_align_stamp = -math.inf
         self._last_align_odom: FloatArray | None = None
         self._pending: tuple[float, FloatArray] | None = None
+        self._mapper: Mapper | None = None
+        self._whole_map: Any = None
+        self._normals: tuple[FloatArray, FloatArray, FloatArray | None] | None = None
+        """The last scan normals (map frame) and the odometry pose they were computed at."""
+        self.exact_checked = 0
+        self.normals_computed = 0
         self._building: threading.Thread | None = None
         self._built_at = -math.inf
 
@@ -205,6 +256,7 @@ class LiveLocalizer:
         )
         with self.lock:
             self.pyramid = pyramid
+            self._mapper, self._whole_map = mapper, whole_map
             self.pyramid_voxels = len(stats.s)
             self.pyramid_seconds = time.perf_counter() - t0
             if self.state == "waiting_for_map":
@@ -260,6 +312,7 @@ class LiveLocalizer:
         cloud from before the jump) is then ``superseded``."""
         with self.lock:
             self._last_align_stamp, self._last_align_odom = -math.inf, None
+            self._normals = None
             if math.isfinite(self.correction_stamp):
                 self.correction_stamp = min(self.correction_stamp, now)
             self.version += 1
@@ -307,12 +360,51 @@ class LiveLocalizer:
         org = moved.origins if np.ndim(moved.origins) == 1 else moved.origins[ret]
         if not wide:  # tracking: the correction is small, the coarse levels cost for nothing
             pyramid = FieldPyramid(pyramid.fields[: max(cfg.tracking_levels, 1)])
-        al = align_scan(pyramid, pts, org, cfg.options(wide), normals=scan_normals(pts))
+        options = cfg.options(wide)
+        al = align_scan(pyramid, pts, org, options, normals=self._scan_normals(pts, odom, wide))
+        if al.accepted and cfg.exact_check and (wide or cfg.exact_check_tracking):
+            al = self._verify(al, moved, options)
         ms = 1e3 * (time.perf_counter() - t0)
         step = pose_matrix(al.translation, al.rotation)
         if not self._record(al, ms, placed.stamp, step, wide, odom, version):
             return moved  # an /initialpose came meanwhile: this correction is not used
         return move_scan(moved, step) if al.accepted else moved
+
+    def _scan_normals(
+        self, pts: FloatArray, odom: FloatArray | None, wide: bool
+    ) -> tuple[FloatArray, FloatArray]:
+        """The scan's surface normals (map frame): computed in the wide search and once the
+        robot moved ``normals_refresh`` since the last ones, else those reused (the same
+        surfaces of the map, seen a few centimetres apart)."""
+        last = self._normals
+        if not wide and last is not None and odom is not None and last[2] is not None:
+            moved = float(np.linalg.norm(odom[:3, 3] - last[2][:3, 3]))
+            if moved < self.settings.normals_refresh:
+                return last[0], last[1]
+        points, normals = scan_normals(pts)
+        self._normals = (points, normals, odom)
+        self.normals_computed += 1
+        return points, normals
+
+    def _verify(self, al: Alignment, moved: PlacedScan, options: AlignOptions) -> Alignment:
+        """``verify_exact`` against the map itself (read under ``whole_map``)."""
+        with self.lock:
+            mapper, whole_map = self._mapper, self._whole_map
+        if mapper is None or whole_map is None:
+            return al
+        with whole_map:
+            checked = verify_exact(
+                mapper,
+                al,
+                moved.points,
+                moved.origins,
+                moved.stamp,
+                options,
+                no_return=moved.no_return,
+            )
+        with self.lock:
+            self.exact_checked += 1
+        return checked
 
     def _still(self, odom: FloatArray | None) -> bool:
         """Whether the robot moved less than ``update_min_d`` and turned less than
@@ -347,6 +439,7 @@ class LiveLocalizer:
             self.version += 1
             self.initial_poses += 1
             self.consecutive_refused = 0
+            self._normals = None
             if self.pyramid is not None:
                 self.state = "initializing"
         self._log(
@@ -380,6 +473,7 @@ class LiveLocalizer:
                 "angle_deg": round(al.angle_deg, 4),
                 "sigma": [round(float(v), 5) if math.isfinite(v) else None for v in al.sigma],
                 "gain_per_ray": round(float(al.gain_per_ray), 5),
+                "exact_z": round(float(al.exact_z), 2) if math.isfinite(al.exact_z) else None,
                 "constraints": al.conditioning,
                 "rays": al.rays,
                 "ms": round(ms, 2),
@@ -399,7 +493,7 @@ class LiveLocalizer:
                 return True
             key = refusal_key(al.reason)
             self.refused[key] += 1
-            if key == "no_gain":  # the best pose in range is no better: the current one stands
+            if key in CONFIRMING:  # the best pose in range is no better: the current one stands
                 self.consecutive_refused = 0
                 if self.state == "lost":  # localized before, and the scans agree again
                     self.state = "localized"
@@ -462,6 +556,8 @@ class LiveLocalizer:
                 "initial_poses": self.initial_poses,
                 "ms_mean": round(self.ms_sum / self.aligned, 2) if self.aligned else None,
                 "ms_max": round(self.ms_max, 2) if self.aligned else None,
+                "exact_checked": self.exact_checked,
+                "normals_computed": self.normals_computed,
                 "field_voxels": self.pyramid_voxels,
                 "field_build_s": round(self.pyramid_seconds, 3),
                 "last": dict(self.last),

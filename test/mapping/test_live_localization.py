@@ -96,6 +96,8 @@ def test_hall_correction_converges_to_the_odometry_offset_and_the_map_stays_froz
     assert report["accepted"] >= 1 and report["aligned"] == 3
     shift, angle = _error(loc.correction, OFFSET)
     assert shift < 0.05 and angle < 0.5, (shift, angle, report)
+    # the accepted correction was checked against the exact likelihood and gained in it
+    assert report["exact_checked"] >= 1
     assert worker.counters.clouds_localized == 3 and worker.counters.clouds_integrated == 0
     assert mapper.version == version and mapper.num_voxels == voxels  # frozen
     assert worker.map_frame == "map" and mapper.frame_id == "map"
@@ -170,6 +172,10 @@ def test_mapping_goes_on_at_the_corrected_poses_when_not_frozen() -> None:
         ("degenerate geometry: the likelihood is flat along x", "flat_likelihood"),
         ("correction beyond the search range (2.00 m, 1.0 deg > 1 m or 10 deg)", "out_of_range"),
         ("no significant gain (0.001 nats per ray < 0.02); kept", "no_gain"),
+        (
+            "no significant exact gain (-3.0 nats over 1000 rays, -1.2 standard errors <= 3)",
+            "exact_check",
+        ),
         ("something new", "other"),
     ],
 )
@@ -235,6 +241,27 @@ def test_initial_pose_applies_at_once_when_odometry_gives_the_robot() -> None:
     _, stamp, version = loc.transform()
     np.testing.assert_allclose(loc.correction, OFFSET, atol=1e-9)
     assert stamp == T0 and version == 1 and loc.report()["initial_poses"] == 1
+
+
+@pytest.mark.parametrize(("refresh", "computed"), [(0.5, 2), (0.0, 4)])
+def test_tracking_reuses_the_scan_normals_until_the_robot_moved(
+    refresh: float, computed: int
+) -> None:
+    """Normals for the wide search, then (while localized) again only once the robot moved
+    ``normals_refresh`` since they were computed; 0: every cloud."""
+    scene, poses, mapper = _scene_map("box")
+    worker, _ = _worker(mapper, update_min_d=0.0, update_min_a=0.0, normals_refresh=refresh)
+    loc = worker.localizer
+    assert loc is not None
+    loc.build(mapper, worker.whole_map)
+    for i, dx in enumerate((0.0, 0.1, 0.2, 1.0)):  # metres from the first pose
+        truth = pose_at(poses[1].translation + np.array([dx, 0.0, 0.0]), yaw=0.3)
+        _feed(worker, scene, truth, T0 + i, seed=i)
+    report = loc.report()
+    assert report["aligned"] == 4 and report["state"] == "localized", report
+    assert report["normals_computed"] == computed, report
+    shift, angle = _error(loc.correction, OFFSET)
+    assert shift < 0.05 and angle < 0.5, (shift, angle, report)
 
 
 def test_a_clock_jumping_back_restarts_the_rate_gate_and_restamps_the_correction() -> None:
