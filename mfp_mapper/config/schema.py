@@ -313,6 +313,10 @@ SETTINGS: tuple[Setting, ...] = (
     _node("localization.exact_check_tracking", False, "Also check the corrections found "
           "while localized (sub-voxel corrections of drifting odometry are mostly refused).",
           dynamic=True),
+    _node("localization.fit_drop", 0.3, "Refuse a scan, and stop vouching for the pose, when "
+          "it fits the map this much worse (smoothed log-likelihood per ray, nats) than the "
+          "scans accepted before it (refusal 'poor_fit': odometry that jumped, a kidnapped "
+          "robot); lost after lost_after such scans; 0: no check.", 0.0, 100.0, dynamic=True),
     _node("localization.normals_refresh", 0.5, "While localized: recompute the scan's surface "
           "normals (geometric conditioning) once the robot moved this far (m, odometry) since "
           "they were; 0: every cloud.", 0.0, 1000.0, dynamic=True),
@@ -593,6 +597,7 @@ class NodeConfig:
     localization_tracking_iterations: int
     localization_exact_check: bool
     localization_exact_check_tracking: bool
+    localization_fit_drop: float
     localization_normals_refresh: float
     localization_update_min_d: float
     localization_update_min_a: float

@@ -164,6 +164,10 @@ class Alignment:
     ``verify_exact``), corrected - initial; NaN when not verified."""
     exact_z: float = math.nan
     """That gain's mean per ray over its standard error (``verify_exact``)."""
+    fit_per_ray: float = math.nan
+    """Smoothed log-likelihood per ray (nats, finest level) at the pose kept: the corrected
+    pose when accepted, else the initial one. How well the scan fits the map there, which a
+    gain alone does not say (a scan far from its place can still gain a little)."""
 
     @property
     def shift_m(self) -> float:
@@ -874,6 +878,7 @@ def align_scan(
         rays=rays,
         evaluations=evaluations,
         levels=levels_done,
+        fit_per_ray=(f_final if accepted else f_init) / rays,
     )
 
 

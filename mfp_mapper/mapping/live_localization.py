@@ -25,6 +25,16 @@ the wider ``initial_max_shift`` / ``initial_max_angle``. A refusal for lack of g
 best pose in range is no better than the current one) confirms a localized or lost pose
 (lost -> localized) rather than counting toward lost; it does not end ``initializing``,
 which needs an accepted correction (a pose never confirmed by a gain is not claimed).
+
+A gain only says the pose is a local optimum; it does not say the scan belongs there (after
+odometry jumps 5 m a scan still finds a small gain against the wrong walls). So each scan's
+fit (``Alignment.fit_per_ray``, the smoothed log-likelihood per ray at the pose kept) is
+compared with a reference: the fit of the scans accepted or confirmed before it (set by the
+first acceptance after the start or an ``/initialpose``, then a moving average). A scan that
+fits ``fit_drop`` nats per ray worse is refused as ``poor_fit`` whatever the alignment said:
+its correction is not applied, its pose is not vouched for, and it counts toward ``lost``
+(AMCL's short- against long-term likelihood, without the random particles: a jump further
+than the wide search needs an ``/initialpose``).
 """
 
 from __future__ import annotations
@@ -90,6 +100,8 @@ class LocalizationSettings:
     (``verify_exact``) ..."""
     exact_check_tracking: bool = False
     """... and one found while localized (off by default: README, Localization mode)."""
+    fit_drop: float = 0.3
+    """Nats per ray: a scan fitting the map this much worse than the reference is ``poor_fit``."""
     normals_refresh: float = 0.5
     """While localized: the scan's surface normals (``scan_normals``, for the geometric
     conditioning) are recomputed once the robot moved this far (m, odometry) since they
@@ -122,6 +134,7 @@ class LocalizationSettings:
             tracking_iterations=cfg.localization_tracking_iterations,
             exact_check=cfg.localization_exact_check,
             exact_check_tracking=cfg.localization_exact_check_tracking,
+            fit_drop=cfg.localization_fit_drop,
             normals_refresh=cfg.localization_normals_refresh,
             update_min_d=cfg.localization_update_min_d,
             update_min_a=cfg.localization_update_min_a,
@@ -151,7 +164,11 @@ class LocalizationSettings:
         )
 
 
+FIT_AVERAGE = 0.1
+"""Weight of a new scan's fit in the reference (a moving average over about 10 scans)."""
+
 _KEYS = (
+    ("scan fits the map", "poor_fit"),
     ("too few rays", "too_few_rays"),
     ("degenerate geometry: the likelihood is flat", "flat_likelihood"),
     ("degenerate geometry", "degenerate_geometry"),
@@ -218,6 +235,9 @@ class LiveLocalizer:
         self.pose_version = 0
         self.pose: tuple[float, FloatArray, FloatArray] | None = None
         self.consecutive_refused = 0
+        self.fit_reference = math.nan
+        """Smoothed log-likelihood per ray of the scans accepted or confirmed (NaN: none yet
+        since the start or the last ``/initialpose``)."""
         self.last: dict[str, Any] = {}
         self.ms_sum = 0.0
         self.ms_max = 0.0
@@ -439,6 +459,7 @@ class LiveLocalizer:
             self.version += 1
             self.initial_poses += 1
             self.consecutive_refused = 0
+            self.fit_reference = math.nan  # another place: its own fit
             self._normals = None
             if self.pyramid is not None:
                 self.state = "initializing"
@@ -482,6 +503,21 @@ class LiveLocalizer:
             if self.version != version:
                 self.refused["superseded"] += 1
                 return False
+            self.last["fit_per_ray"] = (
+                round(float(al.fit_per_ray), 4) if math.isfinite(al.fit_per_ray) else None
+            )
+            poor = self._poor_fit(al)
+            if poor:
+                al = replace(al, accepted=False, reason=poor)
+                self.last.update(accepted=False, reason=poor)
+            elif math.isfinite(al.fit_per_ray) and (
+                al.accepted or refusal_key(al.reason) in CONFIRMING
+            ):
+                ref = self.fit_reference
+                if al.accepted and (math.isnan(ref) or self.state != "localized"):
+                    self.fit_reference = al.fit_per_ray  # (re)gained: the fit here
+                elif not math.isnan(ref):
+                    self.fit_reference = ref + FIT_AVERAGE * (al.fit_per_ray - ref)
             if al.accepted:
                 self.correction = step @ self.correction
                 self.correction_stamp = stamp
@@ -512,6 +548,16 @@ class LiveLocalizer:
                 f"(last: {al.reason}); keeping map -> odom, searching wider"
             )
         return True
+
+    def _poor_fit(self, al: Alignment) -> str:
+        """(under the lock) Why the scan fits the map too poorly to be used, or ''."""
+        drop, ref, fit = self.settings.fit_drop, self.fit_reference, al.fit_per_ray
+        if drop <= 0.0 or math.isnan(ref) or not math.isfinite(fit) or fit >= ref - drop:
+            return ""
+        return (
+            f"scan fits the map {ref - fit:.2f} nats per ray worse than the scans before "
+            f"(> {drop:g}): odometry jumped or the robot is elsewhere; pose not used"
+        )
 
     def _vouch(self, stamp: float, odom: FloatArray | None, sigma: FloatArray) -> None:
         """(under the lock) The robot's pose in the map at ``stamp``, as the node vouches for
@@ -553,6 +599,9 @@ class LiveLocalizer:
                 "skipped_rate": self.skipped,
                 "skipped_motion": self.skipped_motion,
                 "consecutive_refused": self.consecutive_refused,
+                "fit_reference": (
+                    round(self.fit_reference, 4) if math.isfinite(self.fit_reference) else None
+                ),
                 "initial_poses": self.initial_poses,
                 "ms_mean": round(self.ms_sum / self.aligned, 2) if self.aligned else None,
                 "ms_max": round(self.ms_max, 2) if self.aligned else None,
