@@ -487,12 +487,13 @@ def _interp(a, b, index, block_lo, prior_a, prior_b, res, origin, p, out):  # ty
     i0, j0, k0 = int(fx), int(fy), int(fz)
     for q in range(8):
         out[q] = 0.0
-    if (i0 & 7) < 7 and (j0 & 7) < 7 and (k0 & 7) < 7:
-        # the 8 corners lie in one block (2 in 3 lookups): find it once
+    # the 8 corners in one block (2 in 3 lookups): that block is found once
+    same = (i0 & 7) < 7 and (j0 & 7) < 7 and (k0 & 7) < 7
+    row = -1
+    if same:
         bi = (i0 >> 3) - block_lo[0]
         bj = (j0 >> 3) - block_lo[1]
         bk = (k0 >> 3) - block_lo[2]
-        row = -1
         if (
             bi >= 0
             and bj >= 0
@@ -506,29 +507,7 @@ def _interp(a, b, index, block_lo, prior_a, prior_b, res, origin, p, out):  # ty
             out[0] = prior_a
             out[1] = prior_b
             return
-        li, lj, lk = i0 & 7, j0 & 7, k0 & 7
-        for di in range(2):
-            wx = tx if di else 1.0 - tx
-            gx = 1.0 if di else -1.0
-            for dj in range(2):
-                wy = ty if dj else 1.0 - ty
-                gy = 1.0 if dj else -1.0
-                for dk in range(2):
-                    wz = tz if dk else 1.0 - tz
-                    gz = 1.0 if dk else -1.0
-                    va = a[row, li + di, lj + dj, lk + dk]
-                    vb = b[row, li + di, lj + dj, lk + dk]
-                    w = wx * wy * wz
-                    out[0] += w * va
-                    out[1] += w * vb
-                    ex, ey, ez = gx * wy * wz * inv, wx * gy * wz * inv, wx * wy * gz * inv
-                    out[2] += ex * va
-                    out[3] += ey * va
-                    out[4] += ez * va
-                    out[5] += ex * vb
-                    out[6] += ey * vb
-                    out[7] += ez * vb
-        return
+    li, lj, lk = i0 & 7, j0 & 7, k0 & 7
     for di in range(2):
         wx = tx if di else 1.0 - tx
         gx = 1.0 if di else -1.0
@@ -538,7 +517,13 @@ def _interp(a, b, index, block_lo, prior_a, prior_b, res, origin, p, out):  # ty
             for dk in range(2):
                 wz = tz if dk else 1.0 - tz
                 gz = 1.0 if dk else -1.0
-                va, vb = _voxel(a, b, index, block_lo, prior_a, prior_b, i0 + di, j0 + dj, k0 + dk)
+                if same:
+                    va = a[row, li + di, lj + dj, lk + dk]
+                    vb = b[row, li + di, lj + dj, lk + dk]
+                else:
+                    va, vb = _voxel(
+                        a, b, index, block_lo, prior_a, prior_b, i0 + di, j0 + dj, k0 + dk
+                    )
                 w = wx * wy * wz
                 out[0] += w * va
                 out[1] += w * vb
