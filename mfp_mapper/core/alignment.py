@@ -213,46 +213,14 @@ class LikelihoodField:
         factor: int = 1,
     ) -> LikelihoodField:
         """The field of voxels ``ijk`` (statistics ``s`` metres, ``n`` returns) aggregated
-        ``factor`` x ``factor`` x ``factor`` (exact: chords and returns add up)."""
-        res = resolution * factor
-        ijk = np.asarray(ijk, dtype=np.int64).reshape(-1, 3)
-        keys = np.floor_divide(ijk, factor)
-        uniq, inv = _unique_rows(keys)
-        s_c: FloatArray = np.bincount(
-            inv, weights=np.asarray(s, dtype=np.float64), minlength=len(uniq)
-        ).astype(np.float64)
-        n_c: FloatArray = np.bincount(
-            inv, weights=np.asarray(n, dtype=np.float64), minlength=len(uniq)
-        ).astype(np.float64)
-        a_v, b_v = _log_probabilities(s_c, n_c, res, shape, rate)
-        prior_a, prior_b = (
-            float(v[0]) for v in _log_probabilities(np.zeros(1), np.zeros(1), res, shape, rate)
-        )
-        blocks = np.floor_divide(uniq, _BLOCK)
-        if blocks.shape[0]:
-            lo = blocks.min(axis=0)
-            dims = blocks.max(axis=0) - lo + 1
-        else:
-            lo, dims = np.zeros(3, np.int64), np.ones(3, np.int64)
-        ublocks, binv = _unique_rows(blocks)
-        index = np.full(tuple(int(d) for d in dims), -1, dtype=np.int32)
-        rel = ublocks - lo
-        index[rel[:, 0], rel[:, 1], rel[:, 2]] = np.arange(len(ublocks), dtype=np.int32)
-        a = np.full((len(ublocks), _BLOCK, _BLOCK, _BLOCK), prior_a, dtype=np.float32)
-        b = np.full((len(ublocks), _BLOCK, _BLOCK, _BLOCK), prior_b, dtype=np.float32)
-        loc = uniq - blocks * _BLOCK
-        a[binv, loc[:, 0], loc[:, 1], loc[:, 2]] = a_v
-        b[binv, loc[:, 0], loc[:, 1], loc[:, 2]] = b_v
-        return cls(
-            resolution=res,
-            origin=np.asarray(origin, dtype=np.float64).reshape(3),
-            block_lo=lo.astype(np.int64),
-            index=index,
-            a=a,
-            b=b,
-            prior_a=prior_a,
-            prior_b=prior_b,
-        )
+        ``factor`` x ``factor`` x ``factor`` (a power of two; exact: chords and returns add
+        up), built as ``FieldPyramid`` builds its levels."""
+        if factor < 1 or factor & (factor - 1):
+            raise ValueError(f"factor must be a power of two, got {factor}")
+        keys, s_b, n_b = _voxel_blocks(ijk, s, n)
+        for _ in range(factor.bit_length() - 1):
+            keys, s_b, n_b = _coarsen_blocks(keys, s_b, n_b)
+        return _field_of_blocks(keys, s_b, n_b, resolution * factor, origin, shape, rate)
 
     def values(self, points: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
         """Interpolated ``a``, ``b`` at points (N, 3) and their gradients (N, 3) each."""
@@ -410,7 +378,7 @@ class FieldPyramid:
     ) -> FieldPyramid:
         """Fields at ``resolution * 2^k``, ``k < levels``, of voxels ``ijk`` (statistics
         ``s`` metres, ``n`` returns): exact sums of the statistics, as
-        ``LikelihoodField.from_statistics`` with ``factor = 2^k``; built block by block
+        ``LikelihoodField.from_statistics`` with ``factor = 2^k``, but built once for all levels
         (one sort of the voxels, then 2x2x2 sums of 8^3 blocks: 1.4-2.1x faster than a
         sort per level on norlab's 3.6M voxels, in the same run)."""
         if levels < 1:
