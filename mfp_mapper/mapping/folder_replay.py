@@ -119,11 +119,8 @@ def folder_poses(
                     f"{path}: {len(positions)} KITTI poses for {len(stamps)} scans (one per "
                     f"scan){skipped}"
                 )
-        elif kind == "tum":
-            stamps, positions, quaternions = pose_files.read_tum_poses(path)
         else:
-            rows = pose_files.read_odometry_csv(path)
-            stamps, positions, quaternions = rows["stamp"], rows["position"], rows["quaternion"]
+            stamps, positions, quaternions = pose_files.read_stamped_poses(path, kind)
         buffer = pose_files.pose_buffer(stamps, positions, quaternions, opts.max_gap, str(path))
     except (DatasetFormatError, OSError) as err:
         raise ReplayError(str(err)) from None

@@ -167,11 +167,7 @@ def _pose_file_buffer(poses: str | Path, opts: ReplayOptions) -> tuple[Any, str]
                 f"{path}: KITTI poses have no stamps; a bag's clouds need TUM poses "
                 "('t x y z qx qy qz qw') or an odometry CSV, matched by stamp"
             )
-        if kind == "tum":
-            stamps, positions, quaternions = pose_files.read_tum_poses(path)
-        else:
-            rows = pose_files.read_odometry_csv(path)
-            stamps, positions, quaternions = rows["stamp"], rows["position"], rows["quaternion"]
+        stamps, positions, quaternions = pose_files.read_stamped_poses(path, kind)
         buffer = pose_files.pose_buffer(stamps, positions, quaternions, opts.max_gap, str(path))
     except (DatasetFormatError, OSError) as err:
         raise ReplayError(str(err)) from None

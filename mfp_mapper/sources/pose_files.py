@@ -128,6 +128,15 @@ def read_tum_poses(path: str | Path) -> tuple[FloatArray, FloatArray, FloatArray
     return rows[:, 0].copy(), rows[:, 1:4].copy(), rows[:, 4:8].copy()
 
 
+def read_stamped_poses(path: str | Path, kind: str) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Stamps, positions and quaternions (xyzw) of a ``kind`` "tum" or "csv" (odometry)
+    pose file: the poses a recording's clouds are matched with by stamp."""
+    if kind == "tum":
+        return read_tum_poses(path)
+    rows = read_odometry_csv(path)
+    return rows["stamp"], rows["position"], rows["quaternion"]
+
+
 def matrix_to_quaternion(rotations: ArrayLike) -> FloatArray:
     """Quaternions xyzw (N, 4) of rotation matrices (N, 3, 3) (scipy; a matrix a little off
     orthogonal, as in text pose files, gives the nearest rotation's quaternion)."""
