@@ -302,6 +302,39 @@ def _walk_part(
                 shard.grow(min_free=int(room[first]))
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _ray_start(origins_vox, ends_vox, r):  # type: ignore[no-untyped-def]
+    """Ray ``r``'s start for a voxel walk (voxel units): first voxel, end voxel, steps per
+    axis, where each axis' next face is crossed (ray parameter t in [0, 1]), t between faces,
+    and the number of steps. An axis already at the end voxel's index is never stepped again
+    (t_max = inf), so a walk takes exactly ``steps`` steps and ends in floor(end), whatever
+    the rounding. Shared by ``_walk_rays`` and ``read_walk``: same voxels, same chords."""
+    ox = origins_vox[r, 0]
+    oy = origins_vox[r, 1]
+    oz = origins_vox[r, 2]
+    dx = ends_vox[r, 0] - ox
+    dy = ends_vox[r, 1] - oy
+    dz = ends_vox[r, 2] - oz
+    vx = int(np.floor(ox))
+    vy = int(np.floor(oy))
+    vz = int(np.floor(oz))
+    ex = int(np.floor(ends_vox[r, 0]))
+    ey = int(np.floor(ends_vox[r, 1]))
+    ez = int(np.floor(ends_vox[r, 2]))
+    step_x = 1 if ex > vx else -1
+    step_y = 1 if ey > vy else -1
+    step_z = 1 if ez > vz else -1
+    t_max_x = ((vx + (dx > 0)) - ox) / dx if ex != vx else np.inf
+    t_max_y = ((vy + (dy > 0)) - oy) / dy if ey != vy else np.inf
+    t_max_z = ((vz + (dz > 0)) - oz) / dz if ez != vz else np.inf
+    t_delta_x = abs(1.0 / dx) if ex != vx else 0.0
+    t_delta_y = abs(1.0 / dy) if ey != vy else 0.0
+    t_delta_z = abs(1.0 / dz) if ez != vz else 0.0
+    steps = abs(ex - vx) + abs(ey - vy) + abs(ez - vz)
+    return (vx, vy, vz, ex, ey, ez, step_x, step_y, step_z, t_max_x, t_max_y, t_max_z,
+            t_delta_x, t_delta_y, t_delta_z, steps)  # fmt: skip
+
+
 @nb.njit(cache=True, nogil=True)
 def _walk_rays(
     rays: RayArrays,
@@ -357,32 +390,9 @@ def _walk_rays(
             if stop:
                 mail_count[0] = mailed
                 return r
-        ox = origins_vox[r, 0]
-        oy = origins_vox[r, 1]
-        oz = origins_vox[r, 2]
-        dx = ends_vox[r, 0] - ox
-        dy = ends_vox[r, 1] - oy
-        dz = ends_vox[r, 2] - oz
         length = lengths[r]
-        vx = int(np.floor(ox))
-        vy = int(np.floor(oy))
-        vz = int(np.floor(oz))
-        ex = int(np.floor(ends_vox[r, 0]))
-        ey = int(np.floor(ends_vox[r, 1]))
-        ez = int(np.floor(ends_vox[r, 2]))
-        # ray parameter t in [0, 1]; t_max_*: where the next face on that axis is crossed.
-        # An axis already at the end voxel's index is never stepped again (t_max = inf), so
-        # the walk takes exactly `steps` steps and ends in floor(end), whatever the rounding.
-        step_x = 1 if ex > vx else -1
-        step_y = 1 if ey > vy else -1
-        step_z = 1 if ez > vz else -1
-        t_max_x = ((vx + (dx > 0)) - ox) / dx if ex != vx else np.inf
-        t_max_y = ((vy + (dy > 0)) - oy) / dy if ey != vy else np.inf
-        t_max_z = ((vz + (dz > 0)) - oz) / dz if ez != vz else np.inf
-        t_delta_x = abs(1.0 / dx) if ex != vx else 0.0
-        t_delta_y = abs(1.0 / dy) if ey != vy else 0.0
-        t_delta_z = abs(1.0 / dz) if ez != vz else 0.0
-        steps = abs(ex - vx) + abs(ey - vy) + abs(ez - vz)
+        (vx, vy, vz, ex, ey, ez, step_x, step_y, step_z, t_max_x, t_max_y, t_max_z,
+         t_delta_x, t_delta_y, t_delta_z, steps) = _ray_start(origins_vox, ends_vox, r)  # fmt: skip
         t_prev = 0.0
         # the voxel's index in its block (Morton order), kept per axis as the walk steps;
         # stepping along an axis enters a new block when that axis' index in the block wraps
@@ -553,30 +563,13 @@ def read_walk(
     cache_blocks = np.empty(CACHE_SIZE, dtype=np.int64)
     tiny = 1e-280
     for r in range(lengths.shape[0]):
-        ox = origins_vox[r, 0]
-        oy = origins_vox[r, 1]
-        oz = origins_vox[r, 2]
-        dx = ends_vox[r, 0] - ox
-        dy = ends_vox[r, 1] - oy
-        dz = ends_vox[r, 2] - oz
         length = lengths[r]
-        vx = int(np.floor(ox))
-        vy = int(np.floor(oy))
-        vz = int(np.floor(oz))
-        ex = int(np.floor(ends_vox[r, 0]))
-        ey = int(np.floor(ends_vox[r, 1]))
-        ez = int(np.floor(ends_vox[r, 2]))
-        # the stepping below is _walk_rays' (kept identical: test_likelihood checks chords)
-        step_x = 1 if ex > vx else -1
-        step_y = 1 if ey > vy else -1
-        step_z = 1 if ez > vz else -1
-        t_max_x = ((vx + (dx > 0)) - ox) / dx if ex != vx else np.inf
-        t_max_y = ((vy + (dy > 0)) - oy) / dy if ey != vy else np.inf
-        t_max_z = ((vz + (dz > 0)) - oz) / dz if ez != vz else np.inf
-        t_delta_x = abs(1.0 / dx) if ex != vx else 0.0
-        t_delta_y = abs(1.0 / dy) if ey != vy else 0.0
-        t_delta_z = abs(1.0 / dz) if ez != vz else 0.0
-        steps = abs(ex - vx) + abs(ey - vy) + abs(ez - vz)
+        # the stepping below is _walk_rays' (test_likelihood checks the chords); the ray's
+        # origin and direction are also needed where it would leave its end voxel
+        ox, oy, oz = origins_vox[r, 0], origins_vox[r, 1], origins_vox[r, 2]
+        dx, dy, dz = ends_vox[r, 0] - ox, ends_vox[r, 1] - oy, ends_vox[r, 2] - oz
+        (vx, vy, vz, ex, ey, ez, step_x, step_y, step_z, t_max_x, t_max_y, t_max_z,
+         t_delta_x, t_delta_y, t_delta_z, steps) = _ray_start(origins_vox, ends_vox, r)  # fmt: skip
         t_prev = 0.0
         morton_x = _SPREAD[vx & _LOCAL_MASK] << 2
         morton_y = _SPREAD[vy & _LOCAL_MASK] << 1
