@@ -44,13 +44,14 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from mfp_mapper.config.schema import defaults as setting_defaults
 from mfp_mapper.core.alignment import (
     Alignment,
     AlignOptions,
@@ -72,73 +73,53 @@ __all__ = ["LiveLocalizer", "LocalizationSettings", "refusal_key"]
 STATES = ("waiting_for_map", "initializing", "localized", "lost")
 
 
+_SCHEMA = setting_defaults()
+
+
+def _default(name: str) -> Any:
+    """The schema's default of ``localization.<name>`` (the one definition of the setting)."""
+    return _SCHEMA[f"localization.{name}"]
+
+
 @dataclass(frozen=True)
 class LocalizationSettings:
-    """The ``localization.*`` parameters the localizer reads (replaced whole on a change)."""
+    """The ``localization.*`` parameters the localizer reads (replaced whole on a change);
+    each field is the parameter of its name, defaults and meanings in ``config.schema``."""
 
-    odom_frame: str = "odom"
+    odom_frame: str = _default("odom_frame")
     global_frame: str = "map"
-    freeze_map: bool = True
-    min_period: float = 0.0
-    max_rays: int = AlignOptions.max_rays
-    max_sigma: float = AlignOptions.max_sigma_m
-    min_gain_per_ray: float = AlignOptions.min_gain_per_ray
-    min_constraints: int = AlignOptions.min_constraints
-    max_shift: float = 0.5
-    max_angle: float = 5.0
-    initial_max_shift: float = AlignOptions.max_shift_m
-    initial_max_angle: float = AlignOptions.max_angle_deg
-    lost_after: int = 10
-    rebuild_period: float = 5.0
-    tracking_levels: int = 1
-    tracking_rays: int = 1000
-    """Rays per alignment while localized (``max_rays``: the wide search)."""
-    tracking_iterations: int = 10
-    """Levenberg-Marquardt steps per alignment while localized (the wide search: 30)."""
-    exact_check: bool = True
-    """Refuse a correction of the wide search that the exact likelihood does not support
-    (``verify_exact``) ..."""
-    exact_check_tracking: bool = False
-    """... and one found while localized (off by default: README, Localization mode)."""
-    fit_drop: float = 0.3
-    """Nats per ray: a scan fitting the map this much worse than the reference is ``poor_fit``."""
-    normals_refresh: float = 0.5
-    """While localized: the scan's surface normals (``scan_normals``, for the geometric
-    conditioning) are recomputed once the robot moved this far (m, odometry) since they
-    were; in between the last ones are used (0: every cloud)."""
-    """Pyramid levels used while localized (finest first); the wide search uses all."""
-    update_min_d: float = 0.25
-    """While localized: align only after the robot moved this far (m, odometry) or ..."""
-    update_min_a: float = 11.5
-    """... turned this much (degrees) since the last alignment (AMCL's update_min_d/_a)."""
+    """Not a ``localization.*`` parameter: the node's map frame."""
+    freeze_map: bool = _default("freeze_map")
+    min_period: float = _default("min_period")
+    max_rays: int = _default("max_rays")
+    max_sigma: float = _default("max_sigma")
+    min_gain_per_ray: float = _default("min_gain_per_ray")
+    min_constraints: int = _default("min_constraints")
+    max_shift: float = _default("max_shift")
+    max_angle: float = _default("max_angle")
+    initial_max_shift: float = _default("initial_max_shift")
+    initial_max_angle: float = _default("initial_max_angle")
+    lost_after: int = _default("lost_after")
+    rebuild_period: float = _default("rebuild_period")
+    tracking_levels: int = _default("tracking_levels")
+    tracking_rays: int = _default("tracking_rays")
+    tracking_iterations: int = _default("tracking_iterations")
+    exact_check: bool = _default("exact_check")
+    exact_check_tracking: bool = _default("exact_check_tracking")
+    fit_drop: float = _default("fit_drop")
+    normals_refresh: float = _default("normals_refresh")
+    update_min_d: float = _default("update_min_d")
+    update_min_a: float = _default("update_min_a")
 
     @classmethod
     def of(cls, cfg: NodeConfig, global_frame: str) -> LocalizationSettings:
-        return cls(
-            odom_frame=cfg.localization_odom_frame.lstrip("/"),
-            global_frame=global_frame,
-            freeze_map=cfg.localization_freeze_map,
-            min_period=cfg.localization_min_period,
-            max_rays=cfg.localization_max_rays,
-            max_sigma=cfg.localization_max_sigma,
-            min_gain_per_ray=cfg.localization_min_gain_per_ray,
-            min_constraints=cfg.localization_min_constraints,
-            max_shift=cfg.localization_max_shift,
-            max_angle=cfg.localization_max_angle,
-            initial_max_shift=cfg.localization_initial_max_shift,
-            initial_max_angle=cfg.localization_initial_max_angle,
-            lost_after=cfg.localization_lost_after,
-            rebuild_period=cfg.localization_rebuild_period,
-            tracking_levels=cfg.localization_tracking_levels,
-            tracking_rays=cfg.localization_tracking_rays,
-            tracking_iterations=cfg.localization_tracking_iterations,
-            exact_check=cfg.localization_exact_check,
-            exact_check_tracking=cfg.localization_exact_check_tracking,
-            fit_drop=cfg.localization_fit_drop,
-            normals_refresh=cfg.localization_normals_refresh,
-            update_min_d=cfg.localization_update_min_d,
-            update_min_a=cfg.localization_update_min_a,
-        )
+        values = {
+            f.name: getattr(cfg, f"localization_{f.name}")
+            for f in fields(cls)
+            if f.name != "global_frame"
+        }
+        values["odom_frame"] = values["odom_frame"].lstrip("/")
+        return cls(global_frame=global_frame, **values)
 
     def options(self, wide: bool) -> AlignOptions:
         """The alignment's options: the wider search range before the first acceptance;
