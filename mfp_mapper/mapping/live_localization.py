@@ -369,7 +369,8 @@ class LiveLocalizer:
         step = pose_matrix(al.translation, al.rotation)
         if not self._record(al, ms, placed.stamp, step, wide, odom, version):
             return moved  # an /initialpose came meanwhile: this correction is not used
-        return move_scan(moved, step) if al.accepted else moved
+        # accepted: the placed cloud moved once, by the composed correction
+        return move_scan(placed, step @ correction) if al.accepted else moved
 
     def _scan_normals(
         self, pts: FloatArray, odom: FloatArray | None, wide: bool
