@@ -18,11 +18,13 @@ BLOCK_VOXELS = BLOCK_EDGE**3
 _LOCAL_MASK = BLOCK_EDGE - 1
 EMPTY_KEY = -1
 _HASH_MULT = np.uint64(0x9E3779B97F4A7C15)
-_KEY_BITS = 21
-_KEY_OFFSET = 1 << (_KEY_BITS - 1)
+KEY_BITS = 21
+"""Bits of each block index in a key (``block_key``)."""
+KEY_OFFSET = 1 << (KEY_BITS - 1)
+"""Added to a block index before packing, so that every packed field is non-negative."""
 RESERVED_BLOCKS = 1 << 18
 """Blocks (4 KiB each) of address space a shard reserves up front: 1 GiB, not resident."""
-MAX_VOXEL_INDEX = (_KEY_OFFSET << BLOCK_BITS) - BLOCK_EDGE
+MAX_VOXEL_INDEX = (KEY_OFFSET << BLOCK_BITS) - BLOCK_EDGE
 """Largest |voxel index| the store can hold (block indices are packed in 21 bits each)."""
 
 IndexBox = tuple[int, int, int]
@@ -38,20 +40,18 @@ def index_box(corner: NDArray[np.int64] | tuple[int, int, int]) -> IndexBox:
 @nb.njit(inline="always", cache=True)
 def block_key(bx: int, by: int, bz: int) -> int:
     return (
-        ((bx + _KEY_OFFSET) << (2 * _KEY_BITS))
-        | ((by + _KEY_OFFSET) << _KEY_BITS)
-        | (bz + _KEY_OFFSET)
+        ((bx + KEY_OFFSET) << (2 * KEY_BITS)) | ((by + KEY_OFFSET) << KEY_BITS) | (bz + KEY_OFFSET)
     )
 
 
 @nb.njit(inline="always", cache=True)
 def block_of_key(key: int) -> tuple[int, int, int]:
     """The block index packed in ``key`` by ``block_key``."""
-    mask = (1 << _KEY_BITS) - 1
+    mask = (1 << KEY_BITS) - 1
     return (
-        ((key >> (2 * _KEY_BITS)) & mask) - _KEY_OFFSET,
-        ((key >> _KEY_BITS) & mask) - _KEY_OFFSET,
-        (key & mask) - _KEY_OFFSET,
+        ((key >> (2 * KEY_BITS)) & mask) - KEY_OFFSET,
+        ((key >> KEY_BITS) & mask) - KEY_OFFSET,
+        (key & mask) - KEY_OFFSET,
     )
 
 

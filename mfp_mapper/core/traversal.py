@@ -30,29 +30,29 @@ from mfp_mapper.core.blocks import (
     BLOCK_VOXELS,
     MAX_VOXEL_INDEX,
     block_key,
+    block_of_key,
     find_block,
     local_index,
     shard_of,
 )
+from mfp_mapper.core.lockstep import (
+    ENTERED_SHIFT,
+    FLOAT_ROWS,
+    FOREIGN_BASE,
+    INT_ROWS,
+    LANES,
+    LOCAL_MASK,
+    place_lanes,
+    walk_lanes,
+)
 from mfp_mapper.core.mailbox import MailArrays, Mailbox, deliver_mail
 from mfp_mapper.core.shard import Shard, ShardArrays, open_block
 from mfp_mapper.core.store import BlockStore
-from mfp_mapper.core.visits import (
-    BATCH_VISITS,
-    CACHE_BITS,
-    CACHE_MASK,
-    CACHE_SIZE,
-    PREFETCH,
-    apply_chords,
-    prefetch_voxel,
-)
+from mfp_mapper.core.visits import CACHE_BITS, CACHE_MASK, CACHE_SIZE
 
 _LOCAL_MASK = (1 << BLOCK_BITS) - 1
 _SPREAD = np.array([local_index(0, 0, z) for z in range(1 << BLOCK_BITS)], dtype=np.int64)
 """Morton bits of an index in a block along one axis (z; y is this << 1, x this << 2)."""
-_Z_BITS = int(_SPREAD[-1])
-_Y_BITS = _Z_BITS << 1
-_X_BITS = _Z_BITS << 2
 _RAYS_PER_CHUNK = 256
 """Rays are dealt to threads in chunks of neighbours, so each thread's rays stay coherent."""
 
@@ -295,11 +295,12 @@ def _walk_part(
     first = 0
     while first < len(rays):
         first = _walk_rays(walk, first, shard_id, shard_mask, shard.arrays(), scan, mail.arrays())
-        if first < len(rays):
-            if mail.count[0] + visits[first] > mail.block.shape[0]:
-                mail.grow(int(visits[first]))
+        if first < len(rays):  # the next group of rays (see _walk_rays) did not fit
+            group = slice(first, first + LANES)
+            if mail.count[0] + int(visits[group].sum()) > mail.block.shape[0]:
+                mail.grow(int(visits[group].sum()))
             else:
-                shard.grow(min_free=int(room[first]))
+                shard.grow(min_free=int(room[group].sum()))
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -348,8 +349,14 @@ def _walk_rays(
     """Walk rays ``first..`` (voxel units): visits to ``shard`` are added to its blocks,
     visits to other shards are appended to the mailbox.
 
-    Before each ray, checks there is room for the blocks and mail it may create; returns
-    the index of the first ray not walked (the caller grows and calls again), or N.
+    The rays go ``LANES`` at a time, a group. ``lockstep.walk_lanes`` steps them all at
+    once and writes every step out; for each ray the blocks it enters are gathered and
+    looked up (lookups independent of each other, so their memory latencies overlap);
+    ``lockstep.place_lanes`` turns the steps into store indices and weighted chords and
+    starts loading their cache lines. Then the group before, whose lines were loaded
+    meanwhile, is added (``_add_group``), ray by ray in ray order. Before each group,
+    checks there is room for the blocks and mail it may create; returns the index of
+    the first ray not walked (the caller grows and calls again), or N.
     """
     origins_vox, ends_vox, lengths, has_return, room_needed, visits_needed = rays
     scan_id, stamp, decay_time = scan
@@ -359,144 +366,168 @@ def _walk_rays(
     # blocks opened in this call, direct-mapped by their low index bits: neighbouring rays
     # cross the same blocks, and this small table stays in cache where the hash does not
     cache_keys = np.full(CACHE_SIZE, -1, dtype=np.int64)
-    cache_blocks = np.empty(CACHE_SIZE, dtype=np.int64)
-    longest = 0
-    for r in range(first, lengths.shape[0]):
+    cache_bases = np.empty(CACHE_SIZE, dtype=np.int64)  # first voxel, or FOREIGN_BASE
+    cache_weights = np.empty(CACHE_SIZE)  # the scan's weight in the block (< 1: a late scan)
+    total = lengths.shape[0]
+    longest = 1
+    for r in range(first, total):
         longest = max(longest, visits_needed[r])
-    visit_voxel = np.empty(BATCH_VISITS + longest, dtype=np.int64)
-    # float64: converting to float32 in the walk made a bare walk 1.4x slower; the
-    # conversion is done where the visits are added, to the same float32 value
-    visit_chord = np.empty(BATCH_VISITS + longest)
-    # the returns, apart: (visit, weight) of each ray that ends in a return
-    return_of = np.empty(BATCH_VISITS + longest, dtype=np.int64)
-    return_weight = np.empty(BATCH_VISITS + longest)
-    count = 0
-    returned = 0
+    # the group's steps (step k of lane l at k * LANES + l) and the blocks each ray enters
+    step_key = np.empty(longest * LANES, dtype=np.int64)
+    step_code = np.empty(longest * LANES, dtype=np.int16)
+    step_chord = np.empty(longest * LANES)
+    entered_base = np.empty((LANES, longest), dtype=np.int64)
+    entered_weight = np.empty((LANES, longest))
+    entered_at = np.empty(longest + 1, dtype=np.int64)
+    lane_floats = np.empty((FLOAT_ROWS, LANES))
+    lane_ints = np.empty((INT_ROWS, LANES), dtype=np.int64)
+    # placed visits of two groups: the one being walked and the one waiting to be added
+    placed_voxel = np.empty((2, longest * LANES), dtype=np.int64)
+    placed_chord = np.empty((2, longest * LANES))
+    placed_steps = np.zeros((2, LANES), dtype=np.int64)
+    return_weight = np.zeros((2, LANES))  # 0: no return (or another shard's end voxel)
     mailed = mail_count[0]
-    sn = block_sn.reshape((-1, 2))  # for prefetching
-    for r in range(first, lengths.shape[0] + 1):
-        stop = (
-            r == lengths.shape[0]
-            or counters[0] + room_needed[r] > capacity
-            or mailed + visits_needed[r] > mail_block.shape[0]
-        )
-        if count >= BATCH_VISITS or stop:
-            apply_chords(
-                block_sn, block_hit, visit_voxel, visit_chord, count, return_of, return_weight,
-                returned, counters,
+    lines = block_sn.reshape(-1)
+    group = 0
+    waiting = 0  # rays of the group waiting to be added
+    group_first = first
+    while True:
+        lanes = min(LANES, total - group_first)
+        blocks_needed = 0
+        visits = 0
+        for lane in range(lanes):
+            blocks_needed += room_needed[group_first + lane]
+            visits += visits_needed[group_first + lane]
+        if (
+            lanes == 0
+            or counters[0] + blocks_needed > capacity
+            or mailed + visits > mail_block.shape[0]
+        ):
+            _add_group(
+                lines, block_hit, placed_voxel[1 - group], placed_chord[1 - group],
+                placed_steps[1 - group], return_weight[1 - group], waiting, counters,
             )  # fmt: skip
-            count = 0
-            returned = 0
-            if stop:
-                mail_count[0] = mailed
-                return r
-        length = lengths[r]
-        (vx, vy, vz, ex, ey, ez, step_x, step_y, step_z, t_max_x, t_max_y, t_max_z,
-         t_delta_x, t_delta_y, t_delta_z, steps) = _ray_start(origins_vox, ends_vox, r)  # fmt: skip
-        t_prev = 0.0
-        # the voxel's index in its block (Morton order), kept per axis as the walk steps;
-        # stepping along an axis enters a new block when that axis' index in the block wraps
-        # (one register: the walk's integer state must fit the processor's registers)
-        local = (
-            (_SPREAD[vx & _LOCAL_MASK] << 2)
-            | (_SPREAD[vy & _LOCAL_MASK] << 1)
-            | _SPREAD[vz & _LOCAL_MASK]
-        )
-        bx = by = bz = 0
-        # an axis' index in the block wraps to this when a step enters the next block
-        wrap_x = 0 if step_x > 0 else _LOCAL_MASK
-        wrap_y = 0 if step_y > 0 else _LOCAL_MASK
-        wrap_z = 0 if step_z > 0 else _LOCAL_MASK
-        block = -1
-        base = 0
-        key = -1
-        scale = 1.0  # the scan's weight in the current block (< 1 for a late scan)
-        new_block = True
-        while True:
-            if new_block:
-                # written out here, not called: a call with array arguments costs more than
-                # the whole step (reference counting of every array)
-                bx = vx >> BLOCK_BITS
-                by = vy >> BLOCK_BITS
-                bz = vz >> BLOCK_BITS
-                key = block_key(bx, by, bz)
-                block = -1
-                if shard_of(bx, by, bz, shard_mask) == shard:
-                    slot = (
-                        ((bx & CACHE_MASK) << (2 * CACHE_BITS))
-                        | ((by & CACHE_MASK) << CACHE_BITS)
-                        | (bz & CACHE_MASK)
-                    )
-                    if cache_keys[slot] == key:
-                        block = cache_blocks[slot]
-                    else:
+            mail_count[0] = mailed
+            return group_first
+        steps = 0
+        for lane in range(LANES):  # lanes past the last ray repeat the group's first ray
+            r = group_first + (lane if lane < lanes else 0)
+            (vx, vy, vz, ex, ey, ez, step_x, step_y, step_z, t_max_x, t_max_y, t_max_z,
+             t_delta_x, t_delta_y, t_delta_z, ray_steps) = _ray_start(
+                origins_vox, ends_vox, r)  # fmt: skip
+            lane_floats[0, lane] = t_max_x
+            lane_floats[1, lane] = t_max_y
+            lane_floats[2, lane] = t_max_z
+            lane_floats[3, lane] = t_delta_x
+            lane_floats[4, lane] = t_delta_y
+            lane_floats[5, lane] = t_delta_z
+            lane_floats[6, lane] = 0.0
+            lane_floats[7, lane] = lengths[r]
+            lane_ints[0, lane] = vx
+            lane_ints[1, lane] = vy
+            lane_ints[2, lane] = vz
+            lane_ints[3, lane] = step_x
+            lane_ints[4, lane] = step_y
+            lane_ints[5, lane] = step_z
+            lane_ints[6, lane] = ex
+            lane_ints[7, lane] = ey
+            lane_ints[8, lane] = ez
+            placed_steps[group, lane] = ray_steps
+            steps = max(steps, ray_steps + 1)
+        walk_lanes(lane_floats, lane_ints, steps, step_key, step_code, step_chord)  # type: ignore[call-arg]
+        for lane in range(lanes):
+            r = group_first + lane
+            last = placed_steps[group, lane]
+            # the steps where the ray enters a block (no branch)
+            blocks = 0
+            for k in range(last + 1):
+                entered_at[blocks] = k
+                blocks += step_code[k * LANES + lane] >> ENTERED_SHIFT
+            # those blocks
+            foreign = False
+            for b in range(blocks):
+                key = step_key[entered_at[b] * LANES + lane]
+                bx, by, bz = block_of_key(key)
+                slot = (
+                    ((bx & CACHE_MASK) << (2 * CACHE_BITS))
+                    | ((by & CACHE_MASK) << CACHE_BITS)
+                    | (bz & CACHE_MASK)
+                )
+                if cache_keys[slot] != key:
+                    block = -1
+                    if shard_of(bx, by, bz, shard_mask) == shard:
                         block = open_block(bx, by, bz, shard_arrays, scan_id, stamp, decay_time)
-                        cache_keys[slot] = key
-                        cache_blocks[slot] = block
-                    scale = block_scale[block] if block >= 0 else 1.0
-                    base = block * BLOCK_VOXELS
-            if steps == 0:
-                break
-            # leave the voxel through its nearest face; its chord ends there
-            here = local
-            if t_max_x <= t_max_y and t_max_x <= t_max_z:
-                t_next = t_max_x
-                vx += step_x
-                new_block = (vx & _LOCAL_MASK) == wrap_x
-                t_max_x = t_max_x + t_delta_x if vx != ex else np.inf
-                local = (local & ~_X_BITS) | (_SPREAD[vx & _LOCAL_MASK] << 2)
-            elif t_max_y <= t_max_z:
-                t_next = t_max_y
-                vy += step_y
-                new_block = (vy & _LOCAL_MASK) == wrap_y
-                t_max_y = t_max_y + t_delta_y if vy != ey else np.inf
-                local = (local & ~_Y_BITS) | (_SPREAD[vy & _LOCAL_MASK] << 1)
-            else:
-                t_next = t_max_z
-                vz += step_z
-                new_block = (vz & _LOCAL_MASK) == wrap_z
-                t_max_z = t_max_z + t_delta_z if vz != ez else np.inf
-                local = (local & ~_Z_BITS) | _SPREAD[vz & _LOCAL_MASK]
-            t_next = min(t_next, 1.0)
-            chord = (t_next - t_prev) * length
-            t_prev = t_next
-            steps -= 1
-            if chord > 0.0:
-                if block >= 0:
-                    visit_voxel[count] = base + here
-                    visit_chord[count] = chord * scale
-                    count += 1
-                    if PREFETCH:  # the line is loaded while the walk goes on
-                        prefetch_voxel(sn, base + here)  # type: ignore[call-arg]
-                else:
-                    mail_block[mailed] = key
-                    mail_local[mailed] = here
-                    mail_chord[mailed] = chord
-                    mail_return[mailed] = 0.0
-                    mailed += 1
-        # the end voxel takes the rest of the ray and the return; an end point exactly on a
-        # face gets a zero chord there, still with its return
-        chord = (1.0 - t_prev) * length
-        returns = 1.0 if has_return[r] else 0.0
-        if chord > 0.0 or returns > 0.0:
-            if block >= 0:
-                visit_voxel[count] = base + local
-                visit_chord[count] = chord * scale
-                if PREFETCH:
-                    prefetch_voxel(sn, base + local)  # type: ignore[call-arg]
-                if returns > 0.0:
-                    return_of[returned] = count
-                    return_weight[returned] = returns * scale
-                    returned += 1
-                count += 1
-            else:
-                mail_block[mailed] = key
-                mail_local[mailed] = local
-                mail_chord[mailed] = chord
-                mail_return[mailed] = returns
-                mailed += 1
-    mail_count[0] = mailed
-    return lengths.shape[0]
+                    cache_keys[slot] = key
+                    cache_bases[slot] = block * BLOCK_VOXELS if block >= 0 else FOREIGN_BASE
+                    cache_weights[slot] = block_scale[block] if block >= 0 else 1.0
+                entered_base[lane, b] = cache_bases[slot]
+                entered_weight[lane, b] = cache_weights[slot]
+                foreign |= cache_bases[slot] < 0
+            ends_here = has_return[r] and entered_base[lane, blocks - 1] >= 0
+            return_weight[group, lane] = entered_weight[lane, blocks - 1] if ends_here else 0.0
+            if foreign:  # its visits to other shards' blocks go to the mailbox
+                b = -1
+                for k in range(last + 1):
+                    i = k * LANES + lane
+                    b += step_code[i] >> ENTERED_SHIFT
+                    returns = 1.0 if k == last and has_return[r] else 0.0
+                    if entered_base[lane, b] < 0 and (step_chord[i] > 0.0 or returns > 0.0):
+                        mail_block[mailed] = step_key[i]
+                        mail_local[mailed] = step_code[i] & LOCAL_MASK
+                        mail_chord[mailed] = step_chord[i]
+                        mail_return[mailed] = returns
+                        mailed += 1
+        place_lanes(
+            step_code, step_chord, entered_base, entered_weight, steps, lines,
+            placed_voxel[group], placed_chord[group],
+        )  # fmt: skip
+        _add_group(
+            lines, block_hit, placed_voxel[1 - group], placed_chord[1 - group],
+            placed_steps[1 - group], return_weight[1 - group], waiting, counters,
+        )  # fmt: skip
+        waiting = lanes
+        group = 1 - group
+        group_first += lanes
+
+
+@nb.njit(cache=True, nogil=True)
+def _add_group(
+    lines: NDArray[np.float32],
+    block_hit: NDArray[np.bool_],
+    voxels: NDArray[np.int64],
+    chords: NDArray[np.float64],
+    steps: NDArray[np.int64],
+    return_weight: NDArray[np.float64],
+    lanes: int,
+    counters: NDArray[np.int64],
+) -> None:
+    """Add a group's placed visits (``lockstep.place_lanes``) to the blocks, ray by ray in
+    order (``lines``: the blocks' s and n, flat): ``s += float32(chord)`` for every positive
+    chord in this shard, then the ray's return, ``n += float32(return_weight)`` in its end
+    voxel (none where the weight is 0), whose block is marked. Counts the voxels that
+    became observed (``counters[1]``) and the visits (``counters[3]``)."""
+    observed = 0
+    visits = 0
+    for lane in range(lanes):
+        last = steps[lane]
+        for k in range(last + 1):
+            voxel = voxels[k * LANES + lane]
+            chord = chords[k * LANES + lane]
+            if chord > 0.0 and voxel >= 0:
+                c = np.float32(chord)
+                observed += (lines[2 * voxel] == 0.0) & (lines[2 * voxel + 1] == 0.0) & (c > 0.0)
+                lines[2 * voxel] += c
+                visits += 1
+        # the end voxel takes the return; an end point exactly on a face gives a zero
+        # chord there, still with its return
+        if return_weight[lane] > 0.0:
+            voxel = voxels[last * LANES + lane]
+            observed += (lines[2 * voxel] == 0.0) & (lines[2 * voxel + 1] == 0.0)
+            lines[2 * voxel + 1] += np.float32(return_weight[lane])
+            block_hit[voxel // BLOCK_VOXELS] = True
+            visits += chords[last * LANES + lane] <= 0.0
+    counters[1] += observed
+    counters[3] += visits
 
 
 StoreView = tuple[

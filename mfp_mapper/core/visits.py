@@ -1,6 +1,6 @@
 """Applying voxel visits to blocks, in batches, with the visited cache lines prefetched
-first (so their memory latencies overlap): by the walk as it records each visit
-(``apply_chords``), or by a pass of its own (``apply_visits``, for the mail)."""
+first (so their memory latencies overlap): the mail of other threads (``apply_visits``).
+The integrating walk adds its own visits (``traversal._add_group``)."""
 
 from __future__ import annotations
 
@@ -108,46 +108,5 @@ def apply_visits(
         if visit_return[i] > 0.0:
             sn[v, 1] += visit_return[i]
             block_hit[v // BLOCK_VOXELS] = True
-    counters[1] += new
-    counters[3] += count + (touch < 0.0)  # touch is never negative; using it keeps the loads
-
-
-@nb.njit(cache=True, nogil=True)
-def apply_chords(
-    block_sn: NDArray[np.float32],
-    block_hit: NDArray[np.bool_],
-    voxel: NDArray[np.int64],
-    chord: NDArray[np.float64],
-    count: int,
-    return_of: NDArray[np.int64],
-    returns: NDArray[np.float64],
-    return_count: int,
-    counters: NDArray[np.int64],
-) -> None:
-    """Add visits ``0..count`` in order, ``s += float32(chord)``, then the returns in
-    order: ``n += float32(returns[k])`` in the voxel of visit ``return_of[k]`` (and mark
-    its block).
-
-    The same float32 sums, in the same order per statistic, as ``apply_visits`` on the
-    same visits carrying their returns; a voxel is counted new when it becomes observed.
-    The walk prefetches each visited line as it records the visit (``PREFETCH``; a pass
-    of prefetches here, as ``apply_visits`` does, was 5-7% slower in all).
-    """
-    sn = block_sn.reshape((-1, 2))
-    touch = np.float32(0.0)
-    if not PREFETCH:  # plain loads instead: they do not depend on each other
-        for i in range(count):
-            touch += sn[voxel[i], 1]
-    new = 0
-    for i in range(count):
-        v = voxel[i]
-        c = np.float32(chord[i])
-        new += (sn[v, 0] == 0.0) & (sn[v, 1] == 0.0) & (c > 0.0)
-        sn[v, 0] += c
-    for k in range(return_count):
-        v = voxel[return_of[k]]
-        new += (sn[v, 0] == 0.0) & (sn[v, 1] == 0.0)
-        sn[v, 1] += np.float32(returns[k])
-        block_hit[v // BLOCK_VOXELS] = True
     counters[1] += new
     counters[3] += count + (touch < 0.0)  # touch is never negative; using it keeps the loads

@@ -149,3 +149,73 @@ def test_ray_bounds_are_the_manhattan_distances_in_voxels_and_blocks() -> None:
     lo, hi = np.floor(origins).astype(np.int64), np.floor(ends).astype(np.int64)
     np.testing.assert_array_equal(visits, np.abs(hi - lo).sum(axis=1) + 1)
     np.testing.assert_array_equal(blocks, np.abs((hi >> 3) - (lo >> 3)).sum(axis=1) + 2)
+
+
+def _one_ray_walk_sums(
+    origins_vox: np.ndarray, ends_vox: np.ndarray, lengths: np.ndarray, has_return: np.ndarray
+) -> tuple[dict[tuple[int, int, int], np.float32], dict[tuple[int, int, int], np.float32]]:
+    """The store a one-ray-at-a-time walk builds, in plain Python: every ray's voxels and
+    chords by Amanatides & Woo with the walk's float64 operations, summed in float32 in
+    ray order (the order the store adds them)."""
+    s: dict[tuple[int, int, int], np.float32] = {}
+    n: dict[tuple[int, int, int], np.float32] = {}
+    for o, e, length, hit in zip(origins_vox, ends_vox, lengths, has_return, strict=True):
+        d = e - o
+        v = [int(np.floor(x)) for x in o]
+        end = [int(np.floor(x)) for x in e]
+        step = [1 if end[a] > v[a] else -1 for a in range(3)]
+        moves = [end[a] != v[a] for a in range(3)]
+        t_max = [((v[a] + (d[a] > 0)) - o[a]) / d[a] if moves[a] else np.inf for a in range(3)]
+        t_delta = [abs(1.0 / d[a]) if moves[a] else 0.0 for a in range(3)]
+        t_prev = 0.0
+        for _ in range(sum(abs(end[a] - v[a]) for a in range(3))):
+            here = tuple(v)
+            if t_max[0] <= t_max[1] and t_max[0] <= t_max[2]:
+                axis = 0
+            elif t_max[1] <= t_max[2]:
+                axis = 1
+            else:
+                axis = 2
+            t_next = min(t_max[axis], 1.0)
+            v[axis] += step[axis]
+            t_max[axis] = t_max[axis] + t_delta[axis] if v[axis] != end[axis] else np.inf
+            chord = (t_next - t_prev) * length
+            t_prev = t_next
+            if chord > 0.0:
+                s[here] = np.float32(s.get(here, np.float32(0.0)) + np.float32(chord))
+        chord = (1.0 - t_prev) * length
+        if chord > 0.0:
+            s[tuple(v)] = np.float32(s.get(tuple(v), np.float32(0.0)) + np.float32(chord))
+        if hit:
+            n[tuple(v)] = np.float32(n.get(tuple(v), np.float32(0.0)) + np.float32(1.0))
+    return s, n
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_many_rays_at_once_give_the_one_ray_walks_sums_bit_for_bit(seed: int) -> None:
+    """The walk steps its rays eight at a time (``core.lockstep``): rays of every length
+    side by side, sharing voxels, ending in a group of fewer than eight, ending exactly on
+    faces or in their first voxel, with and without returns, give exactly the float32
+    sums of walking them one by one, in order."""
+    from mfp_mapper.core.traversal import prepare_rays
+
+    rng = np.random.default_rng(seed)
+    count = 203  # not a multiple of 8
+    origins = rng.uniform(-1.0, 1.0, (count, 3))
+    ends = origins + rng.normal(0.0, 1.0, (count, 3)) * rng.choice([0.1, 1.0, 6.0], (count, 1))
+    ends[::17] = np.round(ends[::17] / RES) * RES  # on faces, edges and corners
+    ends[5::23] = origins[5::23] + 0.01  # in (or just beside) the first voxel
+    ends[7::29] = origins[7::29] + [40.0, 0.0, 0.0]  # longer than max_range: no return
+    mapper = Mapper(RES, max_range=20.0)
+    summary = mapper.integrate(ends, origins, stamp=0.0)
+    rays, _ = prepare_rays(ends, origins, RES, 0.0, 20.0)
+    assert summary.rays_used == len(rays) == count
+    expected_s, expected_n = _one_ray_walk_sums(
+        rays.origins_vox, rays.ends_vox, rays.lengths, rays.has_return
+    )
+    s, n = map_chords(mapper)
+    assert s.keys() == expected_s.keys()
+    assert n.keys() == expected_n.keys()
+    mismatched = [v for v, c in expected_s.items() if np.float32(s[v]) != c]
+    assert not mismatched, mismatched[:5]
+    assert all(np.float32(n[v]) == c for v, c in expected_n.items())

@@ -1,0 +1,252 @@
+"""Eight rays at a time, in vector registers: the voxel stepping and the voxel placing of
+the integrating walk (``traversal._walk_rays`` drives them and adds what they write out).
+
+A voxel walk (Amanatides & Woo) is a chain of unpredictable three-way branches, one per
+step: written for one ray, a step costs 2.5 ns (hall scene at 0.2 m, bare walk). In
+``walk_lanes`` each lane of a vector is one ray, every lane takes its step at once, and the
+branch becomes a select per lane: the same comparisons and the same float64 operations in
+the same order, so every lane's voxels and chords are bit-for-bit those of the one-ray
+walk (``test_traversal`` checks the store against the brute-force chords).
+``place_lanes`` then turns the steps into store indices and weighted chords, the blocks
+gathered per lane, and starts loading the store's cache lines.
+
+Numba does not vectorise such loops by itself (its loop vectoriser gives up on them), so
+they are written in LLVM IR with vector types; on a processor with narrower vectors than
+``LANES`` values LLVM splits them.
+
+Measured (hall scene, 4.95 M steps at 0.2 m, one thread, AVX-512): 5.5 ms for the lockstep
+walk writing every step out, against 12.5 ms for the one-ray walk computing its chords
+only.
+"""
+
+from __future__ import annotations
+
+import math
+
+from llvmlite import ir
+from numba import types
+from numba.core import cgutils
+from numba.extending import intrinsic
+
+from mfp_mapper.core.blocks import BLOCK_BITS, KEY_BITS, KEY_OFFSET
+
+LANES = 8
+"""Rays per lockstep walk (one AVX-512 vector of float64)."""
+
+FLOAT_ROWS = 8
+"""Rows of the float lane state: t_max x, y, z; t_delta x, y, z; t at the last face; length."""
+INT_ROWS = 9
+"""Rows of the integer lane state: voxel x, y, z; step x, y, z; end voxel x, y, z."""
+
+ENTERED_SHIFT = 3 * BLOCK_BITS
+"""A step's code (``walk_lanes``) has this bit set when the step enters a new block."""
+LOCAL_MASK = (1 << ENTERED_SHIFT) - 1
+"""A step's code masked by this is the voxel's index in its block (``blocks.local_index``)."""
+FOREIGN_BASE = -(1 << 40)
+"""``place_lanes``' block base for a block of another shard: every voxel index in it is
+negative."""
+
+_AXIS_MASK = (1 << BLOCK_BITS) - 1
+_SPREAD_MASK = 0b1001001
+_F64 = ir.DoubleType()
+_I64 = ir.IntType(64)
+_I32 = ir.IntType(32)
+_I16 = ir.IntType(16)
+_VF = ir.VectorType(_F64, LANES)
+_VI = ir.VectorType(_I64, LANES)
+_VS = ir.VectorType(_I16, LANES)
+_VB = ir.VectorType(ir.IntType(1), LANES)
+
+
+def _splat(vector: ir.VectorType, value: float | int) -> ir.Constant:
+    return ir.Constant(vector, [ir.Constant(vector.element, value)] * LANES)
+
+
+def _row(builder: ir.IRBuilder, data: ir.Value, k: int, vector: ir.VectorType) -> ir.Value:
+    """Row ``k`` (``LANES`` values) of a C-contiguous (rows, LANES) array."""
+    pointer = builder.gep(data, [ir.Constant(_I64, k * LANES)])
+    return builder.load(builder.bitcast(pointer, vector.as_pointer()), align=8)
+
+
+def _at(builder: ir.IRBuilder, data: ir.Value, offset: ir.Value, vector: ir.VectorType) -> ir.Value:
+    """Pointer to ``LANES`` values at element ``offset`` of ``data``."""
+    return builder.bitcast(builder.gep(data, [offset]), vector.as_pointer())
+
+
+def _gather(
+    builder: ir.IRBuilder, data: ir.Value, index: ir.Value, vector: ir.VectorType
+) -> ir.Value:
+    """``data[index[lane]]`` for every lane (8-byte elements)."""
+    start = builder.ptrtoint(data, _I64)
+    lane0 = builder.insert_element(ir.Constant(_VI, ir.Undefined), start, ir.Constant(_I32, 0))
+    starts = builder.shuffle_vector(
+        lane0, ir.Constant(_VI, ir.Undefined), ir.Constant(ir.VectorType(_I32, LANES), [0] * LANES)
+    )
+    pointers_type = ir.VectorType(vector.element.as_pointer(), LANES)
+    addresses = builder.add(starts, builder.mul(index, _splat(_VI, 8)))
+    pointers = builder.inttoptr(addresses, pointers_type)
+    name = f"llvm.masked.gather.v{LANES}{'f64' if vector.element == _F64 else 'i64'}.v{LANES}p0"
+    function = builder.module.globals.get(name) or ir.Function(
+        builder.module, ir.FunctionType(vector, [pointers_type, _I32, _VB, vector]), name=name
+    )
+    every_lane = ir.Constant(_VB, [1] * LANES)
+    unused = ir.Constant(vector, ir.Undefined)
+    return builder.call(function, [pointers, _I32(8), every_lane, unused])
+
+
+def _spread(builder: ir.IRBuilder, index: ir.Value) -> ir.Value:
+    """The 3 low bits of every lane placed 3 apart (``blocks._spread_bits``)."""
+    spread = builder.or_(index, builder.shl(index, _splat(_VI, 2)))
+    spread = builder.or_(spread, builder.shl(index, _splat(_VI, 4)))
+    return builder.and_(spread, _splat(_VI, _SPREAD_MASK))
+
+
+@intrinsic
+def walk_lanes(typingctx, float_state, int_state, steps, out_key, out_code, out_chord):  # type: ignore[no-untyped-def]
+    """Take ``steps`` steps of ``LANES`` rays at once, from the lane state (C-contiguous
+    ``float_state`` (FLOAT_ROWS, LANES) float64, ``int_state`` (INT_ROWS, LANES) int64, as
+    ``traversal._ray_start`` gives them; neither is changed).
+
+    Step k writes, for every lane, the voxel the ray is in before it leaves it: its block's
+    key (``blocks.block_key``) at ``out_key[k * LANES + lane]``; at ``out_code`` (int16)
+    its index in the block (``blocks.local_index``) with the bit ``ENTERED_SHIFT`` set
+    when the block differs from the step before's (always at step 0); at ``out_chord``
+    the chord up to where the ray leaves it, ``(min(t_next, 1) - t_prev) * length``. A ray
+    of n steps is in its end voxel at step n, where every t_max is infinite, so that
+    step's chord is the one up to the end point, ``(1 - t_prev) * length``; later steps of
+    that lane are garbage.
+    """
+    sig = types.void(float_state, int_state, steps, out_key, out_code, out_chord)
+
+    def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
+        floats, ints, _, keys, codes, chords = (
+            context.make_array(t)(context, builder, a) if isinstance(t, types.Array) else a
+            for t, a in zip(signature.args, args, strict=True)
+        )
+        count = context.cast(builder, args[2], signature.args[2], types.intp)
+        t_max = [_row(builder, floats.data, k, _VF) for k in range(3)]
+        t_delta = [_row(builder, floats.data, 3 + k, _VF) for k in range(3)]
+        t_prev0, length = _row(builder, floats.data, 6, _VF), _row(builder, floats.data, 7, _VF)
+        voxel = [_row(builder, ints.data, k, _VI) for k in range(3)]
+        step = [_row(builder, ints.data, 3 + k, _VI) for k in range(3)]
+        end = [_row(builder, ints.data, 6 + k, _VI) for k in range(3)]
+        # loop-carried lane state in stack slots; LLVM keeps them in registers
+        t_slots = [cgutils.alloca_once_value(builder, v) for v in t_max]
+        v_slots = [cgutils.alloca_once_value(builder, v) for v in voxel]
+        t_prev_slot = cgutils.alloca_once_value(builder, t_prev0)
+        key_slot = cgutils.alloca_once_value(builder, _splat(_VI, -1))
+        inf, one, zero = _splat(_VF, math.inf), _splat(_VF, 1.0), _splat(_VI, 0)
+        with cgutils.for_range(builder, count) as loop:
+            t = [builder.load(s) for s in t_slots]
+            v = [builder.load(s) for s in v_slots]
+            t_prev = builder.load(t_prev_slot)
+            offset = builder.mul(loop.index, _I64(LANES))
+            # the voxel: its block's key, and its index in the block
+            key = zero
+            local = zero
+            for axis in range(3):
+                block = builder.add(
+                    builder.ashr(v[axis], _splat(_VI, BLOCK_BITS)), _splat(_VI, KEY_OFFSET)
+                )
+                key = builder.or_(key, builder.shl(block, _splat(_VI, (2 - axis) * KEY_BITS)))
+                spread = _spread(builder, builder.and_(v[axis], _splat(_VI, _AXIS_MASK)))
+                local = builder.or_(local, builder.shl(spread, _splat(_VI, 2 - axis)))
+            builder.store(key, _at(builder, keys.data, offset, _VI), align=8)
+            entered = builder.zext(builder.icmp_signed("!=", key, builder.load(key_slot)), _VI)
+            builder.store(key, key_slot)
+            code = builder.or_(local, builder.shl(entered, _splat(_VI, ENTERED_SHIFT)))
+            builder.store(builder.trunc(code, _VS), _at(builder, codes.data, offset, _VS), align=2)
+            # leave through the nearest face, as the one-ray walk chooses it: x when
+            # t_x <= t_y and t_x <= t_z, else y when t_y <= t_z, else z
+            take_x = builder.and_(
+                builder.fcmp_ordered("<=", t[0], t[1]), builder.fcmp_ordered("<=", t[0], t[2])
+            )
+            y_before_z = builder.fcmp_ordered("<=", t[1], t[2])
+            take = [
+                take_x,
+                builder.and_(builder.not_(take_x), y_before_z),
+                builder.not_(builder.or_(take_x, y_before_z)),
+            ]
+            t_next = builder.select(take[0], t[0], builder.select(take[1], t[1], t[2]))
+            t_next = builder.select(builder.fcmp_ordered("<", one, t_next), one, t_next)
+            chord = builder.fmul(builder.fsub(t_next, t_prev), length)
+            builder.store(chord, _at(builder, chords.data, offset, _VF), align=8)
+            builder.store(t_next, t_prev_slot)
+            for axis in range(3):
+                moved = builder.add(v[axis], builder.select(take[axis], step[axis], zero))
+                at_end = builder.icmp_signed("==", moved, end[axis])
+                after = builder.select(at_end, inf, builder.fadd(t[axis], t_delta[axis]))
+                builder.store(moved, v_slots[axis])
+                builder.store(builder.select(take[axis], after, t[axis]), t_slots[axis])
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@intrinsic
+def place_lanes(  # type: ignore[no-untyped-def]
+    typingctx, codes, chords, entered_base, entered_weight, steps, lines, out_voxel, out_chord
+):
+    """The store index and weighted chord of ``steps`` steps of ``LANES`` rays, as
+    ``walk_lanes`` wrote them (``codes``, ``chords``).
+
+    ``entered_base`` and ``entered_weight`` (C-contiguous (LANES, n)) hold, per lane, the
+    first store index of each block the ray enters, in order (``FOREIGN_BASE`` for another
+    shard's), and the scan's weight in it. Step k of a lane writes ``base + index in
+    block`` at ``out_voxel[k * LANES + lane]`` and ``chord * weight`` at ``out_chord``, and
+    asks the processor to start loading the voxel's cache line in ``lines`` (the blocks'
+    s and n, flat: two float32 a voxel).
+    """
+    arguments = (codes, chords, entered_base, entered_weight, steps, lines, out_voxel, out_chord)
+    sig = types.void(*arguments)
+
+    def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
+        code_a, chord_a, base_a, weight_a, _, lines_a, voxel_a, out_chord_a = (
+            context.make_array(t)(context, builder, a) if isinstance(t, types.Array) else a
+            for t, a in zip(signature.args, args, strict=True)
+        )
+        count = context.cast(builder, args[4], signature.args[4], types.intp)
+        per_lane = cgutils.unpack_tuple(builder, base_a.shape)[1]
+        lane_row = builder.insert_element(ir.Constant(_VI, ir.Undefined), per_lane, _I32(0))
+        lane_row = builder.shuffle_vector(
+            lane_row,
+            ir.Constant(_VI, ir.Undefined),
+            ir.Constant(ir.VectorType(_I32, LANES), [0] * LANES),
+        )
+        # element index of each lane's row, minus one: a lane's first step enters a block
+        row_start = builder.sub(
+            builder.mul(lane_row, ir.Constant(_VI, [ir.Constant(_I64, k) for k in range(LANES)])),
+            _splat(_VI, 1),
+        )
+        entered_slot = cgutils.alloca_once_value(builder, row_start)
+        line_start = builder.ptrtoint(lines_a.data, _I64)
+        byte_pointer = ir.IntType(8).as_pointer()
+        prefetch = builder.module.declare_intrinsic(
+            "llvm.prefetch",
+            [byte_pointer],
+            ir.FunctionType(ir.VoidType(), [byte_pointer, _I32, _I32, _I32]),
+        )
+        with cgutils.for_range(builder, count) as loop:
+            offset = builder.mul(loop.index, _I64(LANES))
+            code = builder.zext(builder.load(_at(builder, code_a.data, offset, _VS), align=2), _VI)
+            block = builder.add(
+                builder.load(entered_slot), builder.lshr(code, _splat(_VI, ENTERED_SHIFT))
+            )
+            builder.store(block, entered_slot)
+            base = _gather(builder, base_a.data, block, _VI)
+            weight = _gather(builder, weight_a.data, block, _VF)
+            voxel = builder.add(base, builder.and_(code, _splat(_VI, LOCAL_MASK)))
+            chord = builder.load(_at(builder, chord_a.data, offset, _VF), align=8)
+            builder.store(voxel, _at(builder, voxel_a.data, offset, _VI), align=8)
+            weighted = builder.fmul(chord, weight)
+            builder.store(weighted, _at(builder, out_chord_a.data, offset, _VF), align=8)
+            # two float32 a voxel: byte offset 8 * voxel (negative ones: another shard's,
+            # or past a ray's end; a prefetch of any address is harmless)
+            for lane in range(LANES):
+                index = builder.extract_element(voxel, _I32(lane))
+                address = builder.add(line_start, builder.shl(index, _I64(3)))
+                pointer = builder.inttoptr(address, byte_pointer)
+                builder.call(prefetch, [pointer, _I32(1), _I32(3), _I32(1)])
+        return context.get_dummy_value()
+
+    return sig, codegen
