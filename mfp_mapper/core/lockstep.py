@@ -35,8 +35,8 @@ LANES = 8
 
 FLOAT_ROWS = 8
 """Rows of the float lane state: t_max x, y, z; t_delta x, y, z; t at the last face; length."""
-INT_ROWS = 9
-"""Rows of the integer lane state: voxel x, y, z; step x, y, z; end voxel x, y, z."""
+INT_ROWS = 10
+"""Rows of the integer lane state: voxel x, y, z; step x, y, z; end voxel x, y, z; steps."""
 
 ENTERED_SHIFT = 3 * BLOCK_BITS
 """A step's code (``walk_lanes``) has this bit set when the step enters a new block."""
@@ -77,21 +77,44 @@ def _gather(
     builder: ir.IRBuilder, data: ir.Value, index: ir.Value, vector: ir.VectorType
 ) -> ir.Value:
     """``data[index[lane]]`` for every lane (8-byte elements)."""
-    start = builder.ptrtoint(data, _I64)
-    lane0 = builder.insert_element(ir.Constant(_VI, ir.Undefined), start, ir.Constant(_I32, 0))
-    starts = builder.shuffle_vector(
-        lane0, ir.Constant(_VI, ir.Undefined), ir.Constant(ir.VectorType(_I32, LANES), [0] * LANES)
-    )
-    pointers_type = ir.VectorType(vector.element.as_pointer(), LANES)
-    addresses = builder.add(starts, builder.mul(index, _splat(_VI, 8)))
-    pointers = builder.inttoptr(addresses, pointers_type)
+    pointers = _pointers(builder, data, index, vector.element)
     name = f"llvm.masked.gather.v{LANES}{'f64' if vector.element == _F64 else 'i64'}.v{LANES}p0"
     function = builder.module.globals.get(name) or ir.Function(
-        builder.module, ir.FunctionType(vector, [pointers_type, _I32, _VB, vector]), name=name
+        builder.module, ir.FunctionType(vector, [pointers.type, _I32, _VB, vector]), name=name
     )
     every_lane = ir.Constant(_VB, [1] * LANES)
     unused = ir.Constant(vector, ir.Undefined)
     return builder.call(function, [pointers, _I32(8), every_lane, unused])
+
+
+def _splat_value(builder: ir.IRBuilder, value: ir.Value) -> ir.Value:
+    """``value`` (int64) in every lane."""
+    lane0 = builder.insert_element(ir.Constant(_VI, ir.Undefined), value, _I32(0))
+    every = ir.Constant(ir.VectorType(_I32, LANES), [0] * LANES)
+    return builder.shuffle_vector(lane0, ir.Constant(_VI, ir.Undefined), every)
+
+
+_LANE_NUMBERS = ir.Constant(_VI, [ir.Constant(_I64, k) for k in range(LANES)])
+
+
+def _pointers(builder: ir.IRBuilder, data: ir.Value, index: ir.Value, element: ir.Type) -> ir.Value:
+    """``&data[index[lane]]`` for every lane (8-byte elements)."""
+    addresses = builder.add(
+        _splat_value(builder, builder.ptrtoint(data, _I64)), builder.mul(index, _splat(_VI, 8))
+    )
+    return builder.inttoptr(addresses, ir.VectorType(element.as_pointer(), LANES))
+
+
+def _scatter(
+    builder: ir.IRBuilder, data: ir.Value, index: ir.Value, value: ir.Value, mask: ir.Value
+) -> None:
+    """``data[index[lane]] = value[lane]`` for the lanes where ``mask`` is set (int64)."""
+    pointers = _pointers(builder, data, index, _I64)
+    name = f"llvm.masked.scatter.v{LANES}i64.v{LANES}p0"
+    function = builder.module.globals.get(name) or ir.Function(
+        builder.module, ir.FunctionType(ir.VoidType(), [_VI, pointers.type, _I32, _VB]), name=name
+    )
+    builder.call(function, [value, pointers, _I32(8), mask])
 
 
 def _spread(builder: ir.IRBuilder, index: ir.Value) -> ir.Value:
@@ -102,39 +125,50 @@ def _spread(builder: ir.IRBuilder, index: ir.Value) -> ir.Value:
 
 
 @intrinsic
-def walk_lanes(typingctx, float_state, int_state, steps, out_key, out_code, out_chord):  # type: ignore[no-untyped-def]
+def walk_lanes(  # type: ignore[no-untyped-def]
+    typingctx, float_state, int_state, steps, entered_key, lane_blocks, out_code, out_chord
+):
     """Take ``steps`` steps of ``LANES`` rays at once, from the lane state (C-contiguous
     ``float_state`` (FLOAT_ROWS, LANES) float64, ``int_state`` (INT_ROWS, LANES) int64, as
     ``traversal._ray_start`` gives them; neither is changed).
 
-    Step k writes, for every lane, the voxel the ray is in before it leaves it: its block's
-    key (``blocks.block_key``) at ``out_key[k * LANES + lane]``; at ``out_code`` (int16)
-    its index in the block (``blocks.local_index``) with the bit ``ENTERED_SHIFT`` set
-    when the block differs from the step before's (always at step 0); at ``out_chord``
-    the chord up to where the ray leaves it, ``(min(t_next, 1) - t_prev) * length``. A ray
-    of n steps is in its end voxel at step n, where every t_max is infinite, so that
-    step's chord is the one up to the end point, ``(1 - t_prev) * length``; later steps of
-    that lane are garbage.
+    Step k writes, for every lane, the voxel the ray is in before it leaves it: at
+    ``out_code[k * LANES + lane]`` (int16) its index in its block (``blocks.local_index``)
+    with the bit ``ENTERED_SHIFT`` set when the ray enters that block there (step 0
+    enters the first); at ``out_chord`` the chord up to where the ray leaves it,
+    ``(min(t_next, 1) - t_prev) * length``. A ray of n steps is in its end voxel at step
+    n, where every t_max is infinite, so that step's chord is the one up to the end
+    point, ``(1 - t_prev) * length``; later steps of that lane are garbage and enter no
+    block. The keys (``blocks.block_key``) of the blocks each ray enters go, in order, to
+    its row of ``entered_key`` (C-contiguous (LANES, at least n + 1)), and their number
+    to ``lane_blocks``.
     """
-    sig = types.void(float_state, int_state, steps, out_key, out_code, out_chord)
+    arguments = (float_state, int_state, steps, entered_key, lane_blocks, out_code, out_chord)
+    sig = types.void(*arguments)
 
     def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
-        floats, ints, _, keys, codes, chords = (
+        floats, ints, count, keys, blocks, codes, chords = (
             context.make_array(t)(context, builder, a) if isinstance(t, types.Array) else a
             for t, a in zip(signature.args, args, strict=True)
         )
-        count = context.cast(builder, args[2], signature.args[2], types.intp)
+        count = context.cast(builder, count, signature.args[2], types.intp)
         t_max = [_row(builder, floats.data, k, _VF) for k in range(3)]
         t_delta = [_row(builder, floats.data, 3 + k, _VF) for k in range(3)]
         t_prev0, length = _row(builder, floats.data, 6, _VF), _row(builder, floats.data, 7, _VF)
         voxel = [_row(builder, ints.data, k, _VI) for k in range(3)]
         step = [_row(builder, ints.data, 3 + k, _VI) for k in range(3)]
         end = [_row(builder, ints.data, 6 + k, _VI) for k in range(3)]
+        last = _row(builder, ints.data, 9, _VI)
+        # element index in ``entered_key`` of each lane's row start, minus one
+        row_start = builder.mul(
+            _splat_value(builder, cgutils.unpack_tuple(builder, keys.shape)[1]), _LANE_NUMBERS
+        )
         # loop-carried lane state in stack slots; LLVM keeps them in registers
         t_slots = [cgutils.alloca_once_value(builder, v) for v in t_max]
         v_slots = [cgutils.alloca_once_value(builder, v) for v in voxel]
         t_prev_slot = cgutils.alloca_once_value(builder, t_prev0)
         key_slot = cgutils.alloca_once_value(builder, _splat(_VI, -1))
+        entered_slot = cgutils.alloca_once_value(builder, builder.sub(row_start, _splat(_VI, 1)))
         inf, one, zero = _splat(_VF, math.inf), _splat(_VF, 1.0), _splat(_VI, 0)
         with cgutils.for_range(builder, count) as loop:
             t = [builder.load(s) for s in t_slots]
@@ -151,10 +185,15 @@ def walk_lanes(typingctx, float_state, int_state, steps, out_key, out_code, out_
                 key = builder.or_(key, builder.shl(block, _splat(_VI, (2 - axis) * KEY_BITS)))
                 spread = _spread(builder, builder.and_(v[axis], _splat(_VI, _AXIS_MASK)))
                 local = builder.or_(local, builder.shl(spread, _splat(_VI, 2 - axis)))
-            builder.store(key, _at(builder, keys.data, offset, _VI), align=8)
-            entered = builder.zext(builder.icmp_signed("!=", key, builder.load(key_slot)), _VI)
+            walking = builder.icmp_signed(">=", last, _splat_value(builder, loop.index))
+            entered = builder.and_(builder.icmp_signed("!=", key, builder.load(key_slot)), walking)
             builder.store(key, key_slot)
-            code = builder.or_(local, builder.shl(entered, _splat(_VI, ENTERED_SHIFT)))
+            entered_index = builder.add(builder.load(entered_slot), builder.zext(entered, _VI))
+            builder.store(entered_index, entered_slot)
+            _scatter(builder, keys.data, entered_index, key, entered)
+            code = builder.or_(
+                local, builder.shl(builder.zext(entered, _VI), _splat(_VI, ENTERED_SHIFT))
+            )
             builder.store(builder.trunc(code, _VS), _at(builder, codes.data, offset, _VS), align=2)
             # leave through the nearest face, as the one-ray walk chooses it: x when
             # t_x <= t_y and t_x <= t_z, else y when t_y <= t_z, else z
@@ -178,6 +217,9 @@ def walk_lanes(typingctx, float_state, int_state, steps, out_key, out_code, out_
                 after = builder.select(at_end, inf, builder.fadd(t[axis], t_delta[axis]))
                 builder.store(moved, v_slots[axis])
                 builder.store(builder.select(take[axis], after, t[axis]), t_slots[axis])
+        entered_count = builder.sub(builder.load(entered_slot), row_start)
+        blocks_pointer = _at(builder, blocks.data, _I64(0), _VI)
+        builder.store(builder.add(entered_count, _splat(_VI, 1)), blocks_pointer, align=8)
         return context.get_dummy_value()
 
     return sig, codegen
@@ -207,16 +249,9 @@ def place_lanes(  # type: ignore[no-untyped-def]
         )
         count = context.cast(builder, args[4], signature.args[4], types.intp)
         per_lane = cgutils.unpack_tuple(builder, base_a.shape)[1]
-        lane_row = builder.insert_element(ir.Constant(_VI, ir.Undefined), per_lane, _I32(0))
-        lane_row = builder.shuffle_vector(
-            lane_row,
-            ir.Constant(_VI, ir.Undefined),
-            ir.Constant(ir.VectorType(_I32, LANES), [0] * LANES),
-        )
         # element index of each lane's row, minus one: a lane's first step enters a block
         row_start = builder.sub(
-            builder.mul(lane_row, ir.Constant(_VI, [ir.Constant(_I64, k) for k in range(LANES)])),
-            _splat(_VI, 1),
+            builder.mul(_splat_value(builder, per_lane), _LANE_NUMBERS), _splat(_VI, 1)
         )
         entered_slot = cgutils.alloca_once_value(builder, row_start)
         line_start = builder.ptrtoint(lines_a.data, _I64)

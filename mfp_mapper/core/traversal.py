@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 from mfp_mapper.core.blocks import (
     BLOCK_BITS,
     BLOCK_VOXELS,
+    KEY_BITS,
     MAX_VOXEL_INDEX,
     block_key,
     block_of_key,
@@ -373,12 +374,12 @@ def _walk_rays(
     for r in range(first, total):
         longest = max(longest, visits_needed[r])
     # the group's steps (step k of lane l at k * LANES + l) and the blocks each ray enters
-    step_key = np.empty(longest * LANES, dtype=np.int64)
     step_code = np.empty(longest * LANES, dtype=np.int16)
     step_chord = np.empty(longest * LANES)
+    entered_key = np.empty((LANES, longest), dtype=np.int64)
     entered_base = np.empty((LANES, longest), dtype=np.int64)
     entered_weight = np.empty((LANES, longest))
-    entered_at = np.empty(longest + 1, dtype=np.int64)
+    lane_blocks = np.empty(LANES, dtype=np.int64)
     lane_floats = np.empty((FLOAT_ROWS, LANES))
     lane_ints = np.empty((INT_ROWS, LANES), dtype=np.int64)
     # placed visits of two groups: the one being walked and the one waiting to be added
@@ -432,28 +433,28 @@ def _walk_rays(
             lane_ints[6, lane] = ex
             lane_ints[7, lane] = ey
             lane_ints[8, lane] = ez
+            lane_ints[9, lane] = ray_steps
             placed_steps[group, lane] = ray_steps
             steps = max(steps, ray_steps + 1)
-        walk_lanes(lane_floats, lane_ints, steps, step_key, step_code, step_chord)  # type: ignore[call-arg]
+        walk_lanes(
+            lane_floats, lane_ints, steps, entered_key, lane_blocks, step_code, step_chord
+        )  # fmt: skip
         for lane in range(lanes):
             r = group_first + lane
             last = placed_steps[group, lane]
-            # the steps where the ray enters a block (no branch)
-            blocks = 0
-            for k in range(last + 1):
-                entered_at[blocks] = k
-                blocks += step_code[k * LANES + lane] >> ENTERED_SHIFT
-            # those blocks
+            blocks = lane_blocks[lane]
+            # the blocks the ray enters
             foreign = False
             for b in range(blocks):
-                key = step_key[entered_at[b] * LANES + lane]
-                bx, by, bz = block_of_key(key)
+                key = entered_key[lane, b]
+                # the low index bits of the block (KEY_OFFSET is a multiple of the cache)
                 slot = (
-                    ((bx & CACHE_MASK) << (2 * CACHE_BITS))
-                    | ((by & CACHE_MASK) << CACHE_BITS)
-                    | (bz & CACHE_MASK)
+                    (((key >> (2 * KEY_BITS)) & CACHE_MASK) << (2 * CACHE_BITS))
+                    | (((key >> KEY_BITS) & CACHE_MASK) << CACHE_BITS)
+                    | (key & CACHE_MASK)
                 )
                 if cache_keys[slot] != key:
+                    bx, by, bz = block_of_key(key)
                     block = -1
                     if shard_of(bx, by, bz, shard_mask) == shard:
                         block = open_block(bx, by, bz, shard_arrays, scan_id, stamp, decay_time)
@@ -472,7 +473,7 @@ def _walk_rays(
                     b += step_code[i] >> ENTERED_SHIFT
                     returns = 1.0 if k == last and has_return[r] else 0.0
                     if entered_base[lane, b] < 0 and (step_chord[i] > 0.0 or returns > 0.0):
-                        mail_block[mailed] = step_key[i]
+                        mail_block[mailed] = entered_key[lane, b]
                         mail_local[mailed] = step_code[i] & LOCAL_MASK
                         mail_chord[mailed] = step_chord[i]
                         mail_return[mailed] = returns
