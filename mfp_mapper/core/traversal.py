@@ -436,7 +436,7 @@ def _walk_rays(
             lane_ints[9, lane] = ray_steps
             placed_steps[group, lane] = ray_steps
             steps = max(steps, ray_steps + 1)
-        walk_lanes(
+        walk_lanes(  # type: ignore[call-arg]
             lane_floats, lane_ints, steps, entered_key, lane_blocks, step_code, step_chord
         )  # fmt: skip
         for lane in range(lanes):
