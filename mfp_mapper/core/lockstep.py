@@ -227,27 +227,28 @@ def walk_lanes(  # type: ignore[no-untyped-def]
 
 @intrinsic
 def place_lanes(  # type: ignore[no-untyped-def]
-    typingctx, codes, chords, entered_base, entered_weight, steps, lines, out_voxel, out_chord
+    typingctx, codes, chords, entered_base, entered_weight, weighted, steps, lines, out_voxel
 ):
-    """The store index and weighted chord of ``steps`` steps of ``LANES`` rays, as
-    ``walk_lanes`` wrote them (``codes``, ``chords``).
+    """The store index of ``steps`` steps of ``LANES`` rays, as ``walk_lanes`` wrote them
+    (``codes``, ``chords``).
 
     ``entered_base`` and ``entered_weight`` (C-contiguous (LANES, n)) hold, per lane, the
     first store index of each block the ray enters, in order (``FOREIGN_BASE`` for another
     shard's), and the scan's weight in it. Step k of a lane writes ``base + index in
-    block`` at ``out_voxel[k * LANES + lane]`` and ``chord * weight`` at ``out_chord``, and
-    asks the processor to start loading the voxel's cache line in ``lines`` (the blocks'
-    s and n, flat: two float32 a voxel).
+    block`` at ``out_voxel[k * LANES + lane]``, multiplies its chord by the weight in place
+    when ``weighted`` (else every weight is 1), and asks the processor to start loading
+    the voxel's cache line in ``lines`` (the blocks' s and n, flat: two float32 a voxel).
     """
-    arguments = (codes, chords, entered_base, entered_weight, steps, lines, out_voxel, out_chord)
+    arguments = (codes, chords, entered_base, entered_weight, weighted, steps, lines, out_voxel)
     sig = types.void(*arguments)
 
     def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
-        code_a, chord_a, base_a, weight_a, _, lines_a, voxel_a, out_chord_a = (
+        code_a, chord_a, base_a, weight_a, weighted, count, lines_a, voxel_a = (
             context.make_array(t)(context, builder, a) if isinstance(t, types.Array) else a
             for t, a in zip(signature.args, args, strict=True)
         )
-        count = context.cast(builder, args[4], signature.args[4], types.intp)
+        count = context.cast(builder, count, signature.args[5], types.intp)
+        weighted = context.cast(builder, weighted, signature.args[4], types.boolean)
         per_lane = cgutils.unpack_tuple(builder, base_a.shape)[1]
         # element index of each lane's row, minus one: a lane's first step enters a block
         row_start = builder.sub(
@@ -261,27 +262,37 @@ def place_lanes(  # type: ignore[no-untyped-def]
             [byte_pointer],
             ir.FunctionType(ir.VoidType(), [byte_pointer, _I32, _I32, _I32]),
         )
-        with cgutils.for_range(builder, count) as loop:
-            offset = builder.mul(loop.index, _I64(LANES))
-            code = builder.zext(builder.load(_at(builder, code_a.data, offset, _VS), align=2), _VI)
-            block = builder.add(
-                builder.load(entered_slot), builder.lshr(code, _splat(_VI, ENTERED_SHIFT))
-            )
-            builder.store(block, entered_slot)
-            base = _gather(builder, base_a.data, block, _VI)
-            weight = _gather(builder, weight_a.data, block, _VF)
-            voxel = builder.add(base, builder.and_(code, _splat(_VI, LOCAL_MASK)))
-            chord = builder.load(_at(builder, chord_a.data, offset, _VF), align=8)
-            builder.store(voxel, _at(builder, voxel_a.data, offset, _VI), align=8)
-            weighted = builder.fmul(chord, weight)
-            builder.store(weighted, _at(builder, out_chord_a.data, offset, _VF), align=8)
-            # two float32 a voxel: byte offset 8 * voxel (negative ones: another shard's,
-            # or past a ray's end; a prefetch of any address is harmless)
-            for lane in range(LANES):
-                index = builder.extract_element(voxel, _I32(lane))
-                address = builder.add(line_start, builder.shl(index, _I64(3)))
-                pointer = builder.inttoptr(address, byte_pointer)
-                builder.call(prefetch, [pointer, _I32(1), _I32(3), _I32(1)])
+
+        def place(weigh: bool) -> None:
+            with cgutils.for_range(builder, count) as loop:
+                offset = builder.mul(loop.index, _I64(LANES))
+                code = builder.load(_at(builder, code_a.data, offset, _VS), align=2)
+                code = builder.zext(code, _VI)
+                block = builder.add(
+                    builder.load(entered_slot), builder.lshr(code, _splat(_VI, ENTERED_SHIFT))
+                )
+                builder.store(block, entered_slot)
+                base = _gather(builder, base_a.data, block, _VI)
+                voxel = builder.add(base, builder.and_(code, _splat(_VI, LOCAL_MASK)))
+                builder.store(voxel, _at(builder, voxel_a.data, offset, _VI), align=8)
+                if weigh:
+                    weight = _gather(builder, weight_a.data, block, _VF)
+                    chord_pointer = _at(builder, chord_a.data, offset, _VF)
+                    chord = builder.load(chord_pointer, align=8)
+                    builder.store(builder.fmul(chord, weight), chord_pointer, align=8)
+                # two float32 a voxel: byte offset 8 * voxel (negative ones: another
+                # shard's, or past a ray's end; a prefetch of any address is harmless)
+                for lane in range(LANES):
+                    index = builder.extract_element(voxel, _I32(lane))
+                    address = builder.add(line_start, builder.shl(index, _I64(3)))
+                    pointer = builder.inttoptr(address, byte_pointer)
+                    builder.call(prefetch, [pointer, _I32(1), _I32(3), _I32(1)])
+
+        with builder.if_else(weighted) as (then, otherwise):
+            with then:
+                place(weigh=True)
+            with otherwise:
+                place(weigh=False)
         return context.get_dummy_value()
 
     return sig, codegen

@@ -375,7 +375,6 @@ def _walk_rays(
         longest = max(longest, visits_needed[r])
     # the group's steps (step k of lane l at k * LANES + l) and the blocks each ray enters
     step_code = np.empty(longest * LANES, dtype=np.int16)
-    step_chord = np.empty(longest * LANES)
     entered_key = np.empty((LANES, longest), dtype=np.int64)
     entered_base = np.empty((LANES, longest), dtype=np.int64)
     entered_weight = np.empty((LANES, longest))
@@ -384,7 +383,7 @@ def _walk_rays(
     lane_ints = np.empty((INT_ROWS, LANES), dtype=np.int64)
     # placed visits of two groups: the one being walked and the one waiting to be added
     placed_voxel = np.empty((2, longest * LANES), dtype=np.int64)
-    placed_chord = np.empty((2, longest * LANES))
+    placed_chord = np.empty((2, longest * LANES))  # the steps' chords, then weighted
     placed_steps = np.zeros((2, LANES), dtype=np.int64)
     return_weight = np.zeros((2, LANES))  # 0: no return (or another shard's end voxel)
     mailed = mail_count[0]
@@ -436,9 +435,11 @@ def _walk_rays(
             lane_ints[9, lane] = ray_steps
             placed_steps[group, lane] = ray_steps
             steps = max(steps, ray_steps + 1)
+        step_chord = placed_chord[group]
         walk_lanes(  # type: ignore[call-arg]
             lane_floats, lane_ints, steps, entered_key, lane_blocks, step_code, step_chord
         )  # fmt: skip
+        weighted = False  # a block where the scan is late (weight < 1)
         for lane in range(lanes):
             r = group_first + lane
             last = placed_steps[group, lane]
@@ -464,6 +465,7 @@ def _walk_rays(
                 entered_base[lane, b] = cache_bases[slot]
                 entered_weight[lane, b] = cache_weights[slot]
                 foreign |= cache_bases[slot] < 0
+                weighted |= cache_weights[slot] != 1.0
             ends_here = has_return[r] and entered_base[lane, blocks - 1] >= 0
             return_weight[group, lane] = entered_weight[lane, blocks - 1] if ends_here else 0.0
             if foreign:  # its visits to other shards' blocks go to the mailbox
@@ -479,8 +481,8 @@ def _walk_rays(
                         mail_return[mailed] = returns
                         mailed += 1
         place_lanes(
-            step_code, step_chord, entered_base, entered_weight, steps, lines,
-            placed_voxel[group], placed_chord[group],
+            step_code, step_chord, entered_base, entered_weight, weighted, steps, lines,
+            placed_voxel[group],
         )  # fmt: skip
         _add_group(
             lines, block_hit, placed_voxel[1 - group], placed_chord[1 - group],
