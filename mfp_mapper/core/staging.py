@@ -49,20 +49,17 @@ def _merge_blocks(
         if mb < 0:
             return b
         scale = np.float32(block_scale[mb])
+        # every voxel, without a branch (the loop vectorises): a voxel the scan did not
+        # reach adds 0 * scale = 0, which leaves its statistics as they are, bit for bit
+        staged = staged_sn[b].reshape(-1)
+        merged = block_sn[mb].reshape(-1)
         new = 0
-        for i in range(BLOCK_VOXELS):
-            ds = staged_sn[b, i, 0]
-            dn = staged_sn[b, i, 1]
-            if ds == 0.0 and dn == 0.0:
-                continue
-            s0 = block_sn[mb, i, 0]
-            n0 = block_sn[mb, i, 1]
-            if s0 == 0.0 and n0 == 0.0:
-                new += 1
-            block_sn[mb, i, 0] = s0 + ds * scale
-            block_sn[mb, i, 1] = n0 + dn * scale
-            staged_sn[b, i, 0] = 0.0  # merged: the staged store is empty again after
-            staged_sn[b, i, 1] = 0.0
+        for i in range(0, 2 * BLOCK_VOXELS, 2):
+            reached = (staged[i] != 0.0) | (staged[i + 1] != 0.0)
+            new += reached & (merged[i] == 0.0) & (merged[i + 1] == 0.0)
+            merged[i] += staged[i] * scale
+            merged[i + 1] += staged[i + 1] * scale
+        staged[:] = 0.0  # merged: the staged store is empty again after
         if staged_hit[b]:
             block_hit[mb] = True
         counters[1] += new
