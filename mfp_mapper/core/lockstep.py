@@ -163,31 +163,42 @@ def walk_lanes(  # type: ignore[no-untyped-def]
         row_start = builder.mul(
             _splat_value(builder, cgutils.unpack_tuple(builder, keys.shape)[1]), _LANE_NUMBERS
         )
+        # the first voxel's block key and index in its block; later voxels' are stepped
+        key0 = zero = _splat(_VI, 0)
+        local0 = zero
+        for axis in range(3):
+            block = builder.add(
+                builder.ashr(voxel[axis], _splat(_VI, BLOCK_BITS)), _splat(_VI, KEY_OFFSET)
+            )
+            key0 = builder.or_(key0, builder.shl(block, _splat(_VI, (2 - axis) * KEY_BITS)))
+            spread = _spread(builder, builder.and_(voxel[axis], _splat(_VI, _AXIS_MASK)))
+            local0 = builder.or_(local0, builder.shl(spread, _splat(_VI, 2 - axis)))
+        # per axis: its bits in the index in the block, whether it steps up, and the change
+        # of the key when it enters the next block
+        axis_bits = [_splat(_VI, _SPREAD_MASK << (2 - axis)) for axis in range(3)]
+        up = [builder.icmp_signed(">", s, zero) for s in step]
+        key_step = [
+            builder.shl(s, _splat(_VI, (2 - axis) * KEY_BITS)) for axis, s in enumerate(step)
+        ]
         # loop-carried lane state in stack slots; LLVM keeps them in registers
         t_slots = [cgutils.alloca_once_value(builder, v) for v in t_max]
         v_slots = [cgutils.alloca_once_value(builder, v) for v in voxel]
         t_prev_slot = cgutils.alloca_once_value(builder, t_prev0)
-        key_slot = cgutils.alloca_once_value(builder, _splat(_VI, -1))
+        key_slot = cgutils.alloca_once_value(builder, key0)
+        local_slot = cgutils.alloca_once_value(builder, local0)
+        every = ir.Constant(_VB, [1] * LANES)
+        entering_slot = cgutils.alloca_once_value(builder, every)  # step 0 enters a block
         entered_slot = cgutils.alloca_once_value(builder, builder.sub(row_start, _splat(_VI, 1)))
-        inf, one, zero = _splat(_VF, math.inf), _splat(_VF, 1.0), _splat(_VI, 0)
+        inf, one = _splat(_VF, math.inf), _splat(_VF, 1.0)
         with cgutils.for_range(builder, count) as loop:
             t = [builder.load(s) for s in t_slots]
             v = [builder.load(s) for s in v_slots]
             t_prev = builder.load(t_prev_slot)
+            key = builder.load(key_slot)
+            local = builder.load(local_slot)
             offset = builder.mul(loop.index, _I64(LANES))
-            # the voxel: its block's key, and its index in the block
-            key = zero
-            local = zero
-            for axis in range(3):
-                block = builder.add(
-                    builder.ashr(v[axis], _splat(_VI, BLOCK_BITS)), _splat(_VI, KEY_OFFSET)
-                )
-                key = builder.or_(key, builder.shl(block, _splat(_VI, (2 - axis) * KEY_BITS)))
-                spread = _spread(builder, builder.and_(v[axis], _splat(_VI, _AXIS_MASK)))
-                local = builder.or_(local, builder.shl(spread, _splat(_VI, 2 - axis)))
             walking = builder.icmp_signed(">=", last, _splat_value(builder, loop.index))
-            entered = builder.and_(builder.icmp_signed("!=", key, builder.load(key_slot)), walking)
-            builder.store(key, key_slot)
+            entered = builder.and_(builder.load(entering_slot), walking)
             entered_index = builder.add(builder.load(entered_slot), builder.zext(entered, _VI))
             builder.store(entered_index, entered_slot)
             _scatter(builder, keys.data, entered_index, key, entered)
@@ -217,6 +228,27 @@ def walk_lanes(  # type: ignore[no-untyped-def]
                 after = builder.select(at_end, inf, builder.fadd(t[axis], t_delta[axis]))
                 builder.store(moved, v_slots[axis])
                 builder.store(builder.select(take[axis], after, t[axis]), t_slots[axis])
+            # the next voxel's index in its block: the stepped axis' bits counted up or
+            # down within their own positions (a wrap enters the next block)
+            bits = builder.select(
+                take[0], axis_bits[0], builder.select(take[1], axis_bits[1], axis_bits[2])
+            )
+            rising = builder.select(take[0], up[0], builder.select(take[1], up[1], up[2]))
+            others = builder.and_(local, builder.not_(bits))
+            counted_up = builder.and_(
+                builder.add(builder.or_(local, builder.not_(bits)), _splat(_VI, 1)), bits
+            )
+            counted_down = builder.and_(
+                builder.sub(builder.and_(local, bits), _splat(_VI, 1)), bits
+            )
+            counted = builder.select(rising, counted_up, counted_down)
+            builder.store(builder.or_(others, counted), local_slot)
+            wrapped = builder.icmp_signed("==", counted, builder.select(rising, zero, bits))
+            builder.store(wrapped, entering_slot)
+            key_change = builder.select(
+                take[0], key_step[0], builder.select(take[1], key_step[1], key_step[2])
+            )
+            builder.store(builder.add(key, builder.select(wrapped, key_change, zero)), key_slot)
         entered_count = builder.sub(builder.load(entered_slot), row_start)
         blocks_pointer = _at(builder, blocks.data, _I64(0), _VI)
         builder.store(builder.add(entered_count, _splat(_VI, 1)), blocks_pointer, align=8)
