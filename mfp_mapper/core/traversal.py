@@ -388,6 +388,7 @@ def _walk_rays(
     return_weight = np.zeros((2, LANES))  # 0: no return (or another shard's end voxel)
     mailed = mail_count[0]
     lines = block_sn.reshape(-1)
+    pairs = lines.view(np.uint64)  # a voxel's s and n as one word: 0 when unobserved
     group = 0
     waiting = 0  # rays of the group waiting to be added
     group_first = first
@@ -404,7 +405,7 @@ def _walk_rays(
             or mailed + visits > mail_block.shape[0]
         ):
             _add_group(
-                lines, block_hit, placed_voxel[1 - group], placed_chord[1 - group],
+                lines, pairs, block_hit, placed_voxel[1 - group], placed_chord[1 - group],
                 placed_steps[1 - group], return_weight[1 - group], waiting, counters,
             )  # fmt: skip
             mail_count[0] = mailed
@@ -485,7 +486,7 @@ def _walk_rays(
             placed_voxel[group],
         )  # fmt: skip
         _add_group(
-            lines, block_hit, placed_voxel[1 - group], placed_chord[1 - group],
+            lines, pairs, block_hit, placed_voxel[1 - group], placed_chord[1 - group],
             placed_steps[1 - group], return_weight[1 - group], waiting, counters,
         )  # fmt: skip
         waiting = lanes
@@ -496,6 +497,7 @@ def _walk_rays(
 @nb.njit(cache=True, nogil=True)
 def _add_group(
     lines: NDArray[np.float32],
+    pairs: NDArray[np.uint64],
     block_hit: NDArray[np.bool_],
     voxels: NDArray[np.int64],
     chords: NDArray[np.float64],
@@ -505,7 +507,9 @@ def _add_group(
     counters: NDArray[np.int64],
 ) -> None:
     """Add a group's placed visits (``lockstep.place_lanes``) to the blocks, ray by ray in
-    order (``lines``: the blocks' s and n, flat): ``s += float32(chord)`` for every positive
+    order (``lines``: the blocks' s and n, flat; ``pairs``: the same memory, one word a
+    voxel, which is 0 exactly when s and n are: they are never -0): ``s += float32(chord)``
+    for every positive
     chord in this shard, then the ray's return, ``n += float32(return_weight)`` in its end
     voxel (none where the weight is 0), whose block is marked. Counts the voxels that
     became observed (``counters[1]``) and the visits (``counters[3]``)."""
@@ -518,14 +522,14 @@ def _add_group(
             chord = chords[k * LANES + lane]
             if chord > 0.0 and voxel >= 0:
                 c = np.float32(chord)
-                observed += (lines[2 * voxel] == 0.0) & (lines[2 * voxel + 1] == 0.0) & (c > 0.0)
+                observed += (pairs[voxel] == 0) & (c > 0.0)
                 lines[2 * voxel] += c
                 visits += 1
         # the end voxel takes the return; an end point exactly on a face gives a zero
         # chord there, still with its return
         if return_weight[lane] > 0.0:
             voxel = voxels[last * LANES + lane]
-            observed += (lines[2 * voxel] == 0.0) & (lines[2 * voxel + 1] == 0.0)
+            observed += pairs[voxel] == 0
             lines[2 * voxel + 1] += np.float32(return_weight[lane])
             block_hit[voxel // BLOCK_VOXELS] = True
             visits += chords[last * LANES + lane] <= 0.0
