@@ -509,9 +509,9 @@ def _add_group(
     """Add a group's placed visits (``lockstep.place_lanes``) to the blocks, ray by ray in
     order (``lines``: the blocks' s and n, flat; ``pairs``: the same memory, one word a
     voxel, which is 0 exactly when s and n are: they are never -0): ``s += float32(chord)``
-    for every positive
-    chord in this shard, then the ray's return, ``n += float32(return_weight)`` in its end
-    voxel (none where the weight is 0), whose block is marked. Counts the voxels that
+    for every chord above 0 in float32 in this shard, then the ray's return,
+    ``n += float32(return_weight)`` in its end voxel (none where the weight is 0), whose
+    block is marked. Counts the voxels that
     became observed (``counters[1]``) and the visits (``counters[3]``)."""
     observed = 0
     visits = 0
@@ -520,9 +520,9 @@ def _add_group(
         for k in range(last + 1):
             voxel = voxels[k * LANES + lane]
             chord = chords[k * LANES + lane]
-            if chord > 0.0 and voxel >= 0:
-                c = np.float32(chord)
-                observed += (pairs[voxel] == 0) & (c > 0.0)
+            c = np.float32(chord)
+            if c > 0.0 and voxel >= 0:  # (a chord below float32's least is no update)
+                observed += pairs[voxel] == 0
                 lines[2 * voxel] += c
                 visits += 1
         # the end voxel takes the return; an end point exactly on a face gives a zero
