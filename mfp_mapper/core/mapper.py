@@ -16,7 +16,6 @@ from mfp_mapper.config.schema import MapSettings
 from mfp_mapper.core import model
 from mfp_mapper.core.errors import CoreError, ScanTooLargeError
 from mfp_mapper.core.gridmap import HitGrid, band_grid
-from mfp_mapper.core.mailbox import Mailbox
 from mfp_mapper.core.memory_bound import MemoryBound, fit_scan_budget, scan_block_budget
 from mfp_mapper.core.staging import clear_staged, merge_shard, prefault, staged_updates
 from mfp_mapper.core.store import (
@@ -122,8 +121,6 @@ class Mapper:
         self._store = BlockStore(shards=_shard_count(self.threads))
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
         self._worker_cpu = 0.0  # CPU seconds of the pool threads in the current integrate()
-        self._mailboxes = [Mailbox() for _ in self._store.shards]
-        self._stage_mailboxes = [Mailbox() for _ in self._store.shards]
         self._spare_stage: BlockStore | None = None  # an emptied staged store, for reuse
 
     @classmethod
@@ -168,7 +165,6 @@ class Mapper:
                 scan_id,
                 stamp,
                 self.decay_time,
-                self._mailboxes,
                 self._run_parallel,
             )
             summary.new_voxels, summary.blocks_touched, summary.voxels_touched = (
@@ -212,9 +208,7 @@ class Mapper:
             rays, summary.rays_cut_by_budget = fit_scan_budget(rays, budget, self.resolution)
             # a scan too large for max_voxels is refused before it takes any memory
             self._bound.make_room(store, rays.origins_vox, rays.ends_vox, None)
-            integrate_rays(
-                store, rays, 0, stamp, self.decay_time, self._stage_mailboxes, self._run_parallel
-            )
+            integrate_rays(store, rays, 0, stamp, self.decay_time, self._run_parallel)
             for staged_shard, shard in zip(store.shards, self._store.shards, strict=True):
                 prefault(staged_shard, shard)
         summary.seconds = time.perf_counter() - t0

@@ -6,12 +6,11 @@ metres of the ray inside that voxel, so a ray's chords add up to its length — 
 that ends in a return gives its end voxel ``n += 1`` (the chord from where it entered that
 voxel up to the return point is its last chord).
 
-Threads: the store has one shard per thread, and a thread alone writes to its shard. Each
-thread walks its share of the rays; visits to its own blocks are applied at once, visits
-to another shard's blocks go to the thread's mailbox. When every thread has walked, each
-applies the mailboxes' visits to its shard. With one thread there is no mailbox traffic.
-
-Visits are applied in batches (``visits``); mail goes through ``mailbox``.
+Threads: the store has one shard per thread, and a thread alone writes to its shard. Every
+thread walks every ray and adds only the visits to its own shard's blocks, in ray order:
+the same float32 sums as one thread, bit for bit, and nothing passes between threads. (Each
+thread walking its share of the rays and mailing the visits to other shards' blocks, as
+before issue 22's lockstep walk, was slower: about half the visits were mail.)
 """
 
 from __future__ import annotations
@@ -37,31 +36,28 @@ from mfp_mapper.core.blocks import (
     shard_of,
 )
 from mfp_mapper.core.lockstep import (
-    ENTERED_SHIFT,
     FLOAT_ROWS,
     FOREIGN_BASE,
     INT_ROWS,
     LANES,
-    LOCAL_MASK,
     place_lanes,
     walk_lanes,
 )
-from mfp_mapper.core.mailbox import MailArrays, Mailbox, deliver_mail
 from mfp_mapper.core.shard import Shard, ShardArrays, open_block
 from mfp_mapper.core.store import BlockStore
-from mfp_mapper.core.visits import CACHE_BITS, CACHE_MASK, CACHE_SIZE
 
 _LOCAL_MASK = (1 << BLOCK_BITS) - 1
 _SPREAD = np.array([local_index(0, 0, z) for z in range(1 << BLOCK_BITS)], dtype=np.int64)
 """Morton bits of an index in a block along one axis (z; y is this << 1, x this << 2)."""
+_READ_CACHE_BITS = 4
+"""``read_walk``'s block cache: 2^12 slots, indexed by the low 4 bits of each block index."""
+_READ_CACHE_MASK = (1 << _READ_CACHE_BITS) - 1
 _WALK_CACHE_BITS = 5
 """The integrating walk's block cache: 2^15 slots, indexed by the low 5 bits of each block
-index. Against 2^12 slots (``visits.CACHE_BITS``), cycle-counted on one scan: misses 60 k ->
+index. Against 2^12 slots (as ``read_walk``'s), cycle-counted on one scan: misses 60 k ->
 29 k and the block lookups 13.6 -> 10.1 ms on OS1-128 at 0.2 m (86.9 k -> 69.2 k, 23.8 ->
 20.1 ms, hall at 0.1 m); a miss costs about 110 ns (the hash, and a first touch)."""
 _WALK_CACHE_MASK = (1 << _WALK_CACHE_BITS) - 1
-_RAYS_PER_CHUNK = 256
-"""Rays are dealt to threads in chunks of neighbours, so each thread's rays stay coherent."""
 
 
 @dataclass
@@ -79,15 +75,6 @@ class Rays:
 
     def __len__(self) -> int:
         return int(self.lengths.shape[0])
-
-    def subset(self, index: NDArray[np.intp]) -> Rays:
-        return Rays(
-            np.ascontiguousarray(self.origins_vox[index]),
-            np.ascontiguousarray(self.ends_vox[index]),
-            self.lengths[index],
-            self.has_return[index],
-            source=None if self.source is None else self.source[index],
-        )
 
 
 def prepare_rays(
@@ -199,34 +186,17 @@ def integrate_rays(
     scan_id: int,
     stamp: float,
     decay_time: float,
-    mailboxes: Sequence[Mailbox],
     run_parallel: Callable[[Callable[[int], None], Sequence[int]], object],
 ) -> None:
     """Add every ray's chords and returns to the store (scan ``scan_id`` at ``stamp``), one
-    thread per shard, each with its ``mailboxes`` entry (kept between scans, so their
-    memory is reused). ``run_parallel(fn, items)`` calls ``fn`` on every item, in parallel."""
-    threads = len(store.shards)
-    if threads == 1:
-        parts = [rays]
-    else:
-        owner = (np.arange(len(rays)) // _RAYS_PER_CHUNK) % threads
-        parts = [rays.subset(np.flatnonzero(owner == k)) for k in range(threads)]
-    for mail in mailboxes:
-        mail.count[0] = 0
-
+    thread per shard, each walking every ray into its own shard.
+    ``run_parallel(fn, items)`` calls ``fn`` on every item, in parallel."""
     scan = ScanStamp(scan_id, float(stamp), float(decay_time))
 
     def walk(k: int) -> None:
-        _walk_part(parts[k], store.shards[k], k, store.shard_mask, mailboxes[k], scan)
+        _walk_part(rays, store.shards[k], k, store.shard_mask, scan)
 
-    def deliver(k: int) -> None:
-        for sender, mail in enumerate(mailboxes):
-            if sender != k:
-                deliver_mail(mail, store.shards[k], k, store.shard_mask, scan_id, stamp, decay_time)
-
-    run_parallel(walk, range(threads))
-    if threads > 1:
-        run_parallel(deliver, range(threads))
+    run_parallel(walk, range(len(store.shards)))
 
 
 def block_bounds(
@@ -291,23 +261,16 @@ def _walk_part(
     shard: Shard,
     shard_id: int,
     shard_mask: int,
-    mail: Mailbox,
     scan: ScanStamp,
 ) -> None:
-    """Walk ``rays`` into ``shard`` (and ``mail``), growing either when it runs out of room."""
+    """Walk ``rays`` into ``shard`` (its visits only), growing it when it runs out of room."""
     room, visits = ray_bounds(rays.origins_vox, rays.ends_vox)
-    if shard_mask:  # room for the worst case up front: pages are committed only when written
-        mail.reserve(int(visits.sum()))
     walk = RayArrays(rays.origins_vox, rays.ends_vox, rays.lengths, rays.has_return, room, visits)
     first = 0
     while first < len(rays):
-        first = _walk_rays(walk, first, shard_id, shard_mask, shard.arrays(), scan, mail.arrays())
+        first = _walk_rays(walk, first, shard_id, shard_mask, shard.arrays(), scan)
         if first < len(rays):  # the next group of rays (see _walk_rays) did not fit
-            group = slice(first, first + LANES)
-            if mail.count[0] + int(visits[group].sum()) > mail.block.shape[0]:
-                mail.grow(int(visits[group].sum()))
-            else:
-                shard.grow(min_free=int(room[group].sum()))
+            shard.grow(min_free=int(room[first : first + LANES].sum()))
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -351,10 +314,9 @@ def _walk_rays(
     shard_mask: int,
     shard_arrays: ShardArrays,
     scan: ScanStamp,
-    mailbox: MailArrays,
 ) -> int:
-    """Walk rays ``first..`` (voxel units): visits to ``shard`` are added to its blocks,
-    visits to other shards are appended to the mailbox.
+    """Walk rays ``first..`` (voxel units) and add their visits to ``shard``'s blocks (the
+    visits to other shards' blocks are left to their threads).
 
     The rays go ``LANES`` at a time, a group. ``lockstep.walk_lanes`` steps them all at
     once and writes every step out; for each ray the blocks it enters are gathered and
@@ -362,12 +324,11 @@ def _walk_rays(
     ``lockstep.place_lanes`` turns the steps into store indices and weighted chords and
     starts loading their cache lines. Then the group before, whose lines were loaded
     meanwhile, is added (``_add_group``), ray by ray in ray order. Before each group,
-    checks there is room for the blocks and mail it may create; returns the index of
-    the first ray not walked (the caller grows and calls again), or N.
+    checks there is room for the blocks it may create; returns the index of the first ray
+    not walked (the caller grows and calls again), or N.
     """
     origins_vox, ends_vox, lengths, has_return, room_needed, visits_needed = rays
     scan_id, stamp, decay_time = scan
-    mail_block, mail_local, mail_chord, mail_return, mail_count = mailbox
     table_keys, _, _, block_sn, block_t, _, block_hit, counters, block_scale = shard_arrays
     capacity = min(block_t.shape[0], table_keys.shape[0] // 2)
     # blocks opened in this call, direct-mapped by their low index bits: neighbouring rays
@@ -392,7 +353,6 @@ def _walk_rays(
     placed_chord = np.empty((2, longest * LANES))  # the steps' chords, then weighted
     placed_steps = np.zeros((2, LANES), dtype=np.int64)
     return_weight = np.zeros((2, LANES))  # 0: no return (or another shard's end voxel)
-    mailed = mail_count[0]
     lines = block_sn.reshape(-1)
     pairs = lines.view(np.uint64)  # a voxel's s and n as one word: 0 when unobserved
     group = 0
@@ -401,20 +361,13 @@ def _walk_rays(
     while True:
         lanes = min(LANES, total - group_first)
         blocks_needed = 0
-        visits = 0
         for lane in range(lanes):
             blocks_needed += room_needed[group_first + lane]
-            visits += visits_needed[group_first + lane]
-        if (
-            lanes == 0
-            or counters[0] + blocks_needed > capacity
-            or mailed + visits > mail_block.shape[0]
-        ):
+        if lanes == 0 or counters[0] + blocks_needed > capacity:
             _add_group(
                 lines, pairs, block_hit, placed_voxel[1 - group], placed_chord[1 - group],
                 placed_steps[1 - group], return_weight[1 - group], waiting, counters,
             )  # fmt: skip
-            mail_count[0] = mailed
             return group_first
         steps = 0
         for lane in range(LANES):  # lanes past the last ray repeat the group's first ray
@@ -449,10 +402,8 @@ def _walk_rays(
         weighted = False  # a block where the scan is late (weight < 1)
         for lane in range(lanes):
             r = group_first + lane
-            last = placed_steps[group, lane]
             blocks = lane_blocks[lane]
             # the blocks the ray enters
-            foreign = False
             for b in range(blocks):
                 key = entered_key[lane, b]
                 # the low index bits of the block (KEY_OFFSET is a multiple of the cache)
@@ -471,22 +422,9 @@ def _walk_rays(
                     cache_weights[slot] = block_scale[block] if block >= 0 else 1.0
                 entered_base[lane, b] = cache_bases[slot]
                 entered_weight[lane, b] = cache_weights[slot]
-                foreign |= cache_bases[slot] < 0
                 weighted |= cache_weights[slot] != 1.0
             ends_here = has_return[r] and entered_base[lane, blocks - 1] >= 0
             return_weight[group, lane] = entered_weight[lane, blocks - 1] if ends_here else 0.0
-            if foreign:  # its visits to other shards' blocks go to the mailbox
-                b = -1
-                for k in range(last + 1):
-                    i = k * LANES + lane
-                    b += step_code[i] >> ENTERED_SHIFT
-                    returns = 1.0 if k == last and has_return[r] else 0.0
-                    if entered_base[lane, b] < 0 and (step_chord[i] > 0.0 or returns > 0.0):
-                        mail_block[mailed] = entered_key[lane, b]
-                        mail_local[mailed] = step_code[i] & LOCAL_MASK
-                        mail_chord[mailed] = step_chord[i]
-                        mail_return[mailed] = returns
-                        mailed += 1
         place_lanes(
             step_code, step_chord, entered_base, entered_weight, weighted, steps, lines,
             placed_voxel[group],
@@ -603,8 +541,8 @@ def read_walk(
     events = 0
     # blocks found so far (block number, -1 when absent; shard), direct-mapped as in
     # _walk_rays: neighbouring rays cross the same blocks and the hash costs more
-    cache_keys = np.full(CACHE_SIZE, -1, dtype=np.int64)
-    cache_blocks = np.empty(CACHE_SIZE, dtype=np.int64)
+    cache_keys = np.full(1 << (3 * _READ_CACHE_BITS), -1, dtype=np.int64)
+    cache_blocks = np.empty(cache_keys.shape[0], dtype=np.int64)
     tiny = 1e-280
     for r in range(lengths.shape[0]):
         length = lengths[r]
@@ -637,9 +575,9 @@ def read_walk(
                 shard = shard_of(bx, by, bz, shard_mask)
                 key = block_key(bx, by, bz)
                 slot = (
-                    ((bx & CACHE_MASK) << (2 * CACHE_BITS))
-                    | ((by & CACHE_MASK) << CACHE_BITS)
-                    | (bz & CACHE_MASK)
+                    ((bx & _READ_CACHE_MASK) << (2 * _READ_CACHE_BITS))
+                    | ((by & _READ_CACHE_MASK) << _READ_CACHE_BITS)
+                    | (bz & _READ_CACHE_MASK)
                 )
                 if cache_keys[slot] == key:
                     block = cache_blocks[slot]
