@@ -36,6 +36,8 @@ ROOT = Path(__file__).resolve().parents[1]
 NEBULA = ROOT.parent / "shared" / "data" / "nebula_frames"
 OUSTER = ROOT.parent / "shared" / "data" / "ouster_street"
 """Three real OS1-128 scans with KITTI poses (``--ouster``): a real recording's rays."""
+NORLAB = ROOT.parent / "shared" / "data" / "norlab_sequence"
+"""14 real scans of a VLP-32C-like lidar with odometry (``--norlab``): a second recording."""
 sys.path[:0] = [str(ROOT), str(ROOT / "test")]  # the package and the test scenes
 
 
@@ -59,6 +61,20 @@ def _scene(name: str) -> list[tuple[np.ndarray, np.ndarray]]:
             xyz = xyz.reshape(-1, 4)[:, :3].astype(np.float64)
             xyz = xyz[np.linalg.norm(xyz, axis=1) > 0.3]
             scans.append((xyz @ pose[:, :3].T + pose[:, 3], pose[:, 3].copy()))
+        return scans
+    if name == "norlab_sequence":
+        from mfp_mapper.sensing.poses import quaternion_to_matrix
+        from mfp_mapper.sources.pose_files import read_odometry_csv
+        from mfp_mapper.sources.scan_files import read_vtk_points
+
+        rows = read_odometry_csv(NORLAB / "trajectory.csv")
+        scans = []
+        for k, path in enumerate(sorted((NORLAB / "scans").glob("*.vtk"))):
+            xyz = read_vtk_points(path)
+            xyz = xyz[np.linalg.norm(xyz, axis=1) > 0.3]
+            rotation = quaternion_to_matrix(rows["quaternion"][k])
+            position = np.asarray(rows["position"][k], dtype=np.float64)
+            scans.append((xyz @ rotation.T + position, position.copy()))
         return scans
     from mfp_mapper.sources.scan_files import read_pcd
 
@@ -357,6 +373,11 @@ def main() -> None:
         action="store_true",
         help=f"also the real OS1-128 scans of {OUSTER} (at --resolutions, else 0.2 m)",
     )
+    parser.add_argument(
+        "--norlab",
+        action="store_true",
+        help=f"also the 14 real VLP-32C scans of {NORLAB} (at --resolutions, else 0.2 m)",
+    )
     parser.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
@@ -388,6 +409,10 @@ def main() -> None:
         if not OUSTER.exists():
             raise SystemExit(f"--ouster: {OUSTER} not found")
         scenes.append(("ouster_street", resolutions if args.resolutions else [0.2]))
+    if args.norlab:
+        if not NORLAB.exists():
+            raise SystemExit(f"--norlab: {NORLAB} not found")
+        scenes.append(("norlab_sequence", resolutions if args.resolutions else [0.2]))
     with tempfile.TemporaryDirectory() as tmp:
         for scene, scene_res in scenes:
             if scene != "anchors":
