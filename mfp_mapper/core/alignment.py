@@ -132,6 +132,22 @@ class AlignOptions:
         return replace(base, **changes)  # type: ignore[arg-type]
 
 
+REFUSALS = (
+    "too_few_rays",
+    "flat_likelihood",
+    "degenerate_geometry",
+    "out_of_range",
+    "aliasing",
+    "no_gain",
+    "exact_check",
+)
+"""``Alignment.refusal``'s names: too few rays; a likelihood flat along some direction
+(``max_sigma_m``); too few surface patches constraining one (``min_constraints``); a
+correction beyond ``max_shift_m`` / ``max_angle_deg``; one within the grid's aliasing
+(``min_correction_voxels``); a gain below ``min_gain_per_ray``; an exact gain not
+significant (``verify_exact``)."""
+
+
 @dataclass
 class Alignment:
     """The result of aligning one scan.
@@ -168,6 +184,9 @@ class Alignment:
     """Smoothed log-likelihood per ray (nats, finest level) at the pose kept: the corrected
     pose when accepted, else the initial one. How well the scan fits the map there, which a
     gain alone does not say (a scan far from its place can still gain a little)."""
+    refusal: str = ""
+    """The refusal's name, empty when accepted: one of ``REFUSALS`` (a counter name, where
+    ``reason`` is a sentence for a person)."""
 
     @property
     def shift_m(self) -> float:
@@ -666,7 +685,7 @@ def align_scan(
     orgs = np.ascontiguousarray(org_all[idx])
     rays = pts.shape[0]
     if rays < 10:
-        return _refused(f"too few rays ({rays}) to align", rays)
+        return _refused("too_few_rays", f"too few rays ({rays}) to align", rays)
     center = orgs.mean(axis=0)
     lever = opt.lever
     scale = np.array([1.0, 1.0, 1.0, 1.0 / lever, 1.0 / lever, 1.0 / lever])
@@ -785,6 +804,7 @@ def align_scan(
     curv, dirs = _curvature(fine, pts, orgs, rot, trans, center, opt, scale, info)
     evaluations += 13
     sigma, weakest, reason = _confidence(curv, dirs, scale, opt)
+    refusal = "flat_likelihood" if reason else ""
     conditioning = -1
     if normals is not None:
         counts, g_vecs = geometric_conditioning(normals[0], normals[1], center, lever)
@@ -793,6 +813,7 @@ def align_scan(
         if conditioning < opt.min_constraints:
             main = _AXES[int(np.argmax(np.abs(g_vecs[:, low])))]
             weakest = g_vecs[:, low]
+            refusal = "degenerate_geometry"
             reason = (
                 f"degenerate geometry: only {conditioning} surface patches of the scan "
                 f"constrain {main} (< {opt.min_constraints}); kept the initial pose"
@@ -800,6 +821,7 @@ def align_scan(
     shift = float(np.linalg.norm(trans + rot @ center - center))
     angle = math.degrees(float(np.linalg.norm(Rotation.from_matrix(rot).as_rotvec())))
     if not reason and (shift > opt.max_shift_m or angle > opt.max_angle_deg):
+        refusal = "out_of_range"
         reason = (
             f"correction beyond the search range ({shift:.2f} m, {angle:.1f} deg > "
             f"{opt.max_shift_m:g} m or {opt.max_angle_deg:g} deg): kept the initial pose"
@@ -808,11 +830,13 @@ def align_scan(
         moved = pts @ rot.T + trans - pts
         rms = math.sqrt(float(np.mean(np.sum(moved * moved, axis=1))))
         if rms < opt.min_correction_voxels * fine.resolution:
+            refusal = "aliasing"
             reason = (
                 f"correction within the grid's aliasing range ({100 * rms:.1f} cm RMS < "
                 f"{opt.min_correction_voxels:g} voxel); kept the initial pose"
             )
     if not reason and f_final - f_init < opt.min_gain_per_ray * rays:
+        refusal = "no_gain"
         reason = (
             f"no significant gain ({(f_final - f_init) / rays:.3g} nats per ray < "
             f"{opt.min_gain_per_ray:g}); kept the initial pose"
@@ -823,6 +847,7 @@ def align_scan(
         translation=trans if accepted else np.zeros(3),
         accepted=accepted,
         reason=reason,
+        refusal=refusal,
         gain=f_final - f_init,
         gain_per_ray=(f_final - f_init) / rays,
         sigma=sigma,
@@ -964,6 +989,7 @@ def verify_exact(
             rotation=np.eye(3),
             translation=np.zeros(3),
             accepted=False,
+            refusal="exact_check",
             reason=(
                 f"no significant exact gain ({gain:.1f} nats over {both.size} rays, "
                 f"{z:.2g} standard errors <= {opt.min_exact_z:g}); kept the initial pose"
@@ -972,11 +998,12 @@ def verify_exact(
     return out
 
 
-def _refused(reason: str, rays: int) -> Alignment:
+def _refused(refusal: str, reason: str, rays: int) -> Alignment:
     return Alignment(
         rotation=np.eye(3),
         translation=np.zeros(3),
         accepted=False,
+        refusal=refusal,
         reason=reason,
         gain=0.0,
         gain_per_ray=0.0,

@@ -68,7 +68,7 @@ if TYPE_CHECKING:
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["LiveLocalizer", "LocalizationSettings", "refusal_key"]
+__all__ = ["LiveLocalizer", "LocalizationSettings"]
 
 STATES = ("waiting_for_map", "initializing", "localized", "lost")
 
@@ -148,27 +148,9 @@ class LocalizationSettings:
 FIT_AVERAGE = 0.1
 """Weight of a new scan's fit in the reference (a moving average over about 10 scans)."""
 
-_KEYS = (
-    ("scan fits the map", "poor_fit"),
-    ("too few rays", "too_few_rays"),
-    ("degenerate geometry: the likelihood is flat", "flat_likelihood"),
-    ("degenerate geometry", "degenerate_geometry"),
-    ("correction beyond the search range", "out_of_range"),
-    ("no significant gain", "no_gain"),
-    ("no significant exact gain", "exact_check"),
-)
-
 CONFIRMING = ("no_gain", "exact_check")
 """Refusals that say the current pose is as good as the best one found in range: they
 confirm a localized pose instead of counting toward ``lost``."""
-
-
-def refusal_key(reason: str) -> str:
-    """A short counter name for an ``Alignment.reason``."""
-    for start, key in _KEYS:
-        if reason.startswith(start):
-            return key
-    return "other"
 
 
 def pose_matrix(position: Any, rotation: Any) -> FloatArray:
@@ -490,11 +472,9 @@ class LiveLocalizer:
             )
             poor = self._poor_fit(al)
             if poor:
-                al = replace(al, accepted=False, reason=poor)
+                al = replace(al, accepted=False, reason=poor, refusal="poor_fit")
                 self.last.update(accepted=False, reason=poor)
-            elif math.isfinite(al.fit_per_ray) and (
-                al.accepted or refusal_key(al.reason) in CONFIRMING
-            ):
+            elif math.isfinite(al.fit_per_ray) and (al.accepted or al.refusal in CONFIRMING):
                 ref = self.fit_reference
                 if al.accepted and (math.isnan(ref) or self.state != "localized"):
                     self.fit_reference = al.fit_per_ray  # (re)gained: the fit here
@@ -509,9 +489,8 @@ class LiveLocalizer:
                 self.state = "localized"
                 self._vouch(stamp, odom, al.sigma)
                 return True
-            key = refusal_key(al.reason)
-            self.refused[key] += 1
-            if key in CONFIRMING:  # the best pose in range is no better: the current one stands
+            self.refused[al.refusal] += 1
+            if al.refusal in CONFIRMING:  # the best pose in range is no better: the current stands
                 self.consecutive_refused = 0
                 if self.state == "lost":  # localized before, and the scans agree again
                     self.state = "localized"

@@ -15,12 +15,14 @@ from localization_scenes import (
 )
 
 from mfp_mapper.core.alignment import (
+    REFUSALS,
     AlignOptions,
     FieldPyramid,
     LikelihoodField,
     align_scan,
     geometric_conditioning,
     surrogate_log_likelihood,
+    verify_exact,
 )
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.sensing.scan_normals import scan_normals
@@ -150,3 +152,41 @@ def test_too_few_rays_are_refused_with_a_reason() -> None:
     pyr = FieldPyramid.from_statistics(np.zeros((1, 3)), np.ones(1), np.ones(1), 0.2, np.zeros(3))
     al = align_scan(pyr, np.ones((3, 3)), np.zeros(3))
     assert not al.accepted and "too few rays" in al.reason
+
+
+@pytest.mark.parametrize(
+    ("options", "key", "reason"),
+    [
+        ({"max_sigma_m": 1e-9}, "flat_likelihood", "degenerate geometry: the likelihood is flat"),
+        ({"min_constraints": 10**9}, "degenerate_geometry", "degenerate geometry: only"),
+        ({"max_shift_m": 1e-6}, "out_of_range", "correction beyond the search range"),
+        ({"min_correction_voxels": 1e6}, "aliasing", "correction within the grid's aliasing"),
+        ({"min_gain_per_ray": 1e6}, "no_gain", "no significant gain"),
+        ({"min_exact_z": float("inf")}, "exact_check", "no significant exact gain"),
+    ],
+)
+def test_every_refusal_has_its_name_beside_its_reason(
+    options: dict[str, float], key: str, reason: str
+) -> None:
+    """``Alignment.refusal``: the counter name a refusal is reported under (the localizer's
+    ``~/status`` counts), set where the refusal is decided, beside the sentence."""
+    scene, _ = localization_scene("box")
+    poses, mapper, rng = _scene_map("box", 6)
+    truth = poses[1]
+    init = perturb(truth, rng, 0.3, 3.0)
+    pts = init.apply(static_scan(scene, truth, rng))
+    opt = AlignOptions(**options)  # type: ignore[arg-type]
+    al = align_scan(
+        FieldPyramid.from_mapper(mapper), pts, init.translation, opt, normals=scan_normals(pts)
+    )
+    if key == "exact_check":
+        assert al.accepted and al.refusal == "", al.reason
+        al = verify_exact(mapper, al, pts, init.translation, 100.0, opt)
+    assert not al.accepted and al.refusal == key and al.reason.startswith(reason), al.reason
+    assert key in REFUSALS
+
+
+def test_too_few_rays_have_their_refusal_name() -> None:
+    pyr = FieldPyramid.from_statistics(np.zeros((1, 3)), np.ones(1), np.ones(1), 0.2, np.zeros(3))
+    al = align_scan(pyr, np.ones((3, 3)), np.zeros(3))
+    assert al.refusal == "too_few_rays" and al.reason.startswith("too few rays (3) to align")

@@ -17,7 +17,6 @@ from mfp_mapper.mapping.live_localization import (
     LiveLocalizer,
     LocalizationSettings,
     pose_matrix,
-    refusal_key,
 )
 from mfp_mapper.sensing.poses import OdometrySample, PoseBuffer
 from mfp_mapper.sources.scan_files import cloud_message_from_columns
@@ -159,28 +158,6 @@ def test_mapping_goes_on_at_the_corrected_poses_when_not_frozen() -> None:
     assert loc.report()["field_voxels"] == mapper.num_voxels
     shift, angle = _error(loc.correction, OFFSET)
     assert shift < 0.05 and angle < 0.5, (shift, angle)
-
-
-@pytest.mark.parametrize(
-    ("reason", "key"),
-    [
-        ("too few rays (3) to align", "too_few_rays"),
-        (
-            "degenerate geometry: only 0 surface patches of the scan constrain x",
-            "degenerate_geometry",
-        ),
-        ("degenerate geometry: the likelihood is flat along x", "flat_likelihood"),
-        ("correction beyond the search range (2.00 m, 1.0 deg > 1 m or 10 deg)", "out_of_range"),
-        ("no significant gain (0.001 nats per ray < 0.02); kept", "no_gain"),
-        (
-            "no significant exact gain (-3.0 nats over 1000 rays, -1.2 standard errors <= 3)",
-            "exact_check",
-        ),
-        ("something new", "other"),
-    ],
-)
-def test_refusal_reasons_have_counter_names(reason: str, key: str) -> None:
-    assert refusal_key(reason) == key
 
 
 def test_lost_after_consecutive_refusals_then_the_wide_search_again() -> None:
