@@ -176,6 +176,21 @@ class Shard:
         rebuild_table(self.block_ijk, kept, self.table_keys, self.table_blocks)
         return dropped
 
+    def forget_blocks(self) -> None:
+        """Hold no block again, keeping the memory of the statistics resident, for blocks
+        whose statistics the caller has zeroed (a merged staged store: the merge zeroes what
+        it read): the next blocks reuse those pages instead of fresh ones the system must
+        fault in and zero. The per-block arrays and the hash table are as a new shard's."""
+        used = self.used
+        self.block_ijk[:used] = 0
+        self.block_t[:used] = -np.inf
+        self.block_scan[:used] = -1
+        self.block_hit[:used] = False
+        self.block_scale[:used] = 1.0
+        self.counters[:] = 0
+        self.table_keys.fill(EMPTY_KEY)
+        self.table_blocks.fill(0)
+
     @property
     def nbytes(self) -> int:
         """Memory in use: the blocks' statistics up to the most ever held, and the index."""

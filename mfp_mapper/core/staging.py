@@ -20,7 +20,7 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
-from mfp_mapper.core.blocks import BLOCK_VOXELS, EMPTY_KEY, block_key, find_block
+from mfp_mapper.core.blocks import BLOCK_VOXELS, block_key, find_block
 from mfp_mapper.core.shard import Shard, ShardArrays, open_block
 from mfp_mapper.core.store import BlockStore
 
@@ -139,23 +139,13 @@ emptied, for the next scan (``clear_staged``); a larger one gives its memory bac
 
 def clear_staged(staged: BlockStore) -> bool:
     """Empty a staged store after its merge (which zeroed its statistics), keeping its
-    memory: the next scan staged into it writes pages already resident instead of fresh ones
-    the system must fault in and zero (about 48 MB a scan for an OS1-128 scan at 0.2 m).
-    Every per-block array and the hash table are set as a new shard sets them. False, and
-    the store left alone, when it is too large to keep (``SPARE_MAX_BLOCKS``)."""
+    memory (``BlockStore.forget_blocks``): the next scan staged into it writes pages already
+    resident instead of fresh ones the system must fault in and zero (about 48 MB a scan
+    for an OS1-128 scan at 0.2 m). False, and the store left alone, when it is too large to
+    keep (``SPARE_MAX_BLOCKS``)."""
     if staged.num_blocks > SPARE_MAX_BLOCKS:
         return False
-    for shard in staged.shards:
-        used = shard.used
-        shard.block_ijk[:used] = 0
-        shard.block_t[:used] = -np.inf
-        shard.block_scan[:used] = -1
-        shard.block_hit[:used] = False
-        shard.block_scale[:used] = 1.0
-        shard.counters[:] = 0
-        shard.table_keys.fill(EMPTY_KEY)
-        shard.table_blocks.fill(0)
-    staged.num_voxels = 0
+    staged.forget_blocks()
     return True
 
 

@@ -286,6 +286,13 @@ class BlockStore:
         self.num_voxels = 0
         self._scan_id = 0
 
+    def forget_blocks(self) -> None:
+        """Hold no block again, keeping the statistics' memory (``Shard.forget_blocks``:
+        the caller has zeroed every block's statistics)."""
+        for shard in self.shards:
+            shard.forget_blocks()
+        self.num_voxels = 0
+
     def begin_scan(self) -> int:
         """Start a scan: clears the per-scan counters; returns the scan's id."""
         for sh in self.shards:
