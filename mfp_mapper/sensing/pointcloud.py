@@ -333,11 +333,9 @@ def _drop_invalid(
     points_in = int(xyz.shape[0])
     n_finite = int(np.count_nonzero(finite))
     dropped = {"nonfinite": points_in - n_finite, "zero_range": n_finite - int(keep.sum())}
-    if dropped["nonfinite"] == 0 and dropped["zero_range"] == 0:
-        cloud = ParsedCloud(xyz, time_offset, intensity, points_in, dropped, ring=ring)
-        cloud.bad_times = bad_times
-        return cloud
-    cloud = ParsedCloud(
+    if dropped["nonfinite"] == 0 and dropped["zero_range"] == 0:  # (so no bad time either)
+        return ParsedCloud(xyz, time_offset, intensity, points_in, dropped, ring=ring)
+    return ParsedCloud(
         xyz[keep],
         None if time_offset is None else time_offset[keep],
         None if intensity is None else intensity[keep],
@@ -345,9 +343,8 @@ def _drop_invalid(
         dropped,
         cell=np.flatnonzero(keep),
         ring=None if ring is None else ring[keep],
+        bad_times=bad_times,
     )
-    cloud.bad_times = bad_times
-    return cloud
 
 
 def _finite_rows(xyz: NDArray[np.float64]) -> NDArray[np.bool_]:
