@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from mfp_mapper.config.frames import frame_name
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.mapping.live_localization import LiveLocalizer, pose_matrix
 from mfp_mapper.mapping.loop import PreparedScan, ScanCounts, ScanLoop, staged
@@ -95,8 +96,8 @@ class LiveSettings:
             max_range=cfg.max_range,
             cloud_queue_size=cfg.cloud_queue_size,
             odom_wait=cfg.odom_wait,
-            base_frame_id=cfg.base_frame_id.lstrip("/"),
-            cloud_frame_id=cfg.cloud_frame_id.lstrip("/"),
+            base_frame_id=frame_name(cfg.base_frame_id),
+            cloud_frame_id=frame_name(cfg.cloud_frame_id),
             extrinsic_override=_extrinsic(cfg.lidar_override()),
             no_return_range=cfg.sensor_model_no_return_range,
         )
@@ -244,7 +245,7 @@ class LiveIntegrator:
         TransformUnavailable."""
         if self.localizer is None:
             return self.pose_inputs.to_map_frame(points, frame, stamp)
-        frame = frame.lstrip("/")
+        frame = frame_name(frame)
         if not frame or frame == self.localizer.settings.global_frame:
             return points
         in_odom = self.pose_inputs.to_map_frame(points, frame, stamp)
@@ -616,10 +617,10 @@ class LiveIntegrator:
         if frame.startswith("/"):
             self._warn_once(
                 "cloud_slash",
-                f"cloud frame_id {frame!r} has a leading slash: read as {frame.lstrip('/')!r} "
+                f"cloud frame_id {frame!r} has a leading slash: read as {frame_name(frame)!r} "
                 "(tf2 rejects such names; fix the driver)",
             )
-            frame = frame.lstrip("/")
+            frame = frame_name(frame)
         if frame:
             return frame
         if self.settings.cloud_frame_id:

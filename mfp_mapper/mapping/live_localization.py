@@ -51,6 +51,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from mfp_mapper.config.frames import frame_name
 from mfp_mapper.config.schema import defaults as setting_defaults
 from mfp_mapper.core.alignment import (
     Alignment,
@@ -64,7 +65,8 @@ from mfp_mapper.sensing.pipeline import PlacedScan
 from mfp_mapper.sensing.scan_normals import scan_normals
 
 if TYPE_CHECKING:
-    from mfp_mapper.config.schema import NodeConfig
+    from mfp_mapper.config.frames import frame_name
+from mfp_mapper.config.schema import NodeConfig
 
 FloatArray = NDArray[np.float64]
 
@@ -118,7 +120,7 @@ class LocalizationSettings:
             for f in fields(cls)
             if f.name != "global_frame"
         }
-        values["odom_frame"] = values["odom_frame"].lstrip("/")
+        values["odom_frame"] = frame_name(values["odom_frame"])
         return cls(global_frame=global_frame, **values)
 
     def options(self, wide: bool) -> AlignOptions:

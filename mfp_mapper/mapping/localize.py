@@ -22,6 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from mfp_mapper.config.frames import frame_name
 from mfp_mapper.config.replay_options import ReplayOptions
 from mfp_mapper.core.alignment import (
     Alignment,
@@ -35,7 +36,7 @@ from mfp_mapper.mapping.folder_replay import folder_poses
 from mfp_mapper.mapping.loop import ScanLoop
 from mfp_mapper.mapping.replay import ReplayError, ScanSelection, new_mapper, open_bag_input
 from mfp_mapper.sensing.pipeline import PlacedScan, ScanDropped
-from mfp_mapper.sensing.poses import Extrinsic, PoseUnavailable, frame_name
+from mfp_mapper.sensing.poses import Extrinsic, PoseUnavailable
 from mfp_mapper.sensing.scan_normals import scan_normals
 from mfp_mapper.sources import pose_files
 from mfp_mapper.sources.bags import open_reader, resolve_bag_path

@@ -27,13 +27,14 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from mfp_mapper.config.frames import frame_name
 from mfp_mapper.config.replay_options import ConfigError as ConfigError  # re-exported
 from mfp_mapper.config.replay_options import ReplayOptions, options_from_yaml
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.mapping.loop import ScanCallback, ScanConsumer, ScanCounts, ScanLoop
 from mfp_mapper.mapping.progress import Progress
 from mfp_mapper.sensing import pipeline
-from mfp_mapper.sensing.poses import Extrinsic, frame_name
+from mfp_mapper.sensing.poses import Extrinsic
 from mfp_mapper.sensing.tf_tree import TfTree
 from mfp_mapper.sources import lidar_odometry
 from mfp_mapper.sources.bags import (

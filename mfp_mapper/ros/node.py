@@ -65,6 +65,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Empty, Trigger
 from tf2_msgs.msg import TFMessage
 
+from mfp_mapper.config.frames import frame_name
 from mfp_mapper.config.schema import SPECS, NodeConfig
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.core.store import MAX_VOXEL_INDEX
@@ -444,13 +445,13 @@ class MfpMapperNode(GuardedLifecycleNode):
             if value.startswith("/"):
                 self.get_logger().warning(
                     f"parameter {name} {value!r} has a leading slash: using "
-                    f"{value.lstrip('/')!r} (tf2 and RViz reject such frame names)"
+                    f"{frame_name(value)!r} (tf2 and RViz reject such frame names)"
                 )
         self.cfg = replace(
             self.cfg,
-            frame_id=self.cfg.frame_id.lstrip("/"),
-            base_frame_id=self.cfg.base_frame_id.lstrip("/"),
-            cloud_frame_id=self.cfg.cloud_frame_id.lstrip("/"),
+            frame_id=frame_name(self.cfg.frame_id),
+            base_frame_id=frame_name(self.cfg.base_frame_id),
+            cloud_frame_id=frame_name(self.cfg.cloud_frame_id),
         )
 
     @tracked
@@ -546,7 +547,7 @@ class MfpMapperNode(GuardedLifecycleNode):
         map -> odom is reset so that the robot's odometry pose maps to it."""
         if self.localizer is None:
             return
-        frame = msg.header.frame_id.lstrip("/")
+        frame = frame_name(msg.header.frame_id)
         expected = self.localizer.settings.global_frame
         if frame != expected:
             self.warn_throttled(
