@@ -52,6 +52,7 @@ from mfp_mapper.mapping.live_localization import (  # noqa: E402
     LocalizationSettings,
     pose_matrix,
 )
+from mfp_mapper.mapping.pose_correction import LocalizerCorrection  # noqa: E402
 from mfp_mapper.sensing.poses import OdometrySample, PoseBuffer  # noqa: E402
 from mfp_mapper.sources.scan_files import cloud_message_from_columns  # noqa: E402
 
@@ -90,7 +91,7 @@ def worker(mapper: Mapper, localizer: LiveLocalizer | None) -> LiveIntegrator:
         log=lambda key, text, error: None,
         now=lambda: T0 + 1e5,
         map_frame="" if localizer is not None else "odom",
-        localizer=localizer,
+        correction=None if localizer is None else LocalizerCorrection(localizer),
     )
 
 
