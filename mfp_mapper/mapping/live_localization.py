@@ -65,8 +65,7 @@ from mfp_mapper.sensing.pipeline import PlacedScan
 from mfp_mapper.sensing.scan_normals import scan_normals
 
 if TYPE_CHECKING:
-    from mfp_mapper.config.frames import frame_name
-from mfp_mapper.config.schema import NodeConfig
+    from mfp_mapper.config.schema import NodeConfig
 
 FloatArray = NDArray[np.float64]
 
