@@ -145,3 +145,18 @@ def test_ros2_file_path_means_its_folder_and_the_extent(bags: dict[str, Path]) -
         assert recording.name == str(bags["mcap"])
     first, last, clouds = bag_extent(mcap_file)
     assert clouds == 4 and first < SMALL.start_time < last
+
+
+def test_an_undecodable_first_cloud_is_a_replay_error_for_every_pose_source(
+    tmp_path: Path,
+) -> None:
+    """KISS-ICP and a pose file read the first cloud's frame first: a cloud that cannot be
+    deserialized says so (with KISS-ICP it was a traceback)."""
+    bag = tmp_path / "garbage"
+    with BagSink(bag, "mcap") as sink:
+        sink.add("/cloud", "sensor_msgs/msg/PointCloud2")
+        sink.writer.write(sink.connections["/cloud"], 1_000_000_000, b"\x00\x01\x00\x00bad")
+    with pytest.raises(ReplayError, match="cannot read the first cloud"):
+        open_bag(bag, replace(OPTS, odometry="kiss-icp"))
+    with pytest.raises(ReplayError, match="cannot read the first cloud"):
+        open_bag(bag, OPTS, "identity")
