@@ -6,7 +6,7 @@ so it has no gradient. This module optimises a *smoothed* version of the same mo
 reports the exact one:
 
 - **Extinction field** (``LikelihoodField``): per voxel of the map, two numbers of the
-  forward model with the Gamma(alpha, beta) prior (MODEL.md): the log-probability per metre
+  forward model with the Gamma(alpha, beta) prior (docs/model.md): the log-probability per metre
   that a ray passes (``b = (n+alpha) log((s+beta)/(s+beta+r)) / r``) and the log-probability
   that a ray crossing the whole voxel returns in it
   (``a = log(1 - ((s+beta)/(s+beta+r))^(n+alpha))``), unknown voxels at the prior. Both
