@@ -1,4 +1,4 @@
-"""The Gamma prior on the extinction (docs/PRIOR.md): formulas, the Mapper, map files."""
+"""The Gamma prior on the extinction (docs/model.md): formulas, the Mapper, map files."""
 
 from __future__ import annotations
 
