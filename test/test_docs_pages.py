@@ -1,6 +1,7 @@
-"""The Python examples of docs/mapfiles.md run as a user would copy them: the Python API block
-writes ``map.npz`` with ``save_map`` and reads it back with ``load_map``; the numpy-only
-block reads that file without mfp_mapper."""
+"""What docs/mapfiles.md and docs/localization.md say, checked: mapfiles.md's Python examples
+run as a user would copy them (the API block writes ``map.npz`` with ``save_map`` and reads it
+back with ``load_map``; the numpy-only block reads that file without mfp_mapper), and
+localization.md's hand-written settings table matches the settings schema."""
 
 from __future__ import annotations
 
@@ -42,3 +43,24 @@ def test_python_api_and_numpy_examples_run(
     np.testing.assert_allclose(
         read["most_likely_doo"][order_file], stats.most_likely_doo[order_map], rtol=1e-6
     )
+
+
+def test_localization_page_lists_every_localization_parameter_and_what_is_fixed() -> None:
+    """docs/localization.md's settings table (written by hand) names every ``localization.*``
+    parameter of the schema once, marked *(fixed)* exactly when it cannot change at run time."""
+    from mfp_mapper.config.schema import SETTINGS
+
+    page = (PAGE.parent / "localization.md").read_text(encoding="utf-8")
+    rows = [line for line in page.splitlines() if line.startswith("| `localization.")]
+    settings = [s for s in SETTINGS if s.name.startswith("localization.")]
+    assert settings
+    for setting in settings:
+        suffix = setting.name.removeprefix("localization.")
+        cells = [row.split(" | ")[0] for row in rows]
+        found = [
+            row
+            for row, names in zip(rows, cells, strict=True)
+            if f"`{setting.name}`" in names or f"`.{suffix}`" in names
+        ]
+        assert len(found) == 1, f"{setting.name}: {len(found)} rows of the table name it"
+        assert ("*(fixed)*" in found[0]) == (not setting.dynamic), setting.name
