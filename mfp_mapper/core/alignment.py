@@ -6,7 +6,7 @@ so it has no gradient. This module optimises a *smoothed* version of the same mo
 reports the exact one:
 
 - **Extinction field** (``LikelihoodField``): per voxel of the map, two numbers of the
-  forward model with the Gamma(alpha, beta) prior (docs/model.md): the log-probability per metre
+  forward model with the Gamma(alpha, beta) prior (MODEL.md): the log-probability per metre
   that a ray passes (``b = (n+alpha) log((s+beta)/(s+beta+r)) / r``) and the log-probability
   that a ray crossing the whole voxel returns in it
   (``a = log(1 - ((s+beta)/(s+beta+r))^(n+alpha))``), unknown voxels at the prior. Both
@@ -58,7 +58,7 @@ _BLOCK = 8  # voxels per block edge in the field's sparse storage
 
 @dataclass(frozen=True)
 class AlignOptions:
-    """How a scan is aligned; the defaults are those measured in docs/performance.md."""
+    """How a scan is aligned; the defaults are those measured in README (Localization)."""
 
     levels: int = 3
     """Pyramid levels: voxel edges resolution * 2^k, k = levels-1 .. 0."""
@@ -126,7 +126,7 @@ class AlignOptions:
     @classmethod
     def live(cls, **changes: object) -> AlignOptions:
         """Settings for aligning every scan at sensor rate (the node's localization mode,
-        docs/localization.md): 1500 rays, 2 levels (0.4, 0.2 m at a 0.2 m map),
+        README: Localization): 1500 rays, 2 levels (0.4, 0.2 m at a 0.2 m map),
         free space sampled every voxel, 500 probe rays, 1000 rays for the exact check."""
         base = cls(levels=2, max_rays=1500, step=1.0, probe_rays=500, exact_rays=1000)
         return replace(base, **changes)  # type: ignore[arg-type]
