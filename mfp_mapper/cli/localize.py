@@ -75,8 +75,9 @@ def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from mfp_mapper.config.replay_options import options_from_args
-    from mfp_mapper.mapping.localize import localize_folder
+    from mfp_mapper.mapping.localize import localize
     from mfp_mapper.mapping.replay import ReplayError
+    from mfp_mapper.sources.opener import open_recording
 
     out = Path(args.poses_out)
     check_pose_outputs(
@@ -91,9 +92,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         opts = replace(options_from_args(args), **input_options(args))
         opts = replace(opts, resolution=mapper.resolution)
-        result = localize_folder(
-            mapper, args.input, args.poses, opts, times_file=args.times, align=align, log=warn
-        )
+        with open_recording(args.input, opts, args.poses, args.times, warn) as recording:
+            result = localize(mapper, recording, opts, align=align, log=warn)
     except ReplayError as err:
         raise CliError(f"{err} (no poses written)") from None
     except ValueError as err:  # invalid settings
