@@ -124,8 +124,7 @@ def parameters_page(settings: tuple[Any, ...]) -> str:
     mapping = [s for s in params if not s.name.startswith("localization.")]
     localization = [s for s in params if s.name.startswith("localization.")]
     return (
-        HEADER
-        + f"{len(params)} parameters. *dynamic*: `ros2 param set` changes it while the node "
+        HEADER + f"{len(params)} parameters. *dynamic*: `ros2 param set` changes it while the node "
         "runs; the others are read at start.\n\n"
         + table(header, parameter_rows(mapping))
         + "\nLocalization mode (`localization.enabled`):\n\n"
@@ -177,9 +176,7 @@ def cli_help_page() -> str:
     with columns(100):
         parser = build_parser()
         out = [HEADER, "### `mfp-mapper --help`\n\n```text\n", parser.format_help(), "```\n"]
-        subparsers = next(
-            a for a in parser._actions if isinstance(a, argparse._SubParsersAction)
-        )
+        subparsers = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
         for name, sub in subparsers.choices.items():
             out += [f"\n### `mfp-mapper {name}`\n\n```text\n", sub.format_help(), "```\n"]
     return "".join(out)
