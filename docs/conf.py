@@ -30,7 +30,7 @@ copyright = "mfp_mapper maintainers, Apache-2.0"
 extensions = ["myst_parser"]
 source_suffix = {".md": "markdown"}
 root_doc = "index"
-myst_heading_anchors = 3
+myst_heading_anchors = 6  # every heading has an anchor, as on GitHub
 myst_enable_extensions = ["colon_fence"]
 exclude_patterns = [
     "_generated",  # included by the pages, never pages of their own
