@@ -68,8 +68,7 @@ def check_request(
         )
     if len(starts) > limits.max_segments:
         raise QueryRefused(
-            f"{len(starts)} segments: at most {limits.max_segments} a request "
-            "(query.max_segments)"
+            f"{len(starts)} segments: at most {limits.max_segments} a request (query.max_segments)"
         )
     for name, values in (("points", points), ("segment_starts", starts), ("segment_ends", ends)):
         bad = np.flatnonzero(~np.isfinite(values).all(axis=1))
