@@ -47,7 +47,7 @@ def replay_folder(
     consume: ScanConsumer | None = None,
 ) -> ReplayResult:
     """Map the scans of ``directory``; ``poses`` is a pose file, ``"identity"``, or None
-    with ``opts.odometry == "kiss-icp"``. ReplayError says why when it cannot be done.
+    with ``opts.replay.odometry == "kiss-icp"``. ReplayError says why when it cannot be done.
     ``into``: add the scans to this map; ``consume``: instead of integrating each scan
     (as ``mapping.replay.replay``)."""
     opts = opts or ReplayOptions()
@@ -66,9 +66,11 @@ def replay_folder(
     found = folder_poses(folder, poses, opts, log)
     summary.seconds_poses = time.perf_counter() - t_poses
     summary.pose_source, summary.map_frame = found.source, found.map_frame
-    extrinsic = Extrinsic.from_xyz_rpy(*opts.extrinsic) if opts.extrinsic else Extrinsic()
+    extrinsic = (
+        Extrinsic.from_xyz_rpy(*opts.replay.extrinsic) if opts.replay.extrinsic else Extrinsic()
+    )
     summary.extrinsic_source = (
-        "given on the command line" if opts.extrinsic else "identity (poses are the lidar's)"
+        "given on the command line" if opts.replay.extrinsic else "identity (poses are the lidar's)"
     )
     mapper = mapper_for(opts, found.map_frame, into)
 
@@ -89,7 +91,7 @@ def folder_poses(
     log: Callable[[str], None] | None = None,
 ) -> Poses:
     """The poses of the folder's scans (``Poses.buffer`` is any pose source)."""
-    if opts.odometry is not None:
+    if opts.replay.odometry is not None:
         if poses is not None:
             raise ReplayError("give either --poses or --odometry, not both")
 
@@ -121,7 +123,9 @@ def folder_poses(
                 )
         else:
             stamps, positions, quaternions = pose_files.read_stamped_poses(path, kind)
-        buffer = pose_files.pose_buffer(stamps, positions, quaternions, opts.max_gap, str(path))
+        buffer = pose_files.pose_buffer(
+            stamps, positions, quaternions, opts.placement.odom_max_gap, str(path)
+        )
     except (DatasetFormatError, OSError) as err:
         raise ReplayError(str(err)) from None
     if kind != "kitti" and folder.stamp_source.startswith("none"):

@@ -168,7 +168,9 @@ def _pose_file_buffer(poses: str | Path, opts: ReplayOptions) -> tuple[Any, str]
                 "('t x y z qx qy qz qw') or an odometry CSV, matched by stamp"
             )
         stamps, positions, quaternions = pose_files.read_stamped_poses(path, kind)
-        buffer = pose_files.pose_buffer(stamps, positions, quaternions, opts.max_gap, str(path))
+        buffer = pose_files.pose_buffer(
+            stamps, positions, quaternions, opts.placement.odom_max_gap, str(path)
+        )
     except (DatasetFormatError, OSError) as err:
         raise ReplayError(str(err)) from None
     return buffer, f"{path} ({kind.upper()}, T_world_lidar)"
@@ -181,15 +183,17 @@ def open_input(
     times_file: str | Path | None = None,
     log: Callable[[str], None] | None = None,
 ) -> _Input:
-    """A scan folder (poses: a pose file, or ``opts.odometry``) or a bag (poses: its own
-    odometry or /tf, ``opts.odometry``, or a TUM/CSV pose file matched by stamp)."""
+    """A scan folder (poses: a pose file, or ``opts.replay.odometry``) or a bag (poses: its own
+    odometry or /tf, ``opts.replay.odometry``, or a TUM/CSV pose file matched by stamp)."""
     if is_scan_folder(source):
         try:
             folder = open_scan_folder(source, times_file)
         except (DatasetFormatError, OSError) as err:
             raise ReplayError(str(err)) from None
         found = folder_poses(folder, poses, opts, log)
-        extrinsic = Extrinsic.from_xyz_rpy(*opts.extrinsic) if opts.extrinsic else Extrinsic()
+        extrinsic = (
+            Extrinsic.from_xyz_rpy(*opts.replay.extrinsic) if opts.replay.extrinsic else Extrinsic()
+        )
         return _Input(
             ((k, partial(folder.message, k)) for k in range(len(folder))),
             found.buffer,
@@ -199,7 +203,7 @@ def open_input(
         )
     if times_file is not None:
         raise ReplayError(f"{source}: --times is for folders of scan files")
-    if poses is not None and opts.odometry is not None:
+    if poses is not None and opts.replay.odometry is not None:
         raise ReplayError("give either --poses or --odometry, not both")
     buffer, what = _pose_file_buffer(poses, opts) if poses is not None else (None, "")
     path = resolve_bag_path(source)
@@ -300,7 +304,7 @@ def _loop(
         )
     cache = PyramidCache(mapper, align)
     result = LocalizeResult(map_frame=inp.map_frame, mapper=mapper)
-    loop = ScanLoop(mapper, opts)
+    loop = ScanLoop(mapper, opts.placement, opts.sensor_model)
     select = ScanSelection(opts)
     for index, load in inp.clouds:
         if select.past_end(index):
@@ -384,7 +388,7 @@ def localize_folder(
     """Each scan of ``directory`` (a scan folder or a bag, ``open_input``) aligned against
     the fixed map ``mapper``, starting from its pose in ``poses`` (a pose file), or, with
     None, from the recording's own pose source (a bag's odometry or /tf) or
-    ``opts.odometry``."""
+    ``opts.replay.odometry``."""
     return _run(directory, poses, opts, times_file, align or AlignOptions(), mapper, log)
 
 

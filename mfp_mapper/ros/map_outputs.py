@@ -69,14 +69,14 @@ class MapOutputs:
         self._warn = warn
         self._worker = worker
         self._config = config
-        latch = config().latch
+        latch = config().outputs.latch
         qos = QoSProfile(
             history=HistoryPolicy.KEEP_LAST,
             depth=1,
             reliability=ReliabilityPolicy.RELIABLE,
             durability=DurabilityPolicy.TRANSIENT_LOCAL if latch else DurabilityPolicy.VOLATILE,
         )
-        names = OCTOMAP_TOPICS if config().octomap_topics else TOPICS
+        names = OCTOMAP_TOPICS if config().outputs.octomap_topics else TOPICS
         self._doo_pub = node.create_publisher(PointCloud2, names["degree_of_occupancy"], qos)
         self._std_pub = node.create_publisher(PointCloud2, names["std"], qos)
         self._grid_pub = node.create_publisher(OccupancyGrid, names["projected_map"], qos)
@@ -148,12 +148,14 @@ class MapOutputs:
         cfg, worker = self._config(), self._worker
         with self._timed_map_lock(lock_times):
             robot = worker.robot_position
-            radius = cfg.publish_radius
+            radius = cfg.outputs.publish_radius
             window = None
             if radius > 0.0 and robot is not None:
                 window = (np.asarray(robot) - radius, np.asarray(robot) + radius)
             vox = worker.mapper.voxels(
-                min_doo=cfg.min_degree_of_occupancy, min_evidence=cfg.min_evidence, bounds=window
+                min_doo=cfg.outputs.min_degree_of_occupancy,
+                min_evidence=cfg.outputs.min_evidence,
+                bounds=window,
             )
             stamp = worker.mapper.last_stamp
         sel = vox
@@ -174,21 +176,21 @@ class MapOutputs:
         ``projected_map.trinary`` is false); ``lock_times`` as in ``_timed_map_lock``."""
         cfg, worker = self._config(), self._worker
         trinary = None
-        if projected and cfg.projected_map_trinary:
-            occupied = cfg.projected_map_occupied_threshold
-            free = cfg.projected_map_free_threshold
+        if projected and cfg.outputs.projected_map_trinary:
+            occupied = cfg.outputs.projected_map_occupied_threshold
+            free = cfg.outputs.projected_map_free_threshold
             if free < 0.0:
                 m = worker.mapper
                 free = unobserved_hit_probability(m.resolution, m.prior.shape, m.prior.rate)
             trinary = (occupied, min(free, occupied))
         robot = worker.robot_position
-        radius = cfg.hit_probability_map_radius
+        radius = cfg.outputs.hit_probability_map_radius
         center = (float(robot[0]), float(robot[1])) if robot is not None and radius > 0 else None
-        limit = cfg.hit_probability_map_max_cells
+        limit = cfg.outputs.hit_probability_map_max_cells
         with self._timed_map_lock(lock_times):
             resolution = worker.mapper.resolution
             stamp = worker.mapper.last_stamp
-            band = (cfg.occupancy_min_z, cfg.occupancy_max_z)
+            band = (cfg.outputs.occupancy_min_z, cfg.outputs.occupancy_max_z)
             try:
                 grid = worker.mapper.hit_probability_grid(
                     *band, center=center, radius=radius, max_cells=limit, trinary=trinary
@@ -214,5 +216,5 @@ class MapOutputs:
             worker.map_frame or worker.mapper.frame_id,
             self._header_stamp(stamp),
             now,
-            cfg.occupancy_min_z,
+            cfg.outputs.occupancy_min_z,
         )

@@ -112,8 +112,8 @@ def read_transforms() -> TfTree:
 def extrinsic_for(
     cloud_frame: str, body: str, tfs: TfTree, opts: ReplayOptions
 ) -> tuple[Extrinsic, str]:
-    if opts.extrinsic is not None:
-        return Extrinsic.from_xyz_rpy(*opts.extrinsic), "given on the command line"
+    if opts.replay.extrinsic is not None:
+        return Extrinsic.from_xyz_rpy(*opts.replay.extrinsic), "given on the command line"
     if cloud_frame == body:
         return Extrinsic(), f"identity (the cloud frame is the odometry child frame {body})"
     chain = tfs.static_chain(body, cloud_frame)
@@ -165,7 +165,7 @@ def odometry_poses(reader: Any, topic: str, opts: ReplayOptions) -> Poses:
             f"odometry on {topic} changes frames ({', '.join(f'{a}->{b}' for a, b in frames)}): "
             "cannot chain them"
         )
-    buffer = _buffer(samples, opts.max_gap)
+    buffer = _buffer(samples, opts.placement.odom_max_gap)
     return Poses(buffer, body, map_frame, f"{topic} (nav_msgs/Odometry {map_frame} -> {body})")
 
 
@@ -196,7 +196,7 @@ def tf_poses(cloud_frame: str, tfs: TfTree, opts: ReplayOptions) -> Poses:
             f"(frames moved by /tf: {frame_list(moving)}); give --odom-topic"
         )
     chain = above[above.index(body) :]
-    fixed = opts.fixed_frame
+    fixed = opts.replay.fixed_frame
     if fixed is not None and fixed not in chain:
         raise ReplayError(f"the fixed frame {fixed!r} is not above {body!r} in /tf")
     if fixed is None:
@@ -216,4 +216,4 @@ def tf_poses(cloud_frame: str, tfs: TfTree, opts: ReplayOptions) -> Poses:
         t, q = tfs.lookup(fixed, body, stamps)
         samples = [(float(s), t[i], q[i]) for i, s in enumerate(stamps)]
     text = " -> ".join(reversed(chain))
-    return Poses(_buffer(samples, opts.max_gap), body, fixed, f"/tf chain {text}")
+    return Poses(_buffer(samples, opts.placement.odom_max_gap), body, fixed, f"/tf chain {text}")

@@ -55,7 +55,7 @@ def test_pcd_folder_with_tum_poses_equals_the_bag_deskewed(recording) -> None:  
         write_pcd(folder / f"cloud_{sec}_{nsec}.pcd", _columns(records, True), binary=k % 2 == 0)
     tum = recording["root"] / "odom.tum"
     np.savetxt(tum, recording["odometry"], fmt="%.17g", header="t x y z qx qy qz qw")
-    opts = ReplayOptions(resolution=RES)
+    opts = ReplayOptions.of(resolution=RES)
     from_bag = replay(recording["bag"], opts, progress=False)
     from_folder = replay_folder(folder, tum, opts, progress=False)
     assert from_folder.summary.deskew and from_bag.summary.deskew
@@ -82,7 +82,7 @@ def test_kitti_folder_with_kitti_poses_equals_the_bag_without_deskew(recording) 
     (folder.parent / "times.txt").write_text("\n".join(f"{s:.9f}" for s in stamps) + "\n")
     poses = folder.parent / "poses.txt"
     poses.write_text("\n".join(lines) + "\n")
-    opts = ReplayOptions(resolution=RES, deskew=False)
+    opts = ReplayOptions.of(resolution=RES, deskew=False)
     from_bag = replay(recording["bag"], opts, progress=False)
     from_folder = replay_folder(folder, poses, opts, progress=False)
     assert from_folder.summary.scans_used == SMALL.scans
@@ -96,17 +96,16 @@ def test_kitti_folder_with_kitti_poses_equals_the_bag_without_deskew(recording) 
 
 def test_selection_window_and_every(recording) -> None:  # type: ignore[no-untyped-def]
     stamps = [stamp for stamp, _ in recording["clouds"]]
-    full = ReplayOptions(resolution=RES)
+    full = ReplayOptions.of(resolution=RES)
     by_index = replay(
-        recording["bag"], replace(full, start_index=1, end_index=5, every=2), progress=False
+        recording["bag"], full.but(start_index=1, end_index=5, every=2), progress=False
     )
     by_time = replay(
-        recording["bag"], replace(full, start=stamps[1], end=stamps[5], every=2), progress=False
+        recording["bag"], full.but(start=stamps[1], end=stamps[5], every=2), progress=False
     )
     by_offset = replay(
         recording["bag"],
-        replace(
-            full,
+        full.but(
             start_offset=stamps[1] - stamps[0],
             end_offset=stamps[4] - stamps[0] + 0.01,
             every=2,
@@ -118,7 +117,7 @@ def test_selection_window_and_every(recording) -> None:  # type: ignore[no-untyp
     _same(_stats(by_time), _stats(by_index))
     _same(_stats(by_offset), _stats(by_index))
     with pytest.raises(ReplayError, match="no cloud could be mapped"):
-        replay(recording["bag"], replace(full, start=stamps[-1] + 1), progress=False)
+        replay(recording["bag"], full.but(start=stamps[-1] + 1), progress=False)
 
 
 def test_identity_poses_for_single_frames(tmp_path: Path) -> None:
@@ -126,7 +125,7 @@ def test_identity_poses_for_single_frames(tmp_path: Path) -> None:
     folder.mkdir()
     xyz = np.array([[5.0, 0.0, 0.0], [0.0, 4.0, 0.0]], dtype="<f4")
     write_ply(folder / "a.ply", {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2]})
-    result = replay_folder(folder, "identity", ReplayOptions(resolution=0.5), progress=False)
+    result = replay_folder(folder, "identity", ReplayOptions.of(resolution=0.5), progress=False)
     hit = result.mapper.query([[5.2, 0.2, 0.2], [0.2, 4.2, 0.2]])
     assert np.all(hit.n == 1)
     assert result.mapper.frame_id == "lidar"
@@ -177,4 +176,4 @@ def test_kiss_icp_missing_is_a_clear_error(tmp_path: Path, monkeypatch: pytest.M
     with pytest.raises(
         ReplayError, match="needs the Python package kiss-icp: pip install kiss-icp"
     ):
-        replay_folder(folder, None, ReplayOptions(odometry="kiss-icp"), progress=False)
+        replay_folder(folder, None, ReplayOptions.of(odometry="kiss-icp"), progress=False)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -42,7 +41,7 @@ def bags(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 
 
 def _stats(bag: Path, **opts: object) -> tuple[np.ndarray, np.ndarray, object]:
-    result = replay(bag, ReplayOptions(resolution=RES, **opts), progress=False)  # type: ignore[arg-type]
+    result = replay(bag, ReplayOptions.of(resolution=RES, **opts), progress=False)
     v = result.mapper.voxels()
     order = np.lexsort(v.ijk.T)
     return v.ijk[order], np.stack([v.s[order], v.n[order]]), result.summary
@@ -114,7 +113,7 @@ def test_identity_when_the_cloud_is_in_the_odometry_child_frame(bags, reference)
 
 def test_missing_extrinsic_is_an_error_unless_configured(bags, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     with pytest.raises(ReplayError, match="no lidar extrinsic"):
-        replay(bags["no_static"], ReplayOptions(resolution=RES), progress=False)
+        replay(bags["no_static"], ReplayOptions.of(resolution=RES), progress=False)
     cfg = tmp_path / "node.yaml"
     t, rpy = SMALL.lidar_translation, SMALL.lidar_rpy
     cfg.write_text(
@@ -123,8 +122,8 @@ def test_missing_extrinsic_is_an_error_unless_configured(bags, tmp_path: Path) -
         f"    lidar.translation: {list(t)}\n    lidar.rpy: {list(rpy)}\n"
     )
     opts = options_from_yaml(cfg)
-    assert opts["resolution"] == 0.25 and math.isinf(opts["max_range"])
-    result = replay(bags["no_static"], ReplayOptions(**opts), progress=False)
+    assert opts["resolution"] == 0.25 and opts["max_range"] == 0.0  # no limit to the core
+    result = replay(bags["no_static"], ReplayOptions.of(**opts), progress=False)
     assert "configuration" in result.summary.extrinsic_source
 
 
@@ -141,9 +140,9 @@ def test_unknown_config_parameter_is_an_error(tmp_path: Path) -> None:
 
 def test_missing_or_wrong_topic(bags) -> None:  # type: ignore[no-untyped-def]
     with pytest.raises(ReplayError, match="/points is not in the bag"):
-        replay(bags["mcap"], ReplayOptions(cloud_topic="/points"), progress=False)
+        replay(bags["mcap"], ReplayOptions.of(cloud_topic="/points"), progress=False)
     with pytest.raises(ReplayError, match="expected sensor_msgs/msg/PointCloud2"):
-        replay(bags["mcap"], ReplayOptions(cloud_topic="/odom"), progress=False)
+        replay(bags["mcap"], ReplayOptions.of(cloud_topic="/odom"), progress=False)
 
 
 def test_several_cloud_topics_need_a_choice(tmp_path: Path) -> None:
@@ -205,7 +204,7 @@ def test_bag_without_poses(tmp_path: Path) -> None:
 
 def test_ros2_file_path_means_its_folder(bags) -> None:  # type: ignore[no-untyped-def]
     mcap_file = next(bags["mcap"].glob("*.mcap"))
-    result = replay(mcap_file, ReplayOptions(resolution=RES, max_scans=2), progress=False)
+    result = replay(mcap_file, ReplayOptions.of(resolution=RES, max_scans=2), progress=False)
     assert result.summary.scans_used == 2
 
 
@@ -220,7 +219,7 @@ def test_progress_line_reports_rate_and_time_left() -> None:
 
 
 def test_keep_radius_reaches_the_mapper(bags) -> None:  # type: ignore[no-untyped-def]
-    full = replay(bags["mcap"], ReplayOptions(resolution=RES), progress=False).mapper
-    near = replay(bags["mcap"], ReplayOptions(resolution=RES, keep_radius=1.0), progress=False)
+    full = replay(bags["mcap"], ReplayOptions.of(resolution=RES), progress=False).mapper
+    near = replay(bags["mcap"], ReplayOptions.of(resolution=RES, keep_radius=1.0), progress=False)
     assert near.mapper.keep_radius == 1.0 and full.keep_radius is None
     assert 0 < near.mapper.num_voxels < full.num_voxels

@@ -205,7 +205,7 @@ def test_keep_radius_reaches_the_nodes_mapper(tmp_path: Path) -> None:
     try:
         node = MfpMapperNode(context=ctx)
         try:
-            assert node.cfg.keep_radius == 25.0
+            assert node.cfg.map.keep_radius == 25.0
             assert node.mapper.keep_radius == 25.0
         finally:
             node.close()
