@@ -22,6 +22,7 @@ executor never waits for the map. Everything is counted under the pipeline's nam
 from __future__ import annotations
 
 import copy
+import functools
 import math
 import threading
 import time
@@ -70,6 +71,11 @@ class LiveSettings:
     def of(cls, cfg: NodeConfig) -> LiveSettings:
         """What the worker reads of the node's parameters."""
         return cls(cfg.placement, cfg.sensor_model)
+
+    @functools.cached_property
+    def extrinsic_override(self) -> Extrinsic | None:
+        """The ``lidar.*`` mounting when set (it overrides /tf_static), made once per change."""
+        return _extrinsic(self.placement.lidar_override())
 
 
 @dataclass
@@ -442,7 +448,7 @@ class LiveIntegrator:
         waited = time.monotonic() - item.received
         try:
             placement = self.pose_inputs.placement(
-                frame, cfg.base_frame_id.lstrip("/"), _extrinsic(cfg.lidar_override())
+                frame, cfg.base_frame_id.lstrip("/"), settings.extrinsic_override
             )
         except pipeline.ScanDropped as drop:
             if waited <= cfg.odom_wait and drop.reason != "tf_conflict":

@@ -19,7 +19,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
-from mfp_mapper.config.schema import NodeConfig
+from mfp_mapper.config.sections import OutputsSection
 from mfp_mapper.core.gridmap import GridTooLarge, unobserved_hit_probability
 from mfp_mapper.mapping.live import LiveIntegrator
 from mfp_mapper.ros.messages import cloud_msg, grid_msg, stamp_msg
@@ -62,21 +62,22 @@ class MapOutputs:
         self,
         node: Node,
         worker: LiveIntegrator,
-        config: Callable[[], NodeConfig],
+        settings: Callable[[], OutputsSection],
         warn: Callable[[str, str], None],
     ) -> None:
         self._node = node
         self._warn = warn
         self._worker = worker
-        self._config = config
-        latch = config().outputs.latch
+        self._settings = settings
+        """The outputs section now (the node's, replaced whole on a change)."""
+        latch = settings().latch
         qos = QoSProfile(
             history=HistoryPolicy.KEEP_LAST,
             depth=1,
             reliability=ReliabilityPolicy.RELIABLE,
             durability=DurabilityPolicy.TRANSIENT_LOCAL if latch else DurabilityPolicy.VOLATILE,
         )
-        names = OCTOMAP_TOPICS if config().outputs.octomap_topics else TOPICS
+        names = OCTOMAP_TOPICS if settings().octomap_topics else TOPICS
         self._doo_pub = node.create_publisher(PointCloud2, names["degree_of_occupancy"], qos)
         self._std_pub = node.create_publisher(PointCloud2, names["std"], qos)
         self._grid_pub = node.create_publisher(OccupancyGrid, names["projected_map"], qos)
@@ -145,16 +146,16 @@ class MapOutputs:
 
     def _publish_clouds(self, lock_times: list[float]) -> None:
         """Publish the degree-of-occupancy and std clouds of the filtered voxels."""
-        cfg, worker = self._config(), self._worker
+        cfg, worker = self._settings(), self._worker
         with self._timed_map_lock(lock_times):
             robot = worker.robot_position
-            radius = cfg.outputs.publish_radius
+            radius = cfg.publish_radius
             window = None
             if radius > 0.0 and robot is not None:
                 window = (np.asarray(robot) - radius, np.asarray(robot) + radius)
             vox = worker.mapper.voxels(
-                min_doo=cfg.outputs.min_degree_of_occupancy,
-                min_evidence=cfg.outputs.min_evidence,
+                min_doo=cfg.min_degree_of_occupancy,
+                min_evidence=cfg.min_evidence,
                 bounds=window,
             )
             stamp = worker.mapper.last_stamp
@@ -174,23 +175,23 @@ class MapOutputs:
         """The 2D grid of the height band: hit-probability percent (``~/hit_probability_map``)
         or, with ``projected``, ``~/projected_map`` (trinary 100/0/-1 for Nav2 unless
         ``projected_map.trinary`` is false); ``lock_times`` as in ``_timed_map_lock``."""
-        cfg, worker = self._config(), self._worker
+        cfg, worker = self._settings(), self._worker
         trinary = None
-        if projected and cfg.outputs.projected_map_trinary:
-            occupied = cfg.outputs.projected_map_occupied_threshold
-            free = cfg.outputs.projected_map_free_threshold
+        if projected and cfg.projected_map_trinary:
+            occupied = cfg.projected_map_occupied_threshold
+            free = cfg.projected_map_free_threshold
             if free < 0.0:
                 m = worker.mapper
                 free = unobserved_hit_probability(m.resolution, m.prior.shape, m.prior.rate)
             trinary = (occupied, min(free, occupied))
         robot = worker.robot_position
-        radius = cfg.outputs.hit_probability_map_radius
+        radius = cfg.hit_probability_map_radius
         center = (float(robot[0]), float(robot[1])) if robot is not None and radius > 0 else None
-        limit = cfg.outputs.hit_probability_map_max_cells
+        limit = cfg.hit_probability_map_max_cells
         with self._timed_map_lock(lock_times):
             resolution = worker.mapper.resolution
             stamp = worker.mapper.last_stamp
-            band = (cfg.outputs.occupancy_min_z, cfg.outputs.occupancy_max_z)
+            band = (cfg.occupancy_min_z, cfg.occupancy_max_z)
             try:
                 grid = worker.mapper.hit_probability_grid(
                     *band, center=center, radius=radius, max_cells=limit, trinary=trinary
@@ -216,5 +217,5 @@ class MapOutputs:
             worker.map_frame or worker.mapper.frame_id,
             self._header_stamp(stamp),
             now,
-            cfg.outputs.occupancy_min_z,
+            cfg.occupancy_min_z,
         )

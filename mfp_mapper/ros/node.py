@@ -239,7 +239,7 @@ class MfpMapperNode(GuardedLifecycleNode):
             self.localizer.build_in_background(mapper, self.worker.whole_map, force=True)
         # the map version last saved: the autosave writes only a map that changed since
         self._saved_version: int | None = mapper.version
-        self.outputs = MapOutputs(self, self.worker, lambda: self.cfg, self.warn_throttled)
+        self.outputs = MapOutputs(self, self.worker, lambda: self.cfg.outputs, self.warn_throttled)
         self.worker.set_publish(self.outputs.publish)
         self._entities += self.outputs.publishers
         self._configured = self._configured_once = True

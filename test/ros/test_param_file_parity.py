@@ -96,6 +96,7 @@ NODE_CASES = {
     "mixed sequence": "/**:\n  ros__parameters:\n    lidar.rpy: [0, 0.5, 1.0]\n",
     "no ros__parameters": "resolution: 0.2\n",
     "rclpy's own": "/**:\n  ros__parameters:\n    use_sim_time: true\n",
+    "former use_tf": "/**:\n  ros__parameters:\n    use_tf: true\n    resolution: 0.2\n",
 }
 
 
