@@ -47,3 +47,40 @@ def test_light_entry_points_import_nothing_heavy(code: str) -> None:
 
 def test_the_probe_sees_heavy_imports() -> None:
     assert {"numba", "llvmlite"} <= set(_heavy_modules_after("import mfp_mapper.core.traversal"))
+
+
+VENV_BIN = ROOT / ".venv" / "bin"
+
+
+def _venv_or_skip() -> Path:
+    if not (VENV_BIN / "python").exists():
+        pytest.skip(f"{VENV_BIN.parent} is made by ./run setup; not there")
+    return VENV_BIN
+
+
+def test_the_venv_imports_this_checkout_from_any_directory(tmp_path: Path) -> None:
+    """``./run setup`` installs the package editable: a user's own directory finds it."""
+    bin_dir = _venv_or_skip()
+    if (ROOT / ".venv").is_symlink():
+        pytest.skip(
+            ".venv is a link to another checkout's (a git worktree): its package is that one"
+        )
+    proc = subprocess.run(
+        [str(bin_dir / "python"), "-c", "import mfp_mapper; print(mfp_mapper.__file__)"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert Path(proc.stdout.strip()).resolve() == (ROOT / "mfp_mapper" / "__init__.py").resolve()
+
+
+@pytest.mark.parametrize("script", ["mfp-mapper", "mfp_mapper"])
+def test_the_console_scripts_answer_help_from_any_directory(script: str, tmp_path: Path) -> None:
+    """The command line and the node, as README tells a user to type them."""
+    bin_dir = _venv_or_skip()
+    proc = subprocess.run(
+        [str(bin_dir / script), "--help"], cwd=tmp_path, capture_output=True, text=True,
+        timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert "usage" in (proc.stdout + proc.stderr).lower()
+    assert "Traceback" not in proc.stderr
