@@ -136,7 +136,7 @@ def setting(
     ``name``: the ROS/YAML name when it is not the section's ``PREFIX`` + the field name (a
     dotted name such as ``prior.shape`` held as ``prior_shape``).
     """
-    kind = type or (list if isinstance(default, tuple) else builtin_type(default))
+    kind = type or (list if isinstance(default, tuple) else default.__class__)
     spec = Setting(
         name or "",
         kind,
@@ -152,11 +152,6 @@ def setting(
         metavar,
     )
     return dataclasses.field(default=default, metadata={METADATA_KEY: spec})
-
-
-def builtin_type(value: Any) -> type:
-    """The Python type of a default value (the ``type`` builtin, shadowed in ``setting``)."""
-    return value.__class__
 
 
 class Section:
@@ -178,10 +173,6 @@ class Section:
     def core(self, field: str) -> Any:
         """A field's value as the core takes it ("<= 0 means no limit" applied)."""
         return _section_fields(type(self))[field].core_value(getattr(self, field))
-
-    def values(self) -> dict[str, Any]:
-        """Setting name -> value."""
-        return {s.name: getattr(self, s.field) for s in self.settings()}
 
 
 _SETTINGS_OF: dict[type, tuple[Setting, ...]] = {}

@@ -1,5 +1,5 @@
-"""The settings schema: one entry per setting, and what derives from it (YAML, ReplayOptions,
-NodeConfig, the node's type and range checks as the CLI applies them). No ROS."""
+"""The settings schema derived from the sections: SETTINGS, the YAML, ReplayOptions, NodeConfig,
+the node's type and range checks as the CLI applies them, the former use_tf. No ROS."""
 
 from __future__ import annotations
 
@@ -192,3 +192,13 @@ def test_localization_needs_an_odometry_frame_name() -> None:
         with pytest.raises(ValueError, match="localization.odom_frame must name a frame"):
             NodeConfig.from_values({"localization.enabled": True, "localization.odom_frame": name})
     NodeConfig.from_values({"localization.odom_frame": ""})  # not localizing: unused
+
+
+def test_the_former_use_tf_parameter_is_accepted_and_ignored() -> None:
+    from mfp_mapper.config.schema import RETIRED, retired_parameters, unknown_parameters
+
+    assert "use_tf" not in BY_NAME and "use_tf" in RETIRED
+    assert check_parameters({"use_tf": True}) == NodeConfig()
+    assert unknown_parameters(["use_tf"]) == [] and retired_parameters(["use_tf", "x"]) == [
+        "use_tf"
+    ]
