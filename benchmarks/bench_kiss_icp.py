@@ -88,15 +88,12 @@ def norlab() -> None:
         j = int(np.argmin(np.abs(odometry["stamp"] - stamp)))
         ref[k, :3, :3] = quaternion_to_matrix(odometry["quaternion"][j])
         ref[k, :3, 3] = odometry["position"][j]
-    from mfp_mapper.mapping.folder_replay import replay_folder
+    from mfp_mapper.sources.opener import open_recording
 
     t0 = time.perf_counter()
-    replay_folder(
-        sequence / "scans",
-        sequence / "icp_odom.csv",
-        ReplayOptions.of(resolution=0.2),
-        progress=False,
-    )
+    opts = ReplayOptions.of(resolution=0.2)
+    with open_recording(sequence / "scans", opts, sequence / "icp_odom.csv") as recording:
+        replay(recording, opts, progress=False)
     base = time.perf_counter() - t0
     _line("norlab (real, 14 scans) vs its ICP odometry", stamps, poses, ref, seconds, base)
 

@@ -61,7 +61,7 @@ def sim_case(root: Path) -> tuple[str, Path, tuple[np.ndarray, np.ndarray]]:
     small = preset("small")
     scene = replace(small.scene, room_lo=(-7.07, -6.94, -0.05), room_hi=(6.96, 7.03, 3.93))
     bag = simulate(root / "sim", replace(small, scene=scene, scans=40), "mcap").bag
-    truth = replay_refined(bag, None, ReplayOptions.of(resolution=0.2), refine=False)
+    truth = replay_refined(bag, ReplayOptions.of(resolution=0.2), refine=False)
     body = Rotation.from_quat(np.array([s.quaternion for s in truth.scans]))
     mount = Rotation.from_euler("xyz", small.lidar_rpy)
     # KISS-ICP gives the lidar's poses: truth = body pose * lidar mount
@@ -94,7 +94,7 @@ def main() -> None:
             ("  pyramid every scan", True, every_scan),
         ):
             t0 = time.perf_counter()
-            res = replay_refined(folder, None, opts, refine=refine, align=align)
+            res = replay_refined(folder, opts, refine=refine, align=align)
             secs = time.perf_counter() - t0
             pos = np.array([s.position for s in res.scans])
             quat = np.array([s.quaternion for s in res.scans])

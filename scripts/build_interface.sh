@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Build an interface package of interfaces/ into a venv with the ROS 2 Jazzy rosidl wheels:
 # tf2_msgs (TFMessage, for /tf and /tf_static; not on PyPI; a sourced ROS 2 install brings
-# its own) and mfp_mapper_msgs (the node's ClearBbox service). Called by `./run setup` when
-# the package does not import.
+# its own) and mfp_mapper_msgs (the node's services ClearBbox and QueryMap). Called by
+# `./run setup` when the package does not import (mfp_mapper_msgs: also when its definitions
+# changed).
 #
 #   scripts/build_interface.sh [PKG]     (PKG: tf2_msgs (default) or mfp_mapper_msgs;
 #                                         PYTHON=/path/to/venv/bin/python, default .venv)

@@ -130,3 +130,30 @@ def test_only_the_loop_runs_the_pipeline_stages() -> None:
             if name in STAGES:
                 callers.append(f"{_module_name(path)}: {name}")
     assert not callers, "pipeline stages called outside mapping.loop:\n" + "\n".join(callers)
+
+
+READERS = {"mfp_mapper.sources.pose_files", "mfp_mapper.sources.scan_files"}
+"""Modules that parse recordings' files: ``sources`` opens recordings, no one above it."""
+
+
+def test_recordings_are_read_in_sources_only() -> None:
+    """mapping/ takes opened recordings (``sources.opener``): it imports no bag reader
+    (rosbags) and no pose- or scan-file parser."""
+    found = []
+    for path in sorted((PACKAGE / "mapping").rglob("*.py")):
+        tree = ast.parse(path.read_text(), str(path))
+        for node in ast.walk(tree):
+            names = (
+                [a.name for a in node.names]
+                if isinstance(node, ast.Import)
+                else [node.module or ""]
+                if isinstance(node, ast.ImportFrom)
+                else []
+            )
+            found += [
+                f"{_module_name(path)} -> {n}"
+                for n in names
+                if n.split(".")[0] == "rosbags" or n in READERS
+            ]
+    found += [f"{m} -> {t}" for m, ts in _graph().items() if ".mapping." in m for t in ts & READERS]
+    assert not found, "recording readers imported in mapping/:\n" + "\n".join(sorted(set(found)))

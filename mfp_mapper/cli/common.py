@@ -58,7 +58,9 @@ def check_writable(path: Path, tiled_ok: bool = False) -> None:
     target = path if path.is_dir() else parent
     if not os.access(target, os.W_OK | os.X_OK):
         raise CliError(f"{path}: cannot write in {target} (read-only or not permitted)")
-    if tiled_ok and path.suffix != ".npz":
+    from mfp_mapper.mapio.loading import is_map_file_name
+
+    if tiled_ok and not is_map_file_name(path):
         from mfp_mapper.mapio.mapfile import MapFileError
         from mfp_mapper.mapio.tiles import check_tiled_output
 

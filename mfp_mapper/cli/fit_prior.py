@@ -40,16 +40,17 @@ def run(args: argparse.Namespace) -> int:
     from mfp_mapper.core.model import UNIFORM
     from mfp_mapper.mapping.replay import ReplayError
     from mfp_mapper.outputs import score
+    from mfp_mapper.sources.opener import open_recording
 
     log = None if args.quiet else warn
     try:
         opts = replay_options(args)
         sample = score.EventSample()
-        score.score_split(
-            score.Source(args.input, args.poses, args.times), opts, args.split,
-            {"uniform_prior": UNIFORM}, classic=False, sample=sample,
-            within_training=True, progress=not args.quiet, log=log,
-        )  # fmt: skip
+        with open_recording(args.input, opts, args.poses, args.times, log) as recording:
+            score.score_split(
+                recording, opts, args.split, {"uniform_prior": UNIFORM}, classic=False,
+                sample=sample, within_training=True, progress=not args.quiet, log=log,
+            )  # fmt: skip
         fitted = score.fit_prior(sample)
     except (ReplayError, ValueError) as err:
         raise CliError(str(err)) from None

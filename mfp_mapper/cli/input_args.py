@@ -42,8 +42,8 @@ def add_input_arguments(p: argparse.ArgumentParser) -> None:
         "--poses",
         metavar="FILE|identity",
         help="scan folder: poses file (KITTI 3x4 per scan, TUM 't x y z qx qy qz qw', "
-        "odometry .csv) or 'identity' (every scan at the origin); a bag with localize or "
-        "--refine-poses/--poses-out: TUM or odometry .csv, matched by stamp",
+        "odometry .csv) or 'identity' (every scan at the origin); a bag: TUM or odometry "
+        ".csv, matched by stamp, instead of its own odometry or /tf",
     )
     p.add_argument("--times", metavar="FILE", help="scan folder: one stamp (s) per scan")
     p.add_argument(

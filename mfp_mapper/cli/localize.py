@@ -74,8 +74,9 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
 
     from mfp_mapper.config.replay_options import options_from_args
-    from mfp_mapper.mapping.localize import localize_folder
+    from mfp_mapper.mapping.localize import localize
     from mfp_mapper.mapping.replay import ReplayError
+    from mfp_mapper.sources.opener import open_recording
 
     out = Path(args.poses_out)
     check_pose_outputs(
@@ -89,9 +90,8 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"{args.map}: the map is empty: nothing to localize against")
     try:
         opts = options_from_args(args).but(**input_options(args), resolution=mapper.resolution)
-        result = localize_folder(
-            mapper, args.input, args.poses, opts, times_file=args.times, align=align, log=warn
-        )
+        with open_recording(args.input, opts, args.poses, args.times, warn) as recording:
+            result = localize(mapper, recording, opts, align=align, log=warn)
     except ReplayError as err:
         raise CliError(f"{err} (no poses written)") from None
     except ValueError as err:  # invalid settings

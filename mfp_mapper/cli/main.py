@@ -2,7 +2,7 @@
 
 One module per subcommand (``cli.replay``, ``cli.merge``, ``cli.simulate``, ``cli.export``,
 ``cli.render``, ``cli.plot_convergence``, ``cli.query``, ``cli.evaluate``, ``cli.score``,
-``cli.fit_prior``, ``cli.demo``), each
+``cli.fit_prior``, ``cli.call``, ``cli.demo``), each
 with ``add_parser(sub)`` and ``run(args)``; the work is in mapping/, sources/ and outputs/.
 The modules import no numpy at the top, so ``mfp-mapper --help`` stays cheap.
 Exit status: 0 success, 1 the job failed (bad bag, bad map file...), 2 bad usage,
@@ -18,6 +18,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from mfp_mapper.cli import (
+    call,
     demo,
     evaluate,
     export,
@@ -36,7 +37,7 @@ from mfp_mapper.config.names import VERSION
 
 COMMANDS = (
     replay, localize, merge, simulate, export, render, plot_convergence, query, evaluate, score,
-    fit_prior, demo,
+    fit_prior, call, demo,
 )  # fmt: skip
 """The subcommand modules, in the order ``--help`` lists them."""
 
@@ -54,6 +55,9 @@ examples:
   mfp-mapper render map.npz -o pictures/
   mfp-mapper plot-convergence -o pictures/
   mfp-mapper query map.npz 1.0 0.0 1.2  4.0 2.0 0.5
+  mfp-mapper query map.npz --segment 0 0 1  20 0 1     # is this line of sight clear?
+  mfp-mapper call status                              # a running node's counters
+  mfp-mapper call segment 0 0 1  20 0 1               # ask a running node
   mfp-mapper evaluate map.npz sim_bag.truth.json
   mfp-mapper score --split even-odd run.bag --json score.json   # held-out likelihood
   mfp-mapper fit-prior run.bag                        # the prior that predicts best

@@ -74,9 +74,9 @@ def replay_options(args: argparse.Namespace) -> ReplayOptions:
 
 
 def run(args: argparse.Namespace) -> int:
-    from mfp_mapper.mapping.folder_replay import replay_folder
+    from mfp_mapper.mapio.loading import save_map
     from mfp_mapper.mapping.replay import ReplayError, replay
-    from mfp_mapper.sources.scan_folder import is_scan_folder
+    from mfp_mapper.sources.opener import open_recording
 
     out = Path(args.output)
     check_writable(out, tiled_ok=True)
@@ -94,29 +94,13 @@ def run(args: argparse.Namespace) -> int:
         return run_refined(args, out)
     try:
         opts = replay_options(args)
-        if is_scan_folder(args.inputs[0]):
-            result = replay_folder(
-                args.inputs[0], args.poses, opts, args.times, progress=not args.quiet, log=warn
-            )
-        elif args.poses is not None or args.times is not None:
-            raise ReplayError(
-                f"{args.inputs[0]}: --poses and --times are for folders of scan files"
-            )
-        else:
-            result = replay(args.inputs[0], opts, progress=not args.quiet, log=warn)
+        with open_recording(args.inputs[0], opts, args.poses, args.times, warn) as recording:
+            result = replay(recording, opts, progress=not args.quiet, log=warn)
     except ReplayError as err:
         raise CliError(f"{err} (no map written)") from None
     except ValueError as err:  # invalid mapper settings
         raise CliError(f"{err} (no map written)") from None
-    if out.suffix == ".npz":
-        from mfp_mapper.mapio.loading import save_map
-
-        save_map(result.mapper, out)
-    else:
-        from mfp_mapper.mapio.mapfile import map_arrays
-        from mfp_mapper.mapio.tiles import write_tiled
-
-        write_tiled(out, map_arrays(result.mapper), args.tile_blocks)
+    save_map(result.mapper, out, args.tile_blocks)
     summary = result.summary
     print(summary.format())
     print(f"map          {out} ({result.mapper.num_voxels:,} voxels, {opts.map.resolution:g} m)")
@@ -126,8 +110,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_refined(args: argparse.Namespace, out: Path) -> int:
-    """One scan folder, scan by scan, with ``--refine-poses`` and/or ``--poses-out``
-    (``mapping.localize.replay_refined_folder``)."""
+    """One recording, scan by scan, with ``--refine-poses`` and/or ``--poses-out``
+    (``mapping.localize.replay_refined``)."""
     from mfp_mapper.cli.localize import (
         align_options,
         check_pose_outputs,
@@ -135,14 +119,10 @@ def run_refined(args: argparse.Namespace, out: Path) -> int:
         write_results,
     )
     from mfp_mapper.mapio.loading import save_map
-    from mfp_mapper.mapping.localize import replay_refined_folder
+    from mfp_mapper.mapping.localize import replay_refined
     from mfp_mapper.mapping.replay import ReplayError
-    from mfp_mapper.sources.scan_folder import is_scan_folder
+    from mfp_mapper.sources.opener import open_recording
 
-    if out.suffix != ".npz":
-        raise CliError("--refine-poses/--poses-out write an .npz map")
-    if not is_scan_folder(args.inputs[0]) and args.times is not None:
-        raise CliError(f"{args.inputs[0]}: --times is for folders of scan files")
     poses_out = Path(args.poses_out) if args.poses_out else None
     if poses_out is not None:
         check_pose_outputs(
@@ -151,17 +131,18 @@ def run_refined(args: argparse.Namespace, out: Path) -> int:
              "the --times file": args.times},
         )  # fmt: skip
     try:
-        result = replay_refined_folder(
-            args.inputs[0], args.poses, replay_options(args), times_file=args.times,
-            align=align_options(args), log=warn, refine=args.refine_poses,
-        )  # fmt: skip
+        opts = replay_options(args)
+        with open_recording(args.inputs[0], opts, args.poses, args.times, warn) as recording:
+            result = replay_refined(
+                recording, opts, align=align_options(args), log=warn, refine=args.refine_poses
+            )
     except ReplayError as err:
         raise CliError(f"{err} (no map written)") from None
     except ValueError as err:
         raise CliError(f"{err} (no map written)") from None
     if result.mapper is None or not result.scans:
         raise CliError(f"{args.inputs[0]}: no scan had a pose (no map written)")
-    save_map(result.mapper, out)
+    save_map(result.mapper, out, args.tile_blocks)
     if poses_out is not None:
         write_results(result, poses_out)
     if args.refine_poses:

@@ -76,13 +76,16 @@ def _priors(main: Any) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from contextlib import ExitStack
+
     from mfp_mapper.core.model import Prior
     from mfp_mapper.mapio.mapfile import MapFileError
     from mfp_mapper.mapping.replay import ReplayError
     from mfp_mapper.outputs import score
+    from mfp_mapper.sources.opener import open_recording
 
     maps = [p for p in args.paths if _is_map(p)]
-    inputs = [score.Source(p, args.poses, args.times) for p in args.paths if not _is_map(p)]
+    inputs = [p for p in args.paths if not _is_map(p)]
     if not inputs:
         raise CliError("score needs a recording (bag or scan folder) to score")
     if args.split and maps:
@@ -95,33 +98,43 @@ def run(args: argparse.Namespace) -> int:
         raise CliError("--resolution/--decay-time rows need --split (a map has its own)")
     log = None if args.quiet else warn
     results: list[tuple[str, dict[str, Any]]] = []
+    rows = _score_rows(args)
     try:
-        if args.split:
-            for label, row_args in _score_rows(args):
-                opts = replay_options(row_args)
-                prior = Prior(opts.map.prior_shape, opts.map.prior_rate)
-                scorer = score.score_split(
-                    inputs[0], opts, args.split, _priors(prior),
-                    classic=not args.no_classic, progress=not args.quiet, log=log,
-                )  # fmt: skip
-                results.append((label or f"resolution {opts.map.resolution:g} m", score.report(
-                    scorer, "model"
-                )))  # fmt: skip
-        else:
-            opts = replay_options(args)
-            for path in maps:
-                mapper = load_map_arg(path)
-                if args.prior_shape is not None or args.prior_rate is not None:
-                    mapper.prior = Prior(
-                        opts.map.prior_shape
-                        if args.prior_shape is not None
-                        else mapper.prior.shape,
-                        opts.map.prior_rate if args.prior_rate is not None else mapper.prior.rate,
-                    )
-                scorer = score.score_map(
-                    mapper, inputs, opts, _priors(mapper.prior), progress=not args.quiet, log=log
-                )
-                results.append((path, score.report(scorer, "model")))
+        with ExitStack() as stack:
+            opened = replay_options(rows[0][1])  # the rows differ in map settings only
+            recordings = [
+                stack.enter_context(open_recording(p, opened, args.poses, args.times, log))
+                for p in inputs
+            ]
+            if args.split:
+                for label, row_args in rows:
+                    opts = replay_options(row_args)
+                    prior = Prior(opts.map.prior_shape, opts.map.prior_rate)
+                    scorer = score.score_split(
+                        recordings[0], opts, args.split, _priors(prior),
+                        classic=not args.no_classic, progress=not args.quiet, log=log,
+                    )  # fmt: skip
+                    results.append((label or f"resolution {opts.map.resolution:g} m", score.report(
+                        scorer, "model"
+                    )))  # fmt: skip
+            else:
+                opts = replay_options(args)
+                for path in maps:
+                    mapper = load_map_arg(path)
+                    if args.prior_shape is not None or args.prior_rate is not None:
+                        mapper.prior = Prior(
+                            opts.map.prior_shape
+                            if args.prior_shape is not None
+                            else mapper.prior.shape,
+                            opts.map.prior_rate
+                            if args.prior_rate is not None
+                            else mapper.prior.rate,
+                        )
+                    scorer = score.score_map(
+                        mapper, recordings, opts, _priors(mapper.prior), progress=not args.quiet,
+                        log=log,
+                    )  # fmt: skip
+                    results.append((path, score.report(scorer, "model")))
     except (ReplayError, MapFileError, ValueError) as err:
         raise CliError(str(err)) from None
     for label, rep in results:

@@ -29,8 +29,16 @@ from mfp_mapper.core.store import (
     index_box,
     voxel_problem,
 )
-from mfp_mapper.core.traversal import Rays, StoreView, integrate_rays, prepare_rays, store_view
-from mfp_mapper.core.voxel_stats import IntegrationSummary, VoxelStats
+from mfp_mapper.core.traversal import (
+    Rays,
+    StoreView,
+    integrate_rays,
+    prepare_rays,
+    read_walk,
+    store_view,
+    visit_bounds,
+)
+from mfp_mapper.core.voxel_stats import IntegrationSummary, SegmentStats, VoxelStats
 
 MAX_RAY_VOXELS = 1 << 15
 """Hard limit of a ray's walk, in voxels (3.3 km at 0.1 m): a ray longer than this (when
@@ -431,6 +439,67 @@ class Mapper:
             arr[~valid] = 0.0
         raw.t_last[~valid] = -np.inf
         return self._stats(raw, stamp)
+
+    def query_segments(
+        self, starts: ArrayLike, ends: ArrayLike, stamp: float | None = None
+    ) -> SegmentStats:
+        """Whether straight lines of sight are clear: for each segment from ``starts[i]`` to
+        ``ends[i]`` (map frame, metres), the probability that a ray passes unreflected and
+        the length through never-observed voxels, decayed to ``stamp`` when given.
+
+        The voxels and exact chords are those of the read-only walk of the scan likelihood
+        (``traversal.read_walk``): a segment is a ray without a return. Read-only, like
+        ``query``. ValueError for a non-finite point, or a segment reaching beyond the map's
+        index range or longer than ``MAX_RAY_VOXELS`` voxels.
+        """
+        a = np.asarray(starts, dtype=np.float64).reshape(-1, 3)
+        b = np.asarray(ends, dtype=np.float64).reshape(-1, 3)
+        if a.shape != b.shape:
+            raise ValueError(f"{len(a)} segment starts but {len(b)} ends")
+        if not (np.isfinite(a).all() and np.isfinite(b).all()):
+            raise ValueError("segment ends must be finite numbers")
+        length = np.linalg.norm(b - a, axis=1)
+        longest = float(length.max(initial=0.0))
+        if longest > MAX_RAY_VOXELS * self.resolution:
+            raise ValueError(
+                f"a segment is {longest:.6g} m long: at most {MAX_RAY_VOXELS} voxels "
+                f"({MAX_RAY_VOXELS * self.resolution:g} m) are walked"
+            )
+        log_clear = np.zeros(len(a))
+        unknown = np.zeros(len(a))
+        walked = np.flatnonzero(length > 0.0)
+        offset = self._offset
+        rays, dropped = prepare_rays(
+            b[walked] - offset, a[walked] - offset, self.resolution, 0.0, math.inf,
+            np.ones(len(walked), dtype=np.bool_),
+        )  # fmt: skip
+        if dropped["out_of_bounds"]:
+            raise ValueError(
+                f"{dropped['out_of_bounds']} segment(s) reach beyond the map's index range "
+                f"({MAX_VOXEL_INDEX} voxels from its origin {tuple(offset.tolist())})"
+            )
+        if len(rays):
+            capacity = int(visit_bounds(rays.origins_vox, rays.ends_vox).sum())
+            ray = np.empty(capacity, dtype=np.int64)
+            s, n, chord = np.empty(capacity), np.empty(capacity), np.empty(capacity)
+            view, shard_mask = self.store_view()
+            per_ray = np.empty(len(rays))
+            at = float(stamp) if stamp is not None and math.isfinite(self.decay_time) else None
+            used = read_walk(
+                rays.origins_vox, rays.ends_vox, rays.lengths, rays.has_return, view,
+                shard_mask, 0.0 if at is None else at,
+                math.inf if at is None else self.decay_time, self.prior.shape, self.prior.rate,
+                per_ray, True, ray,
+                np.empty((capacity, 3), dtype=np.int32), s, n, chord,
+                np.empty(capacity, dtype=np.bool_),
+            )  # fmt: skip
+            unseen = ~model.observed(s[:used], n[:used])
+            segment = walked[np.asarray(rays.source)]
+            log_clear[segment] = per_ray
+            unknown[segment] = np.bincount(
+                ray[:used][unseen], weights=chord[:used][unseen], minlength=len(rays)
+            )
+        return SegmentStats(length, np.exp(log_clear), unknown)
 
     def stored_voxels(self) -> VoxelArrays:
         """Every observed voxel as stored (index relative to ``origin``, s, n, the time they

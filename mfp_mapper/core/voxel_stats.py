@@ -99,3 +99,20 @@ class VoxelStats:
         values = {f.name: getattr(self, f.name) for f in fields(self)}
         scalars = ("resolution", "prior")
         return VoxelStats(**{k: (v if k in scalars else v[mask]) for k, v in values.items()})
+
+
+@dataclass
+class SegmentStats:
+    """What the map says of straight segments, each from a start to an end point."""
+
+    length: FloatArray
+    """Metres from start to end."""
+    clear_probability: FloatArray
+    """Probability that a ray from the start reaches the end unreflected: the product over
+    the voxels crossed of ``E[m^l]`` (Eq. 34) with ``l`` the exact chord; a never-observed
+    voxel counts with the prior alone."""
+    unknown_length: FloatArray
+    """Metres of the segment inside never-observed voxels."""
+
+    def __len__(self) -> int:
+        return int(self.length.shape[0])

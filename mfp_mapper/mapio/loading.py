@@ -1,5 +1,6 @@
-"""A Mapper from a map file or a tiled map, and a Mapper to a map file: the one road between
-map files and the core (``load_map``, ``save_map``)."""
+"""A Mapper from a map file or a tiled map, and a Mapper to a map file or a tiled map: the one
+road between map files and the core (``load_map``, ``save_map``: what one writes, the other
+reads)."""
 
 from __future__ import annotations
 
@@ -9,8 +10,17 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from mfp_mapper.core.mapper import Mapper
-from mfp_mapper.mapio.mapfile import mapper_from_arrays, read_map_arrays, write_map
-from mfp_mapper.mapio.tiles import VOXEL_KEYS, TiledMap, index_bounds
+from mfp_mapper.mapio.mapfile import map_arrays, mapper_from_arrays, read_map_arrays, write_map
+from mfp_mapper.mapio.tiles import (
+    DEFAULT_TILE_BLOCKS,
+    VOXEL_KEYS,
+    TiledMap,
+    index_bounds,
+    write_tiled,
+)
+
+MAP_FILE_SUFFIX = ".npz"
+"""A map path with this suffix is one map file; any other is a tiled map (a directory)."""
 
 
 def load_map(
@@ -34,6 +44,19 @@ def load_map(
     return mapper_from_arrays(arrays, p, **overrides)
 
 
-def save_map(mapper: Mapper, path: str | Path) -> None:
-    """Write ``mapper`` to the map file ``path`` (.npz) atomically (``mapio.mapfile``)."""
-    write_map(path, mapper)
+def is_map_file_name(path: str | Path) -> bool:
+    """True when ``save_map`` writes ``path`` as one map file (``.npz``), False for a tiled
+    map."""
+    return Path(path).suffix == MAP_FILE_SUFFIX
+
+
+def save_map(mapper: Mapper, path: str | Path, tile_blocks: int = DEFAULT_TILE_BLOCKS) -> int:
+    """Write ``mapper`` where ``load_map`` reads it back: one map file when ``path`` ends in
+    ``.npz`` (``mapio.mapfile``), else a tiled map of ``tile_blocks`` blocks a tile edge in
+    the directory ``path`` (``mapio.tiles``; a new or empty directory, or a tiled map,
+    replaced), both atomically. Returns the number of tiles written (0 for a map file);
+    ``MapFileError`` when ``path`` cannot take a tiled map."""
+    if is_map_file_name(path):
+        write_map(path, mapper)
+        return 0
+    return len(write_tiled(path, map_arrays(mapper), tile_blocks))

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from mfp_mapper.core.merge import check_mergeable
+from mfp_mapper.mapio.loading import is_map_file_name
 from mfp_mapper.mapio.mapfile import read_map_arrays
 from mfp_mapper.mapio.tiles import (
     DEFAULT_TILE_BLOCKS,
@@ -62,13 +63,13 @@ def merge_maps(
     out = Path(output)
     if not inputs:
         raise ValueError("nothing to merge: no input map")
-    if out.suffix != ".npz":
+    if not is_map_file_name(out):
         check_tiled_output(out)
     parent = out.parent if str(out.parent) else Path(".")
     parent.mkdir(parents=True, exist_ok=True)
     scratch = Path(tempfile.mkdtemp(prefix=".mfp-merge-", dir=parent))
     generation = new_generation()
-    tiled_out = scratch / "merged" if out.suffix == ".npz" else out
+    tiled_out = scratch / "merged" if is_map_file_name(out) else out
     try:
         maps = [as_tiled(Path(p), scratch, tile_blocks) for p in inputs]
         check_mergeable([m.settings() for m in maps], [str(p) for p in inputs])
@@ -76,7 +77,7 @@ def merge_maps(
         keys = sorted({k for m in maps for k in m.tiles})
         entries = [write_tile(tiled_out, k, merge_tile(maps, k), generation) for k in keys]
         write_index(tiled_out, maps[0].settings(), tile_blocks, entries)
-        if out.suffix == ".npz":
+        if is_map_file_name(out):
             write_map_file(TiledMap(tiled_out), out)
     except BaseException:
         if tiled_out == out:

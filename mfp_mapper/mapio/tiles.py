@@ -31,6 +31,7 @@ from mfp_mapper.core.mapper import Mapper, VoxelStats
 from mfp_mapper.core.merge import check_mergeable, merge_map_arrays
 from mfp_mapper.core.model import Prior
 from mfp_mapper.core.store import BLOCK_BITS
+from mfp_mapper.core.voxel_stats import SegmentStats
 from mfp_mapper.mapio.atomic import write_text_atomic
 from mfp_mapper.mapio.checks import (
     TILE_DIR,
@@ -301,15 +302,9 @@ class TiledMap:
     def query(self, points: ArrayLike, stamp: float | None = None) -> VoxelStats:
         """``Mapper.query`` over the tiles: each tile holding a point is read once."""
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        empty = Mapper(
-            self.resolution,
-            decay_time=self.decay_time,
-            frame_id=self.frame_id,
-            origin=self.origin or (0.0, 0.0, 0.0),
-            prior_shape=self.prior.shape,
-            prior_rate=self.prior.rate,
-        )
-        out = empty.query(pts, stamp)  # the answer for unobserved voxels, and every ijk
+        out = self._empty_mapper().query(
+            pts, stamp
+        )  # the answer for unobserved voxels, and every ijk
         keys = tile_keys(out.ijk, self.tile_blocks)
         for key in {(int(a), int(b), int(c)) for a, b, c in keys}:
             if key in self.tiles:
@@ -318,6 +313,32 @@ class TiledMap:
                 for name in ("s", "n", "t_last", "observed"):
                     getattr(out, name)[rows] = getattr(part, name)
         return out
+
+    def _empty_mapper(self) -> Mapper:
+        """A Mapper with this map's settings and no voxel."""
+        return Mapper(
+            self.resolution,
+            decay_time=self.decay_time,
+            frame_id=self.frame_id,
+            origin=self.origin or (0.0, 0.0, 0.0),
+            prior_shape=self.prior.shape,
+            prior_rate=self.prior.rate,
+        )
+
+    def query_segments(
+        self, starts: ArrayLike, ends: ArrayLike, stamp: float | None = None
+    ) -> SegmentStats:
+        """``Mapper.query_segments`` over the tiles: reads the tiles that reach into the
+        segments' bounding box (padded by a voxel)."""
+        a = np.asarray(starts, dtype=np.float64).reshape(-1, 3)
+        b = np.asarray(ends, dtype=np.float64).reshape(-1, 3)
+        if a.shape != b.shape or not len(a) or not (np.isfinite(a).all() and np.isfinite(b).all()):
+            # nothing to read: the core answers (or refuses) as for an empty map
+            return self._empty_mapper().query_segments(a, b, stamp)
+        pad = self.resolution
+        lo = np.minimum(a.min(axis=0), b.min(axis=0)) - pad
+        hi = np.maximum(a.max(axis=0), b.max(axis=0)) + pad
+        return self.load(bounds=(lo, hi)).query_segments(a, b, stamp)
 
 
 def index_bounds(

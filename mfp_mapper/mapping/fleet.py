@@ -43,7 +43,7 @@ from pathlib import Path
 
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.core.merge import MergeError, check_mergeable
-from mfp_mapper.mapio.loading import save_map
+from mfp_mapper.mapio.loading import is_map_file_name, save_map
 from mfp_mapper.mapio.mapfile import MapFileError, map_arrays
 from mfp_mapper.mapio.tiles import (
     DEFAULT_TILE_BLOCKS,
@@ -68,7 +68,9 @@ from mfp_mapper.mapping.replay import (
     ReplaySummary,
     replay,
 )
-from mfp_mapper.sources.bags import CLOUD_TYPE, ReplayError, open_reader, resolve_bag_path
+from mfp_mapper.sources.bags import ReplayError, bag_extent
+from mfp_mapper.sources.opener import open_recording
+from mfp_mapper.sources.scan_folder import is_scan_folder
 
 SCRATCH_MERGED = "merged"
 """The work folder's tiled map that a ``.npz`` output is assembled from."""
@@ -191,22 +193,6 @@ class FleetResult:
 # --- planning ---------------------------------------------------------------------------
 
 
-def recording_span(path: str | Path) -> tuple[float, float]:
-    """First and last message time (s) of a recording, from its metadata."""
-    first, last, _ = _recording_facts(path)
-    return first, last
-
-
-def _recording_facts(path: str | Path) -> tuple[float, float, int]:
-    """First and last message time (s) and the number of clouds, from the metadata."""
-    reader = open_reader(resolve_bag_path(path))
-    try:
-        clouds = sum(c.msgcount for c in reader.connections if c.msgtype == CLOUD_TYPE)
-        return reader.start_time * 1e-9, reader.end_time * 1e-9, clouds
-    finally:
-        reader.close()
-
-
 def plan_tasks(
     recordings: Sequence[str],
     chunk_seconds: float | None,
@@ -221,15 +207,13 @@ def plan_tasks(
     at most one window per cloud and ``max_windows`` windows: a smaller ``chunk_seconds``
     is widened for it (said through ``log``). Scan folders are one task each.
     """
-    from mfp_mapper.sources.scan_folder import is_scan_folder
-
     tasks: list[Task] = []
     failed: dict[str, str] = {}
     for recording in recordings:
         bounds: list[float] = []
         if chunk_seconds is not None and chunk_seconds > 0 and not is_scan_folder(recording):
             try:
-                first, last, clouds = _recording_facts(recording)
+                first, last, clouds = bag_extent(recording)
             except Exception as err:
                 failed[recording] = str(err)
                 continue
@@ -301,13 +285,8 @@ def replay_input(
     into: Mapper | None = None,
 ) -> ReplayResult:
     """Replay a bag or a scan folder (``poses``, ``times``: as ``replay --poses/--times``)."""
-    from mfp_mapper.sources.scan_folder import is_scan_folder
-
-    if is_scan_folder(recording):
-        from mfp_mapper.mapping.folder_replay import replay_folder
-
-        return replay_folder(recording, poses, opts, times, progress, log, on_scan, into)
-    return replay(recording, opts, progress, log, on_scan, into)
+    with open_recording(recording, opts, poses, times, log) as opened:
+        return replay(opened, opts, progress, log, on_scan, into)
 
 
 def _latest(a: float | None, b: float | None) -> float | None:
@@ -349,7 +328,7 @@ def map_fleet(
     t0 = time.perf_counter()
     out = Path(output)
     names = check_inputs(recordings, fleet)
-    if out.suffix != ".npz":
+    if not is_map_file_name(out):
         try:
             check_tiled_output(out)
         except MapFileError as err:
@@ -394,7 +373,7 @@ def map_fleet(
             raise FleetError("no cloud could be mapped from any recording (no map written)")
         _check_same_settings(partials)
         t1 = time.perf_counter()
-        tiled_out = out if out.suffix != ".npz" else work / SCRATCH_MERGED
+        tiled_out = work / SCRATCH_MERGED if is_map_file_name(out) else out
         generation = new_generation()
         entries = _reduce_all(
             executor, partials, tiled_out, generation, fleet, compress=tiled_out == out
@@ -402,7 +381,7 @@ def map_fleet(
         result.seconds_reduce = time.perf_counter() - t1
         t2 = time.perf_counter()
         settings = TiledMap(partials[0].partial).settings()  # type: ignore[arg-type]
-        if out.suffix == ".npz":
+        if is_map_file_name(out):
             write_index(tiled_out, settings, fleet.tile_blocks, entries)
             write_map_file(TiledMap(tiled_out), out)
         else:
@@ -411,7 +390,7 @@ def map_fleet(
         result.voxels = sum(e.voxels for e in entries)
         result.tiles = len(entries)
     except BaseException:
-        if out.suffix != ".npz" and "generation" in locals():
+        if not is_map_file_name(out) and "generation" in locals():
             for stale in (out / TILE_DIR).glob(f"*.{generation}.npz"):
                 stale.unlink(missing_ok=True)
         raise
@@ -479,10 +458,7 @@ def map_in_turn(
             raise FleetError("no cloud could be mapped from any recording (no map written)")
         result.seconds_replay = time.perf_counter() - t0
         t_write = time.perf_counter()
-        if out.suffix == ".npz":
-            save_map(mapper, out)
-        else:
-            result.tiles = len(write_tiled(out, map_arrays(mapper), fleet.tile_blocks))
+        result.tiles = save_map(mapper, out, fleet.tile_blocks)
         result.seconds_write = time.perf_counter() - t_write
         result.voxels = mapper.num_voxels
     finally:
@@ -506,8 +482,6 @@ def _parent(out: Path) -> Path:
 def check_inputs(recordings: Sequence[str | Path], fleet: FleetOptions) -> list[str]:
     """Absolute input names; FleetError for none, a missing one, the same one twice
     (unless ``allow_duplicates``), or scan-folder options that cannot apply to all."""
-    from mfp_mapper.sources.scan_folder import is_scan_folder
-
     names = [str(Path(r).absolute()) for r in recordings]
     if not names:
         raise FleetError("no recording given")

@@ -1,10 +1,10 @@
-"""Poses from the map itself: each scan of a recording (a scan folder or a bag) aligned
-against a map by the forward model's likelihood (``core.alignment``), against a fixed map
-(``localize``) or against the map built so far (``replay_refined``, ``replay
+"""Poses from the map itself: each scan of a recording (``sources.recording.Recording``)
+aligned against a map by the forward model's likelihood (``core.alignment``), against a fixed
+map (``localize``) or against the map built so far (``replay_refined``, ``replay
 --refine-poses``), through the one loop (``mapping.loop.ScanLoop``).
 
-The initial guess of each scan is its pose from the recording's pose source (a pose file
-matched by stamp, a bag's odometry or /tf, KISS-ICP); the refined pose is ``C * initial``
+The initial guess of each scan is its pose from the recording's pose source (a pose file,
+a bag's odometry or /tf, KISS-ICP, the simulator's truth); the refined pose is ``C * initial``
 with ``C`` the correction found in the map frame, or the initial pose when the correction
 is refused (degenerate geometry, no significant gain).
 """
@@ -12,11 +12,10 @@ is refused (degenerate geometry, no significant gain).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterator
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from functools import partial
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -31,16 +30,13 @@ from mfp_mapper.core.alignment import (
     verify_exact,
 )
 from mfp_mapper.core.mapper import Mapper
-from mfp_mapper.mapping.folder_replay import folder_poses
 from mfp_mapper.mapping.loop import ScanLoop
-from mfp_mapper.mapping.replay import ReplayError, ScanSelection, new_mapper, open_bag_input
+from mfp_mapper.mapping.replay import ScanSelection, new_mapper
 from mfp_mapper.sensing.pipeline import PlacedScan, ScanDropped
-from mfp_mapper.sensing.poses import Extrinsic, PoseUnavailable, frame_name
+from mfp_mapper.sensing.poses import PoseUnavailable, frame_name
 from mfp_mapper.sensing.scan_normals import scan_normals
-from mfp_mapper.sources import pose_files
-from mfp_mapper.sources.bags import open_reader, resolve_bag_path
-from mfp_mapper.sources.scan_files import DatasetFormatError
-from mfp_mapper.sources.scan_folder import is_scan_folder, open_scan_folder
+from mfp_mapper.sources.opener import opened
+from mfp_mapper.sources.recording import Recording
 
 FloatArray = NDArray[np.float64]
 
@@ -48,11 +44,8 @@ __all__ = [
     "LocalizedScan",
     "PyramidCache",
     "localize",
-    "localize_folder",
-    "open_input",
     "refine_placed",
     "replay_refined",
-    "replay_refined_folder",
 ]
 
 
@@ -145,79 +138,6 @@ def _apply(
     return pos, Rotation.from_matrix(rot).as_quat()
 
 
-@dataclass
-class _Input:
-    """A recording's clouds ((position, load message) pairs), their pose source, the
-    extrinsic of each cloud frame and the map frame; ``close()`` when done."""
-
-    clouds: Iterator[tuple[int, Callable[[], Any]]]
-    buffer: Any
-    extrinsic_of: Callable[[str], Extrinsic]
-    map_frame: str
-    close: Callable[[], None]
-
-
-def _pose_file_buffer(poses: str | Path, opts: ReplayOptions) -> tuple[Any, str]:
-    """The poses of a TUM file or an odometry CSV (matched by stamp), for a bag."""
-    path = Path(poses)
-    try:
-        kind = pose_files.guess_pose_format(path)
-        if kind == "kitti":
-            raise ReplayError(
-                f"{path}: KITTI poses have no stamps; a bag's clouds need TUM poses "
-                "('t x y z qx qy qz qw') or an odometry CSV, matched by stamp"
-            )
-        stamps, positions, quaternions = pose_files.read_stamped_poses(path, kind)
-        buffer = pose_files.pose_buffer(
-            stamps, positions, quaternions, opts.placement.odom_max_gap, str(path)
-        )
-    except (DatasetFormatError, OSError) as err:
-        raise ReplayError(str(err)) from None
-    return buffer, f"{path} ({kind.upper()}, T_world_lidar)"
-
-
-def open_input(
-    source: str | Path,
-    poses: str | Path | None,
-    opts: ReplayOptions,
-    times_file: str | Path | None = None,
-    log: Callable[[str], None] | None = None,
-) -> _Input:
-    """A scan folder (poses: a pose file, or ``opts.replay.odometry``) or a bag (poses: its own
-    odometry or /tf, ``opts.replay.odometry``, or a TUM/CSV pose file matched by stamp)."""
-    if is_scan_folder(source):
-        try:
-            folder = open_scan_folder(source, times_file)
-        except (DatasetFormatError, OSError) as err:
-            raise ReplayError(str(err)) from None
-        found = folder_poses(folder, poses, opts, log)
-        extrinsic = (
-            Extrinsic.from_xyz_rpy(*opts.replay.extrinsic) if opts.replay.extrinsic else Extrinsic()
-        )
-        return _Input(
-            ((k, partial(folder.message, k)) for k in range(len(folder))),
-            found.buffer,
-            lambda _: extrinsic,
-            str(found.map_frame),
-            lambda: None,
-        )
-    if times_file is not None:
-        raise ReplayError(f"{source}: --times is for folders of scan files")
-    if poses is not None and opts.replay.odometry is not None:
-        raise ReplayError("give either --poses or --odometry, not both")
-    buffer, what = _pose_file_buffer(poses, opts) if poses is not None else (None, "")
-    path = resolve_bag_path(source)
-    reader = open_reader(path)
-    try:
-        bag = open_bag_input(reader, path, opts, log, buffer, what)
-    except BaseException:
-        reader.close()
-        raise
-    return _Input(
-        bag.clouds(), bag.poses.buffer, bag.extrinsic_of, bag.poses.map_frame, reader.close
-    )
-
-
 class PyramidCache:
     """The field pyramid of a growing map (``replay --refine-poses``), rebuilt only when
     the map has grown enough since the last build: when the scans integrated since then
@@ -264,35 +184,16 @@ class PyramidCache:
         return self.pyramid
 
 
-def _run(
-    source: str | Path,
-    poses: str | Path | None,
-    opts: ReplayOptions,
-    times_file: str | Path | None,
-    align: AlignOptions,
-    fixed: Mapper | None,
-    log: Callable[[str], None] | None,
-    refine: bool = True,
-) -> LocalizeResult:
-    inp = open_input(source, poses, opts, times_file, log)
-    try:
-        return _loop(inp, opts, align, fixed, log, refine)
-    finally:
-        inp.close()
-
-
 def _loop(
-    inp: _Input,
+    recording: Recording,
     opts: ReplayOptions,
     align: AlignOptions,
     fixed: Mapper | None,
     log: Callable[[str], None] | None,
     refine: bool,
 ) -> LocalizeResult:
-    import time
-
-    buffer = inp.buffer
-    mapper = fixed if fixed is not None else new_mapper(opts, inp.map_frame)
+    buffer = recording.pose_source
+    mapper = fixed if fixed is not None else new_mapper(opts, recording.map_frame)
     fixed_pyramid = (
         FieldPyramid.from_mapper(fixed, levels=align.levels, **_prior(fixed))
         if fixed is not None
@@ -303,10 +204,10 @@ def _loop(
             align, min_correction_voxels=max(align.min_correction_voxels, align.refine_min_voxels)
         )
     cache = PyramidCache(mapper, align)
-    result = LocalizeResult(map_frame=inp.map_frame, mapper=mapper)
+    result = LocalizeResult(map_frame=recording.map_frame, mapper=mapper)
     loop = ScanLoop(mapper, opts.placement, opts.sensor_model)
     select = ScanSelection(opts)
-    for index, load in inp.clouds:
+    for index, load in recording.clouds():
         if select.past_end(index):
             break
         if not select.by_index(index):
@@ -336,7 +237,7 @@ def _loop(
         q0 = Rotation.from_matrix(rot0).as_quat()
         entry = LocalizedScan(stamp, index, pos0, q0, pos0, q0, None)
         try:
-            extrinsic = inp.extrinsic_of(frame_name(prepared.frame_id))
+            extrinsic = recording.extrinsic_of(frame_name(prepared.frame_id))
             placed = loop.place(prepared, buffer, extrinsic)
         except ScanDropped as drop:
             loop.count_drop(drop)
@@ -375,41 +276,30 @@ def _loop(
     return result
 
 
-def localize_folder(
+def localize(
     mapper: Mapper,
-    directory: str | Path,
-    poses: str | Path | None,
+    recording: Recording | str | Path,
     opts: ReplayOptions,
     *,
-    times_file: str | Path | None = None,
     align: AlignOptions | None = None,
     log: Callable[[str], None] | None = None,
 ) -> LocalizeResult:
-    """Each scan of ``directory`` (a scan folder or a bag, ``open_input``) aligned against
-    the fixed map ``mapper``, starting from its pose in ``poses`` (a pose file), or, with
-    None, from the recording's own pose source (a bag's odometry or /tf) or
-    ``opts.replay.odometry``."""
-    return _run(directory, poses, opts, times_file, align or AlignOptions(), mapper, log)
+    """Each selected scan of ``recording`` (or of the bag at that path) aligned against the
+    fixed map ``mapper``, starting from its pose in the recording's pose source."""
+    with opened(recording, opts, log) as rec:
+        return _loop(rec, opts, align or AlignOptions(), mapper, log, True)
 
 
-def replay_refined_folder(
-    directory: str | Path,
-    poses: str | Path | None,
+def replay_refined(
+    recording: Recording | str | Path,
     opts: ReplayOptions,
     *,
-    times_file: str | Path | None = None,
     align: AlignOptions | None = None,
     log: Callable[[str], None] | None = None,
     refine: bool = True,
 ) -> LocalizeResult:
-    """Map ``directory`` (a scan folder or a bag, ``open_input``) scan by scan, each
-    aligned against the map built so far before it is integrated at its refined pose (the
-    first scan at its initial pose); with ``refine=False`` at its initial pose (to write
-    the poses used)."""
-    return _run(directory, poses, opts, times_file, align or AlignOptions(), None, log, refine)
-
-
-localize = localize_folder
-"""``localize_folder``: it takes bags too."""
-replay_refined = replay_refined_folder
-"""``replay_refined_folder``: it takes bags too."""
+    """Map ``recording`` (or the bag at that path) scan by scan, each aligned against the
+    map built so far before it is integrated at its refined pose (the first scan at its
+    initial pose); with ``refine=False`` at its initial pose (to write the poses used)."""
+    with opened(recording, opts, log) as rec:
+        return _loop(rec, opts, align or AlignOptions(), None, log, refine)

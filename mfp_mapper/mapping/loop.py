@@ -1,8 +1,9 @@
 """The one mapping loop: a received cloud -> parsed -> placed -> integrated, counted once.
 
 Every caller that maps clouds goes through ``ScanLoop``: the node's live worker
-(``mapping.live``), the bag replay and the scan-folder replay (``mapping.replay``), the
-fleet's tasks (which run the replay) and the scorer. The stages themselves live in
+(``mapping.live``), the replay of a recording (a bag, a scan folder, a simulation:
+``mapping.replay``), localization against a map (``mapping.localize``), the fleet's tasks
+(which run the replay) and the scorer. The stages themselves live in
 ``sensing.pipeline`` (parse, no-return rays, placement: no Mapper there); the loop adds the
 Mapper, the counters (``ScanCounts``) and the one error ladder:
 

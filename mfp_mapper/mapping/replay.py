@@ -1,13 +1,8 @@
-"""Replay a recorded bag (ROS 1 ``.bag``, ROS 2 sqlite3 or mcap) into a Mapper, offline.
+"""Replay a recording (``sources.recording.Recording``: a bag, a folder of scan files, a
+simulation) into a Mapper, offline.
 
-Bags are read with rosbags (``sources.bags``): no ROS installation is needed. The cloud
-topic (``sensor_msgs/PointCloud2``) and the odometry topic (``nav_msgs/Odometry``) are found
-automatically when the bag holds exactly one of each. Without an odometry topic, poses come
-from ``/tf``: the chain of transforms from the cloud frame up to the odometry frame
-(``odom``, or the root of the tree). The lidar extrinsic comes from ``/tf_static``; it is
-the identity when the cloud frame is the odometry child frame; otherwise it must be given
-(``--extrinsic`` or ``lidar.translation``/``lidar.rpy`` in the node's YAML).
-
+Recordings are opened by ``sources.opener.open_recording``, which says where the poses come
+from (odometry, /tf, a pose file, KISS-ICP, the simulator's truth) and the lidar extrinsic.
 Every cloud goes through the node's scan pipeline (``sensing.pipeline``): the same parsing,
 interpolation, de-skew and height band, and the same drop reasons. Nothing is written here:
 the caller saves the map (atomically) only when the replay succeeded, so a failed replay
@@ -18,41 +13,19 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from functools import partial
 from pathlib import Path
-from typing import Any
-
-import numpy as np
-from numpy.typing import NDArray
 
 from mfp_mapper.config.replay_options import ConfigError as ConfigError  # re-exported
+from mfp_mapper.config.replay_options import ReplayError as ReplayError  # re-exported
 from mfp_mapper.config.replay_options import ReplayOptions, options_from_yaml
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.mapping.loop import ScanCallback, ScanConsumer, ScanCounts, ScanLoop
 from mfp_mapper.mapping.progress import Progress
 from mfp_mapper.sensing import pipeline
-from mfp_mapper.sensing.poses import Extrinsic, frame_name
-from mfp_mapper.sensing.tf_tree import TfTree
-from mfp_mapper.sources import lidar_odometry
-from mfp_mapper.sources.bags import (
-    CLOUD_TYPE,
-    ODOM_TYPE,
-    TF_TYPE,
-    Poses,
-    ReplayError,
-    extrinsic_for,
-    odometry_poses,
-    open_reader,
-    pick_topic,
-    read_messages,
-    read_transforms,
-    resolve_bag_path,
-    tf_poses,
-)
-
-FloatArray = NDArray[np.float64]
+from mfp_mapper.sources.opener import opened
+from mfp_mapper.sources.recording import Recording
 
 __all__ = [
     "ConfigError",
@@ -120,6 +93,20 @@ class ReplaySummary:
         """Share of the replay time spent outside Mapper.integrate (reading, parsing, poses)."""
         return 1.0 - self.seconds_core / self.seconds if self.seconds > 0 else 0.0
 
+    @classmethod
+    def of(cls, recording: Recording) -> ReplaySummary:
+        """A summary of ``recording`` before any cloud is mapped."""
+        return cls(
+            bag=recording.name,
+            cloud_topic=recording.cloud_source,
+            pose_source=recording.poses.source,
+            map_frame=recording.map_frame,
+            cloud_frame=recording.cloud_frame,
+            extrinsic_source=recording.extrinsic_source,
+            scans_total=recording.cloud_count,
+            seconds_poses=recording.seconds_poses,
+        )
+
     def format(self) -> str:
         n_dropped = sum(self.clouds_dropped.values())
         dropped = {k: v for k, v in self.points_dropped.items() if v}
@@ -163,7 +150,7 @@ class ReplayResult:
 
 
 def replay(
-    bag: str | Path,
+    recording: Recording | str | Path,
     opts: ReplayOptions | None = None,
     progress: bool | Progress = True,
     log: Callable[[str], None] | None = None,
@@ -171,7 +158,8 @@ def replay(
     into: Mapper | None = None,
     consume: ScanConsumer | None = None,
 ) -> ReplayResult:
-    """Map every cloud of ``bag``; ReplayError (with the reason) when it cannot be done.
+    """Map every selected cloud of ``recording`` (or of the bag at that path, opened and
+    closed here); ReplayError (with the reason) when it cannot be done.
 
     ``on_scan(stamp, points, origins)`` sees every placed cloud (map frame) just before it
     is integrated, e.g. to feed the same rays to another mapper. ``into``: add the clouds
@@ -181,131 +169,11 @@ def replay(
     the scans against another map.
     """
     opts = opts or ReplayOptions()
-    path = resolve_bag_path(bag)
-    reader = open_reader(path)
-    try:
-        return _replay(reader, path, opts, progress, log, on_scan, into, consume)
-    finally:
-        reader.close()
-
-
-def _replay(
-    reader: Any,
-    path: Path,
-    opts: ReplayOptions,
-    progress: bool | Progress,
-    log: Callable[[str], None] | None,
-    on_scan: ScanCallback | None,
-    into: Mapper | None,
-    consume: ScanConsumer | None = None,
-) -> ReplayResult:
-    inp = open_bag_input(reader, path, opts, log)
-    summary = inp.summary
-    mapper = mapper_for(opts, inp.poses.map_frame, into)
-    map_scans(
-        inp.clouds(), inp.poses, inp.extrinsic_of, opts, mapper, summary, progress, log,
-        on_scan, consume,
-    )  # fmt: skip
+    with opened(recording, opts, log) as rec:
+        summary = ReplaySummary.of(rec)
+        mapper = mapper_for(opts, rec.map_frame, into)
+        map_scans(rec, opts, mapper, summary, progress, log, on_scan, consume)
     return ReplayResult(mapper, summary)
-
-
-@dataclass
-class BagInput:
-    """A bag's clouds (``clouds()``: (position, load message) pairs, in bag order), their
-    poses and the extrinsic of each cloud frame; the reader must stay open while used."""
-
-    clouds: Callable[[], Iterator[tuple[int, Callable[[], Any]]]]
-    poses: Poses
-    extrinsic_of: Callable[[str], Extrinsic]
-    summary: ReplaySummary
-
-
-def open_bag_input(
-    reader: Any,
-    path: Path,
-    opts: ReplayOptions,
-    log: Callable[[str], None] | None = None,
-    pose_buffer: Any = None,
-    pose_source: str = "",
-) -> BagInput:
-    """The clouds, poses and extrinsics a replay of ``reader`` (``open_reader(path)``)
-    would use: poses from the bag's odometry or /tf, ``opts.replay.odometry``, or ``pose_buffer``
-    (a pose file's poses of the cloud frame, e.g. TUM matched by stamp) when given."""
-    summary = ReplaySummary(bag=str(path))
-    cloud_topic = pick_topic(
-        reader, CLOUD_TYPE, opts.replay.cloud_topic, "PointCloud2", "--cloud-topic"
-    )
-    if cloud_topic is None:
-        listing = ", ".join(sorted({f"{c.topic} ({c.msgtype})" for c in reader.connections}))
-        raise ReplayError(
-            f"the bag has no sensor_msgs/PointCloud2 topic; topics: {listing or 'none'}"
-        )
-    odom_topic = None
-    if not opts.replay.use_tf_poses and pose_buffer is None and opts.replay.odometry is None:
-        odom_topic = pick_topic(
-            reader, ODOM_TYPE, opts.replay.odom_topic, "Odometry", "--odom-topic"
-        )
-    summary.cloud_topic = cloud_topic
-    cloud_conns = [c for c in reader.connections if c.topic == cloud_topic]
-    summary.scans_total = sum(c.msgcount for c in cloud_conns)
-    if summary.scans_total == 0:
-        raise ReplayError(f"the cloud topic {cloud_topic} has no messages")
-    return _bag_input(reader, path, opts, cloud_conns, odom_topic, summary, log, pose_buffer,
-                      pose_source)  # fmt: skip
-
-
-def _bag_input(
-    reader: Any,
-    path: Path,
-    opts: ReplayOptions,
-    cloud_conns: list[Any],
-    odom_topic: str | None,
-    summary: ReplaySummary,
-    log: Callable[[str], None] | None,
-    pose_buffer: Any = None,
-    pose_source: str = "",
-) -> BagInput:
-    t_poses = time.perf_counter()
-    if pose_buffer is not None:
-        poses, tfs, cloud_frame = _file_poses(reader, path, cloud_conns, pose_buffer, pose_source)
-    elif opts.replay.odometry is not None:
-        poses, tfs, cloud_frame = _estimated_poses(reader, opts, cloud_conns, log)
-    else:
-        poses, tfs, cloud_frame = _read_poses(reader, path, opts, odom_topic, cloud_conns)
-    summary.seconds_poses = time.perf_counter() - t_poses
-    summary.pose_source = poses.source
-    summary.map_frame = poses.map_frame
-    summary.cloud_frame = cloud_frame
-    extrinsics: dict[str, Extrinsic] = {}
-    ext, summary.extrinsic_source = extrinsic_for(cloud_frame, poses.body, tfs, opts)
-    extrinsics[cloud_frame] = ext
-
-    def clouds() -> Iterator[tuple[int, Callable[[], Any]]]:
-        for index, (conn, _, raw) in enumerate(read_messages(reader, cloud_conns, path)):
-            yield index, partial(reader.deserialize, raw, conn.msgtype)
-
-    def extrinsic_of(frame: str) -> Extrinsic:
-        if frame not in extrinsics:
-            extrinsics[frame], _ = extrinsic_for(frame, poses.body, tfs, opts)
-        return extrinsics[frame]
-
-    return BagInput(clouds, poses, extrinsic_of, summary)
-
-
-def _file_poses(
-    reader: Any, path: Path, cloud_conns: list[Any], buffer: Any, source: str
-) -> tuple[Poses, TfTree, str]:
-    """Poses of the cloud frame from a pose file (as a scan folder's: the lidar's poses;
-    ``--extrinsic`` when they are another body's)."""
-    try:
-        first = next(read_messages(reader, cloud_conns, path))
-        cloud_frame = frame_name(reader.deserialize(first[2], first[0].msgtype).header.frame_id)
-    except ReplayError:
-        raise
-    except Exception as err:
-        raise ReplayError(f"{path}: cannot read the first cloud: {type(err).__name__}: {err}"
-                          ) from None  # fmt: skip
-    return Poses(buffer, cloud_frame, "world", source), read_transforms(), cloud_frame
 
 
 def new_mapper(opts: ReplayOptions, frame_id: str) -> Mapper:
@@ -375,9 +243,7 @@ class ScanSelection:
 
 
 def map_scans(
-    clouds: Iterable[tuple[int, Callable[[], Any]]],
-    poses: Poses,
-    extrinsic_of: Callable[[str], Extrinsic],
+    recording: Recording,
     opts: ReplayOptions,
     mapper: Mapper,
     summary: ReplaySummary,
@@ -386,9 +252,8 @@ def map_scans(
     on_scan: ScanCallback | None,
     consume: ScanConsumer | None = None,
 ) -> None:
-    """Run the selected clouds ``(position, load message)`` through the scan pipeline into
-    ``mapper`` (or ``consume``); fills ``summary``; ReplayError when no cloud could be
-    mapped."""
+    """Run the selected clouds of ``recording`` through the scan pipeline into ``mapper``
+    (or ``consume``); fills ``summary``; ReplayError when no cloud could be mapped."""
     select = ScanSelection(opts)
     if opts.replay.max_scans is not None:
         summary.scans_total = min(summary.scans_total, opts.replay.max_scans)
@@ -410,7 +275,7 @@ def map_scans(
     cloud_span = [math.inf, -math.inf]
     t_loop = time.perf_counter()
     try:
-        for index, load in clouds:
+        for index, load in recording.clouds():
             if select.past_end(index):
                 break
             if not select.by_index(index):
@@ -427,7 +292,7 @@ def map_scans(
                 continue
             select.taken += 1
             cloud_span = [min(cloud_span[0], stamp), max(cloud_span[1], stamp)]
-            outcome = loop.map_cloud(msg, poses.buffer, extrinsic_of)
+            outcome = loop.map_cloud(msg, recording.pose_source, recording.extrinsic_of)
             if outcome.reason == "malformed":
                 bad_example = bad_example or outcome.detail
             elif outcome.reason == "error":
@@ -458,61 +323,12 @@ def map_scans(
         if text
     )
     if summary.scans_used == 0:
-        raise NothingMapped(_nothing_mapped(summary, poses, examples, cloud_span, opts))
+        raise NothingMapped(_nothing_mapped(summary, recording, examples, cloud_span, opts))
     if summary.clouds_dropped and log is not None:
         log(
             f"warning: {sum(summary.clouds_dropped.values())} of {summary.scans_selected} "
             f"scans dropped ({_counts(summary.clouds_dropped)}){examples}"
         )
-
-
-def _estimated_poses(
-    reader: Any, opts: ReplayOptions, cloud_conns: list[Any], log: Callable[[str], None] | None
-) -> tuple[Poses, TfTree, str]:
-    """Poses from the clouds (KISS-ICP): the map frame is the first scan's lidar frame."""
-    path = getattr(reader, "paths", ["the bag"])[0]
-    first = next(read_messages(reader, cloud_conns, path))
-    cloud_frame = frame_name(reader.deserialize(first[2], first[0].msgtype).header.frame_id)
-    clouds = (
-        (None, partial(reader.deserialize, raw, conn.msgtype))
-        for conn, _, raw in read_messages(reader, cloud_conns, path)
-    )
-    total = sum(c.msgcount for c in cloud_conns)
-    poses = lidar_odometry.odometry_poses(clouds, opts, cloud_frame, total, log)
-    return poses, read_transforms(), cloud_frame
-
-
-def _read_poses(
-    reader: Any, path: Path, opts: ReplayOptions, odom_topic: str | None, cloud_conns: list[Any]
-) -> tuple[Poses, TfTree, str]:
-    """Poses, transforms and the cloud frame: small, read first, so a bag without them
-    fails fast."""
-    tfs = read_transforms()
-    tf_conns = [
-        c for c in reader.connections if c.msgtype == TF_TYPE and c.topic in ("/tf", "/tf_static")
-    ]
-    read_conns = [c for c in tf_conns if c.topic == "/tf_static" or odom_topic is None]
-    try:
-        if read_conns:
-            for conn, _, raw in reader.messages(connections=read_conns):
-                tfs.add_message(
-                    reader.deserialize(raw, conn.msgtype), static=conn.topic == "/tf_static"
-                )
-        first_cloud = next(reader.messages(connections=cloud_conns))
-        cloud_frame = frame_name(
-            reader.deserialize(first_cloud[2], first_cloud[0].msgtype).header.frame_id
-        )
-        if odom_topic is not None:
-            poses = odometry_poses(reader, odom_topic, opts)
-        else:
-            poses = tf_poses(cloud_frame, tfs, opts)
-    except ReplayError:
-        raise
-    except Exception as err:
-        raise ReplayError(f"{path}: cannot read poses: {type(err).__name__}: {err}") from None
-    if len(poses.buffer) == 0:
-        raise ReplayError(f"no usable pose in {poses.source}")
-    return poses, tfs, cloud_frame
 
 
 def _fill(summary: ReplaySummary, counts: ScanCounts, mapper: Mapper) -> None:
@@ -530,7 +346,7 @@ def _fill(summary: ReplaySummary, counts: ScanCounts, mapper: Mapper) -> None:
 
 def _nothing_mapped(
     summary: ReplaySummary,
-    poses: Poses,
+    recording: Recording,
     examples: str,
     cloud_span: list[float],
     opts: ReplayOptions,
@@ -546,6 +362,7 @@ def _nothing_mapped(
         text += f"; no cloud stamp lies in the window [{opts.replay.start}, {opts.replay.end}) s"
     text += examples
     if {"no_poses", "too_new", "too_old", "gap"} & set(summary.clouds_dropped):
+        poses = recording.poses
         text += (
             f". No pose covers the clouds: poses from {poses.source} span "
             f"[{poses.buffer.earliest_stamp:.3f}, {poses.buffer.latest_stamp:.3f}] s, "

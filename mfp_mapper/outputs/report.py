@@ -45,9 +45,12 @@ def simulation_lines(result: Any) -> list[str]:
     return lines
 
 
-def query_rows(mapper: Mapper, points: NDArray[np.float64]) -> list[dict[str, Any]]:
-    """The statistics of the voxel holding each point (90% credible DoO interval included)."""
-    st = mapper.query(points)
+def query_rows(
+    mapper: Mapper, points: NDArray[np.float64], stamp: float | None = None
+) -> list[dict[str, Any]]:
+    """The statistics of the voxel holding each point (90% credible DoO interval included),
+    decayed to ``stamp`` when given."""
+    st = mapper.query(points, stamp)
     lo, hi = st.doo_interval(0.9)
     return [
         {
@@ -87,5 +90,40 @@ def query_lines(rows: list[dict[str, Any]], prior: model.Prior = model.UNIFORM) 
             f"{row['doo_interval_90'][1]:.3f}]), p_hit {row['hit_probability']:.3f}, "
             f"n {row['n']:g}, s {row['s']:.2f} m, mean free path "
             + (f"{mfp:.2f} m" if math.isfinite(mfp) else "inf")
+        )
+    return lines
+
+
+def segment_rows(
+    mapper: Mapper,
+    starts: NDArray[np.float64],
+    ends: NDArray[np.float64],
+    stamp: float | None = None,
+) -> list[dict[str, Any]]:
+    """``Mapper.query_segments`` of each segment as a row (ValueError as it raises)."""
+    st = mapper.query_segments(starts, ends, stamp)
+    return [
+        {
+            "start": starts[k].tolist(),
+            "end": ends[k].tolist(),
+            "length": float(st.length[k]),
+            "clear_probability": float(st.clear_probability[k]),
+            "unknown_length": float(st.unknown_length[k]),
+        }
+        for k in range(len(st))
+    ]
+
+
+def segment_lines(rows: list[dict[str, Any]]) -> list[str]:
+    """One line per ``segment_rows`` row."""
+    lines = []
+    for row in rows:
+        a = ", ".join(f"{v:.2f}" for v in row["start"])
+        b = ", ".join(f"{v:.2f}" for v in row["end"])
+        unknown = row["unknown_length"]
+        lines.append(
+            f"({a}) -> ({b}), {row['length']:.2f} m: clear with probability "
+            f"{row['clear_probability']:.4g}; "
+            + (f"{unknown:.2f} m never observed" if unknown > 0 else "all of it observed")
         )
     return lines

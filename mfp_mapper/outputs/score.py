@@ -39,6 +39,7 @@ from mfp_mapper.core.mapper import IntegrationSummary, Mapper
 from mfp_mapper.core.model import UNIFORM, Prior
 from mfp_mapper.mapping.loop import integrate_scan
 from mfp_mapper.sensing.pipeline import PlacedScan, ScanDropped
+from mfp_mapper.sources.recording import Recording
 
 FloatArray = NDArray[np.float64]
 
@@ -529,35 +530,18 @@ def plot_reliability(report_: dict[str, Any], path: str | Path, title: str = "")
 SPLITS = ("even-odd", "shots")
 
 
-@dataclass
-class Source:
-    """One recording and how to read it (the replay's input flags)."""
-
-    path: str
-    poses: str | None = None
-    times: str | None = None
-
-
 def run_input(
-    source: Source,
+    recording: Recording,
     opts: Any,
     consume: Callable[[Mapper, PlacedScan], IntegrationSummary],
     progress: bool,
     log: Callable[[str], None] | None,
 ) -> Any:
-    """Replay ``source`` (bag or scan folder) with ``consume`` doing the work; the
-    ``ReplayResult`` (its mapper holds what ``consume`` integrated into it)."""
-    from mfp_mapper.mapping.folder_replay import replay_folder
-    from mfp_mapper.mapping.replay import ReplayError, replay
-    from mfp_mapper.sources.scan_folder import is_scan_folder
+    """Replay ``recording`` with ``consume`` doing the work; the ``ReplayResult`` (its
+    mapper holds what ``consume`` integrated into it)."""
+    from mfp_mapper.mapping.replay import replay
 
-    if is_scan_folder(source.path):
-        return replay_folder(
-            source.path, source.poses, opts, source.times, progress, log, consume=consume
-        )
-    if source.poses is not None or source.times is not None:
-        raise ReplayError(f"{source.path}: --poses and --times are for folders of scan files")
-    return replay(source.path, opts, progress, log, consume=consume)
+    return replay(recording, opts, progress, log, consume=consume)
 
 
 def split_options(
@@ -581,7 +565,7 @@ def split_options(
 
 
 def score_split(
-    source: Source,
+    recording: Recording,
     opts: Any,
     split: str,
     priors: dict[str, Prior],
@@ -592,32 +576,32 @@ def score_split(
     progress: bool = False,
     log: Callable[[str], None] | None = None,
 ) -> Scorer:
-    """Build the map (and classic occupancy) from the training part of ``source``, score
+    """Build the map (and classic occupancy) from the training part of ``recording``, score
     the held-out part with ``Scorer`` (``within_training``: see ``split_options``)."""
     train_opts, held_opts, train_rays, held_rays = split_options(opts, split, within_training)
     classic_map = ClassicMap() if classic else None
     trained = run_input(
-        source, train_opts, training_consumer(classic_map, train_rays), progress, log
+        recording, train_opts, training_consumer(classic_map, train_rays), progress, log
     )
     scorer = Scorer(trained.mapper, priors, classic_map, sample, held_rays)
-    run_input(source, held_opts, scorer, progress, log)
+    run_input(recording, held_opts, scorer, progress, log)
     return scorer
 
 
 def score_map(
     mapper: Mapper,
-    sources: list[Source],
+    recordings: list[Recording],
     opts: Any,
     priors: dict[str, Prior],
     *,
     progress: bool = False,
     log: Callable[[str], None] | None = None,
 ) -> Scorer:
-    """Score every selected scan of ``sources`` against a given map (no classic
+    """Score every selected scan of ``recordings`` against a given map (no classic
     occupancy: its training rays are not in a map file)."""
     scorer = Scorer(mapper, priors)
-    for source in sources:
-        run_input(source, opts, scorer, progress, log)
+    for recording in recordings:
+        run_input(recording, opts, scorer, progress, log)
     return scorer
 
 

@@ -1,2 +1,3 @@
 """Where scans come from: ROS bags, scan folders with pose files, KISS-ICP-estimated poses and
-the simulator. Each yields clouds with their pose source for the mapping loop."""
+the simulator. Each is opened as a ``recording.Recording`` (``opener.open_recording``): clouds
+with their pose source, the lidar extrinsic and the map frame, for the mapping loop."""

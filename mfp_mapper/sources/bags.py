@@ -1,16 +1,25 @@
-"""Reading bags: open them (rosbags), pick topics, and the poses and transforms they hold.
+"""Bags as recordings (``open_bag``): open them (rosbags), pick topics, and the poses and
+transforms they hold.
 
-Poses come from a nav_msgs/Odometry topic, or from the ``/tf`` chain above the cloud frame;
-the lidar extrinsic from ``/tf_static`` (or the options). Errors are ``ReplayError`` with
-the reason, before any cloud is read.
+Bags are read with rosbags: no ROS installation is needed. The cloud topic
+(``sensor_msgs/PointCloud2``) and the odometry topic (``nav_msgs/Odometry``) are found
+automatically when the bag holds exactly one of each. Without an odometry topic (or with
+``use_tf``), poses come from ``/tf``: the chain of transforms from the cloud frame up to the
+fixed frame (``odom``, or the root of the tree). Or from a pose file matched by stamp
+(``sources.pose_files``), or KISS-ICP (``sources.lidar_odometry``). The lidar extrinsic comes
+from ``/tf_static``; it is the identity when the cloud frame is the odometry child frame;
+otherwise it must be given (``--extrinsic`` or ``lidar.translation``/``lidar.rpy`` in the
+node's YAML). Errors are ``ReplayError`` with the reason, before any cloud is mapped; a bag
+damaged part way raises one naming the message reached.
 """
 
 from __future__ import annotations
 
 import math
+import time
 from collections import Counter
-from collections.abc import Iterator
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -19,14 +28,171 @@ from numpy.typing import NDArray
 
 from mfp_mapper.config.replay_options import ReplayError as ReplayError  # defined with the options
 from mfp_mapper.config.replay_options import ReplayOptions
-from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer, odometry_sample
+from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer, frame_name, odometry_sample
 from mfp_mapper.sensing.tf_tree import TfTree, TransformUnavailable, frame_list
+from mfp_mapper.sources import lidar_odometry
+from mfp_mapper.sources.pose_files import read_poses
+from mfp_mapper.sources.recording import Poses, RecordedCloud, Recording
 
 FloatArray = NDArray[np.float64]
 
 CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 ODOM_TYPE = "nav_msgs/msg/Odometry"
 TF_TYPE = "tf2_msgs/msg/TFMessage"
+
+
+# --- the bag as a recording --------------------------------------------------------------------
+
+
+def open_bag(
+    bag: str | Path,
+    opts: ReplayOptions,
+    poses: str | Path | None = None,
+    log: Callable[[str], None] | None = None,
+) -> Recording:
+    """The bag ``bag`` as a recording: its clouds, with poses from its odometry or /tf,
+    ``opts.replay.odometry``, or the pose file ``poses`` (TUM or odometry CSV matched by stamp, or
+    ``identity``). ReplayError says why it cannot be used."""
+    path = resolve_bag_path(bag)
+    reader = open_reader(path)
+    try:
+        return _bag_recording(reader, path, opts, poses, log)
+    except BaseException:
+        reader.close()
+        raise
+
+
+def _bag_recording(
+    reader: Any,
+    path: Path,
+    opts: ReplayOptions,
+    poses: str | Path | None,
+    log: Callable[[str], None] | None,
+) -> Recording:
+    cloud_topic = pick_topic(
+        reader, CLOUD_TYPE, opts.replay.cloud_topic, "PointCloud2", "--cloud-topic"
+    )
+    if cloud_topic is None:
+        listing = ", ".join(sorted({f"{c.topic} ({c.msgtype})" for c in reader.connections}))
+        raise ReplayError(
+            f"the bag has no sensor_msgs/PointCloud2 topic; topics: {listing or 'none'}"
+        )
+    odom_topic = None
+    if not opts.replay.use_tf_poses and poses is None and opts.replay.odometry is None:
+        odom_topic = pick_topic(
+            reader, ODOM_TYPE, opts.replay.odom_topic, "Odometry", "--odom-topic"
+        )
+    cloud_conns = [c for c in reader.connections if c.topic == cloud_topic]
+    count = sum(c.msgcount for c in cloud_conns)
+    if count == 0:
+        raise ReplayError(f"the cloud topic {cloud_topic} has no messages")
+    t_poses = time.perf_counter()
+    if poses is not None:
+        cloud_frame = _first_cloud_frame(reader, path, cloud_conns)
+        found, tfs = read_poses(poses, cloud_frame, opts.placement.odom_max_gap), read_transforms()
+    elif opts.replay.odometry is not None:
+        cloud_frame = _first_cloud_frame(reader, path, cloud_conns)
+        found, tfs = _estimated_poses(reader, path, opts, cloud_conns, cloud_frame, log)
+    else:
+        found, tfs, cloud_frame = _read_poses(reader, path, opts, odom_topic, cloud_conns)
+    seconds_poses = time.perf_counter() - t_poses
+    extrinsics: dict[str, Extrinsic] = {}
+    extrinsics[cloud_frame], extrinsic_source = extrinsic_for(cloud_frame, found.body, tfs, opts)
+
+    def clouds() -> Iterator[RecordedCloud]:
+        for index, (conn, _, raw) in enumerate(read_messages(reader, cloud_conns, path)):
+            yield RecordedCloud(index, partial(reader.deserialize, raw, conn.msgtype))
+
+    def extrinsic_of(frame: str) -> Extrinsic:
+        if frame not in extrinsics:
+            extrinsics[frame], _ = extrinsic_for(frame, found.body, tfs, opts)
+        return extrinsics[frame]
+
+    return Recording(
+        name=str(path),
+        cloud_source=cloud_topic,
+        cloud_frame=cloud_frame,
+        cloud_count=count,
+        poses=found,
+        extrinsic_source=extrinsic_source,
+        read_clouds=clouds,
+        extrinsic_of=extrinsic_of,
+        release=reader.close,
+        seconds_poses=seconds_poses,
+    )
+
+
+def _first_cloud_frame(reader: Any, path: Path, cloud_conns: list[Any]) -> str:
+    """The frame of the bag's first cloud; ReplayError when it cannot be read."""
+    try:
+        conn, _, raw = next(read_messages(reader, cloud_conns, path))
+        return frame_name(reader.deserialize(raw, conn.msgtype).header.frame_id)
+    except ReplayError:
+        raise
+    except Exception as err:
+        raise ReplayError(f"{path}: cannot read the first cloud: {type(err).__name__}: {err}"
+                          ) from None  # fmt: skip
+
+
+def _estimated_poses(
+    reader: Any,
+    path: Path,
+    opts: ReplayOptions,
+    cloud_conns: list[Any],
+    cloud_frame: str,
+    log: Callable[[str], None] | None,
+) -> tuple[Poses, TfTree]:
+    """Poses from the clouds (KISS-ICP): the map frame is the first scan's lidar frame."""
+    clouds = (
+        (None, partial(reader.deserialize, raw, conn.msgtype))
+        for conn, _, raw in read_messages(reader, cloud_conns, path)
+    )
+    total = sum(c.msgcount for c in cloud_conns)
+    return lidar_odometry.odometry_poses(clouds, opts, cloud_frame, total, log), read_transforms()
+
+
+def _read_poses(
+    reader: Any, path: Path, opts: ReplayOptions, odom_topic: str | None, cloud_conns: list[Any]
+) -> tuple[Poses, TfTree, str]:
+    """Poses, transforms and the cloud frame: small, read first, so a bag without them
+    fails fast."""
+    tfs = read_transforms()
+    tf_conns = [
+        c for c in reader.connections if c.msgtype == TF_TYPE and c.topic in ("/tf", "/tf_static")
+    ]
+    read_conns = [c for c in tf_conns if c.topic == "/tf_static" or odom_topic is None]
+    try:
+        if read_conns:
+            for conn, _, raw in reader.messages(connections=read_conns):
+                tfs.add_message(
+                    reader.deserialize(raw, conn.msgtype), static=conn.topic == "/tf_static"
+                )
+        first_cloud = next(reader.messages(connections=cloud_conns))
+        cloud_frame = frame_name(
+            reader.deserialize(first_cloud[2], first_cloud[0].msgtype).header.frame_id
+        )
+        if odom_topic is not None:
+            poses = odometry_poses(reader, odom_topic, opts)
+        else:
+            poses = tf_poses(cloud_frame, tfs, opts)
+    except ReplayError:
+        raise
+    except Exception as err:
+        raise ReplayError(f"{path}: cannot read poses: {type(err).__name__}: {err}") from None
+    if len(poses.buffer) == 0:
+        raise ReplayError(f"no usable pose in {poses.source}")
+    return poses, tfs, cloud_frame
+
+
+def bag_extent(bag: str | Path) -> tuple[float, float, int]:
+    """First and last message time (s) of a bag and the number of its clouds, from its
+    metadata."""
+    reader = open_reader(resolve_bag_path(bag))
+    try:
+        clouds = sum(c.msgcount for c in reader.connections if c.msgtype == CLOUD_TYPE)
+        return reader.start_time * 1e-9, reader.end_time * 1e-9, clouds
+    finally:
+        reader.close()
 
 
 # --- reading the bag --------------------------------------------------------------------------
@@ -139,14 +305,6 @@ def _describe(t: FloatArray, q: FloatArray) -> str:
     return (
         f"xyz ({t[0]:.3f}, {t[1]:.3f}, {t[2]:.3f}) m, rpy ({roll:.3f}, {pitch:.3f}, {yaw:.3f}) rad"
     )
-
-
-@dataclass
-class Poses:
-    buffer: PoseBuffer
-    body: str
-    map_frame: str
-    source: str
 
 
 def odometry_poses(reader: Any, topic: str, opts: ReplayOptions) -> Poses:

@@ -19,9 +19,10 @@ from typing import Any
 
 import numpy as np
 
+from mfp_mapper.config.replay_options import ReplayError
 from mfp_mapper.sensing.pointcloud import parse_pointcloud2, stamp_seconds
-from mfp_mapper.sources.bags import Poses, ReplayError
 from mfp_mapper.sources.pose_files import matrix_to_quaternion, pose_buffer
+from mfp_mapper.sources.recording import Poses
 
 KISS_ICP = "kiss-icp"
 MAP_FRAME = "kiss_icp_map"

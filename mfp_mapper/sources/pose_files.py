@@ -1,11 +1,12 @@
-"""Pose files for scan folders: KITTI, TUM, the nav_msgs/Odometry CSV of the shared data,
-and ``identity`` (every scan at the origin, for single frames).
+"""Pose files (``--poses``): KITTI, TUM, a nav_msgs/Odometry CSV, and ``identity`` (every
+scan at the origin, for single frames); ``read_poses`` reads any of them for a recording.
 
 Every reader gives a pose source the scan pipeline interpolates (``sensing.deskew.
 PoseSource``): a ``PoseBuffer`` of ``T_map_body`` samples, or a ``FixedPose``.
 
 - KITTI: one line per scan, the 12 numbers of a row-major 3x4 ``T_world_lidar``; line k is
-  the pose of the k-th scan (in the folder's order) at that scan's stamp.
+  the pose of the k-th scan (in the folder's order) at that scan's stamp: scan folders only
+  (a bag's clouds have no order a file could follow).
 - TUM: ``timestamp x y z qx qy qz qw`` per line (``#`` comments), interpolated at the scan
   times, so the scan stamps must be real times (file names or a times file).
 - CSV: nav_msgs/Odometry rows with columns named like the message fields
@@ -23,12 +24,16 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
+from mfp_mapper.config.replay_options import ReplayError
 from mfp_mapper.sensing.poses import PoseBuffer
+from mfp_mapper.sources.recording import Poses
 from mfp_mapper.sources.scan_files import DatasetFormatError
 
 FloatArray = NDArray[np.float64]
 
 POSE_FORMATS = ("kitti", "tum", "csv")
+IDENTITY = "identity"
+"""``--poses identity``: every scan at the origin of its own frame."""
 
 _ODOMETRY_COLUMNS = (
     "header.stamp.sec",
@@ -175,3 +180,42 @@ def guess_pose_format(path: Path) -> str:
     raise DatasetFormatError(
         f"{path}: cannot tell the pose format (12 numbers a line: KITTI, 8: TUM, .csv: odometry)"
     )
+
+
+def read_poses(
+    poses: str | Path,
+    frame: str,
+    max_gap: float,
+    scan_stamps: ArrayLike | None = None,
+    note: str = "",
+) -> Poses:
+    """The poses of a recording's clouds (of lidar frame ``frame``) from ``--poses``:
+    ``identity``, a KITTI file (one pose per scan, at ``scan_stamps``; None: the clouds
+    have no order a KITTI file could follow, as a bag's), a TUM file or an odometry CSV
+    (matched by stamp). ReplayError says what is wrong (``note`` is added to a count
+    mismatch)."""
+    if str(poses) == IDENTITY:
+        return Poses(FixedPose.identity(), frame, frame, IDENTITY)
+    path = Path(poses)
+    try:
+        kind = guess_pose_format(path)
+        if kind == "kitti":
+            if scan_stamps is None:
+                raise ReplayError(
+                    f"{path}: KITTI poses have no stamps; a bag's clouds need TUM poses "
+                    "('t x y z qx qy qz qw') or an odometry CSV, matched by stamp"
+                )
+            stamps = np.asarray(scan_stamps, dtype=np.float64)
+            positions, quaternions = read_kitti_poses(path)
+            if len(positions) != len(stamps):
+                raise DatasetFormatError(
+                    f"{path}: {len(positions)} KITTI poses for {len(stamps)} scans (one per "
+                    f"scan){note}"
+                )
+        else:
+            stamps, positions, quaternions = read_stamped_poses(path, kind)
+        buffer = pose_buffer(stamps, positions, quaternions, max_gap, str(path))
+    except (DatasetFormatError, OSError) as err:
+        raise ReplayError(str(err)) from None
+    what = "odometry CSV, T_map_body" if kind == "csv" else f"{kind.upper()}, T_world_lidar"
+    return Poses(buffer, frame, "world", f"{path} ({what})")

@@ -1,4 +1,6 @@
-"""A folder of scan files as a recording: the scans in order, with their stamps.
+"""A folder of scan files as a recording (``open_folder``): the scans in order, with their
+stamps, and their poses from a pose file (``sources.pose_files``), ``identity`` or KISS-ICP
+(``sources.lidar_odometry``).
 
 Scan files: ``.pcd`` (binary or ascii), ``.ply`` (ascii or binary little-endian), ``.bin``
 (KITTI: float32 x y z intensity) and ``.vtk`` (legacy ASCII POLYDATA); one kind per folder.
@@ -14,20 +16,28 @@ Stamps, in order of preference:
 Scans are taken in time order when the names carry the time, else in natural name order
 (``2.pcd`` before ``10.pcd``). Every file becomes a PointCloud2-like message with all its
 columns, so a per-point time field (``time_stamp``, ``time``, ``t``...) reaches the de-skew
-exactly as from a bag.
+exactly as from a bag. The poses are the lidar's (the extrinsic is the identity unless
+``--extrinsic`` says they are another body's); their map frame is ``world`` for a pose file.
 """
 
 from __future__ import annotations
 
 import math
 import re
-from collections.abc import Callable, Mapping
+import time
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
+from mfp_mapper.config.replay_options import ReplayError, ReplayOptions
+from mfp_mapper.sensing.poses import Extrinsic
+from mfp_mapper.sources import lidar_odometry
+from mfp_mapper.sources.pose_files import IDENTITY, guess_pose_format, read_poses
+from mfp_mapper.sources.recording import Poses, RecordedCloud, Recording
 from mfp_mapper.sources.scan_files import (
     CloudMessage,
     DatasetFormatError,
@@ -133,6 +143,83 @@ def open_scan_folder(
     if len({s.stamp for s in scans}) != len(scans):
         raise DatasetFormatError(f"{folder}: two scans have the same stamp ({source})")
     return ScanFolder(folder, scans, source, frame_id, skipped)
+
+
+def open_folder(
+    directory: str | Path,
+    opts: ReplayOptions,
+    poses: str | Path | None = None,
+    times_file: str | Path | None = None,
+    log: Callable[[str], None] | None = None,
+) -> Recording:
+    """The scans of ``directory`` as a recording; ``poses``: a pose file or ``identity``, or
+    None with ``opts.replay.odometry`` (KISS-ICP). ReplayError says why it cannot be used."""
+    try:
+        folder = open_scan_folder(directory, times_file)
+    except (DatasetFormatError, OSError) as err:
+        raise ReplayError(str(err)) from None
+    if folder.skipped and log is not None:
+        log(f"warning: {folder.directory}: skipped {len(folder.skipped)} entries named like "
+            f"scan files: {', '.join(folder.skipped)}")  # fmt: skip
+    t_poses = time.perf_counter()
+    found = folder_poses(folder, poses, opts, log)
+    seconds_poses = time.perf_counter() - t_poses
+    extrinsic = (
+        Extrinsic.from_xyz_rpy(*opts.replay.extrinsic) if opts.replay.extrinsic else Extrinsic()
+    )
+
+    def clouds() -> Iterator[RecordedCloud]:
+        for index in range(len(folder)):
+            yield RecordedCloud(index, partial(folder.message, index))
+
+    return Recording(
+        name=str(folder.directory),
+        cloud_source=f"{len(folder)} {folder.kind} files (stamps: {folder.stamp_source})",
+        cloud_frame=folder.frame_id,
+        cloud_count=len(folder),
+        poses=found,
+        extrinsic_source=(
+            "given on the command line"
+            if opts.replay.extrinsic
+            else "identity (poses are the lidar's)"
+        ),
+        read_clouds=clouds,
+        extrinsic_of=lambda _: extrinsic,
+        seconds_poses=seconds_poses,
+    )
+
+
+def folder_poses(
+    folder: ScanFolder,
+    poses: str | Path | None,
+    opts: ReplayOptions,
+    log: Callable[[str], None] | None = None,
+) -> Poses:
+    """The poses of the folder's scans: KISS-ICP (``opts.replay.odometry``), or ``poses``."""
+    if opts.replay.odometry is not None:
+        return lidar_odometry.odometry_poses(
+            ((scan.stamp, partial(folder.message, k)) for k, scan in enumerate(folder.scans)),
+            opts,
+            folder.frame_id,
+            len(folder),
+            log,
+        )
+    if poses is None:
+        raise ReplayError(
+            f"{folder.directory}: a scan folder needs poses: --poses FILE (KITTI, TUM or "
+            "odometry CSV), --poses identity (single frames) or --odometry kiss-icp"
+        )
+    skipped = f"; skipped: {', '.join(folder.skipped)}" if folder.skipped else ""
+    stamps = [scan.stamp for scan in folder.scans]
+    found = read_poses(poses, folder.frame_id, opts.placement.odom_max_gap, stamps, skipped)
+    if str(poses) != IDENTITY and folder.stamp_source.startswith("none"):
+        kind = guess_pose_format(Path(poses))  # read already: a readable file
+        if kind != "kitti":
+            raise ReplayError(
+                f"{poses}: {kind.upper()} poses are matched by time, but the scans have no "
+                "stamps (give a times file with --times, or name the files by their time)"
+            )
+    return found
 
 
 def _not_a_file(path: Path) -> str:

@@ -15,7 +15,8 @@ upward; that is why the built-in scenes but ``open`` are closed (walls and ceili
 ray returns. The ground truth JSON counts omitted rays, and ``evaluate`` warns when some
 crossed a medium.
 
-Scenes are in ``sources.sim_scene``, the bag writer in ``sources.sim_bag``.
+Scenes are in ``sources.sim_scene``, the bag writer in ``sources.sim_bag``. Without a bag,
+``open_simulation`` gives the same clouds as a recording placed by the true path.
 
 Output: a bag (ROS 2 sqlite3 or mcap, or ROS 1 ``.bag``) with ``nav_msgs/Odometry``
 (odom -> base_link), ``/tf_static`` (base_link -> lidar), optionally ``/tf``, and
@@ -27,18 +28,22 @@ layout: float32, float32, float32, float32, uint16, float32 relative seconds), p
 from __future__ import annotations
 
 import json
+import math
 import shutil
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from mfp_mapper.config.names import BAG_FORMATS, SCENES
 from mfp_mapper.mapio.atomic import write_text_atomic
-from mfp_mapper.sensing.poses import quaternion_to_matrix, rpy_to_quaternion
+from mfp_mapper.sensing.poses import Extrinsic, quaternion_to_matrix, rpy_to_quaternion
+from mfp_mapper.sources.recording import Poses, RecordedCloud, Recording
+from mfp_mapper.sources.scan_files import cloud_message
 from mfp_mapper.sources.scan_pattern import VLP16_ELEVATIONS_DEG, scan_directions
 from mfp_mapper.sources.sim_bag import VELODYNE_DTYPE, VELODYNE_FIELDS, BagSink, bag_format_for
 from mfp_mapper.sources.sim_scene import (
@@ -75,6 +80,7 @@ __all__ = [
     "Solid",
     "generate_scans",
     "load_truth",
+    "open_simulation",
     "preset",
     "simulate",
 ]
@@ -314,6 +320,21 @@ def _write_scan(
     q_ext: FloatArray,
     totals: dict[str, int],
 ) -> None:
+    records = scan_records(cfg, scan, t_ext, q_ext)
+    msg = sink.pointcloud(scan.stamp, cloud_frame, records, VELODYNE_FIELDS)
+    sink.write(cfg.cloud_topic, scan.stamp + cfg.scan_period, msg)
+    totals["rays"] += scan.rays
+    totals["returns"] += scan.rays - scan.omitted
+    totals["omitted"] += scan.omitted
+    totals["omitted_through_media"] += scan.omitted_through_media
+
+
+def scan_records(
+    cfg: SimulationConfig, scan: Scan, t_ext: FloatArray, q_ext: FloatArray
+) -> NDArray[np.void]:
+    """The points of ``scan`` as the cloud holds them (``VELODYNE_DTYPE``): in the lidar
+    frame, or base_link with ``cloud_in_base_frame``; (beams, azimuths) with NaN for the
+    firings without a return when ``organized``."""
     xyz = scan.xyz
     if cfg.cloud_in_base_frame:
         xyz = (xyz.astype(np.float64) @ quaternion_to_matrix(q_ext).T + t_ext).astype(np.float32)
@@ -334,12 +355,74 @@ def _write_scan(
     rows["time"] = scan.time
     if cfg.organized:
         flat[scan.cells] = rows
-    msg = sink.pointcloud(scan.stamp, cloud_frame, records, VELODYNE_FIELDS)
-    sink.write(cfg.cloud_topic, scan.stamp + cfg.scan_period, msg)
-    totals["rays"] += scan.rays
-    totals["returns"] += scan.rays - scan.omitted
-    totals["omitted"] += scan.omitted
-    totals["omitted_through_media"] += scan.omitted_through_media
+    return records
+
+
+# --- the simulator as a recording -------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TruthPoses:
+    """The robot's true poses (base_link in odom) along the simulated path, at any time."""
+
+    cfg: SimulationConfig
+    earliest_stamp: float = -math.inf
+    latest_stamp: float = math.inf
+    max_gap: float = math.inf
+
+    def interpolate(self, stamps: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        t = np.asarray(stamps, dtype=np.float64).reshape(-1) - self.cfg.start_time
+        positions, yaw = self.cfg.path.pose(t)
+        c, s = np.cos(yaw), np.sin(yaw)
+        rotations = np.zeros((t.size, 3, 3))
+        rotations[:, 0, 0], rotations[:, 0, 1], rotations[:, 1, 0] = c, -s, s
+        rotations[:, 1, 1], rotations[:, 2, 2] = c, 1.0
+        return positions, rotations
+
+
+def _message(msg: Any) -> Any:
+    return msg
+
+
+def open_simulation(cfg: SimulationConfig, opts: Any = None) -> Recording:
+    """The simulated recording of ``cfg`` as a recording, without a bag: the clouds a bag of
+    ``simulate`` would hold (made again on each pass, the same from the seed), placed by
+    the true path (``TruthPoses``); the lidar mount is the extrinsic unless
+    ``opts.replay.extrinsic`` gives one."""
+    cfg.scene.validate()
+    t_ext, q_ext = _lidar_mount(cfg)
+    cloud_frame = cfg.base_frame if cfg.cloud_in_base_frame else cfg.lidar_frame
+    given = getattr(opts, "extrinsic", None)
+    if given is not None:
+        extrinsic, extrinsic_source = Extrinsic.from_xyz_rpy(*given), "given on the command line"
+    elif cfg.cloud_in_base_frame:
+        extrinsic = Extrinsic()
+        extrinsic_source = f"identity (the cloud frame is the odometry child frame {cloud_frame})"
+    else:
+        extrinsic = Extrinsic(t_ext, q_ext)
+        extrinsic_source = f"the simulator's lidar mount {cfg.base_frame} <- {cfg.lidar_frame}"
+
+    def clouds() -> Iterator[RecordedCloud]:
+        for index, scan in enumerate(generate_scans(cfg)):
+            msg = cloud_message(scan_records(cfg, scan, t_ext, q_ext), scan.stamp, cloud_frame)
+            yield RecordedCloud(index, partial(_message, msg))
+
+    poses = Poses(
+        TruthPoses(cfg),
+        cfg.base_frame,
+        cfg.odom_frame,
+        f"the simulator's true path ({cfg.odom_frame} -> {cfg.base_frame})",
+    )
+    return Recording(
+        name="simulation",
+        cloud_source=f"{cfg.scans} simulated clouds",
+        cloud_frame=cloud_frame,
+        cloud_count=cfg.scans,
+        poses=poses,
+        extrinsic_source=extrinsic_source,
+        read_clouds=clouds,
+        extrinsic_of=lambda _: extrinsic,
+    )
 
 
 def _truth(

@@ -178,3 +178,34 @@ def test_version(capsys) -> None:  # type: ignore[no-untyped-def]
         main(["--version"])
     assert info.value.code == 0
     assert capsys.readouterr().out.strip() == f"mfp-mapper {mfp_mapper.__version__}"
+
+
+def test_query_segments_offline_agree_with_the_core(
+    run: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Through the cube of medium (lambda 1 /m, 1.6 m wide) a segment is far less clear than
+    the same length of free air beside it; the CLI's numbers are the Mapper's."""
+    through = [-1.5, 0.1, 1.2, 1.5, 0.1, 1.2]
+    beside = [2.0, 2.0, 1.0, 5.0, 2.0, 1.0]
+    seg_file = tmp_path / "segments.txt"
+    seg_file.write_text("# x0 y0 z0 x1 y1 z1\n" + ", ".join(map(str, beside)) + "\n")
+    argv = ["query", str(run["map"]), "0", "0", "1", "--segment", *map(str, through)]
+    assert main([*argv, "--segments", str(seg_file), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert len(out["points"]) == 1 and out["points"][0]["observed"]
+    cube, air = out["segments"]
+    assert cube["clear_probability"] < 0.5 * air["clear_probability"]
+    assert cube["length"] == pytest.approx(3.0) and cube["unknown_length"] == 0.0
+    want = load_map(run["map"]).query_segments([through[:3], beside[:3]], [through[3:], beside[3:]])
+    assert [cube["clear_probability"], air["clear_probability"]] == pytest.approx(
+        want.clear_probability.tolist(), rel=1e-12
+    )
+    assert main(["query", str(run["map"]), "--segment", *map(str, through)]) == 0
+    assert "clear with probability" in capsys.readouterr().out
+    seg_file.write_text("1 2 3 4 5\n")
+    assert main(["query", str(run["map"]), "--segments", str(seg_file)]) == 1
+    assert "segments.txt:1: a segment is 6 numbers, got 5" in capsys.readouterr().err
+    assert main(["query", str(run["map"])]) == 1
+    assert "nothing to query" in capsys.readouterr().err
+    assert main(["query", str(run["map"]), "--segment", "0", "0", "0", "1e9", "0", "0"]) == 1
+    assert "voxels" in capsys.readouterr().err

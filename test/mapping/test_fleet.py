@@ -373,7 +373,7 @@ def test_a_failing_recording_on_workers_is_one_line(bags: list[Path], tmp_path: 
 def test_scan_folders_among_several_inputs(bags: list[Path], tmp_path: Path) -> None:
     from folder_helpers import bag_contents, write_pcd
 
-    from mfp_mapper.mapping.folder_replay import replay_folder
+    from mfp_mapper.sources.opener import open_recording
 
     folders = []
     for i, bag in enumerate(bags[:2]):
@@ -388,8 +388,8 @@ def test_scan_folders_among_several_inputs(bags: list[Path], tmp_path: Path) -> 
     fleet = FleetOptions(progress=False, poses="identity")
     result = map_fleet(folders, tmp_path / "m.npz", OPTS, fleet)
     assert len(result.tasks) == 2 and sum(s.scans_used for s in result.summaries) == 4
-    mapper = replay_folder(folders[0], "identity", OPTS, progress=False).mapper
-    replay_folder(folders[1], "identity", OPTS, progress=False, into=mapper)
+    mapper = replay(open_recording(folders[0], OPTS, "identity"), OPTS, progress=False).mapper
+    replay(open_recording(folders[1], OPTS, "identity"), OPTS, progress=False, into=mapper)
     _assert_same_map(load_map(tmp_path / "m.npz"), map_arrays(mapper))
     with pytest.raises(FleetError, match="--poses FILE names the poses of one scan folder"):
         map_fleet(folders, tmp_path / "n.npz", OPTS, FleetOptions(poses=str(tmp_path / "p")))

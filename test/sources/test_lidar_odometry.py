@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 from odometry_scenes import lidar_truth, pose_errors, structured_recording
 
-from mfp_mapper.mapping.folder_replay import folder_poses, replay_folder
 from mfp_mapper.mapping.replay import ReplayOptions, replay
 from mfp_mapper.sensing.poses import quaternion_to_matrix
 from mfp_mapper.sources.bags import ReplayError
 from mfp_mapper.sources.lidar_odometry import MAP_FRAME, kiss_icp_available
+from mfp_mapper.sources.opener import open_recording
 from mfp_mapper.sources.pose_files import read_odometry_csv
-from mfp_mapper.sources.scan_folder import open_scan_folder
+from mfp_mapper.sources.scan_folder import folder_poses, open_scan_folder
 from mfp_mapper.sources.simulate import simulate
 
 pytestmark = [
@@ -114,4 +114,4 @@ def test_a_clear_error_without_poses_or_with_both(tmp_path: Path) -> None:
     folder.mkdir()
     np.zeros((10, 4), "<f4").tofile(folder / "000000.bin")
     with pytest.raises(ReplayError, match="either --poses or --odometry"):
-        replay_folder(folder, "identity", ReplayOptions.of(odometry="kiss-icp"), progress=False)
+        open_recording(folder, ReplayOptions.of(odometry="kiss-icp"), "identity")

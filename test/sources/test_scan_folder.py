@@ -1,4 +1,5 @@
-"""Scan files (PLY, KITTI .bin, VTK, PCD) and scan folders: order, stamps, per-point time."""
+"""Scan files (PLY, KITTI .bin, VTK, PCD) and scan folders: order, stamps, per-point time;
+a folder as a recording (``open_folder``): its poses and the errors that stop it."""
 
 from __future__ import annotations
 
@@ -10,9 +11,11 @@ import pytest
 from folder_helpers import write_pcd, write_ply
 
 from mfp_mapper.cli.input_args import input_options, parse_bound
+from mfp_mapper.config.replay_options import ReplayError, ReplayOptions
+from mfp_mapper.config.schema import xyz_rpy
 from mfp_mapper.sensing import pipeline
 from mfp_mapper.sources.scan_files import DatasetFormatError, read_kitti_bin, read_ply
-from mfp_mapper.sources.scan_folder import is_scan_folder, open_scan_folder
+from mfp_mapper.sources.scan_folder import is_scan_folder, open_folder, open_scan_folder
 
 COLUMNS = {
     "x": np.array([1.0, 2.5, -3.0], "<f4"),
@@ -120,3 +123,71 @@ def test_start_end_syntax() -> None:
             parse_bound(bad)
     args = argparse.Namespace(start=("index", 3), end=("stamp", 9.0), odometry=None)
     assert input_options(args) == {"start_index": 3, "end": 9.0}
+
+
+def _three_scans(folder: Path) -> Path:
+    folder.mkdir()
+    for k in range(3):
+        write_pcd(
+            folder / f"{k}.pcd",
+            {"x": np.ones(3, "<f4"), "y": np.zeros(3, "<f4"), "z": np.zeros(3, "<f4")},
+        )
+    return folder
+
+
+def test_a_folder_as_a_recording(tmp_path: Path) -> None:
+    folder = _three_scans(tmp_path / "scans")
+    (tmp_path / "scans" / "3.pcd").mkdir()  # named like a scan, not a file: skipped, said
+    kitti = tmp_path / "poses.txt"
+    kitti.write_text("".join(f"1 0 0 {k} 0 1 0 0 0 0 1 0\n" for k in range(3)))
+    said: list[str] = []
+    with open_folder(folder, ReplayOptions(), kitti, log=said.append) as recording:
+        assert recording.name == str(folder) and recording.cloud_count == 3
+        assert recording.cloud_source.startswith("3 .pcd files (stamps: none found")
+        assert recording.map_frame == "world" and recording.cloud_frame == "lidar"
+        assert recording.extrinsic_source == "identity (poses are the lidar's)"
+        clouds = list(recording.clouds())
+        assert [c.position for c in clouds] == [0, 1, 2]
+        assert pipeline.scan_stamp(clouds[2].load()) == pytest.approx(0.2)
+        np.testing.assert_allclose(recording.pose_source.interpolate([0.2])[0], [[2, 0, 0]])
+    assert said and "skipped 1 entries" in said[0] and "3.pcd (a folder)" in said[0]
+    given = ReplayOptions.of(extrinsic=xyz_rpy([0, 0, 1], [0, 0, 0]))
+    with open_folder(folder, given, "identity") as recording:
+        assert recording.map_frame == "lidar" and recording.poses.source == "identity"
+        assert recording.extrinsic_source == "given on the command line"
+        np.testing.assert_allclose(recording.extrinsic_of("lidar").translation, [0, 0, 1])
+
+
+def test_folder_recording_errors(tmp_path: Path) -> None:
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(ReplayError, match="no scan files"):
+        open_folder(empty, ReplayOptions(), "identity")
+    folder = _three_scans(tmp_path / "scans")
+    with pytest.raises(ReplayError, match="needs poses"):
+        open_folder(folder, ReplayOptions())
+    kitti = tmp_path / "poses.txt"
+    kitti.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
+    with pytest.raises(ReplayError, match="1 KITTI poses for 3 scans"):
+        open_folder(folder, ReplayOptions(), kitti)
+    tum = tmp_path / "poses.tum"
+    tum.write_text("0 0 0 0 0 0 0 1\n1 0 0 0 0 0 0 1\n")
+    with pytest.raises(ReplayError, match="TUM poses are matched by time.*no stamps"):
+        open_folder(folder, ReplayOptions(), tum)
+    with pytest.raises(ReplayError, match="times file not found"):
+        open_folder(folder, ReplayOptions(), tum, tmp_path / "absent.txt")
+
+
+def test_kiss_icp_missing_is_a_clear_error(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import sys
+
+    monkeypatch.setitem(sys.modules, "kiss_icp.config", None)  # import raises ImportError
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    for k in range(2):
+        xyz = {"x": np.full(4, 3.0, "<f4"), "y": np.arange(4, dtype="<f4"), "z": np.zeros(4, "<f4")}
+        write_pcd(folder / f"{k}.pcd", xyz)
+    with pytest.raises(
+        ReplayError, match="needs the Python package kiss-icp: pip install kiss-icp"
+    ):
+        open_folder(folder, ReplayOptions.of(odometry="kiss-icp"))
