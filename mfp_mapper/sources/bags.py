@@ -4,10 +4,10 @@ transforms they hold.
 Bags are read with rosbags: no ROS installation is needed. The cloud topic
 (``sensor_msgs/PointCloud2``) and the odometry topic (``nav_msgs/Odometry``) are found
 automatically when the bag holds exactly one of each. Without an odometry topic (or with
-``use_tf``), poses come from ``/tf``: the chain of transforms from the cloud frame up to the
-fixed frame (``odom``, or the root of the tree). Or from a pose file matched by stamp
-(``sources.pose_files``), or KISS-ICP (``sources.lidar_odometry``). The lidar extrinsic comes
-from ``/tf_static``; it is the identity when the cloud frame is the odometry child frame;
+``--tf``, ``use_tf_poses``), poses come from ``/tf``: the chain of transforms from the cloud
+frame up to the fixed frame (``odom``, or the root of the tree). Or from a pose file matched by
+stamp (``sources.pose_files``), or KISS-ICP (``sources.lidar_odometry``). The lidar extrinsic
+comes from ``/tf_static``; it is the identity when the cloud frame is the odometry child frame;
 otherwise it must be given (``--extrinsic`` or ``lidar.translation``/``lidar.rpy`` in the
 node's YAML). Errors are ``ReplayError`` with the reason, before any cloud is mapped; a bag
 damaged part way raises one naming the message reached.
