@@ -4,7 +4,7 @@ Each measurement runs in its own subprocess, so peak memory is that mapper's alo
 Prints rays/s, the ratio to OctoMap measured in the same run, peak memory and voxel
 counts; then the latency of one VLP-16 scan, cold and warm start, and a real frame.
 
-    python benchmarks/bench_core.py            # the ANCHORS.md scene at 0.4, 0.2, 0.1 m
+    python benchmarks/bench_core.py            # the box-world scene at 0.4, 0.2, 0.1 m
     python benchmarks/bench_core.py --quick    # 0.2 m only, fewer repetitions
     python benchmarks/bench_core.py --bonxai ~/src/Bonxai --rounds 5 --resolutions 0.2 0.1
 
@@ -395,7 +395,7 @@ def main() -> None:
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
     resolutions = args.resolutions or ([0.2] if args.quick else [0.4, 0.2, 0.1])
     bonxai = build_bonxai(args.bonxai) if args.bonxai else None
-    print("scene: VLP-16 pattern, 16 x 1800 rays, 11 scans (ANCHORS.md); one process per row")
+    print("scene: VLP-16 pattern, 16 x 1800 rays, 11 scans (box world); one process per row")
     if args.rounds > 1:
         print(f"{args.rounds} rounds, mappers interleaved; times are medians over the rounds")
     row = "{:>5} {:<18} {:>8} {:>10} {:>9} {:>10} {:>9} {:>8} {:>11} {:>8}"

@@ -10,7 +10,8 @@ ros2 launch mfp_mapper mfp_mapper.launch.py node_name:=octomap_server octomap_to
 The node gets Fast DDS's large-data profile (config/fastdds_large_data.xml) in its
 environment unless large_data_profile:=false, another profile is already exported, or
 RMW_IMPLEMENTATION is not Fast DDS (``mfp_mapper.ros.transport.node_environment``). The
-lidar driver's process needs the same profile: README "Large clouds over DDS".
+lidar driver's process needs the same profile: docs/robot.md, "The DDS profile for large
+clouds".
 """
 
 import os

@@ -1,4 +1,4 @@
-"""The box world of ANCHORS.md's benchmark scene, for tests and benchmarks (not installed).
+"""The box world of the core benchmark's scene, for tests and benchmarks (not installed).
 
 An analytic world (flat ground, room walls, solid boxes) and the VLP-16 scene driven
 through it, so tests and benchmarks feed the mapper the same kind of rays.
@@ -61,7 +61,7 @@ class BoxWorld:
 def anchors_scene(
     n_scans: int = 11, azimuths: int = 1800, step: float = 1.0, height: float = 1.8
 ) -> list[tuple[FloatArray, FloatArray]]:
-    """The benchmark scene of ANCHORS.md: a VLP-16 driven along x through a box world.
+    """The core benchmark's scene: a VLP-16 driven along x through a box world.
 
     Returns one (points (N, 3), origin (3,)) per scan; rays that hit nothing are left out,
     as a driver leaves out points with no return.

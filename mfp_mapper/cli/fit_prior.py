@@ -19,7 +19,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     p = sub.add_parser(
         "fit-prior",
         help="empirical Bayes: the Gamma prior that best predicts held-out scans",
-        description="Empirical Bayes (docs/PRIOR.md): within the TRAINING part of --split "
+        description="Empirical Bayes (docs/scoring.md): within the TRAINING part of --split "
         "(what `score --split` maps), map one half and choose the Gamma(shape, rate) prior "
         "on the extinction that maximises the likelihood of the other half. even-odd: "
         "scans 0, 4, 8... map, 2, 6, 10... fit; shots: rays likewise. What `score --split` "

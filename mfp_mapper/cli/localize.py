@@ -11,7 +11,7 @@ from mfp_mapper.cli.common import CliError, check_writable, load_map_arg, warn
 from mfp_mapper.cli.input_args import add_input_arguments, input_options
 from mfp_mapper.config.replay_options import add_replay_flags
 
-ALIGN_HELP = "scan-to-map alignment (README, Localization)"
+ALIGN_HELP = "scan-to-map alignment (docs/localization.md)"
 MAX_LEVELS = 12
 """A coarsest voxel 2^11 times the map's (410 m at 0.2 m): more levels only cost time."""
 

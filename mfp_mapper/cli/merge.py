@@ -14,7 +14,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     p = sub.add_parser(
         "merge",
         help="merge maps exactly (.npz files or tiled maps) into one",
-        description="Per-voxel sums, decay brought to a common time (docs/FLEET.md). Maps of "
+        description="Per-voxel sums, decay brought to a common time (docs/fleet.md). Maps of "
         "other resolutions, frames, decay times are refused. OUTPUT: NAME.npz, or a "
         "directory for a tiled map.",
     )

@@ -35,7 +35,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
         "lidar extrinsic comes from /tf_static (identity when the cloud frame is the odometry "
         "child frame), else from --extrinsic or the config. The map is written only when the "
         "whole bag was replayed. Several bags (or --workers, --scheduler, --chunk-seconds): "
-        "partial maps merged exactly into one (docs/FLEET.md).",
+        "partial maps merged exactly into one (docs/fleet.md).",
     )
     p.add_argument(
         "inputs", nargs="+", metavar="INPUT",
@@ -44,7 +44,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     )  # fmt: skip
     p.add_argument(
         "-o", "--output", required=True,
-        help="the map to write: NAME.npz, or a directory for a tiled map (docs/TILES.md)",
+        help="the map to write: NAME.npz, or a directory for a tiled map (docs/mapfiles.md)",
     )  # fmt: skip
     p.add_argument("--config", help="a node parameter file (read as the node reads it)")
     add_replay_flags(p)  # one flag per setting of the schema that has one
@@ -188,7 +188,7 @@ def run_fleet(args: argparse.Namespace, out: Path) -> int:
 
 
 def _fleet_arguments(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("several recordings, Dask (docs/FLEET.md)")
+    g = p.add_argument_group("several recordings, Dask (docs/fleet.md)")
     g.add_argument(
         "--workers", type=nonneg_int, metavar="N",
         help="run on a local Dask cluster of N worker processes (0: one per core; at most "

@@ -141,7 +141,7 @@ def octomap_only_warning(names: list[str]) -> str:
     """The one warning for octomap_server-only names in a parameter file."""
     return (
         f"ignoring octomap_server parameter(s) with no meaning in mfp_mapper: {', '.join(names)} "
-        "(README 'Migrating from octomap_server')"
+        "(docs/robot.md, 'Migrating from octomap_server')"
     )
 
 

@@ -31,6 +31,7 @@ class MapSection(Section):
     """The map: what the core's ``Mapper`` is built with (with ``SensorModelSection``)."""
 
     KEY = "map"
+    TITLE = "The map"
 
     resolution: float = setting(
         0.1,
@@ -87,7 +88,7 @@ class MapSection(Section):
     )
     prior_shape: float = setting(
         1.0,
-        "Shape alpha (returns) of the Gamma prior on each voxel's extinction (docs/PRIOR.md);"
+        "Shape alpha (returns) of the Gamma prior on each voxel's extinction (docs/model.md);"
         " with prior.rate = 1, the paper's uniform prior on m. Used by every estimate but the"
         " most likely DoO (mean, std, intervals, hit probability, the grids' thresholds); "
         "never stored in the statistics. `mfp-mapper fit-prior` fits it to a recording.",
@@ -115,6 +116,7 @@ class SensorModelSection(Section):
 
     PREFIX = "sensor_model."
     KEY = "sensor_model"
+    TITLE = "The sensor model"
 
     max_range: float = setting(
         100.0,
@@ -140,7 +142,7 @@ class SensorModelSection(Section):
         "Firings that returned nothing (NaN/zero cells of organized clouds, gaps of "
         "ring/channel clouds) become rays that clear space up to this range (m) and count no "
         "return. 0: off, the default: a missing return may also be a dark or glossy obstacle,"
-        " or one closer than the minimum range (README, 'Rays with no return').",
+        " or one closer than the minimum range (docs/model.md, 'Rays with no return').",
         0.0,
         1.0e5,
         applies="both",
@@ -154,6 +156,7 @@ class PlacementSection(Section):
     de-skewing, the point-cloud box, the cloud queue and the odometry/TF timing."""
 
     KEY = "placement"
+    TITLE = "Placing the clouds"
 
     cloud_frame_id: str = setting(
         "",
@@ -295,6 +298,7 @@ class OutputsSection(Section):
     """What the node publishes: the map clouds, the 2D grids and their thresholds."""
 
     KEY = "outputs"
+    TITLE = "What the node publishes"
 
     latch: bool = setting(
         True,
@@ -395,10 +399,11 @@ class OutputsSection(Section):
 
 @dataclass(frozen=True)
 class LocalizationSection(Section):
-    """Localization against the loaded map (``localization.*``, README 'Localization mode')."""
+    """Localization against the loaded map (``localization.*``; docs/localization.md)."""
 
     PREFIX = "localization."
     KEY = "localization"
+    TITLE = "Localization mode (`localization.enabled`)"
 
     enabled: bool = setting(
         False,
@@ -599,6 +604,7 @@ class NodeSection(Section):
     """The node's map file, start and health."""
 
     KEY = "node"
+    TITLE = "Map file, start and health"
 
     map_path: str = setting(
         "",
@@ -635,6 +641,7 @@ class ReplaySection(Section):
     """The offline replay only: topics, poses, the extrinsic flag, which clouds."""
 
     KEY = "replay"
+    TITLE = "The replay only"
 
     cloud_topic: str | None = setting(
         None,

@@ -164,6 +164,8 @@ class Section:
     PREFIX: ClassVar[str] = ""
     KEY: ClassVar[str] = ""
     """The attribute holding this section in ``NodeConfig`` and ``ReplayOptions``."""
+    TITLE: ClassVar[str] = ""
+    """The section's heading in the documentation's parameter table."""
 
     @classmethod
     def settings(cls) -> tuple[Setting, ...]:

@@ -46,7 +46,7 @@ _UNCERTAIN = 1
 """Kernel code of a trinary cell observed between the thresholds (becomes UNKNOWN)."""
 DEFAULT_OCCUPIED_THRESHOLD = 0.25
 """Default hit probability at or above which a trinary cell is occupied (a wall seen in 3
-scans at 0.1 m reaches 0.32-0.38, in 40 scans 0.98; see README, "Which map is which")."""
+scans at 0.1 m reaches 0.32-0.38, in 40 scans 0.98; see docs/node.md)."""
 
 
 def unobserved_hit_probability(resolution: float, shape: float = 1.0, rate: float = 1.0) -> float:

@@ -1,6 +1,6 @@
 """Exact merge of maps: partial maps of disjoint sets of scans add up to the map of all scans.
 
-A voxel's statistics are sums of contributions (MODEL.md). With decay time ``T``, each
+A voxel's statistics are sums of contributions (docs/model.md). With decay time ``T``, each
 map's statistics refer to the time ``t_last`` of their block; the merge brings every block
 to a common time, the latest of its inputs' times, by scaling the older statistics by
 ``exp(-(t_common - t) / T)``, and adds. That is what a sequential replay of the same scans

@@ -4,7 +4,7 @@ Every function is vectorised over numpy arrays of the sufficient statistics:
 ``s`` — metres travelled by rays inside the voxel, ``n`` — first returns inside it (real
 valued after decay). With a Gamma(shape alpha, rate beta) prior on the extinction
 ``u = -log m`` (``Prior``; alpha = beta = 1 is the paper's uniform prior on m, Eq. 24) the
-posterior of u is Gamma(n + alpha, s + beta) (Eq. 25-26 generalised, docs/PRIOR.md); ``m``
+posterior of u is Gamma(n + alpha, s + beta) (Eq. 25-26 generalised, docs/model.md); ``m``
 is the probability of crossing one metre unreflected and the degree of occupancy (DoO) is
 ``1 - m``. The prior is applied when statistics are read, never stored in ``s`` and ``n``.
 """

@@ -33,7 +33,7 @@ def open_block(
 ) -> int:
     """The block (bx, by, bz), created if new, ready to take the scan ``scan_id`` at ``stamp``.
 
-    Order-independent decay (MODEL.md, Eq. 28-30): the first time a scan opens a block,
+    Order-independent decay (Eq. 28-30, docs/model.md): the first time a scan opens a block,
     a block older than ``stamp`` is decayed to ``stamp`` and takes its time; a block newer
     than ``stamp`` (a late scan) keeps its statistics and time, and the scan's
     contributions to it are scaled by ``exp(-(t_block - stamp) / decay_time)``, the factor

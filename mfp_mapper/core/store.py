@@ -1,6 +1,6 @@
 """Sparse voxel store: a hash of dense 8x8x8 blocks holding ``(s, n)`` per voxel.
 
-Layout (chosen for speed and memory, see ANCHORS.md):
+Layout (chosen for speed and memory; docs/performance.md measures it):
 
 * Voxels live in dense blocks of ``BLOCK_EDGE**3``; a ray stays in one block for several
   steps, so most updates are an array index into the block the walk is already in.

@@ -9,7 +9,7 @@ settings (``settings_problem``, ``origin_problem``); only then the voxel arrays 
 and their values checked (``core.store.voxel_problem``, ``future_problem``). A tiled map's
 ``index.json`` is parsed and checked whole by ``parse_index`` before any tile is opened.
 
-Limits (README, "Map files that are refused"):
+Limits (docs/mapfiles.md, "Map files that are refused"):
 
 - ``MAX_EXPANSION``: the arrays of a map file may declare at most this many bytes per byte
   of the file (plus ``EXPANSION_SLACK``); deflate can expand data ~1030 times, real maps
@@ -56,7 +56,7 @@ _BLOCK_RANGE = (MAX_VOXEL_INDEX >> 3) + 1
 TILES_FORMAT = "mfp_mapper.tiles"
 TILES_VERSION = 1
 TILE_DIR = "tiles"
-"""The tiled map's index contract (docs/TILES.md; ``core.tiles`` re-exports these)."""
+"""The tiled map's index contract (docs/mapfiles.md; ``core.tiles`` re-exports these)."""
 ALLOWED_COMPRESSION = (0, 8)
 """Zip methods a map file may use: stored, deflated (what numpy writes)."""
 

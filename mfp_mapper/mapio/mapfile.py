@@ -18,7 +18,7 @@ An ``.npz`` archive (never pickles) holding
 =============  ==============  ===================================================
 
 plus ``max_range`` and ``min_range`` (float64, metres) and ``prior_shape``, ``prior_rate``
-(float64: the Gamma prior on the extinction the estimates use, docs/PRIOR.md; a file
+(float64: the Gamma prior on the extinction the estimates use, docs/model.md; a file
 without them was written with the uniform prior, 1 and 1). The centre of voxel ``ijk`` is
 ``origin + (ijk + 0.5) * resolution`` (map frame, metres). Every voxel is listed once, in no
 particular order. Files are written atomically (``mapio.atomic``).

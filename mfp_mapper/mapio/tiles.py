@@ -1,6 +1,6 @@
 """Tiled maps: a map split by block ranges into map files, with a JSON index.
 
-A tiled map is a directory (layout in docs/TILES.md)::
+A tiled map is a directory (layout in docs/mapfiles.md)::
 
     index.json                       the contract: settings, tile edge, one entry per tile
     tiles/<tx>_<ty>_<tz>.<gen>.npz   each tile an ordinary map file (``mapfile``)

@@ -145,8 +145,8 @@ class PyramidCache:
     share of the evidence where the sensor has been), or the sensor has moved more than
     ``refresh_m`` from where it was built (new ground). Building it reads the whole map
     (2-4 s for norlab's 3.6M voxels on a loaded machine): rebuilt before every scan,
-    norlab's refinement took 56.1 s, 30.6 s with this rule (same run, README). The exact
-    check (``verify_exact``) always reads the current map."""
+    norlab's refinement took 56.1 s, 30.6 s with this rule (same run, docs/performance.md).
+    The exact check (``verify_exact``) always reads the current map."""
 
     def __init__(self, mapper: Mapper, align: AlignOptions) -> None:
         self.mapper = mapper

@@ -71,5 +71,5 @@ def transport_loss_text(lost: int, queue: tuple[int, int]) -> str:
         f"queue_full drops: {queue[0]} of {queue[1]} queued now). Large clouds need Fast DDS's "
         f"large-data profile in the publisher's (lidar driver's) process and in this one: "
         f"export {PROFILE_ENV}={profile_path()} ({mine}; the launch file sets it for the "
-        "mapper; README 'Large clouds over DDS')"
+        "mapper; docs/robot.md, 'The DDS profile for large clouds')"
     )

@@ -222,7 +222,7 @@ def read_ply(path: str | Path) -> dict[str, NDArray[np.generic]]:
 
     Read with ``plyfile`` (every PLY variant: ascii, binary little- and big-endian, other
     elements before or after the vertices). On the 1,046,843-point binary scan of
-    ``shared/data/tls_conifers`` it reads as fast as the hand-written reader it replaced
+    ``tls_conifers`` recording it reads as fast as the hand-written reader it replaced
     (0.015-0.12 s each, interleaved, within the noise). List properties on the vertex
     element are refused.
     """

@@ -1,7 +1,7 @@
 """The simulator's scenes: a room with opaque boxes and boxes of participating medium.
 
 A ray travels until a first return: inside a medium after an exponentially distributed free
-path of rate ``lambda`` (MODEL.md, "Physics check"), otherwise at the first solid surface.
+path of rate ``lambda`` (docs/model.md, "A physics check"), otherwise at the first solid surface.
 """
 
 from __future__ import annotations

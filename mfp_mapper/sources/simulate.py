@@ -4,7 +4,7 @@ A robot drives a circle in a closed room (solid floor, walls and ceiling) with s
 and volumes of *participating medium* (foliage-like) of known extinction ``lambda`` (returns
 per metre). Each ray of a Velodyne-like pattern (``sources.scan_pattern``)
 travels until a first return: inside a medium after an exponentially distributed free path
-of rate ``lambda`` (MODEL.md, "Physics check"), otherwise at the first solid surface.
+of rate ``lambda`` (docs/model.md, "A physics check"), otherwise at the first solid surface.
 
 Rays that would leave the scene with no return are omitted from the cloud, as a lidar driver
 omits points with no return; with ``organized`` the cloud keeps every firing (height = beams,

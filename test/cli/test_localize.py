@@ -1,6 +1,6 @@
-"""``mfp-mapper localize`` as README tells the user to type it, on the real ouster_street
-scans: map scans 0 and 2 with ``replay``, then localize scan 1 from a pose 0.3 m and 3 deg
-off its recorded pose; the refined pose comes back within 5 cm and 0.5 deg."""
+"""``mfp-mapper localize`` as docs/localization.md tells the user to type it, on the real
+ouster_street scans: map scans 0 and 2 with ``replay``, then localize scan 1 from a pose 0.3 m
+and 3 deg off its recorded pose; the refined pose comes back within 5 cm and 0.5 deg."""
 
 from __future__ import annotations
 

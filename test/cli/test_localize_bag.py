@@ -1,7 +1,7 @@
-"""``mfp-mapper localize`` and ``replay --refine-poses`` on bags, as README tells the user to
-type them: simulated bags written with rosbags (``sources.simulate``, exact odometry), one
-mapped, the other (other noise, same path) localized against that map from its own
-odometry, from a TUM file perturbed by 0.2 m / 2 deg, and refined while mapped."""
+"""``mfp-mapper localize`` and ``replay --refine-poses`` on bags, as docs/localization.md tells
+the user to type them: simulated bags written with rosbags (``sources.simulate``, exact
+odometry), one mapped, the other (other noise, same path) localized against that map from its
+own odometry, from a TUM file perturbed by 0.2 m / 2 deg, and refined while mapped."""
 
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ SMALL = replace(
     scans=8,
     azimuths=720,
     # walls off the 0.2 m voxel boundaries: a room whose walls lie exactly on them gives
-    # every likelihood on the grid (smoothed and exact) a half-voxel bias (README)
+    # every likelihood on the grid (smoothed and exact) a half-voxel bias (docs/localization.md)
     scene=replace(_SMALL.scene, room_lo=(-7.07, -6.94, -0.05), room_hi=(6.96, 7.03, 3.93)),
 )
 EXTRINSIC = ["0.2", "0", "1.0", "0", "0", "0.35"]  # SMALL's lidar mount
@@ -92,7 +92,7 @@ def test_launcher_localizes_a_bag_from_perturbed_tum_poses(
     accepted = np.array([r["accepted"] for r in rows])
     assert accepted.sum() >= 6, rows
     # from 0.2 m / 2 deg to within 10 cm and 0.5 deg (against a fixed map every correction
-    # is taken: this room keeps a 6-8 cm bias, README: where it loses)
+    # is taken: this room keeps a 6-8 cm bias, docs/localization.md: where it loses)
     assert np.all(shift[accepted] < 0.1) and np.all(angle[accepted] < 0.5), (shift, angle)
     assert np.all(shift[~accepted] > 0.15)  # a refused scan keeps its (perturbed) pose
 

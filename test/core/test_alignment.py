@@ -29,7 +29,7 @@ from mfp_mapper.sensing.scan_normals import scan_normals
 
 
 def _model(s: np.ndarray, n: np.ndarray, r: float, alpha: float, beta: float) -> tuple:
-    """Brute force: log P(return over r) and log P(pass) per metre of MODEL.md."""
+    """Brute force: log P(return over r) and log P(pass) per metre of docs/model.md."""
     p_pass = ((s + beta) / (s + beta + r)) ** (n + alpha)
     return np.log(1.0 - p_pass), np.log(p_pass) / r
 

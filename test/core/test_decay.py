@@ -1,4 +1,4 @@
-"""Order-independent decay (MODEL.md, Eq. 28-30): a late scan is scaled, the map is not."""
+"""Order-independent decay (Eq. 28-30, docs/model.md): a late scan is scaled, the map is not."""
 
 from __future__ import annotations
 

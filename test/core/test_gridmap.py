@@ -139,7 +139,7 @@ def test_trinary_cells_for_nav2() -> None:
 def test_unobserved_hit_probability_bounds_every_unhit_voxel() -> None:
     res = 0.1
     prior = unobserved_hit_probability(res)
-    assert prior == pytest.approx(0.090909, abs=1e-6)  # MODEL.md test vector (s = n = 0)
+    assert prior == pytest.approx(0.090909, abs=1e-6)  # docs/model.md's worked values (s = n = 0)
     s = np.array([1e-6, 0.05, 1.0, 100.0])
     assert np.all(model.hit_probability(s, np.zeros_like(s), res) < prior)
 

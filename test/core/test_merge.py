@@ -59,7 +59,7 @@ def test_merge_of_partials_equals_the_sequential_map(scans, decay: float) -> Non
 
 
 def test_decay_brings_blocks_to_the_common_time_as_model_md_says() -> None:
-    # MODEL.md's vectors: n=10, s=5 at t'=0 and a crossing of 0.1 m at t=5 (T = 10 s)
+    # docs/model.md's worked values: n=10, s=5 at t'=0 and a crossing of 0.1 m at t=5 (T = 10 s)
     a = VoxelArrays(np.array([[0, 0, 0]], np.int32), np.array([5.0]), np.array([10.0]), np.zeros(1))
     b = VoxelArrays(np.array([[0, 0, 0]], np.int32), np.array([0.1]), np.zeros(1), np.full(1, 5.0))
     for parts in ([a, b], [b, a]):

@@ -1,4 +1,4 @@
-"""The model's statistics against MODEL.md's test vectors and numerical integration of Eq. 25."""
+"""The model's statistics against docs/model.md's values and numerical integration of Eq. 25."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from scipy import integrate, stats
 
 from mfp_mapper.core import model
 
-# s, n, most likely DoO (nan = unknown), E[m], std(DoO), p_hit with s0 = 0.1  (MODEL.md)
+# s, n, most likely DoO (nan = unknown), E[m], std(DoO), p_hit with s0 = 0.1  (docs/model.md)
 VECTORS = [
     (0.0, 0.0, math.nan, 0.500000, 0.288675, 0.090909),
     (1.0, 0.0, 0.0, 0.666667, 0.235702, 0.047619),

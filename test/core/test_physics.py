@@ -1,4 +1,4 @@
-"""MODEL.md's physics check: in a medium of uniform extinction the map recovers it."""
+"""docs/model.md's physics check: in a medium of uniform extinction the map recovers it."""
 
 from __future__ import annotations
 

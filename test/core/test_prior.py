@@ -1,4 +1,4 @@
-"""The Gamma prior on the extinction (docs/PRIOR.md): formulas, the Mapper, map files."""
+"""The Gamma prior on the extinction (docs/model.md): formulas, the Mapper, map files."""
 
 from __future__ import annotations
 
@@ -50,7 +50,7 @@ def test_uniform_prior_is_the_paper() -> None:
     assert model.UNIFORM.is_uniform
     assert model.UNIFORM.unknown_doo == pytest.approx(model.UNKNOWN_DOO)
     assert model.UNIFORM.unknown_std == pytest.approx(model.UNKNOWN_STD)
-    # MODEL.md's test vector s = 2, n = 3
+    # docs/model.md's worked value s = 2, n = 3
     assert float(model.std_doo(2.0, 3.0)) == pytest.approx(0.171718, abs=1e-6)
     assert PRIOR.unknown_doo == pytest.approx(1 - (0.05 / 1.05) ** 0.3)
     with pytest.raises(ValueError, match="shape and rate"):

@@ -432,8 +432,9 @@ def test_cli_replay_of_several_bags_on_two_workers(
 def test_the_launcher_runs_the_fleet_on_two_workers(
     bags: list[Path], reference: dict[str, np.ndarray], tmp_path: Path
 ) -> None:
-    """The command README gives, through the .venv/bin/mfp-mapper that ./run setup writes
-    (Dask's spawned workers re-run that script: it must not start the CLI again)."""
+    """The command docs/fleet.md gives (--workers), through the .venv/bin/mfp-mapper that
+    ./run setup writes (Dask's spawned workers re-run that script: it must not start the CLI
+    again)."""
     pytest.importorskip("distributed")
     launcher = Path(__file__).resolve().parents[2] / ".venv" / "bin" / "mfp-mapper"
     if not launcher.is_file():

@@ -1,4 +1,4 @@
-"""The physics check of MODEL.md through the whole offline chain, and the evaluation itself."""
+"""The physics check of docs/model.md through the whole offline chain, and the evaluation itself."""
 
 from __future__ import annotations
 

@@ -229,8 +229,9 @@ def test_diagnostics_report_the_mapping_health(spun: Spun) -> None:
 
 @pytest.mark.skip(
     reason="cannot be done with best-effort DDS: a reader learns of a lost sample only from "
-    "the sequence number of a later one (Fast DDS message-lost events, README 'Large clouds "
-    "over DDS'), so clouds_lost counts a loss when the next cloud arrives, never earlier"
+    "the sequence number of a later one (Fast DDS message-lost events, docs/robot.md, 'The "
+    "DDS profile for large clouds'), so clouds_lost counts a loss when the next cloud arrives, "
+    "never earlier"
 )
 def test_clouds_lost_counted_when_the_loss_happens() -> None:
     """Issue 9 asks for clouds_lost at the moment of the loss; see the skip reason."""
