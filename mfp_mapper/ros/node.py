@@ -462,7 +462,8 @@ class MfpMapperNode(GuardedLifecycleNode):
             map=replace(cfg.map, frame_id=cfg.map.frame_id.lstrip("/")),
             placement=replace(
                 cfg.placement,
-                **{n: getattr(cfg.placement, n).lstrip("/") for n in FRAME_PARAMETERS},
+                base_frame_id=cfg.placement.base_frame_id.lstrip("/"),
+                cloud_frame_id=cfg.placement.cloud_frame_id.lstrip("/"),
             ),
         )
 
