@@ -109,12 +109,12 @@ def run(args: argparse.Namespace) -> int:
             if args.split:
                 for label, row_args in rows:
                     opts = replay_options(row_args)
-                    prior = Prior(opts.prior_shape, opts.prior_rate)
+                    prior = Prior(opts.map.prior_shape, opts.map.prior_rate)
                     scorer = score.score_split(
                         recordings[0], opts, args.split, _priors(prior),
                         classic=not args.no_classic, progress=not args.quiet, log=log,
                     )  # fmt: skip
-                    results.append((label or f"resolution {opts.resolution:g} m", score.report(
+                    results.append((label or f"resolution {opts.map.resolution:g} m", score.report(
                         scorer, "model"
                     )))  # fmt: skip
             else:
@@ -123,10 +123,12 @@ def run(args: argparse.Namespace) -> int:
                     mapper = load_map_arg(path)
                     if args.prior_shape is not None or args.prior_rate is not None:
                         mapper.prior = Prior(
-                            opts.prior_shape
+                            opts.map.prior_shape
                             if args.prior_shape is not None
                             else mapper.prior.shape,
-                            opts.prior_rate if args.prior_rate is not None else mapper.prior.rate,
+                            opts.map.prior_rate
+                            if args.prior_rate is not None
+                            else mapper.prior.rate,
                         )
                     scorer = score.score_map(
                         mapper, recordings, opts, _priors(mapper.prior), progress=not args.quiet,

@@ -124,10 +124,10 @@ class LocalizerCorrection:
         return not self.localizer.settings.freeze_map
 
     def placement_frame(self, map_frame: str) -> str:
-        return self.localizer.settings.odom_frame
+        return self.localizer.odom_frame
 
     def map_frame(self, placement_frame: str) -> str:
-        return self.localizer.settings.global_frame
+        return self.localizer.global_frame
 
     def position(self, position: Any) -> Any:
         if position is None:
@@ -139,7 +139,7 @@ class LocalizerCorrection:
         self, points: np.ndarray, frame: str, to_placement: Callable[[np.ndarray, str], np.ndarray]
     ) -> np.ndarray:
         frame = frame_name(frame)
-        if not frame or frame == self.localizer.settings.global_frame:
+        if not frame or frame == self.localizer.global_frame:
             return points
         in_odom = to_placement(points, frame)
         m, _, _ = self.localizer.transform()
@@ -159,7 +159,7 @@ class LocalizerCorrection:
         ``stamp``, or at the latest odometry when the stamp is not covered; None without
         odometry in that frame (then ``/initialpose`` waits for the next cloud)."""
         with inputs.lock:
-            if inputs.odom_frame != self.localizer.settings.odom_frame or not len(inputs.poses):
+            if inputs.odom_frame != self.localizer.odom_frame or not len(inputs.poses):
                 return None
             poses = inputs.poses.snapshot()
         latest, earliest = poses.latest_stamp, poses.earliest_stamp

@@ -30,7 +30,7 @@ from mfp_mapper.config.schema import NodeConfig
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.core.store import MAX_VOXEL_INDEX
 from mfp_mapper.mapping.live import LiveIntegrator
-from mfp_mapper.mapping.live_localization import LiveLocalizer, LocalizationSettings
+from mfp_mapper.mapping.live_localization import LiveLocalizer
 from mfp_mapper.mapping.pose_correction import LocalizerCorrection
 from mfp_mapper.ros.guarded_node import GuardedNode, tracked_role
 from mfp_mapper.sensing.pointcloud import stamp_seconds
@@ -54,25 +54,25 @@ class Localization:
         self._config = config
         self._now = now
         cfg = config()
-        global_frame = cfg.frame_id or mapper.frame_id or "map"
+        global_frame = cfg.map.frame_id or mapper.frame_id or "map"
         mapper.frame_id = global_frame
-        settings = LocalizationSettings.of(cfg, global_frame)
+        settings = cfg.localization
         if not mapper.num_voxels:
             node.get_logger().warning(
                 "localization.enabled but no map was loaded from map_path "
-                f"{cfg.map_path!r}: waiting for a map"
+                f"{cfg.node.map_path!r}: waiting for a map"
                 + (
                     " (none will come: localization.freeze_map is true)"
                     if settings.freeze_map
                     else ""
                 )
             )
-        if settings.odom_frame == global_frame:
+        if frame_name(settings.odom_frame) == global_frame:
             raise ValueError(
                 f"localization.odom_frame and the map frame are both {global_frame!r}: the "
                 "correction map -> odom needs two frames"
             )
-        self.localizer = LiveLocalizer(settings, log=node.get_logger().info)
+        self.localizer = LiveLocalizer(settings, global_frame, log=node.get_logger().info)
         self.correction = LocalizerCorrection(self.localizer)
         self._worker: LiveIntegrator | None = None
         self._pose_pub: Any = None
@@ -93,7 +93,7 @@ class Localization:
         created = [self._pose_pub]
         self._pose_version = 0
         self._tf_version = -1
-        if self._config().localization_tf_publish:
+        if self._config().localization.tf_publish:
             tf_qos = QoSProfile(
                 history=HistoryPolicy.KEEP_LAST,
                 depth=100,
@@ -110,14 +110,13 @@ class Localization:
                 PoseWithCovarianceStamped, "initialpose", self._on_initial_pose, 10
             ),
             self.node.create_timer(
-                1.0 / self._config().localization_tf_rate, self._on_tf_timer, clock=clock
+                1.0 / self._config().localization.tf_rate, self._on_tf_timer, clock=clock
             ),
         ]
 
     def reconfigure(self, cfg: NodeConfig) -> None:
         """Parameters changed at run time: the next cloud uses them."""
-        global_frame = self.localizer.settings.global_frame
-        self.localizer.settings = LocalizationSettings.of(cfg, global_frame)
+        self.localizer.settings = cfg.localization
 
     def map_changed(self) -> None:
         """After a reset or a cleared box: the field is rebuilt."""
@@ -139,7 +138,7 @@ class Localization:
         worker = self._started()
         mapper = worker.mapper
         frame = frame_name(msg.header.frame_id)
-        expected = self.localizer.settings.global_frame
+        expected = self.localizer.global_frame
         if frame != expected:
             self.node.warn_throttled(
                 "initialpose_frame",
@@ -198,7 +197,7 @@ class Localization:
         correction stamped with its cloud's stamp, else the last one stamped now; both
         future-dated by ``transform_tolerance`` (AMCL's rule)."""
         self._publish_pose()
-        if not self._config().localization_tf_publish:
+        if not self._config().localization.tf_publish:
             return
         m, stamp, version = self.localizer.transform()
         if not np.isfinite(stamp):
@@ -220,7 +219,7 @@ class Localization:
         self._pose_version = version
         stamp, m, sigma = estimate
         msg = PoseWithCovarianceStamped()
-        msg.header.frame_id = self.localizer.settings.global_frame
+        msg.header.frame_id = self.localizer.global_frame
         msg.header.stamp = rclpy.time.Time(nanoseconds=int(round(stamp * 1e9))).to_msg()
         p, o = msg.pose.pose.position, msg.pose.pose.orientation
         p.x, p.y, p.z = (float(v) for v in m[:3, 3])
@@ -231,12 +230,12 @@ class Localization:
         self._pose_pub.publish(msg)
 
     def _map_to_odom(self, m: np.ndarray, stamp: float) -> TransformStamped:
-        settings = self.localizer.settings
+        localizer = self.localizer
         out = TransformStamped()
-        t = stamp + self._config().localization_transform_tolerance
+        t = stamp + self._config().localization.transform_tolerance
         out.header.stamp = rclpy.time.Time(nanoseconds=int(round(t * 1e9))).to_msg()
-        out.header.frame_id = settings.global_frame
-        out.child_frame_id = settings.odom_frame
+        out.header.frame_id = localizer.global_frame
+        out.child_frame_id = localizer.odom_frame
         out.transform.translation.x, out.transform.translation.y, out.transform.translation.z = (
             float(v) for v in m[:3, 3]
         )

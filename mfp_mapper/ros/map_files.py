@@ -21,7 +21,7 @@ from rclpy.clock import Clock
 from std_srvs.srv import Trigger
 
 from mfp_mapper.config.schema import NodeConfig
-from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.core.mapper import Mapper, mapper_kwargs
 from mfp_mapper.mapio.atomic import remove_stale_temp_files
 from mfp_mapper.mapio.loading import load_map
 from mfp_mapper.mapio.mapfile import MapFileError, map_arrays
@@ -34,7 +34,7 @@ def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, str | None]:
     """The map to start from: ``map_path`` when it exists and loads, else an empty one; and,
     when loading failed, the path saves go to instead (``recovery_path``): that file is
     never saved over."""
-    path = cfg.map_path
+    path = cfg.node.map_path
     if path:  # temporary files of a save that was killed midway
         target = os.path.realpath(path)
         stale = remove_stale_temp_files(os.path.dirname(target), os.path.basename(target))
@@ -49,7 +49,7 @@ def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, str | None]:
     ):  # nothing yet, or an empty directory for a tiled map
         return empty_map(cfg), None
     try:
-        mapper = load_map(path, **cfg.map_settings().mapper_kwargs())
+        mapper = load_map(path, **mapper_kwargs(cfg.map, cfg.sensor_model))
     except Exception as err:  # a map file never takes the node down (MemoryError included)
         text = f"{type(err).__name__}: {err}"
         if isinstance(err, MapFileError):  # it names its file: once is enough
@@ -60,18 +60,18 @@ def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, str | None]:
             f"{other!r}, never over that file"
         )
         return empty_map(cfg), other
-    if mapper.resolution != cfg.resolution:
+    if mapper.resolution != cfg.map.resolution:
         logger.warning(
             f"map {path!r} has resolution {mapper.resolution} m, parameter "
-            f"resolution is {cfg.resolution} m: keeping the map's"
+            f"resolution is {cfg.map.resolution} m: keeping the map's"
         )
-    if cfg.frame_id and mapper.frame_id and mapper.frame_id != cfg.frame_id:
+    if cfg.map.frame_id and mapper.frame_id and mapper.frame_id != cfg.map.frame_id:
         logger.warning(
             f"map {path!r} was built in frame {mapper.frame_id!r}, parameter frame_id is "
-            f"{cfg.frame_id!r}: its voxels are taken as coordinates in {cfg.frame_id!r}"
+            f"{cfg.map.frame_id!r}: its voxels are taken as coordinates in {cfg.map.frame_id!r}"
         )
-    if cfg.frame_id:
-        mapper.frame_id = cfg.frame_id
+    if cfg.map.frame_id:
+        mapper.frame_id = cfg.map.frame_id
     logger.info(f"loaded {mapper.num_voxels} voxels from {path!r} (frame {mapper.frame_id})")
     return mapper, None
 
@@ -86,7 +86,7 @@ def recovery_path(map_path: str) -> str:
 
 def empty_map(cfg: NodeConfig) -> Mapper:
     """A map with nothing in it, as the settings make it, in ``frame_id`` (else "map")."""
-    return Mapper.of(cfg.map_settings(), frame_id=cfg.frame_id or "map")
+    return Mapper.of(cfg.map, cfg.sensor_model, frame_id=cfg.map.frame_id or "map")
 
 
 class MapFiles:
@@ -120,9 +120,11 @@ class MapFiles:
         """The autosave timer (at activate), when ``autosave_period`` and ``map_path`` are
         set."""
         cfg = self._config()
-        if cfg.autosave_period > 0.0 and cfg.map_path:
+        if cfg.node.autosave_period > 0.0 and cfg.node.map_path:
             return [
-                self.node.create_timer(cfg.autosave_period, self._on_autosave_timer, clock=clock)
+                self.node.create_timer(
+                    cfg.node.autosave_period, self._on_autosave_timer, clock=clock
+                )
             ]
         return []
 
@@ -145,7 +147,7 @@ class MapFiles:
         a directory; stored uncompressed, so that a large map is saved within ``ros2
         launch``'s grace period. Returns (success, message)."""
         cfg = self._config()
-        path = self._save_elsewhere or cfg.map_path
+        path = self._save_elsewhere or cfg.node.map_path
         if not path:
             return False, "parameter map_path is empty: nowhere to save"
         worker = self._worker
@@ -169,7 +171,7 @@ class MapFiles:
         timing = f"started after {started:.3f} s, done in {seconds:.2f} s"
         kept = ""
         if self._save_elsewhere:
-            kept = f" (map_path {cfg.map_path!r} failed to load at start: kept as it was)"
+            kept = f" (map_path {cfg.node.map_path!r} failed to load at start: kept as it was)"
         logger.info(f"saved {count} voxels to {path!r} ({timing}){kept}")
         return True, f"saved {count} voxels to {path} ({timing}){kept}"
 
@@ -182,5 +184,5 @@ class MapFiles:
 
     def save_on_shutdown(self) -> None:
         """Save when ``save_on_shutdown`` (beside ``map_path`` when it failed to load)."""
-        if self._config().save_on_shutdown:
+        if self._config().node.save_on_shutdown:
             self.save()

@@ -96,6 +96,9 @@ RESULT_FIELDS = (
 """The fields of a ~/hit_probability/result cloud."""
 INFO_KEYS = frozenset({"no_return", "odom_frame"})
 """Keys of the worker's log lines that inform (logged at INFO), not warn."""
+FRAME_PARAMETERS = ("base_frame_id", "cloud_frame_id")
+"""Frame names of the placement section (with the map's frame_id: tf1's leading slash stripped)."""
+
 CLOCK_GRACE = 3.0
 """Wall seconds after start before a missing /clock (use_sim_time) is reported."""
 
@@ -131,7 +134,7 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._configured_once = False
         self._entities: list[Any] = []  # what configure creates (cleanup destroys)
         self._active: list[Any] = []  # what activate creates (deactivate destroys)
-        if self.cfg.autostart:
+        if self.cfg.node.autostart:
             steps = (("configure", self.trigger_configure), ("activate", self.trigger_activate))
             for step, trigger in steps:
                 if trigger() != TransitionCallbackReturn.SUCCESS:
@@ -157,24 +160,26 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._warn_slashes()
         self.localization = (
             Localization(self, lambda: self.cfg, mapper, self._now)
-            if self.cfg.localization_enabled
+            if self.cfg.localization.enabled
             else None
         )
         self.worker = LiveIntegrator(
             mapper,
             LiveSettings.of(self.cfg),
-            PoseBuffer(max_age=self.cfg.odom_buffer, max_gap=self.cfg.odom_max_gap),
-            tree=TfTree(buffer_length=self.cfg.tf_buffer),
+            PoseBuffer(
+                max_age=self.cfg.placement.odom_buffer, max_gap=self.cfg.placement.odom_max_gap
+            ),
+            tree=TfTree(buffer_length=self.cfg.placement.tf_buffer),
             log=self._worker_log,
             info=self.get_logger().info,
             now=self._now,
-            map_frame=self.cfg.frame_id or (mapper.frame_id if mapper.num_voxels else ""),
+            map_frame=self.cfg.map.frame_id or (mapper.frame_id if mapper.num_voxels else ""),
             correction=None if self.localization is None else self.localization.correction,
         )
         if self.localization is not None:
             self.localization.start(self.worker)
         self.files.keep(self.worker)
-        self.outputs = MapOutputs(self, self.worker, lambda: self.cfg, self.warn_throttled)
+        self.outputs = MapOutputs(self, self.worker, lambda: self.cfg.outputs, self.warn_throttled)
         self.worker.set_publish(self.outputs.publish)
         self._entities += self.outputs.publishers
         self._configured = self._configured_once = True
@@ -189,7 +194,7 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._create_interfaces()
         self.worker.start()
         self.outputs.invalidate()  # latch the map again for whoever subscribed meanwhile
-        if not self.cfg.autostart:
+        if not self.cfg.node.autostart:
             self.get_logger().info("active: mapping")
         return TransitionCallbackReturn.SUCCESS
 
@@ -305,13 +310,15 @@ class MfpMapperNode(GuardedLifecycleNode):
         # wall-clock timers: with use_sim_time and no /clock the ROS clock stands still,
         # and the map, ~/status and /diagnostics must still go out
         wall = Clock(clock_type=ClockType.STEADY_TIME)
-        if self.cfg.publish_rate > 0.0:
+        if self.cfg.outputs.publish_rate > 0.0:
             self._active.append(
-                self.create_timer(1.0 / self.cfg.publish_rate, self._on_publish_timer, clock=wall)
+                self.create_timer(
+                    1.0 / self.cfg.outputs.publish_rate, self._on_publish_timer, clock=wall
+                )
             )
-        if self.cfg.status_period > 0.0:
+        if self.cfg.node.status_period > 0.0:
             self._active.append(
-                self.create_timer(self.cfg.status_period, self._on_status, clock=wall)
+                self.create_timer(self.cfg.node.status_period, self._on_status, clock=wall)
             )
         self._clock_warned = False
         self._active.append(self.create_timer(1.0, self._check_clock, clock=wall))
@@ -331,18 +338,23 @@ class MfpMapperNode(GuardedLifecycleNode):
         return self.worker.map_frame
 
     def _warn_slashes(self) -> None:
-        for name in ("frame_id", "base_frame_id", "cloud_frame_id"):
-            value = getattr(self.cfg, name)
+        frames = (self.cfg.map, "frame_id"), *((self.cfg.placement, n) for n in FRAME_PARAMETERS)
+        for section, name in frames:
+            value = getattr(section, name)
             if value.startswith("/"):
                 self.get_logger().warning(
                     f"parameter {name} {value!r} has a leading slash: using "
                     f"{frame_name(value)!r} (tf2 and RViz reject such frame names)"
                 )
+        cfg = self.cfg
         self.cfg = replace(
-            self.cfg,
-            frame_id=frame_name(self.cfg.frame_id),
-            base_frame_id=frame_name(self.cfg.base_frame_id),
-            cloud_frame_id=frame_name(self.cfg.cloud_frame_id),
+            cfg,
+            map=replace(cfg.map, frame_id=frame_name(cfg.map.frame_id)),
+            placement=replace(
+                cfg.placement,
+                base_frame_id=frame_name(cfg.placement.base_frame_id),
+                cloud_frame_id=frame_name(cfg.placement.cloud_frame_id),
+            ),
         )
 
     @tracked
@@ -417,7 +429,7 @@ class MfpMapperNode(GuardedLifecycleNode):
         total = self.worker.clouds_lost(info.total_count_change)
         if not self._transport_explained:  # the first time: the whole story, once
             self._transport_explained = True
-            queue = (self.worker.queued, self.cfg.cloud_queue_size)
+            queue = (self.worker.queued, self.cfg.placement.cloud_queue_size)
             self.warn_throttled("clouds_lost", transport_loss_text(info.total_count_change, queue))
             return
         self.warn_throttled(

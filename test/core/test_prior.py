@@ -112,9 +112,9 @@ def test_replay_flags_and_node_parameters() -> None:
     parser.add_argument("--config")
     add_replay_flags(parser)
     opts = options_from_args(parser.parse_args(["--prior-shape", "0.3", "--prior-rate", "0.05"]))
-    assert (opts.prior_shape, opts.prior_rate) == (0.3, 0.05)
-    assert opts.map_settings().prior_shape == 0.3
+    assert (opts.map.prior_shape, opts.map.prior_rate) == (0.3, 0.05)
+    assert Mapper.of(opts.map, opts.sensor_model).prior == PRIOR
     cfg = check_parameters({"prior.shape": 0.3, "prior.rate": 0.05})
-    assert Mapper.of(cfg.map_settings()).prior == PRIOR
+    assert Mapper.of(cfg.map, cfg.sensor_model).prior == PRIOR
     with pytest.raises(ValueError, match=r"prior\.rate"):
         check_parameters({"prior.rate": 0.0})

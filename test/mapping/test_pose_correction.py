@@ -6,11 +6,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from mfp_mapper.mapping.live_localization import (
-    LiveLocalizer,
-    LocalizationSettings,
-    pose_matrix,
-)
+from mfp_mapper.config.sections import LocalizationSection
+from mfp_mapper.mapping.live_localization import LiveLocalizer, pose_matrix
 from mfp_mapper.mapping.pose_correction import LocalizerCorrection, NoCorrection
 
 POINTS = np.array([[1.0, 2.0, 3.0], [-4.0, 0.5, 0.0]])
@@ -40,8 +37,8 @@ def test_mapping_places_in_the_map_frame_and_corrects_nothing() -> None:
 
 
 def test_localization_moves_odometry_frame_points_by_the_correction() -> None:
-    settings = LocalizationSettings(global_frame="map", odom_frame="odom", freeze_map=True)
-    localizer = LiveLocalizer(settings, log=lambda text: None)
+    settings = LocalizationSection(odom_frame="/odom", freeze_map=True)
+    localizer = LiveLocalizer(settings, "map", log=lambda text: None)
     correction = LocalizerCorrection(localizer)
     assert (correction.aligns, correction.integrates, correction.names_map) == (
         True,
@@ -70,5 +67,5 @@ def test_localization_moves_odometry_frame_points_by_the_correction() -> None:
     np.testing.assert_array_equal(correction.to_map_frame(POINTS, "/map", to_odom), POINTS)
     np.testing.assert_array_equal(correction.to_map_frame(POINTS, "", to_odom), POINTS)
     assert asked == ["lidar"]
-    localizer.settings = LocalizationSettings(global_frame="map", freeze_map=False)
+    localizer.settings = LocalizationSection(freeze_map=False)
     assert correction.integrates
