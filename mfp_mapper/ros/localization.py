@@ -35,6 +35,22 @@ from mfp_mapper.mapping.pose_correction import LocalizerCorrection
 from mfp_mapper.ros.guarded_node import GuardedNode, tracked_role
 from mfp_mapper.sensing.pointcloud import stamp_seconds
 
+DEFAULT_MAP_FRAME = "map"
+"""The map frame when neither ``frame_id`` nor the loaded map names one other than the
+odometry frame."""
+
+
+def localization_frame(frame_id: str, map_file_frame: str, odom_frame: str) -> str:
+    """The map frame localized in: ``frame_id`` when set; else the loaded map's frame, unless
+    it is the odometry frame (a map made by ``mfp-mapper replay`` is in its recording's
+    ``odom``: the file's frame is where its voxels are, the node publishes map -> odom) or
+    none; then ``map``."""
+    if frame_id:
+        return frame_id
+    if map_file_frame and map_file_frame != odom_frame:
+        return map_file_frame
+    return DEFAULT_MAP_FRAME
+
 
 class Localization:
     """The localization mode's state, publishers, subscription and timer (see the module
@@ -48,15 +64,23 @@ class Localization:
         now: Callable[[], float],
     ) -> None:
         """Localize against ``mapper`` (the map loaded at configure), its map frame being
-        ``frame_id``, else the loaded map's (``mapper.frame_id`` is set to it); raises
-        ValueError when the odometry frame is that frame."""
+        ``localization_frame`` (``mapper.frame_id`` is set to it); raises ValueError when
+        ``frame_id`` names the odometry frame."""
         self.node = node
         self._config = config
         self._now = now
         cfg = config()
-        global_frame = cfg.map.frame_id or mapper.frame_id or "map"
-        mapper.frame_id = global_frame
         settings = cfg.localization
+        odom_frame = frame_name(settings.odom_frame)
+        global_frame = localization_frame(cfg.map.frame_id, mapper.frame_id, odom_frame)
+        if not cfg.map.frame_id and mapper.frame_id == odom_frame:
+            node.get_logger().info(
+                f"the map was built in {odom_frame!r} (the odometry frame of its recording, as "
+                f"`mfp-mapper replay` writes it): localizing in {global_frame!r}, its voxels "
+                f"taken as coordinates of {global_frame!r}; publishing {global_frame} -> "
+                f"{odom_frame} (set frame_id to name the map frame)"
+            )
+        mapper.frame_id = global_frame
         if not mapper.num_voxels:
             node.get_logger().warning(
                 "localization.enabled but no map was loaded from map_path "
@@ -67,10 +91,11 @@ class Localization:
                     else ""
                 )
             )
-        if frame_name(settings.odom_frame) == global_frame:
+        if odom_frame == global_frame:
             raise ValueError(
-                f"localization.odom_frame and the map frame are both {global_frame!r}: the "
-                "correction map -> odom needs two frames"
+                f"frame_id and localization.odom_frame are both {global_frame!r}: the "
+                f"correction map -> odom needs two frames; set frame_id to the map frame "
+                f"(e.g. -p frame_id:=map), or leave it empty to localize in 'map'"
             )
         self.localizer = LiveLocalizer(settings, global_frame, log=node.get_logger().info)
         self.correction = LocalizerCorrection(self.localizer)

@@ -205,3 +205,66 @@ def test_a_signal_during_the_field_build_exits_cleanly(
     log = node.log()
     assert code == 0 and "Traceback" not in log, log[-3000:]
     assert f"{signal.Signals(sig).name}: stopping" in log, log[-3000:]
+
+
+def test_a_map_made_by_replay_is_localized_against_in_map(ros_domain: int, tmp_path: Path) -> None:
+    """``mfp-mapper replay`` writes its map in the recording's odometry frame (``odom``): the
+    node localizes against it as documented, with no frame setting (issue 32 items 4 and 5):
+    the map frame is ``map`` (logged), ``map -> odom`` converges to the true offset of the
+    odometry, and ``~/status``, ``/tf``, ``~/pose`` and the log all name ``map`` as the map
+    frame and ``odom`` as the frame clouds are placed in."""
+    import numpy as np
+    from folder_helpers import bag_contents
+    from ros_helpers import NodeProcess, cloud_from_columns, odom_msg
+    from test_node_localization import OFFSET, PARAMS, LocFeeder, _tf_matrix
+
+    from mfp_mapper.cli import main
+    from mfp_mapper.mapio.loading import load_map
+    from mfp_mapper.mapping.live_localization import pose_matrix
+
+    bag, map_path = tmp_path / "sim", tmp_path / "site.npz"
+    scans = ["--scans", "24", "--azimuths", "900", "--cloud-in-base-frame"]
+    assert main(["simulate", str(bag), "--scene", "demo", *scans]) == 0
+    replay = ["replay", str(bag), "-o", str(map_path), "--resolution", "0.2", "--no-deskew"]
+    assert main([*replay, "-q"]) == 0  # placed as the node places them below
+    assert load_map(map_path).frame_id == "odom"  # what replay writes
+    clouds, odometry = bag_contents(bag)
+    params = {**PARAMS, "map_path": str(map_path)}
+    node = NodeProcess(ros_domain, params, tmp_path / "replayed.log")
+    feeder = LocFeeder()
+    try:
+        ready = feeder.wait(lambda: feeder.localization().get("state") == "initializing", 60.0)
+        assert ready, node.log()[-3000:]
+        shift = time.time() - clouds[0][0] + 1.0  # the recording, stamped from now on
+        for k in range(0, len(clouds), 3):
+            stamp, records = clouds[k]
+            for row in odometry[(odometry[:, 0] > stamp - 0.15) & (odometry[:, 0] < stamp + 0.25)]:
+                truth = pose_matrix(row[1:4], Rotation.from_quat(row[4:8]).as_matrix())
+                odom = np.linalg.inv(OFFSET) @ truth
+                yaw = float(Rotation.from_matrix(odom[:3, :3]).as_euler("xyz")[2])
+                feeder.odom_pub.publish(odom_msg(row[0] + shift, odom[:3, 3], yaw))
+            columns = {name: np.ascontiguousarray(records[name]) for name in ("x", "y", "z")}
+            feeder.cloud_pub.publish(cloud_from_columns(columns, "base_link", stamp + shift))
+            feeder.spin(0.3)
+        assert feeder.wait(lambda: feeder.localization().get("state") == "localized", 30.0), (
+            str(feeder.localization()) + node.log()[-3000:]
+        )
+
+        def xy_error() -> float:  # z left out: the field's bias on this map is about 0.1 m
+            d = np.linalg.inv(OFFSET) @ _tf_matrix(feeder.tf[-1])
+            return float(np.linalg.norm(d[:2, 3]))
+
+        assert feeder.wait(lambda: bool(feeder.tf) and xy_error() < 0.1), feeder.tf[-1:]
+        last = feeder.tf[-1]
+        assert last.header.frame_id == "map" and last.child_frame_id == "odom"
+        status = feeder.status or {}
+        assert status["map_frame"] == "map" and status["placement_frame"] == "odom", status
+        assert status["localization"]["global_frame"] == "map"
+        assert feeder.poses and all(p.header.frame_id == "map" for p in feeder.poses)
+    finally:
+        feeder.destroy()
+        code = node.stop()
+    log = node.log()
+    assert code == 0 and "Traceback" not in log, log[-3000:]
+    assert "the map was built in 'odom'" in log and "localizing in 'map'" in log, log[-3000:]
+    assert "odometry received in frame 'odom' (child 'base_link'): the map frame" not in log
