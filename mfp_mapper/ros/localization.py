@@ -5,8 +5,9 @@ forward model: clouds placed in the odometry frame are aligned against the map
 and takes what RViz gives:
 
 - ``map -> odom`` on ``/tf`` (``localization.tf_publish``): a new correction stamped with
-  its cloud's stamp, else the last one stamped now, both future-dated by
-  ``localization.transform_tolerance``, at ``localization.tf_rate``;
+  its cloud's stamp (a late one, more than ``transform_tolerance`` behind the clock or
+  behind the last published, at that bound: ``tf_stamp``), else the last one stamped now,
+  both future-dated by ``localization.transform_tolerance``, at ``localization.tf_rate``;
 - ``~/pose`` (AMCL's ``amcl_pose``): the robot in the map frame at each alignment that
   vouched for it, with the alignment's standard deviations;
 - ``/initialpose`` (RViz's "2D Pose Estimate"): resets map -> odom.
@@ -14,6 +15,7 @@ and takes what RViz gives:
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -34,6 +36,17 @@ from mfp_mapper.mapping.live_localization import LiveLocalizer
 from mfp_mapper.mapping.pose_correction import LocalizerCorrection
 from mfp_mapper.ros.guarded_node import GuardedNode, tracked_role
 from mfp_mapper.sensing.pointcloud import stamp_seconds
+
+
+def tf_stamp(correction_stamp: float, now: float, tolerance: float, last: float) -> float:
+    """The stamp a new correction is published at (before ``transform_tolerance`` is added):
+    its cloud's, unless that lies more than ``tolerance`` behind the clock (a late
+    correction: a slow wide search, a queue) or behind the last one published (``last``;
+    not after the clock: a clock that jumped back starts over); then the later of those.
+    map -> odom does not go back in time, and a late one is valid at once."""
+    floor = max(min(last, now), now - tolerance) if now > 0.0 else last
+    return max(correction_stamp, floor)
+
 
 DEFAULT_MAP_FRAME = "map"
 """The map frame when neither ``frame_id`` nor the loaded map names one other than the
@@ -104,6 +117,7 @@ class Localization:
         self._tf_pub: Any = None
         self._pose_version = 0
         self._tf_version = -1
+        self._tf_stamp = -math.inf  # the last map -> odom's stamp (before the tolerance)
 
     def start(self, worker: LiveIntegrator) -> None:
         """Localize ``worker``'s clouds; the field of a loaded map is built at once (in the
@@ -118,6 +132,7 @@ class Localization:
         created = [self._pose_pub]
         self._pose_version = 0
         self._tf_version = -1
+        self._tf_stamp = -math.inf
         if self._config().localization.tf_publish:
             tf_qos = QoSProfile(
                 history=HistoryPolicy.KEEP_LAST,
@@ -232,7 +247,11 @@ class Localization:
             if now <= 0.0:
                 return  # use_sim_time before /clock
             stamp = max(now, stamp)
+        else:
+            tolerance = self._config().localization.transform_tolerance
+            stamp = tf_stamp(stamp, now, tolerance, self._tf_stamp)
         self._tf_version = version
+        self._tf_stamp = stamp
         self._tf_pub.publish(TFMessage(transforms=[self._map_to_odom(m, stamp)]))
 
     def _publish_pose(self) -> None:

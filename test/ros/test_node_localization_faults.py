@@ -7,6 +7,7 @@ while localizing; SIGINT."""
 from __future__ import annotations
 
 import math
+import os
 import signal
 import time
 from pathlib import Path
@@ -268,3 +269,57 @@ def test_a_map_made_by_replay_is_localized_against_in_map(ros_domain: int, tmp_p
     assert code == 0 and "Traceback" not in log, log[-3000:]
     assert "the map was built in 'odom'" in log and "localizing in 'map'" in log, log[-3000:]
     assert "odometry received in frame 'odom' (child 'base_link'): the map frame" not in log
+
+
+@pytest.mark.parametrize("freeze_map", [True, False])
+def test_a_map_replaced_on_disk_is_never_overwritten(
+    ros_domain: int, tmp_path: Path, freeze_map: bool
+) -> None:
+    """Localization with ``save_on_shutdown``; the operator replaces the map file while the
+    node runs (issue 32 item 10): on shutdown the new file is left as it is, byte for byte.
+    A frozen map (unchanged) is not written at all; a map the clouds changed is saved beside
+    the file, with a warning saying why."""
+    import re
+
+    from ros_helpers import NodeProcess
+    from test_node_localization import PARAMS, LocFeeder
+
+    from mfp_mapper.mapio.loading import load_map, save_map
+
+    scene, poses = _save_scene_map("box", tmp_path / "hall.npz")
+    params = {
+        **PARAMS,
+        "map_path": str(tmp_path / "hall.npz"),
+        "save_on_shutdown": True,
+        "localization.freeze_map": freeze_map,
+    }
+    node = NodeProcess(ros_domain, params, tmp_path / "replaced.log")
+    feeder = LocFeeder()
+    try:
+        ready = feeder.wait(lambda: feeder.localization().get("state") == "initializing", 60.0)
+        assert ready, node.log()[-3000:]
+        t = time.time()
+        for i, k in enumerate((1, 3)):
+            feeder.scan(scene, poses[k], t + i * 0.2, seed=k)
+            _aligned(feeder, i + 1, node)
+        new_map = load_map(tmp_path / "hall.npz")
+        new_map.clear_box((-100.0, -100.0, -100.0), (0.0, 100.0, 100.0))  # the operator's map
+        save_map(new_map, tmp_path / "new.npz")
+        os.replace(tmp_path / "new.npz", tmp_path / "hall.npz")
+        replaced = (tmp_path / "hall.npz").read_bytes()
+        if not freeze_map:
+            assert feeder.wait(lambda: (feeder.status or {}).get("clouds_integrated", 0) >= 1)
+    finally:
+        feeder.destroy()
+        code = node.stop()
+    log = node.log()
+    assert code == 0 and "Traceback" not in log, log[-3000:]
+    assert (tmp_path / "hall.npz").read_bytes() == replaced, log[-3000:]
+    beside = sorted(p.name for p in tmp_path.glob("hall.*.npz"))
+    if freeze_map:
+        assert "was changed on disk since the node loaded or wrote it: not written" in log
+        assert not beside, beside
+    else:
+        assert "was changed on disk since the node loaded or wrote it: not overwritten" in log
+        assert len(beside) == 1 and re.search(r"\[WARN\].*saved \d+ voxels", log), log[-3000:]
+        assert load_map(tmp_path / beside[0]).num_voxels > 0
