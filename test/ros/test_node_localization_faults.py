@@ -323,3 +323,40 @@ def test_a_map_replaced_on_disk_is_never_overwritten(
         assert "was changed on disk since the node loaded or wrote it: not overwritten" in log
         assert len(beside) == 1 and re.search(r"\[WARN\].*saved \d+ voxels", log), log[-3000:]
         assert load_map(tmp_path / beside[0]).num_voxels > 0
+
+
+def test_an_initial_pose_2_m_off_never_ends_localized_off(ros_domain: int, tmp_path: Path) -> None:
+    """Issue 32 item 3 over DDS: localized, then an ``/initialpose`` 2 m off the truth
+    (outside the 1 m window): the state is never ``localized`` with map -> odom more than
+    0.1 m off, and ``~/pose`` is never published there."""
+    import numpy as np
+    from localization_scenes import Pose
+    from test_node_localization import _error, _tf_matrix
+
+    scene, poses = _save_scene_map("box", tmp_path / "hall.npz")
+    node, feeder = _start(ros_domain, tmp_path, "far", tmp_path / "hall.npz")
+    try:
+        t = time.time()
+        for i, k in enumerate((1, 3)):
+            feeder.scan(scene, poses[k], t + i * 0.2, seed=k)
+            _aligned(feeder, i + 1, node)
+        assert feeder.localization()["state"] == "localized"
+        given = Pose(poses[5].rotation, poses[5].translation + np.array([2.0, 0.0, 0.0]))
+        feeder.initial_pose(given)
+        assert feeder.wait(lambda: feeder.localization().get("initial_poses") == 1, 10.0)
+        published = len(feeder.poses)
+        for i, k in enumerate((5, 7, 9, 11)):
+            feeder.scan(scene, poses[k], time.time(), seed=k)
+            loc = _aligned(feeder, 3 + i, node)
+            feeder.spin(0.3)
+            if loc["state"] == "localized":
+                shift, _ = _error(_tf_matrix(feeder.tf[-1]))
+                assert shift < 0.1, (shift, loc)
+        for msg in feeder.poses[published:]:
+            p = msg.pose.pose.position
+            truths = [poses[k].translation for k in (5, 7, 9, 11)]
+            assert min(np.linalg.norm(np.array([p.x, p.y, p.z]) - x) for x in truths) < 0.1
+    finally:
+        feeder.destroy()
+        code = node.stop()
+    assert code == 0 and "Traceback" not in node.log()
