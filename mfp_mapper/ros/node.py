@@ -64,6 +64,7 @@ from std_srvs.srv import Empty
 from tf2_msgs.msg import TFMessage
 
 from mfp_mapper.config.frames import frame_name
+from mfp_mapper.config.param_file import ParamFileError, read_sections
 from mfp_mapper.config.schema import SPECS, NodeConfig
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.mapping.live import LiveIntegrator, LiveSettings
@@ -612,22 +613,30 @@ class MfpMapperNode(GuardedLifecycleNode):
 
 def main(args: list[str] | None = None) -> int:
     """Entry point of ``ros2 run mfp_mapper mfp_mapper`` and ``python -m mfp_mapper.ros.node``."""
-    own_args = rclpy.utilities.remove_ros_args(args if args is not None else sys.argv)[1:]
-    if any(a in ("-h", "--help") for a in own_args):
-        print(usage())
-        return 0
-    # rclpy's handlers would shut the context down under a running executor: ros.shutdown
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    # rcl parses the ROS arguments (a --params-file) before the node exists: a broken file
+    # gives one line, no traceback
+    try:
+        own_args = rclpy.utilities.remove_ros_args(args if args is not None else sys.argv)[1:]
+        if any(a in ("-h", "--help") for a in own_args):
+            print(usage())
+            return 0
+        # rclpy's handlers would shut the context down under a running executor: ros.shutdown
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    except Exception as err:
+        print(f"mfp_mapper: {ros_args_problem(args, err)}", file=sys.stderr)
+        return 2
     node: MfpMapperNode | None = None
     executor: SingleThreadedExecutor | None = None
     code = 0
     logger = rclpy.logging.get_logger(NODE_NAME)
-    with SpinUntilSignal(logger.info) as stopper:
+    # the handler stays until the process ends: a signal after the save is ignored (exit 0)
+    with SpinUntilSignal(logger.info, keep_after_exit=True) as stopper:
         try:
             node = MfpMapperNode()
             executor = SingleThreadedExecutor()
             executor.add_node(node)
             stopper.spin(executor)
+            stopper.answer_calls(executor, node)  # ~/save_map callers get their answer
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
         except (ValueError, rclpy.exceptions.ParameterException) as err:
@@ -649,6 +658,20 @@ def main(args: list[str] | None = None) -> int:
         sys.stderr.flush()
         os._exit(code)
     return code
+
+
+def ros_args_problem(args: list[str] | None, err: Exception) -> str:
+    """What rclpy.init rejected, on one line: a ``--params-file`` that is not a ROS 2
+    parameter file says where (line, column), else rcl's first line."""
+    argv = list(args if args is not None else sys.argv)
+    for flag, path in zip(argv, argv[1:], strict=False):
+        if flag == "--params-file":
+            try:
+                read_sections(path)
+            except ParamFileError as problem:
+                return f"--params-file {path}: {problem}"
+    first = str(err).splitlines()[0] if str(err) else type(err).__name__
+    return f"invalid ROS arguments: {first}"
 
 
 if __name__ == "__main__":

@@ -542,3 +542,32 @@ def test_large_data_dds_profile_loads(tmp_path: Path) -> None:
         [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60
     )
     assert "XMLPARSER" in out.stdout + out.stderr  # the check above sees a broken profile
+
+
+@pytest.mark.parametrize(
+    ("text", "where"),
+    [
+        ("mfp_mapper:\n  ros__parameters:\n    resolution: [0.1\n", "line 4"),
+        ("mfp_mapper:\n  ros__parameters:\n    resolution: 0.1\n   bad: : x\n", "line 4"),
+    ],
+)
+def test_a_params_file_that_is_not_yaml_gives_one_line(
+    tmp_path: Path, text: str, where: str
+) -> None:
+    """rclpy's init rejects the file before the node exists: one line that says where, exit
+    2, no traceback."""
+    import subprocess
+    import sys
+
+    from ros_helpers import ROOT, ros_env
+
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(text)
+    args = [sys.executable, "-m", "mfp_mapper.node", "--ros-args", "--params-file", str(bad)]
+    run = subprocess.run(
+        args, env=ros_env(domain_id()), cwd=ROOT, capture_output=True, text=True, timeout=60
+    )
+    assert run.returncode == 2, run.stderr
+    ours = [line for line in run.stderr.splitlines() if line.startswith("mfp_mapper:")]
+    assert len(ours) == 1 and str(bad) in ours[0] and where in ours[0], run.stderr
+    assert "Traceback" not in run.stderr
