@@ -418,3 +418,39 @@ def test_sigterms_after_the_shutdown_save_exit_0(ros_domain: int, tmp_path: Path
     node.stop()
     assert path.is_file(), node.log()
     assert rc == 0, node.log()[-3000:]
+
+
+def test_autosave_without_a_map_path_and_a_failing_autosave_say_so_once(
+    ros_domain: int, tmp_path: Path
+) -> None:
+    """``autosave_period`` with no ``map_path``: one warning at start. An autosave that
+    fails every period (its folder is a file): one error line, not one per period."""
+    quiet = NodeProcess(ros_domain, {**PARAMS, "autosave_period": 0.1}, tmp_path / "quiet.log")
+    f = Feeder()
+    try:
+        assert f.wait(lambda: f.status is not None, 60.0), quiet.log()
+        f.wait(lambda: False, 1.0)
+    finally:
+        f.destroy()
+        assert quiet.stop() == 0, quiet.log()
+    assert quiet.log().count("map_path is empty: nothing is autosaved") == 1, quiet.log()
+
+    blocker = tmp_path / "afile"
+    blocker.write_text("")
+    params = {**PARAMS, "map_path": str(blocker / "map.npz"), "autosave_period": 0.1}
+    node = NodeProcess(ros_domain, params, tmp_path / "node.log")
+    f = Feeder()
+    try:
+        assert f.wait_connected(60.0), node.log()
+        assert f.wait(lambda: f.status is not None, 10.0)
+        _odom(f, T0 - 1.0, T0 + 2.0)
+        _send(f, _room_scan(5_000, 4), T0)
+        status = f.wait_status(lambda s: s["clouds_integrated"] == 1, 30.0)
+        assert status["clouds_integrated"] == 1, node.log()
+        assert f.wait(lambda: "failed" in node.log(), 10.0), node.log()
+        f.wait(lambda: False, 2.0)  # twenty autosave periods
+    finally:
+        f.destroy()
+        node.stop()
+    failures = [line for line in node.log().splitlines() if "map.npz' failed" in line]
+    assert len(failures) == 1, failures
