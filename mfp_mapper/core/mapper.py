@@ -17,7 +17,12 @@ from mfp_mapper.config.sections import MapSection, SensorModelSection
 from mfp_mapper.core import model
 from mfp_mapper.core.errors import CoreError, ScanTooLargeError
 from mfp_mapper.core.gridmap import HitGrid, band_grid
-from mfp_mapper.core.memory_bound import MemoryBound, fit_scan_budget, scan_block_budget
+from mfp_mapper.core.memory_bound import (
+    MemoryBound,
+    fit_scan_budget,
+    scan_block_budget,
+    scan_new_blocks,
+)
 from mfp_mapper.core.staging import clear_staged, merge_shard, prefault, staged_updates
 from mfp_mapper.core.store import (
     BLOCK_EDGE,
@@ -195,13 +200,14 @@ class Mapper:
             rays, summary.rays_cut_by_budget = fit_scan_budget(rays, budget, self.resolution)
             self._bound.make_room(self._store, rays.origins_vox, rays.ends_vox, self._center())
             scan_id = self._store.begin_scan()
-            integrate_rays(
+            summary.rays_cut_by_budget += integrate_rays(
                 self._store,
                 rays,
                 scan_id,
                 stamp,
                 self.decay_time,
                 self._run_parallel,
+                scan_new_blocks(self.max_voxels),
             )
             summary.new_voxels, summary.blocks_touched, summary.voxels_touched = (
                 self._store.finish_scan()
@@ -244,7 +250,15 @@ class Mapper:
             rays, summary.rays_cut_by_budget = fit_scan_budget(rays, budget, self.resolution)
             # a scan too large for max_voxels is refused before it takes any memory
             self._bound.make_room(store, rays.origins_vox, rays.ends_vox, None)
-            integrate_rays(store, rays, 0, stamp, self.decay_time, self._run_parallel)
+            summary.rays_cut_by_budget += integrate_rays(
+                store,
+                rays,
+                0,
+                stamp,
+                self.decay_time,
+                self._run_parallel,
+                scan_new_blocks(self.max_voxels),
+            )
             for staged_shard, shard in zip(store.shards, self._store.shards, strict=True):
                 prefault(staged_shard, shard)
         summary.seconds = time.perf_counter() - t0
