@@ -66,7 +66,7 @@ from tf2_msgs.msg import TFMessage
 from mfp_mapper.config.frames import frame_name
 from mfp_mapper.config.param_file import ParamFileError, read_sections
 from mfp_mapper.config.schema import SPECS, NodeConfig
-from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.core.mapper import Mapper, compile_kernels, mapper_kwargs
 from mfp_mapper.mapping.live import LiveIntegrator, LiveSettings
 from mfp_mapper.ros.guarded_node import GuardedLifecycleNode, tracked
 from mfp_mapper.ros.localization import Localization
@@ -135,6 +135,7 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._configured_once = False
         self._entities: list[Any] = []  # what configure creates (cleanup destroys)
         self._active: list[Any] = []  # what activate creates (deactivate destroys)
+        self._kernels = "compiling"  # numba's kernels: compiling, ready (or failed)
         if self.cfg.node.autostart:
             steps = (("configure", self.trigger_configure), ("activate", self.trigger_activate))
             for step, trigger in steps:
@@ -185,6 +186,8 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._entities += self.outputs.publishers
         self._configured = self._configured_once = True
         self.reopen()
+        self._kernels = "compiling"
+        self.in_background(self._compile_kernels, "mfp_compile")
         self._create_services()
         self.get_logger().info(
             startup_text(self.cfg, self.resolve_topic_name, self.mapper, self.map_frame)
@@ -356,6 +359,22 @@ class MfpMapperNode(GuardedLifecycleNode):
                 base_frame_id=frame_name(cfg.placement.base_frame_id),
                 cloud_frame_id=frame_name(cfg.placement.cloud_frame_id),
             ),
+        )
+
+    def _compile_kernels(self) -> None:
+        """Compile (or load from numba's cache) the kernels of a scan before the first
+        cloud: with a cold cache that takes tens of seconds, and the first clouds were
+        dropped waiting. ``~/status`` says ``kernels``: ``compiling``, then ``ready``."""
+        try:
+            decay = mapper_kwargs(self.cfg.map, self.cfg.sensor_model)["decay_time"]
+            seconds = compile_kernels(decay)
+        except Exception as err:  # the first scan compiles them then
+            self._kernels = "failed"
+            self.get_logger().error(f"compiling the kernels ahead failed: {err!r}")
+            return
+        self._kernels = "ready"
+        self.get_logger().info(
+            f"kernels ready in {seconds:.1f} s (compiled ahead of the first cloud)"
         )
 
     @tracked
@@ -567,6 +586,7 @@ class MfpMapperNode(GuardedLifecycleNode):
             "uptime_s": round(time.monotonic() - self._started, 3),
             **self.worker.pose_inputs.describe(),
             "sim_time_without_clock": self._clock_warned,
+            "kernels": self._kernels,
             "queries": self._queries,
             "maps_served": self._maps_served,
         }

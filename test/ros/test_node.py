@@ -571,3 +571,31 @@ def test_a_params_file_that_is_not_yaml_gives_one_line(
     ours = [line for line in run.stderr.splitlines() if line.startswith("mfp_mapper:")]
     assert len(ours) == 1 and str(bad) in ours[0] and where in ours[0], run.stderr
     assert "Traceback" not in run.stderr
+
+
+def test_kernels_are_compiled_ahead_of_the_first_cloud(ros_domain: int, tmp_path: Path) -> None:
+    """With a cold numba cache the first cloud waited for the compiler (over 15 s under
+    load: the first clouds were dropped). The node compiles at start and says so in
+    ``~/status`` (``kernels``: ``compiling``, then ``ready``); then a cloud goes in at once."""
+    import time
+
+    cold = {"NUMBA_CACHE_DIR": str(tmp_path / "numba_cache")}
+    node = NodeProcess(
+        ros_domain, dict(NODE_PARAMS), tmp_path / "node.log", name="mfp_cold", env=cold
+    )
+    f = Feeder(node_name="mfp_cold", feeder_name="cold_feeder")
+    try:
+        assert f.wait_connected(60.0), node.log()[-3000:]
+        status = f.wait_status(lambda s: s.get("kernels") != "compiling", 300.0)
+        assert status is not None and status.get("kernels") == "ready", node.log()[-3000:]
+        assert "kernels ready in" in node.log()
+        sim = Sim(f)
+        sent = time.monotonic()
+        sim.send_scan(T0 + 0.1)
+        status = f.wait_status(lambda s: s["clouds_integrated"] >= 1, 60.0)
+        took = time.monotonic() - sent
+        assert status["clouds_integrated"] == 1, node.log()[-3000:]
+        assert took < 10.0, f"the first cloud took {took:.1f} s"
+    finally:
+        f.destroy()
+        node.stop()
