@@ -250,6 +250,17 @@ def test_a_point_in_the_robot_frame_is_moved_through_tf(mapped: Feeder) -> None:
     assert here.degree_of_occupancy[0] < 0.1 < 0.5 < here.degree_of_occupancy[1]
 
 
+def test_the_docs_python_client_example_runs(mapped: Feeder) -> None:
+    """docs/examples/query_client.py, as node.md shows it, against the running node."""
+    example = ROOT / "docs" / "examples" / "query_client.py"
+    run = subprocess.run(
+        [sys.executable, str(example), NODE],
+        env=ros_env(domain_id()), capture_output=True, text=True, timeout=120, cwd="/",
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    assert "DoO" in run.stdout and "clear with probability" in run.stdout
+
+
 def test_every_service_answers_mfp_mapper_call(mapped: Feeder, workdir: Path) -> None:
     domain = domain_id()
     status = _call(domain, "status", "--json")
