@@ -11,6 +11,7 @@ from likelihood_reference import reference as _reference
 
 from mfp_mapper.core.likelihood import scan_log_likelihood, total_log_likelihood
 from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.core.traversal import RETURN_CHORD_FLOOR
 
 
 def _scene(decay_time: float = math.inf) -> tuple[Mapper, np.random.Generator]:
@@ -89,6 +90,32 @@ def test_empty_map_is_the_prior() -> None:
     # one ray inside one voxel, ends with a return: the full chord is 0.5 - 0.1 = 0.4 m
     assert got.events == 1
     assert got.total == pytest.approx(math.log(1.0 - (0.5 / 0.9) ** 2.0), rel=1e-12)
+
+
+def test_return_on_a_voxel_edge_is_finite() -> None:
+    """A return exactly on a voxel's edge or corner (coordinates rounded to 1 mm, a wall at
+    x = 2.0 m) floors to a voxel the ray only touches: its chord there is 0, and was
+    p_hit 0, log-likelihood -inf. The return event's chord is at least RETURN_CHORD_FLOOR,
+    as in the brute force; every other event is exact."""
+    res = 0.1
+    mapper = Mapper(res, max_range=20.0)
+    origin = np.zeros(3)
+    # the tls_conifers case: x on a face entered at the end, y on a face left at the end
+    edge = np.array([[2.0, -1.0, -1.353], [-1.0, 0.5, 1.495], [2.0, 1.0, 0.3], [2.0, -1.0, -1.0]])
+    for k in range(3):
+        mapper.integrate(edge, origin, float(k))
+    got = scan_log_likelihood(mapper, edge, origin, 3.0, shape=0.0033, rate=0.0016, events=True)
+    ev = got.event_arrays
+    assert ev is not None
+    assert np.all(np.isfinite(got.ray_log_likelihood))
+    assert ev.chord[ev.hit].min() == RETURN_CHORD_FLOOR  # the edge cases hit the floor
+    want, events = _reference(mapper, edge, origin, 3.0, np.zeros(4, bool), 0.0033, 0.0016)
+    np.testing.assert_allclose(got.ray_log_likelihood, want, rtol=1e-9, atol=1e-12)
+    # the return events (rays along grid diagonals also cross voxels over chords of 1e-16 m,
+    # which the brute force merges with their neighbours)
+    ref = np.array([e[:3] for e in events if e[3]])
+    got_hits = np.c_[ev.s, ev.n, ev.chord][ev.hit]
+    np.testing.assert_allclose(got_hits, ref, rtol=1e-9, atol=1e-12)
 
 
 def test_read_only_and_threads() -> None:
