@@ -7,7 +7,7 @@ import argparse
 import json
 from typing import Any
 
-from mfp_mapper.cli.common import CliError, jsonable, warn
+from mfp_mapper.cli.common import CliError, check_outputs, jsonable, warn
 from mfp_mapper.cli.input_args import add_input_arguments
 from mfp_mapper.cli.replay import replay_options
 from mfp_mapper.config.replay_options import add_replay_flags
@@ -42,6 +42,7 @@ def run(args: argparse.Namespace) -> int:
     from mfp_mapper.outputs import score
     from mfp_mapper.sources.opener import open_recording
 
+    check_outputs(args.json)
     log = None if args.quiet else warn
     try:
         opts = replay_options(args)

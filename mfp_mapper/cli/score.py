@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from mfp_mapper.cli.common import CliError, jsonable, load_map_arg, warn
+from mfp_mapper.cli.common import CliError, check_outputs, jsonable, load_map_arg, warn
 from mfp_mapper.cli.input_args import add_input_arguments
 from mfp_mapper.cli.replay import replay_options
 from mfp_mapper.config.replay_options import add_replay_flags
@@ -96,6 +96,8 @@ def run(args: argparse.Namespace) -> int:
         raise CliError("give a map to score against, or --split even-odd on one recording")
     if maps and (args.resolution or args.decay_time):
         raise CliError("--resolution/--decay-time rows need --split (a map has its own)")
+    plot = args.plot or (str(Path(args.json).with_suffix(".png")) if args.json else None)
+    check_outputs(args.json, plot)
     log = None if args.quiet else warn
     results: list[tuple[str, dict[str, Any]]] = []
     rows = _score_rows(args)
@@ -135,6 +137,8 @@ def run(args: argparse.Namespace) -> int:
                     results.append((path, score.report(scorer, "model")))
     except (ReplayError, MapFileError, ValueError) as err:
         raise CliError(str(err)) from None
+    if not any(rep["rays"] for _, rep in results):
+        raise CliError("no ray was scored (every scan dropped, or no ray usable): no score")
     for label, rep in results:
         for line in score.summary_lines(rep, f"{label}: " if len(results) > 1 else ""):
             print(line)
@@ -152,7 +156,6 @@ def run(args: argparse.Namespace) -> int:
         }  # fmt: skip
         write_text_atomic(args.json, json.dumps(jsonable(doc), indent=2) + "\n")
         print(f"wrote {args.json}")
-    plot = args.plot or (str(Path(args.json).with_suffix(".png")) if args.json else None)
     if plot:
         for k, (label, rep) in enumerate(results):
             base = Path(plot)

@@ -67,6 +67,8 @@ class Metrics:
         self.events = 0.0
         self.log_likelihood = 0.0
         self.brier = 0.0
+        self.impossible = 0.0
+        """Events whose outcome had probability 0 (log-probability -inf)."""
         self.linear = np.zeros((3, LINEAR_EDGES.size - 1))  # count, sum p, sum y
         self.log = np.zeros((3, LOG_EDGES.size - 1))
 
@@ -83,6 +85,7 @@ class Metrics:
         yf = np.asarray(y, dtype=np.float64)
         self.events += float(w.sum())
         self.log_likelihood += float(np.dot(w, log_p))
+        self.impossible += float(w[np.isneginf(log_p)].sum())
         self.brier += float(np.dot(w, (p - yf) ** 2))
         for table, edges in ((self.linear, LINEAR_EDGES), (self.log, LOG_EDGES)):
             k = np.clip(np.searchsorted(edges, p, side="right") - 1, 0, edges.size - 2)
@@ -102,6 +105,7 @@ class Metrics:
             "log_likelihood": self.log_likelihood,
             "log_likelihood_per_ray": self.log_likelihood / max(self.rays, 1),
             "log_loss_per_event": -self.log_likelihood / events,
+            "impossible_events": int(round(self.impossible)),
             "brier": self.brier / events,
             "ece": ece,
             "ece_log": ece_log,
@@ -380,7 +384,22 @@ def summary_lines(report_: dict[str, Any], label: str = "") -> list[str]:
             f"{text:<36} {r['log_likelihood_per_ray']:>10.4f} {r['log_density_per_ray']:>11.4f} "
             f"{r['log_loss_per_event']:>10.5f} {r['brier']:>8.5f} {r['ece']:>8.5f}"
         )
+    lines += [f"{name}: {why}" for name, r in rows if (why := nonfinite_reason(r)) is not None]
     return lines
+
+
+def nonfinite_reason(row: dict[str, Any]) -> str | None:
+    """Why a model's printed scores are not finite numbers, or None when they are."""
+    numbers = ("log_likelihood_per_ray", "log_density_per_ray", "log_loss_per_event", "ece")
+    if all(math.isfinite(row[k]) for k in numbers if k in row):
+        return None
+    if row.get("impossible_events"):
+        return (
+            f"log-likelihood -inf: {row['impossible_events']:,} scored event(s) had "
+            "probability 0 under this model (an outcome it rules out), so the held-out "
+            "rays are infinitely unlikely"
+        )
+    return "a score is not a finite number: the events' statistics hold NaN or Inf"
 
 
 # --- fitting the prior (empirical Bayes) -------------------------------------------------------
@@ -460,9 +479,16 @@ def fit_prior(sample: EventSample) -> FittedPrior:
     arrays = sample.arrays()
     rays = max(sample.rays, 1)
     if arrays[0].size == 0:
-        raise ValueError("no held-out event to fit the prior on")
+        raise ValueError("nothing to fit: no held-out ray was scored")
+    if not arrays[3].any():
+        raise ValueError(
+            f"nothing to fit: none of the {sample.rays:,} held-out rays has a return (all "
+            "cut at max_range or flagged no-return?); a prior needs returns to be fitted"
+        )
+    if not np.all(np.isfinite(arrays[0])) or not np.all(np.isfinite(arrays[1])):
+        raise ValueError("the fit failed: the held-out events' statistics hold NaN or Inf")
     grid = [(sample_log_likelihood(arrays, a, b)[0], a, b) for a in GRID_SHAPES for b in GRID_RATES]
-    _, a0, b0 = max(grid)
+    grid_best, a0, b0 = max(grid)
 
     def loss(x: FloatArray) -> tuple[float, FloatArray]:
         value, grad = sample_log_likelihood(arrays, math.exp(x[0]), math.exp(x[1]), True)
@@ -478,6 +504,16 @@ def fit_prior(sample: EventSample) -> FittedPrior:
     shape, rate = (float(math.exp(v)) for v in best.x)
     fitted = sample_log_likelihood(arrays, shape, rate)[0] / rays
     uniform = sample_log_likelihood(arrays, UNIFORM.shape, UNIFORM.rate)[0] / rays
+    at_bound = any(abs(abs(v) - math.log(1e6)) < 1e-6 for v in best.x)
+    # L-BFGS may stop short of its tolerance (a line search) at a good point: only a
+    # non-finite result, one at the bounds, or one worse than the grid's best is a failure
+    worse = fitted < grid_best / rays - 1e-9 * abs(grid_best / rays)
+    if not math.isfinite(fitted) or at_bound or worse:
+        raise ValueError(
+            f"the fit failed ({best.message}; shape {shape:.3g}, rate {rate:.3g} m, held-out "
+            f"log-likelihood per ray {fitted:.6g}): the held-out events do not determine a "
+            "prior (too few returns, or a score of -inf)"
+        )
     return FittedPrior(shape, rate, fitted, uniform, sample.rays, int(arrays[0].size))
 
 

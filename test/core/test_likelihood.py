@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -169,3 +170,20 @@ def test_shards_and_origin() -> None:
     want, _ = _reference(shifted, pts - offset, base - offset, 3.0, flags, 1.0, 1.0)
     np.testing.assert_allclose(got.ray_log_likelihood, want, rtol=1e-9, atol=1e-12)
     mapper.close()
+
+
+def test_every_held_out_ray_of_the_tls_scan_is_finite(shared_data: Path) -> None:
+    """tls_conifers at 0.1 m, even shots mapped and odd shots scored (what `score --split
+    shots` does): its coordinates are rounded to 1 mm, so some returns lie on voxel edges
+    (2 of them scored -inf before the return chord's floor)."""
+    from mfp_mapper.sources.scan_files import read_ply
+
+    cols = read_ply(shared_data / "tls_conifers" / "scan.ply")
+    pts = np.stack([cols["x"], cols["y"], cols["z"]], axis=1).astype(np.float64)
+    mapper = Mapper(0.1, max_range=100.0)
+    mapper.integrate(pts[::2], np.zeros(3), 0.0)
+    got = scan_log_likelihood(mapper, pts[1::2], np.zeros(3), 0.0, events=True)
+    ev = got.event_arrays
+    assert ev is not None
+    assert np.all(np.isfinite(got.ray_log_likelihood))
+    assert np.count_nonzero(ev.hit & (ev.chord == RETURN_CHORD_FLOOR)) >= 2

@@ -119,6 +119,40 @@ def test_fit_prior_recovers_the_population_prior() -> None:
         assert (shifted - value) / h == pytest.approx(grad[axis], rel=1e-3)
 
 
+def test_fit_prior_refuses_nothing_to_fit() -> None:
+    """No held-out return (every ray cut at max_range), or no event at all: a ValueError
+    that says so, never a prior "fitted" to nothing."""
+    rng = np.random.default_rng(1)
+    k = 1000
+    passes = ScanEvents(
+        np.arange(k), np.zeros((k, 3), np.int32), rng.uniform(0, 1, k), np.zeros(k),
+        rng.uniform(0.01, 0.1, k), np.zeros(k, dtype=bool),
+    )  # fmt: skip
+    sample = score.EventSample()
+    sample.add(passes)
+    sample.rays = k
+    with pytest.raises(ValueError, match="nothing to fit: none of the 1,000 held-out rays"):
+        score.fit_prior(sample)
+    with pytest.raises(ValueError, match="nothing to fit: no held-out ray"):
+        score.fit_prior(score.EventSample())
+
+
+def test_a_non_finite_score_says_why() -> None:
+    """An event of probability 0 makes the log-likelihood -inf: the summary says so."""
+    m = score.Metrics()
+    m.rays = 2
+    m.add(np.array([0.0, 0.5]), np.array([True, False]), np.array([-np.inf, math.log(0.5)]))
+    row = m.result()
+    assert row["impossible_events"] == 1
+    rep = {**row, "log_density_per_ray": -math.inf, "prior": {"shape": 1.0, "rate": 1.0}}
+    lines = score.summary_lines(rep)
+    assert "-inf: 1 scored event(s) had probability 0" in lines[-1]
+    fine = score.Metrics()
+    fine.rays = 1
+    fine.add(np.array([0.5]), np.array([True]), np.array([math.log(0.5)]))
+    assert score.nonfinite_reason({**fine.result(), "log_density_per_ray": 0.0}) is None
+
+
 def test_event_sample_halving_keeps_weights_unbiased() -> None:
     rng = np.random.default_rng(3)
     count = 400_000
@@ -276,3 +310,36 @@ def test_score_norlab_sequence_even_odd(shared_data: Path, tmp_path: Path) -> No
     assert got["rays"] > 100_000
     assert got["log_likelihood_per_ray"] > got["classic_paper"]["log_likelihood_per_ray"]
     assert 0.0 <= got["ece"] < 0.1
+
+
+def test_fit_prior_with_no_return_exits_nonzero(
+    shared_data: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """--max-range 0.05 cuts every ray before its return: nothing to fit, exit status 1."""
+    folder = _street_folder(shared_data, tmp_path, [0, 1, 2], 40)
+    poses = str(tmp_path / f"poses_{folder.name}.txt")
+    out = tmp_path / "prior.json"
+    assert main(["fit-prior", str(folder), "--poses", poses, "--max-range", "0.05",
+                 "--resolution", "0.4", "--json", str(out), "-q"]) == 1  # fmt: skip
+    assert "nothing to fit" in capsys.readouterr().err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("command", ["score", "fit-prior"])
+def test_an_unwritable_output_is_refused_before_computing(
+    command: str, shared_data: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:  # fmt: skip
+    """--json into a folder that does not exist: exit status 1 before any scan is read."""
+    folder = _street_folder(shared_data, tmp_path, [0, 1, 2], 40)
+    poses = str(tmp_path / f"poses_{folder.name}.txt")
+
+    def no_replay(*_args: object, **_kwargs: object) -> None:
+        raise AssertionError("computed before checking the output")
+
+    monkeypatch.setattr(score, "run_input", no_replay)
+    split = ["--split", "even-odd"] if command == "score" else []
+    missing = tmp_path / "missing" / "out.json"
+    assert main([command, *split, str(folder), "--poses", poses, "--json", str(missing),
+                 "-q"]) == 1  # fmt: skip
+    assert "does not exist" in capsys.readouterr().err
