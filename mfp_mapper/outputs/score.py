@@ -449,6 +449,10 @@ class FittedPrior:
         base = self.uniform_log_likelihood_per_ray
         return (self.log_likelihood_per_ray - base) / abs(base) if base else 0.0
 
+    @property
+    def prior(self) -> Prior:
+        return Prior(self.shape, self.rate)
+
     def json(self) -> dict[str, Any]:
         return {
             "shape": self.shape,
@@ -515,6 +519,120 @@ def fit_prior(sample: EventSample) -> FittedPrior:
             "prior (too few returns, or a score of -inf)"
         )
     return FittedPrior(shape, rate, fitted, uniform, sample.rays, int(arrays[0].size))
+
+
+# --- the family of priors that scales with the voxel: shape a * resolution, rate a * res / 2 ----
+
+
+def family_prior(scale: float, resolution: float) -> Prior:
+    """The family's prior at ``resolution`` (m): shape ``scale * resolution`` returns, rate
+    ``scale * resolution / 2`` metres of ray (a mean extinction of 2 per metre whose weight
+    grows with the voxel; docs/scoring.md)."""
+    return Prior(scale * resolution, scale * resolution / 2.0)
+
+
+@dataclass
+class RecordingSample:
+    """The held-out events that ``fit-prior`` sampled from one recording at one resolution."""
+
+    recording: str
+    resolution: float
+    sample: EventSample
+
+    def per_ray(self, prior: Prior) -> float:
+        """The sample's log-likelihood per ray under ``prior``."""
+        arrays = self.sample.arrays()
+        return sample_log_likelihood(arrays, prior.shape, prior.rate)[0] / max(self.sample.rays, 1)
+
+
+SCALE_GRID = tuple(10.0 ** (k / 4.0) for k in range(-20, 9))
+"""The coarse grid of ``fit_scale`` (1e-5 to 100 per metre), before a bounded search."""
+
+
+def fit_scale(samples: list[RecordingSample]) -> float:
+    """The family's ``scale`` (per metre) of largest held-out log-likelihood: the sum over
+    ``samples`` of each one's log-likelihood PER RAY, so every recording and resolution
+    weighs the same whatever its size. ValueError when there is nothing to fit."""
+    from scipy.optimize import minimize_scalar
+
+    if not samples:
+        raise ValueError("nothing to fit: no recording")
+    cached = [(r.sample.arrays(), max(r.sample.rays, 1), r.resolution) for r in samples]
+    for r, (arrays, _, _) in zip(samples, cached, strict=True):
+        if not arrays[3].any():
+            raise ValueError(
+                f"nothing to fit: {r.recording} at {r.resolution:g} m has no held-out return"
+            )
+
+    def loss(log_scale: float) -> float:
+        a = math.exp(log_scale)
+        return -sum(
+            sample_log_likelihood(arrays, a * res, a * res / 2.0)[0] / rays
+            for arrays, rays, res in cached
+        )
+
+    start = min(SCALE_GRID, key=lambda a: loss(math.log(a)))
+    step = math.log(10.0) / 4.0
+    low, high = math.log(start) - step, math.log(start) + step
+    best = minimize_scalar(loss, bounds=(low, high), method="bounded", options={"xatol": 1e-6})
+    scale = float(math.exp(best.x))
+    edge = start in (SCALE_GRID[0], SCALE_GRID[-1])
+    if not math.isfinite(best.fun) or edge:
+        raise ValueError(
+            f"the fit of the family's scale failed (best {scale:.3g} per metre, at the edge of "
+            f"{SCALE_GRID[0]:g}..{SCALE_GRID[-1]:g} or a score of -inf)"
+        )
+    return scale
+
+
+@dataclass
+class HeldOutRow:
+    """One recording at one resolution, scored with the family's scale fitted WITHOUT it."""
+
+    recording: str
+    resolution: float
+    scale: float
+    """The scale fitted on the other recordings."""
+    family: float
+    """Log-likelihood per ray with ``family_prior(scale, resolution)``."""
+    own: float
+    """... with the two-parameter prior fitted on this recording at this resolution."""
+    own_prior: Prior
+    uniform: float
+    """... with the uniform prior."""
+
+    @property
+    def gap(self) -> float:
+        """How much worse the held-out family is than the recording's own fit (0.05: 5%)."""
+        return (self.own - self.family) / abs(self.own) if self.own else 0.0
+
+    def json(self) -> dict[str, Any]:
+        return {
+            "recording": self.recording, "resolution": self.resolution, "scale": self.scale,
+            "log_likelihood_per_ray": self.family, "own_log_likelihood_per_ray": self.own,
+            "own_prior": _prior_json(self.own_prior),
+            "uniform_log_likelihood_per_ray": self.uniform, "gap_to_own": self.gap,
+        }  # fmt: skip
+
+
+def leave_one_out(samples: list[RecordingSample], own: dict[int, Prior]) -> list[HeldOutRow]:
+    """For every recording: the scale fitted on the others, scored on it at each resolution,
+    beside its own fitted prior (``own[k]``: the prior fitted on ``samples[k]``) and the
+    uniform prior. Needs two recordings or more."""
+    names = list(dict.fromkeys(r.recording for r in samples))
+    if len(names) < 2:
+        raise ValueError("leave-one-recording-out needs two recordings or more")
+    rows = []
+    for name in names:
+        scale = fit_scale([r for r in samples if r.recording != name])
+        for k, r in enumerate(samples):
+            if r.recording != name:
+                continue
+            rows.append(HeldOutRow(
+                name, r.resolution, scale, r.per_ray(family_prior(scale, r.resolution)),
+                r.per_ray(own[k]), own[k], r.per_ray(UNIFORM),
+            ))  # fmt: skip
+    return rows
 
 
 # --- the reliability diagram ------------------------------------------------------------------
