@@ -44,7 +44,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from mfp_mapper.core.model import UNIFORM
+    from mfp_mapper.core.model import UNIFORM, family_prior
     from mfp_mapper.mapping.replay import ReplayError
     from mfp_mapper.outputs import score
     from mfp_mapper.sources.opener import open_recording
@@ -88,13 +88,13 @@ def run(args: argparse.Namespace) -> int:
     for r, fitted in zip(samples, fits, strict=True):
         label = f"{r.recording} at {r.resolution:g} m: " if len(samples) > 1 else ""
         _print_fit(label, fitted, splits[args.inputs.index(r.recording)])
-    family = [r.per_ray(score.family_prior(scale, r.resolution)) for r in samples]
+    family = [r.per_ray(family_prior(scale, r.resolution)) for r in samples]
     print(
         f"family shape = a * resolution, rate = a * resolution / 2: a = {scale:.5g} per metre "
         f"fitted on {len(samples)} sample(s)"
     )
     for r, fitted, value in zip(samples, fits, family, strict=True):
-        prior = score.family_prior(scale, r.resolution)
+        prior = family_prior(scale, r.resolution)
         own = fitted.log_likelihood_per_ray
         print(
             f"  {r.recording} at {r.resolution:g} m: shape {prior.shape:.4g}, rate "

@@ -97,12 +97,17 @@ class Mapper:
         origin: ArrayLike | None = None,
         prior_shape: float = 1.0,
         prior_rate: float = 1.0,
+        prior_scale: float = 0.0,
     ) -> None:
         _check_settings(
             resolution, max_range, min_range, decay_time, threads, max_voxels, keep_radius
         )
-        self.prior = model.Prior(float(prior_shape), float(prior_rate))
-        """Gamma prior on the extinction (``model.Prior``; 1, 1: the paper's uniform prior):
+        self.prior = model.resolve_prior(
+            float(resolution), float(prior_shape), float(prior_rate), float(prior_scale)
+        )
+        """Gamma prior on the extinction (``model.Prior``; 1, 1: the paper's uniform prior,
+        this class's default; the settings' default is the family ``model.family_prior``:
+        ``prior_shape``/``prior_rate`` 0 take it from ``prior_scale`` at this resolution):
         read by every estimate (mean, std, intervals, p_hit, grids, likelihood), never stored
         in the statistics, so it may be changed at any time."""
         self.resolution = float(resolution)

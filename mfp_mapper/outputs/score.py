@@ -36,7 +36,7 @@ from numpy.typing import NDArray
 
 from mfp_mapper.core.likelihood import ScanEvents, score_rays
 from mfp_mapper.core.mapper import IntegrationSummary, Mapper
-from mfp_mapper.core.model import UNIFORM, Prior
+from mfp_mapper.core.model import UNIFORM, Prior, family_prior
 from mfp_mapper.mapping.loop import integrate_scan
 from mfp_mapper.sensing.pipeline import PlacedScan, ScanDropped
 from mfp_mapper.sources.recording import Recording
@@ -522,13 +522,6 @@ def fit_prior(sample: EventSample) -> FittedPrior:
 
 
 # --- the family of priors that scales with the voxel: shape a * resolution, rate a * res / 2 ----
-
-
-def family_prior(scale: float, resolution: float) -> Prior:
-    """The family's prior at ``resolution`` (m): shape ``scale * resolution`` returns, rate
-    ``scale * resolution / 2`` metres of ray (a mean extinction of 2 per metre whose weight
-    grows with the voxel; docs/scoring.md)."""
-    return Prior(scale * resolution, scale * resolution / 2.0)
 
 
 @dataclass

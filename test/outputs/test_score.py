@@ -14,7 +14,7 @@ from likelihood_reference import reference
 from mfp_mapper.cli import main
 from mfp_mapper.core.likelihood import ScanEvents
 from mfp_mapper.core.mapper import Mapper
-from mfp_mapper.core.model import Prior
+from mfp_mapper.core.model import Prior, family_prior
 from mfp_mapper.mapio.loading import load_map, save_map
 from mfp_mapper.outputs import score
 
@@ -122,7 +122,7 @@ def test_fit_prior_recovers_the_population_prior() -> None:
 
 def _family_sample(rng: np.random.Generator, scale: float, resolution: float) -> score.EventSample:
     """Voxels whose extinction is drawn from the family's prior at ``resolution``."""
-    prior = score.family_prior(scale, resolution)
+    prior = family_prior(scale, resolution)
     voxels = 100_000
     u = rng.gamma(prior.shape, 1 / prior.rate, voxels)
     s = rng.uniform(0.0, 3 * resolution, voxels)
@@ -145,7 +145,7 @@ def test_fit_scale_recovers_the_family_and_leaves_one_out() -> None:
         for name in ("hall", "street")
         for res in (0.1, 0.2)
     ]
-    assert score.family_prior(2.0, 0.1) == Prior(0.2, 0.1)
+    assert family_prior(2.0, 0.1) == Prior(0.2, 0.1)
     assert score.fit_scale(samples) == pytest.approx(2.0, rel=0.1)
     own = {k: score.fit_prior(r.sample).prior for k, r in enumerate(samples)}
     rows = score.leave_one_out(samples, own)
