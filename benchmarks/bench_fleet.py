@@ -54,8 +54,8 @@ def bench_fleet(args: argparse.Namespace, root: Path) -> dict[str, Any]:
     from mfp_mapper.mapping.replay import ReplayOptions, replay
 
     bags = make_recordings(root / "bags", args.recordings, args.scans)
-    opts = ReplayOptions(resolution=args.resolution, max_range=args.max_range)
-    replay(bags[0], replace(opts, max_scans=2), progress=False)  # compile/load the kernels
+    opts = ReplayOptions.of(resolution=args.resolution, max_range=args.max_range)
+    replay(bags[0], opts.but(max_scans=2), progress=False)  # compile/load the kernels
     out: dict[str, Any] = {"recordings": len(bags), "scans_each": args.scans}
 
     here = FleetOptions(progress=False)

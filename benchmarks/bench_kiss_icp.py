@@ -52,7 +52,7 @@ def structured(scans: int) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         bag = simulate(Path(tmp) / "bag", cfg, "mcap").bag
         t0 = time.perf_counter()
-        replay(bag, ReplayOptions(resolution=0.1), progress=False)
+        replay(bag, ReplayOptions.of(resolution=0.1), progress=False)
         base = time.perf_counter() - t0
         for max_range in (30.0, 100.0):
             for deskew in (True, False):
@@ -64,7 +64,7 @@ def structured(scans: int) -> None:
                 )
                 t0 = time.perf_counter()
                 stamps, poses = estimate_poses(
-                    clouds, ReplayOptions(max_range=max_range, deskew=deskew)
+                    clouds, ReplayOptions.of(max_range=max_range, deskew=deskew)
                 )
                 seconds = time.perf_counter() - t0
                 reader.close()
@@ -91,7 +91,7 @@ def norlab() -> None:
     from mfp_mapper.sources.opener import open_recording
 
     t0 = time.perf_counter()
-    opts = ReplayOptions(resolution=0.2)
+    opts = ReplayOptions.of(resolution=0.2)
     with open_recording(sequence / "scans", opts, sequence / "icp_odom.csv") as recording:
         replay(recording, opts, progress=False)
     base = time.perf_counter() - t0

@@ -44,14 +44,11 @@ sys.path[:0] = [str(ROOT), str(ROOT / "test")]
 from localization_scenes import localization_scene, pose_at, static_scan  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
+from mfp_mapper.config.sections import LocalizationSection, PlacementSection  # noqa: E402
 from mfp_mapper.core.mapper import Mapper  # noqa: E402
 from mfp_mapper.mapio.loading import load_map, save_map  # noqa: E402
 from mfp_mapper.mapping.live import LiveIntegrator, LiveSettings  # noqa: E402
-from mfp_mapper.mapping.live_localization import (  # noqa: E402
-    LiveLocalizer,
-    LocalizationSettings,
-    pose_matrix,
-)
+from mfp_mapper.mapping.live_localization import LiveLocalizer, pose_matrix  # noqa: E402
 from mfp_mapper.sensing.poses import OdometrySample, PoseBuffer  # noqa: E402
 from mfp_mapper.sources.scan_files import cloud_message_from_columns  # noqa: E402
 
@@ -75,14 +72,7 @@ def hall_map() -> tuple[Any, Mapper, Mapper]:
 
 
 def worker(mapper: Mapper, localizer: LiveLocalizer | None) -> LiveIntegrator:
-    settings = LiveSettings(
-        frame_id="" if localizer is not None else "odom",
-        deskew=False,
-        point_cloud_min_z=-1e6,
-        point_cloud_max_z=1e6,
-        cloud_queue_size=5,
-        odom_wait=0.5,
-    )
+    settings = LiveSettings(PlacementSection(deskew=False, cloud_queue_size=5, odom_wait=0.5))
     return LiveIntegrator(
         mapper,
         settings,
@@ -141,8 +131,7 @@ def main() -> None:
     args = ap.parse_args()
     scene, map_a, map_b = hall_map()
     loc = LiveLocalizer(
-        LocalizationSettings(
-            global_frame="map",
+        LocalizationSection(
             max_rays=args.rays,
             tracking_rays=args.tracking_rays,
             tracking_iterations=args.tracking_iterations,
@@ -154,6 +143,7 @@ def main() -> None:
             update_min_d=args.update_min_d,
             update_min_a=args.update_min_a,
         ),
+        "map",
         log=lambda text: None,
     )
     t0 = time.perf_counter()

@@ -437,7 +437,7 @@ def core_times(name: str, n_scans: int, threads: int, count: int) -> dict[str, A
     alone), one by ``stage`` + ``commit`` (what the node does); median ms of the scans
     after the first, per stage."""
     from mfp_mapper import Mapper
-    from mfp_mapper.mapping.live import LiveSettings
+    from mfp_mapper.config.sections import PlacementSection, SensorModelSection
     from mfp_mapper.mapping.loop import ScanLoop
     from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer
     from mfp_mapper.sources.scan_files import CloudMessage, Header, Time
@@ -447,11 +447,10 @@ def core_times(name: str, n_scans: int, threads: int, count: int) -> dict[str, A
     poses = PoseBuffer(max_age=1e9)
     for rel in np.arange(0.0, (count + 1) * SCAN_PERIOD + 1e-9, ODOM_PERIOD):
         poses.add(t0 + rel, *stream.pose(float(rel)))
-    settings = LiveSettings("odom", True, -np.inf, np.inf, 5, 1.0)
     extrinsic = Extrinsic(translation=np.array([0.0, 0.0, stream.mount_z]))
     direct = Mapper(stream.resolution, threads=threads, max_range=100.0)
     staged = Mapper(stream.resolution, threads=threads, max_range=100.0)
-    loop = ScanLoop(direct, settings)
+    loop = ScanLoop(direct, PlacementSection(), SensorModelSection())
     times: dict[str, list[float]] = {k: [] for k in ("parse", "place", "core", "walk", "merge")}
     for k in range(count):
         c = stream.clouds[k % len(stream.clouds)]

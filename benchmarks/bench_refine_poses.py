@@ -61,7 +61,7 @@ def sim_case(root: Path) -> tuple[str, Path, tuple[np.ndarray, np.ndarray]]:
     small = preset("small")
     scene = replace(small.scene, room_lo=(-7.07, -6.94, -0.05), room_hi=(6.96, 7.03, 3.93))
     bag = simulate(root / "sim", replace(small, scene=scene, scans=40), "mcap").bag
-    truth = replay_refined(bag, replace(ReplayOptions(), resolution=0.2), refine=False)
+    truth = replay_refined(bag, ReplayOptions.of(resolution=0.2), refine=False)
     body = Rotation.from_quat(np.array([s.quaternion for s in truth.scans]))
     mount = Rotation.from_euler("xyz", small.lidar_rpy)
     # KISS-ICP gives the lidar's poses: truth = body pose * lidar mount
@@ -84,7 +84,7 @@ def main() -> None:
 
     tmp = tempfile.TemporaryDirectory()
     cases.append(sim_case(Path(tmp.name)))
-    opts = replace(ReplayOptions(), resolution=0.2, odometry="kiss-icp")
+    opts = ReplayOptions.of(resolution=0.2, odometry="kiss-icp")
     print("recording        poses                 ATE (m)  max rot (deg)  RPE (m/m)  time (s)")
     every_scan = AlignOptions(refresh_growth=0.0, refresh_m=0.0)  # the old rule: same poses
     for name, folder, ref in cases:

@@ -109,7 +109,7 @@ def main() -> int:
             print(f"simulated {bag.name} ({args.format}, {args.scans} scans) in "
                   f"{time.perf_counter() - t0:.1f} s")  # fmt: skip
         Mapper(args.resolution).integrate(np.ones((2, 3)), np.zeros(3), 0.0)  # warm numba
-        opts = ReplayOptions(resolution=args.resolution, max_range=args.max_range)
+        opts = ReplayOptions.of(resolution=args.resolution, max_range=args.max_range)
         t0 = time.perf_counter()
         result = replay(bag, opts, progress=False)
         wall = time.perf_counter() - t0

@@ -118,18 +118,21 @@ def parameter_rows(settings: Iterable[Any]) -> Iterator[list[str]]:
 
 
 def parameters_page(settings: tuple[Any, ...]) -> str:
-    """The node's parameters: every setting that applies to the node."""
+    """The node's parameters: every setting that applies to the node, section by section
+    (``mfp_mapper.config.sections``: each table is one section, under its title)."""
+    from mfp_mapper.config.sections import SECTIONS
+
     params = [s for s in settings if s.applies in ("node", "both")]
     header = ["parameter", "type", "default", "range", "dynamic", "meaning"]
-    mapping = [s for s in params if not s.name.startswith("localization.")]
-    localization = [s for s in params if s.name.startswith("localization.")]
-    return (
+    text = (
         HEADER + f"{len(params)} parameters. *dynamic*: `ros2 param set` changes it while the node "
-        "runs; the others are read at start.\n\n"
-        + table(header, parameter_rows(mapping))
-        + "\nLocalization mode (`localization.enabled`):\n\n"
-        + table(header, parameter_rows(localization))
+        "runs; the others are read at start.\n"
     )
+    for section in SECTIONS:
+        rows = [s for s in params if s.section == section.KEY]
+        if rows:
+            text += f"\n{section.TITLE}:\n\n" + table(header, parameter_rows(rows))
+    return text
 
 
 def replay_flags_page(settings: tuple[Any, ...]) -> str:

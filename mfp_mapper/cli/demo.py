@@ -44,7 +44,7 @@ def run_demo(
     for line in simulation_lines(sim):
         print(line)
     print(f"== 2/4 replay it into a {resolution:g} m map")
-    result = replay(bag, ReplayOptions(resolution=resolution), progress, warn)
+    result = replay(bag, ReplayOptions.of(resolution=resolution), progress, warn)
     map_path = out / "map.npz"
     save_map(result.mapper, map_path)
     print(result.summary.format())

@@ -63,8 +63,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         for path, pose_file, split in zip(args.inputs, poses, splits, strict=True):
             for resolution in resolutions:
-                row = argparse.Namespace(**{**vars(args), "resolution": resolution})
-                opts = replay_options(row)
+                flags = argparse.Namespace(**{**vars(args), "resolution": resolution})
+                opts = replay_options(flags)
                 sample = score.EventSample()
                 with open_recording(path, opts, pose_file, args.times, log) as recording:
                     score.score_split(
@@ -74,8 +74,8 @@ def run(args: argparse.Namespace) -> int:
                 try:
                     fits.append(score.fit_prior(sample))
                 except ValueError as err:
-                    raise ValueError(f"{path} at {opts.resolution:g} m: {err}") from None
-                samples.append(score.RecordingSample(path, opts.resolution, sample))
+                    raise ValueError(f"{path} at {opts.map.resolution:g} m: {err}") from None
+                samples.append(score.RecordingSample(path, opts.map.resolution, sample))
         scale = score.fit_scale(samples)
         several = len(args.inputs) > 1
         table = (

@@ -4,8 +4,8 @@ clouds it maps (``--start``/``--end``; ``--every`` comes from the settings schem
 
 ``--start`` and ``--end`` take one of:
 
-- ``12.5``: seconds after the recording's first cloud (``ReplayOptions.start_offset``);
-- ``@1700000012.5``: an absolute cloud stamp in seconds (``ReplayOptions.start``);
+- ``12.5``: seconds after the recording's first cloud (``ReplaySection.start_offset``);
+- ``@1700000012.5``: an absolute cloud stamp in seconds (``ReplaySection.start``);
 - ``#40``: a cloud's position in the recording, 0 = the first (``start_index``).
 
 The window is half-open: ``[start, end)``. ``--every N`` then maps one cloud in N of it.

@@ -72,7 +72,6 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from dataclasses import replace
 
     from mfp_mapper.config.replay_options import options_from_args
     from mfp_mapper.mapping.localize import localize
@@ -90,8 +89,7 @@ def run(args: argparse.Namespace) -> int:
     if not mapper.num_voxels:
         raise CliError(f"{args.map}: the map is empty: nothing to localize against")
     try:
-        opts = replace(options_from_args(args), **input_options(args))
-        opts = replace(opts, resolution=mapper.resolution)
+        opts = options_from_args(args).but(**input_options(args), resolution=mapper.resolution)
         with open_recording(args.input, opts, args.poses, args.times, warn) as recording:
             result = localize(mapper, recording, opts, align=align, log=warn)
     except ReplayError as err:

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import json
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -72,7 +71,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
 def replay_options(args: argparse.Namespace) -> ReplayOptions:
     """ReplayOptions from the schema defaults, ``--config``, the flags given and the
     input flags (``cli.input_args``)."""
-    return replace(options_from_args(args), **input_options(args))
+    return options_from_args(args).but(**input_options(args))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -106,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
     save_map(result.mapper, out, args.tile_blocks)
     summary = result.summary
     print(summary.format())
-    print(f"map          {out} ({result.mapper.num_voxels:,} voxels, {opts.resolution:g} m)")
+    print(f"map          {out} ({result.mapper.num_voxels:,} voxels, {opts.map.resolution:g} m)")
     if args.summary_json:
         write_text_atomic(args.summary_json, json.dumps(jsonable(vars(summary)), indent=2) + "\n")
     return 0

@@ -75,10 +75,25 @@ def _priors(main: Any) -> dict[str, Any]:
     return {"model": main} if main.is_uniform else {"model": main, "uniform_prior": UNIFORM}
 
 
+def _map_prior(args: argparse.Namespace, opts: Any, mapper: Any) -> Any:
+    """A map's own prior, or what the prior flags make of it: --prior-shape and --prior-rate
+    replace that number, --prior-scale the family's (at the map's resolution) for the
+    numbers not given."""
+    from mfp_mapper.core.model import resolve_prior
+
+    given = [getattr(args, k) is not None for k in ("prior_shape", "prior_rate", "prior_scale")]
+    if not any(given):
+        return mapper.prior
+    # with --prior-scale, a number not given is 0: the family's
+    shape = opts.map.prior_shape if given[0] else (0.0 if given[2] else mapper.prior.shape)
+    rate = opts.map.prior_rate if given[1] else (0.0 if given[2] else mapper.prior.rate)
+    return resolve_prior(mapper.resolution, shape, rate, opts.map.prior_scale)
+
+
 def run(args: argparse.Namespace) -> int:
     from contextlib import ExitStack
 
-    from mfp_mapper.core.model import Prior
+    from mfp_mapper.core.model import resolve_prior
     from mfp_mapper.mapio.mapfile import MapFileError
     from mfp_mapper.mapping.replay import ReplayError
     from mfp_mapper.outputs import score
@@ -111,25 +126,20 @@ def run(args: argparse.Namespace) -> int:
             if args.split:
                 for label, row_args in rows:
                     opts = replay_options(row_args)
-                    prior = Prior(opts.prior_shape, opts.prior_rate)
+                    m = opts.map
+                    prior = resolve_prior(m.resolution, m.prior_shape, m.prior_rate, m.prior_scale)
                     scorer = score.score_split(
                         recordings[0], opts, args.split, _priors(prior),
                         classic=not args.no_classic, progress=not args.quiet, log=log,
                     )  # fmt: skip
-                    results.append((label or f"resolution {opts.resolution:g} m", score.report(
+                    results.append((label or f"resolution {opts.map.resolution:g} m", score.report(
                         scorer, "model"
                     )))  # fmt: skip
             else:
                 opts = replay_options(args)
                 for path in maps:
                     mapper = load_map_arg(path)
-                    if args.prior_shape is not None or args.prior_rate is not None:
-                        mapper.prior = Prior(
-                            opts.prior_shape
-                            if args.prior_shape is not None
-                            else mapper.prior.shape,
-                            opts.prior_rate if args.prior_rate is not None else mapper.prior.rate,
-                        )
+                    mapper.prior = _map_prior(args, opts, mapper)
                     scorer = score.score_map(
                         mapper, recordings, opts, _priors(mapper.prior), progress=not args.quiet,
                         log=log,

@@ -1,9 +1,10 @@
 """What a replay reads and how it maps: ``ReplayOptions``, derived from the settings schema.
 
-Field defaults are the schema's defaults as the core takes them (``Setting.core_value``:
-"<= 0 means no limit" applied). ``options_from_yaml`` reads a node parameter file with the
-node's rules (``mfp_mapper.config.param_file``); ``add_replay_flags``/``options_from_args``
-give the ``replay`` CLI its flags, one per schema entry with a ``flag``.
+``ReplayOptions`` holds the sections the replay reads (map, sensor model, placement, replay),
+each value as given (``section.core(field)``: "<= 0 means no limit" applied).
+``options_from_yaml`` reads a node parameter file with the node's rules
+(``mfp_mapper.config.param_file``); ``add_replay_flags``/``options_from_args`` give the
+``replay`` CLI its flags, one per setting with a ``flag``.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import argparse
 import math
 import sys
 from collections.abc import Collection
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -20,81 +21,76 @@ from mfp_mapper.config.param_file import load_node_parameters
 from mfp_mapper.config.schema import (
     BY_NAME,
     SETTINGS,
-    MapSettings,
     NodeConfig,
     Setting,
-    XyzRpy,
     check_parameters,
     octomap_only_parameters,
     octomap_only_warning,
-    xyz_rpy,
+    retired_parameters,
+    retired_warning,
 )
+from mfp_mapper.config.sections import (
+    MapSection,
+    PlacementSection,
+    ReplaySection,
+    Section,
+    SensorModelSection,
+)
+from mfp_mapper.config.setting import XyzRpy, xyz_rpy
 
 
-def _default(name: str) -> Any:
-    return BY_NAME[name].core_default
-
-
-@dataclass
+@dataclass(frozen=True)
 class ReplayOptions:
-    """What to read and how to map it. ``None`` topics are detected in the bag."""
+    """What to read and how to map it: the sections the replay uses (``opts.map.resolution``,
+    ``opts.placement.odom_max_gap``, ``opts.replay.cloud_topic``; ``None`` topics are
+    detected in the bag). ``ReplayOptions.of(resolution=0.2, max_scans=4)`` and
+    ``opts.but(every=2)`` name fields without their section (field names are unique)."""
 
-    resolution: float = _default("resolution")
-    max_range: float = _default("sensor_model.max_range")
-    min_range: float = _default("sensor_model.min_range")
-    no_return_range: float = _default("sensor_model.no_return_range")
-    """> 0: recover the firings with no return as rays this long (``sensing.no_return``)."""
-    decay_time: float = _default("decay_time")
-    threads: int = _default("threads")
-    max_voxels: int | None = _default("max_voxels")
-    keep_radius: float | None = _default("keep_radius")
-    prior_shape: float = _default("prior.shape")
-    prior_rate: float = _default("prior.rate")
-    cloud_topic: str | None = _default("cloud_topic")
-    odom_topic: str | None = _default("odom_topic")
-    use_tf: bool = _default("use_tf_poses")
-    """Poses from the /tf chain even when the bag has an Odometry topic."""
-    fixed_frame: str | None = _default("fixed_frame")
-    """TF mode: the frame the poses are in (default: ``odom`` if on the chain, else root)."""
-    extrinsic: XyzRpy | None = None
-    """Given explicitly (flag): overrides /tf_static."""
+    map: MapSection = field(default_factory=MapSection)
+    sensor_model: SensorModelSection = field(default_factory=SensorModelSection)
+    placement: PlacementSection = field(default_factory=PlacementSection)
+    replay: ReplaySection = field(default_factory=ReplaySection)
     config_extrinsic: XyzRpy | None = None
-    """From the YAML (``lidar.*``): used when /tf_static has no chain."""
-    deskew: bool = _default("deskew")
-    max_gap: float = _default("odom_max_gap")
-    point_cloud_min_x: float = _default("point_cloud_min_x")
-    point_cloud_max_x: float = _default("point_cloud_max_x")
-    point_cloud_min_y: float = _default("point_cloud_min_y")
-    point_cloud_max_y: float = _default("point_cloud_max_y")
-    point_cloud_min_z: float = _default("point_cloud_min_z")
-    point_cloud_max_z: float = _default("point_cloud_max_z")
-    max_scans: int | None = _default("max_scans")
-    start: float | None = _default("start")
-    """Map only clouds stamped at or after this absolute time (s): ``[start, end)``."""
-    end: float | None = _default("end")
-    """Map only clouds stamped before this absolute time (s)."""
-    start_offset: float | None = _default("start_offset")
-    """Like ``start``, in seconds after the recording's first cloud."""
-    end_offset: float | None = _default("end_offset")
-    """Like ``end``, in seconds after the recording's first cloud."""
-    start_index: int = _default("start_index")
-    """First cloud mapped, by its position in the recording (0 = the first)."""
-    end_index: int | None = _default("end_index")
-    """Clouds from this position on are not mapped: ``[start_index, end_index)``."""
-    every: int = _default("every")
-    """Map one cloud in ``every`` of those selected (the first, then every N-th)."""
-    odometry: str | None = _default("odometry")
-    """``"kiss-icp"``: poses estimated from the clouds (``sources.lidar_odometry``)."""
+    """``placement``'s ``lidar.*`` when ``--config`` names them: used when /tf_static has no
+    chain (the ``--extrinsic`` flag, ``replay.extrinsic``, overrides /tf_static)."""
 
-    def map_settings(self) -> MapSettings:
-        """The map section of these options (what ``Mapper`` takes)."""
-        return MapSettings.of(lambda name: getattr(self, BY_NAME[name].option))
+    @classmethod
+    def of(cls, **values: Any) -> ReplayOptions:
+        """Options with these fields (named without their section) changed from the defaults."""
+        return cls().but(**values)
 
+    def but(self, **values: Any) -> ReplayOptions:
+        """These options with some fields (named without their section) changed."""
+        changes: dict[str, dict[str, Any]] = {}
+        for name, value in values.items():
+            if name == "config_extrinsic":
+                continue
+            key = _SECTION_OF.get(name)
+            if key is None:
+                raise TypeError(f"ReplayOptions has no field {name!r}")
+            changes.setdefault(key, {})[name] = value
+        sections = {key: replace(getattr(self, key), **kw) for key, kw in changes.items()}
+        if "config_extrinsic" in values:
+            sections["config_extrinsic"] = values["config_extrinsic"]
+        return replace(self, **sections)
+
+
+REPLAY_SECTIONS: tuple[type[Section], ...] = (
+    MapSection,
+    SensorModelSection,
+    PlacementSection,
+    ReplaySection,
+)
+"""The sections ``ReplayOptions`` holds."""
+
+_SECTION_OF: dict[str, str] = {
+    f.name: section.KEY
+    for section in REPLAY_SECTIONS
+    for f in fields(section)  # type: ignore[arg-type]
+}
 
 EXTRINSIC_PARAMETERS = ("lidar.translation", "lidar.rpy")
 """Node parameters that together give ``ReplayOptions.config_extrinsic``."""
-
-REPLAY_FIELDS = {f.name for f in fields(ReplayOptions)}
 
 
 class ReplayError(RuntimeError):
@@ -106,20 +102,21 @@ class ConfigError(ReplayError, ValueError):
 
 
 def options_from_config(cfg: NodeConfig, given: set[str]) -> dict[str, Any]:
-    """ReplayOptions fields of the node parameters named in ``given``."""
+    """ReplayOptions fields (named without their section) of the node parameters named in
+    ``given``."""
     out: dict[str, Any] = {}
     for name in given:
         setting = BY_NAME[name]
-        if not setting.in_replay or name in EXTRINSIC_PARAMETERS:
+        if not setting.in_replay:
             continue
-        out[setting.option] = cfg.core(name)
+        out[setting.field] = getattr(getattr(cfg, setting.section), setting.field)
     if given & set(EXTRINSIC_PARAMETERS):
-        out["config_extrinsic"] = cfg.lidar_xyz_rpy()
+        out["config_extrinsic"] = cfg.placement.lidar_xyz_rpy()
     return out
 
 
 def options_from_yaml(path: str | Path) -> dict[str, Any]:
-    """ReplayOptions fields from a parameter file of the node (``config/*.yaml``).
+    """ReplayOptions fields (named without their section) from a node parameter file.
 
     The file is read as the node ``mfp_mapper`` reads it (its own section or ``/**``, rcl's
     typing of values, unknown names and values the node rejects are errors: ConfigError).
@@ -133,6 +130,9 @@ def options_from_yaml(path: str | Path) -> dict[str, Any]:
     octomap_only = octomap_only_parameters(list(values))
     if octomap_only:
         print(f"mfp-mapper: {path}: {octomap_only_warning(octomap_only)}", file=sys.stderr)
+    retired = retired_parameters(list(values))
+    if retired:
+        print(f"mfp-mapper: {path}: {retired_warning(retired)}", file=sys.stderr)
     return options_from_config(cfg, {n for n in values if n in BY_NAME})
 
 
@@ -218,5 +218,5 @@ def options_from_args(args: argparse.Namespace) -> ReplayOptions:
         if setting.name == "extrinsic":
             values["extrinsic"] = xyz_rpy(given[:3], given[3:])
         else:
-            values[setting.option] = setting.core_value(given)
-    return ReplayOptions(**values)
+            values[setting.field] = setting.held(given)
+    return ReplayOptions.of(**values)

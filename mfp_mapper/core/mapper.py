@@ -8,11 +8,12 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from mfp_mapper.config.schema import MapSettings
+from mfp_mapper.config.sections import MapSection, SensorModelSection
 from mfp_mapper.core import model
 from mfp_mapper.core.errors import CoreError, ScanTooLargeError
 from mfp_mapper.core.gridmap import HitGrid, band_grid
@@ -49,7 +50,7 @@ zero for a robot that starts within half of it from the frame's origin, so ordin
 keep ``ijk = floor(p / resolution)``."""
 
 __all__ = [
-    "CoreError", "IntegrationSummary", "Mapper", "ScanTooLargeError", "VoxelStats",
+    "CoreError", "IntegrationSummary", "Mapper", "ScanTooLargeError", "VoxelStats", "mapper_kwargs",
 ]  # fmt: skip
 
 FloatArray = NDArray[np.float64]
@@ -74,6 +75,27 @@ def _cpu_of(fn: Callable[[int], None], item: int) -> float:
     return time.thread_time() - cpu0
 
 
+def mapper_kwargs(map_section: MapSection, sensor_model: SensorModelSection) -> dict[str, Any]:
+    """The keyword arguments of ``Mapper`` besides the resolution and frame, in the core's
+    units ("<= 0 means no limit" applied); also the overrides a loaded map takes (its own
+    resolution stays)."""
+    return {
+        "max_range": sensor_model.core("max_range"),
+        "min_range": sensor_model.min_range,
+        "decay_time": map_section.core("decay_time"),
+        "threads": map_section.threads,
+        "max_voxels": map_section.core("max_voxels"),
+        "keep_radius": map_section.core("keep_radius"),
+        "prior_shape": map_section.prior_shape,
+        "prior_rate": map_section.prior_rate,
+        "prior_scale": map_section.prior_scale,
+    }
+
+
+_DEFAULTS = mapper_kwargs(MapSection(), SensorModelSection())
+"""The defaults of ``Mapper``'s settings: the sections' defaults, in the core's units."""
+
+
 class Mapper:
     """A degree-of-occupancy voxel map built from lidar rays (Berquin & Zell 2021).
 
@@ -85,19 +107,19 @@ class Mapper:
 
     def __init__(
         self,
-        resolution: float = 0.1,
+        resolution: float = MapSection.resolution,
         *,
-        max_range: float = 100.0,
-        min_range: float = 0.0,
-        decay_time: float = math.inf,
+        max_range: float = _DEFAULTS["max_range"],
+        min_range: float = _DEFAULTS["min_range"],
+        decay_time: float = _DEFAULTS["decay_time"],
         frame_id: str = "map",
-        threads: int = 1,
-        max_voxels: int | None = None,
-        keep_radius: float | None = None,
+        threads: int = _DEFAULTS["threads"],
+        max_voxels: int | None = _DEFAULTS["max_voxels"],
+        keep_radius: float | None = _DEFAULTS["keep_radius"],
         origin: ArrayLike | None = None,
-        prior_shape: float = 1.0,
-        prior_rate: float = 1.0,
-        prior_scale: float = 0.0,
+        prior_shape: float = _DEFAULTS["prior_shape"],
+        prior_rate: float = _DEFAULTS["prior_rate"],
+        prior_scale: float = _DEFAULTS["prior_scale"],
     ) -> None:
         _check_settings(
             resolution, max_range, min_range, decay_time, threads, max_voxels, keep_radius
@@ -105,9 +127,9 @@ class Mapper:
         self.prior = model.resolve_prior(
             float(resolution), float(prior_shape), float(prior_rate), float(prior_scale)
         )
-        """Gamma prior on the extinction (``model.Prior``; 1, 1: the paper's uniform prior,
-        this class's default; the settings' default is the family ``model.family_prior``:
-        ``prior_shape``/``prior_rate`` 0 take it from ``prior_scale`` at this resolution):
+        """Gamma prior on the extinction (``model.Prior``; 1, 1: the paper's uniform prior;
+        by default the family ``model.family_prior``: a ``prior_shape`` or ``prior_rate``
+        of 0 takes the family's value for ``prior_scale`` at this resolution):
         read by every estimate (mean, std, intervals, p_hit, grids, likelihood), never stored
         in the statistics, so it may be changed at any time."""
         self.resolution = float(resolution)
@@ -138,11 +160,18 @@ class Mapper:
 
     @classmethod
     def of(
-        cls, settings: MapSettings, frame_id: str = "map", origin: ArrayLike | None = None
+        cls,
+        map_section: MapSection,
+        sensor_model: SensorModelSection,
+        frame_id: str = "map",
+        origin: ArrayLike | None = None,
     ) -> Mapper:
-        """An empty map with the settings of the map section (``config.MapSettings``)."""
+        """An empty map with the settings of the map and sensor-model sections."""
         return cls(
-            settings.resolution, frame_id=frame_id, origin=origin, **settings.mapper_kwargs()
+            map_section.resolution,
+            frame_id=frame_id,
+            origin=origin,
+            **mapper_kwargs(map_section, sensor_model),
         )
 
     # --- writing ----------------------------------------------------------------------

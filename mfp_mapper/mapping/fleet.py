@@ -1,7 +1,7 @@
 """Fleet mapping: many recordings into one map, exactly, in this process or on Dask.
 
 The work is split into tasks: one per recording, or one per time window of a long recording
-(``ReplayOptions.start``/``end``: half-open windows of cloud stamps that tile the time
+(``ReplaySection.start``/``end``: half-open windows of cloud stamps that tile the time
 axis, so every cloud lands in exactly one task). Each task replays its window with the
 same scan pipeline as ``mfp-mapper replay`` (``mapping.replay.replay``) and writes its
 partial map as a tiled map (``mapio.tiles``) into a work folder. The reduction is a shuffle
@@ -38,7 +38,7 @@ import tempfile
 import time
 from collections import Counter
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from mfp_mapper.core.mapper import Mapper
@@ -249,10 +249,9 @@ def replay_task(
 ) -> TaskResult:
     """Replay ``task`` and write its partial map as tiles under ``work_dir``."""
     t0 = time.perf_counter()
-    window = replace(
-        opts,  # the task's window within the one asked for (--start/--end), if any
-        start=_latest(opts.start, task.start),
-        end=_earliest(opts.end, task.end),
+    window = opts.but(  # the task's window within the one asked for (--start/--end), if any
+        start=_latest(opts.replay.start, task.start),
+        end=_earliest(opts.replay.end, task.end),
     )
     try:
         result = replay_input(task.recording, window, poses, times, progress=False)
@@ -334,7 +333,7 @@ def map_fleet(
             check_tiled_output(out)
         except MapFileError as err:
             raise FleetError(str(err)) from None
-    if opts.max_scans is not None and len(names) > 1:
+    if opts.replay.max_scans is not None and len(names) > 1:
         raise FleetError("max_scans counts the clouds of one replay: use it with one recording")
     if fleet.workers is None and fleet.scheduler is None and not fleet.chunk_seconds:
         return map_in_turn(names, out, opts, fleet, log)
@@ -345,15 +344,15 @@ def map_fleet(
         if log is not None:
             log(f"--workers {workers}: using {len(tasks)}, one per task")
         workers = len(tasks)
-    evicting = [k for k in ("max_voxels", "keep_radius") if getattr(opts, k, None) is not None]
+    evicting = [k for k in ("max_voxels", "keep_radius") if opts.map.core(k) is not None]
     if evicting and len(tasks) > 1:
         raise FleetError(
             f"{' and '.join(evicting)} evict(s) blocks during a replay: partial maps would not "
             "add up to the map of all scans; leave it unset to map several recordings or windows"
         )
-    if getattr(opts, "every", 1) not in (None, 1) and fleet.chunk_seconds:
+    if opts.replay.every != 1 and fleet.chunk_seconds:
         raise FleetError("--every counts the clouds of one replay: not with --chunk-seconds")
-    if opts.max_scans is not None and len(tasks) > 1:
+    if opts.replay.max_scans is not None and len(tasks) > 1:
         raise FleetError("max_scans counts the clouds of one replay: use it with one recording")
     _fail_or_skip(failed, fleet.skip_bad)
     work = make_scratch(Path(fleet.work_dir) if fleet.work_dir else _parent(out), log)

@@ -22,6 +22,7 @@ executor never waits for the map. Everything is counted under the pipeline's nam
 from __future__ import annotations
 
 import copy
+import functools
 import math
 import threading
 import time
@@ -32,6 +33,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from mfp_mapper.config.sections import PlacementSection, SensorModelSection
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.mapping.live_localization import LiveLocalizer, pose_matrix
 from mfp_mapper.mapping.loop import PreparedScan, ScanCounts, ScanLoop, staged
@@ -57,49 +59,23 @@ RETRY_PERIOD = 0.02
 """Seconds between two tries of a waiting cloud (sooner when new poses arrived)."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class LiveSettings:
-    """What the worker reads of the node's settings (replaced whole on a change)."""
+    """The sections the worker reads, replaced whole on a change (a scan sees one of them)."""
 
-    frame_id: str
-    deskew: bool
-    point_cloud_min_z: float
-    point_cloud_max_z: float
-    cloud_queue_size: int
-    odom_wait: float
-    point_cloud_min_x: float = -math.inf
-    point_cloud_max_x: float = math.inf
-    point_cloud_min_y: float = -math.inf
-    point_cloud_max_y: float = math.inf
-    max_range: float | None = None
-    """The core's ray length (m, inf = no limit); None: the Mapper's own, unchanged."""
-    no_return_range: float = 0.0
-    """> 0: recover the firings with no return as rays this long (``sensing.no_return``)."""
-    base_frame_id: str = ""
-    extrinsic_override: Extrinsic | None = None
-    cloud_frame_id: str = ""
-    """The frame of a cloud whose header.frame_id is empty ("": such a cloud is dropped)."""
+    placement: PlacementSection = field(default_factory=PlacementSection)
+    sensor_model: SensorModelSection | None = None
+    """None: the Mapper's own ray length, unchanged, and no no-return rays."""
 
     @classmethod
     def of(cls, cfg: NodeConfig) -> LiveSettings:
         """What the worker reads of the node's parameters."""
-        return cls(
-            frame_id=cfg.frame_id,
-            deskew=cfg.deskew,
-            point_cloud_min_x=cfg.point_cloud_min_x,
-            point_cloud_max_x=cfg.point_cloud_max_x,
-            point_cloud_min_y=cfg.point_cloud_min_y,
-            point_cloud_max_y=cfg.point_cloud_max_y,
-            point_cloud_min_z=cfg.point_cloud_min_z,
-            point_cloud_max_z=cfg.point_cloud_max_z,
-            max_range=cfg.max_range,
-            cloud_queue_size=cfg.cloud_queue_size,
-            odom_wait=cfg.odom_wait,
-            base_frame_id=cfg.base_frame_id.lstrip("/"),
-            cloud_frame_id=cfg.cloud_frame_id.lstrip("/"),
-            extrinsic_override=_extrinsic(cfg.lidar_override()),
-            no_return_range=cfg.sensor_model_no_return_range,
-        )
+        return cls(cfg.placement, cfg.sensor_model)
+
+    @functools.cached_property
+    def extrinsic_override(self) -> Extrinsic | None:
+        """The ``lidar.*`` mounting when set (it overrides /tf_static), made once per change."""
+        return _extrinsic(self.placement.lidar_override())
 
 
 @dataclass
@@ -167,7 +143,7 @@ class LiveIntegrator:
         self.mapper = mapper
         self.localizer = localizer
         if localizer is not None:
-            map_frame = localizer.settings.odom_frame
+            map_frame = localizer.odom_frame
         self.settings = settings
         self.counters = LiveCounters()
         self.map_lock = threading.Lock()
@@ -176,7 +152,7 @@ class LiveIntegrator:
             poses,
             tree if tree is not None else TfTree(),
             self.counters,
-            frame_id=map_frame or settings.frame_id,
+            frame_id=map_frame,
             log=log,
             info=info or (lambda text: log("info", text, False)),
             now=now,
@@ -200,7 +176,8 @@ class LiveIntegrator:
         self._prepare_s = 0.0
         self.loop = ScanLoop(
             mapper,
-            settings,
+            settings.placement,
+            settings.sensor_model or SensorModelSection(),
             counts=self.counters,
             counts_lock=self._cv,
             consume=staged(self.whole_map, self._let_readers_in),
@@ -227,7 +204,7 @@ class LiveIntegrator:
     def map_frame(self) -> str:
         """The run's map frame ("" until decided; the global frame when localizing)."""
         if self.localizer is not None:
-            return self.localizer.settings.global_frame
+            return self.localizer.global_frame
         return self.pose_inputs.map_frame or ""
 
     @property
@@ -245,7 +222,7 @@ class LiveIntegrator:
         if self.localizer is None:
             return self.pose_inputs.to_map_frame(points, frame, stamp)
         frame = frame.lstrip("/")
-        if not frame or frame == self.localizer.settings.global_frame:
+        if not frame or frame == self.localizer.global_frame:
             return points
         in_odom = self.pose_inputs.to_map_frame(points, frame, stamp)
         m, _, _ = self.localizer.transform()
@@ -259,7 +236,7 @@ class LiveIntegrator:
         if self.localizer is None:
             return None
         with inputs.lock:
-            if inputs.odom_frame != self.localizer.settings.odom_frame or not len(inputs.poses):
+            if inputs.odom_frame != self.localizer.odom_frame or not len(inputs.poses):
                 return None
             poses = inputs.poses.snapshot()
         latest, earliest = poses.latest_stamp, poses.earliest_stamp
@@ -280,7 +257,7 @@ class LiveIntegrator:
         item = _Pending(time.monotonic(), msg)
         with self._cv:
             self.counters.clouds_in += 1
-            if len(self._queue) + len(self._waiting) >= self.settings.cloud_queue_size:
+            if len(self._queue) + len(self._waiting) >= self.settings.placement.cloud_queue_size:
                 if self._waiting:
                     self._waiting.pop(0)
                     detail = "the oldest cloud still waiting for its poses was dropped"
@@ -385,7 +362,7 @@ class LiveIntegrator:
         now, generation = time.monotonic(), self.pose_inputs.generation
         for i, item in enumerate(self._waiting):
             if item.next_try <= now and (
-                item.tried != generation or now - item.received > self.settings.odom_wait
+                item.tried != generation or now - item.received > self.settings.placement.odom_wait
             ):
                 return self._waiting.pop(i)
         return None
@@ -453,8 +430,10 @@ class LiveIntegrator:
                 self.counters.integration_wall += time.perf_counter() - wall0
 
     def _process(self, item: _Pending) -> bool:
-        cfg = self.settings
-        self.loop.settings = cfg  # parameters changed at run time reach the pipeline
+        settings = self.settings
+        cfg = settings.placement
+        self.loop.placement = cfg  # parameters changed at run time reach the pipeline
+        self.loop.sensor_model = settings.sensor_model or SensorModelSection()
         if item.prepared is None:
             item.started = time.monotonic()
             item.prepared = self.loop.prepare(item.msg)
@@ -468,7 +447,9 @@ class LiveIntegrator:
         frame = self._cloud_frame(prepared.frame_id, parse_drops)
         waited = time.monotonic() - item.received
         try:
-            placement = self.pose_inputs.placement(frame, cfg.base_frame_id, cfg.extrinsic_override)
+            placement = self.pose_inputs.placement(
+                frame, cfg.base_frame_id.lstrip("/"), settings.extrinsic_override
+            )
         except pipeline.ScanDropped as drop:
             if waited <= cfg.odom_wait and drop.reason != "tf_conflict":
                 return False  # the transforms may still come
@@ -506,7 +487,7 @@ class LiveIntegrator:
         placed = self.loop.place(prepared, placement.poses, placement.extrinsic)
         if self.localizer is not None:  # localization: aligned, then integrated here
             placed = self.localizer.localize(placed, _robot_pose(placement))
-        self.pose_inputs.note_robot(placement, prepared.stamp, cfg.base_frame_id)
+        self.pose_inputs.note_robot(placement, prepared.stamp, cfg.base_frame_id.lstrip("/"))
         job = _Placed(item, placed, t_place, time.monotonic())
         if self.localizer is None and self._walker is not None and self._walker.is_alive():
             self._hand_over(job)
@@ -559,12 +540,13 @@ class LiveIntegrator:
 
     def _integrate(self, job: _Placed) -> None:
         """A placed scan into the map (``ScanLoop.commit``), with its latency and timing."""
-        cfg = self.settings
+        sensor_model = self.settings.sensor_model
         t_commit = time.monotonic()
         own_cpu = time.thread_time()
-        if cfg.max_range is not None and self.mapper.max_range != cfg.max_range:
+        max_range = None if sensor_model is None else sensor_model.core("max_range")
+        if max_range is not None and self.mapper.max_range != max_range:
             with self.map_lock:  # sensor_model.max_range changed at run time
-                self.mapper.max_range = cfg.max_range
+                self.mapper.max_range = max_range
         summary = None  # None: localized against a frozen map, not integrated
         if self.localizer is None or not self.localizer.settings.freeze_map:
             summary = self.loop.commit(job.placed)
@@ -622,8 +604,9 @@ class LiveIntegrator:
             frame = frame.lstrip("/")
         if frame:
             return frame
-        if self.settings.cloud_frame_id:
-            return self.settings.cloud_frame_id
+        cloud_frame_id = self.settings.placement.cloud_frame_id.lstrip("/")
+        if cloud_frame_id:
+            return cloud_frame_id
         raise pipeline.ScanDropped(
             "no_frame",
             "the cloud's header.frame_id is empty: set the parameter cloud_frame_id to the "
@@ -638,7 +621,7 @@ class LiveIntegrator:
             self._log(key, text, False)
 
     def _warn_time_field(self, cloud: ParsedCloud) -> None:
-        if cloud.unknown_time_field and self.settings.deskew:
+        if cloud.unknown_time_field and self.settings.placement.deskew:
             self._warn_once(
                 "time_field",
                 f"clouds have a field {cloud.unknown_time_field!r} that looks like per-point "

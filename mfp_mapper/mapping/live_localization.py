@@ -44,14 +44,14 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass, fields, replace
-from typing import TYPE_CHECKING, Any
+from dataclasses import replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from mfp_mapper.config.schema import defaults as setting_defaults
+from mfp_mapper.config.sections import LocalizationSection
 from mfp_mapper.core.alignment import (
     Alignment,
     AlignOptions,
@@ -63,86 +63,35 @@ from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.sensing.pipeline import PlacedScan
 from mfp_mapper.sensing.scan_normals import scan_normals
 
-if TYPE_CHECKING:
-    from mfp_mapper.config.schema import NodeConfig
-
 FloatArray = NDArray[np.float64]
 
-__all__ = ["LiveLocalizer", "LocalizationSettings"]
+__all__ = ["LiveLocalizer", "align_options"]
 
 STATES = ("waiting_for_map", "initializing", "localized", "lost")
 
 
-_SCHEMA = setting_defaults()
-
-
-def _default(name: str) -> Any:
-    """The schema's default of ``localization.<name>`` (the one definition of the setting)."""
-    return _SCHEMA[f"localization.{name}"]
-
-
-@dataclass(frozen=True)
-class LocalizationSettings:
-    """The ``localization.*`` parameters the localizer reads (replaced whole on a change);
-    each field is the parameter of its name, defaults and meanings in ``config.schema``."""
-
-    odom_frame: str = _default("odom_frame")
-    global_frame: str = "map"
-    """Not a ``localization.*`` parameter: the node's map frame."""
-    freeze_map: bool = _default("freeze_map")
-    min_period: float = _default("min_period")
-    max_rays: int = _default("max_rays")
-    max_sigma: float = _default("max_sigma")
-    min_gain_per_ray: float = _default("min_gain_per_ray")
-    min_constraints: int = _default("min_constraints")
-    max_shift: float = _default("max_shift")
-    max_angle: float = _default("max_angle")
-    initial_max_shift: float = _default("initial_max_shift")
-    initial_max_angle: float = _default("initial_max_angle")
-    lost_after: int = _default("lost_after")
-    rebuild_period: float = _default("rebuild_period")
-    tracking_levels: int = _default("tracking_levels")
-    tracking_rays: int = _default("tracking_rays")
-    tracking_iterations: int = _default("tracking_iterations")
-    exact_check: bool = _default("exact_check")
-    exact_check_tracking: bool = _default("exact_check_tracking")
-    fit_drop: float = _default("fit_drop")
-    normals_refresh: float = _default("normals_refresh")
-    update_min_d: float = _default("update_min_d")
-    update_min_a: float = _default("update_min_a")
-
-    @classmethod
-    def of(cls, cfg: NodeConfig, global_frame: str) -> LocalizationSettings:
-        values = {
-            f.name: getattr(cfg, f"localization_{f.name}")
-            for f in fields(cls)
-            if f.name != "global_frame"
-        }
-        values["odom_frame"] = values["odom_frame"].lstrip("/")
-        return cls(global_frame=global_frame, **values)
-
-    def options(self, wide: bool) -> AlignOptions:
-        """The alignment's options: the wider search range before the first acceptance;
-        while tracking those of ``AlignOptions.live`` (fewer curvature probe rays) with
-        ``tracking_rays`` and ``tracking_iterations``."""
-        base = (
-            AlignOptions()
-            if wide
-            else AlignOptions.live(  # free space sampled every half voxel, as the wide search:
-                # every voxel lets the hall's 7 cm aliasing gain (a wrong correction accepted)
-                max_iterations=max(self.tracking_iterations, 1),
-                step=AlignOptions.step,
-            )
+def align_options(settings: LocalizationSection, wide: bool) -> AlignOptions:
+    """The alignment's options: the wider search range before the first acceptance; while
+    tracking those of ``AlignOptions.live`` (fewer curvature probe rays) with
+    ``tracking_rays`` and ``tracking_iterations``."""
+    base = (
+        AlignOptions()
+        if wide
+        else AlignOptions.live(  # free space sampled every half voxel, as the wide search:
+            # every voxel lets the hall's 7 cm aliasing gain (a wrong correction accepted)
+            max_iterations=max(settings.tracking_iterations, 1),
+            step=AlignOptions.step,
         )
-        return replace(
-            base,
-            max_rays=self.max_rays if wide else self.tracking_rays,
-            max_sigma_m=self.max_sigma,
-            min_gain_per_ray=self.min_gain_per_ray,
-            min_constraints=self.min_constraints,
-            max_shift_m=self.initial_max_shift if wide else self.max_shift,
-            max_angle_deg=self.initial_max_angle if wide else self.max_angle,
-        )
+    )
+    return replace(
+        base,
+        max_rays=settings.max_rays if wide else settings.tracking_rays,
+        max_sigma_m=settings.max_sigma,
+        min_gain_per_ray=settings.min_gain_per_ray,
+        min_constraints=settings.min_constraints,
+        max_shift_m=settings.initial_max_shift if wide else settings.max_shift,
+        max_angle_deg=settings.initial_max_angle if wide else settings.max_angle,
+    )
 
 
 FIT_AVERAGE = 0.1
@@ -177,8 +126,13 @@ class LiveLocalizer:
     from any thread (under ``self.lock``).
     """
 
-    def __init__(self, settings: LocalizationSettings, *, log: Callable[[str], None]) -> None:
+    def __init__(
+        self, settings: LocalizationSection, global_frame: str, *, log: Callable[[str], None]
+    ) -> None:
         self.settings = settings
+        """The ``localization.*`` parameters (replaced whole on a change)."""
+        self.global_frame = global_frame
+        """The map frame the correction is to (the node's ``frame_id`` or the loaded map's)."""
         self.lock = threading.Lock()
         self._log = log
         self.correction = np.eye(4)
@@ -218,6 +172,12 @@ class LiveLocalizer:
         self._built_at = -math.inf
 
     # --- the field ------------------------------------------------------------------------
+
+    @property
+    def odom_frame(self) -> str:
+        """The odometry frame clouds are placed in (``localization.odom_frame``, tf1's leading
+        slash stripped)."""
+        return self.settings.odom_frame.lstrip("/")
 
     def build(self, mapper: Mapper, whole_map: Any) -> None:
         """Build the field from the map: its statistics copied under ``whole_map`` (a
@@ -343,7 +303,7 @@ class LiveLocalizer:
         org = moved.origins if np.ndim(moved.origins) == 1 else moved.origins[ret]
         if not wide:  # tracking: the correction is small, the coarse levels cost for nothing
             pyramid = FieldPyramid(pyramid.fields[: max(cfg.tracking_levels, 1)])
-        options = cfg.options(wide)
+        options = align_options(cfg, wide)
         al = align_scan(pyramid, pts, org, options, normals=self._scan_normals(pts, odom, wide))
         if al.accepted and cfg.exact_check and (wide or cfg.exact_check_tracking):
             al = self._verify(al, moved, options)
@@ -543,8 +503,8 @@ class LiveLocalizer:
             return {
                 "state": self.state,
                 "freeze_map": self.settings.freeze_map,
-                "global_frame": self.settings.global_frame,
-                "odom_frame": self.settings.odom_frame,
+                "global_frame": self.global_frame,
+                "odom_frame": self.odom_frame,
                 "map_to_odom": {
                     "x": round(float(m[0, 3]), 4),
                     "y": round(float(m[1, 3]), 4),

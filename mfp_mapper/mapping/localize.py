@@ -205,7 +205,7 @@ def _loop(
         )
     cache = PyramidCache(mapper, align)
     result = LocalizeResult(map_frame=recording.map_frame, mapper=mapper)
-    loop = ScanLoop(mapper, opts)
+    loop = ScanLoop(mapper, opts.placement, opts.sensor_model)
     select = ScanSelection(opts)
     for index, load in recording.clouds():
         if select.past_end(index):

@@ -21,11 +21,12 @@ from collections import Counter
 from collections.abc import Callable
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from mfp_mapper.config.sections import PlacementSection, SensorModelSection
 from mfp_mapper.core.mapper import IntegrationSummary, Mapper
 from mfp_mapper.sensing import pipeline
 from mfp_mapper.sensing.deskew import PoseSource
@@ -41,13 +42,6 @@ ScanConsumer = Callable[[Mapper, PlacedScan], IntegrationSummary]
 """What the loop does with a placed scan instead of integrating it (``integrate_scan``):
 e.g. the scorer (``outputs.score``); returns the summary of the rays used, raises
 ``ScanDropped`` when none."""
-
-
-class LoopSettings(pipeline.PlacementSettings, Protocol):
-    """What the loop reads of the settings (the node's live settings, the replay options)."""
-
-    @property
-    def no_return_range(self) -> float: ...
 
 
 @dataclass
@@ -128,7 +122,8 @@ class ScanLoop:
     def __init__(
         self,
         mapper: Mapper,
-        settings: LoopSettings,
+        placement: PlacementSection,
+        sensor_model: SensorModelSection,
         *,
         counts: ScanCounts | None = None,
         counts_lock: AbstractContextManager[Any] | None = None,
@@ -137,7 +132,10 @@ class ScanLoop:
         consume: ScanConsumer | None = None,
     ) -> None:
         self.mapper = mapper
-        self.settings = settings
+        self.placement = placement
+        """How clouds are placed (de-skew, the box); the live worker replaces it on a change."""
+        self.sensor_model = sensor_model
+        """Which rays are used (``no_return_range``); replaced like ``placement``."""
         self.counts = counts if counts is not None else ScanCounts()
         self.counts_lock: AbstractContextManager[Any] = (
             counts_lock if counts_lock is not None else threading.RLock()
@@ -156,14 +154,14 @@ class ScanLoop:
         """Parse a PointCloud2 (any object with its attributes), add its no-return rays and
         count its points; raises ``ScanDropped`` (``malformed``, ``empty``)."""
         cloud, note = pipeline.add_no_return_rays(
-            pipeline.parse_scan(msg), self.settings.no_return_range
+            pipeline.parse_scan(msg), self.sensor_model.no_return_range
         )
         stamp = pipeline.scan_stamp(msg)
         with self.counts_lock:
             self.counts.points_in += cloud.points_in
             if note and not self.counts.no_return_note:
                 self.counts.no_return_note = note
-        deadline = pipeline.pose_deadline(cloud, stamp, self.settings.deskew)
+        deadline = pipeline.pose_deadline(cloud, stamp, self.placement.deskew)
         return PreparedScan(cloud, stamp, deadline, str(msg.header.frame_id))
 
     def finish(
@@ -179,7 +177,7 @@ class ScanLoop:
         band); raises ``ScanDropped`` (``no_poses``, ``too_new``, ``too_old``, ``gap``,
         ``empty``). A caller may move the placed rays (pose refinement) before ``commit``."""
         placed = pipeline.place_scan(
-            prepared.cloud, prepared.stamp, poses, extrinsic, self.settings
+            prepared.cloud, prepared.stamp, poses, extrinsic, self.placement
         )
         if self.on_placed is not None:
             self.on_placed(placed.stamp, placed.points, placed.origins)

@@ -178,7 +178,7 @@ def replay(
 
 def new_mapper(opts: ReplayOptions, frame_id: str) -> Mapper:
     """An empty Mapper with the options' map section."""
-    return Mapper.of(opts.map_settings(), frame_id=frame_id)
+    return Mapper.of(opts.map, opts.sensor_model, frame_id=frame_id)
 
 
 def mapper_for(opts: ReplayOptions, frame_id: str, into: Mapper | None) -> Mapper:
@@ -198,9 +198,11 @@ class ScanSelection:
     (absolute, or ``*_offset`` after the first cloud), one in ``every``, ``max_scans``."""
 
     def __init__(self, opts: ReplayOptions) -> None:
-        if opts.every < 1:
-            raise ReplayError(f"every must be >= 1, got {opts.every}")
-        if opts.start_index < 0 or (opts.end_index is not None and opts.end_index < 0):
+        if opts.replay.every < 1:
+            raise ReplayError(f"every must be >= 1, got {opts.replay.every}")
+        if opts.replay.start_index < 0 or (
+            opts.replay.end_index is not None and opts.replay.end_index < 0
+        ):
             raise ReplayError("scan indices start at 0")
         self.opts = opts
         self.first_stamp: float | None = None
@@ -209,11 +211,11 @@ class ScanSelection:
 
     def by_index(self, index: int) -> bool:
         """False when ``index`` is outside ``[start_index, end_index)`` (cheap: no read)."""
-        end = self.opts.end_index
-        return index >= self.opts.start_index and (end is None or index < end)
+        end = self.opts.replay.end_index
+        return index >= self.opts.replay.start_index and (end is None or index < end)
 
     def past_end(self, index: int) -> bool:
-        end, cap = self.opts.end_index, self.opts.max_scans
+        end, cap = self.opts.replay.end_index, self.opts.replay.max_scans
         return (end is not None and index >= end) or (cap is not None and self.taken >= cap)
 
     def by_stamp(self, stamp: float, index: int) -> bool:
@@ -223,12 +225,12 @@ class ScanSelection:
         lo, hi = self._window()
         if stamp < lo or stamp >= hi:
             return False
-        turn = self.in_window % self.opts.every == 0
+        turn = self.in_window % self.opts.replay.every == 0
         self.in_window += 1
         return turn
 
     def _window(self) -> tuple[float, float]:
-        o, first = self.opts, self.first_stamp or 0.0
+        o, first = self.opts.replay, self.first_stamp or 0.0
         lo = max(
             o.start if o.start is not None else -math.inf,
             first + o.start_offset if o.start_offset is not None else -math.inf,
@@ -253,14 +255,21 @@ def map_scans(
     """Run the selected clouds of ``recording`` through the scan pipeline into ``mapper``
     (or ``consume``); fills ``summary``; ReplayError when no cloud could be mapped."""
     select = ScanSelection(opts)
-    if opts.max_scans is not None:
-        summary.scans_total = min(summary.scans_total, opts.max_scans)
+    if opts.replay.max_scans is not None:
+        summary.scans_total = min(summary.scans_total, opts.replay.max_scans)
     bar = (
         progress
         if isinstance(progress, Progress)
         else Progress(summary.scans_total, enabled=bool(progress))
     )
-    loop = ScanLoop(mapper, opts, on_placed=on_scan, fatal=(ReplayError,), consume=consume)
+    loop = ScanLoop(
+        mapper,
+        opts.placement,
+        opts.sensor_model,
+        on_placed=on_scan,
+        fatal=(ReplayError,),
+        consume=consume,
+    )
     counts = loop.counts
     bad_example = error_example = empty_example = ""
     cloud_span = [math.inf, -math.inf]
@@ -347,8 +356,10 @@ def _nothing_mapped(
         f"no cloud could be mapped ({summary.scans_selected} of {summary.scans_total} clouds "
         f"selected; dropped: {reasons})"
     )
-    if (opts.start is not None or opts.end is not None) and cloud_span[0] > cloud_span[1]:
-        text += f"; no cloud stamp lies in the window [{opts.start}, {opts.end}) s"
+    if (opts.replay.start is not None or opts.replay.end is not None) and cloud_span[
+        0
+    ] > cloud_span[1]:
+        text += f"; no cloud stamp lies in the window [{opts.replay.start}, {opts.replay.end}) s"
     text += examples
     if {"no_poses", "too_new", "too_old", "gap"} & set(summary.clouds_dropped):
         poses = recording.poses

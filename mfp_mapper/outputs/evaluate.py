@@ -13,7 +13,7 @@ air (at least one voxel away from every surface and volume) should hold no retur
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -269,8 +269,8 @@ def compare_no_return(
     if not no_return_range > 0:
         raise ValueError(f"no_return_range must be > 0 m, got {no_return_range}")
     base = options or ReplayOptions()
-    plain = replay(bag, replace(base, no_return_range=0.0), progress=False)
-    with_rays = replay(bag, replace(base, no_return_range=no_return_range), progress=False)
+    plain = replay(bag, base.but(no_return_range=0.0), progress=False)
+    with_rays = replay(bag, base.but(no_return_range=no_return_range), progress=False)
     return NoReturnComparison(
         no_return_range,
         with_rays.summary.rays_no_return,

@@ -702,9 +702,9 @@ def split_options(
     later holds out is never used."""
     k = 2 if within_training else 1
     if split == "even-odd":
-        step = opts.every * k
-        train = replace(opts, every=2 * step)
-        held = replace(opts, every=2 * step, start_index=opts.start_index + step)
+        step = opts.replay.every * k
+        train = opts.but(every=2 * step)
+        held = opts.but(every=2 * step, start_index=opts.replay.start_index + step)
         return train, held, None, None
     if split == "shots":
         return opts, opts, slice(0, None, 2 * k), slice(k, None, 2 * k)

@@ -19,7 +19,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
-from mfp_mapper.config.schema import NodeConfig
+from mfp_mapper.config.sections import OutputsSection
 from mfp_mapper.core.gridmap import GridTooLarge, unobserved_hit_probability
 from mfp_mapper.mapping.live import LiveIntegrator
 from mfp_mapper.ros.messages import cloud_msg, grid_msg, stamp_msg
@@ -62,21 +62,22 @@ class MapOutputs:
         self,
         node: Node,
         worker: LiveIntegrator,
-        config: Callable[[], NodeConfig],
+        settings: Callable[[], OutputsSection],
         warn: Callable[[str, str], None],
     ) -> None:
         self._node = node
         self._warn = warn
         self._worker = worker
-        self._config = config
-        latch = config().latch
+        self._settings = settings
+        """The outputs section now (the node's, replaced whole on a change)."""
+        latch = settings().latch
         qos = QoSProfile(
             history=HistoryPolicy.KEEP_LAST,
             depth=1,
             reliability=ReliabilityPolicy.RELIABLE,
             durability=DurabilityPolicy.TRANSIENT_LOCAL if latch else DurabilityPolicy.VOLATILE,
         )
-        names = OCTOMAP_TOPICS if config().octomap_topics else TOPICS
+        names = OCTOMAP_TOPICS if settings().octomap_topics else TOPICS
         self._doo_pub = node.create_publisher(PointCloud2, names["degree_of_occupancy"], qos)
         self._std_pub = node.create_publisher(PointCloud2, names["std"], qos)
         self._grid_pub = node.create_publisher(OccupancyGrid, names["projected_map"], qos)
@@ -145,7 +146,7 @@ class MapOutputs:
 
     def _publish_clouds(self, lock_times: list[float]) -> None:
         """Publish the degree-of-occupancy and std clouds of the filtered voxels."""
-        cfg, worker = self._config(), self._worker
+        cfg, worker = self._settings(), self._worker
         with self._timed_map_lock(lock_times):
             robot = worker.robot_position
             radius = cfg.publish_radius
@@ -153,7 +154,9 @@ class MapOutputs:
             if radius > 0.0 and robot is not None:
                 window = (np.asarray(robot) - radius, np.asarray(robot) + radius)
             vox = worker.mapper.voxels(
-                min_doo=cfg.min_degree_of_occupancy, min_evidence=cfg.min_evidence, bounds=window
+                min_doo=cfg.min_degree_of_occupancy,
+                min_evidence=cfg.min_evidence,
+                bounds=window,
             )
             stamp = worker.mapper.last_stamp
         sel = vox
@@ -172,7 +175,7 @@ class MapOutputs:
         """The 2D grid of the height band: hit-probability percent (``~/hit_probability_map``)
         or, with ``projected``, ``~/projected_map`` (trinary 100/0/-1 for Nav2 unless
         ``projected_map.trinary`` is false); ``lock_times`` as in ``_timed_map_lock``."""
-        cfg, worker = self._config(), self._worker
+        cfg, worker = self._settings(), self._worker
         trinary = None
         if projected and cfg.projected_map_trinary:
             occupied = cfg.projected_map_occupied_threshold

@@ -66,14 +66,14 @@ from std_srvs.srv import Empty, Trigger
 from tf2_msgs.msg import TFMessage
 
 from mfp_mapper.config.schema import SPECS, NodeConfig
-from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.core.mapper import Mapper, mapper_kwargs
 from mfp_mapper.core.store import MAX_VOXEL_INDEX
 from mfp_mapper.mapio.atomic import remove_stale_temp_files
 from mfp_mapper.mapio.loading import load_map
 from mfp_mapper.mapio.mapfile import MapFileError, map_arrays
 from mfp_mapper.mapio.tiles import is_tiled, write_map_path
 from mfp_mapper.mapping.live import LiveIntegrator, LiveSettings
-from mfp_mapper.mapping.live_localization import LiveLocalizer, LocalizationSettings
+from mfp_mapper.mapping.live_localization import LiveLocalizer
 from mfp_mapper.ros.guarded_node import GuardedLifecycleNode, tracked
 from mfp_mapper.ros.map_outputs import MapOutputs
 from mfp_mapper.ros.messages import cloud_msg
@@ -100,6 +100,9 @@ RESULT_FIELDS = (
 """The fields of a ~/hit_probability/result cloud."""
 INFO_KEYS = frozenset({"no_return", "odom_frame"})
 """Keys of the worker's log lines that inform (logged at INFO), not warn."""
+FRAME_PARAMETERS = ("base_frame_id", "cloud_frame_id")
+"""Frame names of the placement section (with the map's frame_id: tf1's leading slash stripped)."""
+
 CLOCK_GRACE = 3.0
 """Wall seconds after start before a missing /clock (use_sim_time) is reported."""
 
@@ -108,7 +111,7 @@ def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, str | None]:
     """The map to start from: ``map_path`` when it exists and loads, else an empty one; and,
     when loading failed, the path saves go to instead (``recovery_path``): that file is
     never saved over."""
-    path = cfg.map_path
+    path = cfg.node.map_path
     if path:  # temporary files of a save that was killed midway
         target = os.path.realpath(path)
         stale = remove_stale_temp_files(os.path.dirname(target), os.path.basename(target))
@@ -123,7 +126,7 @@ def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, str | None]:
     ):  # nothing yet, or an empty directory for a tiled map
         return _empty_map(cfg), None
     try:
-        mapper = load_map(path, **cfg.map_settings().mapper_kwargs())
+        mapper = load_map(path, **mapper_kwargs(cfg.map, cfg.sensor_model))
     except Exception as err:  # a map file never takes the node down (MemoryError included)
         text = f"{type(err).__name__}: {err}"
         if isinstance(err, MapFileError):  # it names its file: once is enough
@@ -134,18 +137,18 @@ def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, str | None]:
             f"{other!r}, never over that file"
         )
         return _empty_map(cfg), other
-    if mapper.resolution != cfg.resolution:
+    if mapper.resolution != cfg.map.resolution:
         logger.warning(
             f"map {path!r} has resolution {mapper.resolution} m, parameter "
-            f"resolution is {cfg.resolution} m: keeping the map's"
+            f"resolution is {cfg.map.resolution} m: keeping the map's"
         )
-    if cfg.frame_id and mapper.frame_id and mapper.frame_id != cfg.frame_id:
+    if cfg.map.frame_id and mapper.frame_id and mapper.frame_id != cfg.map.frame_id:
         logger.warning(
             f"map {path!r} was built in frame {mapper.frame_id!r}, parameter frame_id is "
-            f"{cfg.frame_id!r}: its voxels are taken as coordinates in {cfg.frame_id!r}"
+            f"{cfg.map.frame_id!r}: its voxels are taken as coordinates in {cfg.map.frame_id!r}"
         )
-    if cfg.frame_id:
-        mapper.frame_id = cfg.frame_id
+    if cfg.map.frame_id:
+        mapper.frame_id = cfg.map.frame_id
     logger.info(f"loaded {mapper.num_voxels} voxels from {path!r} (frame {mapper.frame_id})")
     return mapper, None
 
@@ -159,7 +162,7 @@ def recovery_path(map_path: str) -> str:
 
 
 def _empty_map(cfg: NodeConfig) -> Mapper:
-    return Mapper.of(cfg.map_settings(), frame_id=cfg.frame_id or "map")
+    return Mapper.of(cfg.map, cfg.sensor_model, frame_id=cfg.map.frame_id or "map")
 
 
 class StartError(RuntimeError):
@@ -194,7 +197,7 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._configured_once = False
         self._entities: list[Any] = []  # what configure creates (cleanup destroys)
         self._active: list[Any] = []  # what activate creates (deactivate destroys)
-        if self.cfg.autostart:
+        if self.cfg.node.autostart:
             steps = (("configure", self.trigger_configure), ("activate", self.trigger_activate))
             for step, trigger in steps:
                 if trigger() != TransitionCallbackReturn.SUCCESS:
@@ -222,19 +225,21 @@ class MfpMapperNode(GuardedLifecycleNode):
         self.worker = LiveIntegrator(
             mapper,
             LiveSettings.of(self.cfg),
-            PoseBuffer(max_age=self.cfg.odom_buffer, max_gap=self.cfg.odom_max_gap),
-            tree=TfTree(buffer_length=self.cfg.tf_buffer),
+            PoseBuffer(
+                max_age=self.cfg.placement.odom_buffer, max_gap=self.cfg.placement.odom_max_gap
+            ),
+            tree=TfTree(buffer_length=self.cfg.placement.tf_buffer),
             log=self._worker_log,
             info=self.get_logger().info,
             now=self._now,
-            map_frame=self.cfg.frame_id or (mapper.frame_id if mapper.num_voxels else ""),
+            map_frame=self.cfg.map.frame_id or (mapper.frame_id if mapper.num_voxels else ""),
             localizer=self.localizer,
         )
         if self.localizer is not None and mapper.num_voxels:
             self.localizer.build_in_background(mapper, self.worker.whole_map, force=True)
         # the map version last saved: the autosave writes only a map that changed since
         self._saved_version: int | None = mapper.version
-        self.outputs = MapOutputs(self, self.worker, lambda: self.cfg, self.warn_throttled)
+        self.outputs = MapOutputs(self, self.worker, lambda: self.cfg.outputs, self.warn_throttled)
         self.worker.set_publish(self.outputs.publish)
         self._entities += self.outputs.publishers
         self._configured = self._configured_once = True
@@ -247,34 +252,34 @@ class MfpMapperNode(GuardedLifecycleNode):
     def _make_localizer(self, mapper: Mapper) -> LiveLocalizer | None:
         """The localization mode's state (``localization.enabled``), its map frame being
         ``frame_id``, else the loaded map's."""
-        if not self.cfg.localization_enabled:
+        if not self.cfg.localization.enabled:
             return None
-        global_frame = self.cfg.frame_id or mapper.frame_id or "map"
+        global_frame = self.cfg.map.frame_id or mapper.frame_id or "map"
         mapper.frame_id = global_frame
-        settings = LocalizationSettings.of(self.cfg, global_frame)
+        settings = self.cfg.localization
         if not mapper.num_voxels:
             self.get_logger().warning(
                 "localization.enabled but no map was loaded from map_path "
-                f"{self.cfg.map_path!r}: waiting for a map"
+                f"{self.cfg.node.map_path!r}: waiting for a map"
                 + (
                     " (none will come: localization.freeze_map is true)"
                     if settings.freeze_map
                     else ""
                 )
             )
-        if settings.odom_frame == global_frame:
+        if settings.odom_frame.lstrip("/") == global_frame:
             raise ValueError(
                 f"localization.odom_frame and the map frame are both {global_frame!r}: the "
                 "correction map -> odom needs two frames"
             )
-        return LiveLocalizer(settings, log=self.get_logger().info)
+        return LiveLocalizer(settings, global_frame, log=self.get_logger().info)
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Subscribe to clouds, odometry and TF; start integrating and publishing."""
         self._create_interfaces()
         self.worker.start()
         self.outputs.invalidate()  # latch the map again for whoever subscribed meanwhile
-        if not self.cfg.autostart:
+        if not self.cfg.node.autostart:
             self.get_logger().info("active: mapping")
         return TransitionCallbackReturn.SUCCESS
 
@@ -344,7 +349,7 @@ class MfpMapperNode(GuardedLifecycleNode):
             self._entities.append(self._pose_pub)
             self._pose_version = 0
             self._tf_version = -1
-            if self.cfg.localization_tf_publish:
+            if self.cfg.localization.tf_publish:
                 tf_qos = QoSProfile(
                     history=HistoryPolicy.KEEP_LAST,
                     depth=100,
@@ -401,13 +406,15 @@ class MfpMapperNode(GuardedLifecycleNode):
         # wall-clock timers: with use_sim_time and no /clock the ROS clock stands still,
         # and the map, ~/status and /diagnostics must still go out
         wall = Clock(clock_type=ClockType.STEADY_TIME)
-        if self.cfg.publish_rate > 0.0:
+        if self.cfg.outputs.publish_rate > 0.0:
             self._active.append(
-                self.create_timer(1.0 / self.cfg.publish_rate, self._on_publish_timer, clock=wall)
+                self.create_timer(
+                    1.0 / self.cfg.outputs.publish_rate, self._on_publish_timer, clock=wall
+                )
             )
-        if self.cfg.status_period > 0.0:
+        if self.cfg.node.status_period > 0.0:
             self._active.append(
-                self.create_timer(self.cfg.status_period, self._on_status, clock=wall)
+                self.create_timer(self.cfg.node.status_period, self._on_status, clock=wall)
             )
         self._clock_warned = False
         self._active.append(self.create_timer(1.0, self._check_clock, clock=wall))
@@ -419,12 +426,14 @@ class MfpMapperNode(GuardedLifecycleNode):
             )
             self._active.append(
                 self.create_timer(
-                    1.0 / self.cfg.localization_tf_rate, self._on_tf_timer, clock=wall
+                    1.0 / self.cfg.localization.tf_rate, self._on_tf_timer, clock=wall
                 )
             )
-        if self.cfg.autosave_period > 0.0 and self.cfg.map_path:
+        if self.cfg.node.autosave_period > 0.0 and self.cfg.node.map_path:
             self._active.append(
-                self.create_timer(self.cfg.autosave_period, self._on_autosave_timer, clock=wall)
+                self.create_timer(
+                    self.cfg.node.autosave_period, self._on_autosave_timer, clock=wall
+                )
             )
 
     # --- set-up ----------------------------------------------------------------------------
@@ -439,18 +448,23 @@ class MfpMapperNode(GuardedLifecycleNode):
         return self.worker.map_frame
 
     def _warn_slashes(self) -> None:
-        for name in ("frame_id", "base_frame_id", "cloud_frame_id"):
-            value = getattr(self.cfg, name)
+        frames = (self.cfg.map, "frame_id"), *((self.cfg.placement, n) for n in FRAME_PARAMETERS)
+        for section, name in frames:
+            value = getattr(section, name)
             if value.startswith("/"):
                 self.get_logger().warning(
                     f"parameter {name} {value!r} has a leading slash: using "
                     f"{value.lstrip('/')!r} (tf2 and RViz reject such frame names)"
                 )
+        cfg = self.cfg
         self.cfg = replace(
-            self.cfg,
-            frame_id=self.cfg.frame_id.lstrip("/"),
-            base_frame_id=self.cfg.base_frame_id.lstrip("/"),
-            cloud_frame_id=self.cfg.cloud_frame_id.lstrip("/"),
+            cfg,
+            map=replace(cfg.map, frame_id=cfg.map.frame_id.lstrip("/")),
+            placement=replace(
+                cfg.placement,
+                base_frame_id=cfg.placement.base_frame_id.lstrip("/"),
+                cloud_frame_id=cfg.placement.cloud_frame_id.lstrip("/"),
+            ),
         )
 
     @tracked
@@ -489,8 +503,7 @@ class MfpMapperNode(GuardedLifecycleNode):
         if self._configured:
             self.worker.settings = LiveSettings.of(new)  # the next scan uses it
             if self.localizer is not None:
-                global_frame = self.localizer.settings.global_frame
-                self.localizer.settings = LocalizationSettings.of(new, global_frame)
+                self.localizer.settings = new.localization
             self.outputs.invalidate()  # republish with the new filter
         return SetParametersResult(successful=True)
 
@@ -526,7 +539,7 @@ class MfpMapperNode(GuardedLifecycleNode):
         total = self.worker.clouds_lost(info.total_count_change)
         if not self._transport_explained:  # the first time: the whole story, once
             self._transport_explained = True
-            queue = (self.worker.queued, self.cfg.cloud_queue_size)
+            queue = (self.worker.queued, self.cfg.placement.cloud_queue_size)
             self.warn_throttled("clouds_lost", transport_loss_text(info.total_count_change, queue))
             return
         self.warn_throttled(
@@ -547,7 +560,7 @@ class MfpMapperNode(GuardedLifecycleNode):
         if self.localizer is None:
             return
         frame = msg.header.frame_id.lstrip("/")
-        expected = self.localizer.settings.global_frame
+        expected = self.localizer.global_frame
         if frame != expected:
             self.warn_throttled(
                 "initialpose_frame",
@@ -605,7 +618,7 @@ class MfpMapperNode(GuardedLifecycleNode):
         if self.localizer is None:
             return
         self._publish_pose()
-        if not self.cfg.localization_tf_publish:
+        if not self.cfg.localization.tf_publish:
             return
         m, stamp, version = self.localizer.transform()
         if not np.isfinite(stamp):
@@ -628,7 +641,7 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._pose_version = version
         stamp, m, sigma = estimate
         msg = PoseWithCovarianceStamped()
-        msg.header.frame_id = self.localizer.settings.global_frame
+        msg.header.frame_id = self.localizer.global_frame
         msg.header.stamp = rclpy.time.Time(nanoseconds=int(round(stamp * 1e9))).to_msg()
         p, o = msg.pose.pose.position, msg.pose.pose.orientation
         p.x, p.y, p.z = (float(v) for v in m[:3, 3])
@@ -639,13 +652,13 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._pose_pub.publish(msg)
 
     def _map_to_odom(self, m: np.ndarray, stamp: float) -> TransformStamped:
-        settings = self.localizer.settings if self.localizer is not None else None
-        assert settings is not None
+        localizer = self.localizer
+        assert localizer is not None
         out = TransformStamped()
-        t = stamp + self.cfg.localization_transform_tolerance
+        t = stamp + self.cfg.localization.transform_tolerance
         out.header.stamp = rclpy.time.Time(nanoseconds=int(round(t * 1e9))).to_msg()
-        out.header.frame_id = settings.global_frame
-        out.child_frame_id = settings.odom_frame
+        out.header.frame_id = localizer.global_frame
+        out.child_frame_id = localizer.odom_frame
         out.transform.translation.x, out.transform.translation.y, out.transform.translation.z = (
             float(v) for v in m[:3, 3]
         )
@@ -739,7 +752,7 @@ class MfpMapperNode(GuardedLifecycleNode):
         load at start (``recovery_path``): one map file, or a tiled map when ``map_path`` is
         a directory; stored uncompressed, so that a large map is saved within ``ros2
         launch``'s grace period. Returns (success, message)."""
-        path = self._save_elsewhere or self.cfg.map_path
+        path = self._save_elsewhere or self.cfg.node.map_path
         if not path:
             return False, "parameter map_path is empty: nowhere to save"
         t0 = time.perf_counter()
@@ -760,7 +773,7 @@ class MfpMapperNode(GuardedLifecycleNode):
         timing = f"started after {started:.3f} s, done in {seconds:.2f} s"
         kept = ""
         if self._save_elsewhere:
-            kept = f" (map_path {self.cfg.map_path!r} failed to load at start: kept as it was)"
+            kept = f" (map_path {self.cfg.node.map_path!r} failed to load at start: kept as it was)"
         self.get_logger().info(f"saved {count} voxels to {path!r} ({timing}){kept}")
         return True, f"saved {count} voxels to {path} ({timing}){kept}"
 
@@ -878,7 +891,7 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._release(save=True)
 
     def _save_on_shutdown(self) -> None:
-        if self.cfg.save_on_shutdown:
+        if self.cfg.node.save_on_shutdown:
             self.save_map()  # beside map_path when it failed to load
 
 

@@ -1,4 +1,4 @@
-"""The node's ROS parameters, declared from the settings schema (``mfp_mapper.config.schema``)."""
+"""The node's ROS parameters, declared from the settings sections (``mfp_mapper.config.schema``)."""
 
 from __future__ import annotations
 
@@ -14,6 +14,8 @@ from mfp_mapper.config.schema import (
     Setting,
     octomap_only_parameters,
     octomap_only_warning,
+    retired_parameters,
+    retired_warning,
     unknown_parameters,
     unknown_parameters_error,
 )
@@ -46,9 +48,10 @@ def declare_parameters(node: Node) -> NodeConfig:
     """Declare every parameter on an rclpy node and return the validated values.
 
     An override naming no parameter (a typo) is an error, as in ``mfp-mapper --config``;
-    octomap_server's names with no meaning here (``settings.OCTOMAP_ONLY``) get one warning; a
-    value of the wrong type or out of range is rejected by rclpy (``ParameterException``),
-    with the message ``mfp_mapper.config.schema.check_value`` gives the CLI.
+    octomap_server's names with no meaning here (``schema.OCTOMAP_ONLY``) get one warning,
+    former parameters (``schema.RETIRED``: ignored) another; a value of the wrong type or out
+    of range is rejected by rclpy (``ParameterException``), with the message
+    ``mfp_mapper.config.schema.check_value`` gives the CLI.
     """
     given = list(parameter_overrides(node))
     unknown = [n for n in unknown_parameters(given) if not node.has_parameter(n)]
@@ -57,6 +60,9 @@ def declare_parameters(node: Node) -> NodeConfig:
     octomap_only = octomap_only_parameters(given)
     if octomap_only:  # an octomap_server file: one line, the node starts
         node.get_logger().warning(octomap_only_warning(octomap_only))
+    retired = retired_parameters(given)
+    if retired:  # an old file of ours (use_tf): one line, the node starts
+        node.get_logger().warning(retired_warning(retired))
     values: dict[str, Any] = {}
     for spec in PARAMS:
         param = node.declare_parameter(spec.name, spec.default, descriptor(spec))

@@ -196,19 +196,19 @@ def startup_text(cfg: NodeConfig, topic: Callable[[str], str], mapper: Mapper, f
     """The start-up log line: what a robot integrator needs to check (topics, the map frame
     and the rule that decides it, pose and extrinsic sources, map file, outputs); ``topic``
     resolves a topic name; ``frame`` is the map frame when already decided."""
-    names = OCTOMAP_TOPICS if cfg.octomap_topics else TOPICS
-    if cfg.lidar_override() is not None:
+    names = OCTOMAP_TOPICS if cfg.outputs.octomap_topics else TOPICS
+    if cfg.placement.lidar_override() is not None:
         extrinsic = (
-            f"lidar.* parameters (translation {list(cfg.lidar_translation)}, rpy "
-            f"{list(cfg.lidar_rpy)}) unless the cloud frame is the odometry child"
+            f"lidar.* parameters (translation {list(cfg.placement.lidar_translation)}, rpy "
+            f"{list(cfg.placement.lidar_rpy)}) unless the cloud frame is the odometry child"
         )
     else:
-        body = cfg.base_frame_id or "<odometry child>"
+        body = cfg.placement.base_frame_id or "<odometry child>"
         extrinsic = (
             f"/tf_static {body} -> cloud frame (identity when the cloud frame is the "
             "odometry child; a cloud it cannot place is dropped)"
         )
-    if cfg.frame_id:
+    if cfg.map.frame_id:
         map_frame = f"{frame!r} (frame_id; clouds wait for TF to reach it)"
     elif frame:
         map_frame = f"{frame!r} (the loaded map's)"
@@ -220,24 +220,26 @@ def startup_text(cfg: NodeConfig, topic: Callable[[str], str], mapper: Mapper, f
     poses = (
         f"{topic('odom')} (nav_msgs/Odometry) when it publishes, linked to the map frame "
         f"through TF; else TF map frame <- cloud frame; /tf and /tf_static "
-        f"(tf2_msgs/TFMessage, cache {cfg.tf_buffer} s)"
+        f"(tf2_msgs/TFMessage, cache {cfg.placement.tf_buffer} s)"
     )
-    if cfg.localization_enabled:
-        odom = cfg.localization_odom_frame
+    if cfg.localization.enabled:
+        odom = cfg.localization.odom_frame
         map_frame = f"{frame!r} (frame_id, else the loaded map's)"
         poses = (
             f"{topic('odom')} or TF in {odom!r}, localized against the map (map -> {odom} "
-            f"on /tf: {cfg.localization_tf_publish}; freeze_map "
-            f"{cfg.localization_freeze_map}; {topic('initialpose')} resets it)"
+            f"on /tf: {cfg.localization.tf_publish}; freeze_map "
+            f"{cfg.localization.freeze_map}; {topic('initialpose')} resets it)"
         )
-    path = cfg.map_path or "<none>"
+    path = cfg.node.map_path or "<none>"
     loaded = f", {mapper.num_voxels} voxels loaded" if mapper.num_voxels else ""
+    max_range, decay = cfg.sensor_model.core("max_range"), cfg.map.core("decay_time")
+    out = cfg.outputs
     return (
         f"mfp_mapper ready: clouds from {topic('cloud_in')}, poses from {poses}; map frame "
         f"{map_frame}; extrinsic: {extrinsic}; resolution "
-        f"{mapper.resolution} m, max_range {cfg.max_range} m, decay_time "
-        f"{cfg.decay} s, deskew {cfg.deskew}; map_path {path}{loaded}, save_on_shutdown "
-        f"{cfg.save_on_shutdown}; outputs {topic(names['degree_of_occupancy'])}, "
+        f"{mapper.resolution} m, max_range {max_range} m, decay_time "
+        f"{decay} s, deskew {cfg.placement.deskew}; map_path {path}{loaded}, save_on_shutdown "
+        f"{cfg.node.save_on_shutdown}; outputs {topic(names['degree_of_occupancy'])}, "
         f"{topic(names['std'])}, {topic(names['projected_map'])} (trinary "
-        f"{cfg.projected_map_trinary}) at {cfg.publish_rate} Hz, latched {cfg.latch}"
+        f"{out.projected_map_trinary}) at {out.publish_rate} Hz, latched {out.latch}"
     )

@@ -21,11 +21,12 @@ A drop is a ``ScanDropped`` exception carrying its ``reason``; point-level losse
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from mfp_mapper.config.sections import PlacementSection
 from mfp_mapper.sensing.deskew import PoseSource, cloud_to_map
 from mfp_mapper.sensing.no_return import with_no_return_rays
 from mfp_mapper.sensing.pointcloud import (
@@ -80,31 +81,6 @@ class ScanDropped(Exception):
         self.detail = detail
         self.points_in = points_in
         self.points_dropped = points_dropped or {}
-
-
-class PlacementSettings(Protocol):
-    """The settings the pipeline reads (the node's config and the replay options)."""
-
-    @property
-    def deskew(self) -> bool: ...
-
-    @property
-    def point_cloud_min_x(self) -> float: ...
-
-    @property
-    def point_cloud_max_x(self) -> float: ...
-
-    @property
-    def point_cloud_min_y(self) -> float: ...
-
-    @property
-    def point_cloud_max_y(self) -> float: ...
-
-    @property
-    def point_cloud_min_z(self) -> float: ...
-
-    @property
-    def point_cloud_max_z(self) -> float: ...
 
 
 @dataclass
@@ -170,7 +146,7 @@ def place_scan(
     stamp: float,
     poses: PoseSource,
     extrinsic: Extrinsic,
-    settings: PlacementSettings,
+    settings: PlacementSection,
 ) -> PlacedScan:
     """Points into the map frame at their poses, then the height band.
 

@@ -4,10 +4,10 @@ transforms they hold.
 Bags are read with rosbags: no ROS installation is needed. The cloud topic
 (``sensor_msgs/PointCloud2``) and the odometry topic (``nav_msgs/Odometry``) are found
 automatically when the bag holds exactly one of each. Without an odometry topic (or with
-``use_tf``), poses come from ``/tf``: the chain of transforms from the cloud frame up to the
-fixed frame (``odom``, or the root of the tree). Or from a pose file matched by stamp
-(``sources.pose_files``), or KISS-ICP (``sources.lidar_odometry``). The lidar extrinsic comes
-from ``/tf_static``; it is the identity when the cloud frame is the odometry child frame;
+``--tf``, ``use_tf_poses``), poses come from ``/tf``: the chain of transforms from the cloud
+frame up to the fixed frame (``odom``, or the root of the tree). Or from a pose file matched by
+stamp (``sources.pose_files``), or KISS-ICP (``sources.lidar_odometry``). The lidar extrinsic
+comes from ``/tf_static``; it is the identity when the cloud frame is the odometry child frame;
 otherwise it must be given (``--extrinsic`` or ``lidar.translation``/``lidar.rpy`` in the
 node's YAML). Errors are ``ReplayError`` with the reason, before any cloud is mapped; a bag
 damaged part way raises one naming the message reached.
@@ -51,7 +51,7 @@ def open_bag(
     log: Callable[[str], None] | None = None,
 ) -> Recording:
     """The bag ``bag`` as a recording: its clouds, with poses from its odometry or /tf,
-    ``opts.odometry``, or the pose file ``poses`` (TUM or odometry CSV matched by stamp, or
+    ``opts.replay.odometry``, or the pose file ``poses`` (TUM or odometry CSV matched by stamp, or
     ``identity``). ReplayError says why it cannot be used."""
     path = resolve_bag_path(bag)
     reader = open_reader(path)
@@ -69,15 +69,19 @@ def _bag_recording(
     poses: str | Path | None,
     log: Callable[[str], None] | None,
 ) -> Recording:
-    cloud_topic = pick_topic(reader, CLOUD_TYPE, opts.cloud_topic, "PointCloud2", "--cloud-topic")
+    cloud_topic = pick_topic(
+        reader, CLOUD_TYPE, opts.replay.cloud_topic, "PointCloud2", "--cloud-topic"
+    )
     if cloud_topic is None:
         listing = ", ".join(sorted({f"{c.topic} ({c.msgtype})" for c in reader.connections}))
         raise ReplayError(
             f"the bag has no sensor_msgs/PointCloud2 topic; topics: {listing or 'none'}"
         )
     odom_topic = None
-    if not opts.use_tf and poses is None and opts.odometry is None:
-        odom_topic = pick_topic(reader, ODOM_TYPE, opts.odom_topic, "Odometry", "--odom-topic")
+    if not opts.replay.use_tf_poses and poses is None and opts.replay.odometry is None:
+        odom_topic = pick_topic(
+            reader, ODOM_TYPE, opts.replay.odom_topic, "Odometry", "--odom-topic"
+        )
     cloud_conns = [c for c in reader.connections if c.topic == cloud_topic]
     count = sum(c.msgcount for c in cloud_conns)
     if count == 0:
@@ -85,8 +89,8 @@ def _bag_recording(
     t_poses = time.perf_counter()
     if poses is not None:
         cloud_frame = _first_cloud_frame(reader, path, cloud_conns)
-        found, tfs = read_poses(poses, cloud_frame, opts.max_gap), read_transforms()
-    elif opts.odometry is not None:
+        found, tfs = read_poses(poses, cloud_frame, opts.placement.odom_max_gap), read_transforms()
+    elif opts.replay.odometry is not None:
         cloud_frame = _first_cloud_frame(reader, path, cloud_conns)
         found, tfs = _estimated_poses(reader, path, opts, cloud_conns, cloud_frame, log)
     else:
@@ -274,8 +278,8 @@ def read_transforms() -> TfTree:
 def extrinsic_for(
     cloud_frame: str, body: str, tfs: TfTree, opts: ReplayOptions
 ) -> tuple[Extrinsic, str]:
-    if opts.extrinsic is not None:
-        return Extrinsic.from_xyz_rpy(*opts.extrinsic), "given on the command line"
+    if opts.replay.extrinsic is not None:
+        return Extrinsic.from_xyz_rpy(*opts.replay.extrinsic), "given on the command line"
     if cloud_frame == body:
         return Extrinsic(), f"identity (the cloud frame is the odometry child frame {body})"
     chain = tfs.static_chain(body, cloud_frame)
@@ -319,7 +323,7 @@ def odometry_poses(reader: Any, topic: str, opts: ReplayOptions) -> Poses:
             f"odometry on {topic} changes frames ({', '.join(f'{a}->{b}' for a, b in frames)}): "
             "cannot chain them"
         )
-    buffer = _buffer(samples, opts.max_gap)
+    buffer = _buffer(samples, opts.placement.odom_max_gap)
     return Poses(buffer, body, map_frame, f"{topic} (nav_msgs/Odometry {map_frame} -> {body})")
 
 
@@ -350,7 +354,7 @@ def tf_poses(cloud_frame: str, tfs: TfTree, opts: ReplayOptions) -> Poses:
             f"(frames moved by /tf: {frame_list(moving)}); give --odom-topic"
         )
     chain = above[above.index(body) :]
-    fixed = opts.fixed_frame
+    fixed = opts.replay.fixed_frame
     if fixed is not None and fixed not in chain:
         raise ReplayError(f"the fixed frame {fixed!r} is not above {body!r} in /tf")
     if fixed is None:
@@ -370,4 +374,4 @@ def tf_poses(cloud_frame: str, tfs: TfTree, opts: ReplayOptions) -> Poses:
         t, q = tfs.lookup(fixed, body, stamps)
         samples = [(float(s), t[i], q[i]) for i, s in enumerate(stamps)]
     text = " -> ".join(reversed(chain))
-    return Poses(_buffer(samples, opts.max_gap), body, fixed, f"/tf chain {text}")
+    return Poses(_buffer(samples, opts.placement.odom_max_gap), body, fixed, f"/tf chain {text}")

@@ -49,11 +49,13 @@ def _kiss(opts: Any, deskew: bool) -> Any:
             "(pinned in requirements-dev.txt; ./run setup installs it)"
         ) from None
     config = KISSConfig()
-    config.data.max_range = float(opts.max_range)
-    config.data.min_range = float(opts.min_range)
+    config.data.max_range = float(opts.sensor_model.core("max_range"))
+    config.data.min_range = float(opts.sensor_model.min_range)
     config.data.deskew = deskew
-    config.mapping.voxel_size = float(opts.max_range) / 100.0  # KISS-ICP's own default rule
-    config.registration.max_num_threads = max(int(opts.threads), 0)
+    config.mapping.voxel_size = (
+        float(opts.sensor_model.core("max_range")) / 100.0
+    )  # KISS-ICP's own default rule
+    config.registration.max_num_threads = max(int(opts.map.threads), 0)
     return KissICP(config)
 
 
@@ -86,7 +88,7 @@ def estimate_poses(
         if len(cloud) < FEW_POINTS:
             sparse.append(len(cloud))
         times = cloud.time_offset
-        deskew = bool(opts.deskew and times is not None and np.ptp(times) > 0)
+        deskew = bool(opts.placement.deskew and times is not None and np.ptp(times) > 0)
         if icp is None:
             icp = _kiss(opts, deskew)
         xyz = np.ascontiguousarray(cloud.xyz, dtype=np.float64)
@@ -126,14 +128,14 @@ def odometry_poses(
     log: Callable[[str], None] | None = None,
 ) -> Poses:
     """``Poses`` of the lidar (body = ``cloud_frame``) estimated by KISS-ICP."""
-    if opts.odometry != KISS_ICP:
-        raise ReplayError(f"unknown odometry {opts.odometry!r} (known: {KISS_ICP})")
+    if opts.replay.odometry != KISS_ICP:
+        raise ReplayError(f"unknown odometry {opts.replay.odometry!r} (known: {KISS_ICP})")
     stamps, matrices = estimate_poses(clouds, opts, total, log)
     buffer = pose_buffer(
         stamps,
         matrices[:, :3, 3],
         matrix_to_quaternion(matrices[:, :3, :3]),
-        opts.max_gap,
+        opts.placement.odom_max_gap,
         "KISS-ICP poses",
     )
     source = f"KISS-ICP on the clouds ({len(stamps)} poses; {MAP_FRAME} = first lidar frame)"

@@ -2,9 +2,9 @@
 a simulation and gives a ``sources.recording.Recording``.
 
 ``poses`` and ``times`` are the ``--poses``/``--times`` flags: a scan folder needs poses (a
-pose file, ``identity``, or ``opts.odometry``); a bag has its own (odometry or /tf) unless
-``poses`` names a TUM file or an odometry CSV to match by stamp, or ``opts.odometry`` asks for
-KISS-ICP; ``times`` is for scan folders only.
+pose file, ``identity``, or ``opts.replay.odometry``); a bag has its own (odometry or /tf)
+unless ``poses`` names a TUM file or an odometry CSV to match by stamp, or
+``opts.replay.odometry`` asks for KISS-ICP; ``times`` is for scan folders only.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ def open_recording(
     its ``.db3``/``.mcap`` file), a folder of scan files, or a ``SimulationConfig``.
     ReplayError says why it cannot be used (before any cloud is mapped)."""
     opts = opts or ReplayOptions()
-    if poses is not None and opts.odometry is not None:
+    if poses is not None and opts.replay.odometry is not None:
         raise ReplayError("give either --poses or --odometry, not both")
     if isinstance(source, SimulationConfig):
         if poses is not None or times is not None:

@@ -153,7 +153,7 @@ def open_folder(
     log: Callable[[str], None] | None = None,
 ) -> Recording:
     """The scans of ``directory`` as a recording; ``poses``: a pose file or ``identity``, or
-    None with ``opts.odometry`` (KISS-ICP). ReplayError says why it cannot be used."""
+    None with ``opts.replay.odometry`` (KISS-ICP). ReplayError says why it cannot be used."""
     try:
         folder = open_scan_folder(directory, times_file)
     except (DatasetFormatError, OSError) as err:
@@ -164,7 +164,9 @@ def open_folder(
     t_poses = time.perf_counter()
     found = folder_poses(folder, poses, opts, log)
     seconds_poses = time.perf_counter() - t_poses
-    extrinsic = Extrinsic.from_xyz_rpy(*opts.extrinsic) if opts.extrinsic else Extrinsic()
+    extrinsic = (
+        Extrinsic.from_xyz_rpy(*opts.replay.extrinsic) if opts.replay.extrinsic else Extrinsic()
+    )
 
     def clouds() -> Iterator[RecordedCloud]:
         for index in range(len(folder)):
@@ -177,7 +179,9 @@ def open_folder(
         cloud_count=len(folder),
         poses=found,
         extrinsic_source=(
-            "given on the command line" if opts.extrinsic else "identity (poses are the lidar's)"
+            "given on the command line"
+            if opts.replay.extrinsic
+            else "identity (poses are the lidar's)"
         ),
         read_clouds=clouds,
         extrinsic_of=lambda _: extrinsic,
@@ -191,8 +195,8 @@ def folder_poses(
     opts: ReplayOptions,
     log: Callable[[str], None] | None = None,
 ) -> Poses:
-    """The poses of the folder's scans: KISS-ICP (``opts.odometry``), or ``poses``."""
-    if opts.odometry is not None:
+    """The poses of the folder's scans: KISS-ICP (``opts.replay.odometry``), or ``poses``."""
+    if opts.replay.odometry is not None:
         return lidar_odometry.odometry_poses(
             ((scan.stamp, partial(folder.message, k)) for k, scan in enumerate(folder.scans)),
             opts,
@@ -207,7 +211,7 @@ def folder_poses(
         )
     skipped = f"; skipped: {', '.join(folder.skipped)}" if folder.skipped else ""
     stamps = [scan.stamp for scan in folder.scans]
-    found = read_poses(poses, folder.frame_id, opts.max_gap, stamps, skipped)
+    found = read_poses(poses, folder.frame_id, opts.placement.odom_max_gap, stamps, skipped)
     if str(poses) != IDENTITY and folder.stamp_source.startswith("none"):
         kind = guess_pose_format(Path(poses))  # read already: a readable file
         if kind != "kitti":

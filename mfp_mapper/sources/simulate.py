@@ -387,8 +387,8 @@ def _message(msg: Any) -> Any:
 def open_simulation(cfg: SimulationConfig, opts: Any = None) -> Recording:
     """The simulated recording of ``cfg`` as a recording, without a bag: the clouds a bag of
     ``simulate`` would hold (made again on each pass, the same from the seed), placed by
-    the true path (``TruthPoses``); the lidar mount is the extrinsic unless ``opts.extrinsic``
-    gives one."""
+    the true path (``TruthPoses``); the lidar mount is the extrinsic unless
+    ``opts.replay.extrinsic`` gives one."""
     cfg.scene.validate()
     t_ext, q_ext = _lidar_mount(cfg)
     cloud_frame = cfg.base_frame if cfg.cloud_in_base_frame else cfg.lidar_frame

@@ -29,11 +29,17 @@ def test_every_flag_of_the_schema_is_a_replay_flag(capsys: pytest.CaptureFixture
 
 def test_no_limit_flags_follow_the_schema() -> None:
     opts = _opts("--max-range", "0", "--decay-time", "0", "--max-voxels", "0")
-    assert math.isinf(opts.max_range) and math.isinf(opts.decay_time) and opts.max_voxels is None
+    assert (opts.sensor_model.max_range, opts.map.decay_time, opts.map.max_voxels) == (0, 0, 0)
+    assert math.isinf(opts.sensor_model.core("max_range")) and math.isinf(
+        opts.map.core("decay_time")
+    )
+    assert opts.map.core("max_voxels") is None
     opts = _opts(
         "--max-range", "20", "--decay-time", "5", "--max-voxels", "7", "--keep-radius", "3"
     )
-    assert (opts.max_range, opts.decay_time, opts.max_voxels, opts.keep_radius) == (20, 5, 7, 3)
+    assert (opts.sensor_model.max_range, opts.map.decay_time) == (20, 5)
+    assert (opts.map.max_voxels, opts.map.keep_radius) == (7, 3)
+    assert (opts.map.core("max_voxels"), opts.map.core("keep_radius")) == (7, 3)
 
 
 def test_flags_map_to_their_fields() -> None:
@@ -41,11 +47,13 @@ def test_flags_map_to_their_fields() -> None:
                  "--max-gap", "0.2", "--cloud-topic", "/c", "--odom-topic", "/o", "--tf",
                  "--fixed-frame", "map", "--max-scans", "4", "--min-z", "-1", "--max-z", "3",
                  "--extrinsic", "1", "2", "3", "0", "0", "0")  # fmt: skip
-    assert (opts.resolution, opts.min_range, opts.threads, opts.deskew) == (0.3, 0.5, 2, False)
-    assert (opts.max_gap, opts.cloud_topic, opts.odom_topic) == (0.2, "/c", "/o")
-    assert (opts.use_tf, opts.fixed_frame, opts.max_scans) == (True, "map", 4)
-    assert (opts.point_cloud_min_z, opts.point_cloud_max_z) == (-1.0, 3.0)
-    assert opts.extrinsic is not None and list(opts.extrinsic[0]) == [1, 2, 3]
+    assert (opts.map.resolution, opts.map.threads) == (0.3, 2)
+    assert (opts.sensor_model.min_range, opts.placement.deskew) == (0.5, False)
+    assert (opts.placement.odom_max_gap, opts.replay.cloud_topic) == (0.2, "/c")
+    assert (opts.replay.odom_topic, opts.replay.use_tf_poses) == ("/o", True)
+    assert (opts.replay.fixed_frame, opts.replay.max_scans) == ("map", 4)
+    assert (opts.placement.point_cloud_min_z, opts.placement.point_cloud_max_z) == (-1.0, 3.0)
+    assert opts.replay.extrinsic is not None and list(opts.replay.extrinsic[0]) == [1, 2, 3]
 
 
 @pytest.mark.parametrize(
@@ -67,8 +75,9 @@ def test_flags_override_the_config_file(tmp_path: Path) -> None:
         "other_node:\n  ros__parameters:\n    resolution: 7.0\n    nonsense: 1\n"
     )
     opts = _opts("--config", str(cfg), "--max-range", "0")
-    assert opts.resolution == 0.25 and opts.keep_radius == 40.0 and not opts.deskew
-    assert math.isinf(opts.max_range)  # the flag wins over the file
+    assert opts.map.resolution == 0.25 and opts.map.keep_radius == 40.0
+    assert not opts.placement.deskew
+    assert opts.sensor_model.max_range == 0.0  # the flag wins over the file
 
 
 def test_config_errors_name_the_file(tmp_path: Path) -> None:
@@ -112,3 +121,16 @@ def test_an_octomap_server_file_configures_the_replay_with_one_warning(
     path.write_text("/**:\n  ros__parameters:\n    filter_grond_plane: false\n")
     with pytest.raises(ConfigError, match="filter_grond_plane"):
         options_from_yaml(path)
+
+
+def test_a_file_setting_the_former_use_tf_warns_once_and_configures_the_replay(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``use_tf`` never had an effect: an old parameter file that sets it still works."""
+    from mfp_mapper.config.replay_options import options_from_yaml
+
+    path = tmp_path / "old.yaml"
+    path.write_text("/**:\n  ros__parameters:\n    use_tf: true\n    resolution: 0.2\n")
+    assert options_from_yaml(path) == {"resolution": 0.2}
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "ignoring former parameter(s) use_tf" in err

@@ -1,5 +1,5 @@
-"""The settings schema: one entry per setting, and what derives from it (YAML, ReplayOptions,
-NodeConfig, the node's type and range checks as the CLI applies them). No ROS."""
+"""The settings schema derived from the sections: SETTINGS, the YAML, ReplayOptions, NodeConfig,
+the node's type and range checks as the CLI applies them, the former use_tf. No ROS."""
 
 from __future__ import annotations
 
@@ -10,9 +10,10 @@ from pathlib import Path
 import pytest
 
 from mfp_mapper.config.param_file import load_node_parameters
-from mfp_mapper.config.replay_options import EXTRINSIC_PARAMETERS, ReplayOptions
+from mfp_mapper.config.replay_options import ReplayOptions
 from mfp_mapper.config.schema import (
     BY_NAME,
+    NODE_SECTIONS,
     PARAMS,
     SETTINGS,
     SPECS,
@@ -65,22 +66,20 @@ def test_config_yaml_is_generated_from_the_schema() -> None:
 
 def test_replay_options_derive_from_the_schema() -> None:
     opts = ReplayOptions()
-    field_names = {f.name for f in fields(ReplayOptions)}
     for s in SETTINGS:
         if not s.in_replay:
             continue
-        if s.name in EXTRINSIC_PARAMETERS:
-            assert "config_extrinsic" in field_names
-            continue
-        assert s.option in field_names, s.name
-        assert getattr(opts, s.option) == s.core_default, s.name
-    # the fields the replay loop reads keep their names
-    for name in ("resolution", "max_range", "min_range", "decay_time", "threads", "max_voxels",
-                 "deskew", "max_gap", "point_cloud_min_z", "point_cloud_max_z", "extrinsic",
-                 "config_extrinsic", "cloud_topic", "odom_topic", "use_tf", "fixed_frame",
-                 "max_scans", "keep_radius"):  # fmt: skip
-        assert name in field_names
-    assert math.isinf(opts.decay_time) and opts.max_voxels is None and opts.keep_radius is None
+        section = getattr(opts, s.section)
+        assert getattr(section, s.field) == s.held(s.default), s.name
+    assert opts.config_extrinsic is None
+    # fields are named without their section; a misspelt one is an error
+    opts = ReplayOptions.of(resolution=0.3, odom_max_gap=0.2, use_tf_poses=True, every=2)
+    assert (opts.map.resolution, opts.placement.odom_max_gap) == (0.3, 0.2)
+    assert opts.replay.use_tf_poses and opts.but(every=3).replay.every == 3
+    with pytest.raises(TypeError, match="max_gap"):
+        ReplayOptions.of(max_gap=0.2)
+    assert math.isinf(opts.map.core("decay_time")) and opts.map.core("max_voxels") is None
+    assert opts.map.core("keep_radius") is None
 
 
 def test_no_limit_rules_come_from_the_schema() -> None:
@@ -92,31 +91,30 @@ def test_no_limit_rules_come_from_the_schema() -> None:
     assert BY_NAME["resolution"].core_value(0.2) == 0.2
 
 
-def test_node_config_keeps_its_attributes_and_gives_keep_radius() -> None:
+def test_node_config_holds_the_sections_and_gives_keep_radius() -> None:
     cfg = NodeConfig.from_values({"keep_radius": 30.0, "max_voxels": 1000})
-    assert cfg.resolution == 0.1 and cfg.deskew and cfg.sensor_model_max_range == 100.0
-    assert cfg.max_range == 100.0 and math.isinf(cfg.decay)
-    settings = cfg.map_settings()
-    assert settings.keep_radius == 30.0 and settings.max_voxels == 1000
-    assert NodeConfig.from_values({}).map_settings().keep_radius is None
+    assert cfg.map.resolution == 0.1 and cfg.placement.deskew
+    assert cfg.sensor_model.max_range == 100.0 and math.isinf(cfg.map.core("decay_time"))
     assert cfg.values()["keep_radius"] == 30.0
+    assert cfg.core("keep_radius") == 30.0 and NodeConfig().core("keep_radius") is None
     from mfp_mapper.core.mapper import Mapper
 
-    mapper = Mapper.of(settings)
+    mapper = Mapper.of(cfg.map, cfg.sensor_model)
     assert (mapper.keep_radius, mapper.max_voxels, mapper.resolution) == (30.0, 1000, 0.1)
+    assert Mapper.of(NodeConfig().map, NodeConfig().sensor_model).keep_radius is None
 
 
-def test_the_replay_and_the_node_build_the_same_map_section() -> None:
-    from mfp_mapper.config.replay_options import ReplayOptions
-    from mfp_mapper.config.schema import MAP_SECTION, MapSettings
+def test_the_replay_and_the_node_build_the_same_map() -> None:
+    from mfp_mapper.core.mapper import mapper_kwargs
 
-    assert ReplayOptions().map_settings() == NodeConfig.from_values({}).map_settings()
-    assert ReplayOptions().map_settings() == MapSettings()
+    node, replay = NodeConfig.from_values({}), ReplayOptions()
+    assert (node.map, node.sensor_model) == (replay.map, replay.sensor_model)
     values = {"resolution": 0.2, "decay_time": 30.0, "sensor_model.max_range": -1.0}
-    node = NodeConfig.from_values(values).map_settings()
-    replay = ReplayOptions(resolution=0.2, decay_time=30.0, max_range=math.inf).map_settings()
-    assert node == replay and math.isinf(node.max_range)
-    assert set(MAP_SECTION.values()) <= set(BY_NAME)
+    node = NodeConfig.from_values(values)
+    replay = ReplayOptions.of(resolution=0.2, decay_time=30.0, max_range=-1.0)
+    kwargs = mapper_kwargs(node.map, node.sensor_model)
+    assert kwargs == mapper_kwargs(replay.map, replay.sensor_model)
+    assert math.isinf(kwargs["max_range"]) and kwargs["decay_time"] == 30.0
 
 
 @pytest.mark.parametrize(
@@ -154,13 +152,12 @@ def test_unknown_names_are_an_error_and_rclpys_own_are_not() -> None:
         check_parameters({"cloud_topic": "/points"})  # a replay setting, not a node parameter
 
 
-def test_node_config_has_one_typed_attribute_per_parameter() -> None:
-    from mfp_mapper.config.schema import attr_name
-
-    assert [f.name for f in fields(NodeConfig)] == [attr_name(p.name) for p in PARAMS]
+def test_node_config_has_one_typed_field_per_parameter() -> None:
     cfg = NodeConfig.from_values({})
+    assert [f.name for f in fields(NodeConfig)] == [s.KEY for s in NODE_SECTIONS]
+    assert list(cfg.values()) == [p.name for p in PARAMS]
     for p in PARAMS:
-        value = getattr(cfg, attr_name(p.name))
+        value = getattr(getattr(cfg, p.section), p.field)
         assert isinstance(value, tuple if p.type is list else p.type), p.name
 
 
@@ -169,7 +166,7 @@ def test_octomap_server_names_pass_with_a_warning_and_typos_do_not() -> None:
 
     octomap = {"sensor_model.hit": 0.7, "filter_ground_plane": False, "resolution": 0.2}
     cfg = check_parameters(octomap)  # octomap-only names are no error
-    assert cfg.resolution == 0.2
+    assert cfg.map.resolution == 0.2
     assert octomap_only_parameters(list(octomap)) == ["filter_ground_plane", "sensor_model.hit"]
     # an octomap-only name never shadows one of ours
     assert not set(OCTOMAP_ONLY) & set(SPECS)
@@ -195,3 +192,13 @@ def test_localization_needs_an_odometry_frame_name() -> None:
         with pytest.raises(ValueError, match="localization.odom_frame must name a frame"):
             NodeConfig.from_values({"localization.enabled": True, "localization.odom_frame": name})
     NodeConfig.from_values({"localization.odom_frame": ""})  # not localizing: unused
+
+
+def test_the_former_use_tf_parameter_is_accepted_and_ignored() -> None:
+    from mfp_mapper.config.schema import RETIRED, retired_parameters, unknown_parameters
+
+    assert "use_tf" not in BY_NAME and "use_tf" in RETIRED
+    assert check_parameters({"use_tf": True}) == NodeConfig()
+    assert unknown_parameters(["use_tf"]) == [] and retired_parameters(["use_tf", "x"]) == [
+        "use_tf"
+    ]

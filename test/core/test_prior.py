@@ -118,7 +118,7 @@ def test_the_family_and_unset_shape_or_rate() -> None:
         model.resolve_prior(0.1, -1.0, 0.2, 0.03)
     mapper = Mapper(0.2, prior_shape=0.0, prior_rate=0.0, prior_scale=0.03)
     assert mapper.prior == model.Prior(0.006, 0.003)
-    assert Mapper(0.2).prior == model.UNIFORM  # the class's own default: the paper's
+    assert Mapper(0.2).prior == model.family_prior(0.0275, 0.2)  # the settings. default
 
 
 def test_map_files_record_the_resolved_family_prior(tmp_path: Path) -> None:
@@ -142,9 +142,9 @@ def test_replay_flags_and_node_parameters() -> None:
     parser.add_argument("--config")
     add_replay_flags(parser)
     opts = options_from_args(parser.parse_args(["--prior-shape", "0.3", "--prior-rate", "0.05"]))
-    assert (opts.prior_shape, opts.prior_rate) == (0.3, 0.05)
-    assert opts.map_settings().prior_shape == 0.3
+    assert (opts.map.prior_shape, opts.map.prior_rate) == (0.3, 0.05)
+    assert Mapper.of(opts.map, opts.sensor_model).prior == PRIOR
     cfg = check_parameters({"prior.shape": 0.3, "prior.rate": 0.05})
-    assert Mapper.of(cfg.map_settings()).prior == PRIOR
+    assert Mapper.of(cfg.map, cfg.sensor_model).prior == PRIOR
     with pytest.raises(ValueError, match=r"prior\.rate"):
         check_parameters({"prior.rate": 0.0})

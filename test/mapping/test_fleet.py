@@ -25,7 +25,7 @@ from mfp_mapper.mapping.replay import ReplayOptions, replay
 from mfp_mapper.sources.simulate import preset, simulate
 
 SMALL = replace(preset("small"), scans=8, azimuths=180)
-OPTS = ReplayOptions(resolution=0.25, decay_time=0.6, max_range=20.0)
+OPTS = ReplayOptions.of(resolution=0.25, decay_time=0.6, max_range=20.0)
 CHUNK = 0.35  # seconds: each 0.8 s recording is split in three windows
 
 
@@ -44,7 +44,9 @@ def _sequential(bags: list[Path], opts: ReplayOptions) -> dict[str, np.ndarray]:
     scans: list[tuple[float, np.ndarray, np.ndarray]] = []
     for bag in bags:
         replay(bag, opts, progress=False, on_scan=lambda t, p, o: scans.append((t, p, o)))
-    mapper = Mapper(opts.resolution, max_range=opts.max_range, decay_time=opts.decay_time)
+    mapper = Mapper(
+        opts.map.resolution, max_range=opts.sensor_model.max_range, decay_time=opts.map.decay_time
+    )
     for stamp, points, origins in sorted(scans, key=lambda s: s[0]):
         mapper.integrate(points, origins, stamp)
     arrays = map_arrays(mapper)
@@ -87,11 +89,11 @@ def test_replay_windows_split_the_clouds_without_overlap(bags: list[Path]) -> No
     cut = stamps[3]  # a cloud exactly on the bound goes to the later window
     seen: list[list[float]] = [[], []]
     for k, (lo, hi) in enumerate(((None, cut), (cut, None))):
-        window = replace(OPTS, start=lo, end=hi)
+        window = OPTS.but(start=lo, end=hi)
         replay(bags[0], window, progress=False, on_scan=lambda t, p, o, k=k: seen[k].append(t))
     assert seen == [stamps[:3], stamps[3:]]
     with pytest.raises(NothingMapped, match="no cloud stamp lies in the window"):
-        replay(bags[0], replace(OPTS, start=0.0, end=1.0), progress=False)
+        replay(bags[0], OPTS.but(start=0.0, end=1.0), progress=False)
 
 
 def test_sequential_fleet_with_windows_equals_the_sequential_replay(
@@ -153,7 +155,7 @@ def test_merge_refuses_maps_of_other_settings(bags: list[Path], tmp_path: Path) 
 
     a, b = tmp_path / "a.npz", tmp_path / "b.npz"
     save_map(replay(bags[0], OPTS, progress=False).mapper, a)
-    save_map(replay(bags[1], replace(OPTS, resolution=0.5), progress=False).mapper, b)
+    save_map(replay(bags[1], OPTS.but(resolution=0.5), progress=False).mapper, b)
     with pytest.raises(MergeError, match=r"different resolution.*b\.npz"):
         merge_maps([a, b], tmp_path / "c.npz")
     assert not (tmp_path / "c.npz").exists() and not list(tmp_path.glob(".mfp-merge-*"))
@@ -178,7 +180,7 @@ def test_a_bad_bag_fails_the_run_or_is_skipped(
 def test_a_recording_with_nothing_mappable_in_any_window_fails(
     bags: list[Path], tmp_path: Path
 ) -> None:
-    no_pose = replace(OPTS, max_gap=1e-4)  # odometry at 50 Hz: every cloud lacks a pose
+    no_pose = OPTS.but(odom_max_gap=1e-4)  # odometry at 50 Hz: every cloud lacks a pose
     fleet = FleetOptions(progress=False, chunk_seconds=CHUNK)
     with pytest.raises(FleetError, match=r"robot1.*no cloud could be mapped"):
         map_fleet([bags[1]], tmp_path / "m.npz", no_pose, fleet)
@@ -201,11 +203,11 @@ def test_progress_lines_name_the_stage_and_the_task(bags: list[Path], tmp_path: 
 def test_max_voxels_is_refused_for_several_tasks(bags: list[Path], tmp_path: Path) -> None:
     windows = FleetOptions(chunk_seconds=CHUNK, progress=False)
     with pytest.raises(FleetError, match="max_voxels"):
-        map_fleet(bags, tmp_path / "m.npz", replace(OPTS, max_voxels=1000), windows)
+        map_fleet(bags, tmp_path / "m.npz", OPTS.but(max_voxels=1000), windows)
     with pytest.raises(FleetError, match="max_scans"):
-        map_fleet(bags, tmp_path / "m.npz", replace(OPTS, max_scans=3), FleetOptions())
+        map_fleet(bags, tmp_path / "m.npz", OPTS.but(max_scans=3), FleetOptions())
     # one mapper in turn evicts as one long replay does
-    bounded = replace(OPTS, max_voxels=20_000)
+    bounded = OPTS.but(max_voxels=20_000)
     result = map_fleet(bags, tmp_path / "m.npz", bounded, FleetOptions(progress=False))
     assert 0 < result.voxels <= 20_000
 

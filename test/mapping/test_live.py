@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 from live_helpers import drain, odom_sample
 
+from mfp_mapper.config.sections import PlacementSection, SensorModelSection
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.mapping.live import LiveIntegrator, LiveSettings
 from mfp_mapper.sensing.poses import PoseBuffer
@@ -17,16 +18,11 @@ T0 = 500.0
 
 
 def _settings(**changes: Any) -> LiveSettings:
-    values: dict[str, Any] = dict(
-        frame_id="",
-        deskew=True,
-        point_cloud_min_z=-1e6,
-        point_cloud_max_z=1e6,
-        cloud_queue_size=3,
-        odom_wait=0.2,
-    )
-    values.update(changes)
-    return LiveSettings(**values)
+    """The placement section with a short queue and wait, and the fields given; a sensor
+    model only when one of its fields is given."""
+    sensor = {k: changes.pop(k) for k in ("no_return_range",) if k in changes}
+    placement = PlacementSection(**{"cloud_queue_size": 3, "odom_wait": 0.2, **changes})
+    return LiveSettings(placement, SensorModelSection(**sensor) if sensor else None)
 
 
 def _worker(**changes: Any) -> tuple[LiveIntegrator, list[tuple[str, str, bool]]]:
@@ -294,7 +290,8 @@ def test_the_two_threads_map_what_the_offline_loop_maps() -> None:
     for sample in samples:
         poses.add(sample.stamp, sample.position, sample.quaternion)
     offline = Mapper(0.2)
-    loop = ScanLoop(offline, _settings())
+    settings = _settings()
+    loop = ScanLoop(offline, settings.placement, SensorModelSection())
     for msg in clouds:
         assert loop.map_cloud(msg, poses, lambda frame: Extrinsic()).integrated
     live, ref = worker.mapper.voxels(), offline.voxels()

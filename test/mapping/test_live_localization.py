@@ -11,13 +11,10 @@ import pytest
 from localization_scenes import Pose, localization_scene, pose_at, static_scan
 from scipy.spatial.transform import Rotation
 
+from mfp_mapper.config.sections import LocalizationSection, PlacementSection
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.mapping.live import LiveIntegrator, LiveSettings
-from mfp_mapper.mapping.live_localization import (
-    LiveLocalizer,
-    LocalizationSettings,
-    pose_matrix,
-)
+from mfp_mapper.mapping.live_localization import LiveLocalizer, pose_matrix
 from mfp_mapper.sensing.poses import OdometrySample, PoseBuffer
 from mfp_mapper.sources.scan_files import cloud_message_from_columns
 
@@ -39,15 +36,8 @@ def _scene_map(name: str, count: int = 12) -> tuple[Any, list[Pose], Mapper]:
 
 def _worker(mapper: Mapper, **changes: Any) -> tuple[LiveIntegrator, list[str]]:
     logs: list[str] = []
-    settings = LiveSettings(
-        frame_id="",
-        deskew=False,
-        point_cloud_min_z=-1e6,
-        point_cloud_max_z=1e6,
-        cloud_queue_size=5,
-        odom_wait=0.2,
-    )
-    localizer = LiveLocalizer(LocalizationSettings(global_frame="map", **changes), log=logs.append)
+    settings = LiveSettings(PlacementSection(deskew=False, cloud_queue_size=5, odom_wait=0.2))
+    localizer = LiveLocalizer(LocalizationSection(**changes), "map", log=logs.append)
     worker = LiveIntegrator(
         mapper,
         settings,

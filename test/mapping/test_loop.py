@@ -4,11 +4,11 @@ replay."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 import pytest
 
+from mfp_mapper.config.sections import PlacementSection
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.mapping import loop
 from mfp_mapper.sensing import pipeline
@@ -16,17 +16,6 @@ from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer
 from mfp_mapper.sources.scan_files import cloud_message_from_columns
 
 T0 = 1000.0
-
-
-@dataclass
-class Settings:
-    deskew: bool = True
-    point_cloud_min_x: float = -1e6
-    point_cloud_max_x: float = 1e6
-    point_cloud_min_y: float = -1e6
-    point_cloud_max_y: float = 1e6
-    point_cloud_min_z: float = -1e6
-    point_cloud_max_z: float = 1e6
 
 
 def _cloud(n: int = 50, stamp: float = T0, **extra: np.ndarray) -> object:
@@ -44,13 +33,15 @@ def _poses(*stamps: float) -> PoseBuffer:
     return buffer
 
 
-def _run(msg: object, poses: PoseBuffer, settings: Settings | None = None) -> str:
+def _run(msg: object, poses: PoseBuffer, settings: PlacementSection | None = None) -> str:
     """The pipeline's verdict on one message: "integrated" or the drop reason."""
     mapper = Mapper(0.2)
     try:
         cloud = pipeline.parse_scan(msg)
         stamp = pipeline.scan_stamp(msg)
-        placed = pipeline.place_scan(cloud, stamp, poses, Extrinsic(), settings or Settings())
+        placed = pipeline.place_scan(
+            cloud, stamp, poses, Extrinsic(), settings or PlacementSection()
+        )
         loop.integrate_scan(mapper, placed)
     except pipeline.ScanDropped as drop:
         assert drop.reason in pipeline.DROP_REASONS
@@ -68,10 +59,10 @@ def test_reasons_of_the_pipeline() -> None:
     assert _run(_cloud(stamp=T0 - 5.0), poses) == "too_old"
     assert _run(_cloud(), PoseBuffer()) == "no_poses"
     assert _run(_cloud(stamp=T0 + 0.5), _poses(T0, T0 + 1.0)) == "gap"
-    band = Settings(point_cloud_min_z=10.0, point_cloud_max_z=11.0)
+    band = PlacementSection(point_cloud_min_z=10.0, point_cloud_max_z=11.0)
     assert _run(_cloud(), poses, band) == "empty"
-    assert _run(_cloud(), poses, Settings(point_cloud_max_x=0.5)) == "empty"  # x/y too
-    assert _run(_cloud(), poses, Settings(point_cloud_min_y=6.0)) == "empty"
+    assert _run(_cloud(), poses, PlacementSection(point_cloud_max_x=0.5)) == "empty"  # x/y too
+    assert _run(_cloud(), poses, PlacementSection(point_cloud_min_y=6.0)) == "empty"
 
 
 def test_deskew_needs_poses_up_to_the_last_point() -> None:
@@ -81,7 +72,7 @@ def test_deskew_needs_poses_up_to_the_last_point() -> None:
     assert pipeline.pose_deadline(cloud, T0, deskew=True) == pytest.approx(T0 + 0.1, abs=1e-6)
     assert pipeline.pose_deadline(cloud, T0, deskew=False) == T0
     assert _run(msg, _poses(T0 - 0.1, T0 + 0.05)) == "too_new"
-    assert _run(msg, _poses(T0 - 0.1, T0 + 0.05), Settings(deskew=False)) == "integrated"
+    assert _run(msg, _poses(T0 - 0.1, T0 + 0.05), PlacementSection(deskew=False)) == "integrated"
 
 
 def test_a_cloud_the_core_cannot_use_is_dropped_not_integrated() -> None:

@@ -45,7 +45,7 @@ def test_open_scene_with_recovery_is_unbiased(tmp_path: Path, organized: bool) -
     cfg = replace(preset("open"), scans=40, seed=0, organized=organized)
     sim = simulate(tmp_path / "open", cfg, "mcap")
     assert sim.truth["rays"]["omitted_through_media"] > 1000
-    result = compare_no_return(sim.bag, sim.truth, 30.0, ReplayOptions(resolution=0.2))
+    result = compare_no_return(sim.bag, sim.truth, 30.0, ReplayOptions.of(resolution=0.2))
     (before,) = result.without.media
     (after,) = result.recovered.media
     assert result.rays_no_return == sim.truth["rays"]["omitted"]
@@ -65,8 +65,8 @@ def test_closed_scene_is_unchanged_by_recovery(tmp_path: Path) -> None:
     cfg = replace(preset("small"), scans=10, seed=1, organized=True)
     sim = simulate(tmp_path / "closed", cfg, "mcap")
     assert sim.truth["rays"]["omitted"] == 0
-    off = replay(sim.bag, ReplayOptions(resolution=0.2), progress=False)
-    on = replay(sim.bag, ReplayOptions(resolution=0.2, no_return_range=30.0), progress=False)
+    off = replay(sim.bag, ReplayOptions.of(resolution=0.2), progress=False)
+    on = replay(sim.bag, ReplayOptions.of(resolution=0.2, no_return_range=30.0), progress=False)
     assert on.summary.rays_no_return == 0 and on.summary.no_return_note == ""
     a, b = off.mapper.voxels(), on.mapper.voxels()
     np.testing.assert_array_equal(a.ijk, b.ijk)

@@ -4,6 +4,7 @@ gets the same fate per cloud, counted under the same names."""
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -101,18 +102,13 @@ def _live(bag: Path, opts: ReplayOptions) -> loop.ScanCounts:
         by_topic: dict[str, list[Any]] = {"/odom": [], "/cloud": []}
         for conn, _, raw in reader.messages():
             by_topic[conn.topic].append(reader.deserialize(raw, conn.msgtype))
-    settings = LiveSettings(
-        frame_id="",
-        deskew=opts.deskew,
-        point_cloud_min_z=opts.point_cloud_min_z,
-        point_cloud_max_z=opts.point_cloud_max_z,
-        cloud_queue_size=len(by_topic["/cloud"]),
-        odom_wait=0.3,
-    )
+    placement = replace(opts.placement, cloud_queue_size=len(by_topic["/cloud"]), odom_wait=0.3)
+    settings = LiveSettings(placement)
     worker = LiveIntegrator(
         Mapper(RES),
         settings,
-        PoseBuffer(max_age=1e6, max_gap=opts.max_gap),  # keeps every pose, as the replay
+        # keeps every pose, as the replay
+        PoseBuffer(max_age=1e6, max_gap=opts.placement.odom_max_gap),
         # the clouds are in the odometry child frame: placed with the identity extrinsic
         log=lambda key, text, error: None,
         now=time.time,
@@ -134,8 +130,8 @@ def _live(bag: Path, opts: ReplayOptions) -> loop.ScanCounts:
 
 
 def _both(bag: Path) -> tuple[Any, loop.ScanCounts]:
-    opts = ReplayOptions(
-        resolution=RES, max_gap=0.5, point_cloud_min_z=BAND[0], point_cloud_max_z=BAND[1]
+    opts = ReplayOptions.of(
+        resolution=RES, odom_max_gap=0.5, point_cloud_min_z=BAND[0], point_cloud_max_z=BAND[1]
     )
     return replay(bag, opts, progress=False).summary, _live(bag, opts)
 

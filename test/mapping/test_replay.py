@@ -3,7 +3,6 @@ extrinsics), folders of scan files, the simulator; the same map from the same ra
 
 from __future__ import annotations
 
-import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -45,7 +44,7 @@ def bags(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 
 
 def _stats(bag: Path, **opts: object) -> tuple[np.ndarray, np.ndarray, object]:
-    result = replay(bag, ReplayOptions(resolution=RES, **opts), progress=False)  # type: ignore[arg-type]
+    result = replay(bag, ReplayOptions.of(resolution=RES, **opts), progress=False)  # type: ignore[arg-type]
     v = result.mapper.voxels()
     order = np.lexsort(v.ijk.T)
     return v.ijk[order], np.stack([v.s[order], v.n[order]]), result.summary
@@ -117,7 +116,7 @@ def test_identity_when_the_cloud_is_in_the_odometry_child_frame(bags, reference)
 
 def test_missing_extrinsic_is_an_error_unless_configured(bags, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     with pytest.raises(ReplayError, match="no lidar extrinsic"):
-        replay(bags["no_static"], ReplayOptions(resolution=RES), progress=False)
+        replay(bags["no_static"], ReplayOptions.of(resolution=RES), progress=False)
     cfg = tmp_path / "node.yaml"
     t, rpy = SMALL.lidar_translation, SMALL.lidar_rpy
     cfg.write_text(
@@ -126,8 +125,8 @@ def test_missing_extrinsic_is_an_error_unless_configured(bags, tmp_path: Path) -
         f"    lidar.translation: {list(t)}\n    lidar.rpy: {list(rpy)}\n"
     )
     opts = options_from_yaml(cfg)
-    assert opts["resolution"] == 0.25 and math.isinf(opts["max_range"])
-    result = replay(bags["no_static"], ReplayOptions(**opts), progress=False)
+    assert opts["resolution"] == 0.25 and opts["max_range"] == 0.0  # no limit to the core
+    result = replay(bags["no_static"], ReplayOptions.of(**opts), progress=False)
     assert "configuration" in result.summary.extrinsic_source
 
 
@@ -166,7 +165,7 @@ def test_no_pose_covering_the_clouds(tmp_path: Path) -> None:
 
 def test_ros2_file_path_means_its_folder(bags) -> None:  # type: ignore[no-untyped-def]
     mcap_file = next(bags["mcap"].glob("*.mcap"))
-    result = replay(mcap_file, ReplayOptions(resolution=RES, max_scans=2), progress=False)
+    result = replay(mcap_file, ReplayOptions.of(resolution=RES, max_scans=2), progress=False)
     assert result.summary.scans_used == 2
 
 
@@ -181,8 +180,8 @@ def test_progress_line_reports_rate_and_time_left() -> None:
 
 
 def test_keep_radius_reaches_the_mapper(bags) -> None:  # type: ignore[no-untyped-def]
-    full = replay(bags["mcap"], ReplayOptions(resolution=RES), progress=False).mapper
-    near = replay(bags["mcap"], ReplayOptions(resolution=RES, keep_radius=1.0), progress=False)
+    full = replay(bags["mcap"], ReplayOptions.of(resolution=RES), progress=False).mapper
+    near = replay(bags["mcap"], ReplayOptions.of(resolution=RES, keep_radius=1.0), progress=False)
     assert near.mapper.keep_radius == 1.0 and full.keep_radius is None
     assert 0 < near.mapper.num_voxels < full.num_voxels
 
@@ -199,7 +198,7 @@ def _same(a, b) -> None:  # type: ignore[no-untyped-def]
 
 
 def test_one_opened_recording_replays_twice_to_the_same_map(bags) -> None:  # type: ignore[no-untyped-def]
-    opts = ReplayOptions(resolution=RES)
+    opts = ReplayOptions.of(resolution=RES)
     with open_recording(bags["mcap"], opts) as recording:
         first = replay(recording, opts, progress=False)
         second = replay(recording, opts, progress=False)
@@ -211,7 +210,7 @@ def test_the_simulator_without_a_bag_maps_as_its_bag(bags) -> None:  # type: ign
     """The same clouds placed by the true path instead of the recorded 50 Hz odometry: the
     same returns, placed within the odometry's interpolation error (a chord of the circle,
     0.08 mm); points on the floor (z = 0) may change voxel."""
-    opts = ReplayOptions(resolution=RES)
+    opts = ReplayOptions.of(resolution=RES)
     placed: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {"bag": [], "sim": []}
 
     def keep(name: str):  # type: ignore[no-untyped-def]
@@ -260,7 +259,7 @@ def test_pcd_folder_with_tum_poses_equals_the_bag_deskewed(recording) -> None:  
         write_pcd(folder / f"cloud_{sec}_{nsec}.pcd", _columns(records, True), binary=k % 2 == 0)
     tum = recording["root"] / "odom.tum"
     np.savetxt(tum, recording["odometry"], fmt="%.17g", header="t x y z qx qy qz qw")
-    opts = ReplayOptions(resolution=RES)
+    opts = ReplayOptions.of(resolution=RES)
     from_bag = replay(recording["bag"], opts, progress=False)
     with open_recording(folder, opts, poses=tum) as scans:
         from_folder = replay(scans, opts, progress=False)
@@ -289,7 +288,7 @@ def test_kitti_folder_with_kitti_poses_equals_the_bag_without_deskew(recording) 
     (folder.parent / "times.txt").write_text("\n".join(f"{s:.9f}" for s in stamps) + "\n")
     poses = folder.parent / "poses.txt"
     poses.write_text("\n".join(lines) + "\n")
-    opts = ReplayOptions(resolution=RES, deskew=False)
+    opts = ReplayOptions.of(resolution=RES, deskew=False)
     from_bag = replay(recording["bag"], opts, progress=False)
     with open_recording(folder, opts, poses=poses) as scans:
         from_folder = replay(scans, opts, progress=False)
@@ -304,17 +303,16 @@ def test_kitti_folder_with_kitti_poses_equals_the_bag_without_deskew(recording) 
 
 def test_selection_window_and_every(recording) -> None:  # type: ignore[no-untyped-def]
     stamps = [stamp for stamp, _ in recording["clouds"]]
-    full = ReplayOptions(resolution=RES)
+    full = ReplayOptions.of(resolution=RES)
     by_index = replay(
-        recording["bag"], replace(full, start_index=1, end_index=5, every=2), progress=False
+        recording["bag"], full.but(start_index=1, end_index=5, every=2), progress=False
     )
     by_time = replay(
-        recording["bag"], replace(full, start=stamps[1], end=stamps[5], every=2), progress=False
+        recording["bag"], full.but(start=stamps[1], end=stamps[5], every=2), progress=False
     )
     by_offset = replay(
         recording["bag"],
-        replace(
-            full,
+        full.but(
             start_offset=stamps[1] - stamps[0],
             end_offset=stamps[4] - stamps[0] + 0.01,
             every=2,
@@ -326,7 +324,7 @@ def test_selection_window_and_every(recording) -> None:  # type: ignore[no-untyp
     _same(_sorted(by_time), _sorted(by_index))
     _same(_sorted(by_offset), _sorted(by_index))
     with pytest.raises(ReplayError, match="no cloud could be mapped"):
-        replay(recording["bag"], replace(full, start=stamps[-1] + 1), progress=False)
+        replay(recording["bag"], full.but(start=stamps[-1] + 1), progress=False)
 
 
 def test_identity_poses_for_single_frames(tmp_path: Path) -> None:
@@ -334,7 +332,7 @@ def test_identity_poses_for_single_frames(tmp_path: Path) -> None:
     folder.mkdir()
     xyz = np.array([[5.0, 0.0, 0.0], [0.0, 4.0, 0.0]], dtype="<f4")
     write_ply(folder / "a.ply", {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2]})
-    opts = ReplayOptions(resolution=0.5)
+    opts = ReplayOptions.of(resolution=0.5)
     result = replay(open_recording(folder, opts, poses="identity"), opts, progress=False)
     hit = result.mapper.query([[5.2, 0.2, 0.2], [0.2, 4.2, 0.2]])
     assert np.all(hit.n == 1)

@@ -32,7 +32,7 @@ def test_physics_closed_scene_bag_replay_recovers_extinction(tmp_path: Path) -> 
     cfg = replace(preset("small"), scans=40, seed=0)
     sim = simulate(tmp_path / "physics", cfg, "mcap")
     assert sim.truth["rays"]["omitted"] == 0
-    result = replay(sim.bag, ReplayOptions(resolution=0.2), progress=False)
+    result = replay(sim.bag, ReplayOptions.of(resolution=0.2), progress=False)
     ev = evaluate_map(result.mapper, sim.truth)
     (cube,) = ev.media
     assert cube.voxels_observed == cube.voxels_inside == 512

@@ -26,7 +26,7 @@ def hall_rays(
 ) -> list[tuple[float, np.ndarray, np.ndarray]]:
     bag = simulate(tmp_path_factory.mktemp("hall") / "bag", HALL, "mcap").bag
     rays: list[tuple[float, np.ndarray, np.ndarray]] = []
-    replay(bag, ReplayOptions(resolution=RES), progress=False,
+    replay(bag, ReplayOptions.of(resolution=RES), progress=False,
            on_scan=lambda t, p, o: rays.append((t, p.copy(), np.array(o))))  # fmt: skip
     return rays
 

@@ -45,8 +45,9 @@ def test_config_file_holds_exactly_the_defaults() -> None:
 
 def test_config_validation_names_the_culprit() -> None:
     cfg = NodeConfig.from_values(defaults())
-    assert cfg.max_range == 100.0 and math.isinf(cfg.decay)
-    assert math.isinf(NodeConfig.from_values({"sensor_model.max_range": -1.0}).max_range)
+    assert cfg.sensor_model.core("max_range") == 100.0 and math.isinf(cfg.map.core("decay_time"))
+    unlimited = NodeConfig.from_values({"sensor_model.max_range": -1.0}).sensor_model
+    assert math.isinf(unlimited.core("max_range"))
     for bad, culprit in (
         ({"occupancy_min_z": 3.0}, "occupancy_min_z"),
         ({"point_cloud_min_z": 2.0, "point_cloud_max_z": 1.0}, "point_cloud_min_z"),

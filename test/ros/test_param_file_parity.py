@@ -96,6 +96,7 @@ NODE_CASES = {
     "mixed sequence": "/**:\n  ros__parameters:\n    lidar.rpy: [0, 0.5, 1.0]\n",
     "no ros__parameters": "resolution: 0.2\n",
     "rclpy's own": "/**:\n  ros__parameters:\n    use_sim_time: true\n",
+    "former use_tf": "/**:\n  ros__parameters:\n    use_tf: true\n    resolution: 0.2\n",
 }
 
 
@@ -205,7 +206,7 @@ def test_keep_radius_reaches_the_nodes_mapper(tmp_path: Path) -> None:
     try:
         node = MfpMapperNode(context=ctx)
         try:
-            assert node.cfg.keep_radius == 25.0
+            assert node.cfg.map.keep_radius == 25.0
             assert node.mapper.keep_radius == 25.0
         finally:
             node.close()

@@ -11,6 +11,7 @@ import pytest
 from live_helpers import drain, odom_sample
 from scipy.spatial.transform import Rotation
 
+from mfp_mapper.config.sections import PlacementSection
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.mapping.live import LiveIntegrator, LiveSettings
 from mfp_mapper.sensing.deskew import cloud_to_map
@@ -139,15 +140,8 @@ def test_stamp_guard_rejects_one_outlier_and_follows_a_real_jump() -> None:
 def worker_and_logs(now: list[float], **changes: Any) -> tuple[LiveIntegrator, list[str]]:
     logs: list[str] = []
     settings = LiveSettings(
-        frame_id="",
-        deskew=True,
-        point_cloud_min_z=-1e6,
-        point_cloud_max_z=1e6,
-        cloud_queue_size=5,
-        odom_wait=0.2,
+        PlacementSection(**{"cloud_queue_size": 5, "odom_wait": 0.2, **changes})
     )
-    for key, value in changes.items():
-        setattr(settings, key, value)
     worker = LiveIntegrator(
         Mapper(0.2),
         settings,

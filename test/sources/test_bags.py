@@ -52,13 +52,13 @@ def test_poses_from_the_tf_chain(bags: dict[str, Path]) -> None:
         assert recording.poses.source == "/tf chain odom -> base_link"
         assert recording.map_frame == "odom"
     with pytest.raises(ReplayError, match="no /tf transforms"):  # use_tf: not its odometry
-        open_bag(bags["mcap"], replace(OPTS, use_tf=True))
+        open_bag(bags["mcap"], OPTS.but(use_tf_poses=True))
 
 
 def test_poses_from_a_tum_file_matched_by_stamp(bags: dict[str, Path], tmp_path: Path) -> None:
     tum = tmp_path / "lidar.tum"
     tum.write_text("1699999990 1 2 3 0 0 0 1\n1700000010 1 2 3 0 0 0 1\n")
-    with open_bag(bags["mcap"], replace(OPTS, max_gap=30.0), tum) as recording:
+    with open_bag(bags["mcap"], OPTS.but(odom_max_gap=30.0), tum) as recording:
         assert recording.map_frame == "world" and recording.poses.body == "velodyne"
         assert recording.extrinsic_source.startswith("identity")  # the poses are the lidar's
         position, _ = recording.pose_source.interpolate([1700000000.0])
@@ -75,11 +75,11 @@ def test_extrinsics(bags: dict[str, Path], tmp_path: Path) -> None:
     with pytest.raises(ReplayError, match="no lidar extrinsic"):
         open_bag(bags["no_static"], OPTS)
     mount = xyz_rpy(SMALL.lidar_translation, SMALL.lidar_rpy)
-    with open_bag(bags["no_static"], replace(OPTS, config_extrinsic=mount)) as recording:
+    with open_bag(bags["no_static"], OPTS.but(config_extrinsic=mount)) as recording:
         assert "configuration" in recording.extrinsic_source
         rotation = quaternion_to_matrix(recording.extrinsic_of("velodyne").quaternion)
         assert np.arctan2(rotation[1, 0], rotation[0, 0]) == pytest.approx(SMALL.lidar_rpy[2])
-    with open_bag(bags["mcap"], replace(OPTS, extrinsic=xyz_rpy([0, 0, 1], [0, 0, 0]))) as rec:
+    with open_bag(bags["mcap"], OPTS.but(extrinsic=xyz_rpy([0, 0, 1], [0, 0, 0]))) as rec:
         assert rec.extrinsic_source == "given on the command line"
         np.testing.assert_allclose(rec.extrinsic_of("velodyne").translation, [0, 0, 1])
     with open_bag(bags["base_frame"], OPTS) as recording:
@@ -88,9 +88,9 @@ def test_extrinsics(bags: dict[str, Path], tmp_path: Path) -> None:
 
 def test_missing_or_wrong_topic(bags: dict[str, Path]) -> None:
     with pytest.raises(ReplayError, match="/points is not in the bag"):
-        open_bag(bags["mcap"], replace(OPTS, cloud_topic="/points"))
+        open_bag(bags["mcap"], OPTS.but(cloud_topic="/points"))
     with pytest.raises(ReplayError, match="expected sensor_msgs/msg/PointCloud2"):
-        open_bag(bags["mcap"], replace(OPTS, cloud_topic="/odom"))
+        open_bag(bags["mcap"], OPTS.but(cloud_topic="/odom"))
 
 
 def test_several_cloud_topics_need_a_choice(tmp_path: Path) -> None:
@@ -157,6 +157,6 @@ def test_an_undecodable_first_cloud_is_a_replay_error_for_every_pose_source(
         sink.add("/cloud", "sensor_msgs/msg/PointCloud2")
         sink.writer.write(sink.connections["/cloud"], 1_000_000_000, b"\x00\x01\x00\x00bad")
     with pytest.raises(ReplayError, match="cannot read the first cloud"):
-        open_bag(bag, replace(OPTS, odometry="kiss-icp"))
+        open_bag(bag, OPTS.but(odometry="kiss-icp"))
     with pytest.raises(ReplayError, match="cannot read the first cloud"):
         open_bag(bag, OPTS, "identity")

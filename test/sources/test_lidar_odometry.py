@@ -37,7 +37,7 @@ def _world_from_first_lidar(cfg, stamp: float) -> np.ndarray:  # type: ignore[no
 def test_walls_within_a_voxel(structured) -> None:  # type: ignore[no-untyped-def]
     """Mapped with KISS-ICP's poses, the hall's walls land within a voxel of the truth."""
     cfg, bag = structured
-    result = replay(bag, ReplayOptions(resolution=RES, odometry="kiss-icp"), progress=False)
+    result = replay(bag, ReplayOptions.of(resolution=RES, odometry="kiss-icp"), progress=False)
     assert result.mapper.frame_id == MAP_FRAME
     assert result.summary.scans_used == cfg.scans and "KISS-ICP" in result.summary.pose_source
     # KISS-ICP's map frame is the lidar at the end of the first (de-skewed) scan
@@ -77,7 +77,7 @@ def test_pose_error_on_the_structured_hall(structured) -> None:  # type: ignore[
             for c, _, r in reader.messages(connections=conns)
         )
         # max range 30 m: KISS-ICP's voxel (max range / 100) 0.3 m, as fits a 20 m hall
-        stamps, poses = estimate_poses(clouds, ReplayOptions(max_range=30.0))
+        stamps, poses = estimate_poses(clouds, ReplayOptions.of(max_range=30.0))
     finally:
         reader.close()
     translation, rotation = pose_errors(poses, lidar_truth(cfg, stamps))
@@ -92,7 +92,7 @@ def test_norlab_sequence_against_its_icp_odometry(shared_data: Path) -> None:
     if not sequence.is_dir():
         pytest.skip(f"{sequence} is absent")
     folder = open_scan_folder(sequence / "scans")
-    found = folder_poses(folder, None, ReplayOptions(odometry="kiss-icp"))
+    found = folder_poses(folder, None, ReplayOptions.of(odometry="kiss-icp"))
     odometry = read_odometry_csv(sequence / "icp_odom.csv")
     stamps = np.array([scan.stamp for scan in folder.scans])
     est_p, est_r = found.buffer.interpolate(stamps)
@@ -114,4 +114,4 @@ def test_a_clear_error_without_poses_or_with_both(tmp_path: Path) -> None:
     folder.mkdir()
     np.zeros((10, 4), "<f4").tofile(folder / "000000.bin")
     with pytest.raises(ReplayError, match="either --poses or --odometry"):
-        open_recording(folder, ReplayOptions(odometry="kiss-icp"), "identity")
+        open_recording(folder, ReplayOptions.of(odometry="kiss-icp"), "identity")

@@ -46,7 +46,7 @@ def test_a_bag_with_its_own_poses(bag: Path) -> None:
 def test_a_bag_with_a_pose_file(bag: Path, tmp_path: Path) -> None:
     tum = tmp_path / "poses.tum"
     tum.write_text("1699999999 0 0 0 0 0 0 1\n1700000001 0 0 0 0 0 0 1\n")
-    with open_recording(bag, ReplayOptions(max_gap=5.0), poses=tum) as recording:
+    with open_recording(bag, ReplayOptions.of(odom_max_gap=5.0), poses=tum) as recording:
         assert recording.map_frame == "world" and recording.poses.source.startswith(str(tum))
 
 
@@ -62,7 +62,7 @@ def test_a_scan_folder_with_a_pose_file(folder: Path, tmp_path: Path) -> None:
 
 @pytest.mark.skipif(not kiss_icp_available(), reason="kiss-icp is not installed")
 def test_kiss_icp_estimated_poses(bag: Path) -> None:
-    with open_recording(bag, ReplayOptions(odometry="kiss-icp")) as recording:
+    with open_recording(bag, ReplayOptions.of(odometry="kiss-icp")) as recording:
         assert recording.map_frame == MAP_FRAME and recording.poses.body == "velodyne"
         assert recording.poses.source.startswith("KISS-ICP on the clouds")
         assert recording.extrinsic_source.startswith("identity")
@@ -100,7 +100,7 @@ def test_flags_that_do_not_fit_the_recording(bag: Path, folder: Path, tmp_path: 
     with pytest.raises(ReplayError, match="--times is for folders of scan files"):
         open_recording(bag, times=times)
     with pytest.raises(ReplayError, match="either --poses or --odometry"):
-        open_recording(folder, ReplayOptions(odometry="kiss-icp"), poses="identity")
+        open_recording(folder, ReplayOptions.of(odometry="kiss-icp"), poses="identity")
     with pytest.raises(ReplayError, match="true poses"):
         open_recording(SMALL, poses="identity")
     with pytest.raises(ReplayError, match="no such file"):

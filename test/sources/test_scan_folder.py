@@ -151,7 +151,7 @@ def test_a_folder_as_a_recording(tmp_path: Path) -> None:
         assert pipeline.scan_stamp(clouds[2].load()) == pytest.approx(0.2)
         np.testing.assert_allclose(recording.pose_source.interpolate([0.2])[0], [[2, 0, 0]])
     assert said and "skipped 1 entries" in said[0] and "3.pcd (a folder)" in said[0]
-    given = ReplayOptions(extrinsic=xyz_rpy([0, 0, 1], [0, 0, 0]))
+    given = ReplayOptions.of(extrinsic=xyz_rpy([0, 0, 1], [0, 0, 0]))
     with open_folder(folder, given, "identity") as recording:
         assert recording.map_frame == "lidar" and recording.poses.source == "identity"
         assert recording.extrinsic_source == "given on the command line"
@@ -190,4 +190,4 @@ def test_kiss_icp_missing_is_a_clear_error(tmp_path: Path, monkeypatch: pytest.M
     with pytest.raises(
         ReplayError, match="needs the Python package kiss-icp: pip install kiss-icp"
     ):
-        open_folder(folder, ReplayOptions(odometry="kiss-icp"))
+        open_folder(folder, ReplayOptions.of(odometry="kiss-icp"))
