@@ -167,7 +167,8 @@ def test_shards_and_origin() -> None:
     offset = np.asarray(mapper.origin)
     shifted = Mapper(0.25, max_range=6.0)  # the reference reads ``mapper`` at shifted points
     shifted.query = lambda p, stamp=None: mapper.query(np.asarray(p) + offset, stamp)  # type: ignore[method-assign]
-    want, _ = _reference(shifted, pts - offset, base - offset, 3.0, flags, 1.0, 1.0)
+    prior = mapper.prior  # the default: the family
+    want, _ = _reference(shifted, pts - offset, base - offset, 3.0, flags, prior.shape, prior.rate)
     np.testing.assert_allclose(got.ray_log_likelihood, want, rtol=1e-9, atol=1e-12)
     mapper.close()
 

@@ -118,7 +118,7 @@ def test_the_family_and_unset_shape_or_rate() -> None:
         model.resolve_prior(0.1, -1.0, 0.2, 0.03)
     mapper = Mapper(0.2, prior_shape=0.0, prior_rate=0.0, prior_scale=0.03)
     assert mapper.prior == model.Prior(0.006, 0.003)
-    assert Mapper(0.2).prior == model.family_prior(0.0275, 0.2)  # the settings. default
+    assert Mapper(0.2).prior == model.family_prior(0.0275, 0.2)  # the settings' default
 
 
 def test_map_files_record_the_resolved_family_prior(tmp_path: Path) -> None:
@@ -147,4 +147,9 @@ def test_replay_flags_and_node_parameters() -> None:
     cfg = check_parameters({"prior.shape": 0.3, "prior.rate": 0.05})
     assert Mapper.of(cfg.map, cfg.sensor_model).prior == PRIOR
     with pytest.raises(ValueError, match=r"prior\.rate"):
-        check_parameters({"prior.rate": 0.0})
+        check_parameters({"prior.rate": -1.0})
+    # 0, the default: from the family, prior.scale at the map's resolution
+    cfg = check_parameters({"prior.scale": 0.05, "resolution": 0.2})
+    assert Mapper.of(cfg.map, cfg.sensor_model).prior == model.family_prior(0.05, 0.2)
+    cfg = check_parameters({"prior.shape": 1.0, "prior.rate": 1.0})
+    assert Mapper.of(cfg.map, cfg.sensor_model).prior == model.UNIFORM

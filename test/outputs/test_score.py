@@ -251,7 +251,8 @@ def test_score_agrees_with_an_independent_implementation(shared_data: Path, tmp_
     keep = np.linalg.norm(xyz, axis=1) > 0
     pts = pts[keep]
     flags = np.zeros(len(pts), dtype=bool)
-    want, events = reference(mapper, pts, pose[:, 3], 1.0, flags, 1.0, 1.0)
+    prior = mapper.prior  # the default: the family at 0.25 m
+    want, events = reference(mapper, pts, pose[:, 3], 1.0, flags, prior.shape, prior.rate)
     assert got["rays"] == len(pts)
     assert got["events"] == len(events)
     assert got["log_likelihood_per_ray"] == pytest.approx(want.mean(), rel=0.01)
@@ -267,9 +268,20 @@ def test_score_agrees_with_an_independent_implementation(shared_data: Path, tmp_
     ]) == 0  # fmt: skip
     table = json.loads(rows.read_text())["rows"]
     assert [r["label"] for r in table] == [str(map_path)] * 2
-    want_prior, _ = reference(mapper, pts, pose[:, 3], 1.0, flags, 0.5, 1.0)
+    want_prior, _ = reference(mapper, pts, pose[:, 3], 1.0, flags, 0.5, prior.rate)
     assert table[0]["log_likelihood_per_ray"] == pytest.approx(want_prior.mean(), rel=1e-6)
-    assert table[0]["uniform_prior"]["log_likelihood_per_ray"] == got["log_likelihood_per_ray"]
+    uniform, _ = reference(mapper, pts, pose[:, 3], 1.0, flags, 1.0, 1.0)
+    assert table[0]["uniform_prior"]["log_likelihood_per_ray"] == pytest.approx(
+        uniform.mean(), rel=1e-6
+    )
+    assert got["uniform_prior"]["log_likelihood_per_ray"] == pytest.approx(uniform.mean(), rel=1e-6)
+    # --prior-scale: the family at the map's resolution
+    assert main([
+        "score", str(map_path), str(held), "--poses", str(poses).format(held.name),
+        "--max-range", "30", "--prior-scale", "0.1", "--json", str(rows), "-q",
+    ]) == 0  # fmt: skip
+    scaled = json.loads(rows.read_text())
+    assert scaled["prior"] == {"shape": pytest.approx(0.025), "rate": pytest.approx(0.0125)}
 
 
 def test_score_split_and_fit_prior_on_real_scans(shared_data: Path, tmp_path: Path) -> None:
