@@ -396,7 +396,8 @@ class OutputsSection(Section):
     projected_map_free_threshold: float = setting(
         -1.0,
         "Hit probability below which an observed ~/projected_map cell is free (0). Negative: "
-        "that of a never-observed voxel, resolution / (1 + resolution).",
+        "that of a never-observed voxel under the map's prior, 1 - (rate / (rate + "
+        "resolution))^shape (0.012 at 0.1 m with the default prior).",
         -1.0,
         1.0,
         name="projected_map.free_threshold",

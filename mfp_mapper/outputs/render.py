@@ -229,8 +229,10 @@ def render_map(
     """Write the pictures of ``mapper`` into ``out_dir``; return their paths.
 
     ``value``: per column, the largest ``"most-likely"`` DoO of the band (walls stand out;
-    a voxel crossed once is 0, fully free) or the largest posterior ``"mean"`` DoO (a
-    voxel crossed once stays near the prior's mean: little evidence shows). The voxel
+    a voxel crossed once is 0, fully free) or the largest posterior ``"mean"`` DoO (it
+    weighs the evidence against the map's prior; with the default prior a voxel seen
+    briefly is near the prior's mean DoO, about 0.02 at 0.1 m). Never-observed cells are
+    grey (unknown) in every picture, whatever the prior. The voxel
     drawn is the one with that largest value, ties to the most evidence (s), then the
     highest; the std picture shows its posterior std. ``min_evidence`` (metres of rays,
     s) leaves out voxels seen less than that: drawn as unobserved.
