@@ -396,3 +396,27 @@ def test_an_unwritable_output_is_refused_before_computing(
     assert main([command, *split, str(folder), "--poses", poses, "--json", str(missing),
                  "-q"]) == 1  # fmt: skip
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_fit_prior_over_two_recordings_fits_the_family(shared_data: Path, tmp_path: Path) -> None:
+    """Two recordings, --poses once each: the family's scale and the leave-one-out table."""
+    first = _street_folder(shared_data, tmp_path, [0, 1, 2], 8)
+    second = _street_folder(shared_data, tmp_path, [2, 1, 0], 8)
+    out = tmp_path / "fit.json"
+    poses = [str(tmp_path / f"poses_{f.name}.txt") for f in (first, second)]
+    assert main(["fit-prior", str(first), str(second), "--poses", poses[0], "--poses",
+                 poses[1], "--resolution", "0.4", "--json", str(out), "-q"]) == 0  # fmt: skip
+    fit = json.loads(out.read_text())
+    assert 1e-4 < fit["scale"] < 10.0
+    assert [s["recording"] for s in fit["samples"]] == [str(first), str(second)]
+    rows = fit["leave_one_out"]
+    assert [r["recording"] for r in rows] == [str(first), str(second)]
+    for row in rows:
+        assert row["log_likelihood_per_ray"] > row["uniform_log_likelihood_per_ray"]
+        assert row["gap_to_own"] == pytest.approx(
+            (row["own_log_likelihood_per_ray"] - row["log_likelihood_per_ray"])
+            / abs(row["own_log_likelihood_per_ray"])
+        )
+    # --poses given twice for three inputs: refused before any work
+    assert main(["fit-prior", str(first), str(second), str(first), "--poses", poses[0],
+                 "--poses", poses[1], "-q"]) == 1  # fmt: skip
