@@ -49,6 +49,7 @@ from mfp_mapper.core.mapper import Mapper  # noqa: E402
 from mfp_mapper.mapio.loading import load_map, save_map  # noqa: E402
 from mfp_mapper.mapping.live import LiveIntegrator, LiveSettings  # noqa: E402
 from mfp_mapper.mapping.live_localization import LiveLocalizer, pose_matrix  # noqa: E402
+from mfp_mapper.mapping.pose_correction import LocalizerCorrection  # noqa: E402
 from mfp_mapper.sensing.poses import OdometrySample, PoseBuffer  # noqa: E402
 from mfp_mapper.sources.scan_files import cloud_message_from_columns  # noqa: E402
 
@@ -80,7 +81,7 @@ def worker(mapper: Mapper, localizer: LiveLocalizer | None) -> LiveIntegrator:
         log=lambda key, text, error: None,
         now=lambda: T0 + 1e5,
         map_frame="" if localizer is not None else "odom",
-        localizer=localizer,
+        correction=None if localizer is None else LocalizerCorrection(localizer),
     )
 
 

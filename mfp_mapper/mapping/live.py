@@ -33,16 +33,18 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from mfp_mapper.config.frames import frame_name
 from mfp_mapper.config.sections import PlacementSection, SensorModelSection
 from mfp_mapper.core.mapper import Mapper
-from mfp_mapper.mapping.live_localization import LiveLocalizer, pose_matrix
+from mfp_mapper.mapping.live_localization import pose_matrix
 from mfp_mapper.mapping.loop import PreparedScan, ScanCounts, ScanLoop, staged
+from mfp_mapper.mapping.pose_correction import NoCorrection, PoseCorrection
 from mfp_mapper.mapping.whole_map import MERGE_PAUSE_S, WholeMap
 from mfp_mapper.sensing import pipeline
 from mfp_mapper.sensing.pipeline import PlacedScan
 from mfp_mapper.sensing.pointcloud import ParsedCloud
 from mfp_mapper.sensing.pose_inputs import Log, PoseCounters, PoseInputs
-from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer, PoseUnavailable
+from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer
 from mfp_mapper.sensing.tf_tree import TfTree
 
 if TYPE_CHECKING:
@@ -134,16 +136,15 @@ class LiveIntegrator:
         info: Callable[[str], None] | None = None,
         publish: Callable[[], None] | None = None,
         map_frame: str = "",
-        localizer: LiveLocalizer | None = None,
+        correction: PoseCorrection | None = None,
     ) -> None:
         """``map_frame``: the run's map frame when known at start (``frame_id``, a loaded
         map's frame); empty: decided at the first cloud placed (``PoseInputs``).
-        ``localizer``: the localization mode (``mapping.live_localization``): clouds are
-        placed in its odometry frame, then moved into the map frame by its correction."""
+        ``correction``: how placed clouds reach the map frame (``mapping.pose_correction``;
+        default ``NoCorrection``, mapping: placed in the map frame)."""
         self.mapper = mapper
-        self.localizer = localizer
-        if localizer is not None:
-            map_frame = localizer.odom_frame
+        self.correction: PoseCorrection = correction or NoCorrection()
+        map_frame = self.correction.placement_frame(map_frame)
         self.settings = settings
         self.counters = LiveCounters()
         self.map_lock = threading.Lock()
@@ -157,7 +158,7 @@ class LiveIntegrator:
             info=info or (lambda text: log("info", text, False)),
             now=now,
         )
-        if self.pose_inputs.map_frame is not None and localizer is None:
+        if self.pose_inputs.map_frame is not None and self.correction.names_map:
             mapper.frame_id = self.pose_inputs.map_frame
         self._warned: set[str] = set()
         self._log = log
@@ -203,51 +204,19 @@ class LiveIntegrator:
     @property
     def map_frame(self) -> str:
         """The run's map frame ("" until decided; the global frame when localizing)."""
-        if self.localizer is not None:
-            return self.localizer.global_frame
-        return self.pose_inputs.map_frame or ""
+        return self.correction.map_frame(self.pose_inputs.map_frame or "")
 
     @property
     def robot_position(self) -> Any:
-        position = self.pose_inputs.robot_position
-        if self.localizer is None or position is None:
-            return position
-        m, _, _ = self.localizer.transform()
-        return m[:3, :3] @ np.asarray(position, dtype=np.float64) + m[:3, 3]
+        return self.correction.position(self.pose_inputs.robot_position)
 
     def to_map_frame(self, points: np.ndarray, frame: str, stamp: float) -> np.ndarray:
         """Points given in ``frame`` in the map frame (``PoseInputs.to_map_frame``; when
         localizing: through the odometry frame and the correction); raises
         TransformUnavailable."""
-        if self.localizer is None:
-            return self.pose_inputs.to_map_frame(points, frame, stamp)
-        frame = frame.lstrip("/")
-        if not frame or frame == self.localizer.global_frame:
-            return points
-        in_odom = self.pose_inputs.to_map_frame(points, frame, stamp)
-        m, _, _ = self.localizer.transform()
-        return np.asarray(in_odom) @ m[:3, :3].T + m[:3, 3]
-
-    def robot_in_odom(self, stamp: float) -> np.ndarray | None:
-        """The robot (the odometry child) in the localizer's odometry frame (4x4) at ``stamp``,
-        or at the latest odometry when the stamp is not covered; None without odometry in
-        that frame (then ``/initialpose`` waits for the next cloud)."""
-        inputs = self.pose_inputs
-        if self.localizer is None:
-            return None
-        with inputs.lock:
-            if inputs.odom_frame != self.localizer.odom_frame or not len(inputs.poses):
-                return None
-            poses = inputs.poses.snapshot()
-        latest, earliest = poses.latest_stamp, poses.earliest_stamp
-        if latest is None:
-            return None
-        covered = earliest is not None and earliest <= stamp <= latest
-        try:
-            t, r = poses.interpolate([stamp if covered else latest])
-        except PoseUnavailable:
-            return None
-        return pose_matrix(t[0], r[0])
+        return self.correction.to_map_frame(
+            points, frame, lambda p, f: self.pose_inputs.to_map_frame(p, f, stamp)
+        )
 
     # --- inputs (any thread) ----------------------------------------------------------------
 
@@ -291,8 +260,7 @@ class LiveIntegrator:
             self._waiting.clear()
             for _ in range(dropped):
                 self.counters.drop("clock_jump")
-        if self.localizer is not None:
-            self.localizer.clock_jumped(now)
+        self.correction.clock_jumped(now)
         self._log(
             "clock_jump",
             f"clock jumped back {jump:.3f} s (to {now:.3f}): pose and TF buffers "
@@ -448,7 +416,7 @@ class LiveIntegrator:
         waited = time.monotonic() - item.received
         try:
             placement = self.pose_inputs.placement(
-                frame, cfg.base_frame_id.lstrip("/"), settings.extrinsic_override
+                frame, frame_name(cfg.base_frame_id), settings.extrinsic_override
             )
         except pipeline.ScanDropped as drop:
             if waited <= cfg.odom_wait and drop.reason != "tf_conflict":
@@ -481,15 +449,14 @@ class LiveIntegrator:
                 0,
                 parse_drops,
             )
-        if self.mapper.frame_id != placement.map_frame and self.localizer is None:
+        if self.mapper.frame_id != placement.map_frame and self.correction.names_map:
             self.mapper.frame_id = placement.map_frame  # the run's frame, decided once
         t_place = time.monotonic()
         placed = self.loop.place(prepared, placement.poses, placement.extrinsic)
-        if self.localizer is not None:  # localization: aligned, then integrated here
-            placed = self.localizer.localize(placed, _robot_pose(placement))
-        self.pose_inputs.note_robot(placement, prepared.stamp, cfg.base_frame_id.lstrip("/"))
+        placed = self.correction.correct(placed, _robot_pose(placement))
+        self.pose_inputs.note_robot(placement, prepared.stamp, frame_name(cfg.base_frame_id))
         job = _Placed(item, placed, t_place, time.monotonic())
-        if self.localizer is None and self._walker is not None and self._walker.is_alive():
+        if not self.correction.aligns and self._walker is not None and self._walker.is_alive():
             self._hand_over(job)
         else:
             self._integrate(job)  # drain(), localization: all on the calling thread
@@ -548,10 +515,9 @@ class LiveIntegrator:
             with self.map_lock:  # sensor_model.max_range changed at run time
                 self.mapper.max_range = max_range
         summary = None  # None: localized against a frozen map, not integrated
-        if self.localizer is None or not self.localizer.settings.freeze_map:
+        if self.correction.integrates:
             summary = self.loop.commit(job.placed)
-            if self.localizer is not None:
-                self.localizer.build_in_background(self.mapper, self.whole_map)
+            self.correction.map_grew(self.mapper, self.whole_map)
         done = time.monotonic()
         own_cpu = time.thread_time() - own_cpu
         latency = self._now() - job.placed.stamp
@@ -598,13 +564,13 @@ class LiveIntegrator:
         if frame.startswith("/"):
             self._warn_once(
                 "cloud_slash",
-                f"cloud frame_id {frame!r} has a leading slash: read as {frame.lstrip('/')!r} "
+                f"cloud frame_id {frame!r} has a leading slash: read as {frame_name(frame)!r} "
                 "(tf2 rejects such names; fix the driver)",
             )
-            frame = frame.lstrip("/")
+            frame = frame_name(frame)
         if frame:
             return frame
-        cloud_frame_id = self.settings.placement.cloud_frame_id.lstrip("/")
+        cloud_frame_id = frame_name(self.settings.placement.cloud_frame_id)
         if cloud_frame_id:
             return cloud_frame_id
         raise pipeline.ScanDropped(

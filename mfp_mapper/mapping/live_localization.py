@@ -51,6 +51,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from mfp_mapper.config.frames import frame_name
 from mfp_mapper.config.sections import LocalizationSection
 from mfp_mapper.core.alignment import (
     Alignment,
@@ -178,7 +179,7 @@ class LiveLocalizer:
     def odom_frame(self) -> str:
         """The odometry frame clouds are placed in (``localization.odom_frame``, tf1's leading
         slash stripped)."""
-        return self.settings.odom_frame.lstrip("/")
+        return frame_name(self.settings.odom_frame)
 
     def build(self, mapper: Mapper, whole_map: Any) -> None:
         """Build the field from the map: its statistics copied under ``whole_map`` (a

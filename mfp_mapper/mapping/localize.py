@@ -21,6 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from mfp_mapper.config.frames import frame_name
 from mfp_mapper.config.replay_options import ReplayOptions
 from mfp_mapper.core.alignment import (
     Alignment,
@@ -34,7 +35,7 @@ from mfp_mapper.core.model import ALIGNMENT_PRIOR
 from mfp_mapper.mapping.loop import ScanLoop
 from mfp_mapper.mapping.replay import ScanSelection, new_mapper
 from mfp_mapper.sensing.pipeline import PlacedScan, ScanDropped
-from mfp_mapper.sensing.poses import PoseUnavailable, frame_name
+from mfp_mapper.sensing.poses import PoseUnavailable
 from mfp_mapper.sensing.scan_normals import scan_normals
 from mfp_mapper.sources.opener import opened
 from mfp_mapper.sources.recording import Recording

@@ -26,13 +26,14 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from mfp_mapper.config.frames import frame_name
 from mfp_mapper.config.sections import PlacementSection, SensorModelSection
 from mfp_mapper.core.mapper import IntegrationSummary, Mapper
 from mfp_mapper.sensing import pipeline
 from mfp_mapper.sensing.deskew import PoseSource
 from mfp_mapper.sensing.pipeline import PlacedScan, ScanDropped
 from mfp_mapper.sensing.pointcloud import ParsedCloud
-from mfp_mapper.sensing.poses import Extrinsic, frame_name
+from mfp_mapper.sensing.poses import Extrinsic
 
 FloatArray = NDArray[np.float64]
 

@@ -33,33 +33,45 @@ def tracked(callback: Callable[..., Any]) -> Callable[..., Any]:
     No exception leaves a callback (it would end ``spin()`` and the node): it is logged and
     a service answers with its (default or error) response.
     """
+    return _tracking(callback, lambda owner: owner)
 
+
+def tracked_role(callback: Callable[..., Any]) -> Callable[..., Any]:
+    """``tracked`` for a method of one of the node's roles: an object whose ``node`` is the
+    ``GuardedNode`` that counts and logs its callbacks."""
+    return _tracking(callback, lambda owner: owner.node)
+
+
+def _tracking(
+    callback: Callable[..., Any], node_of: Callable[[Any], GuardedNode]
+) -> Callable[..., Any]:
     def fallback(args: tuple[Any, ...]) -> Any:
         return args[-1] if len(args) == 2 else None  # a service returns its response
 
     if inspect.iscoroutinefunction(callback):
 
         @functools.wraps(callback)
-        async def run_async(self: GuardedNode, *args: Any) -> Any:
+        async def run_async(owner: Any, *args: Any) -> Any:
             try:
-                return await callback(self, *args)
+                return await callback(owner, *args)
             except Exception as err:
-                self._callback_failed(callback.__name__, err)
+                node_of(owner)._callback_failed(callback.__name__, err)
                 return fallback(args)
 
         return run_async
 
     @functools.wraps(callback)
-    def run(self: GuardedNode, *args: Any) -> Any:
-        if not self._begin_work():
+    def run(owner: Any, *args: Any) -> Any:
+        node = node_of(owner)
+        if not node._begin_work():
             return fallback(args)
         try:
-            return callback(self, *args)
+            return callback(owner, *args)
         except Exception as err:
-            self._callback_failed(callback.__name__, err)
+            node._callback_failed(callback.__name__, err)
             return fallback(args)
         finally:
-            self._end_work()
+            node._end_work()
 
     return run
 
@@ -121,6 +133,21 @@ class GuardedNode(Node):
         if not ok:
             raise value
         return value
+
+    def in_background(self, job: Callable[[], object], name: str) -> bool:
+        """Run ``job`` in a thread of its own, counted in flight (close() waits for it);
+        False, and nothing run, once the node closes."""
+        if not self._begin_work():
+            return False
+
+        def run() -> None:
+            try:
+                job()
+            finally:
+                self._end_work()
+
+        threading.Thread(target=run, name=name, daemon=True).start()
+        return True
 
     def _begin_work(self) -> bool:
         """Count work in flight that close() must wait for; False once the node closes."""

@@ -2,7 +2,9 @@
 
 ROS wiring only: subscriptions hand clouds and odometry to the ROS-free worker
 (``mfp_mapper.mapping.live``: queue, odometry wait, the scan pipeline, drops, counters);
-``map_outputs`` publishes the map; services query, save, reset and clear it. Run it with
+``map_outputs`` publishes the map; ``map_files`` loads it and saves it (``~/save_map``,
+the autosave, on shutdown); ``localization`` is the localization mode (map -> odom,
+``/initialpose``, ``~/pose``); services query, reset and clear the map. Run it with
 ``python -m mfp_mapper.node --ros-args ...`` or ``ros2 run mfp_mapper mfp_mapper``;
 parameters are in ``mfp_mapper.config.schema``. A lifecycle node: with ``autostart`` (the
 default) it configures and activates itself; else a lifecycle manager drives it
@@ -23,10 +25,8 @@ from __future__ import annotations
 import json
 import os
 import sys
-import threading
 import time
 from dataclasses import replace
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -37,7 +37,6 @@ import rclpy.task
 import rclpy.time
 import rclpy.utilities
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseWithCovarianceStamped, TransformStamped
 from mfp_mapper_msgs.srv import ClearBbox
 from nav_msgs.msg import OccupancyGrid, Odometry
 from nav_msgs.srv import GetMap
@@ -59,22 +58,18 @@ from rclpy.service import Service
 from rclpy.signals import SignalHandlerOptions
 from rclpy.subscription import Subscription
 from rclpy.timer import Timer
-from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
-from std_srvs.srv import Empty, Trigger
+from std_srvs.srv import Empty
 from tf2_msgs.msg import TFMessage
 
+from mfp_mapper.config.frames import frame_name
 from mfp_mapper.config.schema import SPECS, NodeConfig
-from mfp_mapper.core.mapper import Mapper, mapper_kwargs
-from mfp_mapper.core.store import MAX_VOXEL_INDEX
-from mfp_mapper.mapio.atomic import remove_stale_temp_files
-from mfp_mapper.mapio.loading import load_map
-from mfp_mapper.mapio.mapfile import MapFileError, map_arrays
-from mfp_mapper.mapio.tiles import is_tiled, write_map_path
+from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.mapping.live import LiveIntegrator, LiveSettings
-from mfp_mapper.mapping.live_localization import LiveLocalizer
 from mfp_mapper.ros.guarded_node import GuardedLifecycleNode, tracked
+from mfp_mapper.ros.localization import Localization
+from mfp_mapper.ros.map_files import MapFiles
 from mfp_mapper.ros.map_outputs import MapOutputs
 from mfp_mapper.ros.messages import cloud_msg
 from mfp_mapper.ros.params import declare_parameters, usage
@@ -83,6 +78,7 @@ from mfp_mapper.ros.status import (
     StatusWindow,
     diagnostics,
     localization_diagnostic,
+    localization_line,
     next_window,
     startup_text,
     status_report,
@@ -107,64 +103,6 @@ CLOCK_GRACE = 3.0
 """Wall seconds after start before a missing /clock (use_sim_time) is reported."""
 
 
-def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, str | None]:
-    """The map to start from: ``map_path`` when it exists and loads, else an empty one; and,
-    when loading failed, the path saves go to instead (``recovery_path``): that file is
-    never saved over."""
-    path = cfg.node.map_path
-    if path:  # temporary files of a save that was killed midway
-        target = os.path.realpath(path)
-        stale = remove_stale_temp_files(os.path.dirname(target), os.path.basename(target))
-        if os.path.isdir(target):  # a tiled map: its index and tiles
-            stale += remove_stale_temp_files(target) + remove_stale_temp_files(
-                os.path.join(target, "tiles")
-            )
-        for name in stale:
-            logger.info(f"removed {name}, left by an interrupted save")
-    if not (path and os.path.lexists(path)) or (
-        os.path.isdir(path) and not is_tiled(path) and not os.listdir(path)
-    ):  # nothing yet, or an empty directory for a tiled map
-        return _empty_map(cfg), None
-    try:
-        mapper = load_map(path, **mapper_kwargs(cfg.map, cfg.sensor_model))
-    except Exception as err:  # a map file never takes the node down (MemoryError included)
-        text = f"{type(err).__name__}: {err}"
-        if isinstance(err, MapFileError):  # it names its file: once is enough
-            text = err.problem if err.path == Path(path) else str(err)
-        other = recovery_path(path)
-        logger.error(
-            f"cannot load map_path {path!r}: {text}; starting an empty map, saved to "
-            f"{other!r}, never over that file"
-        )
-        return _empty_map(cfg), other
-    if mapper.resolution != cfg.map.resolution:
-        logger.warning(
-            f"map {path!r} has resolution {mapper.resolution} m, parameter "
-            f"resolution is {cfg.map.resolution} m: keeping the map's"
-        )
-    if cfg.map.frame_id and mapper.frame_id and mapper.frame_id != cfg.map.frame_id:
-        logger.warning(
-            f"map {path!r} was built in frame {mapper.frame_id!r}, parameter frame_id is "
-            f"{cfg.map.frame_id!r}: its voxels are taken as coordinates in {cfg.map.frame_id!r}"
-        )
-    if cfg.map.frame_id:
-        mapper.frame_id = cfg.map.frame_id
-    logger.info(f"loaded {mapper.num_voxels} voxels from {path!r} (frame {mapper.frame_id})")
-    return mapper, None
-
-
-def recovery_path(map_path: str) -> str:
-    """Where the node saves when ``map_path`` failed to load: beside it, named by the start
-    time (UTC), e.g. ``site.npz`` -> ``site.20261124T010203Z.npz``."""
-    stem = map_path.rstrip("/")
-    stem = stem[: -len(".npz")] if stem.endswith(".npz") else stem
-    return f"{stem}.{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}.npz"
-
-
-def _empty_map(cfg: NodeConfig) -> Mapper:
-    return Mapper.of(cfg.map, cfg.sensor_model, frame_id=cfg.map.frame_id or "map")
-
-
 class StartError(RuntimeError):
     """``autostart``: configuring or activating the node failed (logged)."""
 
@@ -186,12 +124,11 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._started = time.monotonic()
         self._queries = 0
         self._maps_served = 0
-        self._save_lock = threading.Lock()
-        self._save_elsewhere: str | None = None  # where saves go when map_path failed to load
+        self.files = MapFiles(self, lambda: self.cfg)
         self._transport_explained = False
         self._clock_warned = False
         self.worker: LiveIntegrator  # set by configure
-        self.localizer: LiveLocalizer | None = None  # localization.enabled
+        self.localization: Localization | None = None  # localization.enabled
         self.outputs: MapOutputs
         self._configured = False
         self._configured_once = False
@@ -219,9 +156,13 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._map_figures = (0, 0, 0)
         self._status_window = StatusWindow(time.monotonic())
         self._last_window = self._status_window
-        mapper, self._save_elsewhere = initial_mapper(self.cfg, self.get_logger())
+        mapper = self.files.load()
         self._warn_slashes()
-        self.localizer = self._make_localizer(mapper)
+        self.localization = (
+            Localization(self, lambda: self.cfg, mapper, self._now)
+            if self.cfg.localization.enabled
+            else None
+        )
         self.worker = LiveIntegrator(
             mapper,
             LiveSettings.of(self.cfg),
@@ -233,12 +174,11 @@ class MfpMapperNode(GuardedLifecycleNode):
             info=self.get_logger().info,
             now=self._now,
             map_frame=self.cfg.map.frame_id or (mapper.frame_id if mapper.num_voxels else ""),
-            localizer=self.localizer,
+            correction=None if self.localization is None else self.localization.correction,
         )
-        if self.localizer is not None and mapper.num_voxels:
-            self.localizer.build_in_background(mapper, self.worker.whole_map, force=True)
-        # the map version last saved: the autosave writes only a map that changed since
-        self._saved_version: int | None = mapper.version
+        if self.localization is not None:
+            self.localization.start(self.worker)
+        self.files.keep(self.worker)
         self.outputs = MapOutputs(self, self.worker, lambda: self.cfg.outputs, self.warn_throttled)
         self.worker.set_publish(self.outputs.publish)
         self._entities += self.outputs.publishers
@@ -248,31 +188,6 @@ class MfpMapperNode(GuardedLifecycleNode):
         self.get_logger().info(
             startup_text(self.cfg, self.resolve_topic_name, self.mapper, self.map_frame)
         )
-
-    def _make_localizer(self, mapper: Mapper) -> LiveLocalizer | None:
-        """The localization mode's state (``localization.enabled``), its map frame being
-        ``frame_id``, else the loaded map's."""
-        if not self.cfg.localization.enabled:
-            return None
-        global_frame = self.cfg.map.frame_id or mapper.frame_id or "map"
-        mapper.frame_id = global_frame
-        settings = self.cfg.localization
-        if not mapper.num_voxels:
-            self.get_logger().warning(
-                "localization.enabled but no map was loaded from map_path "
-                f"{self.cfg.node.map_path!r}: waiting for a map"
-                + (
-                    " (none will come: localization.freeze_map is true)"
-                    if settings.freeze_map
-                    else ""
-                )
-            )
-        if settings.odom_frame.lstrip("/") == global_frame:
-            raise ValueError(
-                f"localization.odom_frame and the map frame are both {global_frame!r}: the "
-                "correction map -> odom needs two frames"
-            )
-        return LiveLocalizer(settings, global_frame, log=self.get_logger().info)
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Subscribe to clouds, odometry and TF; start integrating and publishing."""
@@ -314,7 +229,7 @@ class MfpMapperNode(GuardedLifecycleNode):
             self.wait_idle(timeout=2.0)
             self.worker.stop(timeout=0.5)
             if save:
-                self._save_on_shutdown()
+                self.files.save_on_shutdown()
             if not self.worker.running:
                 self.mapper.close()
             self._configured = False
@@ -344,19 +259,8 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._result_pub = self.create_publisher(PointCloud2, "~/hit_probability/result", 10)
         self._entities += [self._status_pub, self._diag_pub, self._result_pub]
-        if self.localizer is not None:
-            self._pose_pub = self.create_publisher(PoseWithCovarianceStamped, "~/pose", 10)
-            self._entities.append(self._pose_pub)
-            self._pose_version = 0
-            self._tf_version = -1
-            if self.cfg.localization.tf_publish:
-                tf_qos = QoSProfile(
-                    history=HistoryPolicy.KEEP_LAST,
-                    depth=100,
-                    reliability=ReliabilityPolicy.RELIABLE,
-                )
-                self._tf_pub = self.create_publisher(TFMessage, "/tf", tf_qos)
-                self._entities.append(self._tf_pub)
+        if self.localization is not None:
+            self._entities += self.localization.create_publishers()
         # what needs the map runs in a thread of its own and is awaited (a coroutine), so the
         # executor keeps taking odometry and clouds while a long scan holds the map; their
         # own group: a pending call must not hold the default group
@@ -368,7 +272,7 @@ class MfpMapperNode(GuardedLifecycleNode):
             self.create_service(
                 GetMap, "~/hit_probability_map", self._on_get_map, callback_group=group
             ),
-            self.create_service(Trigger, "~/save_map", self._on_save, callback_group=group),
+            self.files.create_service(group),
             self.create_service(Empty, "~/reset", self._on_reset, callback_group=group),
             self.create_service(
                 ClearBbox, "~/clear_bbox", self._on_clear_bbox, callback_group=group
@@ -418,23 +322,9 @@ class MfpMapperNode(GuardedLifecycleNode):
             )
         self._clock_warned = False
         self._active.append(self.create_timer(1.0, self._check_clock, clock=wall))
-        if self.localizer is not None:
-            self._active.append(
-                self.create_subscription(
-                    PoseWithCovarianceStamped, "initialpose", self._on_initial_pose, 10
-                )
-            )
-            self._active.append(
-                self.create_timer(
-                    1.0 / self.cfg.localization.tf_rate, self._on_tf_timer, clock=wall
-                )
-            )
-        if self.cfg.node.autosave_period > 0.0 and self.cfg.node.map_path:
-            self._active.append(
-                self.create_timer(
-                    self.cfg.node.autosave_period, self._on_autosave_timer, clock=wall
-                )
-            )
+        if self.localization is not None:
+            self._active += self.localization.create_inputs(wall)
+        self._active += self.files.create_timer(wall)
 
     # --- set-up ----------------------------------------------------------------------------
 
@@ -454,16 +344,16 @@ class MfpMapperNode(GuardedLifecycleNode):
             if value.startswith("/"):
                 self.get_logger().warning(
                     f"parameter {name} {value!r} has a leading slash: using "
-                    f"{value.lstrip('/')!r} (tf2 and RViz reject such frame names)"
+                    f"{frame_name(value)!r} (tf2 and RViz reject such frame names)"
                 )
         cfg = self.cfg
         self.cfg = replace(
             cfg,
-            map=replace(cfg.map, frame_id=cfg.map.frame_id.lstrip("/")),
+            map=replace(cfg.map, frame_id=frame_name(cfg.map.frame_id)),
             placement=replace(
                 cfg.placement,
-                base_frame_id=cfg.placement.base_frame_id.lstrip("/"),
-                cloud_frame_id=cfg.placement.cloud_frame_id.lstrip("/"),
+                base_frame_id=frame_name(cfg.placement.base_frame_id),
+                cloud_frame_id=frame_name(cfg.placement.cloud_frame_id),
             ),
         )
 
@@ -502,8 +392,8 @@ class MfpMapperNode(GuardedLifecycleNode):
         self.cfg = new  # one assignment: a reader never sees half of a change
         if self._configured:
             self.worker.settings = LiveSettings.of(new)  # the next scan uses it
-            if self.localizer is not None:
-                self.localizer.settings = new.localization
+            if self.localization is not None:
+                self.localization.reconfigure(new)
             self.outputs.invalidate()  # republish with the new filter
         return SetParametersResult(successful=True)
 
@@ -552,120 +442,6 @@ class MfpMapperNode(GuardedLifecycleNode):
     def _on_odom(self, msg: Odometry) -> None:
         self.worker.observe_clock(self._now())
         self.worker.add_odometry(odometry_sample(msg))
-
-    @tracked
-    def _on_initial_pose(self, msg: PoseWithCovarianceStamped) -> None:
-        """``/initialpose`` (RViz's "2D Pose Estimate"): the robot's pose in the map frame;
-        map -> odom is reset so that the robot's odometry pose maps to it."""
-        if self.localizer is None:
-            return
-        frame = msg.header.frame_id.lstrip("/")
-        expected = self.localizer.global_frame
-        if frame != expected:
-            self.warn_throttled(
-                "initialpose_frame",
-                f"/initialpose in frame {frame!r} ignored: it must be in the map frame "
-                f"{expected!r} (RViz: set the Fixed Frame to {expected!r})",
-                error=True,
-            )
-            return
-        p, q = msg.pose.pose.position, msg.pose.pose.orientation
-        values = (p.x, p.y, p.z, q.x, q.y, q.z, q.w)
-        if (
-            not all(np.isfinite(values))
-            or abs(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w - 1) > 0.01
-        ):
-            self.warn_throttled(
-                "initialpose_bad",
-                f"/initialpose ignored: not finite or not a unit quaternion {values}",
-                error=True,
-            )
-            return
-        reach = MAX_VOXEL_INDEX * self.mapper.resolution
-        origin = np.asarray(self.mapper.origin or (0.0, 0.0, 0.0))
-        if float(np.max(np.abs(np.array((p.x, p.y, p.z)) - origin))) >= reach:
-            self.warn_throttled(
-                "initialpose_far",
-                f"/initialpose ignored: position ({p.x:.6g}, {p.y:.6g}, {p.z:.6g}) is beyond "
-                f"the map's reach ({reach:.6g} m from its origin at {self.mapper.resolution} m)",
-                error=True,
-            )
-            return
-        stamp, clock = stamp_seconds(msg.header.stamp), self._now()
-        stamp = stamp if stamp > 0.0 else clock  # RViz may leave it 0
-        ahead = stamp - clock if clock > 0.0 else 0.0
-        if ahead > 1.0:  # would stamp map -> odom ahead of every lookup until a correction
-            stamp = clock
-        now = self.localizer.initial_pose(
-            stamp, (p.x, p.y, p.z), (q.x, q.y, q.z, q.w), self.worker.robot_in_odom(stamp)
-        )
-        when = "map -> odom reset now" if now else "applied at the next cloud (no odometry yet)"
-        self.get_logger().info(
-            f"/initialpose received: robot at x {p.x:.3f} y {p.y:.3f} z {p.z:.3f} in "
-            f"{expected!r}; {when}"
-            + (
-                f"; its stamp was {ahead:.6g} s ahead of the clock: taken as now"
-                if ahead > 1.0
-                else ""
-            )
-        )
-
-    @tracked
-    def _on_tf_timer(self) -> None:
-        """Publish ``~/pose`` when an alignment vouched for a new one, and map -> odom: a new
-        correction stamped with its cloud's stamp, else the last one stamped now; both
-        future-dated by ``transform_tolerance`` (AMCL's rule)."""
-        if self.localizer is None:
-            return
-        self._publish_pose()
-        if not self.cfg.localization.tf_publish:
-            return
-        m, stamp, version = self.localizer.transform()
-        if not np.isfinite(stamp):
-            return  # no correction yet (none accepted, no /initialpose): nothing to claim
-        now = self._now()
-        if version == self._tf_version:
-            if now <= 0.0:
-                return  # use_sim_time before /clock
-            stamp = max(now, stamp)
-        self._tf_version = version
-        self._tf_pub.publish(TFMessage(transforms=[self._map_to_odom(m, stamp)]))
-
-    def _publish_pose(self) -> None:
-        """``~/pose`` (AMCL's amcl_pose): the robot in the map frame, at each alignment that
-        vouched for it, with the alignment's standard deviations on the diagonal."""
-        assert self.localizer is not None
-        version, estimate = self.localizer.pose_estimate()
-        if estimate is None or version == self._pose_version:
-            return
-        self._pose_version = version
-        stamp, m, sigma = estimate
-        msg = PoseWithCovarianceStamped()
-        msg.header.frame_id = self.localizer.global_frame
-        msg.header.stamp = rclpy.time.Time(nanoseconds=int(round(stamp * 1e9))).to_msg()
-        p, o = msg.pose.pose.position, msg.pose.pose.orientation
-        p.x, p.y, p.z = (float(v) for v in m[:3, 3])
-        o.x, o.y, o.z, o.w = (float(v) for v in Rotation.from_matrix(m[:3, :3]).as_quat())
-        std = np.concatenate([sigma[:3], np.radians(sigma[3:])])
-        var = np.where(np.isfinite(std), std * std, 1e6)  # unbounded: a large variance
-        msg.pose.covariance = [float(v) for v in np.diag(var).ravel()]
-        self._pose_pub.publish(msg)
-
-    def _map_to_odom(self, m: np.ndarray, stamp: float) -> TransformStamped:
-        localizer = self.localizer
-        assert localizer is not None
-        out = TransformStamped()
-        t = stamp + self.cfg.localization.transform_tolerance
-        out.header.stamp = rclpy.time.Time(nanoseconds=int(round(t * 1e9))).to_msg()
-        out.header.frame_id = localizer.global_frame
-        out.child_frame_id = localizer.odom_frame
-        out.transform.translation.x, out.transform.translation.y, out.transform.translation.z = (
-            float(v) for v in m[:3, 3]
-        )
-        q = Rotation.from_matrix(m[:3, :3]).as_quat()
-        r = out.transform.rotation
-        r.x, r.y, r.z, r.w = (float(v) for v in q)
-        return out
 
     @tracked
     def _on_publish_timer(self) -> None:
@@ -735,63 +511,6 @@ class MfpMapperNode(GuardedLifecycleNode):
         return response
 
     @tracked
-    async def _on_save(
-        self, request: Trigger.Request, response: Trigger.Response
-    ) -> Trigger.Response:
-        """Save in a background thread: writing a large map takes seconds, and meanwhile
-        the executor keeps taking odometry and clouds (this call resumes when it is done)."""
-        try:
-            response.success, response.message = await self.off_executor(self.save_map)
-        except Exception as err:  # an unexpected failure answers the call, never kills spin
-            self.get_logger().error(f"saving the map failed: {err!r}")
-            response.success, response.message = False, f"saving failed: {err!r}"
-        return response
-
-    def save_map(self, only_if_changed: bool = False) -> tuple[bool, str]:
-        """Write the map to ``map_path`` (one save at a time), or beside it when it failed to
-        load at start (``recovery_path``): one map file, or a tiled map when ``map_path`` is
-        a directory; stored uncompressed, so that a large map is saved within ``ros2
-        launch``'s grace period. Returns (success, message)."""
-        path = self._save_elsewhere or self.cfg.node.map_path
-        if not path:
-            return False, "parameter map_path is empty: nowhere to save"
-        t0 = time.perf_counter()
-        try:
-            with self._save_lock:
-                with self.worker.whole_map:  # snapshot only: writing runs unlocked
-                    started = time.perf_counter() - t0
-                    version = self.mapper.version
-                    if only_if_changed and version == self._saved_version:
-                        return True, "map unchanged since the last save"
-                    arrays = map_arrays(self.mapper)
-                count = write_map_path(path, arrays, compress=False)
-                self._saved_version = version
-        except (OSError, ValueError, MapFileError) as err:
-            self.get_logger().error(f"saving the map to {path!r} failed: {err}")
-            return False, f"saving to {path!r} failed: {err}"
-        seconds = time.perf_counter() - t0
-        timing = f"started after {started:.3f} s, done in {seconds:.2f} s"
-        kept = ""
-        if self._save_elsewhere:
-            kept = f" (map_path {self.cfg.node.map_path!r} failed to load at start: kept as it was)"
-        self.get_logger().info(f"saved {count} voxels to {path!r} ({timing}){kept}")
-        return True, f"saved {count} voxels to {path} ({timing}){kept}"
-
-    @tracked
-    def _on_autosave_timer(self) -> None:
-        """Save in the background when the map changed, unless a save is running."""
-        if self._save_lock.locked() or not self._begin_work():
-            return
-
-        def run() -> None:
-            try:
-                self.save_map(only_if_changed=True)
-            finally:
-                self._end_work()
-
-        threading.Thread(target=run, name="mfp_autosave", daemon=True).start()
-
-    @tracked
     async def _on_reset(self, request: Empty.Request, response: Empty.Response) -> Empty.Response:
         def reset() -> None:
             with self.worker.whole_map:
@@ -828,8 +547,8 @@ class MfpMapperNode(GuardedLifecycleNode):
 
     def _map_changed(self) -> None:
         """After a reset or a cleared box: the localization's field is rebuilt."""
-        if self.localizer is not None:
-            self.localizer.build_in_background(self.mapper, self.worker.whole_map, force=True)
+        if self.localization is not None:
+            self.localization.map_changed()
 
     # --- health ----------------------------------------------------------------------------
 
@@ -850,8 +569,8 @@ class MfpMapperNode(GuardedLifecycleNode):
             "queries": self._queries,
             "maps_served": self._maps_served,
         }
-        if self.localizer is not None:
-            extra["localization"] = self.localizer.report()
+        if self.localization is not None:
+            extra["localization"] = self.localization.report()
         report = status_report(
             c, queued, self._map_figures, self.outputs.counters, self._status_window, extra
         )
@@ -866,7 +585,7 @@ class MfpMapperNode(GuardedLifecycleNode):
             f"{s['rays_per_s']:.0f} rays/s, {s['clouds_integrated']}/{s['clouds_in']} clouds "
             f"integrated, drops: {drops}, {s['voxels']} voxels, "
             f"{s['memory_bytes'] / 1e6:.1f} MB, integration CPU "
-            f"{100 * s['integration_cpu_share']:.0f}%{_localization_line(s)}"
+            f"{100 * s['integration_cpu_share']:.0f}%{localization_line(s)}"
         )
         self._status_pub.publish(String(data=json.dumps(s)))
         name = f"{self.get_name()}: mapping"
@@ -889,24 +608,6 @@ class MfpMapperNode(GuardedLifecycleNode):
         """Stop the worker; save the map when save_on_shutdown (never over a map_path that
         failed to load: beside it, ``recovery_path``)."""
         self._release(save=True)
-
-    def _save_on_shutdown(self) -> None:
-        if self.cfg.node.save_on_shutdown:
-            self.save_map()  # beside map_path when it failed to load
-
-
-def _localization_line(status: dict[str, Any]) -> str:
-    """The status line's localization part ("" when not localizing)."""
-    loc = status.get("localization")
-    if not loc:
-        return ""
-    refused = ", ".join(f"{k} {v}" for k, v in sorted(loc["refused"].items())) or "none"
-    m = loc["map_to_odom"]
-    return (
-        f"; localization {loc['state']}: {loc['accepted']} of {loc['aligned']} alignments "
-        f"accepted (refused: {refused}), map -> odom x {m['x']:.3f} y {m['y']:.3f} yaw "
-        f"{m['yaw_deg']:.2f} deg"
-    )
 
 
 def main(args: list[str] | None = None) -> int:

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from mfp_mapper.config.frames import frame_name
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.sensing.tf_tree import TransformUnavailable
 
@@ -175,7 +176,7 @@ class QueryService:
             ends = points_array(request.segment_ends)
             check_request(points, starts, ends, self._limits())
             stamp = stamp_of(request.stamp)
-            given = request.frame_id.strip().lstrip("/")
+            given = frame_name(request.frame_id.strip())
             if given and given != frame:
                 when = stamp if stamp is not None else 0.0
                 moved = self._to_map_frame(np.vstack([points, starts, ends]), given, when)

@@ -243,3 +243,17 @@ def startup_text(cfg: NodeConfig, topic: Callable[[str], str], mapper: Mapper, f
         f"{topic(names['std'])}, {topic(names['projected_map'])} (trinary "
         f"{out.projected_map_trinary}) at {out.publish_rate} Hz, latched {out.latch}"
     )
+
+
+def localization_line(status: dict[str, Any]) -> str:
+    """The status line's localization part ("" when not localizing)."""
+    loc = status.get("localization")
+    if not loc:
+        return ""
+    refused = ", ".join(f"{k} {v}" for k, v in sorted(loc["refused"].items())) or "none"
+    m = loc["map_to_odom"]
+    return (
+        f"; localization {loc['state']}: {loc['accepted']} of {loc['aligned']} alignments "
+        f"accepted (refused: {refused}), map -> odom x {m['x']:.3f} y {m['y']:.3f} yaw "
+        f"{m['yaw_deg']:.2f} deg"
+    )

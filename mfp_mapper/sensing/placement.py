@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from mfp_mapper.config.frames import frame_name
 from mfp_mapper.sensing.deskew import PoseSource
 from mfp_mapper.sensing.pipeline import ScanDropped
 from mfp_mapper.sensing.poses import Extrinsic
@@ -97,7 +98,7 @@ def resolve_placement(
 ) -> Placement:
     """Pose source and extrinsic of a cloud in ``cloud_frame`` (module docstring); raises
     ScanDropped ``no_poses`` (TF cannot connect the frames) or ``no_extrinsic``."""
-    cloud_frame = cloud_frame.lstrip("/")
+    cloud_frame = frame_name(cloud_frame)
     if odometry is None:
         return _tf_only(cloud_frame, tree, frame_id)
     map_frame = frame_id or odometry.frame

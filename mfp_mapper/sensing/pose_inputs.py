@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from mfp_mapper.config.frames import frame_name
 from mfp_mapper.sensing.pipeline import ScanDropped
 from mfp_mapper.sensing.placement import Odometry, Placement, resolve_placement
 from mfp_mapper.sensing.poses import Extrinsic, OdometrySample, PoseBuffer, StampGuard
@@ -71,7 +72,7 @@ class PoseInputs:
         self.tree = tree
         self.counters = counters
         self.lock = threading.Lock()
-        self.map_frame: str | None = frame_id.lstrip("/") or None
+        self.map_frame: str | None = frame_name(frame_id) or None
         """The run's map frame; None until decided (then never changed)."""
         self.odom_frame: str | None = None
         self.odom_child: str | None = None
@@ -258,7 +259,7 @@ class PoseInputs:
         """Points given in ``frame`` (empty: the map frame) in the map frame, through TF at
         ``stamp``, or at the latest transform when the stamp is not covered; raises
         TransformUnavailable."""
-        frame, target = frame.lstrip("/"), self.map_frame
+        frame, target = frame_name(frame), self.map_frame
         if not frame or frame == target:
             return points
         if target is None:

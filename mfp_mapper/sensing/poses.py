@@ -13,6 +13,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
+from mfp_mapper.config.frames import frame_name
+
 FloatArray = NDArray[np.float64]
 
 IDENTITY_QUATERNION = (0.0, 0.0, 0.0, 1.0)
@@ -291,11 +293,6 @@ class TransformSample:
     child: str
     translation: FloatArray
     quaternion: FloatArray  # x, y, z, w
-
-
-def frame_name(name: str) -> str:
-    """A frame id without tf's leading slash."""
-    return name.lstrip("/")
 
 
 def _seconds(stamp: Any) -> float:

@@ -50,6 +50,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
+from mfp_mapper.config.frames import frame_name
 from mfp_mapper.sensing.pointcloud import stamp_seconds
 from mfp_mapper.sensing.poses import (
     IDENTITY_QUATERNION,
@@ -292,10 +293,10 @@ class TfTree:
             if self.stripped_slash == 1:
                 self._event(
                     "tf_slash",
-                    f"frame {name!r} has a leading slash: read as {name.lstrip('/')!r} "
+                    f"frame {name!r} has a leading slash: read as {frame_name(name)!r} "
                     "(tf2 rejects such names; fix the publisher)",
                 )
-        return name.lstrip("/")
+        return frame_name(name)
 
     def _closes_loop(self, parent: str, child: str) -> bool:
         frame: str | None = parent
@@ -478,7 +479,7 @@ class TfTree:
 
     def parent(self, child: str) -> tuple[str, bool] | None:
         """The parent of ``child`` and whether the edge is static; None at a root."""
-        child = normalize_frame(child)
+        child = frame_name(child)
         frame = self._dynamic.get(child)
         if frame is not None:
             return frame.edge.parent, False
@@ -488,7 +489,7 @@ class TfTree:
 
     def ancestors(self, frame: str) -> list[str]:
         """``frame`` then its parents up to its root."""
-        chain = [normalize_frame(frame)]
+        chain = [frame_name(frame)]
         while (up := self.parent(chain[-1])) is not None:
             if up[0] in chain or len(chain) > _MAX_DEPTH:
                 raise TransformUnavailable("unconnected", f"TF has a loop through {up[0]!r}")
@@ -497,7 +498,7 @@ class TfTree:
 
     def static_chain(self, top: str, bottom: str) -> Transform | None:
         """``T_top_bottom`` through static edges only; None when they do not connect."""
-        top, frame = normalize_frame(top), normalize_frame(bottom)
+        top, frame = frame_name(top), frame_name(bottom)
         t, q = np.zeros(3), np.array(IDENTITY_QUATERNION)
         for _ in range(_MAX_DEPTH):
             if frame == top:
@@ -511,12 +512,12 @@ class TfTree:
 
     def edge_stamps(self, child: str) -> FloatArray:
         """Stamps of the dynamic edge above ``child`` (empty when static or unknown)."""
-        frame = self._dynamic.get(normalize_frame(child))
+        frame = self._dynamic.get(frame_name(child))
         return np.array(frame.edge.stamps) if frame is not None else np.zeros(0)
 
     def is_dynamic(self, child: str) -> bool:
         """Whether the edge above ``child`` comes from /tf (moves)."""
-        return normalize_frame(child) in self._dynamic
+        return frame_name(child) in self._dynamic
 
     def latest_common_stamp(self, target: str, source: str) -> float | None:
         """Latest stamp at which the chain can be looked up (None: static only or unknown)."""
@@ -552,7 +553,7 @@ class TfTree:
 
     def _path(self, target: str, source: str) -> list[tuple[str, bool]]:
         """Edges (child, on the source side) from both frames to their common ancestor."""
-        target, source = normalize_frame(target), normalize_frame(source)
+        target, source = frame_name(target), frame_name(source)
         if target == source:
             return []
         from_source, from_target = self.ancestors(source), self.ancestors(target)
@@ -621,8 +622,3 @@ class TfChain:
         """Positions (N, 3) and rotation matrices (N, 3, 3); raises TransformUnavailable."""
         t, q = self.interpolate_quaternions(stamps)
         return t, quaternion_to_matrix(q)
-
-
-def normalize_frame(frame: str) -> str:
-    """Frame id without tf1's leading slash."""
-    return str(frame).lstrip("/")

@@ -26,9 +26,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from mfp_mapper.config.frames import frame_name
 from mfp_mapper.config.replay_options import ReplayError as ReplayError  # defined with the options
 from mfp_mapper.config.replay_options import ReplayOptions
-from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer, frame_name, odometry_sample
+from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer, odometry_sample
 from mfp_mapper.sensing.tf_tree import TfTree, TransformUnavailable, frame_list
 from mfp_mapper.sources import lidar_odometry
 from mfp_mapper.sources.pose_files import read_poses

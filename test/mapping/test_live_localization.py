@@ -15,6 +15,7 @@ from mfp_mapper.config.sections import LocalizationSection, PlacementSection
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.mapping.live import LiveIntegrator, LiveSettings
 from mfp_mapper.mapping.live_localization import LiveLocalizer, pose_matrix
+from mfp_mapper.mapping.pose_correction import LocalizerCorrection
 from mfp_mapper.sensing.poses import OdometrySample, PoseBuffer
 from mfp_mapper.sources.scan_files import cloud_message_from_columns
 
@@ -44,9 +45,15 @@ def _worker(mapper: Mapper, **changes: Any) -> tuple[LiveIntegrator, list[str]]:
         PoseBuffer(max_age=100.0, max_gap=0.5),
         log=lambda key, text, error: logs.append(text),
         now=lambda: T0 + 100.0,
-        localizer=localizer,
+        correction=LocalizerCorrection(localizer),
     )
     return worker, logs
+
+
+def _correction(worker: LiveIntegrator) -> LocalizerCorrection:
+    correction = worker.correction
+    assert isinstance(correction, LocalizerCorrection)
+    return correction
 
 
 def _feed(worker: LiveIntegrator, scene: Any, truth: Pose, stamp: float, seed: int) -> None:
@@ -74,8 +81,8 @@ def test_hall_correction_converges_to_the_odometry_offset_and_the_map_stays_froz
     scene, poses, mapper = _scene_map("box")
     version, voxels = mapper.version, mapper.num_voxels
     worker, _ = _worker(mapper)
-    loc = worker.localizer
-    assert loc is not None and loc.report()["state"] == "waiting_for_map"
+    loc = _correction(worker).localizer
+    assert loc.report()["state"] == "waiting_for_map"
     loc.build(mapper, worker.whole_map)
     assert loc.report()["state"] == "initializing"
     for i, k in enumerate((1, 3, 5)):
@@ -97,8 +104,7 @@ def test_hall_correction_converges_to_the_odometry_offset_and_the_map_stays_froz
 def test_initial_pose_resets_the_correction_then_scans_refine_it() -> None:
     scene, poses, mapper = _scene_map("box")
     worker, logs = _worker(mapper)
-    loc = worker.localizer
-    assert loc is not None
+    loc = _correction(worker).localizer
     # no field yet: the initial pose alone sets map <- odom = T_map_base inv(T_odom_base)
     given = pose_at(poses[1].translation + np.array([0.15, 0.0, 0.0]), yaw=0.3)
     loc.initial_pose(T0, given.translation, Rotation.from_matrix(given.rotation).as_quat())
@@ -119,8 +125,7 @@ def test_initial_pose_resets_the_correction_then_scans_refine_it() -> None:
 def test_corridor_is_refused_and_the_correction_kept() -> None:
     scene, poses, mapper = _scene_map("corridor")
     worker, _ = _worker(mapper)
-    loc = worker.localizer
-    assert loc is not None
+    loc = _correction(worker).localizer
     loc.build(mapper, worker.whole_map)
     for i, k in enumerate((3, 5)):
         _feed(worker, scene, poses[k], T0 + i, seed=k)
@@ -139,8 +144,7 @@ def test_mapping_goes_on_at_the_corrected_poses_when_not_frozen() -> None:
     scene, poses, mapper = _scene_map("box")
     version = mapper.version
     worker, _ = _worker(mapper, freeze_map=False, rebuild_period=0.0)
-    loc = worker.localizer
-    assert loc is not None
+    loc = _correction(worker).localizer
     loc.build(mapper, worker.whole_map)
     _feed(worker, scene, poses[1], T0, seed=1)
     loc.wait_built(30.0)  # the background rebuild after the integration
@@ -153,8 +157,7 @@ def test_mapping_goes_on_at_the_corrected_poses_when_not_frozen() -> None:
 def test_lost_after_consecutive_refusals_then_the_wide_search_again() -> None:
     scene, poses, mapper = _scene_map("box")
     worker, logs = _worker(mapper, lost_after=2, update_min_d=0.0, update_min_a=0.0)
-    loc = worker.localizer
-    assert loc is not None
+    loc = _correction(worker).localizer
     loc.build(mapper, worker.whole_map)
     _feed(worker, scene, poses[1], T0, seed=1)
     assert loc.report()["state"] == "localized"
@@ -175,8 +178,7 @@ def test_lost_after_consecutive_refusals_then_the_wide_search_again() -> None:
 def test_a_robot_that_did_not_move_is_not_aligned_again() -> None:
     scene, poses, mapper = _scene_map("box")
     worker, _ = _worker(mapper, update_min_d=0.25, update_min_a=10.0)
-    loc = worker.localizer
-    assert loc is not None
+    loc = _correction(worker).localizer
     loc.build(mapper, worker.whole_map)
     for i in range(3):  # the same pose three times: aligned once (localized), then skipped
         _feed(worker, scene, poses[1], T0 + i, seed=i)
@@ -191,18 +193,22 @@ def test_a_robot_that_did_not_move_is_not_aligned_again() -> None:
 def test_initial_pose_applies_at_once_when_odometry_gives_the_robot() -> None:
     _, poses, mapper = _scene_map("box", 2)
     worker, _ = _worker(mapper)
-    loc = worker.localizer
-    assert loc is not None
-    assert worker.robot_in_odom(T0) is None  # no odometry yet: the next cloud applies it
+    correction = _correction(worker)
+    loc = correction.localizer
+
+    def robot_in_odom(stamp: float) -> np.ndarray | None:
+        return correction.robot_in_odom(worker.pose_inputs, stamp)
+
+    assert robot_in_odom(T0) is None  # no odometry yet: the next cloud applies it
     odom = np.linalg.inv(OFFSET) @ pose_matrix(poses[1].translation, poses[1].rotation)
     q = Rotation.from_matrix(odom[:3, :3]).as_quat()
     for t in (T0 - 0.1, T0 + 0.1):
         worker.add_odometry(OdometrySample(t, "odom", "base_link", odom[:3, 3].copy(), q))
-    np.testing.assert_allclose(worker.robot_in_odom(T0), odom, atol=1e-9)
-    np.testing.assert_allclose(worker.robot_in_odom(T0 + 5.0), odom, atol=1e-9)  # the latest
+    np.testing.assert_allclose(robot_in_odom(T0), odom, atol=1e-9)
+    np.testing.assert_allclose(robot_in_odom(T0 + 5.0), odom, atol=1e-9)  # the latest
     truth = pose_matrix(poses[1].translation, poses[1].rotation)
     applied = loc.initial_pose(
-        T0, truth[:3, 3], Rotation.from_matrix(truth[:3, :3]).as_quat(), worker.robot_in_odom(T0)
+        T0, truth[:3, 3], Rotation.from_matrix(truth[:3, :3]).as_quat(), robot_in_odom(T0)
     )
     assert applied
     _, stamp, version = loc.transform()
@@ -218,8 +224,7 @@ def test_tracking_reuses_the_scan_normals_until_the_robot_moved(
     ``normals_refresh`` since they were computed; 0: every cloud."""
     scene, poses, mapper = _scene_map("box")
     worker, _ = _worker(mapper, update_min_d=0.0, update_min_a=0.0, normals_refresh=refresh)
-    loc = worker.localizer
-    assert loc is not None
+    loc = _correction(worker).localizer
     loc.build(mapper, worker.whole_map)
     for i, dx in enumerate((0.0, 0.1, 0.2, 1.0)):  # metres from the first pose
         truth = pose_at(poses[1].translation + np.array([dx, 0.0, 0.0]), yaw=0.3)
@@ -237,8 +242,7 @@ def test_a_clock_jumping_back_restarts_the_rate_gate_and_restamps_the_correction
     not keep a stamp from before the jump (in the future of every TF lookup)."""
     scene, poses, mapper = _scene_map("box")
     worker, _ = _worker(mapper, min_period=1.0)
-    loc = worker.localizer
-    assert loc is not None
+    loc = _correction(worker).localizer
     loc.build(mapper, worker.whole_map)
     worker.observe_clock(T0 + 50.0)
     _feed(worker, scene, poses[1], T0 + 50.0, seed=1)
@@ -259,8 +263,7 @@ def test_odometry_that_teleports_is_not_confirmed() -> None:
     for that pose (``~/pose``) nor call itself ``localized``."""
     scene, poses, mapper = _scene_map("box")
     worker, _ = _worker(mapper, lost_after=3, update_min_d=0.0, update_min_a=0.0)
-    loc = worker.localizer
-    assert loc is not None
+    loc = _correction(worker).localizer
     loc.build(mapper, worker.whole_map)
     for i, k in enumerate((1, 3)):
         _feed(worker, scene, poses[k], T0 + i, seed=k)
@@ -295,8 +298,7 @@ def test_a_fit_check_of_zero_keeps_the_old_behaviour() -> None:
     (what the check is there to stop; this keeps the test above from passing by chance)."""
     scene, poses, mapper = _scene_map("box")
     worker, _ = _worker(mapper, lost_after=3, update_min_d=0.0, update_min_a=0.0, fit_drop=0.0)
-    loc = worker.localizer
-    assert loc is not None
+    loc = _correction(worker).localizer
     loc.build(mapper, worker.whole_map)
     for i, k in enumerate((1, 3)):
         _feed(worker, scene, poses[k], T0 + i, seed=k)

@@ -462,17 +462,18 @@ def test_a_slow_save_does_not_stall_odometry(
     from rclpy.parameter import Parameter
     from std_srvs.srv import Trigger
 
+    import mfp_mapper.ros.map_files as map_files
     import mfp_mapper.ros.node as node_module
 
     started, release = threading.Event(), threading.Event()
-    write = node_module.write_map_path
+    write = map_files.write_map_path
 
     def held_write(path: Any, arrays: Any, compress: bool = True) -> int:
         started.set()
         release.wait(30.0)
         return write(path, arrays, compress)
 
-    monkeypatch.setattr(node_module, "write_map_path", held_write)
+    monkeypatch.setattr(map_files, "write_map_path", held_write)
     path = tmp_path / "slow.npz"
     mapper_node = node_module.MfpMapperNode(
         cli_args=["--ros-args", "-r", "__node:=mfp_slow_save"],
@@ -506,7 +507,7 @@ def test_a_slow_save_does_not_stall_odometry(
         def broken_write(path: Any, arrays: Any, compress: bool = True) -> int:
             raise RuntimeError("unexpected")
 
-        monkeypatch.setattr(node_module, "write_map_path", broken_write)
+        monkeypatch.setattr(map_files, "write_map_path", broken_write)
         failed = f.call(f.save, Trigger.Request())  # answered, and the node keeps spinning
         assert not failed.success and "unexpected" in failed.message
         assert spinner.is_alive()

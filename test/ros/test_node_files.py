@@ -76,7 +76,7 @@ def test_node_start_removes_temporary_files_of_an_interrupted_save(tmp_path: Pat
     removes it (and only files of dead writers of that map)."""
     import logging
 
-    from mfp_mapper.ros.node import initial_mapper
+    from mfp_mapper.ros.map_files import initial_mapper
 
     dead_pid = 2**22 + 12345  # above pid_max: no such process
     stale = tmp_path / f".map.npz.{dead_pid}.abcdef.mfp-tmp"

@@ -17,7 +17,7 @@ from ros_helpers import Feeder, NodeProcess
 
 from mfp_mapper.config.schema import NodeConfig
 from mfp_mapper.mapio.loading import load_map
-from mfp_mapper.ros.node import initial_mapper
+from mfp_mapper.ros.map_files import initial_mapper
 
 
 class Recorder:
