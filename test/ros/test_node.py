@@ -28,8 +28,6 @@ from ros_helpers import (
 )
 
 from mfp_mapper.config.schema import SPECS
-from mfp_mapper.config.sections import MapSection
-from mfp_mapper.core.model import family_prior
 from mfp_mapper.sources.scan_pattern import scan_directions
 
 pytestmark = pytest.mark.ros
@@ -301,10 +299,9 @@ def test_hit_probability_query_topic(sim: Sim, feeder: Feeder) -> None:
     assert max(hit[0], hit[1]) >= 0.3  # the box face
     assert observed[2] == 1.0 and hit[2] < 0.5 * max(hit[0], hit[1])  # free space
     assert cols["degree_of_occupancy"][2] == 0.0
-    assert observed[3] == 0.0  # never seen: the map's prior, the default family's
-    prior = family_prior(MapSection.prior_scale, RES)
-    assert hit[3] == pytest.approx(1.0 - (prior.rate / (prior.rate + RES)) ** prior.shape)
-    assert cols["std"][3] == pytest.approx(prior.unknown_std, abs=1e-6)
+    assert observed[3] == 0.0  # never seen: unknown, no number (the prior's would look free)
+    for name in ("hit_probability", "degree_of_occupancy", "std", "mean_free_path"):
+        assert np.isnan(cols[name][3]), name
 
 
 def _malformed_clouds(stamp: float) -> list[tuple[str, Any]]:
