@@ -27,7 +27,8 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
         "holds out (odd scans or rays) is never read. Several inputs (and --resolution "
         "0.1,0.2): also the scale a of the family shape = a * resolution, rate = a * "
         "resolution / 2 fitted on all of them (prior.scale), and a leave-one-recording-out "
-        "table. --poses and --split: once for all inputs, or once per input in order.",
+        "table. --poses and --split: once for all inputs, or once per input in order "
+        "(--poses '': a bag's own poses).",
     )
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="recordings (bags, scan folders)")
     p.add_argument(
@@ -52,7 +53,10 @@ def run(args: argparse.Namespace) -> int:
     check_outputs(args.json)
     log = None if args.quiet else warn
     try:
-        poses = per_input_values("--poses", args.poses, len(args.inputs))
+        poses = [
+            p or None  # --poses '': this input brings its own (a bag)
+            for p in per_input_values("--poses", args.poses, len(args.inputs))
+        ]
         splits = per_input_values("--split", args.split, len(args.inputs))
     except ValueError as err:
         raise CliError(str(err)) from None
