@@ -652,6 +652,37 @@ class NodeSection(Section):
 
 
 @dataclass(frozen=True)
+class QuerySection(Section):
+    """The largest request ``~/query`` answers (larger ones are refused with a message)."""
+
+    KEY = "query"
+    PREFIX = "query."
+    TITLE = "Map queries (`~/query`)"
+
+    max_points: int = setting(
+        100_000,
+        "Most points one ~/query request may ask about.",
+        0,
+        10_000_000,
+        dynamic=True,
+    )
+    max_segments: int = setting(
+        10_000,
+        "Most segments one ~/query request may ask about.",
+        0,
+        1_000_000,
+        dynamic=True,
+    )
+    max_segment_length: float = setting(
+        500.0,
+        "Longest segment (m) ~/query walks (its time grows with the voxels it crosses).",
+        0.0,
+        1.0e5,
+        dynamic=True,
+    )
+
+
+@dataclass(frozen=True)
 class ReplaySection(Section):
     """The offline replay only: topics, poses, the extrinsic flag, which clouds."""
 
@@ -768,6 +799,7 @@ SECTIONS: tuple[type[Section], ...] = (
     OutputsSection,
     LocalizationSection,
     NodeSection,
+    QuerySection,
     ReplaySection,
 )
 """Every section, in the order of ``SETTINGS`` (and of the YAML)."""

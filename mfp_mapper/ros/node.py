@@ -37,7 +37,7 @@ import rclpy.task
 import rclpy.time
 import rclpy.utilities
 from diagnostic_msgs.msg import DiagnosticArray
-from mfp_mapper_msgs.srv import ClearBbox
+from mfp_mapper_msgs.srv import ClearBbox, QueryMap
 from nav_msgs.msg import OccupancyGrid, Odometry
 from nav_msgs.srv import GetMap
 from rcl_interfaces.msg import SetParametersResult
@@ -73,6 +73,7 @@ from mfp_mapper.ros.map_files import MapFiles
 from mfp_mapper.ros.map_outputs import MapOutputs
 from mfp_mapper.ros.messages import cloud_msg
 from mfp_mapper.ros.params import declare_parameters, usage
+from mfp_mapper.ros.query_service import QueryService
 from mfp_mapper.ros.shutdown import SpinUntilSignal
 from mfp_mapper.ros.status import (
     StatusWindow,
@@ -125,6 +126,13 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._queries = 0
         self._maps_served = 0
         self.files = MapFiles(self, lambda: self.cfg)
+        self.query_service = QueryService(
+            self,
+            lambda: (self.mapper, self.worker.map_lock),
+            lambda points, frame, stamp: self.worker.to_map_frame(points, frame, stamp),
+            lambda: self.map_frame or self.mapper.frame_id,
+            lambda: self.cfg.query,
+        )
         self._transport_explained = False
         self._clock_warned = False
         self.worker: LiveIntegrator  # set by configure
@@ -277,6 +285,7 @@ class MfpMapperNode(GuardedLifecycleNode):
             self.create_service(
                 ClearBbox, "~/clear_bbox", self._on_clear_bbox, callback_group=group
             ),
+            self.create_service(QueryMap, "~/query", self._on_query_map, callback_group=group),
         ]
 
     def _create_interfaces(self) -> None:
@@ -523,6 +532,13 @@ class MfpMapperNode(GuardedLifecycleNode):
         return response
 
     @tracked
+    async def _on_query_map(
+        self, request: QueryMap.Request, response: QueryMap.Response
+    ) -> QueryMap.Response:
+        """``~/query``: points and segments (``ros.query_service``)."""
+        return await self.query_service.on_request(request, response)
+
+    @tracked
     async def _on_clear_bbox(
         self, request: ClearBbox.Request, response: ClearBbox.Response
     ) -> ClearBbox.Response:
@@ -568,6 +584,10 @@ class MfpMapperNode(GuardedLifecycleNode):
             **self.worker.pose_inputs.describe(),
             "sim_time_without_clock": self._clock_warned,
             "queries": self._queries,
+            "query_service": {
+                "answered": self.query_service.answered,
+                "refused": self.query_service.refused,
+            },
             "maps_served": self._maps_served,
         }
         if self.localization is not None:

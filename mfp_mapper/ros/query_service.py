@@ -20,20 +20,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mfp_mapper.config.frames import frame_name
+from mfp_mapper.config.sections import QuerySection
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.sensing.tf_tree import TransformUnavailable
 
 FloatArray = NDArray[np.float64]
-
-
-@dataclass(frozen=True)
-class QueryLimits:
-    """The largest request answered (``query.*`` parameters)."""
-
-    max_points: int
-    max_segments: int
-    max_segment_length: float
-    """Metres."""
 
 
 class QueryRefused(ValueError):
@@ -56,7 +47,7 @@ def stamp_of(stamp: Any) -> float | None:
 
 
 def check_request(
-    points: FloatArray, starts: FloatArray, ends: FloatArray, limits: QueryLimits
+    points: FloatArray, starts: FloatArray, ends: FloatArray, limits: QuerySection
 ) -> None:
     """QueryRefused unless the request is within ``limits`` and finite."""
     if len(starts) != len(ends):
@@ -149,7 +140,7 @@ def refuse(response: Any, map_frame: str, message: str) -> Any:
 class QueryService:
     """Serves ``~/query`` for a node: ``map_access`` gives the Mapper and its lock,
     ``to_map_frame(points, frame, stamp)`` transforms (raising ``TransformUnavailable``),
-    ``map_frame()`` names the map frame, ``limits()`` the current ``QueryLimits``."""
+    ``map_frame()`` names the map frame, ``limits()`` the current ``query.*`` section."""
 
     def __init__(
         self,
@@ -157,7 +148,7 @@ class QueryService:
         map_access: Callable[[], tuple[Mapper, threading.Lock]],
         to_map_frame: Callable[[FloatArray, str, float], FloatArray],
         map_frame: Callable[[], str],
-        limits: Callable[[], QueryLimits],
+        limits: Callable[[], QuerySection],
     ) -> None:
         self._node = node
         self._map_access = map_access
