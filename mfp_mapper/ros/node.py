@@ -489,14 +489,15 @@ class MfpMapperNode(GuardedLifecycleNode):
             self._answer_nothing(msg)  # an answer, never silence; the error is logged
             raise
         self._queries += 1
+        unseen = ~stats.observed  # unknown: NaN, never the prior's numbers (they look free)
         columns = {
             "x": points[:, 0],
             "y": points[:, 1],
             "z": points[:, 2],
-            "hit_probability": stats.hit_probability,
-            "degree_of_occupancy": stats.most_likely_doo,
-            "std": stats.std,
-            "mean_free_path": stats.mean_free_path,
+            "hit_probability": np.where(unseen, np.nan, stats.hit_probability),
+            "degree_of_occupancy": np.where(unseen, np.nan, stats.most_likely_doo),
+            "std": np.where(unseen, np.nan, stats.std),
+            "mean_free_path": np.where(unseen, np.nan, stats.mean_free_path),
             "observed": stats.observed.astype(np.float32),
         }
         self._result_pub.publish(cloud_msg(pack_cloud(columns), frame, msg.header.stamp))

@@ -98,17 +98,20 @@ def answer(
     stamp: float | None,
 ) -> QueryResult:
     """Read the map under ``lock`` (points and segments already in the map frame). A
-    never-observed voxel has DoO and mean free path NaN: unknown, not free."""
+    never-observed voxel has every estimate NaN (hit probability, DoO, std, mean free path):
+    unknown, not free (its prior's hit probability, 0.012 at 0.1 m with the default prior,
+    would read as free space)."""
     with lock:
         stats = mapper.query(points, stamp)
         segments = mapper.query_segments(starts, ends, stamp)
     unseen = ~stats.observed
-    doo = np.where(unseen, math.nan, stats.most_likely_doo)
-    mfp = np.where(unseen, math.nan, stats.mean_free_path)
+    hit, doo, std, mfp = (
+        np.where(unseen, math.nan, v)
+        for v in (stats.hit_probability, stats.most_likely_doo, stats.std, stats.mean_free_path)
+    )
     return QueryResult(
-        stats.hit_probability, doo, stats.std, mfp, stats.observed,
-        segments.clear_probability, segments.unknown_length,
-    )  # fmt: skip
+        hit, doo, std, mfp, stats.observed, segments.clear_probability, segments.unknown_length
+    )
 
 
 def fill_response(response: Any, result: QueryResult, map_frame: str, message: str) -> Any:
