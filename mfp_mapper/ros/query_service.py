@@ -10,6 +10,7 @@ a frame TF cannot transform) gets ``success: false`` and a message, never silenc
 
 from __future__ import annotations
 
+import array
 import math
 import threading
 from collections.abc import Callable
@@ -37,6 +38,14 @@ def points_array(points: Any) -> FloatArray:
     for k, p in enumerate(points):
         out[k] = (p.x, p.y, p.z)
     return out
+
+
+def flat_array(values: Any, per: int, name: str) -> FloatArray:
+    """A flat float64[] field as (N, ``per``); QueryRefused when its length does not divide."""
+    flat = np.asarray(values, dtype=np.float64)
+    if flat.size % per:
+        raise QueryRefused(f"{name} holds {flat.size} numbers: not a multiple of {per}")
+    return flat.reshape(-1, per)
 
 
 def stamp_of(stamp: Any) -> float | None:
@@ -114,18 +123,24 @@ def answer(
     )
 
 
+def _doubles(values: FloatArray) -> array.array[float]:
+    """A float64[] field's value that rclpy takes without a per-element check (a list of
+    10,000 floats took 2 ms a field)."""
+    return array.array("d", np.ascontiguousarray(values, dtype=np.float64).tobytes())
+
+
 def fill_response(response: Any, result: QueryResult, map_frame: str, message: str) -> Any:
     """``response`` (QueryMap.Response) with ``result``."""
     response.success = True
     response.message = message
     response.map_frame_id = map_frame
-    response.hit_probability = result.hit_probability.tolist()
-    response.degree_of_occupancy = result.degree_of_occupancy.tolist()
-    response.std = result.std.tolist()
-    response.mean_free_path = result.mean_free_path.tolist()
+    response.hit_probability = _doubles(result.hit_probability)
+    response.degree_of_occupancy = _doubles(result.degree_of_occupancy)
+    response.std = _doubles(result.std)
+    response.mean_free_path = _doubles(result.mean_free_path)
     response.observed = result.observed.tolist()
-    response.segment_clear_probability = result.segment_clear_probability.tolist()
-    response.segment_unknown_length = result.segment_unknown_length.tolist()
+    response.segment_clear_probability = _doubles(result.segment_clear_probability)
+    response.segment_unknown_length = _doubles(result.segment_unknown_length)
     return response
 
 
@@ -162,9 +177,12 @@ class QueryService:
         """The service callback (wrap it with ``tracked``)."""
         frame = self._map_frame()
         try:
-            points = points_array(request.points)
-            starts = points_array(request.segment_starts)
-            ends = points_array(request.segment_ends)
+            bulk = flat_array(request.segments_xyz, 6, "segments_xyz")
+            points = np.vstack(
+                [points_array(request.points), flat_array(request.points_xyz, 3, "points_xyz")]
+            )
+            starts = np.vstack([points_array(request.segment_starts), bulk[:, :3]])
+            ends = np.vstack([points_array(request.segment_ends), bulk[:, 3:]])
             check_request(points, starts, ends, self._limits())
             stamp = stamp_of(request.stamp)
             given = frame_name(request.frame_id.strip())

@@ -223,6 +223,35 @@ def test_bad_requests_get_a_message_and_the_node_stays(mapped: Feeder) -> None:
     assert st is not None and st["query_service"]["refused"] >= 3
 
 
+def test_bulk_fields_answer_after_the_point_messages(mapped: Feeder) -> None:
+    """points_xyz and segments_xyz (flat float64[]) are answered after points and the
+    segment pairs, with the same numbers; a flat field of the wrong length is refused."""
+    import array
+
+    from mfp_mapper_msgs.srv import QueryMap
+
+    one = _query(mapped, points=[(0.1, 0.1, 1.3)], segments=[FREE_AIR])
+    client = mapped.node.create_client(QueryMap, f"/{NODE}/query")
+    try:
+        assert client.wait_for_service(10.0)
+        request = QueryMap.Request()
+        request.points = [_point((0.1, 0.1, 1.3))]
+        request.points_xyz = array.array("d", [10.1, 0.5, 1.3, 0.1, 0.1, 1.3])
+        request.segment_ends = [_point(INSIDE_MEDIUM[1])]
+        request.segment_starts = [_point(INSIDE_MEDIUM[0])]
+        request.segments_xyz = array.array("d", [*FREE_AIR[0], *FREE_AIR[1]])
+        r = mapped.call(client, request, timeout=20.0)
+        assert r.success, r.message
+        assert len(r.hit_probability) == 3 and len(r.segment_clear_probability) == 2
+        assert r.hit_probability[2] == r.hit_probability[0] == one.hit_probability[0]
+        assert r.segment_clear_probability[1] == one.segment_clear_probability[0]
+        request.points_xyz = array.array("d", [1.0, 2.0])
+        bad = mapped.call(client, request, timeout=20.0)
+        assert not bad.success and "points_xyz holds 2 numbers" in bad.message
+    finally:
+        mapped.node.destroy_client(client)
+
+
 def test_a_point_in_the_robot_frame_is_moved_through_tf(mapped: Feeder) -> None:
     """With odom -> base_link on /tf, a point given in base_link is answered where it is in
     the map: 1.3 m above the robot the air is free; ahead of it, at x = 10.1 m, the wall."""
