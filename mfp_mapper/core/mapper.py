@@ -93,6 +93,7 @@ def mapper_kwargs(map_section: MapSection, sensor_model: SensorModelSection) -> 
         "keep_radius": map_section.core("keep_radius"),
         "prior_shape": map_section.prior_shape,
         "prior_rate": map_section.prior_rate,
+        "prior_scale": map_section.prior_scale,
     }
 
 
@@ -123,12 +124,17 @@ class Mapper:
         origin: ArrayLike | None = None,
         prior_shape: float = _DEFAULTS["prior_shape"],
         prior_rate: float = _DEFAULTS["prior_rate"],
+        prior_scale: float = _DEFAULTS["prior_scale"],
     ) -> None:
         _check_settings(
             resolution, max_range, min_range, decay_time, threads, max_voxels, keep_radius
         )
-        self.prior = model.Prior(float(prior_shape), float(prior_rate))
-        """Gamma prior on the extinction (``model.Prior``; 1, 1: the paper's uniform prior):
+        self.prior = model.resolve_prior(
+            float(resolution), float(prior_shape), float(prior_rate), float(prior_scale)
+        )
+        """Gamma prior on the extinction (``model.Prior``; 1, 1: the paper's uniform prior;
+        by default the family ``model.family_prior``: a ``prior_shape`` or ``prior_rate``
+        of 0 takes the family's value for ``prior_scale`` at this resolution):
         read by every estimate (mean, std, intervals, p_hit, grids, likelihood), never stored
         in the statistics, so it may be changed at any time."""
         self.resolution = float(resolution)

@@ -58,6 +58,13 @@ index. Against 2^12 slots (as ``read_walk``'s), cycle-counted on one scan: misse
 29 k and the block lookups 13.6 -> 10.1 ms on OS1-128 at 0.2 m (86.9 k -> 69.2 k, 23.8 ->
 20.1 ms, hall at 0.1 m); a miss costs about 110 ns (the hash, and a first touch)."""
 _WALK_CACHE_MASK = (1 << _WALK_CACHE_BITS) - 1
+RETURN_CHORD_FLOOR = 1e-3
+"""Least chord (metres) of a return event in ``read_walk``: the range resolution of a lidar
+return. A return exactly on a voxel's edge or corner has a chord of 0 in the voxel its
+point floors to (the ray only touches it), probability 0 and log-likelihood -inf; the
+reflection is known only to within the range resolution (about 1 mm: what lidars report,
+and the rounding of exported coordinates), so the event covers at least that much ray
+(docs/model.md, "A return on a voxel face")."""
 
 
 @dataclass
@@ -709,7 +716,7 @@ def read_walk(
                 t_exit = min(t_exit, ((vy + (dy > 0)) - oy) / dy)
             if dz != 0.0:
                 t_exit = min(t_exit, ((vz + (dz > 0)) - oz) / dz)
-            chord = (max(t_exit, 1.0) - t_prev) * length
+            chord = max((max(t_exit, 1.0) - t_prev) * length, RETURN_CHORD_FLOOR)
             total += math.log(-math.expm1(-(n + shape) * math.log1p(chord / (s + rate))))
             hit = True
         else:

@@ -37,7 +37,7 @@ import rclpy.task
 import rclpy.time
 import rclpy.utilities
 from diagnostic_msgs.msg import DiagnosticArray
-from mfp_mapper_msgs.srv import ClearBbox
+from mfp_mapper_msgs.srv import ClearBbox, QueryMap
 from nav_msgs.msg import OccupancyGrid, Odometry
 from nav_msgs.srv import GetMap
 from rcl_interfaces.msg import SetParametersResult
@@ -74,6 +74,7 @@ from mfp_mapper.ros.map_files import MapFiles
 from mfp_mapper.ros.map_outputs import MapOutputs
 from mfp_mapper.ros.messages import cloud_msg
 from mfp_mapper.ros.params import declare_parameters, usage
+from mfp_mapper.ros.query_service import QueryService
 from mfp_mapper.ros.shutdown import SpinUntilSignal
 from mfp_mapper.ros.status import (
     StatusWindow,
@@ -126,6 +127,13 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._queries = 0
         self._maps_served = 0
         self.files = MapFiles(self, lambda: self.cfg)
+        self.query_service = QueryService(
+            self,
+            lambda: (self.mapper, self.worker.map_lock),
+            lambda points, frame, stamp: self.worker.to_map_frame(points, frame, stamp),
+            lambda: self.map_frame or self.mapper.frame_id,
+            lambda: self.cfg.query,
+        )
         self._transport_explained = False
         self._clock_warned = False
         self.worker: LiveIntegrator  # set by configure
@@ -281,6 +289,7 @@ class MfpMapperNode(GuardedLifecycleNode):
             self.create_service(
                 ClearBbox, "~/clear_bbox", self._on_clear_bbox, callback_group=group
             ),
+            self.create_service(QueryMap, "~/query", self._on_query_map, callback_group=group),
         ]
 
     def _create_interfaces(self) -> None:
@@ -500,14 +509,15 @@ class MfpMapperNode(GuardedLifecycleNode):
             self._answer_nothing(msg)  # an answer, never silence; the error is logged
             raise
         self._queries += 1
+        unseen = ~stats.observed  # unknown: NaN, never the prior's numbers (they look free)
         columns = {
             "x": points[:, 0],
             "y": points[:, 1],
             "z": points[:, 2],
-            "hit_probability": stats.hit_probability,
-            "degree_of_occupancy": stats.most_likely_doo,
-            "std": stats.std,
-            "mean_free_path": stats.mean_free_path,
+            "hit_probability": np.where(unseen, np.nan, stats.hit_probability),
+            "degree_of_occupancy": np.where(unseen, np.nan, stats.most_likely_doo),
+            "std": np.where(unseen, np.nan, stats.std),
+            "mean_free_path": np.where(unseen, np.nan, stats.mean_free_path),
             "observed": stats.observed.astype(np.float32),
         }
         self._result_pub.publish(cloud_msg(pack_cloud(columns), frame, msg.header.stamp))
@@ -540,6 +550,13 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._map_changed()
         self.get_logger().info("map reset")
         return response
+
+    @tracked
+    async def _on_query_map(
+        self, request: QueryMap.Request, response: QueryMap.Response
+    ) -> QueryMap.Response:
+        """``~/query``: points and segments (``ros.query_service``)."""
+        return await self.query_service.on_request(request, response)
 
     @tracked
     async def _on_clear_bbox(
@@ -588,6 +605,10 @@ class MfpMapperNode(GuardedLifecycleNode):
             "sim_time_without_clock": self._clock_warned,
             "kernels": self._kernels,
             "queries": self._queries,
+            "query_service": {
+                "answered": self.query_service.answered,
+                "refused": self.query_service.refused,
+            },
             "maps_served": self._maps_served,
         }
         if self.localization is not None:
