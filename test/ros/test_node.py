@@ -542,3 +542,60 @@ def test_large_data_dds_profile_loads(tmp_path: Path) -> None:
         [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60
     )
     assert "XMLPARSER" in out.stdout + out.stderr  # the check above sees a broken profile
+
+
+@pytest.mark.parametrize(
+    ("text", "where"),
+    [
+        ("mfp_mapper:\n  ros__parameters:\n    resolution: [0.1\n", "line 4"),
+        ("mfp_mapper:\n  ros__parameters:\n    resolution: 0.1\n   bad: : x\n", "line 4"),
+    ],
+)
+def test_a_params_file_that_is_not_yaml_gives_one_line(
+    tmp_path: Path, text: str, where: str
+) -> None:
+    """rclpy's init rejects the file before the node exists: one line that says where, exit
+    2, no traceback."""
+    import subprocess
+    import sys
+
+    from ros_helpers import ROOT, ros_env
+
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(text)
+    args = [sys.executable, "-m", "mfp_mapper.node", "--ros-args", "--params-file", str(bad)]
+    run = subprocess.run(
+        args, env=ros_env(domain_id()), cwd=ROOT, capture_output=True, text=True, timeout=60
+    )
+    assert run.returncode == 2, run.stderr
+    ours = [line for line in run.stderr.splitlines() if line.startswith("mfp_mapper:")]
+    assert len(ours) == 1 and str(bad) in ours[0] and where in ours[0], run.stderr
+    assert "Traceback" not in run.stderr
+
+
+def test_kernels_are_compiled_ahead_of_the_first_cloud(ros_domain: int, tmp_path: Path) -> None:
+    """With a cold numba cache the first cloud waited for the compiler (over 15 s under
+    load: the first clouds were dropped). The node compiles at start and says so in
+    ``~/status`` (``kernels``: ``compiling``, then ``ready``); then a cloud goes in at once."""
+    import time
+
+    cold = {"NUMBA_CACHE_DIR": str(tmp_path / "numba_cache")}
+    node = NodeProcess(
+        ros_domain, dict(NODE_PARAMS), tmp_path / "node.log", name="mfp_cold", env=cold
+    )
+    f = Feeder(node_name="mfp_cold", feeder_name="cold_feeder")
+    try:
+        assert f.wait_connected(60.0), node.log()[-3000:]
+        status = f.wait_status(lambda s: s.get("kernels") != "compiling", 300.0)
+        assert status is not None and status.get("kernels") == "ready", node.log()[-3000:]
+        assert "kernels ready in" in node.log()
+        sim = Sim(f)
+        sent = time.monotonic()
+        sim.send_scan(T0 + 0.1)
+        status = f.wait_status(lambda s: s["clouds_integrated"] >= 1, 60.0)
+        took = time.monotonic() - sent
+        assert status["clouds_integrated"] == 1, node.log()[-3000:]
+        assert took < 10.0, f"the first cloud took {took:.1f} s"
+    finally:
+        f.destroy()
+        node.stop()

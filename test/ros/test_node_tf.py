@@ -142,8 +142,10 @@ def start(ros_domain: int, tmp: Path, name: str, **params: Any) -> tuple[NodePro
             and feeder.static_pub.get_subscription_count() > 0
             and feeder.get_map.service_is_ready()
             and feeder.status is not None
+            # compiled: a cold numba cache made the first clouds wait (queue_full drops)
+            and feeder.status.get("kernels") == "ready"
         ),
-        30.0,
+        120.0,
     )
     assert ok, f"node not discovered:\n{node.log()[-3000:]}"
     return node, feeder
