@@ -9,6 +9,7 @@ import math
 import numpy as np
 
 from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.core.traversal import RETURN_CHORD_FLOOR
 
 
 def segments(
@@ -56,7 +57,8 @@ def reference(
     shape: float,
     rate: float,
 ) -> tuple[np.ndarray, list[tuple[float, float, float, bool]]]:
-    """Per-ray log-likelihood and the events (s, n, chord, hit), in plain Python."""
+    """Per-ray log-likelihood and the events (s, n, chord, hit), in plain Python. A
+    return's chord is at least ``RETURN_CHORD_FLOOR`` (docs/model.md)."""
     res = mapper.resolution
     lls, events = [], []
     for i, p in enumerate(points):
@@ -68,6 +70,10 @@ def reference(
             length, ret = mapper.max_range, False
         segs = segments(origin, end, res)
         end_voxel = tuple(int(v) for v in np.floor(end / res))
+        if ret and segs[-1][0] != end_voxel:
+            # the point lies on an edge of the voxel it floors to, which the ray only
+            # touches there: its return event covers none of the ray but the floor
+            segs.append((end_voxel, 1.0, 1.0))
         total = 0.0
         for k, (voxel, t0, t1) in enumerate(segs):
             last = k == len(segs) - 1
@@ -75,7 +81,8 @@ def reference(
             s, n = float(stats.s[0]), float(stats.n[0])
             if last and ret:
                 assert voxel == end_voxel
-                chord = (exit_t(origin, end, voxel, res) - t0) * length
+                exit_chord = max(exit_t(origin, end, voxel, res), 1.0) - t0
+                chord = max(exit_chord * length, RETURN_CHORD_FLOOR)
                 p_pass = ((s + rate) / (s + rate + chord)) ** (n + shape)
                 total += math.log(1.0 - p_pass)
                 events.append((s, n, chord, True))

@@ -72,6 +72,13 @@ def check_writable(path: Path, tiled_ok: bool = False) -> None:
         raise CliError(f"{path} is a directory, expected a file name")
 
 
+def check_outputs(*paths: str | Path | None) -> None:
+    """``check_writable`` on every output path given (None: not asked for), before any work."""
+    for path in paths:
+        if path is not None:
+            check_writable(Path(path))
+
+
 def check_folder_writable(folder: Path) -> None:
     """CliError when ``folder`` (made if missing) could not be written in."""
     existing = folder.absolute()

@@ -10,7 +10,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from mfp_mapper.cli.common import CliError, nonneg_int, positive, warn
+from mfp_mapper.cli.common import CliError, check_folder_writable, nonneg_int, positive, warn
 from mfp_mapper.config.names import BAG_FORMATS
 
 
@@ -109,6 +109,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     from mfp_mapper.mapping.replay import ReplayError
 
+    check_folder_writable(Path(args.output))
     try:
         run_demo(args.output, args.resolution, args.scans, args.format, args.seed,
                  progress=not args.quiet, warn=warn)  # fmt: skip

@@ -6,7 +6,7 @@ import argparse
 import json
 from typing import Any
 
-from mfp_mapper.cli.common import CliError, jsonable, load_map_arg
+from mfp_mapper.cli.common import CliError, check_outputs, jsonable, load_map_arg
 from mfp_mapper.mapio.atomic import write_text_atomic
 
 
@@ -32,6 +32,7 @@ def run(args: argparse.Namespace) -> int:
 
     if not 0 < args.level < 1:
         raise CliError(f"--level must lie in (0, 1), got {args.level}")
+    check_outputs(args.json)
     mapper = load_map_arg(args.map)
     try:
         truth = load_truth(args.truth)

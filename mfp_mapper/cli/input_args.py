@@ -36,14 +36,17 @@ def parse_bound(text: str) -> tuple[str, float]:
         ) from None
 
 
-def add_input_arguments(p: argparse.ArgumentParser) -> None:
-    """The replay's flags for folders, poses, odometry and the cloud selection."""
+def add_input_arguments(p: argparse.ArgumentParser, per_input: bool = False) -> None:
+    """The replay's flags for folders, poses, odometry and the cloud selection.
+    ``per_input``: ``--poses`` may be given once per input (a list, see ``per_input_values``)."""
     p.add_argument(
         "--poses",
         metavar="FILE|identity",
+        action="append" if per_input else "store",
         help="scan folder: poses file (KITTI 3x4 per scan, TUM 't x y z qx qy qz qw', "
         "odometry .csv) or 'identity' (every scan at the origin); a bag: TUM or odometry "
-        ".csv, matched by stamp, instead of its own odometry or /tf",
+        ".csv, matched by stamp, instead of its own odometry or /tf"
+        + ("; once for every input, or once per input in their order" if per_input else ""),
     )
     p.add_argument("--times", metavar="FILE", help="scan folder: one stamp (s) per scan")
     p.add_argument(
@@ -69,3 +72,15 @@ def input_options(args: argparse.Namespace) -> dict[str, Any]:
         else:
             values[f"{bound}_offset"] = value
     return values
+
+
+def per_input_values(flag: str, given: list[Any] | None, inputs: int) -> list[Any]:
+    """A flag given once per input (``action="append"``): not given -> None for each input,
+    once -> the same for each, once per input -> in order; ValueError otherwise."""
+    if not given:
+        return [None] * inputs
+    if len(given) == 1:
+        return given * inputs
+    if len(given) != inputs:
+        raise ValueError(f"{flag} given {len(given)} times for {inputs} inputs: once, or once each")
+    return list(given)

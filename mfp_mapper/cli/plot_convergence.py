@@ -4,9 +4,10 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import Any
 
-from mfp_mapper.cli.common import nonneg_int
+from mfp_mapper.cli.common import check_folder_writable, check_writable, nonneg_int
 
 
 def add_parser(sub: Any) -> argparse.ArgumentParser:
@@ -23,5 +24,10 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     from mfp_mapper.outputs.render import plot_convergence
 
+    out = Path(args.output)
+    if out.is_dir():
+        check_folder_writable(out)
+    else:
+        check_writable(out)
     print(f"wrote {plot_convergence(args.output, args.returns, args.passes)}")
     return 0

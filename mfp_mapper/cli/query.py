@@ -104,6 +104,6 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(jsonable(out), indent=2))
         return 0
     print(f"map {args.map}: frame {mapper.frame_id}, {mapper.resolution:g} m voxels")
-    for line in query_lines(rows, mapper.prior) + segment_lines(seg_rows):
+    for line in query_lines(rows) + segment_lines(seg_rows):
         print(line)
     return 0

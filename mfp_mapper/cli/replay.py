@@ -11,6 +11,7 @@ from typing import Any
 from mfp_mapper.cli.common import (
     TILE_BLOCKS_HELP,
     CliError,
+    check_outputs,
     check_writable,
     jsonable,
     nonneg_int,
@@ -80,6 +81,7 @@ def run(args: argparse.Namespace) -> int:
 
     out = Path(args.output)
     check_writable(out, tiled_ok=True)
+    check_outputs(args.summary_json)
     fleet = any(
         getattr(args, k) is not None for k in ("workers", "scheduler", "chunk_seconds")
     ) or (len(args.inputs) > 1)

@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from mfp_mapper.cli.common import CliError, jsonable, load_map_arg, warn
+from mfp_mapper.cli.common import CliError, check_outputs, jsonable, load_map_arg, warn
 from mfp_mapper.cli.input_args import add_input_arguments
 from mfp_mapper.cli.replay import replay_options
 from mfp_mapper.config.replay_options import add_replay_flags
@@ -75,10 +75,25 @@ def _priors(main: Any) -> dict[str, Any]:
     return {"model": main} if main.is_uniform else {"model": main, "uniform_prior": UNIFORM}
 
 
+def _map_prior(args: argparse.Namespace, opts: Any, mapper: Any) -> Any:
+    """A map's own prior, or what the prior flags make of it: --prior-shape and --prior-rate
+    replace that number, --prior-scale the family's (at the map's resolution) for the
+    numbers not given."""
+    from mfp_mapper.core.model import resolve_prior
+
+    given = [getattr(args, k) is not None for k in ("prior_shape", "prior_rate", "prior_scale")]
+    if not any(given):
+        return mapper.prior
+    # with --prior-scale, a number not given is 0: the family's
+    shape = opts.map.prior_shape if given[0] else (0.0 if given[2] else mapper.prior.shape)
+    rate = opts.map.prior_rate if given[1] else (0.0 if given[2] else mapper.prior.rate)
+    return resolve_prior(mapper.resolution, shape, rate, opts.map.prior_scale)
+
+
 def run(args: argparse.Namespace) -> int:
     from contextlib import ExitStack
 
-    from mfp_mapper.core.model import Prior
+    from mfp_mapper.core.model import resolve_prior
     from mfp_mapper.mapio.mapfile import MapFileError
     from mfp_mapper.mapping.replay import ReplayError
     from mfp_mapper.outputs import score
@@ -96,6 +111,8 @@ def run(args: argparse.Namespace) -> int:
         raise CliError("give a map to score against, or --split even-odd on one recording")
     if maps and (args.resolution or args.decay_time):
         raise CliError("--resolution/--decay-time rows need --split (a map has its own)")
+    plot = args.plot or (str(Path(args.json).with_suffix(".png")) if args.json else None)
+    check_outputs(args.json, plot)
     log = None if args.quiet else warn
     results: list[tuple[str, dict[str, Any]]] = []
     rows = _score_rows(args)
@@ -109,7 +126,8 @@ def run(args: argparse.Namespace) -> int:
             if args.split:
                 for label, row_args in rows:
                     opts = replay_options(row_args)
-                    prior = Prior(opts.map.prior_shape, opts.map.prior_rate)
+                    m = opts.map
+                    prior = resolve_prior(m.resolution, m.prior_shape, m.prior_rate, m.prior_scale)
                     scorer = score.score_split(
                         recordings[0], opts, args.split, _priors(prior),
                         classic=not args.no_classic, progress=not args.quiet, log=log,
@@ -121,15 +139,7 @@ def run(args: argparse.Namespace) -> int:
                 opts = replay_options(args)
                 for path in maps:
                     mapper = load_map_arg(path)
-                    if args.prior_shape is not None or args.prior_rate is not None:
-                        mapper.prior = Prior(
-                            opts.map.prior_shape
-                            if args.prior_shape is not None
-                            else mapper.prior.shape,
-                            opts.map.prior_rate
-                            if args.prior_rate is not None
-                            else mapper.prior.rate,
-                        )
+                    mapper.prior = _map_prior(args, opts, mapper)
                     scorer = score.score_map(
                         mapper, recordings, opts, _priors(mapper.prior), progress=not args.quiet,
                         log=log,
@@ -137,6 +147,8 @@ def run(args: argparse.Namespace) -> int:
                     results.append((path, score.report(scorer, "model")))
     except (ReplayError, MapFileError, ValueError) as err:
         raise CliError(str(err)) from None
+    if not any(rep["rays"] for _, rep in results):
+        raise CliError("no ray was scored (every scan dropped, or no ray usable): no score")
     for label, rep in results:
         for line in score.summary_lines(rep, f"{label}: " if len(results) > 1 else ""):
             print(line)
@@ -154,7 +166,6 @@ def run(args: argparse.Namespace) -> int:
         }  # fmt: skip
         write_text_atomic(args.json, json.dumps(jsonable(doc), indent=2) + "\n")
         print(f"wrote {args.json}")
-    plot = args.plot or (str(Path(args.json).with_suffix(".png")) if args.json else None)
     if plot:
         for k, (label, rep) in enumerate(results):
             base = Path(plot)

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import argparse
 from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
-from mfp_mapper.cli.common import CliError, nonneg_int
+from mfp_mapper.cli.common import CliError, check_folder_writable, nonneg_int
 from mfp_mapper.config.names import BAG_FORMATS, SCENES
 
 
@@ -79,6 +80,7 @@ def _sim_config(args: argparse.Namespace) -> Any:
 def run(args: argparse.Namespace) -> int:
     from mfp_mapper.sources.simulate import SimulationError, simulate
 
+    check_folder_writable(Path(args.out_bag).absolute().parent)
     try:
         result = simulate(args.out_bag, _sim_config(args), args.format, overwrite=args.overwrite)
     except SimulationError as err:

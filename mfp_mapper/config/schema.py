@@ -30,6 +30,7 @@ from mfp_mapper.config.sections import (
     NodeSection,
     OutputsSection,
     PlacementSection,
+    QuerySection,
     Section,
     SensorModelSection,
 )
@@ -200,6 +201,7 @@ class NodeConfig:
     outputs: OutputsSection = dataclasses.field(default_factory=OutputsSection)
     localization: LocalizationSection = dataclasses.field(default_factory=LocalizationSection)
     node: NodeSection = dataclasses.field(default_factory=NodeSection)
+    query: QuerySection = dataclasses.field(default_factory=QuerySection)
 
     def core(self, name: str) -> Any:
         """A parameter's value as the core takes it (``Setting.core_value``)."""

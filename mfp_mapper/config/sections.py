@@ -87,26 +87,40 @@ class MapSection(Section):
         unlimited="none",
     )
     prior_shape: float = setting(
-        1.0,
-        "Shape alpha (returns) of the Gamma prior on each voxel's extinction (docs/model.md);"
-        " with prior.rate = 1, the paper's uniform prior on m. Used by every estimate but the"
-        " most likely DoO (mean, std, intervals, hit probability, the grids' thresholds); "
-        "never stored in the statistics. `mfp-mapper fit-prior` fits it to a recording.",
-        1.0e-6,
+        0.0,
+        "Shape alpha (returns) of the Gamma prior on each voxel's extinction (docs/model.md)."
+        " 0: from the family, prior.scale * resolution. 1 (with prior.rate 1): the paper's "
+        "uniform prior on m. Used by every estimate but the most likely DoO (mean, std, "
+        "intervals, hit probability, the grids' thresholds); never stored in the statistics."
+        " `mfp-mapper fit-prior` fits it to a recording.",
+        0.0,
         1.0e6,
         name="prior.shape",
         applies="both",
         flag="--prior-shape",
     )
     prior_rate: float = setting(
-        1.0,
+        0.0,
         "Rate beta (metres of ray) of the Gamma prior on the extinction: the prior weighs "
-        "like beta metres of ray with alpha returns.",
-        1.0e-6,
+        "like beta metres of ray with alpha returns. 0: from the family, prior.scale * "
+        "resolution / 2.",
+        0.0,
         1.0e6,
         name="prior.rate",
         applies="both",
         flag="--prior-rate",
+    )
+    prior_scale: float = setting(
+        0.0275,
+        "Scale a (per metre) of the default prior's family: shape a * resolution, rate a * "
+        "resolution / 2 m, for prior.shape and prior.rate left at 0 (docs/scoring.md: "
+        "measured on real recordings; `mfp-mapper fit-prior` over several recordings fits "
+        "it).",
+        1.0e-6,
+        1.0e6,
+        name="prior.scale",
+        applies="both",
+        flag="--prior-scale",
     )
 
 
@@ -382,7 +396,8 @@ class OutputsSection(Section):
     projected_map_free_threshold: float = setting(
         -1.0,
         "Hit probability below which an observed ~/projected_map cell is free (0). Negative: "
-        "that of a never-observed voxel, resolution / (1 + resolution).",
+        "that of a never-observed voxel under the map's prior, 1 - (rate / (rate + "
+        "resolution))^shape (0.012 at 0.1 m with the default prior).",
         -1.0,
         1.0,
         name="projected_map.free_threshold",
@@ -637,6 +652,37 @@ class NodeSection(Section):
 
 
 @dataclass(frozen=True)
+class QuerySection(Section):
+    """The largest request ``~/query`` answers (larger ones are refused with a message)."""
+
+    KEY = "query"
+    PREFIX = "query."
+    TITLE = "Map queries (`~/query`)"
+
+    max_points: int = setting(
+        100_000,
+        "Most points one ~/query request may ask about.",
+        0,
+        10_000_000,
+        dynamic=True,
+    )
+    max_segments: int = setting(
+        10_000,
+        "Most segments one ~/query request may ask about.",
+        0,
+        1_000_000,
+        dynamic=True,
+    )
+    max_segment_length: float = setting(
+        500.0,
+        "Longest segment (m) ~/query walks (its time grows with the voxels it crosses).",
+        0.0,
+        1.0e5,
+        dynamic=True,
+    )
+
+
+@dataclass(frozen=True)
 class ReplaySection(Section):
     """The offline replay only: topics, poses, the extrinsic flag, which clouds."""
 
@@ -753,6 +799,7 @@ SECTIONS: tuple[type[Section], ...] = (
     OutputsSection,
     LocalizationSection,
     NodeSection,
+    QuerySection,
     ReplaySection,
 )
 """Every section, in the order of ``SETTINGS`` (and of the YAML)."""

@@ -17,7 +17,12 @@ from mfp_mapper.config.sections import MapSection, SensorModelSection
 from mfp_mapper.core import model
 from mfp_mapper.core.errors import CoreError, ScanTooLargeError
 from mfp_mapper.core.gridmap import HitGrid, band_grid
-from mfp_mapper.core.memory_bound import MemoryBound, fit_scan_budget, scan_block_budget
+from mfp_mapper.core.memory_bound import (
+    MemoryBound,
+    fit_scan_budget,
+    scan_block_budget,
+    scan_new_blocks,
+)
 from mfp_mapper.core.staging import clear_staged, merge_shard, prefault, staged_updates
 from mfp_mapper.core.store import (
     BLOCK_EDGE,
@@ -88,6 +93,7 @@ def mapper_kwargs(map_section: MapSection, sensor_model: SensorModelSection) -> 
         "keep_radius": map_section.core("keep_radius"),
         "prior_shape": map_section.prior_shape,
         "prior_rate": map_section.prior_rate,
+        "prior_scale": map_section.prior_scale,
     }
 
 
@@ -118,12 +124,17 @@ class Mapper:
         origin: ArrayLike | None = None,
         prior_shape: float = _DEFAULTS["prior_shape"],
         prior_rate: float = _DEFAULTS["prior_rate"],
+        prior_scale: float = _DEFAULTS["prior_scale"],
     ) -> None:
         _check_settings(
             resolution, max_range, min_range, decay_time, threads, max_voxels, keep_radius
         )
-        self.prior = model.Prior(float(prior_shape), float(prior_rate))
-        """Gamma prior on the extinction (``model.Prior``; 1, 1: the paper's uniform prior):
+        self.prior = model.resolve_prior(
+            float(resolution), float(prior_shape), float(prior_rate), float(prior_scale)
+        )
+        """Gamma prior on the extinction (``model.Prior``; 1, 1: the paper's uniform prior;
+        by default the family ``model.family_prior``: a ``prior_shape`` or ``prior_rate``
+        of 0 takes the family's value for ``prior_scale`` at this resolution):
         read by every estimate (mean, std, intervals, p_hit, grids, likelihood), never stored
         in the statistics, so it may be changed at any time."""
         self.resolution = float(resolution)
@@ -195,13 +206,14 @@ class Mapper:
             rays, summary.rays_cut_by_budget = fit_scan_budget(rays, budget, self.resolution)
             self._bound.make_room(self._store, rays.origins_vox, rays.ends_vox, self._center())
             scan_id = self._store.begin_scan()
-            integrate_rays(
+            summary.rays_cut_by_budget += integrate_rays(
                 self._store,
                 rays,
                 scan_id,
                 stamp,
                 self.decay_time,
                 self._run_parallel,
+                scan_new_blocks(self.max_voxels),
             )
             summary.new_voxels, summary.blocks_touched, summary.voxels_touched = (
                 self._store.finish_scan()
@@ -244,7 +256,15 @@ class Mapper:
             rays, summary.rays_cut_by_budget = fit_scan_budget(rays, budget, self.resolution)
             # a scan too large for max_voxels is refused before it takes any memory
             self._bound.make_room(store, rays.origins_vox, rays.ends_vox, None)
-            integrate_rays(store, rays, 0, stamp, self.decay_time, self._run_parallel)
+            summary.rays_cut_by_budget += integrate_rays(
+                store,
+                rays,
+                0,
+                stamp,
+                self.decay_time,
+                self._run_parallel,
+                scan_new_blocks(self.max_voxels),
+            )
             for staged_shard, shard in zip(store.shards, self._store.shards, strict=True):
                 prefault(staged_shard, shard)
         summary.seconds = time.perf_counter() - t0
@@ -689,3 +709,17 @@ def _mean_origin(rays: Rays) -> FloatArray:
     """The rays' mean origin in voxel units (einsum: 0.3 ms for 107 k rays, where
     ``mean(axis=0)`` takes 1.6 ms)."""
     return np.einsum("ij->j", rays.origins_vox) / len(rays)
+
+
+def compile_kernels(decay_time: float = math.inf) -> float:
+    """Run the compiled kernels of a live scan once on a few rays (``integrate``, ``stage``
+    and ``commit``, ``query``, ``voxels``), so that numba compiles them, or loads them from
+    its cache, before the first real scan; returns the seconds it took."""
+    t0 = time.perf_counter()
+    points = np.array([[2.0, 0.5, 0.3], [-1.0, 3.0, 0.8], [0.5, -2.5, -0.4]])
+    mapper = Mapper(0.5, decay_time=decay_time)
+    mapper.integrate(points, np.zeros(3), 1.0)
+    mapper.commit(mapper.stage(points, np.zeros(3), 2.0))
+    mapper.query(points)
+    mapper.voxels()
+    return time.perf_counter() - t0

@@ -70,6 +70,19 @@ blocks, about 1 GiB. Before this budget, with ``max_range`` unlimited, 50 rays t
 310,452 blocks (1,238 MB) and 200 raised MemoryError."""
 
 
+SCAN_NEW_BLOCKS = 2 * DEFAULT_SCAN_BLOCKS
+"""Blocks one scan may add to the map when ``max_voxels`` is not set, near parts included:
+524,288 blocks; beyond, the rays not walked yet are cut (``traversal.cut_to_blocks``). The
+far budget alone left the first ``FREE_WALK_VOXELS`` of every ray free: 20,000 rays to
+100 km in every direction at 0.1 m raised MemoryError (a 32 GiB reservation), 20,000 rays
+of 100 m took 9.7 GB; with this bound the first takes 2.2 GB (measured)."""
+
+
+def scan_new_blocks(max_voxels: int | None) -> int:
+    """The blocks one scan may add in all: ``max_voxels`` when set, else ``SCAN_NEW_BLOCKS``."""
+    return SCAN_NEW_BLOCKS if max_voxels is None else max(int(max_voxels), 1)
+
+
 def scan_block_budget(max_voxels: int | None) -> int:
     """The blocks the far parts of one scan may walk: ``max_voxels`` when set (a map within
     the bound never has more blocks than voxels), else ``DEFAULT_SCAN_BLOCKS``."""

@@ -149,9 +149,13 @@ class Shard:
     def used(self) -> int:
         return int(self.counters[0])
 
-    def grow(self, min_free: int = 0) -> None:
-        """Double the block capacity (or more, for ``min_free``), keeping every block."""
-        self._resize_index(max(2 * self.capacity, self.used + min_free))
+    def grow(self, min_free: int = 0, at_most: int | None = None) -> None:
+        """Double the block capacity (or more, for ``min_free``; no more than ``at_most``
+        blocks, when that still leaves ``min_free``), keeping every block."""
+        capacity = max(2 * self.capacity, self.used + min_free)
+        if at_most is not None:
+            capacity = max(min(capacity, at_most), self.used + min_free)
+        self._resize_index(capacity)
 
     def block_distances(self, center: NDArray[np.float64]) -> NDArray[np.float64]:
         """Distance (block units) from ``center`` to the centre of every used block."""

@@ -58,6 +58,13 @@ index. Against 2^12 slots (as ``read_walk``'s), cycle-counted on one scan: misse
 29 k and the block lookups 13.6 -> 10.1 ms on OS1-128 at 0.2 m (86.9 k -> 69.2 k, 23.8 ->
 20.1 ms, hall at 0.1 m); a miss costs about 110 ns (the hash, and a first touch)."""
 _WALK_CACHE_MASK = (1 << _WALK_CACHE_BITS) - 1
+RETURN_CHORD_FLOOR = 1e-3
+"""Least chord (metres) of a return event in ``read_walk``: the range resolution of a lidar
+return. A return exactly on a voxel's edge or corner has a chord of 0 in the voxel its
+point floors to (the ray only touches it), probability 0 and log-likelihood -inf; the
+reflection is known only to within the range resolution (about 1 mm: what lidars report,
+and the rounding of exported coordinates), so the event covers at least that much ray
+(docs/model.md, "A return on a voxel face")."""
 
 
 @dataclass
@@ -187,16 +194,25 @@ def integrate_rays(
     stamp: float,
     decay_time: float,
     run_parallel: Callable[[Callable[[int], None], Sequence[int]], object],
-) -> None:
+    max_new_blocks: int | None = None,
+) -> int:
     """Add every ray's chords and returns to the store (scan ``scan_id`` at ``stamp``), one
     thread per shard, each walking every ray into its own shard.
-    ``run_parallel(fn, items)`` calls ``fn`` on every item, in parallel."""
+    ``run_parallel(fn, items)`` calls ``fn`` on every item, in parallel.
+
+    ``max_new_blocks``: the blocks the scan may add (its share in each shard): a shard that
+    would grow beyond its share cuts the rays it has not walked yet (``cut_to_blocks``), so
+    a scan's memory is bounded whatever its rays. Returns the rays cut (most of any shard)."""
     scan = ScanStamp(scan_id, float(stamp), float(decay_time))
+    shards = len(store.shards)
+    share = None if max_new_blocks is None else -(-int(max_new_blocks) // shards)
+    cut = [0] * shards
 
     def walk(k: int) -> None:
-        _walk_part(rays, store.shards[k], k, store.shard_mask, scan)
+        cut[k] = _walk_part(rays, store.shards[k], k, store.shard_mask, scan, share)
 
-    run_parallel(walk, range(len(store.shards)))
+    run_parallel(walk, range(shards))
+    return max(cut)
 
 
 def block_bounds(
@@ -262,15 +278,64 @@ def _walk_part(
     shard_id: int,
     shard_mask: int,
     scan: ScanStamp,
-) -> None:
-    """Walk ``rays`` into ``shard`` (its visits only), growing it when it runs out of room."""
+    share: int | None = None,
+) -> int:
+    """Walk ``rays`` into ``shard`` (its visits only), growing it when it runs out of room,
+    by at most ``share`` blocks (None: no bound): beyond, the rays not walked yet are cut
+    (``cut_to_blocks``). Returns how many were cut."""
     room, visits = ray_bounds(rays.origins_vox, rays.ends_vox)
     walk = RayArrays(rays.origins_vox, rays.ends_vox, rays.lengths, rays.has_return, room, visits)
-    first = 0
+    limit = None if share is None else shard.used + share
+    first, cut, cut_done = 0, 0, False
     while first < len(rays):
         first = _walk_rays(walk, first, shard_id, shard_mask, shard.arrays(), scan)
         if first < len(rays):  # the next group of rays (see _walk_rays) did not fit
-            shard.grow(min_free=int(room[first : first + LANES].sum()))
+            need = int(walk.room_needed[first : first + LANES].sum())
+            if limit is not None and shard.used + need > limit and not cut_done:
+                rest = cut_to_blocks(walk, first, limit - shard.used)
+                if rest is None:  # not even a step each: the rest is not walked
+                    return len(rays) - first
+                (walk, cut), cut_done = rest, True
+                continue
+            shard.grow(min_free=need, at_most=limit)  # the limit is checked at each growth
+    return cut
+
+
+def cut_to_blocks(walk: RayArrays, first: int, blocks: int) -> tuple[RayArrays, int] | None:
+    """``walk`` with rays ``first:`` shortened (no return where cut) so that their block
+    bounds (``ray_bounds``) add up to at most ``blocks``: one cap on their length, the
+    longest cut first (bisection); the rays cut; None when even zero-length rays do not fit."""
+    origins, ends = walk.origins_vox[first:], walk.ends_vox[first:]
+    span = ends - origins
+    length = np.sqrt((span * span).sum(axis=1))
+
+    def capped(cap: float) -> NDArray[np.float64]:
+        scale = np.minimum(1.0, cap / np.maximum(length, 1e-12))
+        return np.ascontiguousarray(origins + span * scale[:, None])
+
+    def cost(cap: float) -> int:
+        return int(ray_bounds(origins, capped(cap))[0].sum())
+
+    if cost(0.0) > blocks:
+        return None
+    lo, hi = 0.0, float(length.max(initial=0.0))
+    while hi - lo > 1.0:
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if cost(mid) <= blocks else (lo, mid)
+    new_ends = capped(lo)
+    shortened = length > lo
+    scale = np.where(shortened, lo / np.maximum(length, 1e-12), 1.0)
+    room, visits = ray_bounds(origins, new_ends)
+    cat = np.concatenate
+    rays = RayArrays(
+        walk.origins_vox,
+        cat([walk.ends_vox[:first], new_ends]),
+        cat([walk.lengths[:first], walk.lengths[first:] * scale]),
+        cat([walk.has_return[:first], walk.has_return[first:] & ~shortened]),
+        cat([walk.room_needed[:first], room]),
+        cat([walk.visits_needed[:first], visits]),
+    )
+    return rays, int(shortened.sum())
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -651,7 +716,7 @@ def read_walk(
                 t_exit = min(t_exit, ((vy + (dy > 0)) - oy) / dy)
             if dz != 0.0:
                 t_exit = min(t_exit, ((vz + (dz > 0)) - oz) / dz)
-            chord = (max(t_exit, 1.0) - t_prev) * length
+            chord = max((max(t_exit, 1.0) - t_prev) * length, RETURN_CHORD_FLOOR)
             total += math.log(-math.expm1(-(n + shape) * math.log1p(chord / (s + rate))))
             hit = True
         else:

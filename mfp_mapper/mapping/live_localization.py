@@ -67,6 +67,7 @@ from mfp_mapper.core.alignment import (
     verify_exact,
 )
 from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.core.model import ALIGNMENT_PRIOR
 from mfp_mapper.sensing.pipeline import PlacedScan
 from mfp_mapper.sensing.scan_normals import scan_normals
 
@@ -223,9 +224,8 @@ class LiveLocalizer:
         with whole_map:
             stats = mapper.voxels()
             resolution, origin = float(mapper.resolution), np.asarray(mapper.origin or (0, 0, 0))
-            prior = getattr(mapper, "prior", None)
-        shape = 1.0 if prior is None else float(prior.shape)
-        rate = 1.0 if prior is None else float(prior.rate)
+        # the objective localization was tuned on, not the map's own prior
+        shape, rate = ALIGNMENT_PRIOR.shape, ALIGNMENT_PRIOR.rate
         if len(stats.s) == 0:  # an empty map (reset): nothing to localize against
             with self.lock:
                 self.pyramid, self.pyramid_voxels = None, 0

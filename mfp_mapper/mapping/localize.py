@@ -31,6 +31,7 @@ from mfp_mapper.core.alignment import (
     verify_exact,
 )
 from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.core.model import ALIGNMENT_PRIOR
 from mfp_mapper.mapping.loop import ScanLoop
 from mfp_mapper.mapping.replay import ScanSelection, new_mapper
 from mfp_mapper.sensing.pipeline import PlacedScan, ScanDropped
@@ -100,13 +101,10 @@ class LocalizeResult:
         return sum(1 for s in self.scans if s.alignment is not None and s.alignment.accepted)
 
 
-def _prior(mapper: Mapper) -> dict[str, float]:
-    """The map's Gamma prior (shape, rate) on the extinction; the uniform prior (1, 1) for
-    a Mapper that has none."""
-    prior = getattr(mapper, "prior", None)
-    if prior is None:
-        return {"shape": 1.0, "rate": 1.0}
-    return {"shape": float(prior.shape), "rate": float(prior.rate)}
+def _prior(_mapper: Mapper) -> dict[str, float]:
+    """The Gamma prior (shape, rate) alignment scores with: ``model.ALIGNMENT_PRIOR``, not
+    the map's own (the objective localization was tuned on)."""
+    return {"shape": ALIGNMENT_PRIOR.shape, "rate": ALIGNMENT_PRIOR.rate}
 
 
 def refine_placed(

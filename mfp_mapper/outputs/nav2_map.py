@@ -57,7 +57,8 @@ def write_nav2_map(
     """Write ``path`` (.yaml; the .pgm beside it) for the band ``[z_min, z_max]``.
 
     Thresholds default to the node's (``projected_map.occupied_threshold``; free: the hit
-    probability of a never-observed voxel, ``resolution / (1 + resolution)``).
+    probability of a never-observed voxel under the map's prior, ``1 - (rate / (rate +
+    resolution))^shape``: 0.012 at 0.1 m with the default prior).
     """
     yaml_path = Path(path).with_suffix(".yaml")
     if occupied_threshold is None:

@@ -32,6 +32,10 @@ from mfp_mapper.core.mapper import Mapper, VoxelStats
 
 MAX_IMAGE_CELLS = 1600
 """Top-down and slice images are coarsened so that no side exceeds this many cells."""
+STD_MAX = 0.5
+"""Top of the colour scale of the std pictures: the largest standard deviation a DoO in
+[0, 1] can have (the uniform prior's 0.2887 clipped the voxels of little evidence under a
+small prior, such as the default's)."""
 
 
 def _pyplot() -> Any:
@@ -229,8 +233,10 @@ def render_map(
     """Write the pictures of ``mapper`` into ``out_dir``; return their paths.
 
     ``value``: per column, the largest ``"most-likely"`` DoO of the band (walls stand out;
-    a voxel crossed once is 0, fully free) or the largest posterior ``"mean"`` DoO (a
-    voxel crossed once stays near the prior's mean: little evidence shows). The voxel
+    a voxel crossed once is 0, fully free) or the largest posterior ``"mean"`` DoO (it
+    weighs the evidence against the map's prior; with the default prior a voxel seen
+    briefly is near the prior's mean DoO, about 0.02 at 0.1 m). Never-observed cells are
+    grey (unknown) in every picture, whatever the prior. The voxel
     drawn is the one with that largest value, ties to the most evidence (s), then the
     highest; the std picture shows its posterior std. ``min_evidence`` (metres of rays,
     s) leaves out voxels seen less than that: drawn as unobserved.
@@ -298,7 +304,7 @@ def render_map(
             out / "std_topdown.png",
             f"x [m] ({frame})",
             f"y [m] ({frame})",
-            vmax=float(model.UNKNOWN_STD),
+            vmax=STD_MAX,
             cmap="magma",
         )
     )
@@ -322,7 +328,7 @@ def render_map(
         fig, axes = plt.subplots(2, 1, figsize=(9, 2 * panel + 1.6), dpi=110, sharex=True)
         for ax, grid, title, vmax, cmap in (
             (axes[0], sdoo, "most likely degree of occupancy", 1.0, "viridis"),
-            (axes[1], sstd, "posterior std", float(model.UNKNOWN_STD), "magma"),
+            (axes[1], sstd, "posterior std", STD_MAX, "magma"),
         ):
             im = _draw_grid(ax, grid, ext2, vmax, cmap)
             ax.set_title(f"Vertical slice y = {slice_y:.2f} m: {title}", fontsize=10)
@@ -342,7 +348,7 @@ def render_map(
         doo[stats.n >= 1], bins=bins, color="tab:orange", alpha=0.7, label="with a return (n >= 1)"
     )
     axes[0].set_xlabel("most likely degree of occupancy")
-    axes[1].hist(std, bins=np.linspace(0, float(model.UNKNOWN_STD), 51), color="tab:purple")
+    axes[1].hist(std, bins=np.linspace(0, STD_MAX, 51), color="tab:purple")
     axes[1].set_xlabel("posterior std of the degree of occupancy")
     for ax in axes:
         ax.set_yscale("log")

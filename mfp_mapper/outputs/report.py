@@ -8,7 +8,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from mfp_mapper.core import model
 from mfp_mapper.core.mapper import Mapper
 
 
@@ -49,16 +48,22 @@ def query_rows(
     mapper: Mapper, points: NDArray[np.float64], stamp: float | None = None
 ) -> list[dict[str, Any]]:
     """The statistics of the voxel holding each point (90% credible DoO interval included),
-    decayed to ``stamp`` when given."""
+    decayed to ``stamp`` when given. A never-observed voxel is unknown: ``observed`` false
+    and every estimate None (its prior's numbers, a DoO of about 0.02 with the default
+    prior, would read as free space)."""
     st = mapper.query(points, stamp)
     lo, hi = st.doo_interval(0.9)
-    return [
-        {
+    rows = []
+    for k in range(len(st)):
+        seen = bool(st.observed[k])
+        row: dict[str, Any] = {
             "point": points[k].tolist(),
             "voxel": st.ijk[k].tolist(),
-            "observed": bool(st.observed[k]),
+            "observed": seen,
             "n": float(st.n[k]),
             "s": float(st.s[k]),
+        }
+        estimates = {
             "degree_of_occupancy": float(st.most_likely_doo[k]),
             "mean_degree_of_occupancy": float(st.mean_doo[k]),
             "std": float(st.std[k]),
@@ -66,21 +71,18 @@ def query_rows(
             "hit_probability": float(st.hit_probability[k]),
             "mean_free_path": float(st.mean_free_path[k]),
         }
-        for k in range(len(st))
-    ]
+        rows.append({**row, **{key: (v if seen else None) for key, v in estimates.items()}})
+    return rows
 
 
-def query_lines(rows: list[dict[str, Any]], prior: model.Prior = model.UNIFORM) -> list[str]:
-    """One line per ``query_rows`` row (``prior``: the map's, for never-observed voxels)."""
+def query_lines(rows: list[dict[str, Any]]) -> list[str]:
+    """One line per ``query_rows`` row."""
     lines = []
     for row in rows:
         x, y, z = row["point"]
         head = f"({x:.2f}, {y:.2f}, {z:.2f}) voxel {tuple(row['voxel'])}: "
         if not row["observed"]:
-            lines.append(
-                head + f"unknown (never observed; prior DoO {prior.unknown_doo:g}, "
-                f"std {prior.unknown_std:.3f})"
-            )
+            lines.append(head + "unknown (never observed: no ray crossed it)")
             continue
         mfp = row["mean_free_path"]
         lines.append(

@@ -36,7 +36,7 @@ from numpy.typing import NDArray
 
 from mfp_mapper.core.likelihood import ScanEvents, score_rays
 from mfp_mapper.core.mapper import IntegrationSummary, Mapper
-from mfp_mapper.core.model import UNIFORM, Prior
+from mfp_mapper.core.model import UNIFORM, Prior, family_prior
 from mfp_mapper.mapping.loop import integrate_scan
 from mfp_mapper.sensing.pipeline import PlacedScan, ScanDropped
 from mfp_mapper.sources.recording import Recording
@@ -67,6 +67,8 @@ class Metrics:
         self.events = 0.0
         self.log_likelihood = 0.0
         self.brier = 0.0
+        self.impossible = 0.0
+        """Events whose outcome had probability 0 (log-probability -inf)."""
         self.linear = np.zeros((3, LINEAR_EDGES.size - 1))  # count, sum p, sum y
         self.log = np.zeros((3, LOG_EDGES.size - 1))
 
@@ -83,6 +85,7 @@ class Metrics:
         yf = np.asarray(y, dtype=np.float64)
         self.events += float(w.sum())
         self.log_likelihood += float(np.dot(w, log_p))
+        self.impossible += float(w[np.isneginf(log_p)].sum())
         self.brier += float(np.dot(w, (p - yf) ** 2))
         for table, edges in ((self.linear, LINEAR_EDGES), (self.log, LOG_EDGES)):
             k = np.clip(np.searchsorted(edges, p, side="right") - 1, 0, edges.size - 2)
@@ -102,6 +105,7 @@ class Metrics:
             "log_likelihood": self.log_likelihood,
             "log_likelihood_per_ray": self.log_likelihood / max(self.rays, 1),
             "log_loss_per_event": -self.log_likelihood / events,
+            "impossible_events": int(round(self.impossible)),
             "brier": self.brier / events,
             "ece": ece,
             "ece_log": ece_log,
@@ -380,7 +384,22 @@ def summary_lines(report_: dict[str, Any], label: str = "") -> list[str]:
             f"{text:<36} {r['log_likelihood_per_ray']:>10.4f} {r['log_density_per_ray']:>11.4f} "
             f"{r['log_loss_per_event']:>10.5f} {r['brier']:>8.5f} {r['ece']:>8.5f}"
         )
+    lines += [f"{name}: {why}" for name, r in rows if (why := nonfinite_reason(r)) is not None]
     return lines
+
+
+def nonfinite_reason(row: dict[str, Any]) -> str | None:
+    """Why a model's printed scores are not finite numbers, or None when they are."""
+    numbers = ("log_likelihood_per_ray", "log_density_per_ray", "log_loss_per_event", "ece")
+    if all(math.isfinite(row[k]) for k in numbers if k in row):
+        return None
+    if row.get("impossible_events"):
+        return (
+            f"log-likelihood -inf: {row['impossible_events']:,} scored event(s) had "
+            "probability 0 under this model (an outcome it rules out), so the held-out "
+            "rays are infinitely unlikely"
+        )
+    return "a score is not a finite number: the events' statistics hold NaN or Inf"
 
 
 # --- fitting the prior (empirical Bayes) -------------------------------------------------------
@@ -430,6 +449,10 @@ class FittedPrior:
         base = self.uniform_log_likelihood_per_ray
         return (self.log_likelihood_per_ray - base) / abs(base) if base else 0.0
 
+    @property
+    def prior(self) -> Prior:
+        return Prior(self.shape, self.rate)
+
     def json(self) -> dict[str, Any]:
         return {
             "shape": self.shape,
@@ -460,9 +483,16 @@ def fit_prior(sample: EventSample) -> FittedPrior:
     arrays = sample.arrays()
     rays = max(sample.rays, 1)
     if arrays[0].size == 0:
-        raise ValueError("no held-out event to fit the prior on")
+        raise ValueError("nothing to fit: no held-out ray was scored")
+    if not arrays[3].any():
+        raise ValueError(
+            f"nothing to fit: none of the {sample.rays:,} held-out rays has a return (all "
+            "cut at max_range or flagged no-return?); a prior needs returns to be fitted"
+        )
+    if not np.all(np.isfinite(arrays[0])) or not np.all(np.isfinite(arrays[1])):
+        raise ValueError("the fit failed: the held-out events' statistics hold NaN or Inf")
     grid = [(sample_log_likelihood(arrays, a, b)[0], a, b) for a in GRID_SHAPES for b in GRID_RATES]
-    _, a0, b0 = max(grid)
+    grid_best, a0, b0 = max(grid)
 
     def loss(x: FloatArray) -> tuple[float, FloatArray]:
         value, grad = sample_log_likelihood(arrays, math.exp(x[0]), math.exp(x[1]), True)
@@ -478,7 +508,124 @@ def fit_prior(sample: EventSample) -> FittedPrior:
     shape, rate = (float(math.exp(v)) for v in best.x)
     fitted = sample_log_likelihood(arrays, shape, rate)[0] / rays
     uniform = sample_log_likelihood(arrays, UNIFORM.shape, UNIFORM.rate)[0] / rays
+    at_bound = any(abs(abs(v) - math.log(1e6)) < 1e-6 for v in best.x)
+    # L-BFGS may stop short of its tolerance (a line search) at a good point: only a
+    # non-finite result, one at the bounds, or one worse than the grid's best is a failure
+    worse = fitted < grid_best / rays - 1e-9 * abs(grid_best / rays)
+    if not math.isfinite(fitted) or at_bound or worse:
+        raise ValueError(
+            f"the fit failed ({best.message}; shape {shape:.3g}, rate {rate:.3g} m, held-out "
+            f"log-likelihood per ray {fitted:.6g}): the held-out events do not determine a "
+            "prior (too few returns, or a score of -inf)"
+        )
     return FittedPrior(shape, rate, fitted, uniform, sample.rays, int(arrays[0].size))
+
+
+# --- the family of priors that scales with the voxel: shape a * resolution, rate a * res / 2 ----
+
+
+@dataclass
+class RecordingSample:
+    """The held-out events that ``fit-prior`` sampled from one recording at one resolution."""
+
+    recording: str
+    resolution: float
+    sample: EventSample
+
+    def per_ray(self, prior: Prior) -> float:
+        """The sample's log-likelihood per ray under ``prior``."""
+        arrays = self.sample.arrays()
+        return sample_log_likelihood(arrays, prior.shape, prior.rate)[0] / max(self.sample.rays, 1)
+
+
+SCALE_GRID = tuple(10.0 ** (k / 4.0) for k in range(-20, 9))
+"""The coarse grid of ``fit_scale`` (1e-5 to 100 per metre), before a bounded search."""
+
+
+def fit_scale(samples: list[RecordingSample]) -> float:
+    """The family's ``scale`` (per metre) of largest held-out log-likelihood: the sum over
+    ``samples`` of each one's log-likelihood PER RAY, so every recording and resolution
+    weighs the same whatever its size. ValueError when there is nothing to fit."""
+    from scipy.optimize import minimize_scalar
+
+    if not samples:
+        raise ValueError("nothing to fit: no recording")
+    cached = [(r.sample.arrays(), max(r.sample.rays, 1), r.resolution) for r in samples]
+    for r, (arrays, _, _) in zip(samples, cached, strict=True):
+        if not arrays[3].any():
+            raise ValueError(
+                f"nothing to fit: {r.recording} at {r.resolution:g} m has no held-out return"
+            )
+
+    def loss(log_scale: float) -> float:
+        a = math.exp(log_scale)
+        return -sum(
+            sample_log_likelihood(arrays, a * res, a * res / 2.0)[0] / rays
+            for arrays, rays, res in cached
+        )
+
+    start = min(SCALE_GRID, key=lambda a: loss(math.log(a)))
+    step = math.log(10.0) / 4.0
+    low, high = math.log(start) - step, math.log(start) + step
+    best = minimize_scalar(loss, bounds=(low, high), method="bounded", options={"xatol": 1e-6})
+    scale = float(math.exp(best.x))
+    edge = start in (SCALE_GRID[0], SCALE_GRID[-1])
+    if not math.isfinite(best.fun) or edge:
+        raise ValueError(
+            f"the fit of the family's scale failed (best {scale:.3g} per metre, at the edge of "
+            f"{SCALE_GRID[0]:g}..{SCALE_GRID[-1]:g} or a score of -inf)"
+        )
+    return scale
+
+
+@dataclass
+class HeldOutRow:
+    """One recording at one resolution, scored with the family's scale fitted WITHOUT it."""
+
+    recording: str
+    resolution: float
+    scale: float
+    """The scale fitted on the other recordings."""
+    family: float
+    """Log-likelihood per ray with ``family_prior(scale, resolution)``."""
+    own: float
+    """... with the two-parameter prior fitted on this recording at this resolution."""
+    own_prior: Prior
+    uniform: float
+    """... with the uniform prior."""
+
+    @property
+    def gap(self) -> float:
+        """How much worse the held-out family is than the recording's own fit (0.05: 5%)."""
+        return (self.own - self.family) / abs(self.own) if self.own else 0.0
+
+    def json(self) -> dict[str, Any]:
+        return {
+            "recording": self.recording, "resolution": self.resolution, "scale": self.scale,
+            "log_likelihood_per_ray": self.family, "own_log_likelihood_per_ray": self.own,
+            "own_prior": _prior_json(self.own_prior),
+            "uniform_log_likelihood_per_ray": self.uniform, "gap_to_own": self.gap,
+        }  # fmt: skip
+
+
+def leave_one_out(samples: list[RecordingSample], own: dict[int, Prior]) -> list[HeldOutRow]:
+    """For every recording: the scale fitted on the others, scored on it at each resolution,
+    beside its own fitted prior (``own[k]``: the prior fitted on ``samples[k]``) and the
+    uniform prior. Needs two recordings or more."""
+    names = list(dict.fromkeys(r.recording for r in samples))
+    if len(names) < 2:
+        raise ValueError("leave-one-recording-out needs two recordings or more")
+    rows = []
+    for name in names:
+        scale = fit_scale([r for r in samples if r.recording != name])
+        for k, r in enumerate(samples):
+            if r.recording != name:
+                continue
+            rows.append(HeldOutRow(
+                name, r.resolution, scale, r.per_ray(family_prior(scale, r.resolution)),
+                r.per_ray(own[k]), own[k], r.per_ray(UNIFORM),
+            ))  # fmt: skip
+    return rows
 
 
 # --- the reliability diagram ------------------------------------------------------------------

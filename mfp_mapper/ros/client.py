@@ -7,6 +7,7 @@ Every call waits for the node's service (``timeout`` seconds) and for the answer
 
 from __future__ import annotations
 
+import array
 import json
 import math
 import os
@@ -15,6 +16,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import rclpy
 import rclpy.context
 import rclpy.executors
@@ -163,10 +165,11 @@ class NodeClient:
         """``~/query``: statistics at ``points`` (x, y, z) and the clear probability of
         ``segments`` (x0, y0, z0, x1, y1, z1), in ``frame_id`` (empty: the map frame), read at
         ``stamp`` seconds (0: the latest)."""
+        xyz = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        ends = np.asarray(segments, dtype=np.float64).reshape(-1, 6)
         request = QueryMap.Request()
-        request.points = [_point(p) for p in points]
-        request.segment_starts = [_point(s[:3]) for s in segments]
-        request.segment_ends = [_point(s[3:6]) for s in segments]
+        request.points_xyz = array.array("d", xyz.tobytes())  # in bulk: one copy
+        request.segments_xyz = array.array("d", ends.tobytes())
         request.frame_id = frame_id
         if stamp:
             request.stamp.sec = int(math.floor(stamp))
@@ -174,24 +177,24 @@ class NodeClient:
         r = self._call(QueryMap, "query", request)
         rows = [
             {
-                "point": [p.x, p.y, p.z],
+                "point": xyz[k].tolist(),
                 "observed": bool(r.observed[k]),
                 "hit_probability": float(r.hit_probability[k]),
                 "degree_of_occupancy": float(r.degree_of_occupancy[k]),
                 "std": float(r.std[k]),
                 "mean_free_path": float(r.mean_free_path[k]),
             }
-            for k, p in enumerate(request.points)
+            for k in range(len(xyz))
             if r.success
         ]
         segs = [
             {
-                "start": list(map(float, segments[k][:3])),
-                "end": list(map(float, segments[k][3:6])),
+                "start": ends[k, :3].tolist(),
+                "end": ends[k, 3:].tolist(),
                 "clear_probability": float(r.segment_clear_probability[k]),
                 "unknown_length": float(r.segment_unknown_length[k]),
             }
-            for k in range(len(segments))
+            for k in range(len(ends))
             if r.success
         ]
         return QueryAnswer(bool(r.success), str(r.message), str(r.map_frame_id), rows, segs)

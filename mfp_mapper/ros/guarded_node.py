@@ -5,7 +5,10 @@
 - ``off_executor``: a job run in a thread and awaited, so the executor keeps serving other
   callbacks meanwhile (service callbacks that need the map while a long scan holds it).
 - ``warn_throttled``: one log line per key every few seconds.
-- ``GuardedLifecycleNode``: the same as an ``rclpy.lifecycle.LifecycleNode``.
+- ``GuardedLifecycleNode``: the same as an ``rclpy.lifecycle.LifecycleNode``; a transition
+  its state machine does not allow from the current state is refused with a log line (rclpy
+  raises ``RCLError`` out of ``spin``), and cleanup or shutdown first lets the service calls
+  in flight answer: nothing the executor runs outlives its service.
 """
 
 from __future__ import annotations
@@ -52,11 +55,15 @@ def _tracking(
 
         @functools.wraps(callback)
         async def run_async(owner: Any, *args: Any) -> Any:
+            node = node_of(owner)
+            node._call_started()
             try:
                 return await callback(owner, *args)
             except Exception as err:
-                node_of(owner)._callback_failed(callback.__name__, err)
+                node._callback_failed(callback.__name__, err)
                 return fallback(args)
+            finally:  # the executor sends the answer before it runs anything else
+                node._call_ended()
 
         return run_async
 
@@ -87,6 +94,33 @@ class GuardedNode(Node):
         self._inflight_cv = threading.Condition()
         # wakes the executor when a background job finishes (its call resumes)
         self._wake = self.create_guard_condition(lambda: None)
+        self._calls = 0  # tracked coroutines (service calls) not yet answered
+        self._calls_done: list[rclpy.task.Future] = []  # waiters for calls == 0
+
+    def _call_started(self) -> None:
+        self._calls += 1  # executor thread only
+
+    def _call_ended(self) -> None:
+        self._calls -= 1
+        if self._calls == 0:
+            waiters, self._calls_done = self._calls_done, []
+            for waiter in waiters:
+                waiter.set_result(None)
+            self._wake.trigger()
+
+    @property
+    def calls_pending(self) -> int:
+        """Tracked coroutines (service calls, queries) not yet answered."""
+        return self._calls
+
+    async def calls_answered(self) -> None:
+        """Wait (in a coroutine on the executor) until every tracked call has returned, so
+        that its answer is sent before its service is destroyed."""
+        if self._calls == 0:
+            return
+        waiter = rclpy.task.Future()
+        self._calls_done.append(waiter)
+        await waiter
 
     def warn_throttled(self, key: str, text: str, error: bool = False) -> None:
         now = time.monotonic()
@@ -168,6 +202,11 @@ class GuardedNode(Node):
             self._closing = True
             self._inflight_cv.wait_for(lambda: self._inflight == 0, timeout=timeout)
 
+    def refuse_work(self) -> None:
+        """From now on, callbacks do nothing and jobs are refused (until ``reopen``)."""
+        with self._inflight_cv:
+            self._closing = True
+
     def reopen(self) -> None:
         """Accept callbacks again after ``wait_idle`` (a lifecycle node configured again)."""
         with self._inflight_cv:
@@ -176,4 +215,65 @@ class GuardedNode(Node):
 
 class GuardedLifecycleNode(GuardedNode, LifecycleNode):
     """A ``GuardedNode`` that is an ``rclpy.lifecycle.LifecycleNode`` (managed states and
-    the ``~/change_state``, ``~/get_state``... services)."""
+    the ``~/change_state``, ``~/get_state``... services).
+
+    ``~/change_state`` answers ``success: false`` with a warning for a transition the state
+    machine does not allow from the current state (an unknown id, configure while active:
+    what Nav2's lifecycle manager sends to an autostarted node), where rclpy's own handler
+    raises ``RCLError`` out of ``spin``. Before cleanup or shutdown (they destroy the
+    services) the calls in flight are answered (``calls_answered``).
+    """
+
+    def __init__(self, name: str, **kwargs: Any) -> None:
+        super().__init__(name, **kwargs)
+        service = getattr(self, "_service_change_state", None)
+        self._rclpy_change_state: Callable[..., Any] | None = None
+        if service is not None:  # enable_communication_interface
+            self._rclpy_change_state = service.callback
+            service.callback = self._on_change_state
+
+    def allowed_transitions(self) -> dict[int, str]:
+        """The transitions allowed from the current state: id -> label."""
+        return {int(t[0]): str(t[1]) for t in self._state_machine.available_transitions}
+
+    def current_state_label(self) -> str:
+        return str(self._state_machine.current_state[1])
+
+    async def _on_change_state(self, request: Any, response: Any) -> Any:
+        transition = request.transition
+        if not self._allowed(transition):
+            response.success = False
+            return response
+        if transition.id in RELEASING or transition.label in RELEASING_LABELS:
+            await self.calls_answered()  # their services are about to be destroyed
+            if not self._allowed(transition):  # another transition ran meanwhile
+                response.success = False
+                return response
+        assert self._rclpy_change_state is not None
+        try:
+            return self._rclpy_change_state(request, response)
+        except Exception as err:  # never out of spin
+            self.get_logger().error(f"transition {_name(transition)} failed: {err}")
+            response.success = False
+            return response
+
+    def _allowed(self, transition: Any) -> bool:
+        allowed = self.allowed_transitions()
+        ok = transition.label in allowed.values() if transition.label else transition.id in allowed
+        if not ok:
+            choices = ", ".join(f"{label} ({i})" for i, label in sorted(allowed.items()))
+            self.get_logger().warning(
+                f"transition {_name(transition)} refused: not allowed from state "
+                f"{self.current_state_label()!r} (allowed: {choices or 'none'})"
+            )
+        return ok
+
+
+RELEASING = frozenset({2, 5, 6, 7})
+"""lifecycle_msgs Transition ids that destroy the node's services: cleanup and the three
+shutdowns."""
+RELEASING_LABELS = frozenset({"cleanup", "shutdown"})
+
+
+def _name(transition: Any) -> str:
+    return repr(transition.label) if transition.label else f"id {transition.id}"

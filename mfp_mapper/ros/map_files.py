@@ -4,7 +4,8 @@
 is a directory; temporary files of an interrupted save are removed first. A map that fails
 to load is never saved over: the node starts an empty map and saves beside it
 (``recovery_path``). Saves come from ``~/save_map``, the autosave timer (``autosave_period``,
-only a map that changed) and cleanup or shutdown (``save_on_shutdown``), one at a time.
+only a map that changed; an empty ``map_path`` says so once at configure; a failing autosave
+logs throttled) and cleanup or shutdown (``save_on_shutdown``), one at a time.
 
 A file is overwritten only by the node that owns its contents: when ``map_path`` was changed
 on disk since the node loaded or last wrote it (another process, an operator copying a new
@@ -127,9 +128,14 @@ class MapFiles:
     def load(self) -> Mapper:
         """The map to start from (``initial_mapper``); saves go beside ``map_path`` when it
         failed to load."""
-        path = self._config().node.map_path
-        self._on_disk = file_identity(path) if path else None  # before reading it
-        mapper, self._save_elsewhere = initial_mapper(self._config(), self.node.get_logger())
+        cfg = self._config()
+        self._on_disk = file_identity(cfg.node.map_path) if cfg.node.map_path else None
+        mapper, self._save_elsewhere = initial_mapper(cfg, self.node.get_logger())
+        if cfg.node.autosave_period > 0.0 and not cfg.node.map_path:  # said once, at start
+            self.node.get_logger().warning(
+                f"autosave_period is {cfg.node.autosave_period:g} s but map_path is empty: "
+                "nothing is autosaved (set map_path)"
+            )
         return mapper
 
     def keep(self, worker: LiveIntegrator) -> None:
@@ -166,11 +172,12 @@ class MapFiles:
             response.success, response.message = False, f"saving failed: {err!r}"
         return response
 
-    def save(self, only_if_changed: bool = False) -> tuple[bool, str]:
+    def save(self, only_if_changed: bool = False, throttled: bool = False) -> tuple[bool, str]:
         """Write the map to ``map_path`` (one save at a time), or beside it when it failed to
         load at start (``recovery_path``): one map file, or a tiled map when ``map_path`` is
         a directory; stored uncompressed, so that a large map is saved within ``ros2
-        launch``'s grace period. Returns (success, message)."""
+        launch``'s grace period. Returns (success, message). ``throttled`` (the autosave):
+        a failure logs at most one line every few seconds, not one per period."""
         cfg = self._config()
         path = self._save_elsewhere or cfg.node.map_path
         if not path:
@@ -206,7 +213,12 @@ class MapFiles:
                 if not replaced and not self._save_elsewhere:
                     self._on_disk = file_identity(path)
         except (OSError, ValueError, MapFileError) as err:
-            logger.error(f"saving the map to {path!r} failed: {err}")
+            if throttled:
+                self.node.warn_throttled(
+                    "autosave_failed", f"autosaving the map to {path!r} failed: {err}", True
+                )
+            else:
+                logger.error(f"saving the map to {path!r} failed: {err}")
             return False, f"saving to {path!r} failed: {err}"
         seconds = time.perf_counter() - t0
         timing = f"started after {started:.3f} s, done in {seconds:.2f} s"
@@ -228,7 +240,9 @@ class MapFiles:
         """Save in the background when the map changed, unless a save is running."""
         if self._save_lock.locked():
             return
-        self.node.in_background(lambda: self.save(only_if_changed=True), "mfp_autosave")
+        self.node.in_background(
+            lambda: self.save(only_if_changed=True, throttled=True), "mfp_autosave"
+        )
 
     def save_on_shutdown(self) -> None:
         """Save when ``save_on_shutdown`` (beside ``map_path`` when it failed to load)."""

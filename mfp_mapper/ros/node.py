@@ -37,7 +37,7 @@ import rclpy.task
 import rclpy.time
 import rclpy.utilities
 from diagnostic_msgs.msg import DiagnosticArray
-from mfp_mapper_msgs.srv import ClearBbox
+from mfp_mapper_msgs.srv import ClearBbox, QueryMap
 from nav_msgs.msg import OccupancyGrid, Odometry
 from nav_msgs.srv import GetMap
 from rcl_interfaces.msg import SetParametersResult
@@ -64,8 +64,9 @@ from std_srvs.srv import Empty
 from tf2_msgs.msg import TFMessage
 
 from mfp_mapper.config.frames import frame_name
+from mfp_mapper.config.param_file import ParamFileError, read_sections
 from mfp_mapper.config.schema import SPECS, NodeConfig
-from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.core.mapper import Mapper, compile_kernels, mapper_kwargs
 from mfp_mapper.mapping.live import LiveIntegrator, LiveSettings
 from mfp_mapper.ros.guarded_node import GuardedLifecycleNode, tracked
 from mfp_mapper.ros.localization import Localization
@@ -73,6 +74,7 @@ from mfp_mapper.ros.map_files import MapFiles
 from mfp_mapper.ros.map_outputs import MapOutputs
 from mfp_mapper.ros.messages import cloud_msg
 from mfp_mapper.ros.params import declare_parameters, usage
+from mfp_mapper.ros.query_service import QueryService
 from mfp_mapper.ros.shutdown import SpinUntilSignal
 from mfp_mapper.ros.status import (
     StatusWindow,
@@ -125,6 +127,13 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._queries = 0
         self._maps_served = 0
         self.files = MapFiles(self, lambda: self.cfg)
+        self.query_service = QueryService(
+            self,
+            lambda: (self.mapper, self.worker.map_lock),
+            lambda points, frame, stamp: self.worker.to_map_frame(points, frame, stamp),
+            lambda: self.map_frame or self.mapper.frame_id,
+            lambda: self.cfg.query,
+        )
         self._transport_explained = False
         self._clock_warned = False
         self.worker: LiveIntegrator  # set by configure
@@ -134,6 +143,7 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._configured_once = False
         self._entities: list[Any] = []  # what configure creates (cleanup destroys)
         self._active: list[Any] = []  # what activate creates (deactivate destroys)
+        self._kernels = "compiling"  # numba's kernels: compiling, ready (or failed)
         if self.cfg.node.autostart:
             steps = (("configure", self.trigger_configure), ("activate", self.trigger_activate))
             for step, trigger in steps:
@@ -184,6 +194,8 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._entities += self.outputs.publishers
         self._configured = self._configured_once = True
         self.reopen()
+        self._kernels = "compiling"
+        self.in_background(self._compile_kernels, "mfp_compile")
         self._create_services()
         self.get_logger().info(
             startup_text(self.cfg, self.resolve_topic_name, self.mapper, self.map_frame)
@@ -277,6 +289,7 @@ class MfpMapperNode(GuardedLifecycleNode):
             self.create_service(
                 ClearBbox, "~/clear_bbox", self._on_clear_bbox, callback_group=group
             ),
+            self.create_service(QueryMap, "~/query", self._on_query_map, callback_group=group),
         ]
 
     def _create_interfaces(self) -> None:
@@ -355,6 +368,22 @@ class MfpMapperNode(GuardedLifecycleNode):
                 base_frame_id=frame_name(cfg.placement.base_frame_id),
                 cloud_frame_id=frame_name(cfg.placement.cloud_frame_id),
             ),
+        )
+
+    def _compile_kernels(self) -> None:
+        """Compile (or load from numba's cache) the kernels of a scan before the first
+        cloud: with a cold cache that takes tens of seconds, and the first clouds were
+        dropped waiting. ``~/status`` says ``kernels``: ``compiling``, then ``ready``."""
+        try:
+            decay = mapper_kwargs(self.cfg.map, self.cfg.sensor_model)["decay_time"]
+            seconds = compile_kernels(decay)
+        except Exception as err:  # the first scan compiles them then
+            self._kernels = "failed"
+            self.get_logger().error(f"compiling the kernels ahead failed: {err!r}")
+            return
+        self._kernels = "ready"
+        self.get_logger().info(
+            f"kernels ready in {seconds:.1f} s (compiled ahead of the first cloud)"
         )
 
     @tracked
@@ -480,14 +509,15 @@ class MfpMapperNode(GuardedLifecycleNode):
             self._answer_nothing(msg)  # an answer, never silence; the error is logged
             raise
         self._queries += 1
+        unseen = ~stats.observed  # unknown: NaN, never the prior's numbers (they look free)
         columns = {
             "x": points[:, 0],
             "y": points[:, 1],
             "z": points[:, 2],
-            "hit_probability": stats.hit_probability,
-            "degree_of_occupancy": stats.most_likely_doo,
-            "std": stats.std,
-            "mean_free_path": stats.mean_free_path,
+            "hit_probability": np.where(unseen, np.nan, stats.hit_probability),
+            "degree_of_occupancy": np.where(unseen, np.nan, stats.most_likely_doo),
+            "std": np.where(unseen, np.nan, stats.std),
+            "mean_free_path": np.where(unseen, np.nan, stats.mean_free_path),
             "observed": stats.observed.astype(np.float32),
         }
         self._result_pub.publish(cloud_msg(pack_cloud(columns), frame, msg.header.stamp))
@@ -520,6 +550,13 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._map_changed()
         self.get_logger().info("map reset")
         return response
+
+    @tracked
+    async def _on_query_map(
+        self, request: QueryMap.Request, response: QueryMap.Response
+    ) -> QueryMap.Response:
+        """``~/query``: points and segments (``ros.query_service``)."""
+        return await self.query_service.on_request(request, response)
 
     @tracked
     async def _on_clear_bbox(
@@ -566,7 +603,12 @@ class MfpMapperNode(GuardedLifecycleNode):
             "uptime_s": round(time.monotonic() - self._started, 3),
             **self.worker.describe_poses(),
             "sim_time_without_clock": self._clock_warned,
+            "kernels": self._kernels,
             "queries": self._queries,
+            "query_service": {
+                "answered": self.query_service.answered,
+                "refused": self.query_service.refused,
+            },
             "maps_served": self._maps_served,
         }
         if self.localization is not None:
@@ -612,22 +654,30 @@ class MfpMapperNode(GuardedLifecycleNode):
 
 def main(args: list[str] | None = None) -> int:
     """Entry point of ``ros2 run mfp_mapper mfp_mapper`` and ``python -m mfp_mapper.ros.node``."""
-    own_args = rclpy.utilities.remove_ros_args(args if args is not None else sys.argv)[1:]
-    if any(a in ("-h", "--help") for a in own_args):
-        print(usage())
-        return 0
-    # rclpy's handlers would shut the context down under a running executor: ros.shutdown
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    # rcl parses the ROS arguments (a --params-file) before the node exists: a broken file
+    # gives one line, no traceback
+    try:
+        own_args = rclpy.utilities.remove_ros_args(args if args is not None else sys.argv)[1:]
+        if any(a in ("-h", "--help") for a in own_args):
+            print(usage())
+            return 0
+        # rclpy's handlers would shut the context down under a running executor: ros.shutdown
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    except Exception as err:
+        print(f"mfp_mapper: {ros_args_problem(args, err)}", file=sys.stderr)
+        return 2
     node: MfpMapperNode | None = None
     executor: SingleThreadedExecutor | None = None
     code = 0
     logger = rclpy.logging.get_logger(NODE_NAME)
-    with SpinUntilSignal(logger.info) as stopper:
+    # the handler stays until the process ends: a signal after the save is ignored (exit 0)
+    with SpinUntilSignal(logger.info, keep_after_exit=True) as stopper:
         try:
             node = MfpMapperNode()
             executor = SingleThreadedExecutor()
             executor.add_node(node)
             stopper.spin(executor)
+            stopper.answer_calls(executor, node)  # ~/save_map callers get their answer
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
         except (ValueError, rclpy.exceptions.ParameterException) as err:
@@ -649,6 +699,20 @@ def main(args: list[str] | None = None) -> int:
         sys.stderr.flush()
         os._exit(code)
     return code
+
+
+def ros_args_problem(args: list[str] | None, err: Exception) -> str:
+    """What rclpy.init rejected, on one line: a ``--params-file`` that is not a ROS 2
+    parameter file says where (line, column), else rcl's first line."""
+    argv = list(args if args is not None else sys.argv)
+    for flag, path in zip(argv, argv[1:], strict=False):
+        if flag == "--params-file":
+            try:
+                read_sections(path)
+            except ParamFileError as problem:
+                return f"--params-file {path}: {problem}"
+    first = str(err).splitlines()[0] if str(err) else type(err).__name__
+    return f"invalid ROS arguments: {first}"
 
 
 if __name__ == "__main__":

@@ -200,8 +200,11 @@ class PoseInputs:
         """Pose source and extrinsic of a cloud, from copies taken under the lock (the
         executor keeps adding odometry and TF meanwhile); decides the map frame at the
         first cloud placed. Raises ScanDropped."""
-        with self.lock:
-            tree = self.tree.snapshot()
+        with self.lock:  # the chains of these frames only (a TF flood: thousands of frames)
+            tree = self.tree.snapshot(
+                (cloud_frame, base_frame_id, self.map_frame or "", self.odom_frame or "")
+                + ((self.odom_child,) if self.odom_child else ())
+            )
             odometry = None
             if self.odom_frame is not None and len(self.poses):
                 odometry = Odometry(self.odom_frame, self.odom_child or "", self.poses.snapshot())
@@ -246,7 +249,7 @@ class PoseInputs:
         position = None
         if base_frame_id and self.map_frame:
             with self.lock:
-                tree = self.tree.snapshot()
+                tree = self.tree.snapshot((self.map_frame, base_frame_id))
             try:
                 position = tree.lookup_matrix(self.map_frame, base_frame_id, stamp)[:3, 3]
             except TransformUnavailable:
@@ -271,7 +274,7 @@ class PoseInputs:
                 "unconnected", "the map frame is not decided yet (no cloud placed)"
             )
         with self.lock:
-            tree = self.tree.snapshot()
+            tree = self.tree.snapshot((target, frame))
         try:
             matrix = tree.lookup_matrix(target, frame, stamp)
         except TransformUnavailable as err:

@@ -111,7 +111,8 @@ def test_query(run: dict[str, Path], capsys: pytest.CaptureFixture[str]) -> None
     rows = json.loads(capsys.readouterr().out)
     assert len(rows) == 2
     assert rows[0]["observed"] and rows[0]["n"] > 0  # inside the cube of medium
-    assert not rows[1]["observed"] and rows[1]["degree_of_occupancy"] == 0.5
+    assert not rows[1]["observed"] and rows[1]["degree_of_occupancy"] is None
+    assert rows[1]["mean_degree_of_occupancy"] is None  # unknown, not the prior's DoO
     assert main(["query", str(run["map"]), "0", "0", "1"]) == 0
     assert "DoO" in capsys.readouterr().out
     assert main(["query", str(run["map"]), "0", "0"]) == 1

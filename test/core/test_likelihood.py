@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,6 +12,7 @@ from likelihood_reference import reference as _reference
 
 from mfp_mapper.core.likelihood import scan_log_likelihood, total_log_likelihood
 from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.core.traversal import RETURN_CHORD_FLOOR
 
 
 def _scene(decay_time: float = math.inf) -> tuple[Mapper, np.random.Generator]:
@@ -91,6 +93,32 @@ def test_empty_map_is_the_prior() -> None:
     assert got.total == pytest.approx(math.log(1.0 - (0.5 / 0.9) ** 2.0), rel=1e-12)
 
 
+def test_return_on_a_voxel_edge_is_finite() -> None:
+    """A return exactly on a voxel's edge or corner (coordinates rounded to 1 mm, a wall at
+    x = 2.0 m) floors to a voxel the ray only touches: its chord there is 0, and was
+    p_hit 0, log-likelihood -inf. The return event's chord is at least RETURN_CHORD_FLOOR,
+    as in the brute force; every other event is exact."""
+    res = 0.1
+    mapper = Mapper(res, max_range=20.0)
+    origin = np.zeros(3)
+    # the tls_conifers case: x on a face entered at the end, y on a face left at the end
+    edge = np.array([[2.0, -1.0, -1.353], [-1.0, 0.5, 1.495], [2.0, 1.0, 0.3], [2.0, -1.0, -1.0]])
+    for k in range(3):
+        mapper.integrate(edge, origin, float(k))
+    got = scan_log_likelihood(mapper, edge, origin, 3.0, shape=0.0033, rate=0.0016, events=True)
+    ev = got.event_arrays
+    assert ev is not None
+    assert np.all(np.isfinite(got.ray_log_likelihood))
+    assert ev.chord[ev.hit].min() == RETURN_CHORD_FLOOR  # the edge cases hit the floor
+    want, events = _reference(mapper, edge, origin, 3.0, np.zeros(4, bool), 0.0033, 0.0016)
+    np.testing.assert_allclose(got.ray_log_likelihood, want, rtol=1e-9, atol=1e-12)
+    # the return events (rays along grid diagonals also cross voxels over chords of 1e-16 m,
+    # which the brute force merges with their neighbours)
+    ref = np.array([e[:3] for e in events if e[3]])
+    got_hits = np.c_[ev.s, ev.n, ev.chord][ev.hit]
+    np.testing.assert_allclose(got_hits, ref, rtol=1e-9, atol=1e-12)
+
+
 def test_read_only_and_threads() -> None:
     mapper, rng = _scene()
     before = mapper.voxels()
@@ -139,6 +167,24 @@ def test_shards_and_origin() -> None:
     offset = np.asarray(mapper.origin)
     shifted = Mapper(0.25, max_range=6.0)  # the reference reads ``mapper`` at shifted points
     shifted.query = lambda p, stamp=None: mapper.query(np.asarray(p) + offset, stamp)  # type: ignore[method-assign]
-    want, _ = _reference(shifted, pts - offset, base - offset, 3.0, flags, 1.0, 1.0)
+    prior = mapper.prior  # the default: the family
+    want, _ = _reference(shifted, pts - offset, base - offset, 3.0, flags, prior.shape, prior.rate)
     np.testing.assert_allclose(got.ray_log_likelihood, want, rtol=1e-9, atol=1e-12)
     mapper.close()
+
+
+def test_every_held_out_ray_of_the_tls_scan_is_finite(shared_data: Path) -> None:
+    """tls_conifers at 0.1 m, even shots mapped and odd shots scored (what `score --split
+    shots` does): its coordinates are rounded to 1 mm, so some returns lie on voxel edges
+    (2 of them scored -inf before the return chord's floor)."""
+    from mfp_mapper.sources.scan_files import read_ply
+
+    cols = read_ply(shared_data / "tls_conifers" / "scan.ply")
+    pts = np.stack([cols["x"], cols["y"], cols["z"]], axis=1).astype(np.float64)
+    mapper = Mapper(0.1, max_range=100.0)
+    mapper.integrate(pts[::2], np.zeros(3), 0.0)
+    got = scan_log_likelihood(mapper, pts[1::2], np.zeros(3), 0.0, events=True)
+    ev = got.event_arrays
+    assert ev is not None
+    assert np.all(np.isfinite(got.ray_log_likelihood))
+    assert np.count_nonzero(ev.hit & (ev.chord == RETURN_CHORD_FLOOR)) >= 2

@@ -112,7 +112,7 @@ def test_query_reports_unknown_voxels_as_the_prior() -> None:
     q = mapper.query(np.array([[1.0, 0.05, 0.05], [1.0, 5.0, 5.0], [np.nan, 0.0, 0.0]]))
     assert q.observed.tolist() == [True, False, False]
     assert q.most_likely_doo[1] == model.UNKNOWN_DOO
-    assert q.std[1] == pytest.approx(model.UNKNOWN_STD)
+    assert q.std[1] == pytest.approx(mapper.prior.unknown_std)  # the prior's, the default
     assert q.most_likely_doo[0] == 0.0
     assert q.ijk[0].tolist() == [10, 0, 0]
     assert q.centers[0] == pytest.approx([1.05, 0.05, 0.05])

@@ -105,6 +105,36 @@ def test_map_files_keep_the_prior_and_old_files_mean_uniform(tmp_path: Path) -> 
     assert tiled.query([[100.0, 0.0, 0.0]]).prior == PRIOR
 
 
+def test_the_family_and_unset_shape_or_rate() -> None:
+    """shape = a * resolution, rate = a * resolution / 2; a shape or rate of 0 is unset: the
+    family's value at the map's resolution; given values override it."""
+    assert model.family_prior(0.03, 0.2) == model.Prior(0.006, 0.003)
+    assert model.resolve_prior(0.1, 0.0, 0.0, 0.03) == model.family_prior(0.03, 0.1)
+    assert model.resolve_prior(0.1, 0.5, 0.0, 0.03) == model.Prior(0.5, 0.0015)
+    assert model.resolve_prior(0.1, 0.5, 0.2, 0.0) == model.Prior(0.5, 0.2)
+    with pytest.raises(ValueError, match=r"prior\.scale"):
+        model.resolve_prior(0.1, 0.0, 0.2, 0.0)
+    with pytest.raises(ValueError, match="finite and > 0"):
+        model.resolve_prior(0.1, -1.0, 0.2, 0.03)
+    mapper = Mapper(0.2, prior_shape=0.0, prior_rate=0.0, prior_scale=0.03)
+    assert mapper.prior == model.Prior(0.006, 0.003)
+    assert Mapper(0.2).prior == model.family_prior(0.0275, 0.2)  # the settings' default
+
+
+def test_map_files_record_the_resolved_family_prior(tmp_path: Path) -> None:
+    """A map built with the family records the numbers it used; loading it with the
+    settings' family at another scale re-derives them at the file's resolution."""
+    mapper = Mapper(0.2, prior_shape=0.0, prior_rate=0.0, prior_scale=0.03)
+    mapper.integrate(np.array([[1.0, 0.0, 0.0]]), np.zeros(3), 0.0)
+    save_map(mapper, tmp_path / "m.npz")
+    arrays = np.load(tmp_path / "m.npz")
+    assert float(arrays["prior_shape"]) == pytest.approx(0.006)
+    assert float(arrays["prior_rate"]) == pytest.approx(0.003)
+    assert load_map(tmp_path / "m.npz").prior == mapper.prior
+    again = load_map(tmp_path / "m.npz", prior_shape=0.0, prior_rate=0.0, prior_scale=0.05)
+    assert again.prior == model.family_prior(0.05, 0.2)
+
+
 def test_replay_flags_and_node_parameters() -> None:
     from mfp_mapper.config.schema import check_parameters
 
@@ -117,4 +147,9 @@ def test_replay_flags_and_node_parameters() -> None:
     cfg = check_parameters({"prior.shape": 0.3, "prior.rate": 0.05})
     assert Mapper.of(cfg.map, cfg.sensor_model).prior == PRIOR
     with pytest.raises(ValueError, match=r"prior\.rate"):
-        check_parameters({"prior.rate": 0.0})
+        check_parameters({"prior.rate": -1.0})
+    # 0, the default: from the family, prior.scale at the map's resolution
+    cfg = check_parameters({"prior.scale": 0.05, "resolution": 0.2})
+    assert Mapper.of(cfg.map, cfg.sensor_model).prior == model.family_prior(0.05, 0.2)
+    cfg = check_parameters({"prior.shape": 1.0, "prior.rate": 1.0})
+    assert Mapper.of(cfg.map, cfg.sensor_model).prior == model.UNIFORM

@@ -72,3 +72,38 @@ def test_the_budget_follows_max_voxels() -> None:
     far = limits[:2] - memory_bound.FREE_WALK_VOXELS
     assert np.all(far >= 0) and np.ceil(far / BLOCK_EDGE).sum() + 4 <= 100
     assert memory_bound.walk_limits(origins, ends, 10**6) is None
+
+
+@pytest.mark.parametrize("staged", [False, True])
+def test_a_scan_adds_at_most_scan_new_blocks_near_parts_included(
+    monkeypatch: pytest.MonkeyPatch, staged: bool
+) -> None:
+    """The far budget left every ray's first ``FREE_WALK_VOXELS`` free: rays diverging in
+    every direction then took blocks without bound (20,000 rays to 100 km at 0.1 m:
+    MemoryError). The whole scan's new blocks are bounded; the rays not walked yet are cut."""
+    monkeypatch.setattr(memory_bound, "SCAN_NEW_BLOCKS", 3_000)
+    points = _far_rays(2_000, distance=200.0)  # within the free walk at 0.5 m: not far
+    mapper = Mapper(RES, max_range=math.inf)
+    if staged:
+        summary = mapper.commit(mapper.stage(points, np.zeros(3), 0.0))
+    else:
+        summary = mapper.integrate(points, np.zeros(3), 0.0)
+    assert summary.rays_cut_by_budget > 0 and summary.rays_used == 2_000
+    assert mapper._store.num_blocks <= 3_000
+    unbounded = Mapper(RES, max_range=math.inf)
+    monkeypatch.setattr(memory_bound, "SCAN_NEW_BLOCKS", 10**9)
+    unbounded.integrate(points, np.zeros(3), 0.0)
+    assert unbounded._store.num_blocks > 2 * 3_000
+
+
+def test_a_scan_within_scan_new_blocks_is_walked_whole(monkeypatch: pytest.MonkeyPatch) -> None:
+    points = _far_rays(200, distance=30.0)
+    whole = Mapper(RES, max_range=math.inf)
+    whole.integrate(points, np.zeros(3), 0.0)
+    monkeypatch.setattr(memory_bound, "SCAN_NEW_BLOCKS", 2 * whole._store.num_blocks)
+    bounded = Mapper(RES, max_range=math.inf)
+    summary = bounded.integrate(points, np.zeros(3), 0.0)
+    assert summary.rays_cut_by_budget == 0
+    a, b = map_arrays(whole), map_arrays(bounded)
+    for key in ("ijk", "s", "n"):
+        np.testing.assert_array_equal(a[key], b[key])

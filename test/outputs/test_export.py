@@ -51,7 +51,8 @@ def test_ply_values_read_back(mapper: Mapper, tmp_path: Path) -> None:
     np.testing.assert_allclose(
         ply["degree_of_occupancy"][order], model.most_likely_doo(vox.s[ref], vox.n[ref]), atol=1e-6
     )
-    np.testing.assert_allclose(ply["std"][order], model.std_doo(vox.s[ref], vox.n[ref]), atol=1e-6)
+    want_std = model.std_doo(vox.s[ref], vox.n[ref], vox.prior)
+    np.testing.assert_allclose(ply["std"][order], want_std, atol=1e-6)
     mfp = ply["mean_free_path"][order]
     hit = vox.n[ref] > 0
     assert np.all(np.isnan(mfp[~hit]))  # infinite: written as NaN

@@ -14,6 +14,7 @@ from likelihood_reference import reference
 from mfp_mapper.cli import main
 from mfp_mapper.core.likelihood import ScanEvents
 from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.core.model import Prior, family_prior
 from mfp_mapper.mapio.loading import load_map, save_map
 from mfp_mapper.outputs import score
 
@@ -119,6 +120,80 @@ def test_fit_prior_recovers_the_population_prior() -> None:
         assert (shifted - value) / h == pytest.approx(grad[axis], rel=1e-3)
 
 
+def _family_sample(rng: np.random.Generator, scale: float, resolution: float) -> score.EventSample:
+    """Voxels whose extinction is drawn from the family's prior at ``resolution``."""
+    prior = family_prior(scale, resolution)
+    voxels = 100_000
+    u = rng.gamma(prior.shape, 1 / prior.rate, voxels)
+    s = rng.uniform(0.0, 3 * resolution, voxels)
+    n = rng.poisson(u * s).astype(float)
+    chord = rng.uniform(0.1, 1.0, voxels) * resolution
+    hit = rng.random(voxels) < -np.expm1(-u * chord)
+    sample = score.EventSample(budget=10**7)
+    sample.add(ScanEvents(np.arange(voxels), np.zeros((voxels, 3), np.int32), s, n, chord, hit))
+    sample.rays = voxels // 20
+    return sample
+
+
+def test_fit_scale_recovers_the_family_and_leaves_one_out() -> None:
+    """Samples drawn from shape = a * resolution, rate = a * resolution / 2 (a = 2 per metre)
+    at two resolutions: the fit finds a back; leaving a recording out, the others' a scores
+    it within a few percent of its own two-parameter fit, better than the uniform prior."""
+    rng = np.random.default_rng(5)
+    samples = [
+        score.RecordingSample(name, res, _family_sample(rng, 2.0, res))
+        for name in ("hall", "street")
+        for res in (0.1, 0.2)
+    ]
+    assert family_prior(2.0, 0.1) == Prior(0.2, 0.1)
+    assert score.fit_scale(samples) == pytest.approx(2.0, rel=0.1)
+    own = {k: score.fit_prior(r.sample).prior for k, r in enumerate(samples)}
+    rows = score.leave_one_out(samples, own)
+    assert [(r.recording, r.resolution) for r in rows] == [
+        (r.recording, r.resolution) for r in samples
+    ]
+    for row in rows:
+        assert row.scale == pytest.approx(2.0, rel=0.15)
+        assert -0.01 < row.gap < 0.05
+        assert row.family > row.uniform
+    with pytest.raises(ValueError, match="two recordings"):
+        score.leave_one_out(samples[:2], own)
+
+
+def test_fit_prior_refuses_nothing_to_fit() -> None:
+    """No held-out return (every ray cut at max_range), or no event at all: a ValueError
+    that says so, never a prior "fitted" to nothing."""
+    rng = np.random.default_rng(1)
+    k = 1000
+    passes = ScanEvents(
+        np.arange(k), np.zeros((k, 3), np.int32), rng.uniform(0, 1, k), np.zeros(k),
+        rng.uniform(0.01, 0.1, k), np.zeros(k, dtype=bool),
+    )  # fmt: skip
+    sample = score.EventSample()
+    sample.add(passes)
+    sample.rays = k
+    with pytest.raises(ValueError, match="nothing to fit: none of the 1,000 held-out rays"):
+        score.fit_prior(sample)
+    with pytest.raises(ValueError, match="nothing to fit: no held-out ray"):
+        score.fit_prior(score.EventSample())
+
+
+def test_a_non_finite_score_says_why() -> None:
+    """An event of probability 0 makes the log-likelihood -inf: the summary says so."""
+    m = score.Metrics()
+    m.rays = 2
+    m.add(np.array([0.0, 0.5]), np.array([True, False]), np.array([-np.inf, math.log(0.5)]))
+    row = m.result()
+    assert row["impossible_events"] == 1
+    rep = {**row, "log_density_per_ray": -math.inf, "prior": {"shape": 1.0, "rate": 1.0}}
+    lines = score.summary_lines(rep)
+    assert "-inf: 1 scored event(s) had probability 0" in lines[-1]
+    fine = score.Metrics()
+    fine.rays = 1
+    fine.add(np.array([0.5]), np.array([True]), np.array([math.log(0.5)]))
+    assert score.nonfinite_reason({**fine.result(), "log_density_per_ray": 0.0}) is None
+
+
 def test_event_sample_halving_keeps_weights_unbiased() -> None:
     rng = np.random.default_rng(3)
     count = 400_000
@@ -176,7 +251,8 @@ def test_score_agrees_with_an_independent_implementation(shared_data: Path, tmp_
     keep = np.linalg.norm(xyz, axis=1) > 0
     pts = pts[keep]
     flags = np.zeros(len(pts), dtype=bool)
-    want, events = reference(mapper, pts, pose[:, 3], 1.0, flags, 1.0, 1.0)
+    prior = mapper.prior  # the default: the family at 0.25 m
+    want, events = reference(mapper, pts, pose[:, 3], 1.0, flags, prior.shape, prior.rate)
     assert got["rays"] == len(pts)
     assert got["events"] == len(events)
     assert got["log_likelihood_per_ray"] == pytest.approx(want.mean(), rel=0.01)
@@ -192,9 +268,20 @@ def test_score_agrees_with_an_independent_implementation(shared_data: Path, tmp_
     ]) == 0  # fmt: skip
     table = json.loads(rows.read_text())["rows"]
     assert [r["label"] for r in table] == [str(map_path)] * 2
-    want_prior, _ = reference(mapper, pts, pose[:, 3], 1.0, flags, 0.5, 1.0)
+    want_prior, _ = reference(mapper, pts, pose[:, 3], 1.0, flags, 0.5, prior.rate)
     assert table[0]["log_likelihood_per_ray"] == pytest.approx(want_prior.mean(), rel=1e-6)
-    assert table[0]["uniform_prior"]["log_likelihood_per_ray"] == got["log_likelihood_per_ray"]
+    uniform, _ = reference(mapper, pts, pose[:, 3], 1.0, flags, 1.0, 1.0)
+    assert table[0]["uniform_prior"]["log_likelihood_per_ray"] == pytest.approx(
+        uniform.mean(), rel=1e-6
+    )
+    assert got["uniform_prior"]["log_likelihood_per_ray"] == pytest.approx(uniform.mean(), rel=1e-6)
+    # --prior-scale: the family at the map's resolution
+    assert main([
+        "score", str(map_path), str(held), "--poses", str(poses).format(held.name),
+        "--max-range", "30", "--prior-scale", "0.1", "--json", str(rows), "-q",
+    ]) == 0  # fmt: skip
+    scaled = json.loads(rows.read_text())
+    assert scaled["prior"] == {"shape": pytest.approx(0.025), "rate": pytest.approx(0.0125)}
 
 
 def test_score_split_and_fit_prior_on_real_scans(shared_data: Path, tmp_path: Path) -> None:
@@ -276,3 +363,60 @@ def test_score_norlab_sequence_even_odd(shared_data: Path, tmp_path: Path) -> No
     assert got["rays"] > 100_000
     assert got["log_likelihood_per_ray"] > got["classic_paper"]["log_likelihood_per_ray"]
     assert 0.0 <= got["ece"] < 0.1
+
+
+def test_fit_prior_with_no_return_exits_nonzero(
+    shared_data: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """--max-range 0.05 cuts every ray before its return: nothing to fit, exit status 1."""
+    folder = _street_folder(shared_data, tmp_path, [0, 1, 2], 40)
+    poses = str(tmp_path / f"poses_{folder.name}.txt")
+    out = tmp_path / "prior.json"
+    assert main(["fit-prior", str(folder), "--poses", poses, "--max-range", "0.05",
+                 "--resolution", "0.4", "--json", str(out), "-q"]) == 1  # fmt: skip
+    assert "nothing to fit" in capsys.readouterr().err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("command", ["score", "fit-prior"])
+def test_an_unwritable_output_is_refused_before_computing(
+    command: str, shared_data: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:  # fmt: skip
+    """--json into a folder that does not exist: exit status 1 before any scan is read."""
+    folder = _street_folder(shared_data, tmp_path, [0, 1, 2], 40)
+    poses = str(tmp_path / f"poses_{folder.name}.txt")
+
+    def no_replay(*_args: object, **_kwargs: object) -> None:
+        raise AssertionError("computed before checking the output")
+
+    monkeypatch.setattr(score, "run_input", no_replay)
+    split = ["--split", "even-odd"] if command == "score" else []
+    missing = tmp_path / "missing" / "out.json"
+    assert main([command, *split, str(folder), "--poses", poses, "--json", str(missing),
+                 "-q"]) == 1  # fmt: skip
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_fit_prior_over_two_recordings_fits_the_family(shared_data: Path, tmp_path: Path) -> None:
+    """Two recordings, --poses once each: the family's scale and the leave-one-out table."""
+    first = _street_folder(shared_data, tmp_path, [0, 1, 2], 8)
+    second = _street_folder(shared_data, tmp_path, [2, 1, 0], 8)
+    out = tmp_path / "fit.json"
+    poses = [str(tmp_path / f"poses_{f.name}.txt") for f in (first, second)]
+    assert main(["fit-prior", str(first), str(second), "--poses", poses[0], "--poses",
+                 poses[1], "--resolution", "0.4", "--json", str(out), "-q"]) == 0  # fmt: skip
+    fit = json.loads(out.read_text())
+    assert 1e-4 < fit["scale"] < 10.0
+    assert [s["recording"] for s in fit["samples"]] == [str(first), str(second)]
+    rows = fit["leave_one_out"]
+    assert [r["recording"] for r in rows] == [str(first), str(second)]
+    for row in rows:
+        assert row["log_likelihood_per_ray"] > row["uniform_log_likelihood_per_ray"]
+        assert row["gap_to_own"] == pytest.approx(
+            (row["own_log_likelihood_per_ray"] - row["log_likelihood_per_ray"])
+            / abs(row["own_log_likelihood_per_ray"])
+        )
+    # --poses given twice for three inputs: refused before any work
+    assert main(["fit-prior", str(first), str(second), str(first), "--poses", poses[0],
+                 "--poses", poses[1], "-q"]) == 1  # fmt: skip

@@ -410,7 +410,7 @@ def test_future_stamped_cloud_does_not_block_the_queue(ros_domain: int, tmp_path
             f.cloud_pub.publish(wall_cloud(t))
             f.spin(0.1)  # real time: 10 Hz
         status = f.wait_status(
-            lambda s: s["queued"] == 0 and s["clouds_integrated"] >= good - 3, 20.0
+            lambda s: s["queued"] == 0 and s["clouds_integrated"] >= good - 3, 60.0
         )
         in_ = status["clouds_in"]
         assert status["clouds_integrated"] >= good - 3, f"{status}\n{node.log()[-3000:]}"
@@ -422,5 +422,49 @@ def test_future_stamped_cloud_does_not_block_the_queue(ros_domain: int, tmp_path
             f"future-stamped clouds at 1 Hz: {status['clouds_integrated']} of {good} good "
             f"clouds integrated ({in_} received), drops {status['clouds_dropped']}"
         )
+    finally:
+        stop(node, f)
+
+
+def test_clouds_flow_under_a_tf_flood_after_a_churn(ros_domain: int, tmp_path: Path) -> None:
+    """60,000 frame names churned, then 10,000 new frames a second beside the robot's TF:
+    placeable clouds keep flowing (each placement copied the whole TF tree under the lock,
+    300 ms at 20,000 frames, holding up the executor's TF: 7 of 15 clouds were kept)."""
+    node, f = start(ros_domain, tmp_path, "flood", cloud_queue_size=5)
+    try:
+        f.static_tf()
+        f.scans(T0, 5, with_odom_tf=True)
+        integrated(f, 5)
+        t = T0 + 0.5
+        for k in range(600):  # the churn: 100 names a message, stamped with the robot's TF
+            f.tf_pub.publish(churn_message(f, t, [f"churn_{k}_{j}" for j in range(100)]))
+            if k % 50 == 49:
+                f.spin(0.01)
+        f.wait_status(lambda s: s["tf_frames"] > 10_000, 60.0)
+        assert f.status is not None
+        base = f.status["clouds_integrated"]
+        settled = base + sum(f.status["clouds_dropped"].values())
+        clouds = 15
+        for k in range(clouds):  # 10 Hz clouds, 10,000 new frames a second
+            for j in range(10):
+                names = [f"flood_{k}_{j}_{i}" for i in range(100)]
+                f.tf_pub.publish(churn_message(f, t + 0.01 * j, names))
+            for dt in (-0.05, 0.0, 0.05, 0.1):
+                f.tf(t + dt)
+            f.cloud_pub.publish(wall_cloud(t))
+            f.spin(0.1)
+            t += 0.1
+        kept = clouds * 3 // 5  # 11-12 of 15 measured on a loaded 2-core machine
+        status = f.wait_status(
+            lambda s: (  # every cloud integrated or dropped
+                s["queued"] == 0
+                and s["clouds_integrated"] + sum(s["clouds_dropped"].values()) >= settled + clouds
+            ),
+            60.0,
+        )
+        # before: 4 of 15 (too_new: the robot's TF held up behind whole-tree copies); what
+        # is left is the executor's own cost per /tf message (issue 32 item 14, open)
+        assert status["clouds_integrated"] >= base + kept, f"{status}\n{node.log()[-2000:]}"
+        print(f"TF flood: {status['clouds_integrated'] - base} of {clouds} clouds integrated")
     finally:
         stop(node, f)

@@ -284,3 +284,55 @@ def test_an_octomap_server_parameter_file_starts_the_node_under_its_names(
         code = typo.stop()
     assert code == 2, typo.log()
     assert "resolutoin" in typo.log() and "Traceback" not in typo.log()
+
+
+REFUSED_AT = {
+    # state: transition ids the state machine does not allow there (99: callback error, an
+    # internal transition; 0 create and 8 destroy are never sent by a manager)
+    "active": (0, 1, 2, 3, 5, 6, 8, 99),
+    "inactive": (0, 1, 4, 5, 7, 8, 99),
+    "unconfigured": (0, 2, 3, 4, 6, 7, 8, 99),
+    "finalized": (0, 1, 2, 3, 4, 5, 6, 7, 8, 99),
+}
+
+
+def test_a_transition_not_allowed_is_refused_at_every_state(
+    ros_domain: int, tmp_path: Path
+) -> None:
+    """Nav2's lifecycle manager sends configure to an autostarted node: refused, with a
+    warning, the node unharmed; the same for every id not allowed from each state (rclpy's
+    own handler raised RCLError out of spin: a traceback and exit 1)."""
+    from lifecycle_msgs.msg import Transition
+    from lifecycle_msgs.srv import ChangeState
+
+    node = NodeProcess(ros_domain, dict(NODE_PARAMS), tmp_path / "node.log")  # autostart
+    feeder = Feeder()
+    try:
+        life = Lifecycle(feeder)
+        assert life.get.wait_for_service(30.0), node.log()
+        path = (
+            ("active", Transition.TRANSITION_DEACTIVATE),
+            ("inactive", Transition.TRANSITION_CLEANUP),
+            ("unconfigured", Transition.TRANSITION_UNCONFIGURED_SHUTDOWN),
+            ("finalized", None),
+        )
+        for state, next_transition in path:
+            assert life.state() == state, node.log()[-3000:]
+            for refused in REFUSED_AT[state]:
+                assert not life.transition(refused), (state, refused)
+                assert node.alive(), node.log()[-3000:]
+                assert life.state() == state, (state, refused)
+            if state == "active":  # by label as well
+                request = ChangeState.Request()
+                request.transition.label = "configure"
+                assert not feeder.call(life.change, request, timeout=30.0).success
+            if next_transition is not None:
+                assert life.transition(next_transition), node.log()[-3000:]
+        log = node.log()
+        assert "transition id 1 refused: not allowed from state 'active'" in log, log[-3000:]
+        assert node.alive()
+    finally:
+        feeder.destroy()
+        code = node.stop()
+    assert code == 0, node.log()[-3000:]
+    assert "Traceback" not in node.log() and "RCLError" not in node.log()

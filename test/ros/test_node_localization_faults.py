@@ -44,9 +44,9 @@ def test_bad_initial_poses_edge_parameters_and_reset_leave_the_node_standing(
     try:
         # beyond what a map can hold (finite, a unit quaternion): refused, not claimed on /tf
         _raw_initial_pose(feeder, (1e12, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
-        assert feeder.wait(lambda: "beyond the map's reach" in node.log(), 10.0), node.log()
+        assert feeder.wait(lambda: "beyond the map's reach" in node.log(), 60.0), node.log()
         _raw_initial_pose(feeder, (math.nan, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
-        assert feeder.wait(lambda: "not finite or not a unit quaternion" in node.log(), 10.0)
+        assert feeder.wait(lambda: "not finite or not a unit quaternion" in node.log(), 60.0)
         _raw_initial_pose(feeder, (1.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0))
         feeder.spin(0.3)
         assert feeder.localization()["initial_poses"] == 0, feeder.localization()
@@ -62,9 +62,9 @@ def test_bad_initial_poses_edge_parameters_and_reset_leave_the_node_standing(
         truth = poses[5]
         quat = Rotation.from_matrix(truth.rotation).as_quat()
         _raw_initial_pose(feeder, truth.translation, quat, ahead=YEAR)
-        assert feeder.wait(lambda: "/initialpose received" in node.log(), 10.0)
+        assert feeder.wait(lambda: "/initialpose received" in node.log(), 60.0)
         seen = len(feeder.tf)
-        assert feeder.wait(lambda: len(feeder.tf) >= seen + 3, 5.0)
+        assert feeder.wait(lambda: len(feeder.tf) >= seen + 3, 30.0)
         newest = feeder.tf[-1].header.stamp
         assert newest.sec + 1e-9 * newest.nanosec < time.time() + 5.0
         assert "ahead of the clock: taken as now" in node.log()
@@ -98,13 +98,13 @@ def test_bad_initial_poses_edge_parameters_and_reset_leave_the_node_standing(
         from std_srvs.srv import Empty
 
         feeder.call(feeder.reset, Empty.Request())
-        assert feeder.wait(lambda: feeder.localization().get("state") == "waiting_for_map", 10.0), (
+        assert feeder.wait(lambda: feeder.localization().get("state") == "waiting_for_map", 60.0), (
             feeder.localization()
         )
         localized = feeder.status["clouds_localized"] if feeder.status else 0
         feeder.scan(scene, poses[11], time.time(), seed=11)
         assert feeder.wait(
-            lambda: (feeder.status or {}).get("clouds_localized", 0) > localized, 10.0
+            lambda: (feeder.status or {}).get("clouds_localized", 0) > localized, 60.0
         ), feeder.status
         assert node.alive()
     finally:

@@ -337,3 +337,120 @@ def test_sigint_during_a_get_map_burst_exits_cleanly(ros_domain: int, tmp_path: 
         assert rc == 0, text[-3000:]
         assert "Traceback" not in text and "take_message" not in text, text[-3000:]
         assert "[WARN]" not in text, text[-3000:]
+
+
+@pytest.mark.parametrize("stop", ["cleanup", "shutdown", "sigterm"])
+def test_a_save_racing_a_stop_answers_and_the_node_survives(
+    ros_domain: int, tmp_path: Path, stop: str
+) -> None:
+    """Cleanup, shutdown or SIGTERM while ``~/save_map`` writes: the caller gets its answer,
+    the file holds the map, no InvalidHandle (the answer used to be sent on a destroyed
+    service, ending spin) and the node ends or goes on as asked."""
+    from lifecycle_msgs.msg import Transition
+    from lifecycle_msgs.srv import ChangeState
+    from std_srvs.srv import Trigger
+
+    from mfp_mapper.mapio.mapfile import read_map_file
+
+    path = tmp_path / "map.npz"
+    count, _ = _write_box_map(path, 4e6)
+    params = {**PARAMS, "map_path": str(path), "save_on_shutdown": False, "autostart": False}
+    node = NodeProcess(ros_domain, params, tmp_path / "node.log")
+    f = Feeder()
+    change = f.node.create_client(ChangeState, "/mfp_mapper/change_state")
+    rc = None
+    try:
+        assert change.wait_for_service(30.0), node.log()
+        request = ChangeState.Request()
+        request.transition.id = Transition.TRANSITION_CONFIGURE
+        assert f.call(change, request, timeout=120.0).success, node.log()[-3000:]
+        assert f.save.wait_for_service(10.0)
+        os.utime(path, (1.0, 1.0))
+        saving = f.save.call_async(Trigger.Request())
+        assert f.wait(lambda: bool(list(tmp_path.glob(".*mfp-tmp"))) or saving.done(), 60.0)
+        assert not saving.done(), "the save ended before the stop: make the map larger"
+        if stop == "sigterm":
+            node.proc.send_signal(signal.SIGTERM)
+        else:
+            request.transition.id = (
+                Transition.TRANSITION_CLEANUP
+                if stop == "cleanup"
+                else Transition.TRANSITION_INACTIVE_SHUTDOWN
+            )
+            moved = change.call_async(request)
+            assert f.wait(moved.done, 60.0), node.log()[-3000:]
+            assert moved.result().success, node.log()[-3000:]
+        assert f.wait(saving.done, 60.0), node.log()[-3000:]
+        assert saving.result().success, saving.result().message
+        if stop == "sigterm":
+            rc = node.proc.wait(30.0)
+        else:
+            f.wait(lambda: False, 1.0)  # the node would die right after the answer
+            assert node.alive(), node.log()[-3000:]
+    finally:
+        f.destroy()
+        code = node.stop()
+    log = node.log()
+    assert (rc if rc is not None else code) == 0, log[-3000:]
+    assert "InvalidHandle" not in log and "Traceback" not in log, log[-3000:]
+    assert path.stat().st_mtime > 1.0
+    assert read_map_file(path).voxels.s.shape[0] == count
+
+
+def test_sigterms_after_the_shutdown_save_exit_0(ros_domain: int, tmp_path: Path) -> None:
+    """SIGINT, then SIGTERM every few milliseconds until the process ends (launch's
+    escalation, at its worst moment: after the save, before the exit): exit code 0."""
+    path = tmp_path / "map.npz"
+    params = {**PARAMS, "map_path": str(path), "save_on_shutdown": True}
+    node = NodeProcess(ros_domain, params, tmp_path / "node.log")
+    f = Feeder()
+    try:
+        assert f.wait(lambda: f.status is not None, 60.0), node.log()
+    finally:
+        f.destroy()
+    node.proc.send_signal(signal.SIGINT)
+    deadline = time.monotonic() + 30.0
+    while node.proc.poll() is None and time.monotonic() < deadline:
+        if "saved" in node.log():
+            node.proc.send_signal(signal.SIGTERM)
+        time.sleep(0.002)
+    rc = node.proc.wait(10.0)
+    node.stop()
+    assert path.is_file(), node.log()
+    assert rc == 0, node.log()[-3000:]
+
+
+def test_autosave_without_a_map_path_and_a_failing_autosave_say_so_once(
+    ros_domain: int, tmp_path: Path
+) -> None:
+    """``autosave_period`` with no ``map_path``: one warning at start. An autosave that
+    fails every period (its folder is a file): one error line, not one per period."""
+    quiet = NodeProcess(ros_domain, {**PARAMS, "autosave_period": 0.1}, tmp_path / "quiet.log")
+    f = Feeder()
+    try:
+        assert f.wait(lambda: f.status is not None, 60.0), quiet.log()
+        f.wait(lambda: False, 1.0)
+    finally:
+        f.destroy()
+        assert quiet.stop() == 0, quiet.log()
+    assert quiet.log().count("map_path is empty: nothing is autosaved") == 1, quiet.log()
+
+    blocker = tmp_path / "afile"
+    blocker.write_text("")
+    params = {**PARAMS, "map_path": str(blocker / "map.npz"), "autosave_period": 0.1}
+    node = NodeProcess(ros_domain, params, tmp_path / "node.log")
+    f = Feeder()
+    try:
+        assert f.wait_connected(60.0), node.log()
+        assert f.wait(lambda: f.status is not None, 10.0)
+        _odom(f, T0 - 1.0, T0 + 2.0)
+        _send(f, _room_scan(5_000, 4), T0)
+        status = f.wait_status(lambda s: s["clouds_integrated"] == 1, 30.0)
+        assert status["clouds_integrated"] == 1, node.log()
+        assert f.wait(lambda: "failed" in node.log(), 10.0), node.log()
+        f.wait(lambda: False, 2.0)  # twenty autosave periods
+    finally:
+        f.destroy()
+        node.stop()
+    failures = [line for line in node.log().splitlines() if "map.npz' failed" in line]
+    assert len(failures) == 1, failures

@@ -142,8 +142,10 @@ def start(ros_domain: int, tmp: Path, name: str, **params: Any) -> tuple[NodePro
             and feeder.static_pub.get_subscription_count() > 0
             and feeder.get_map.service_is_ready()
             and feeder.status is not None
+            # compiled: a cold numba cache made the first clouds wait (queue_full drops)
+            and feeder.status.get("kernels") == "ready"
         ),
-        30.0,
+        120.0,
     )
     assert ok, f"node not discovered:\n{node.log()[-3000:]}"
     return node, feeder
@@ -238,7 +240,9 @@ def test_odometry_with_map_to_odom_nav2_grid_and_late_joiners(
 
         served = feeder.call(feeder.get_map, GetMap.Request()).map
         served_values = set(np.unique(np.array(served.data, dtype=int)))
-        assert len(served_values - {-1, 0, 100}) > 3  # GetMap keeps the percentages
+        # GetMap keeps round(100 p) (test_node checks the percentages): with the default
+        # prior this wall is 100 and the space before it 0 there too
+        assert {0, 100} <= served_values <= set(range(-1, 101))
 
         # a query in the odometry frame is transformed through TF (map -> odom); one in a
         # frame TF does not know is answered with no point, never silence

@@ -58,7 +58,7 @@ MODULE_KEYS = {  # third-party module imported -> its rosdep key (None: delibera
         for name in (
             "rclpy", "rcl_interfaces", "builtin_interfaces", "sensor_msgs", "nav_msgs",
             "std_msgs", "std_srvs", "diagnostic_msgs", "geometry_msgs", "tf2_msgs",
-            "mfp_mapper_msgs", "launch", "launch_ros", "ament_index_python",
+            "mfp_mapper_msgs", "launch", "launch_ros", "ament_index_python", "lifecycle_msgs",
         )
     },
 }  # fmt: skip
