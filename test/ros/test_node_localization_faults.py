@@ -261,7 +261,8 @@ def test_a_map_made_by_replay_is_localized_against_in_map(ros_domain: int, tmp_p
         status = feeder.status or {}
         assert status["map_frame"] == "map" and status["placement_frame"] == "odom", status
         assert status["localization"]["global_frame"] == "map"
-        assert feeder.poses and all(p.header.frame_id == "map" for p in feeder.poses)
+        assert feeder.wait(lambda: bool(feeder.poses), 10.0), feeder.localization()
+        assert all(p.header.frame_id == "map" for p in feeder.poses)
     finally:
         feeder.destroy()
         code = node.stop()
