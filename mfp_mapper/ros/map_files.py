@@ -122,6 +122,8 @@ class MapFiles:
         self._save_elsewhere: str | None = None  # where saves go when map_path failed to load
         self._saved_version: int | None = None  # the autosave writes only a changed map
         self._worker: LiveIntegrator | None = None
+        self._elsewhere_why = "failed to load at start"
+        """Why saves go to ``_save_elsewhere``, not ``map_path``."""
         self._on_disk: FileIdentity | None = None
         """``map_path`` as the node loaded or last wrote it (None: no file then)."""
 
@@ -131,6 +133,7 @@ class MapFiles:
         cfg = self._config()
         self._on_disk = file_identity(cfg.node.map_path) if cfg.node.map_path else None
         mapper, self._save_elsewhere = initial_mapper(cfg, self.node.get_logger())
+        self._elsewhere_why = "failed to load at start"
         if cfg.node.autosave_period > 0.0 and not cfg.node.map_path:  # said once, at start
             self.node.get_logger().warning(
                 f"autosave_period is {cfg.node.autosave_period:g} s but map_path is empty: "
@@ -224,8 +227,10 @@ class MapFiles:
         timing = f"started after {started:.3f} s, done in {seconds:.2f} s"
         kept = ""
         if self._save_elsewhere:
-            kept = f" (map_path {cfg.node.map_path!r} failed to load at start: kept as it was)"
+            kept = f" (map_path {cfg.node.map_path!r} {self._elsewhere_why}: kept as it was)"
         if replaced:
+            self._save_elsewhere = path  # the later saves go there too, not to a new file
+            self._elsewhere_why = "was changed on disk since the node loaded or wrote it"
             kept = (
                 f" (map_path {replaced!r} was changed on disk since the node loaded or wrote "
                 "it: not overwritten)"

@@ -308,8 +308,14 @@ def test_a_map_replaced_on_disk_is_never_overwritten(
         save_map(new_map, tmp_path / "new.npz")
         os.replace(tmp_path / "new.npz", tmp_path / "hall.npz")
         replaced = (tmp_path / "hall.npz").read_bytes()
-        if not freeze_map:
+        if not freeze_map:  # saved beside it, now and at shutdown: one file
+            from std_srvs.srv import Trigger
+
             assert feeder.wait(lambda: (feeder.status or {}).get("clouds_integrated", 0) >= 1)
+            answer = feeder.call(feeder.save, Trigger.Request())
+            assert answer.success and "not overwritten" in answer.message, answer.message
+            feeder.scan(scene, poses[5], time.time(), seed=5)
+            assert feeder.wait(lambda: (feeder.status or {}).get("clouds_integrated", 0) >= 2)
     finally:
         feeder.destroy()
         code = node.stop()
