@@ -23,7 +23,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from mfp_mapper.config.setting import NO_LIMIT_Z, Section, XyzRpy, setting, xyz_rpy
+from mfp_mapper.config.setting import NO_LIMIT_BAND, NO_LIMIT_Z, Section, XyzRpy, setting, xyz_rpy
 
 
 @dataclass(frozen=True)
@@ -207,55 +207,55 @@ class PlacementSection(Section):
         flag="--no-deskew",
     )
     point_cloud_min_x: float = setting(
-        -NO_LIMIT_Z,
+        -NO_LIMIT_BAND,
         "Returns whose map-frame x (m) is below this are dropped with their rays.",
-        -NO_LIMIT_Z,
-        NO_LIMIT_Z,
+        -NO_LIMIT_BAND,
+        NO_LIMIT_BAND,
         dynamic=True,
         applies="both",
         flag="--min-x",
     )
     point_cloud_max_x: float = setting(
-        NO_LIMIT_Z,
+        NO_LIMIT_BAND,
         "Returns whose map-frame x (m) is above this are dropped with their rays.",
-        -NO_LIMIT_Z,
-        NO_LIMIT_Z,
+        -NO_LIMIT_BAND,
+        NO_LIMIT_BAND,
         dynamic=True,
         applies="both",
         flag="--max-x",
     )
     point_cloud_min_y: float = setting(
-        -NO_LIMIT_Z,
+        -NO_LIMIT_BAND,
         "Returns whose map-frame y (m) is below this are dropped with their rays.",
-        -NO_LIMIT_Z,
-        NO_LIMIT_Z,
+        -NO_LIMIT_BAND,
+        NO_LIMIT_BAND,
         dynamic=True,
         applies="both",
         flag="--min-y",
     )
     point_cloud_max_y: float = setting(
-        NO_LIMIT_Z,
+        NO_LIMIT_BAND,
         "Returns whose map-frame y (m) is above this are dropped with their rays.",
-        -NO_LIMIT_Z,
-        NO_LIMIT_Z,
+        -NO_LIMIT_BAND,
+        NO_LIMIT_BAND,
         dynamic=True,
         applies="both",
         flag="--max-y",
     )
     point_cloud_min_z: float = setting(
-        -NO_LIMIT_Z,
+        -NO_LIMIT_BAND,
         "Returns whose map-frame z (m) is below this are dropped with their rays.",
-        -NO_LIMIT_Z,
-        NO_LIMIT_Z,
+        -NO_LIMIT_BAND,
+        NO_LIMIT_BAND,
         dynamic=True,
         applies="both",
         flag="--min-z",
     )
     point_cloud_max_z: float = setting(
-        NO_LIMIT_Z,
+        NO_LIMIT_BAND,
         "Returns whose map-frame z (m) is above this are dropped with their rays.",
-        -NO_LIMIT_Z,
-        NO_LIMIT_Z,
+        -NO_LIMIT_BAND,
+        NO_LIMIT_BAND,
         dynamic=True,
         applies="both",
         flag="--max-z",

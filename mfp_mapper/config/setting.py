@@ -27,7 +27,12 @@ def xyz_rpy(translation: Any, rpy: Any) -> XyzRpy:
 
 
 NO_LIMIT_Z = 1.0e6
-"""The "no limit" value of the z band parameters (metres)."""
+"""The "no limit" value of the occupancy grid's height band (metres)."""
+
+NO_LIMIT_BAND = 1.0e12
+"""The "no limit" value of the point-cloud band ``point_cloud_min/max_x/y/z`` (metres), its
+default and the bound of its range: beyond every Earth-fixed coordinate (UTM northings reach
+1e7 m, ECEF 6.4e6 m), so a geo-referenced map frame needs no setting."""
 
 Applies = Literal["node", "replay", "both"]
 Unlimited = Literal["inf", "none"]

@@ -31,12 +31,16 @@ def load_map(
     """Read a map written by ``save_map``, or a tiled map (a directory: ``mapio.tiles``);
     with ``bounds`` = (lower, upper) corners in metres, only the voxels whose centres lie
     inside (of a tiled map, only the tiles reaching into them are read). Keyword arguments
-    override stored settings (not ``resolution`` or ``origin``). Raises ``MapFileError``
+    override stored settings (not ``resolution`` or ``origin``); the stamps are checked
+    against the decay time the map will have (``decay_time`` when overridden: a file's
+    times are checked against the settings that will decay it). Raises ``MapFileError``
     naming the file and the problem."""
     p = Path(path)
+    decay = overrides.get("decay_time")
+    decay_time = None if decay is None else float(decay)  # type: ignore[arg-type]
     if p.is_dir():
-        return TiledMap(p).load(bounds, **overrides)
-    arrays = read_map_arrays(p, check_duplicates=False)
+        return TiledMap(p, decay_time).load(bounds, **overrides)
+    arrays = read_map_arrays(p, check_duplicates=False, decay_time=decay_time)
     if bounds is not None:
         lo_i, hi_i = index_bounds(bounds, float(arrays["resolution"]), arrays.get("origin"))
         keep = np.all((arrays["ijk"] >= lo_i) & (arrays["ijk"] <= hi_i), axis=1)

@@ -172,9 +172,11 @@ def write_map_arrays(path: str | Path, arrays: dict[str, Any], compress: bool = 
                 np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
 
 
-def read_map_file(path: str | Path) -> MapContents:
+def read_map_file(path: str | Path, decay_time: float | None = None) -> MapContents:
     """Read and check a map file; raises ``MapFileError`` naming the file and the problem
-    (never another exception: a file is data, whatever it holds)."""
+    (never another exception: a file is data, whatever it holds). ``decay_time``: the decay
+    time (s, inf: none) its voxels will decay under, when not the file's own (a node's
+    ``decay_time`` overrides it): its stamps are checked against that one."""
     path = Path(path)
     problem = file_problem(path)
     if problem:
@@ -197,7 +199,8 @@ def read_map_file(path: str | Path) -> MapContents:
     problem = voxel_problem(voxels.ijk, voxels.s, voxels.n, voxels.t_last)
     if not problem and voxels.t_last.size:
         t_max = float(voxels.t_last.max())
-        problem = future_problem(t_max, settings.decay_time, st.st_mtime, "t_last")
+        decay = settings.decay_time if decay_time is None else decay_time
+        problem = future_problem(t_max, decay, st.st_mtime, "t_last")
     if problem:
         raise MapFileError(path, problem)
     settings.voxels = voxels
@@ -287,12 +290,14 @@ def check_settings(path: Path, a: dict[str, np.ndarray]) -> MapContents:
     return MapContents(resolution, (ox, oy, oz), decay_time, str(a["frame_id"]), ranges, empty)
 
 
-def read_map_arrays(path: str | Path, check_duplicates: bool = True) -> dict[str, np.ndarray]:
+def read_map_arrays(
+    path: str | Path, check_duplicates: bool = True, decay_time: float | None = None
+) -> dict[str, np.ndarray]:
     """The arrays of a map file as stored (float64 sums kept, no Mapper built), checked as
-    ``read_map_file`` checks them, and for voxels listed twice (one sort of packed keys;
-    ``check_duplicates=False`` when a Mapper is built from them: its store finds them and
-    names the voxel)."""
-    c = read_map_file(path)
+    ``read_map_file`` checks them (against ``decay_time`` when given), and for voxels listed
+    twice (one sort of packed keys; ``check_duplicates=False`` when a Mapper is built from
+    them: its store finds them and names the voxel)."""
+    c = read_map_file(path, decay_time)
     if check_duplicates and has_duplicates(c.voxels.ijk):
         raise MapFileError(path, "ijk lists a voxel more than once")
     return {

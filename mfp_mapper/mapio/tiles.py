@@ -197,7 +197,9 @@ def check_tiled_output(path: str | Path) -> None:
 class TiledMap:
     """A tiled map opened for reading: only the tiles a call needs are read."""
 
-    def __init__(self, directory: str | Path) -> None:
+    def __init__(self, directory: str | Path, decay_time: float | None = None) -> None:
+        """``decay_time``: the decay time (s, inf: none) the tiles' voxels will decay under
+        when not the index's own: their stamps are checked against that one."""
         self.root = Path(directory)
         index_path = self.root / INDEX_NAME
         if not self.root.is_dir():
@@ -219,7 +221,8 @@ class TiledMap:
         self.origin: list[float] | None = index["origin"]
         self.tiles = {key: TileEntry(key, *rest) for key, *rest in index["tiles"]}
         t_max = max((e.t_max for e in self.tiles.values()), default=-math.inf)
-        problem = future_problem(t_max, self.decay_time, written_at, "t_max")
+        decay = self.decay_time if decay_time is None else decay_time
+        problem = future_problem(t_max, decay, written_at, "t_max")
         if problem:
             raise MapFileError(index_path, problem)
 

@@ -157,6 +157,11 @@ class LiveIntegrator:
             log=log,
             info=info or (lambda text: log("info", text, False)),
             now=now,
+            frame_role=(
+                "map frame"
+                if self.correction.names_map
+                else "frame the clouds are placed in (then localized into the map frame)"
+            ),
         )
         if self.pose_inputs.map_frame is not None and self.correction.names_map:
             mapper.frame_id = self.pose_inputs.map_frame
@@ -205,6 +210,16 @@ class LiveIntegrator:
     def map_frame(self) -> str:
         """The run's map frame ("" until decided; the global frame when localizing)."""
         return self.correction.map_frame(self.pose_inputs.map_frame or "")
+
+    def describe_poses(self) -> dict[str, Any]:
+        """What ``~/status`` says of the poses (``PoseInputs.describe``) with the run's map
+        frame; when localizing, the frame clouds are placed in as ``placement_frame``."""
+        out = self.pose_inputs.describe()
+        placed_in = out["map_frame"]
+        out["map_frame"] = self.map_frame or None
+        if not self.correction.names_map:
+            out["placement_frame"] = placed_in
+        return out
 
     @property
     def robot_position(self) -> Any:

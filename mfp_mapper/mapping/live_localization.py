@@ -35,6 +35,12 @@ fits ``fit_drop`` nats per ray worse is refused as ``poor_fit`` whatever the ali
 its correction is not applied, its pose is not vouched for, and it counts toward ``lost``
 (AMCL's short- against long-term likelihood, without the random particles: a jump further
 than the wide search needs an ``/initialpose``).
+
+A first acceptance (after the start or an ``/initialpose``) is claimed only when it fits as
+well as the scans before the ``/initialpose`` did, keeps the robot within the wide window of
+where the evidence put it (``beyond_window``), and is the best of wide searches started just
+beyond the window around it (``PROBES``; a better one is moved to, unclaimed:
+``better_elsewhere``). ``sigma`` includes what the grid cannot resolve (``with_grid``).
 """
 
 from __future__ import annotations
@@ -96,6 +102,30 @@ def align_options(settings: LocalizationSection, wide: bool) -> AlignOptions:
     )
 
 
+PROBES = tuple(
+    (dx, dy, turn)
+    for turn in (0, 1, -1)
+    for dx, dy in ((0, 0), (1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (1, -1), (-1, 1), (-1, -1))
+    if (dx, dy, turn) != (0, 0, 0)
+)
+"""Starts of the check of a first acceptance (``LiveLocalizer._better_elsewhere``): shifts
+by twice ``initial_max_shift`` along x, y and the diagonals, turns by twice
+``initial_max_angle``, and both (26 wide searches, once per ``/initialpose`` or start)."""
+
+
+def with_grid(sigma: Any, resolution: float, points: FloatArray, origins: FloatArray) -> Any:
+    """The alignment's standard deviations (m, m, m, deg, deg, deg) with what the grid
+    cannot resolve added in quadrature: ``resolution / sqrt(12)`` in position, that over the
+    median ray length in angle."""
+    grid_m = resolution / math.sqrt(12.0)
+    lengths = np.linalg.norm(np.asarray(points) - np.asarray(origins), axis=1)
+    reach = max(float(np.median(lengths)) if lengths.size else resolution, resolution)
+    grid = np.array([grid_m] * 3 + [math.degrees(grid_m / reach)] * 3)
+    given = np.asarray(sigma, dtype=np.float64)
+    bounded = np.isfinite(given) & (np.abs(given) < 1e100)  # unbounded stays as it was
+    return np.where(bounded, np.hypot(np.where(bounded, given, 0.0), grid), given)
+
+
 FIT_AVERAGE = 0.1
 """Weight of a new scan's fit in the reference (a moving average over about 10 scans)."""
 
@@ -154,6 +184,12 @@ class LiveLocalizer:
         self.pose_version = 0
         self.pose: tuple[float, FloatArray, FloatArray] | None = None
         self.consecutive_refused = 0
+        self._fit_before = math.nan
+        """The fit reference before the last ``/initialpose``: a first acceptance after it
+        that fits ``fit_drop`` worse is not claimed (``poor_fit``)."""
+        self._anchor = np.eye(4)
+        """The correction the evidence gave last: at the start, the identity (odometry);
+        after an ``/initialpose``, the one it set."""
         self.fit_reference = math.nan
         """Smoothed log-likelihood per ray of the scans accepted or confirmed (NaN: none yet
         since the start or the last ``/initialpose``)."""
@@ -305,15 +341,70 @@ class LiveLocalizer:
         if not wide:  # tracking: the correction is small, the coarse levels cost for nothing
             pyramid = FieldPyramid(pyramid.fields[: max(cfg.tracking_levels, 1)])
         options = align_options(cfg, wide)
-        al = align_scan(pyramid, pts, org, options, normals=self._scan_normals(pts, odom, wide))
+        normals = self._scan_normals(pts, odom, wide)
+        al = align_scan(pyramid, pts, org, options, normals=normals)
         if al.accepted and cfg.exact_check and (wide or cfg.exact_check_tracking):
             al = self._verify(al, moved, options)
-        ms = 1e3 * (time.perf_counter() - t0)
         step = pose_matrix(al.translation, al.rotation)
+        if al.accepted and wide and self.state == "initializing":
+            al, step = self._better_elsewhere(al, step, pyramid, pts, org, options, normals)
+        al = replace(al, sigma=with_grid(al.sigma, pyramid.fields[0].resolution, pts, org))
+        ms = 1e3 * (time.perf_counter() - t0)
         if not self._record(al, ms, placed.stamp, step, wide, odom, version):
             return moved  # an /initialpose came meanwhile: this correction is not used
         # accepted: the placed cloud moved once, by the composed correction
         return move_scan(placed, step @ correction) if al.accepted else moved
+
+    def _better_elsewhere(
+        self,
+        al: Alignment,
+        step: FloatArray,
+        pyramid: FieldPyramid,
+        pts: FloatArray,
+        org: FloatArray,
+        options: AlignOptions,
+        normals: tuple[FloatArray, FloatArray],
+    ) -> tuple[Alignment, FloatArray]:
+        """Before a first acceptance (start, ``/initialpose``) is claimed: the wide search
+        from ``PROBES`` starts just beyond its window around the pose found. When one of
+        them fits the map ``fit_drop`` nats per ray better, the pose found is a local
+        optimum (an initial pose given outside the window): it is refused as
+        ``better_elsewhere`` and the correction moved to the better pose, unclaimed (the
+        next scans search from there). Else (alignment, step) as they were."""
+        drop = self.settings.fit_drop
+        if not math.isfinite(al.fit_per_ray) or drop <= 0.0:
+            return al, step
+        centre = step[:3, :3] @ np.mean(np.atleast_2d(org), axis=0) + step[:3, 3]
+        shift, angle = 2.0 * options.max_shift_m, 2.0 * options.max_angle_deg
+        best: tuple[float, FloatArray] | None = None
+        for dx, dy, yaw in PROBES:
+            rot = Rotation.from_euler("z", yaw * angle, degrees=True).as_matrix()
+            probe = np.eye(4)
+            probe[:3, :3] = rot
+            probe[:3, 3] = centre + shift * np.array([dx, dy, 0.0]) - rot @ centre
+            moved = probe @ step
+            r, t = moved[:3, :3], moved[:3, 3]
+            tried = align_scan(
+                pyramid,
+                pts @ r.T + t,
+                np.atleast_2d(org) @ r.T + t,
+                options,
+                normals=(normals[0] @ r.T + t, normals[1] @ r.T),
+            )
+            usable = tried.accepted or tried.refusal in CONFIRMING
+            fit = tried.fit_per_ray
+            if usable and math.isfinite(fit) and (best is None or fit > best[0]):
+                best = (fit, pose_matrix(tried.translation, tried.rotation) @ moved)
+        if best is None or best[0] < al.fit_per_ray + drop:
+            return al, step
+        away = float(np.linalg.norm(best[1][:3, 3] - step[:3, 3]))
+        reason = (
+            f"a pose {away:.2f} m away fits the map {best[0] - al.fit_per_ray:.2f} nats per "
+            "ray better than the one found: the initial guess was outside the search window; "
+            "moved there, not claimed"
+        )
+        refused = replace(al, accepted=False, reason=reason, refusal="better_elsewhere")
+        return refused, best[1]
 
     def _scan_normals(
         self, pts: FloatArray, odom: FloatArray | None, wide: bool
@@ -380,10 +471,13 @@ class LiveLocalizer:
         """map <- odom such that the robot at ``odom_base`` is at ``map_base``."""
         with self.lock:
             self.correction = map_base @ np.linalg.inv(odom_base)
+            self._anchor = self.correction.copy()
             self.correction_stamp = stamp
             self.version += 1
             self.initial_poses += 1
             self.consecutive_refused = 0
+            if math.isfinite(self.fit_reference):  # the fit scans had where they belonged
+                self._fit_before = self.fit_reference
             self.fit_reference = math.nan  # another place: its own fit
             self._normals = None
             if self.pyramid is not None:
@@ -435,6 +529,14 @@ class LiveLocalizer:
             if poor:
                 al = replace(al, accepted=False, reason=poor, refusal="poor_fit")
                 self.last.update(accepted=False, reason=poor)
+            elif (
+                al.accepted
+                and self.state != "localized"
+                and self._beyond_window(step @ self.correction, odom)
+            ):
+                beyond = self._beyond_window(step @ self.correction, odom)
+                al = replace(al, accepted=False, reason=beyond, refusal="beyond_window")
+                self.last.update(accepted=False, reason=beyond)
             elif math.isfinite(al.fit_per_ray) and (al.accepted or al.refusal in CONFIRMING):
                 ref = self.fit_reference
                 if al.accepted and (math.isnan(ref) or self.state != "localized"):
@@ -451,6 +553,11 @@ class LiveLocalizer:
                 self._vouch(stamp, odom, al.sigma)
                 return True
             self.refused[al.refusal] += 1
+            if al.refusal in ("better_elsewhere", "beyond_window"):  # searched from, unclaimed
+                self.correction = step @ self.correction
+                self.correction_stamp = stamp
+                self.version += 1
+                return True
             if al.refusal in CONFIRMING:  # the best pose in range is no better: the current stands
                 self.consecutive_refused = 0
                 if self.state == "lost":  # localized before, and the scans agree again
@@ -471,9 +578,29 @@ class LiveLocalizer:
             )
         return True
 
+    def _beyond_window(self, correction: FloatArray, odom: FloatArray | None) -> str:
+        """(under the lock) Why the robot's pose under ``correction`` is too far from where
+        the evidence put it (the odometry at the start, the last ``/initialpose``) to be
+        claimed: farther than ``initial_max_shift`` / ``initial_max_angle``; or ''."""
+        if odom is None:
+            return ""
+        d = np.linalg.inv(self._anchor @ odom) @ (correction @ odom)
+        shift = float(np.linalg.norm(d[:3, 3]))
+        turn = float(np.degrees(Rotation.from_matrix(d[:3, :3]).magnitude()))
+        cfg = self.settings
+        if shift <= cfg.initial_max_shift and turn <= cfg.initial_max_angle:
+            return ""
+        return (
+            f"the pose found is {shift:.2f} m / {turn:.1f} deg from where the odometry or the "
+            f"initial pose put the robot (> {cfg.initial_max_shift:g} m / "
+            f"{cfg.initial_max_angle:g} deg): searched from, not claimed; give an /initialpose"
+        )
+
     def _poor_fit(self, al: Alignment) -> str:
         """(under the lock) Why the scan fits the map too poorly to be used, or ''."""
         drop, ref, fit = self.settings.fit_drop, self.fit_reference, al.fit_per_ray
+        if math.isnan(ref) and al.accepted:  # a first acceptance: as well as before, if any
+            ref = self._fit_before
         if drop <= 0.0 or math.isnan(ref) or not math.isfinite(fit) or fit >= ref - drop:
             return ""
         return (

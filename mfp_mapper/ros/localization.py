@@ -5,8 +5,9 @@ forward model: clouds placed in the odometry frame are aligned against the map
 and takes what RViz gives:
 
 - ``map -> odom`` on ``/tf`` (``localization.tf_publish``): a new correction stamped with
-  its cloud's stamp, else the last one stamped now, both future-dated by
-  ``localization.transform_tolerance``, at ``localization.tf_rate``;
+  its cloud's stamp (a late one, more than ``transform_tolerance`` behind the clock or
+  behind the last published, at that bound: ``tf_stamp``), else the last one stamped now,
+  both future-dated by ``localization.transform_tolerance``, at ``localization.tf_rate``;
 - ``~/pose`` (AMCL's ``amcl_pose``): the robot in the map frame at each alignment that
   vouched for it, with the alignment's standard deviations;
 - ``/initialpose`` (RViz's "2D Pose Estimate"): resets map -> odom.
@@ -14,6 +15,7 @@ and takes what RViz gives:
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -36,6 +38,33 @@ from mfp_mapper.ros.guarded_node import GuardedNode, tracked_role
 from mfp_mapper.sensing.pointcloud import stamp_seconds
 
 
+def tf_stamp(correction_stamp: float, now: float, tolerance: float, last: float) -> float:
+    """The stamp a new correction is published at (before ``transform_tolerance`` is added):
+    its cloud's, unless that lies more than ``tolerance`` behind the clock (a late
+    correction: a slow wide search, a queue) or behind the last one published (``last``;
+    not after the clock: a clock that jumped back starts over); then the later of those.
+    map -> odom does not go back in time, and a late one is valid at once."""
+    floor = max(min(last, now), now - tolerance) if now > 0.0 else last
+    return max(correction_stamp, floor)
+
+
+DEFAULT_MAP_FRAME = "map"
+"""The map frame when neither ``frame_id`` nor the loaded map names one other than the
+odometry frame."""
+
+
+def localization_frame(frame_id: str, map_file_frame: str, odom_frame: str) -> str:
+    """The map frame localized in: ``frame_id`` when set; else the loaded map's frame, unless
+    it is the odometry frame (a map made by ``mfp-mapper replay`` is in its recording's
+    ``odom``: the file's frame is where its voxels are, the node publishes map -> odom) or
+    none; then ``map``."""
+    if frame_id:
+        return frame_id
+    if map_file_frame and map_file_frame != odom_frame:
+        return map_file_frame
+    return DEFAULT_MAP_FRAME
+
+
 class Localization:
     """The localization mode's state, publishers, subscription and timer (see the module
     docstring). ``correction`` is what the worker takes to place clouds in the map frame."""
@@ -48,15 +77,23 @@ class Localization:
         now: Callable[[], float],
     ) -> None:
         """Localize against ``mapper`` (the map loaded at configure), its map frame being
-        ``frame_id``, else the loaded map's (``mapper.frame_id`` is set to it); raises
-        ValueError when the odometry frame is that frame."""
+        ``localization_frame`` (``mapper.frame_id`` is set to it); raises ValueError when
+        ``frame_id`` names the odometry frame."""
         self.node = node
         self._config = config
         self._now = now
         cfg = config()
-        global_frame = cfg.map.frame_id or mapper.frame_id or "map"
-        mapper.frame_id = global_frame
         settings = cfg.localization
+        odom_frame = frame_name(settings.odom_frame)
+        global_frame = localization_frame(cfg.map.frame_id, mapper.frame_id, odom_frame)
+        if not cfg.map.frame_id and mapper.frame_id == odom_frame:
+            node.get_logger().info(
+                f"the map was built in {odom_frame!r} (the odometry frame of its recording, as "
+                f"`mfp-mapper replay` writes it): localizing in {global_frame!r}, its voxels "
+                f"taken as coordinates of {global_frame!r}; publishing {global_frame} -> "
+                f"{odom_frame} (set frame_id to name the map frame)"
+            )
+        mapper.frame_id = global_frame
         if not mapper.num_voxels:
             node.get_logger().warning(
                 "localization.enabled but no map was loaded from map_path "
@@ -67,10 +104,11 @@ class Localization:
                     else ""
                 )
             )
-        if frame_name(settings.odom_frame) == global_frame:
+        if odom_frame == global_frame:
             raise ValueError(
-                f"localization.odom_frame and the map frame are both {global_frame!r}: the "
-                "correction map -> odom needs two frames"
+                f"frame_id and localization.odom_frame are both {global_frame!r}: the "
+                f"correction map -> odom needs two frames; set frame_id to the map frame "
+                f"(e.g. -p frame_id:=map), or leave it empty to localize in 'map'"
             )
         self.localizer = LiveLocalizer(settings, global_frame, log=node.get_logger().info)
         self.correction = LocalizerCorrection(self.localizer)
@@ -79,6 +117,7 @@ class Localization:
         self._tf_pub: Any = None
         self._pose_version = 0
         self._tf_version = -1
+        self._tf_stamp = -math.inf  # the last map -> odom's stamp (before the tolerance)
 
     def start(self, worker: LiveIntegrator) -> None:
         """Localize ``worker``'s clouds; the field of a loaded map is built at once (in the
@@ -93,6 +132,7 @@ class Localization:
         created = [self._pose_pub]
         self._pose_version = 0
         self._tf_version = -1
+        self._tf_stamp = -math.inf
         if self._config().localization.tf_publish:
             tf_qos = QoSProfile(
                 history=HistoryPolicy.KEEP_LAST,
@@ -207,7 +247,11 @@ class Localization:
             if now <= 0.0:
                 return  # use_sim_time before /clock
             stamp = max(now, stamp)
+        else:
+            tolerance = self._config().localization.transform_tolerance
+            stamp = tf_stamp(stamp, now, tolerance, self._tf_stamp)
         self._tf_version = version
+        self._tf_stamp = stamp
         self._tf_pub.publish(TFMessage(transforms=[self._map_to_odom(m, stamp)]))
 
     def _publish_pose(self) -> None:

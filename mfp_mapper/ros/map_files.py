@@ -6,6 +6,12 @@ to load is never saved over: the node starts an empty map and saves beside it
 (``recovery_path``). Saves come from ``~/save_map``, the autosave timer (``autosave_period``,
 only a map that changed; an empty ``map_path`` says so once at configure; a failing autosave
 logs throttled) and cleanup or shutdown (``save_on_shutdown``), one at a time.
+
+A file is overwritten only by the node that owns its contents: when ``map_path`` was changed
+on disk since the node loaded or last wrote it (another process, an operator copying a new
+map in), a map the node did not change since is not written at all (a frozen map in
+localization mode), and a changed one is saved beside it (``recovery_path``) with a warning
+saying why, never over it.
 """
 
 from __future__ import annotations
@@ -26,7 +32,7 @@ from mfp_mapper.core.mapper import Mapper, mapper_kwargs
 from mfp_mapper.mapio.atomic import remove_stale_temp_files
 from mfp_mapper.mapio.loading import load_map
 from mfp_mapper.mapio.mapfile import MapFileError, map_arrays
-from mfp_mapper.mapio.tiles import is_tiled, write_map_path
+from mfp_mapper.mapio.tiles import INDEX_NAME, is_tiled, write_map_path
 from mfp_mapper.mapping.live import LiveIntegrator
 from mfp_mapper.ros.guarded_node import GuardedNode, tracked_role
 
@@ -77,6 +83,21 @@ def initial_mapper(cfg: NodeConfig, logger: Any) -> tuple[Mapper, str | None]:
     return mapper, None
 
 
+FileIdentity = tuple[int, int, int, int]
+"""What says a map file is still the one the node loaded or wrote: (device, inode, size,
+modification time in ns) of the file, or of a tiled map's ``index.json``."""
+
+
+def file_identity(path: str) -> FileIdentity | None:
+    """The identity of the map at ``path`` (``FileIdentity``), None when there is none."""
+    target = os.path.join(path, INDEX_NAME) if os.path.isdir(path) else path
+    try:
+        st = os.stat(target)
+    except OSError:
+        return None
+    return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
+
+
 def recovery_path(map_path: str) -> str:
     """Where the node saves when ``map_path`` failed to load: beside it, named by the start
     time (UTC), e.g. ``site.npz`` -> ``site.20261124T010203Z.npz``."""
@@ -101,12 +122,18 @@ class MapFiles:
         self._save_elsewhere: str | None = None  # where saves go when map_path failed to load
         self._saved_version: int | None = None  # the autosave writes only a changed map
         self._worker: LiveIntegrator | None = None
+        self._elsewhere_why = "failed to load at start"
+        """Why saves go to ``_save_elsewhere``, not ``map_path``."""
+        self._on_disk: FileIdentity | None = None
+        """``map_path`` as the node loaded or last wrote it (None: no file then)."""
 
     def load(self) -> Mapper:
         """The map to start from (``initial_mapper``); saves go beside ``map_path`` when it
         failed to load."""
         cfg = self._config()
+        self._on_disk = file_identity(cfg.node.map_path) if cfg.node.map_path else None
         mapper, self._save_elsewhere = initial_mapper(cfg, self.node.get_logger())
+        self._elsewhere_why = "failed to load at start"
         if cfg.node.autosave_period > 0.0 and not cfg.node.map_path:  # said once, at start
             self.node.get_logger().warning(
                 f"autosave_period is {cfg.node.autosave_period:g} s but map_path is empty: "
@@ -167,11 +194,27 @@ class MapFiles:
                 with worker.whole_map:  # snapshot only: writing runs unlocked
                     started = time.perf_counter() - t0
                     version = worker.mapper.version
-                    if only_if_changed and version == self._saved_version:
+                    unchanged = version == self._saved_version
+                    if only_if_changed and unchanged:
                         return True, "map unchanged since the last save"
                     arrays = map_arrays(worker.mapper)
+                replaced = ""
+                if not self._save_elsewhere:
+                    on_disk = file_identity(path)
+                    replaced = "" if on_disk in (None, self._on_disk) else path
+                    if unchanged and replaced:
+                        text = (
+                            f"map unchanged since loaded or saved and {path!r} was changed on "
+                            "disk since the node loaded or wrote it: not written"
+                        )
+                        logger.info(text)
+                        return True, text
+                    if replaced:  # someone else's file now: never overwritten
+                        path = recovery_path(path)
                 count = write_map_path(path, arrays, compress=False)
                 self._saved_version = version
+                if not replaced and not self._save_elsewhere:
+                    self._on_disk = file_identity(path)
         except (OSError, ValueError, MapFileError) as err:
             if throttled:
                 self.node.warn_throttled(
@@ -184,7 +227,16 @@ class MapFiles:
         timing = f"started after {started:.3f} s, done in {seconds:.2f} s"
         kept = ""
         if self._save_elsewhere:
-            kept = f" (map_path {cfg.node.map_path!r} failed to load at start: kept as it was)"
+            kept = f" (map_path {cfg.node.map_path!r} {self._elsewhere_why}: kept as it was)"
+        if replaced:
+            self._save_elsewhere = path  # the later saves go there too, not to a new file
+            self._elsewhere_why = "was changed on disk since the node loaded or wrote it"
+            kept = (
+                f" (map_path {replaced!r} was changed on disk since the node loaded or wrote "
+                "it: not overwritten)"
+            )
+            logger.warning(f"saved {count} voxels to {path!r} ({timing}){kept}")
+            return True, f"saved {count} voxels to {path} ({timing}){kept}"
         logger.info(f"saved {count} voxels to {path!r} ({timing}){kept}")
         return True, f"saved {count} voxels to {path} ({timing}){kept}"
 

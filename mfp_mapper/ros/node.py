@@ -601,7 +601,7 @@ class MfpMapperNode(GuardedLifecycleNode):
                 self.worker.map_lock.release()
         extra = {
             "uptime_s": round(time.monotonic() - self._started, 3),
-            **self.worker.pose_inputs.describe(),
+            **self.worker.describe_poses(),
             "sim_time_without_clock": self._clock_warned,
             "kernels": self._kernels,
             "queries": self._queries,

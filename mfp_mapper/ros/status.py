@@ -224,7 +224,10 @@ def startup_text(cfg: NodeConfig, topic: Callable[[str], str], mapper: Mapper, f
     )
     if cfg.localization.enabled:
         odom = cfg.localization.odom_frame
-        map_frame = f"{frame!r} (frame_id, else the loaded map's)"
+        map_frame = (
+            f"{frame!r} (frame_id, else the loaded map's unless it is the odometry frame, "
+            "else 'map')"
+        )
         poses = (
             f"{topic('odom')} or TF in {odom!r}, localized against the map (map -> {odom} "
             f"on /tf: {cfg.localization.tf_publish}; freeze_map "

@@ -67,7 +67,11 @@ class PoseInputs:
         log: Log,
         info: Callable[[str], None],
         now: Callable[[], float],
+        frame_role: str = "map frame",
     ) -> None:
+        """``frame_role``: what ``frame_id`` (the frame clouds are placed in) is to the run,
+        as the log names it (in localization: the odometry frame, not the map frame)."""
+        self.frame_role = frame_role
         self.poses = poses
         self.tree = tree
         self.counters = counters
@@ -143,9 +147,9 @@ class PoseInputs:
         if self.odom_frame is None:
             self.odom_frame, self.odom_child = frame, sample.child_frame_id
             linked = (
-                "the map frame"
+                f"the {self.frame_role}"
                 if self.map_frame in (None, frame)
-                else f"linked to the map frame {self.map_frame!r} through TF"
+                else f"linked to the {self.frame_role} {self.map_frame!r} through TF"
             )
             self._info(
                 f"odometry received in frame {frame!r} (child {sample.child_frame_id!r}): {linked}"

@@ -285,3 +285,25 @@ def test_random_damage_is_refused_or_loaded_never_raised(compress: bool, tmp_pat
             outcomes["refused"] += 1
     (tiled / "index.json").write_text(index)
     assert outcomes["refused"] > 100, outcomes
+
+
+def test_stamps_are_checked_under_the_decay_that_will_apply(tmp_path: Path) -> None:
+    """A file's times are checked against the settings that will decay it (issue 32 item 8):
+    a static file stamped a year ahead is refused by a reader that decays it (every later
+    scan would add nothing), and a decaying one is taken by a reader that never decays."""
+    ahead = time.time() + 365 * 86400.0
+    static = tmp_path / "static.npz"
+    write_map_arrays(static, good_arrays(t_last=np.full(3, ahead), decay_time=np.float64(math.inf)))
+    assert load_map(static).num_voxels == 3
+    with pytest.raises(MapFileError, match="decay_time 10 s"):
+        load_map(static, decay_time=10.0)
+    decaying = tmp_path / "decaying.npz"
+    write_map_arrays(decaying, good_arrays(t_last=np.full(3, ahead)))
+    with pytest.raises(MapFileError, match="after the file was written"):
+        load_map(decaying)
+    assert load_map(decaying, decay_time=math.inf).num_voxels == 3
+    tiled = tmp_path / "tiled"
+    save_map(load_map(static), tiled)
+    assert load_map(tiled).num_voxels == 3
+    with pytest.raises(MapFileError, match="decay_time 10 s"):
+        load_map(tiled, decay_time=10.0)

@@ -7,6 +7,7 @@ while localizing; SIGINT."""
 from __future__ import annotations
 
 import math
+import os
 import signal
 import time
 from pathlib import Path
@@ -205,3 +206,164 @@ def test_a_signal_during_the_field_build_exits_cleanly(
     log = node.log()
     assert code == 0 and "Traceback" not in log, log[-3000:]
     assert f"{signal.Signals(sig).name}: stopping" in log, log[-3000:]
+
+
+def test_a_map_made_by_replay_is_localized_against_in_map(ros_domain: int, tmp_path: Path) -> None:
+    """``mfp-mapper replay`` writes its map in the recording's odometry frame (``odom``): the
+    node localizes against it as documented, with no frame setting (issue 32 items 4 and 5):
+    the map frame is ``map`` (logged), ``map -> odom`` converges to the true offset of the
+    odometry, and ``~/status``, ``/tf``, ``~/pose`` and the log all name ``map`` as the map
+    frame and ``odom`` as the frame clouds are placed in."""
+    import numpy as np
+    from folder_helpers import bag_contents
+    from ros_helpers import NodeProcess, cloud_from_columns, odom_msg
+    from test_node_localization import OFFSET, PARAMS, LocFeeder, _tf_matrix
+
+    from mfp_mapper.cli import main
+    from mfp_mapper.mapio.loading import load_map
+    from mfp_mapper.mapping.live_localization import pose_matrix
+
+    bag, map_path = tmp_path / "sim", tmp_path / "site.npz"
+    scans = ["--scans", "24", "--azimuths", "900", "--cloud-in-base-frame"]
+    assert main(["simulate", str(bag), "--scene", "demo", *scans]) == 0
+    replay = ["replay", str(bag), "-o", str(map_path), "--resolution", "0.2", "--no-deskew"]
+    assert main([*replay, "-q"]) == 0  # placed as the node places them below
+    assert load_map(map_path).frame_id == "odom"  # what replay writes
+    clouds, odometry = bag_contents(bag)
+    params = {**PARAMS, "map_path": str(map_path)}
+    node = NodeProcess(ros_domain, params, tmp_path / "replayed.log")
+    feeder = LocFeeder()
+    try:
+        ready = feeder.wait(lambda: feeder.localization().get("state") == "initializing", 60.0)
+        assert ready, node.log()[-3000:]
+        shift = time.time() - clouds[0][0] + 1.0  # the recording, stamped from now on
+        for k in range(0, len(clouds), 3):
+            stamp, records = clouds[k]
+            for row in odometry[(odometry[:, 0] > stamp - 0.15) & (odometry[:, 0] < stamp + 0.25)]:
+                truth = pose_matrix(row[1:4], Rotation.from_quat(row[4:8]).as_matrix())
+                odom = np.linalg.inv(OFFSET) @ truth
+                yaw = float(Rotation.from_matrix(odom[:3, :3]).as_euler("xyz")[2])
+                feeder.odom_pub.publish(odom_msg(row[0] + shift, odom[:3, 3], yaw))
+            columns = {name: np.ascontiguousarray(records[name]) for name in ("x", "y", "z")}
+            feeder.cloud_pub.publish(cloud_from_columns(columns, "base_link", stamp + shift))
+            feeder.spin(0.3)
+        assert feeder.wait(lambda: feeder.localization().get("state") == "localized", 30.0), (
+            str(feeder.localization()) + node.log()[-3000:]
+        )
+
+        def xy_error() -> float:  # z left out: the field's bias on this map is about 0.1 m
+            d = np.linalg.inv(OFFSET) @ _tf_matrix(feeder.tf[-1])
+            return float(np.linalg.norm(d[:2, 3]))
+
+        assert feeder.wait(lambda: bool(feeder.tf) and xy_error() < 0.1), feeder.tf[-1:]
+        last = feeder.tf[-1]
+        assert last.header.frame_id == "map" and last.child_frame_id == "odom"
+        status = feeder.status or {}
+        assert status["map_frame"] == "map" and status["placement_frame"] == "odom", status
+        assert status["localization"]["global_frame"] == "map"
+        assert feeder.wait(lambda: bool(feeder.poses), 10.0), feeder.localization()
+        assert all(p.header.frame_id == "map" for p in feeder.poses)
+    finally:
+        feeder.destroy()
+        code = node.stop()
+    log = node.log()
+    assert code == 0 and "Traceback" not in log, log[-3000:]
+    assert "the map was built in 'odom'" in log and "localizing in 'map'" in log, log[-3000:]
+    assert "odometry received in frame 'odom' (child 'base_link'): the map frame" not in log
+
+
+@pytest.mark.parametrize("freeze_map", [True, False])
+def test_a_map_replaced_on_disk_is_never_overwritten(
+    ros_domain: int, tmp_path: Path, freeze_map: bool
+) -> None:
+    """Localization with ``save_on_shutdown``; the operator replaces the map file while the
+    node runs (issue 32 item 10): on shutdown the new file is left as it is, byte for byte.
+    A frozen map (unchanged) is not written at all; a map the clouds changed is saved beside
+    the file, with a warning saying why."""
+    import re
+
+    from ros_helpers import NodeProcess
+    from test_node_localization import PARAMS, LocFeeder
+
+    from mfp_mapper.mapio.loading import load_map, save_map
+
+    scene, poses = _save_scene_map("box", tmp_path / "hall.npz")
+    params = {
+        **PARAMS,
+        "map_path": str(tmp_path / "hall.npz"),
+        "save_on_shutdown": True,
+        "localization.freeze_map": freeze_map,
+    }
+    node = NodeProcess(ros_domain, params, tmp_path / "replaced.log")
+    feeder = LocFeeder()
+    try:
+        ready = feeder.wait(lambda: feeder.localization().get("state") == "initializing", 60.0)
+        assert ready, node.log()[-3000:]
+        t = time.time()
+        for i, k in enumerate((1, 3)):
+            feeder.scan(scene, poses[k], t + i * 0.2, seed=k)
+            _aligned(feeder, i + 1, node)
+        new_map = load_map(tmp_path / "hall.npz")
+        new_map.clear_box((-100.0, -100.0, -100.0), (0.0, 100.0, 100.0))  # the operator's map
+        save_map(new_map, tmp_path / "new.npz")
+        os.replace(tmp_path / "new.npz", tmp_path / "hall.npz")
+        replaced = (tmp_path / "hall.npz").read_bytes()
+        if not freeze_map:  # saved beside it, now and at shutdown: one file
+            from std_srvs.srv import Trigger
+
+            assert feeder.wait(lambda: (feeder.status or {}).get("clouds_integrated", 0) >= 1)
+            answer = feeder.call(feeder.save, Trigger.Request())
+            assert answer.success and "not overwritten" in answer.message, answer.message
+            feeder.scan(scene, poses[5], time.time(), seed=5)
+            assert feeder.wait(lambda: (feeder.status or {}).get("clouds_integrated", 0) >= 2)
+    finally:
+        feeder.destroy()
+        code = node.stop()
+    log = node.log()
+    assert code == 0 and "Traceback" not in log, log[-3000:]
+    assert (tmp_path / "hall.npz").read_bytes() == replaced, log[-3000:]
+    beside = sorted(p.name for p in tmp_path.glob("hall.*.npz"))
+    if freeze_map:
+        assert "was changed on disk since the node loaded or wrote it: not written" in log
+        assert not beside, beside
+    else:
+        assert "was changed on disk since the node loaded or wrote it: not overwritten" in log
+        assert len(beside) == 1 and re.search(r"\[WARN\].*saved \d+ voxels", log), log[-3000:]
+        assert load_map(tmp_path / beside[0]).num_voxels > 0
+
+
+def test_an_initial_pose_2_m_off_never_ends_localized_off(ros_domain: int, tmp_path: Path) -> None:
+    """Issue 32 item 3 over DDS: localized, then an ``/initialpose`` 2 m off the truth
+    (outside the 1 m window): the state is never ``localized`` with map -> odom more than
+    0.1 m off, and ``~/pose`` is never published there."""
+    import numpy as np
+    from localization_scenes import Pose
+    from test_node_localization import _error, _tf_matrix
+
+    scene, poses = _save_scene_map("box", tmp_path / "hall.npz")
+    node, feeder = _start(ros_domain, tmp_path, "far", tmp_path / "hall.npz")
+    try:
+        t = time.time()
+        for i, k in enumerate((1, 3)):
+            feeder.scan(scene, poses[k], t + i * 0.2, seed=k)
+            _aligned(feeder, i + 1, node)
+        assert feeder.localization()["state"] == "localized"
+        given = Pose(poses[5].rotation, poses[5].translation + np.array([2.0, 0.0, 0.0]))
+        feeder.initial_pose(given)
+        assert feeder.wait(lambda: feeder.localization().get("initial_poses") == 1, 10.0)
+        published = len(feeder.poses)
+        for i, k in enumerate((5, 7, 9, 11)):
+            feeder.scan(scene, poses[k], time.time(), seed=k)
+            loc = _aligned(feeder, 3 + i, node)
+            feeder.spin(0.3)
+            if loc["state"] == "localized":
+                shift, _ = _error(_tf_matrix(feeder.tf[-1]))
+                assert shift < 0.1, (shift, loc)
+        for msg in feeder.poses[published:]:
+            p = msg.pose.pose.position
+            truths = [poses[k].translation for k in (5, 7, 9, 11)]
+            assert min(np.linalg.norm(np.array([p.x, p.y, p.z]) - x) for x in truths) < 0.1
+    finally:
+        feeder.destroy()
+        code = node.stop()
+    assert code == 0 and "Traceback" not in node.log()

@@ -3,9 +3,11 @@ line, starts empty and saves beside ``map_path``, never over it; real nodes over
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import stat
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -59,7 +61,9 @@ def test_node_start_on_each_hostile_map(kind: str, tmp_path: Path) -> None:
     path = KINDS[kind][0](src)
     before = _entries(src)
     log = Recorder()
-    cfg = NodeConfig.from_values({"map_path": str(path), "save_on_shutdown": True})
+    cfg = NodeConfig.from_values(  # the files' decay time: their stamps are checked under it
+        {"map_path": str(path), "save_on_shutdown": True, "decay_time": 30.0}
+    )
     mapper, elsewhere = initial_mapper(cfg, log)
     assert len(log.lines) == 1, log.lines
     level, text = log.lines[0]
@@ -96,7 +100,12 @@ def test_nodes_on_hostile_maps_stay_up_and_save_beside_them(
     from std_srvs.srv import Trigger
 
     before = {k: _entries(p.parent) for k, p in hostile.items()}
-    params = {"publish_rate": 0.0, "save_on_shutdown": True, "status_period": 0.5}
+    params = {
+        "publish_rate": 0.0,
+        "save_on_shutdown": True,
+        "status_period": 0.5,
+        "decay_time": 30.0,
+    }
     nodes, feeders = {}, {}
     for k, (kind, path) in enumerate(hostile.items()):
         name = f"mfp_hostile{k}"
@@ -153,3 +162,26 @@ def test_a_map_of_another_frame_is_relabelled_with_a_warning(tmp_path: Path) -> 
         if warned:
             assert "built in frame 'world', parameter frame_id is 'map'" in warnings[0]
         assert loaded.frame_id == (frame_id or "world")
+
+
+def test_a_static_map_stamped_ahead_is_refused_by_a_decaying_node(tmp_path: Path) -> None:
+    """A map saved without decay whose ``t_last`` lies a year ahead, loaded by a node with
+    ``decay_time``: the node's decay would make every later scan add nothing, so the file is
+    refused with the reason (checked against the node's decay time, not the file's) and the
+    node starts an empty map saved beside it (issue 32 item 8)."""
+    from hostile_maps import good_arrays
+
+    from mfp_mapper.mapio.mapfile import write_map_arrays
+
+    path = tmp_path / "static.npz"
+    ahead = np.full(3, time.time() + 365 * 86400.0)
+    write_map_arrays(path, good_arrays(t_last=ahead, decay_time=np.float64(math.inf)))
+    for decay, refused in ((0.0, False), (10.0, True)):
+        log = Recorder()
+        values = {"map_path": str(path), "decay_time": decay, "resolution": 0.1}
+        mapper, elsewhere = initial_mapper(NodeConfig.from_values(values), log)
+        errors = [text for level, text in log.lines if level == "error"]
+        assert bool(errors) == refused and (elsewhere is not None) == refused, log.lines
+        assert mapper.num_voxels == (0 if refused else 3)
+        if refused:
+            assert "decay_time 10 s every later scan would add nothing" in errors[0], errors
