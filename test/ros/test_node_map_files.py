@@ -117,9 +117,11 @@ def test_nodes_on_hostile_maps_stay_up_and_save_beside_them(
     try:
         for kind, f in feeders.items():
             assert f.wait(f.save.service_is_ready, 90.0), nodes[kind].log()
-            info = f.call(f.get_map, GetMap.Request()).map.info
+            # every node of the corpus starts at once, each compiling or loading its kernels:
+            # under load an answer can take tens of seconds (what counts is that it comes)
+            info = f.call(f.get_map, GetMap.Request(), timeout=60.0).map.info
             assert (info.width, info.height) == (0, 0)
-            answer = f.call(f.save, Trigger.Request())
+            answer = f.call(f.save, Trigger.Request(), timeout=60.0)
             assert answer.success, answer.message
             assert "kept as it was" in answer.message and str(hostile[kind]) in answer.message
             found = re.search(r"saved 0 voxels to (\S+)", answer.message)
