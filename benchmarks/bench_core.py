@@ -100,6 +100,7 @@ def child(kind: str, scene: str, resolution: float, threads: int, max_range: flo
             per_scan.append(time.perf_counter() - t0)
             cpu.append(time.process_time() - c0)
         voxels = tree.getNumLeafNodes()
+        map_mb = float(tree.memoryUsage()) / 1e6
     else:
         from mfp_mapper import Mapper
 
@@ -115,6 +116,7 @@ def child(kind: str, scene: str, resolution: float, threads: int, max_range: flo
             per_scan.append(time.perf_counter() - t0)
             cpu.append(time.process_time() - c0)
         voxels = mapper.num_voxels
+        map_mb = mapper.memory_bytes / 1e6
         mapper.close()
     peak_mb = (_rss_kib("VmHWM") - base) / 1024.0
     # after the first scan: what a running mapper pays per scan (the first one also pays for
@@ -127,6 +129,7 @@ def child(kind: str, scene: str, resolution: float, threads: int, max_range: flo
         "later_scan_cpu_ms": 1e3 * float(np.median(cpu[1:] if len(cpu) > 1 else cpu)),
         "voxels": voxels,
         "peak_mb": peak_mb,
+        "map_mb": map_mb,
     }
 
 
@@ -215,8 +218,9 @@ int main(int argc, char** argv) {
   for (long long k = 0; k < scans; ++k) std::printf("%s%.9f", k ? ", " : "", wall[k]);
   std::printf("], \"cpu\": [");
   for (long long k = 0; k < scans; ++k) std::printf("%s%.9f", k ? ", " : "", cpu[k]);
-  std::printf("], \"voxels\": %zu, \"peak_mb\": %.3f}\n", map.grid().activeCellsCount(),
-              (rss_kib("VmHWM") - base) / 1024.0);
+  std::printf("], \"voxels\": %zu, \"peak_mb\": %.3f, \"map_mb\": %.3f}\n",
+              map.grid().activeCellsCount(), (rss_kib("VmHWM") - base) / 1024.0,
+              map.grid().memUsage() / 1e6);
   return 0;
 }
 """
@@ -346,6 +350,13 @@ def _insertion_rows(
                         f"{res:.2f}   Bonxai / {name}, later scans ({what} time), per round: "
                         f"{_spread(per_round)} (> 1: mfp_mapper faster)"
                     )
+                print(
+                    f"{res:.2f}   map memory {name} / Bonxai (Mapper.memory_bytes / memUsage): "
+                    f"{median(name, 'map_mb'):.1f} / {median('Bonxai (1 thread)', 'map_mb'):.1f}"
+                    f" MB = {median(name, 'map_mb') / median('Bonxai (1 thread)', 'map_mb'):.2f}"
+                    f"; peak RSS {median(name, 'peak_mb'):.0f} / "
+                    f"{median('Bonxai (1 thread)', 'peak_mb'):.0f} MB (< 1: mfp_mapper smaller)"
+                )
 
 
 def _spread(values: list[float]) -> str:
