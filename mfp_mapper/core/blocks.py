@@ -23,7 +23,20 @@ KEY_BITS = 21
 KEY_OFFSET = 1 << (KEY_BITS - 1)
 """Added to a block index before packing, so that every packed field is non-negative."""
 RESERVED_BLOCKS = 1 << 18
-"""Blocks (4 KiB each) of address space a shard reserves up front: 1 GiB, not resident."""
+"""Blocks of ``s`` chunks (2 KiB a block) of address space a shard reserves up front:
+512 MiB, not resident."""
+CHUNK_BITS = 6
+"""A block's ``s`` lives in chunks of ``2**CHUNK_BITS`` voxels (a 4x4x4 cube in Morton order),
+each allocated when a ray first reaches it."""
+CHUNK_VOXELS = 1 << CHUNK_BITS
+BLOCK_CHUNKS = BLOCK_VOXELS // CHUNK_VOXELS
+N_CHUNK_BITS = 4
+"""``n`` lives in chunks of ``2**N_CHUNK_BITS`` voxels, allocated when a return first lands in
+one (returns are 1-3% of the observed voxels)."""
+N_CHUNK_VOXELS = 1 << N_CHUNK_BITS
+N_BLOCK_CHUNKS = BLOCK_VOXELS // N_CHUNK_VOXELS
+FOREIGN_CHUNK = -(1 << 31)
+"""Chunk-table entry of another shard's block (``shard.ShardArrays.block_chunks``)."""
 MAX_VOXEL_INDEX = (KEY_OFFSET << BLOCK_BITS) - BLOCK_EDGE
 """Largest |voxel index| the store can hold (block indices are packed in 21 bits each)."""
 

@@ -38,6 +38,7 @@ from mfp_mapper.core.blocks import (
     voxel_inside,
 )
 from mfp_mapper.core.model import hit_probability_one
+from mfp_mapper.core.shard import ShardArrays, voxel_stats
 
 UNKNOWN = -1
 OCCUPIED = 100
@@ -142,8 +143,8 @@ def _check_band(resolution: float, z_min: float, z_max: float) -> None:
         raise ValueError(f"empty height band [{z_min}, {z_max}]")
 
 
-BlockArrays = tuple[NDArray[np.int32], NDArray[np.float32], int]
-"""A store shard as the projection reads it: block indices, (s, n) per voxel, blocks used."""
+BlockArrays = tuple[ShardArrays, int]
+"""A store shard as the projection reads it: its arrays, blocks used."""
 
 
 def band_grid(
@@ -175,8 +176,8 @@ def band_grid(
         i0, j0, i1, j1 = _window_cells(center, radius, resolution)
     else:
         extent = np.array([np.iinfo(np.int64).max] * 2 + [np.iinfo(np.int64).min] * 2)
-        for block_ijk, block_sn, used in shards:
-            _observed_extent(block_ijk, block_sn, used, lo, hi, extent)
+        for arrays, used in shards:
+            _observed_extent(arrays, used, lo, hi, extent)
         if extent[0] > extent[2]:
             return HitGrid(np.zeros((0, 0), np.int8), resolution, (0.0, 0.0))
         i0, j0, i1, j1 = (int(v) for v in extent)
@@ -189,10 +190,9 @@ def band_grid(
             size,
         )
     cells = np.full((j1 - j0 + 1, i1 - i0 + 1), UNKNOWN, dtype=np.int8)
-    for block_ijk, block_sn, used in shards:
+    for arrays, used in shards:
         _band_max_percent(
-            block_ijk,
-            block_sn,
+            arrays,
             used,
             lo,
             hi,
@@ -215,8 +215,7 @@ def band_grid(
 
 @nb.njit(cache=True, nogil=True)
 def _observed_extent(
-    block_ijk: NDArray[np.int32],
-    block_sn: NDArray[np.float32],
+    sa: ShardArrays,
     used: int,
     lo: IndexBox,
     hi: IndexBox,
@@ -224,11 +223,12 @@ def _observed_extent(
 ) -> None:
     """Widen ``extent`` [i_min, j_min, i_max, j_max] to the observed voxels in [lo, hi]."""
     for b in range(used):
-        bx, by, bz = block_origin(block_ijk, b)
+        bx, by, bz = block_origin(sa.block_ijk, b)
         if block_outside(bx, by, bz, lo, hi):
             continue
         for v in range(BLOCK_VOXELS):
-            if block_sn[b, v, 0] > 0.0 or block_sn[b, v, 1] > 0.0:
+            s, n = voxel_stats(sa, b, v)
+            if s > 0.0 or n > 0.0:
                 dx, dy, dz = local_coords(v)
                 x, y, z = bx + dx, by + dy, bz + dz
                 if voxel_inside(x, y, z, lo, hi):
@@ -240,8 +240,7 @@ def _observed_extent(
 
 @nb.njit(cache=True, nogil=True)
 def _band_max_percent(
-    block_ijk: NDArray[np.int32],
-    block_sn: NDArray[np.float32],
+    sa: ShardArrays,
     used: int,
     lo: IndexBox,
     hi: IndexBox,
@@ -262,7 +261,7 @@ def _band_max_percent(
     ``trinary``, to OCCUPIED (p >= occupied), FREE (p < free) or _UNCERTAIN."""
     height, width = cells.shape
     for b in range(used):
-        bx, by, bz = block_origin(block_ijk, b)
+        bx, by, bz = block_origin(sa.block_ijk, b)
         if (
             block_outside(bx, by, bz, lo, hi)
             or bx + BLOCK_EDGE <= i0
@@ -272,8 +271,7 @@ def _band_max_percent(
         ):
             continue
         for v in range(BLOCK_VOXELS):
-            s = np.float64(block_sn[b, v, 0])
-            n = np.float64(block_sn[b, v, 1])
+            s, n = voxel_stats(sa, b, v)
             if not (s > 0.0 or n > 0.0):
                 continue
             dx, dy, dz = local_coords(v)

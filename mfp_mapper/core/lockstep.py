@@ -30,7 +30,7 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-from mfp_mapper.core.blocks import BLOCK_BITS, KEY_BITS, KEY_OFFSET
+from mfp_mapper.core.blocks import BLOCK_BITS, CHUNK_BITS, KEY_BITS, KEY_OFFSET
 
 LANES = 8
 """Rays per lockstep walk (one AVX-512 vector of float64)."""
@@ -44,9 +44,6 @@ ENTERED_SHIFT = 3 * BLOCK_BITS
 """A step's code (``walk_lanes``) has this bit set when the step enters a new block."""
 LOCAL_MASK = (1 << ENTERED_SHIFT) - 1
 """A step's code masked by this is the voxel's index in its block (``blocks.local_index``)."""
-FOREIGN_BASE = -(1 << 40)
-"""``place_lanes``' block base for a block of another shard: every voxel index in it is
-negative."""
 
 _AXIS_MASK = (1 << BLOCK_BITS) - 1
 _SPREAD_MASK = 0b1001001
@@ -87,6 +84,23 @@ def _gather(
     every_lane = ir.Constant(_VB, [1] * LANES)
     unused = ir.Constant(vector, ir.Undefined)
     return builder.call(function, [pointers, _I32(8), every_lane, unused])
+
+
+def _gather32(builder: ir.IRBuilder, data: ir.Value, index: ir.Value) -> ir.Value:
+    """``data[index[lane]]`` for every lane (int32 elements)."""
+    addresses = builder.add(
+        _splat_value(builder, builder.ptrtoint(data, _I64)), builder.mul(index, _splat(_VI, 4))
+    )
+    pointers = builder.inttoptr(addresses, ir.VectorType(_I32.as_pointer(), LANES))
+    vector = ir.VectorType(_I32, LANES)
+    name = f"llvm.masked.gather.v{LANES}i32.v{LANES}p0"
+    function = builder.module.globals.get(name) or ir.Function(
+        builder.module, ir.FunctionType(vector, [pointers.type, _I32, _VB, vector]), name=name
+    )
+    every_lane = ir.Constant(_VB, [1] * LANES)
+    return builder.call(
+        function, [pointers, _I32(4), every_lane, ir.Constant(vector, ir.Undefined)]
+    )
 
 
 def _splat_value(builder: ir.IRBuilder, value: ir.Value) -> ir.Value:
@@ -261,23 +275,37 @@ def walk_lanes(  # type: ignore[no-untyped-def]
 
 @intrinsic
 def place_lanes(  # type: ignore[no-untyped-def]
-    typingctx, codes, chords, entered_base, entered_weight, weighted, steps, lines, out_voxel
+    typingctx,
+    codes,
+    chords,
+    entered_base,
+    entered_weight,
+    weighted,
+    steps,
+    chunk_table,
+    lines,
+    out_voxel,
 ):
     """The store index of ``steps`` steps of ``LANES`` rays, as ``walk_lanes`` wrote them
     (``codes``, ``chords``).
 
     ``entered_base`` and ``entered_weight`` (C-contiguous (LANES, n)) hold, per lane, the
-    first store index of each block the ray enters, in order (``FOREIGN_BASE`` for another
-    shard's), and the scan's weight in it. Step k of a lane writes ``base + index in
-    block`` at ``out_voxel[k * LANES + lane]``, multiplies its chord by the weight in place
-    when ``weighted`` (else every weight is 1), and asks the processor to start loading
-    the voxel's cache line in ``lines`` (the blocks' s and n, flat: two float32 a voxel).
+    first chunk-table slot of each block the ray enters, in order (0 for another shard's),
+    and the scan's weight in it. Step k of a lane writes ``entry * CHUNK_VOXELS + place in
+    chunk`` at ``out_voxel[k * LANES + lane]``, ``entry`` its chunk's entry of
+    ``chunk_table`` (int32; ``shard.ShardArrays.block_chunks``: the voxel's index in
+    ``lines``, or negative), multiplies its chord by the weight in place when ``weighted``
+    (else every weight is 1), and asks the processor to start loading the voxel's cache
+    line in ``lines`` (the ``s`` chunks, flat: one float32 a voxel).
     """
-    arguments = (codes, chords, entered_base, entered_weight, weighted, steps, lines, out_voxel)
+    arguments = (
+        codes, chords, entered_base, entered_weight, weighted, steps, chunk_table, lines,
+        out_voxel,
+    )  # fmt: skip
     sig = types.void(*arguments)
 
     def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
-        code_a, chord_a, base_a, weight_a, weighted, count, lines_a, voxel_a = (
+        code_a, chord_a, base_a, weight_a, weighted, count, table_a, lines_a, voxel_a = (
             context.make_array(t)(context, builder, a) if isinstance(t, types.Array) else a
             for t, a in zip(signature.args, args, strict=True)
         )
@@ -307,18 +335,25 @@ def place_lanes(  # type: ignore[no-untyped-def]
                 )
                 builder.store(block, entered_slot)
                 base = _gather(builder, base_a.data, block, _VI)
-                voxel = builder.add(base, builder.and_(code, _splat(_VI, LOCAL_MASK)))
+                local = builder.and_(code, _splat(_VI, LOCAL_MASK))
+                slot = builder.add(base, builder.lshr(local, _splat(_VI, CHUNK_BITS)))
+                entry = builder.sext(_gather32(builder, table_a.data, slot), _VI)
+                voxel = builder.add(
+                    builder.shl(entry, _splat(_VI, CHUNK_BITS)),
+                    builder.and_(local, _splat(_VI, (1 << CHUNK_BITS) - 1)),
+                )
                 builder.store(voxel, _at(builder, voxel_a.data, offset, _VI), align=8)
                 if weigh:
                     weight = _gather(builder, weight_a.data, block, _VF)
                     chord_pointer = _at(builder, chord_a.data, offset, _VF)
                     chord = builder.load(chord_pointer, align=8)
                     builder.store(builder.fmul(chord, weight), chord_pointer, align=8)
-                # two float32 a voxel: byte offset 8 * voxel (negative ones: another
-                # shard's, or past a ray's end; a prefetch of any address is harmless)
+                # one float32 a voxel: byte offset 4 * voxel (negative ones: another
+                # shard's, a new chunk, or past a ray's end; a prefetch of any address is
+                # harmless)
                 for lane in range(LANES):
                     index = builder.extract_element(voxel, _I32(lane))
-                    address = builder.add(line_start, builder.shl(index, _I64(3)))
+                    address = builder.add(line_start, builder.shl(index, _I64(2)))
                     pointer = builder.inttoptr(address, byte_pointer)
                     builder.call(prefetch, [pointer, _I32(1), _I32(3), _I32(1)])
 

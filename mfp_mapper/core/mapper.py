@@ -23,6 +23,7 @@ from mfp_mapper.core.memory_bound import (
     scan_block_budget,
     scan_new_blocks,
 )
+from mfp_mapper.core.shard import FLUSH_EDGES
 from mfp_mapper.core.staging import clear_staged, merge_shard, prefault, staged_updates
 from mfp_mapper.core.store import (
     BLOCK_EDGE,
@@ -158,7 +159,7 @@ class Mapper:
         self.last_stamp: float | None = None
         self.last_origin: FloatArray | None = None
         self.version = 0
-        self._store = BlockStore(shards=_shard_count(self.threads))
+        self._store = BlockStore(_shard_count(self.threads), FLUSH_EDGES * self.resolution)
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
         self._worker_cpu = 0.0  # CPU seconds of the pool threads in the current integrate()
         self._spare_stage: BlockStore | None = None  # an emptied staged store, for reuse
@@ -404,7 +405,7 @@ class Mapper:
 
     def reset(self) -> None:
         """Forget every voxel (parameters stay)."""
-        self._store = BlockStore(shards=len(self._store.shards))
+        self._store = BlockStore(len(self._store.shards), FLUSH_EDGES * self.resolution)
         self.last_stamp = None
         self.last_origin = None
         if not self._origin_given:
@@ -587,7 +588,7 @@ class Mapper:
             lo_m[:2] = [center[0] - margin, center[1] - margin]
             hi_m[:2] = [center[0] + margin, center[1] + margin]
         lo, hi = self._index_bounds((lo_m, hi_m))
-        shards = [(sh.block_ijk, sh.block_sn, sh.used) for sh in self._store.shards]
+        shards = [(sh.arrays(), sh.used) for sh in self._store.shards]
         ox, oy, oz = (float(v) for v in self._offset)
         grid = band_grid(
             shards,

@@ -1,18 +1,42 @@
-"""A shard of the store: one hash table and the dense blocks it indexes (see ``store``)."""
+"""A shard of the store: one hash table and the blocks it indexes (see ``store``).
+
+Where a block's statistics live (``ShardArrays``):
+
+* ``s``, float32, in chunks of ``CHUNK_VOXELS`` (a 4x4x4 cube in Morton order) of one pool,
+  ``s_pool``; a chunk is allocated when a ray first reaches it. The block's chunk table
+  ``block_chunks[BLOCK_CHUNKS * (b + 1) + k]`` holds chunk k's number, or ``-(slot + 1)``
+  (its own slot, negated) while unallocated, so that ``entry * CHUNK_VOXELS + place`` is a
+  voxel's index in ``s_pool`` or, negative, says which chunk to allocate. Slots 0 to
+  ``BLOCK_CHUNKS - 1`` hold ``FOREIGN_CHUNK``: the walk's entry for another shard's block.
+* ``n``, float32, in chunks of ``N_CHUNK_VOXELS`` of ``n_pool``, allocated when a return
+  first lands in one; ``block_nrec[b]`` is the block's row of ``n_recs`` (-1: no return yet).
+* Exact for hours: a voxel's float32 sums take at most ``limits`` (``s`` up to
+  ``FLUSH_EDGES`` voxel edges of chord, ``n`` up to ``N_LIMIT``) before its block is flushed
+  into a float64 block of ``hi_pool`` (``block_href[b]``) after the scan: a voxel's
+  statistics are the float64 sum plus the float32 one (``voxel_stats``).
+"""
 
 from __future__ import annotations
 
 import contextlib
 import math
 import mmap
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
 from mfp_mapper.core.blocks import (
+    BLOCK_CHUNKS,
     BLOCK_VOXELS,
+    CHUNK_BITS,
+    CHUNK_VOXELS,
     EMPTY_KEY,
+    FOREIGN_CHUNK,
+    N_BLOCK_CHUNKS,
+    N_CHUNK_BITS,
+    N_CHUNK_VOXELS,
     RESERVED_BLOCKS,
     block_key,
     find_block,
@@ -20,13 +44,180 @@ from mfp_mapper.core.blocks import (
     rebuild_table,
 )
 
+FLUSH_EDGES = 1024.0
+"""A voxel's float32 ``s`` holds at most this many voxel edges of chord (plus one scan's)
+before its block is flushed into float64 (``Shard.flush``): float32 sums of about 2048
+chords of half an edge keep a relative error below 2048 * 2**-24 = 1.2e-4."""
+N_LIMIT = float(1 << 20)
+"""A voxel's float32 ``n`` holds at most this (plus one scan's returns) before its block is
+flushed: every integer count below 2**24 is exact in float32."""
+FOREIGN_LIMIT = FOREIGN_CHUNK * CHUNK_VOXELS + CHUNK_VOXELS
+"""A placed visit below this is to another shard's block (``FOREIGN_CHUNK``)."""
+_CHUNK_MASK = CHUNK_VOXELS - 1
+_N_CHUNK_MASK = N_CHUNK_VOXELS - 1
+S_USED, NREC_USED, NCHUNK_USED, HI_USED, FLUSH_PENDING = range(5)
+"""Fields of ``ShardArrays.pools``."""
+
+
+class ShardArrays(NamedTuple):
+    """A shard's arrays, as compiled kernels take them (valid until the shard grows)."""
+
+    table_keys: NDArray[np.int64]
+    """Block keys of the open-addressing hash (-1 = empty)."""
+    table_blocks: NDArray[np.int32]
+    """Block number of each table entry."""
+    block_ijk: NDArray[np.int32]
+    """(B, 3): block index."""
+    block_t: NDArray[np.float64]
+    """(B,): time the block's statistics refer to."""
+    block_scan: NDArray[np.int64]
+    """(B,): last scan that opened the block."""
+    block_hit: NDArray[np.bool_]
+    """(B,): the block holds a return."""
+    counters: NDArray[np.int64]
+    """Blocks used, new voxels, blocks touched, voxel updates (the last three per scan)."""
+    block_scale: NDArray[np.float64]
+    """(B,): factor of the current scan's data (late data < 1)."""
+    block_chunks: NDArray[np.int32]
+    """(BLOCK_CHUNKS * (B + 1),): the chunk table (module doc)."""
+    s_pool: NDArray[np.float32]
+    """(chunks, CHUNK_VOXELS): ``s`` (float32 part)."""
+    chunk_owner: NDArray[np.int32]
+    """(chunks,): the chunk-table slot of each allocated chunk."""
+    block_nrec: NDArray[np.int32]
+    """(B,): row of ``n_recs``, or -1 while the block holds no return."""
+    n_recs: NDArray[np.int32]
+    """(rows, N_BLOCK_CHUNKS): ``n_pool`` chunk of each part of a block, or -1."""
+    n_pool: NDArray[np.float32]
+    """(chunks, N_CHUNK_VOXELS): ``n`` (float32 part)."""
+    pools: NDArray[np.int64]
+    """Used: s chunks, n rows, n chunks, hi blocks; and whether a flush is pending."""
+    block_href: NDArray[np.int32]
+    """(B,): block of ``hi_pool``, or -1."""
+    hi_pool: NDArray[np.float64]
+    """(H, BLOCK_VOXELS, 2): the float64 part of ``s`` and ``n``."""
+    block_flush: NDArray[np.bool_]
+    """(B,): a voxel of the block passed ``limits`` this scan."""
+    limits: NDArray[np.float64]
+    """The float32 parts' limits: ``s``, ``n``."""
+
+
+ValueArrays = tuple[
+    NDArray[np.int32],  # block_chunks
+    NDArray[np.float32],  # s_pool
+    NDArray[np.int32],  # chunk_owner
+    NDArray[np.int32],  # block_nrec
+    NDArray[np.int32],  # n_recs
+    NDArray[np.float32],  # n_pool
+    NDArray[np.int32],  # block_href
+    NDArray[np.float64],  # hi_pool
+    NDArray[np.bool_],  # block_hit
+    NDArray[np.bool_],  # block_flush
+    NDArray[np.int64],  # pools
+    NDArray[np.int64],  # counters
+    NDArray[np.float64],  # limits
+]
+"""The arrays of ``ShardArrays`` that hold or place the statistics, as the walk's additions
+take them (``traversal._add_group``)."""
+
+
+@nb.njit(inline="always", cache=True)
+def value_arrays(sa: ShardArrays) -> ValueArrays:
+    """The statistics' arrays of ``sa`` (``ValueArrays``)."""
+    return (
+        sa.block_chunks, sa.s_pool, sa.chunk_owner, sa.block_nrec, sa.n_recs, sa.n_pool,
+        sa.block_href, sa.hi_pool, sa.block_hit, sa.block_flush, sa.pools, sa.counters,
+        sa.limits,
+    )  # fmt: skip
+
+
+@nb.njit(inline="always", cache=True)
+def chunk_slot(block: int, chunk: int) -> int:
+    """Slot of chunk ``chunk`` of block ``block`` in the chunk table."""
+    return BLOCK_CHUNKS * (block + 1) + chunk
+
+
+@nb.njit(inline="always", cache=True)
+def s_index(sa: ShardArrays, voxel: int) -> int:
+    """``s_pool`` index (flat) of a placed visit ``voxel`` (>= FOREIGN_LIMIT): itself when
+    its chunk was allocated when placed, else its chunk's, allocated now if still needed
+    (the caller made room: ``Shard.ensure_room``)."""
+    if voxel >= 0:
+        return voxel
+    slot = (-voxel - 1) >> CHUNK_BITS
+    chunk = sa.block_chunks[slot]
+    if chunk < 0:
+        chunk = sa.pools[S_USED]
+        sa.pools[S_USED] = chunk + 1
+        sa.block_chunks[slot] = chunk
+        sa.chunk_owner[chunk] = slot
+    return chunk * CHUNK_VOXELS + (voxel & _CHUNK_MASK)
+
+
+@nb.njit(inline="always", cache=True)
+def block_place_of(sa: ShardArrays, index: int) -> tuple[int, int]:
+    """Block and place in the block of ``s_pool`` index ``index``."""
+    slot = sa.chunk_owner[index >> CHUNK_BITS]
+    block = slot // BLOCK_CHUNKS - 1
+    return block, (slot % BLOCK_CHUNKS) * CHUNK_VOXELS + (index & _CHUNK_MASK)
+
+
+@nb.njit(inline="always", cache=True)
+def n_index(sa: ShardArrays, block: int, place: int, create: bool) -> int:
+    """``n_pool`` index (flat) of a voxel, created when ``create`` (the caller made room),
+    else -1 where the voxel's n chunk does not exist."""
+    row = sa.block_nrec[block]
+    if row < 0:
+        if not create:
+            return -1
+        row = sa.pools[NREC_USED]
+        sa.pools[NREC_USED] = row + 1
+        sa.block_nrec[block] = row
+        for k in range(N_BLOCK_CHUNKS):
+            sa.n_recs[row, k] = -1
+    part = place >> N_CHUNK_BITS
+    chunk = sa.n_recs[row, part]
+    if chunk < 0:
+        if not create:
+            return -1
+        chunk = sa.pools[NCHUNK_USED]
+        sa.pools[NCHUNK_USED] = chunk + 1
+        sa.n_recs[row, part] = chunk
+    return chunk * N_CHUNK_VOXELS + (place & _N_CHUNK_MASK)
+
+
+@nb.njit(inline="always", cache=True)
+def voxel_stats(sa: ShardArrays, block: int, place: int) -> tuple[float, float]:
+    """``s`` and ``n`` (float64) of voxel ``place`` of block ``block``: the float32 parts,
+    plus the float64 parts where the block was flushed."""
+    s = 0.0
+    chunk = sa.block_chunks[chunk_slot(block, place >> CHUNK_BITS)]
+    if chunk >= 0:
+        s = np.float64(sa.s_pool[chunk, place & _CHUNK_MASK])
+    n = 0.0
+    k = n_index(sa, block, place, False)
+    if k >= 0:
+        n = np.float64(sa.n_pool.reshape(-1)[k])
+    hi = sa.block_href[block]
+    if hi >= 0:
+        s += sa.hi_pool[hi, place, 0]
+        n += sa.hi_pool[hi, place, 1]
+    return s, n
+
+
+@nb.njit(inline="always", cache=True)
+def mark_flush(sa: ShardArrays, block: int) -> None:
+    """Have ``block`` flushed into float64 after the scan (``Shard.flush``)."""
+    sa.block_flush[block] = True
+    sa.pools[FLUSH_PENDING] = 1
+
 
 @nb.njit(inline="always", cache=True)
 def open_block(
     bx: int,
     by: int,
     bz: int,
-    shard_arrays: ShardArrays,
+    sa: ShardArrays,
     scan_id: int,
     stamp: float,
     decay_time: float,
@@ -40,105 +231,200 @@ def open_block(
     left in ``block_scale``. Returns -1 when a new block is needed and there is no room:
     the caller grows the shard and calls again.
     """
-    table_keys, table_blocks, block_ijk, block_sn, block_t, block_scan = shard_arrays[:6]
-    counters, block_scale = shard_arrays[7], shard_arrays[8]
+    counters = sa.counters
     bkey = block_key(bx, by, bz)
-    block = find_block(table_keys, table_blocks, bkey)
+    block = find_block(sa.table_keys, sa.table_blocks, bkey)
     if block < 0:
         used = counters[0]
-        if used >= block_t.shape[0] or 2 * used >= table_keys.shape[0]:
+        if used >= sa.block_t.shape[0] or 2 * used >= sa.table_keys.shape[0]:
             return -1
         block = used
         counters[0] = used + 1
-        insert_block(table_keys, table_blocks, bkey, block)
-        block_ijk[block, 0] = bx
-        block_ijk[block, 1] = by
-        block_ijk[block, 2] = bz
-        block_t[block] = stamp
-        block_scan[block] = scan_id
-        block_scale[block] = 1.0
+        insert_block(sa.table_keys, sa.table_blocks, bkey, block)
+        sa.block_ijk[block, 0] = bx
+        sa.block_ijk[block, 1] = by
+        sa.block_ijk[block, 2] = bz
+        sa.block_t[block] = stamp
+        sa.block_scan[block] = scan_id
+        sa.block_scale[block] = 1.0
+        for k in range(BLOCK_CHUNKS):
+            slot = chunk_slot(block, k)
+            sa.block_chunks[slot] = -(slot + 1)
+        sa.block_nrec[block] = -1
+        sa.block_href[block] = -1
+        sa.block_hit[block] = False
+        sa.block_flush[block] = False
         counters[2] += 1
-    elif block_scan[block] != scan_id:
-        age = stamp - block_t[block]
+    elif sa.block_scan[block] != scan_id:
+        age = stamp - sa.block_t[block]
         scale = 1.0
         if age >= 0.0:
             if math.isfinite(decay_time) and age > 0.0:
-                f = np.float32(math.exp(-age / decay_time))
-                for i in range(BLOCK_VOXELS):
-                    block_sn[block, i, 0] *= f
-                    block_sn[block, i, 1] *= f
-            block_t[block] = stamp
+                _decay_block(sa, block, np.float32(math.exp(-age / decay_time)))
+            sa.block_t[block] = stamp
         elif math.isfinite(decay_time):
             scale = math.exp(age / decay_time)  # a late scan: its data is scaled, not the map
-        block_scale[block] = scale
-        block_scan[block] = scan_id
+        sa.block_scale[block] = scale
+        sa.block_scan[block] = scan_id
         counters[2] += 1
     return block
 
 
-ShardArrays = tuple[
-    NDArray[np.int64],  # table_keys: block keys of the open-addressing hash (-1 = empty)
-    NDArray[np.int32],  # table_blocks: block number of each table entry
-    NDArray[np.int32],  # block_ijk (B, 3): block index
-    NDArray[np.float32],  # block_sn (B, 512, 2): s and n of every voxel
-    NDArray[np.float64],  # block_t (B,): time the block's statistics refer to
-    NDArray[np.int64],  # block_scan (B,): last scan that opened the block
-    NDArray[np.bool_],  # block_hit (B,): the block holds a return
-    NDArray[np.int64],  # counters: blocks used, new voxels, blocks touched, voxel updates
-    NDArray[np.float64],  # block_scale (B,): factor of the current scan's data (late data < 1)
-]
-"""A shard's arrays, as compiled kernels take them."""
+@nb.njit(inline="always", cache=True)
+def _decay_block(sa: ShardArrays, block: int, f: np.float32) -> None:
+    """Scale every statistic of ``block`` by ``f`` (float32 parts in float32)."""
+    for k in range(BLOCK_CHUNKS):
+        chunk = sa.block_chunks[chunk_slot(block, k)]
+        if chunk >= 0:
+            for i in range(CHUNK_VOXELS):
+                sa.s_pool[chunk, i] *= f
+    row = sa.block_nrec[block]
+    if row >= 0:
+        for k in range(N_BLOCK_CHUNKS):
+            chunk = sa.n_recs[row, k]
+            if chunk >= 0:
+                for i in range(N_CHUNK_VOXELS):
+                    sa.n_pool[chunk, i] *= f
+    hi = sa.block_href[block]
+    if hi >= 0:
+        f64 = np.float64(f)
+        for i in range(BLOCK_VOXELS):
+            sa.hi_pool[hi, i, 0] *= f64
+            sa.hi_pool[hi, i, 1] *= f64
+
+
+@nb.njit(cache=True, nogil=True)
+def _flush_blocks(sa: ShardArrays, blocks: NDArray[np.int64]) -> None:
+    """Move the float32 parts of ``blocks`` into their float64 blocks (allocated here: the
+    caller made room) and zero them; the blocks' ``block_flush`` cleared."""
+    flat_n = sa.n_pool.reshape(-1)
+    for b in blocks:
+        hi = sa.block_href[b]
+        if hi < 0:
+            hi = sa.pools[HI_USED]
+            sa.pools[HI_USED] = hi + 1
+            sa.block_href[b] = hi
+            sa.hi_pool[hi] = 0.0
+        for k in range(BLOCK_CHUNKS):
+            chunk = sa.block_chunks[chunk_slot(b, k)]
+            if chunk >= 0:
+                for i in range(CHUNK_VOXELS):
+                    sa.hi_pool[hi, k * CHUNK_VOXELS + i, 0] += np.float64(sa.s_pool[chunk, i])
+                    sa.s_pool[chunk, i] = 0.0
+        if sa.block_nrec[b] >= 0:
+            for place in range(BLOCK_VOXELS):
+                k = n_index(sa, b, place, False)
+                if k >= 0:
+                    sa.hi_pool[hi, place, 1] += np.float64(flat_n[k])
+                    flat_n[k] = 0.0
+        sa.block_flush[b] = False
+    sa.pools[FLUSH_PENDING] = 0
+
+
+@nb.njit(cache=True, nogil=True)
+def _observed_per_block(sa: ShardArrays, used: int, out: NDArray[np.int64]) -> None:
+    """``out[b]``: the observed voxels (s > 0 or n > 0) of block b."""
+    for b in range(used):
+        count = 0
+        for place in range(BLOCK_VOXELS):
+            s, n = voxel_stats(sa, b, place)
+            count += (s > 0.0) | (n > 0.0)
+        out[b] = count
+
+
+def _grown(array: NDArray, rows: int, fill: float | int = 0) -> NDArray:
+    """``array`` with at least ``rows`` rows (1.25 times as many when it must grow)."""
+    if array.shape[0] >= rows:
+        return array
+    out = np.full((max(rows, array.shape[0] * 5 // 4 + 16), *array.shape[1:]), fill, array.dtype)
+    out[: array.shape[0]] = array
+    return out
 
 
 class Shard:
     """One hash table and the blocks it indexes.
 
-    The voxel statistics live in one region reserved for ``RESERVED_BLOCKS`` blocks: its
-    pages become memory only when a block is first written, so growing the map does not
+    The ``s`` chunks live in one region reserved for ``RESERVED_BLOCKS`` blocks' worth: its
+    pages become memory only when a chunk is first written, so growing the map does not
     copy it (until a map outgrows the reservation; then it doubles, with one copy).
+    ``flush_s``: the float32 limit of ``s`` (``FLUSH_EDGES`` voxel edges; inf: never
+    flushed, for a store of one scan).
     """
 
-    def __init__(self, block_capacity: int = 1024) -> None:
+    def __init__(self, block_capacity: int = 1024, flush_s: float = math.inf) -> None:
         self.counters = np.zeros(4, dtype=np.int64)
-        self.block_sn = _zeros_on_huge_pages((RESERVED_BLOCKS, BLOCK_VOXELS, 2))
+        self.pools = np.zeros(5, dtype=np.int64)
+        self.limits = np.array([flush_s, N_LIMIT])
+        self.s_pool = _zeros_on_huge_pages((RESERVED_BLOCKS * BLOCK_CHUNKS, CHUNK_VOXELS))
+        self.chunk_owner: NDArray[np.int32] = np.zeros(0, dtype=np.int32)
+        self.n_recs: NDArray[np.int32] = np.full((0, N_BLOCK_CHUNKS), -1, dtype=np.int32)
+        self.n_pool: NDArray[np.float32] = np.zeros((0, N_CHUNK_VOXELS), dtype=np.float32)
+        self.hi_pool: NDArray[np.float64] = np.zeros((0, BLOCK_VOXELS, 2))
         self.block_ijk: NDArray[np.int32] = np.zeros((0, 3), dtype=np.int32)
         self.block_t: NDArray[np.float64] = np.zeros(0)
         self.block_scan: NDArray[np.int64] = np.zeros(0, dtype=np.int64)
         self.block_hit: NDArray[np.bool_] = np.zeros(0, dtype=np.bool_)
         self.block_scale: NDArray[np.float64] = np.zeros(0)
-        self._high_water = 0  # most blocks ever used: their pages stay resident
+        self.block_chunks: NDArray[np.int32] = np.full(BLOCK_CHUNKS, FOREIGN_CHUNK, np.int32)
+        self.block_nrec: NDArray[np.int32] = np.zeros(0, dtype=np.int32)
+        self.block_href: NDArray[np.int32] = np.zeros(0, dtype=np.int32)
+        self.block_flush: NDArray[np.bool_] = np.zeros(0, dtype=np.bool_)
+        self._high_water = 0  # most s chunks ever used: their pages stay resident
         self._resize_index(block_capacity)
 
     def _resize_index(self, capacity: int) -> None:
         """Size the per-block arrays and the hash table for ``capacity`` blocks."""
         used = self.used
-        block_ijk = np.zeros((capacity, 3), dtype=np.int32)
-        block_t = np.full(capacity, -np.inf)
-        block_scan = np.full(capacity, -1, dtype=np.int64)
-        block_hit = np.zeros(capacity, dtype=np.bool_)
-        block_scale = np.ones(capacity)
-        if used:
-            block_ijk[:used] = self.block_ijk[:used]
-            block_t[:used] = self.block_t[:used]
-            block_scan[:used] = self.block_scan[:used]
-            block_hit[:used] = self.block_hit[:used]
-            block_scale[:used] = self.block_scale[:used]
-        self.block_ijk, self.block_t, self.block_scan = block_ijk, block_t, block_scan
-        self.block_hit, self.block_scale = block_hit, block_scale
-        if capacity > self.block_sn.shape[0]:
-            reserve = max(capacity, 2 * self.block_sn.shape[0])
-            region = _zeros_on_huge_pages((reserve, BLOCK_VOXELS, 2))
-            region[:used] = self.block_sn[:used]
-            self.block_sn = region
+        fills = (
+            ("block_ijk", 0), ("block_t", -np.inf), ("block_scan", -1), ("block_hit", False),
+            ("block_scale", 1.0), ("block_nrec", -1), ("block_href", -1), ("block_flush", False),
+        )  # fmt: skip
+        for name, fill in fills:
+            old = getattr(self, name)
+            new = np.full((capacity, *old.shape[1:]), fill, dtype=old.dtype)
+            new[:used] = old[:used]
+            setattr(self, name, new)
+        chunks = np.full(BLOCK_CHUNKS * (capacity + 1), FOREIGN_CHUNK, dtype=np.int32)
+        chunks[: BLOCK_CHUNKS * (used + 1)] = self.block_chunks[: BLOCK_CHUNKS * (used + 1)]
+        self.block_chunks = chunks
         self.table_keys = np.full(_next_pow2(2 * capacity), EMPTY_KEY, dtype=np.int64)
         self.table_blocks = np.zeros(self.table_keys.shape[0], dtype=np.int32)
         rebuild_table(self.block_ijk, used, self.table_keys, self.table_blocks)
 
+    def ensure_room(
+        self, s_chunks: int, n_parts: int = 0, hi_blocks: int = 0, n_rows: int | None = None
+    ) -> None:
+        """Room for ``s_chunks`` more s chunks, ``n_parts`` more n chunks, ``n_rows`` more n
+        rows (None: as many, or a quarter of those used, if fewer) and ``hi_blocks`` more
+        float64 blocks (``ShardArrays`` changes: take ``arrays()`` again)."""
+        pools = self.pools
+        need = int(pools[S_USED]) + s_chunks
+        if need > self.s_pool.shape[0]:
+            region = _zeros_on_huge_pages((max(need, 2 * self.s_pool.shape[0]), CHUNK_VOXELS))
+            region[: pools[S_USED]] = self.s_pool[: pools[S_USED]]
+            self.s_pool = region
+        self.chunk_owner = _grown(self.chunk_owner, need)
+        rows = min(n_parts, int(pools[NREC_USED]) // 4 + 64) if n_rows is None else n_rows
+        self.n_recs = _grown(self.n_recs, int(pools[NREC_USED]) + rows, -1)
+        self.n_pool = _grown(self.n_pool, int(pools[NCHUNK_USED]) + n_parts)
+        self.hi_pool = _grown(self.hi_pool, int(pools[HI_USED]) + hi_blocks)
+
+    def flush(self) -> None:
+        """Move the float32 parts of the blocks marked this scan (``block_flush``) into
+        float64, so that no sum stops adding (``FLUSH_EDGES``, ``N_LIMIT``)."""
+        if not self.pools[FLUSH_PENDING]:
+            return
+        blocks = np.flatnonzero(self.block_flush[: self.used])
+        self.ensure_room(0, 0, int(np.count_nonzero(self.block_href[blocks] < 0)))
+        _flush_blocks(self.arrays(), blocks.astype(np.int64))
+
     def arrays(self) -> ShardArrays:
         """The arrays the compiled kernels work on (valid until the shard grows)."""
-        return (
-            self.table_keys, self.table_blocks, self.block_ijk, self.block_sn, self.block_t,
-            self.block_scan, self.block_hit, self.counters, self.block_scale,
+        return ShardArrays(
+            self.table_keys, self.table_blocks, self.block_ijk, self.block_t, self.block_scan,
+            self.block_hit, self.counters, self.block_scale, self.block_chunks, self.s_pool,
+            self.chunk_owner, self.block_nrec, self.n_recs, self.n_pool, self.pools,
+            self.block_href, self.hi_pool, self.block_flush, self.limits,
         )  # fmt: skip
 
     @property
@@ -161,21 +447,66 @@ class Shard:
         """Distance (block units) from ``center`` to the centre of every used block."""
         return np.linalg.norm(self.block_ijk[: self.used] + 0.5 - center, axis=1)
 
+    def observed_per_block(self) -> NDArray[np.int64]:
+        """The observed voxels of every used block."""
+        out = np.zeros(self.used, dtype=np.int64)
+        _observed_per_block(self.arrays(), self.used, out)
+        return out
+
     def keep_blocks(self, keep: NDArray[np.bool_]) -> int:
         """Drop the blocks where ``keep`` (over used blocks) is False; returns voxels dropped."""
         used = self.used
-        dropped = int(np.count_nonzero((self.block_sn[:used][~keep] > 0).any(axis=-1)))
-        kept = int(np.count_nonzero(keep))
+        dropped = int(self.observed_per_block()[~keep].sum())
+        kept_blocks = np.flatnonzero(keep)
+        kept = kept_blocks.shape[0]
         for arr in (
-            self.block_ijk, self.block_sn, self.block_t, self.block_scan, self.block_hit,
-            self.block_scale,
+            self.block_ijk, self.block_t, self.block_scan, self.block_hit, self.block_scale,
+            self.block_flush,
         ):  # fmt: skip
             arr[:kept] = arr[:used][keep]
-        _release_blocks(self.block_sn, kept, used)
-        self._high_water = kept
+        # s chunks: the kept blocks' chunks renumbered in block order
+        table = self.block_chunks[BLOCK_CHUNKS:].reshape(-1, BLOCK_CHUNKS)[:used][keep]
+        slots = BLOCK_CHUNKS * (np.arange(kept)[:, None] + 1) + np.arange(BLOCK_CHUNKS)
+        have = table >= 0
+        old_chunks = table[have]
+        s_used = int(self.pools[S_USED])
+        self.s_pool[: old_chunks.shape[0]] = self.s_pool[old_chunks]
+        table[have] = np.arange(old_chunks.shape[0], dtype=np.int32)
+        table[~have] = -(slots[~have] + 1)
+        self.block_chunks[BLOCK_CHUNKS : BLOCK_CHUNKS * (kept + 1)] = table.reshape(-1)
+        self.block_chunks[BLOCK_CHUNKS * (kept + 1) :] = FOREIGN_CHUNK
+        self.chunk_owner[: old_chunks.shape[0]] = slots[have]
+        self.pools[S_USED] = old_chunks.shape[0]
+        _release_rows(self.s_pool, old_chunks.shape[0], s_used)
+        self._high_water = old_chunks.shape[0]
+        # n rows and chunks, float64 blocks: kept ones renumbered, in block order
+        rows = self.block_nrec[:used][keep]
+        has_row = rows >= 0
+        recs = self.n_recs[rows[has_row]]
+        have_n = recs >= 0
+        n_values = self.n_pool[recs[have_n]]
+        recs[have_n] = np.arange(n_values.shape[0], dtype=np.int32)
+        self.n_pool[: n_values.shape[0]] = n_values
+        self.n_pool[n_values.shape[0] :] = 0.0
+        self.n_recs[: recs.shape[0]] = recs
+        self.n_recs[recs.shape[0] :] = -1
+        rows[has_row] = np.arange(recs.shape[0], dtype=np.int32)
+        self.block_nrec[:kept] = rows
+        self.pools[NREC_USED], self.pools[NCHUNK_USED] = recs.shape[0], n_values.shape[0]
+        his = self.block_href[:used][keep]
+        has_hi = his >= 0
+        hi_values = self.hi_pool[his[has_hi]]
+        self.hi_pool[: hi_values.shape[0]] = hi_values
+        self.hi_pool[hi_values.shape[0] :] = 0.0
+        his[has_hi] = np.arange(hi_values.shape[0], dtype=np.int32)
+        self.block_href[:kept] = his
+        self.pools[HI_USED] = hi_values.shape[0]
         self.block_t[kept:used] = -np.inf
         self.block_scan[kept:used] = -1
         self.block_hit[kept:used] = False
+        self.block_nrec[kept:used] = -1
+        self.block_href[kept:used] = -1
+        self.block_flush[kept:used] = False
         self.counters[0] = kept
         rebuild_table(self.block_ijk, kept, self.table_keys, self.table_blocks)
         return dropped
@@ -191,19 +522,29 @@ class Shard:
         self.block_scan[:used] = -1
         self.block_hit[:used] = False
         self.block_scale[:used] = 1.0
+        self.block_nrec[:used] = -1
+        self.block_href[:used] = -1
+        self.block_flush[:used] = False
+        self.block_chunks[BLOCK_CHUNKS:] = FOREIGN_CHUNK
+        self.n_recs[: self.pools[NREC_USED]] = -1
+        self.hi_pool[: self.pools[HI_USED]] = 0.0
         self.counters[:] = 0
+        self.pools[:] = 0
         self.table_keys.fill(EMPTY_KEY)
         self.table_blocks.fill(0)
 
     @property
     def nbytes(self) -> int:
-        """Memory in use: the blocks' statistics up to the most ever held, and the index."""
-        self._high_water = max(self._high_water, self.used)
+        """Memory in use: the s chunks up to the most ever held, the n and float64 parts,
+        and the index."""
+        self._high_water = max(self._high_water, int(self.pools[S_USED]))
         index = (
             self.block_ijk, self.block_t, self.block_scan, self.block_hit, self.block_scale,
-            self.table_keys, self.table_blocks,
+            self.block_chunks, self.block_nrec, self.block_href, self.block_flush,
+            self.table_keys, self.table_blocks, self.chunk_owner, self.n_recs, self.n_pool,
+            self.hi_pool,
         )  # fmt: skip
-        return self._high_water * self.block_sn[0].nbytes + sum(a.nbytes for a in index)
+        return self._high_water * self.s_pool[0].nbytes + sum(a.nbytes for a in index)
 
 
 def _zeros_on_huge_pages(shape: tuple[int, ...]) -> NDArray[np.float32]:
@@ -225,8 +566,8 @@ def _zeros_on_huge_pages(shape: tuple[int, ...]) -> NDArray[np.float32]:
     return np.frombuffer(region, dtype=np.float32, count=int(np.prod(shape))).reshape(shape)
 
 
-def _release_blocks(block_sn: NDArray[np.float32], start: int, stop: int) -> None:
-    """Zero blocks ``start..stop`` and give their memory back to the system: pages of the
+def _release_rows(block_sn: NDArray[np.float32], start: int, stop: int) -> None:
+    """Zero rows ``start..stop`` and give their memory back to the system: pages of the
     anonymous region are dropped (``MADV_DONTNEED``) and read as zeros when touched again.
     Where that is not possible the blocks are zeroed in place (memory stays resident)."""
     if stop <= start:

@@ -20,50 +20,100 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
-from mfp_mapper.core.blocks import BLOCK_VOXELS, block_key, find_block
-from mfp_mapper.core.shard import Shard, ShardArrays, open_block
+from mfp_mapper.core.blocks import (
+    BLOCK_CHUNKS,
+    BLOCK_VOXELS,
+    CHUNK_BITS,
+    CHUNK_VOXELS,
+    block_key,
+    find_block,
+)
+from mfp_mapper.core.shard import (
+    NCHUNK_USED,
+    NREC_USED,
+    S_USED,
+    Shard,
+    ShardArrays,
+    chunk_slot,
+    mark_flush,
+    n_index,
+    open_block,
+    s_index,
+    voxel_stats,
+)
 from mfp_mapper.core.store import BlockStore
 
 
 @nb.njit(cache=True, nogil=True)
 def _merge_blocks(
-    staged_ijk: NDArray[np.int32],
-    staged_sn: NDArray[np.float32],
-    staged_hit: NDArray[np.bool_],
+    staged: ShardArrays,
     used: int,
     start: int,
-    shard_arrays: ShardArrays,
+    sa: ShardArrays,
     scan_id: int,
     stamp: float,
     decay_time: float,
 ) -> int:
-    """Add staged blocks ``start..used`` to the shard; returns ``used``, or the block
-    where the shard ran out of room (grow it and call again from there)."""
-    block_sn, block_hit = shard_arrays[3], shard_arrays[6]
-    counters, block_scale = shard_arrays[7], shard_arrays[8]
+    """Add staged blocks ``start..used`` to the shard ``sa`` (room made for the staged
+    store's chunks: ``Shard.ensure_room``), zeroing what it read; returns ``used``, or the
+    block where the shard ran out of blocks (grow it and call again from there)."""
+    s_limit, n_limit = sa.limits[0], sa.limits[1]
+    flat_s = sa.s_pool.reshape(-1)
+    flat_n = sa.n_pool.reshape(-1)
+    staged_n = staged.n_pool.reshape(-1)
     for b in range(start, used):
         mb = open_block(
-            staged_ijk[b, 0], staged_ijk[b, 1], staged_ijk[b, 2], shard_arrays, scan_id, stamp,
-            decay_time,
+            staged.block_ijk[b, 0], staged.block_ijk[b, 1], staged.block_ijk[b, 2], sa,
+            scan_id, stamp, decay_time,
         )  # fmt: skip
         if mb < 0:
             return b
-        scale = np.float32(block_scale[mb])
-        # every voxel, without a branch (the loop vectorises): a voxel the scan did not
-        # reach adds 0 * scale = 0, which leaves its statistics as they are, bit for bit
-        staged = staged_sn[b].reshape(-1)
-        merged = block_sn[mb].reshape(-1)
+        scale = np.float32(sa.block_scale[mb])
         new = 0
-        for i in range(0, 2 * BLOCK_VOXELS, 2):
-            reached = (staged[i] != 0.0) | (staged[i + 1] != 0.0)
-            new += reached & (merged[i] == 0.0) & (merged[i + 1] == 0.0)
-            merged[i] += staged[i] * scale
-            merged[i + 1] += staged[i + 1] * scale
-        staged[:] = 0.0  # merged: the staged store is empty again after
-        if staged_hit[b]:
-            block_hit[mb] = True
-        counters[1] += new
+        flush = False
+        for k in range(BLOCK_CHUNKS):
+            chunk = staged.block_chunks[chunk_slot(b, k)]
+            if chunk < 0:
+                continue
+            slot = chunk_slot(mb, k)
+            base = s_index(sa, -(slot + 1) * CHUNK_VOXELS)
+            for i in range(CHUNK_VOXELS):
+                add = staged.s_pool[chunk, i]
+                if add != 0.0:
+                    before = flat_s[base + i]
+                    if before == 0.0:
+                        s, n = voxel_stats(sa, mb, k * CHUNK_VOXELS + i)
+                        new += s == 0.0 and n == 0.0
+                    flat_s[base + i] = before + add * scale
+                    flush |= flat_s[base + i] >= s_limit
+                    staged.s_pool[chunk, i] = 0.0  # merged: the staged store is empty after
+        if staged.block_nrec[b] >= 0:
+            for place in range(BLOCK_VOXELS):
+                k = n_index(staged, b, place, False)
+                if k < 0 or staged_n[k] == 0.0:
+                    continue
+                chunk = sa.block_chunks[chunk_slot(mb, place >> CHUNK_BITS)]
+                s_before = 0.0 if chunk < 0 else flat_s[chunk * CHUNK_VOXELS + place % 64]
+                m = n_index(sa, mb, place, True)
+                if s_before == 0.0 and flat_n[m] == 0.0 and staged_s_zero(staged, b, place):
+                    s, n = voxel_stats(sa, mb, place)
+                    new += s == 0.0 and n == 0.0
+                flat_n[m] += staged_n[k] * scale
+                flush |= flat_n[m] >= n_limit
+                staged_n[k] = 0.0
+        if staged.block_hit[b]:
+            sa.block_hit[mb] = True
+        if flush:
+            mark_flush(sa, mb)
+        sa.counters[1] += new
     return used
+
+
+@nb.njit(inline="always", cache=True)
+def staged_s_zero(staged: ShardArrays, block: int, place: int) -> bool:
+    """Whether the staged ``s`` of a voxel is 0 (then the s pass above did not count it)."""
+    chunk = staged.block_chunks[chunk_slot(block, place >> CHUNK_BITS)]
+    return chunk < 0 or staged.s_pool[chunk, place % CHUNK_VOXELS] == 0.0
 
 
 MERGE_CHUNK_BLOCKS = 8192
@@ -81,20 +131,15 @@ def merge_shard(
     """Add one staged shard to the map's shard of the same number (same block hash), in
     chunks of ``MERGE_CHUNK_BLOCKS`` blocks with a call of ``pause`` between two."""
     start = 0
+    shard.ensure_room(
+        int(staged.pools[S_USED]), int(staged.pools[NCHUNK_USED]), 0, int(staged.pools[NREC_USED])
+    )
     while start < staged.used:
         stop = min(start + MERGE_CHUNK_BLOCKS, staged.used)
         while (
             start := _merge_blocks(
-                staged.block_ijk,
-                staged.block_sn,
-                staged.block_hit,
-                stop,
-                start,
-                shard.arrays(),
-                scan_id,
-                stamp,
-                decay_time,
-            )  # fmt: skip
+                staged.arrays(), stop, start, shard.arrays(), scan_id, stamp, decay_time
+            )
         ) < stop:
             shard.grow(min_free=staged.used - start)
         if pause is not None and start < staged.used:
@@ -126,14 +171,16 @@ def prefault(staged: Shard, shard: Shard) -> None:
     table and writes zeros (what the pages already read as) past the used blocks only,
     which no reader looks at."""
     new = _count_new_blocks(staged.block_ijk, staged.used, shard.table_keys, shard.table_blocks)
-    start, stop = shard.used, min(shard.used + new, shard.block_sn.shape[0])
+    chunks = int(staged.pools[S_USED]) * new // max(staged.used, 1)  # about as many a block
+    start = int(shard.pools[S_USED])
+    stop = min(start + chunks, shard.s_pool.shape[0])
     if stop > start:
-        flat = shard.block_sn[start:stop].reshape(-1)
+        flat = shard.s_pool[start:stop].reshape(-1)
         flat[:: mmap.PAGESIZE // flat.itemsize] = 0.0  # one write per page
 
 
 SPARE_MAX_BLOCKS = 32768
-"""A merged staged store that held at most this many blocks (128 MiB of statistics) is kept,
+"""A merged staged store that held at most this many blocks (64 MiB of ``s`` at most) is kept,
 emptied, for the next scan (``clear_staged``); a larger one gives its memory back."""
 
 

@@ -1,20 +1,24 @@
-"""Sparse voxel store: a hash of dense 8x8x8 blocks holding ``(s, n)`` per voxel.
+"""Sparse voxel store: a hash of 8x8x8 blocks holding ``(s, n)`` per voxel.
 
 Layout (chosen for speed and memory; docs/performance.md measures it):
 
-* Voxels live in dense blocks of ``BLOCK_EDGE**3``; a ray stays in one block for several
-  steps, so most updates are an array index into the block the walk is already in.
+* Voxels live in blocks of ``BLOCK_EDGE**3``, in Morton order; a ray stays in one block for
+  several steps, so most updates are an array index into the block the walk is already in.
 * Blocks are found through open-addressing hash tables, split into ``shards`` by block
   parity; each thread of an integration writes only to its own shard, so threads need
   no locks (see ``traversal``).
-* ``s`` and ``n`` are float32, side by side (8 bytes a voxel), and the voxels of a block
-  are in Morton order, so one 64-byte cache line holds a 2x2x2 cube of voxels: a ray
-  crossing it finds its next voxel in the same line. Each block keeps the time ``t`` its
+* ``s`` is float32 in chunks of 64 voxels (a 4x4x4 cube, 256 bytes: four cache lines),
+  allocated when a ray first reaches the chunk; ``n`` is float32 in chunks of 16 voxels,
+  allocated when a return first lands in one (``shard`` says where everything lives). Free
+  space pays 4 bytes a voxel of the chunks it reaches. Each block keeps the time ``t`` its
   statistics refer to. Decay (Eq. 28-30) is uniform scaling, so bringing a whole block to
   the current stamp the first time a scan touches it is exactly the per-voxel lazy decay;
   a voxel's ``t_last`` is its block's ``t``. A late scan (older than the block) leaves
   the block and its time alone and adds its data scaled by ``exp(-(t - stamp) / T)``, so
   the map does not depend on the order in which scans arrive.
+* No sum stops adding: a voxel's float32 parts are flushed into float64 (per block, after
+  the scan) before they grow large enough to lose what a chord adds (``shard.FLUSH_EDGES``,
+  ``shard.N_LIMIT``).
 * A voxel is *observed* when ``s > 0`` or ``n > 0``.
 
 Every ray's contribution is summed into the store: sums, never deduplication.
@@ -23,6 +27,7 @@ Every ray's contribution is summed into the store: sums, never deduplication.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numba as nb
@@ -33,6 +38,8 @@ from mfp_mapper.core.blocks import (
     BLOCK_BITS,
     BLOCK_EDGE,
     BLOCK_VOXELS,
+    CHUNK_BITS,
+    CHUNK_VOXELS,
     MAX_VOXEL_INDEX,
     IndexBox,
     block_key,
@@ -45,14 +52,26 @@ from mfp_mapper.core.blocks import (
     shard_of,
     voxel_inside,
 )
-from mfp_mapper.core.shard import Shard, ShardArrays, open_block
+from mfp_mapper.core.shard import (
+    HI_USED,
+    NCHUNK_USED,
+    NREC_USED,
+    S_USED,
+    Shard,
+    ShardArrays,
+    chunk_slot,
+    n_index,
+    open_block,
+    s_index,
+    voxel_stats,
+)
 
 MIN_RESOLUTION = 1e-3
 """Smallest voxel edge (metres) a map may have."""
 MAX_RESOLUTION = 1e3
 """Largest voxel edge (metres) a map may have."""
 
-__all__ = ["BLOCK_EDGE", "MAX_VOXEL_INDEX", "BlockStore", "VoxelArrays", "index_box"]
+__all__ = ["BLOCK_EDGE", "MAX_VOXEL_INDEX", "BlockStats", "BlockStore", "VoxelArrays", "index_box"]
 
 
 @dataclass
@@ -65,6 +84,20 @@ class VoxelArrays:
     t_last: NDArray[np.float64]
 
 
+@dataclass
+class BlockStats:
+    """Statistics of a run of blocks (``BlockStore.blocks``): block index ``ijk`` (voxel
+    index >> 3), time ``t``, and ``s``, ``n`` of their 512 voxels each in Morton order
+    (``blocks.local_coords``); ``has_n[b]`` is False where block b holds no return (its
+    ``n`` row is all zeros)."""
+
+    ijk: NDArray[np.int32]
+    t: NDArray[np.float64]
+    s: NDArray[np.float64]
+    n: NDArray[np.float64]
+    has_n: NDArray[np.bool_]
+
+
 @nb.njit(cache=True, nogil=True)
 def _open_blocks_of(
     ijk: NDArray[np.int64],
@@ -72,11 +105,10 @@ def _open_blocks_of(
     start: int,
     shard: int,
     shard_mask: int,
-    shard_arrays: ShardArrays,
+    sa: ShardArrays,
 ) -> int:
     """Open the blocks of the voxels of ``shard`` from index ``start`` on, each at the
     latest ``t`` of its voxels. Returns ``len(ijk)``, or the index where blocks ran out."""
-    block_t = shard_arrays[4]
     last_key = np.int64(-1)  # map files list voxels block by block: one probe a block
     block = -1
     for j in range(start, ijk.shape[0]):
@@ -88,11 +120,11 @@ def _open_blocks_of(
             if shard_of(bx, by, bz, shard_mask) != shard:
                 last_key, block = key, -1
                 continue
-            block = open_block(bx, by, bz, shard_arrays, -1, t[j], math.inf)
+            block = open_block(bx, by, bz, sa, -1, t[j], math.inf)
             if block < 0:
                 return j
             last_key = key
-        block_t[block] = max(block_t[block], t[j])
+        sa.block_t[block] = max(sa.block_t[block], t[j])
     return ijk.shape[0]
 
 
@@ -102,22 +134,25 @@ def _set_voxels(
     s: NDArray[np.float64],
     n: NDArray[np.float64],
     t: NDArray[np.float64],
+    start: int,
     shard: int,
     shard_mask: int,
     decay_time: float,
-    shard_arrays: ShardArrays,
+    sa: ShardArrays,
     seen: NDArray[np.uint64],
     counts: NDArray[np.int64],
 ) -> int:
-    """Set the voxels of ``shard`` (blocks opened by ``_open_blocks_of``), each decayed to
-    its block's time; ``counts[0]`` receives the number of observed voxels set. Returns -1,
-    or the index of a voxel listed twice (``seen``: one bit per voxel of each block)."""
-    table_keys, table_blocks, _, block_sn, block_t = shard_arrays[:5]
-    block_hit = shard_arrays[6]
+    """Set the voxels of ``shard`` from index ``start`` on (blocks opened by
+    ``_open_blocks_of``), each decayed to its block's time; ``counts[0]`` receives the
+    number of observed voxels set. A value at or above its float32 limit (``sa.limits``)
+    goes to the block's float64 part. Returns -1 when done; ``-2 - j`` when the pools ran
+    out of room at voxel j (make room, call again from j); else the index of a voxel
+    listed twice (``seen``: one bit per voxel of each block)."""
     observed = 0
     last_key = np.int64(-1)  # map files list voxels block by block: one probe a block
     block = -1
-    for j in range(ijk.shape[0]):
+    s_limit, n_limit = sa.limits[0], sa.limits[1]
+    for j in range(start, ijk.shape[0]):
         bx = ijk[j, 0] >> BLOCK_BITS
         by = ijk[j, 1] >> BLOCK_BITS
         bz = ijk[j, 2] >> BLOCK_BITS
@@ -125,25 +160,49 @@ def _set_voxels(
         if key != last_key:
             last_key = key
             block = (
-                find_block(table_keys, table_blocks, key)
+                find_block(sa.table_keys, sa.table_blocks, key)
                 if shard_of(bx, by, bz, shard_mask) == shard
                 else -1
             )
         if block < 0:
             continue
+        if (
+            sa.pools[S_USED] >= sa.chunk_owner.shape[0]
+            or sa.pools[NREC_USED] >= sa.n_recs.shape[0]
+            or sa.pools[NCHUNK_USED] >= sa.n_pool.shape[0]
+            or sa.pools[HI_USED] >= sa.hi_pool.shape[0]
+        ):
+            counts[0] += observed
+            return -2 - j
         local = local_index(ijk[j, 0], ijk[j, 1], ijk[j, 2])
         bit = np.uint64(1) << np.uint64(local & 63)
         if seen[block, local >> 6] & bit:
+            counts[0] += observed
             return j
         seen[block, local >> 6] |= bit
         f = 1.0
         if math.isfinite(decay_time):
-            f = math.exp(-(block_t[block] - t[j]) / decay_time)
-        block_sn[block, local, 0] = s[j] * f
-        block_sn[block, local, 1] = n[j] * f
-        if block_sn[block, local, 1] > 0.0:
-            block_hit[block] = True
-        if block_sn[block, local, 0] > 0.0 or block_sn[block, local, 1] > 0.0:
+            f = math.exp(-(sa.block_t[block] - t[j]) / decay_time)
+        sj = s[j] * f
+        nj = n[j] * f
+        if sj >= s_limit or nj >= n_limit:  # beyond what float32 keeps adding to
+            hi = sa.block_href[block]
+            if hi < 0:
+                hi = sa.pools[HI_USED]
+                sa.pools[HI_USED] = hi + 1
+                sa.block_href[block] = hi
+                sa.hi_pool[hi] = 0.0
+            sa.hi_pool[hi, local, 0] = sj
+            sa.hi_pool[hi, local, 1] = nj
+        else:
+            if sj != 0.0:
+                slot = chunk_slot(block, local >> CHUNK_BITS)
+                sa.s_pool.reshape(-1)[s_index(sa, -(slot + 1) * CHUNK_VOXELS + (local & 63))] = sj
+            if nj != 0.0:
+                sa.n_pool.reshape(-1)[n_index(sa, block, local, True)] = nj
+        if nj > 0.0:
+            sa.block_hit[block] = True
+        if sj > 0.0 or nj > 0.0:
             observed += 1
     counts[0] += observed
     return -1
@@ -153,28 +212,26 @@ def _set_voxels(
 def _lookup(
     ijk: NDArray[np.int64],
     shard_mask: int,
-    tables_keys: tuple[NDArray[np.int64], ...],
-    tables_blocks: tuple[NDArray[np.int32], ...],
-    out_shard: NDArray[np.int64],
-    out_block: NDArray[np.int64],
-    out_local: NDArray[np.int64],
+    shards: tuple[ShardArrays, ...],
+    s: NDArray[np.float64],
+    n: NDArray[np.float64],
+    t: NDArray[np.float64],
 ) -> None:
-    """For each voxel index: its shard, block number (-1 when absent) and index in the block."""
+    """Statistics of each voxel index (left as given where its block is absent)."""
     for j in range(ijk.shape[0]):
         bx = ijk[j, 0] >> BLOCK_BITS
         by = ijk[j, 1] >> BLOCK_BITS
         bz = ijk[j, 2] >> BLOCK_BITS
-        shard = shard_of(bx, by, bz, shard_mask)
-        out_shard[j] = shard
-        out_block[j] = find_block(tables_keys[shard], tables_blocks[shard], block_key(bx, by, bz))
-        out_local[j] = local_index(ijk[j, 0], ijk[j, 1], ijk[j, 2])
+        sa = shards[shard_of(bx, by, bz, shard_mask)]
+        block = find_block(sa.table_keys, sa.table_blocks, block_key(bx, by, bz))
+        if block >= 0:
+            s[j], n[j] = voxel_stats(sa, block, local_index(ijk[j, 0], ijk[j, 1], ijk[j, 2]))
+            t[j] = sa.block_t[block]
 
 
 @nb.njit(cache=True, nogil=True)
 def _select_voxels(
-    block_ijk: NDArray[np.int32],
-    block_sn: NDArray[np.float32],
-    block_hit: NDArray[np.bool_],
+    sa: ShardArrays,
     used: int,
     min_extinction: float,
     lo: IndexBox,
@@ -190,9 +247,9 @@ def _select_voxels(
     """
     count = 0
     for b in range(used):
-        if min_extinction > 0.0 and not block_hit[b]:
+        if min_extinction > 0.0 and not sa.block_hit[b]:
             continue  # no return in the block: no voxel has n >= min_extinction * s > 0
-        x0, y0, z0 = block_origin(block_ijk, b)
+        x0, y0, z0 = block_origin(sa.block_ijk, b)
         if block_outside(x0, y0, z0, lo, hi):
             continue
         last = BLOCK_EDGE - 1
@@ -200,8 +257,7 @@ def _select_voxels(
             x0 + last, y0 + last, z0 + last, lo, hi
         )
         for i in range(BLOCK_VOXELS):
-            s = block_sn[b, i, 0]
-            n = block_sn[b, i, 1]
+            s, n = voxel_stats(sa, b, i)
             # s == 0 < n: a return on a face, most likely DoO 1 (kept by any threshold)
             if (s > 0.0 and n >= min_extinction * s) or (s == 0.0 and n > 0.0):
                 if not inside:
@@ -216,9 +272,7 @@ def _select_voxels(
 
 @nb.njit(cache=True, nogil=True)
 def _gather_voxels(
-    block_ijk: NDArray[np.int32],
-    block_sn: NDArray[np.float32],
-    block_t: NDArray[np.float64],
+    sa: ShardArrays,
     keep: NDArray[np.bool_],
     kept_per_block: NDArray[np.int64],
     ijk: NDArray[np.int32],
@@ -231,23 +285,31 @@ def _gather_voxels(
     for b in range(keep.shape[0]):
         if kept_per_block[b] == 0:
             continue
+        x0, y0, z0 = block_origin(sa.block_ijk, b)
         for i in range(BLOCK_VOXELS):
             if keep[b, i]:
-                x0, y0, z0 = block_origin(block_ijk, b)
                 dx, dy, dz = local_coords(i)
                 ijk[j, 0] = x0 + dx
                 ijk[j, 1] = y0 + dy
                 ijk[j, 2] = z0 + dz
-                s[j] = block_sn[b, i, 0]
-                n[j] = block_sn[b, i, 1]
-                t_last[j] = block_t[b]
+                s[j], n[j] = voxel_stats(sa, b, i)
+                t_last[j] = sa.block_t[b]
                 j += 1
 
 
 @nb.njit(cache=True, nogil=True)
+def _block_stats(
+    sa: ShardArrays, start: int, s: NDArray[np.float64], n: NDArray[np.float64]
+) -> None:
+    """``s`` and ``n`` (blocks x 512) of blocks ``start..start + len(s)``."""
+    for k in range(s.shape[0]):
+        for i in range(BLOCK_VOXELS):
+            s[k, i], n[k, i] = voxel_stats(sa, start + k, i)
+
+
+@nb.njit(cache=True, nogil=True)
 def _clear_voxels(
-    block_ijk: NDArray[np.int32],
-    block_sn: NDArray[np.float32],
+    sa: ShardArrays,
     used: int,
     lo: IndexBox,
     hi: IndexBox,
@@ -256,18 +318,29 @@ def _clear_voxels(
     """Zero the observed voxels with index in [lo, hi]; returns how many. ``emptied[b]``
     becomes True for each block that no longer holds an observed voxel."""
     count = 0
+    flat_s = sa.s_pool.reshape(-1)
+    flat_n = sa.n_pool.reshape(-1)
     for b in range(used):
-        x0, y0, z0 = block_origin(block_ijk, b)
+        x0, y0, z0 = block_origin(sa.block_ijk, b)
         if block_outside(x0, y0, z0, lo, hi):
             continue
         left = 0
+        href = sa.block_href[b]
         for i in range(BLOCK_VOXELS):
-            if block_sn[b, i, 0] == 0.0 and block_sn[b, i, 1] == 0.0:
+            s, n = voxel_stats(sa, b, i)
+            if s == 0.0 and n == 0.0:
                 continue
             dx, dy, dz = local_coords(i)
             if voxel_inside(x0 + dx, y0 + dy, z0 + dz, lo, hi):
-                block_sn[b, i, 0] = 0.0
-                block_sn[b, i, 1] = 0.0
+                chunk = sa.block_chunks[chunk_slot(b, i >> CHUNK_BITS)]
+                if chunk >= 0:
+                    flat_s[chunk * CHUNK_VOXELS + (i % CHUNK_VOXELS)] = 0.0
+                k = n_index(sa, b, i, False)
+                if k >= 0:
+                    flat_n[k] = 0.0
+                if href >= 0:
+                    sa.hi_pool[href, i, 0] = 0.0
+                    sa.hi_pool[href, i, 1] = 0.0
                 count += 1
             else:
                 left += 1
@@ -276,12 +349,15 @@ def _clear_voxels(
 
 
 class BlockStore:
-    """All shards together: the map's memory, with lookup, export, loading and eviction."""
+    """All shards together: the map's memory, with lookup, export, loading and eviction.
 
-    def __init__(self, shards: int = 1) -> None:
+    ``flush_s``: the float32 part of a voxel's ``s`` beyond which its block is flushed into
+    float64 (``shard.FLUSH_EDGES`` voxel edges for a map; inf for a store of one scan)."""
+
+    def __init__(self, shards: int = 1, flush_s: float = math.inf) -> None:
         if shards < 1 or shards & (shards - 1):
             raise ValueError(f"shards must be a power of two, got {shards}")
-        self.shards = [Shard() for _ in range(shards)]
+        self.shards = [Shard(flush_s=flush_s) for _ in range(shards)]
         self.shard_mask = shards - 1
         self.num_voxels = 0
         self._scan_id = 0
@@ -300,8 +376,10 @@ class BlockStore:
         return self._scan_id
 
     def finish_scan(self) -> tuple[int, int, int]:
-        """Close the scan; returns (voxels observed for the first time, blocks touched,
-        voxel updates)."""
+        """Close the scan (flushing the blocks that need it into float64); returns (voxels
+        observed for the first time, blocks touched, voxel updates)."""
+        for sh in self.shards:
+            sh.flush()
         totals = np.sum([sh.counters[1:] for sh in self.shards], axis=0)
         new, touched, updates = (int(x) for x in totals)
         self.num_voxels += new
@@ -329,37 +407,29 @@ class BlockStore:
             ) < ijk.shape[0]:
                 sh.grow()
             seen = np.zeros((sh.used, BLOCK_VOXELS // 64), dtype=np.uint64)
-            twice = _set_voxels(
-                ijk, s, n, t, sid, self.shard_mask, decay_time, sh.arrays(), seen, counts
-            )
-            if twice >= 0:
-                raise ValueError(f"ijk lists voxel {ijk[twice].tolist()} more than once")
+            start = 0
+            room = max(1024, ijk.shape[0] // (8 * len(self.shards)))
+            while True:
+                sh.ensure_room(room, room // 4 + 16, room // 64 + 1, room // 16 + 16)
+                done = _set_voxels(
+                    ijk, s, n, t, start, sid, self.shard_mask, decay_time, sh.arrays(), seen,
+                    counts,
+                )  # fmt: skip
+                if done >= -1:
+                    break
+                start, room = -2 - done, 2 * room
+            if done >= 0:
+                raise ValueError(f"ijk lists voxel {ijk[done].tolist()} more than once")
         self.num_voxels = int(counts[0])
 
     def lookup(self, ijk: NDArray[np.int64]) -> VoxelArrays:
         """Statistics of these voxels (zeros and t_last=-inf where never observed)."""
         count = ijk.shape[0]
-        shard_of = np.empty(count, dtype=np.int64)
-        block = np.empty(count, dtype=np.int64)
-        local = np.empty(count, dtype=np.int64)
-        _lookup(
-            ijk,
-            self.shard_mask,
-            tuple(sh.table_keys for sh in self.shards),
-            tuple(sh.table_blocks for sh in self.shards),
-            shard_of,
-            block,
-            local,
-        )
         s = np.zeros(count)
         n = np.zeros(count)
         t = np.full(count, -np.inf)
-        for sid, sh in enumerate(self.shards):
-            sel = (shard_of == sid) & (block >= 0)
-            b, li = block[sel], local[sel]
-            s[sel] = sh.block_sn[b, li, 0]
-            n[sel] = sh.block_sn[b, li, 1]
-            t[sel] = sh.block_t[b]
+        ijk64 = np.ascontiguousarray(ijk, dtype=np.int64)
+        _lookup(ijk64, self.shard_mask, tuple(sh.arrays() for sh in self.shards), s, n, t)
         return VoxelArrays(ijk.astype(np.int32), s, n, t)
 
     def export(
@@ -375,10 +445,7 @@ class BlockStore:
         for sh in self.shards:
             keep = np.zeros((sh.used, BLOCK_VOXELS), dtype=np.bool_)
             per_block = np.zeros(sh.used, dtype=np.int64)
-            count = _select_voxels(
-                sh.block_ijk, sh.block_sn, sh.block_hit, sh.used, min_extinction, lo_, hi_, keep,
-                per_block,
-            )  # fmt: skip
+            count = _select_voxels(sh.arrays(), sh.used, min_extinction, lo_, hi_, keep, per_block)
             selections.append((keep, per_block, count))
         total = sum(count for _, _, count in selections)
         out = VoxelArrays(
@@ -388,11 +455,29 @@ class BlockStore:
         for sh, (keep, per_block, count) in zip(self.shards, selections, strict=True):
             part = slice(start, start + count)
             _gather_voxels(
-                sh.block_ijk, sh.block_sn, sh.block_t, keep, per_block,
+                sh.arrays(), keep, per_block,
                 out.ijk[part], out.s[part], out.n[part], out.t_last[part],
             )  # fmt: skip
             start += count
         return out
+
+    def blocks(self, max_blocks: int = 4096) -> Iterator[BlockStats]:
+        """Every block's statistics, at most ``max_blocks`` blocks at a time (shard by shard,
+        in the order blocks were created): a block-level export without per-voxel index
+        arrays. A block may hold no observed voxel (then every ``s`` and ``n`` is 0)."""
+        for sh in self.shards:
+            for start in range(0, sh.used, max_blocks):
+                stop = min(start + max_blocks, sh.used)
+                s = np.empty((stop - start, BLOCK_VOXELS))
+                n = np.empty((stop - start, BLOCK_VOXELS))
+                _block_stats(sh.arrays(), start, s, n)
+                yield BlockStats(
+                    sh.block_ijk[start:stop].copy(),
+                    sh.block_t[start:stop].copy(),
+                    s,
+                    n,
+                    (sh.block_nrec[start:stop] >= 0) | (sh.block_href[start:stop] >= 0),
+                )
 
     def clear_box(self, lo: NDArray[np.int64], hi: NDArray[np.int64]) -> int:
         """Make the voxels with index in [lo, hi] unobserved (s = n = 0); blocks left
@@ -401,7 +486,7 @@ class BlockStore:
         cleared = 0
         for sh in self.shards:
             emptied = np.zeros(sh.used, dtype=np.bool_)
-            cleared += _clear_voxels(sh.block_ijk, sh.block_sn, sh.used, lo_, hi_, emptied)
+            cleared += _clear_voxels(sh.arrays(), sh.used, lo_, hi_, emptied)
             if emptied.any():
                 sh.keep_blocks(~emptied)
         self.num_voxels -= cleared

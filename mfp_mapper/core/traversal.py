@@ -26,9 +26,14 @@ from numpy.typing import NDArray
 
 from mfp_mapper.core.blocks import (
     BLOCK_BITS,
-    BLOCK_VOXELS,
+    BLOCK_CHUNKS,
+    CHUNK_BITS,
+    CHUNK_VOXELS,
     KEY_BITS,
     MAX_VOXEL_INDEX,
+    N_BLOCK_CHUNKS,
+    N_CHUNK_BITS,
+    N_CHUNK_VOXELS,
     block_key,
     block_of_key,
     find_block,
@@ -37,13 +42,24 @@ from mfp_mapper.core.blocks import (
 )
 from mfp_mapper.core.lockstep import (
     FLOAT_ROWS,
-    FOREIGN_BASE,
     INT_ROWS,
     LANES,
     place_lanes,
     walk_lanes,
 )
-from mfp_mapper.core.shard import Shard, ShardArrays, open_block
+from mfp_mapper.core.shard import (
+    FLUSH_PENDING,
+    FOREIGN_LIMIT,
+    NCHUNK_USED,
+    NREC_USED,
+    S_USED,
+    Shard,
+    ShardArrays,
+    ValueArrays,
+    open_block,
+    value_arrays,
+    voxel_stats,
+)
 from mfp_mapper.core.store import BlockStore
 
 _LOCAL_MASK = (1 << BLOCK_BITS) - 1
@@ -287,9 +303,20 @@ def _walk_part(
     walk = RayArrays(rays.origins_vox, rays.ends_vox, rays.lengths, rays.has_return, room, visits)
     limit = None if share is None else shard.used + share
     first, cut, cut_done = 0, 0, False
+    left = np.cumsum(visits[::-1])[::-1]  # visits of rays r.., at most as many new chunks
     while first < len(rays):
+        # room for the chunks of the next groups' visits at least, and for their returns;
+        # grown by half, so that the walk returns for more room a few times a map only
+        pools = shard.pools
+        next_groups = int(visits[first : first + 2 * LANES].sum())
+        spare = int(pools[S_USED]) // 4 + 4096
+        shard.ensure_room(
+            min(int(left[first]), max(next_groups, spare)),
+            max(4 * LANES, int(pools[NCHUNK_USED]) // 4 + 256),
+        )
         first = _walk_rays(walk, first, shard_id, shard_mask, shard.arrays(), scan)
-        if first < len(rays):  # the next group of rays (see _walk_rays) did not fit
+        if first < len(rays) and _blocks_short(walk, first, shard):  # the next group of
+            # rays (see _walk_rays) did not fit in the blocks (else only in the chunks)
             need = int(walk.room_needed[first : first + LANES].sum())
             if limit is not None and shard.used + need > limit and not cut_done:
                 rest = cut_to_blocks(walk, first, limit - shard.used)
@@ -299,6 +326,13 @@ def _walk_part(
                 continue
             shard.grow(min_free=need, at_most=limit)  # the limit is checked at each growth
     return cut
+
+
+def _blocks_short(walk: RayArrays, first: int, shard: Shard) -> bool:
+    """Whether the group of rays from ``first`` does not fit in ``shard``'s free blocks (as
+    ``_walk_rays`` checks)."""
+    capacity = min(shard.capacity, shard.table_keys.shape[0] // 2)
+    return shard.used + int(walk.room_needed[first : first + LANES].sum()) > capacity
 
 
 def cut_to_blocks(walk: RayArrays, first: int, blocks: int) -> tuple[RayArrays, int] | None:
@@ -394,12 +428,16 @@ def _walk_rays(
     """
     origins_vox, ends_vox, lengths, has_return, room_needed, visits_needed = rays
     scan_id, stamp, decay_time = scan
-    table_keys, _, _, block_sn, block_t, _, block_hit, counters, block_scale = shard_arrays
-    capacity = min(block_t.shape[0], table_keys.shape[0] // 2)
+    sa = shard_arrays
+    counters, block_scale, pools = sa.counters, sa.block_scale, sa.pools
+    capacity = min(sa.block_t.shape[0], sa.table_keys.shape[0] // 2)
+    chunk_room = sa.chunk_owner.shape[0]
+    n_room = min(sa.n_recs.shape[0] - pools[NREC_USED], sa.n_pool.shape[0] - pools[NCHUNK_USED])
+    values = value_arrays(sa)
     # blocks opened in this call, direct-mapped by their low index bits: neighbouring rays
     # cross the same blocks, and this table (768 KiB) stays in cache where the hash does not
     cache_keys = np.full(1 << (3 * _WALK_CACHE_BITS), -1, dtype=np.int64)
-    cache_bases = np.empty(cache_keys.shape[0], dtype=np.int64)  # first voxel, or FOREIGN_BASE
+    cache_bases = np.empty(cache_keys.shape[0], dtype=np.int64)  # chunk-table slot, 0: foreign
     cache_weights = np.empty(cache_keys.shape[0])  # the scan's weight there (< 1: a late scan)
     total = lengths.shape[0]
     longest = 1
@@ -418,20 +456,27 @@ def _walk_rays(
     placed_chord = np.empty((2, longest * LANES))  # the steps' chords, then weighted
     placed_steps = np.zeros((2, LANES), dtype=np.int64)
     return_weight = np.zeros((2, LANES))  # 0: no return (or another shard's end voxel)
-    lines = block_sn.reshape(-1)
-    pairs = lines.view(np.uint64)  # a voxel's s and n as one word: 0 when unobserved
     group = 0
     waiting = 0  # rays of the group waiting to be added
+    waiting_visits = 0  # their visits: at most as many new s chunks
+    n_start = pools[NCHUNK_USED]  # n chunks (and rows) made since: at most one a return
     group_first = first
     while True:
         lanes = min(LANES, total - group_first)
         blocks_needed = 0
+        visits = 0
         for lane in range(lanes):
             blocks_needed += room_needed[group_first + lane]
-        if lanes == 0 or counters[0] + blocks_needed > capacity:
+            visits += visits_needed[group_first + lane]
+        if (
+            lanes == 0
+            or counters[0] + blocks_needed > capacity
+            or pools[S_USED] + waiting_visits + visits > chunk_room
+            or pools[NCHUNK_USED] - n_start + 2 * LANES > n_room
+        ):
             _add_group(
-                lines, pairs, block_hit, placed_voxel[1 - group], placed_chord[1 - group],
-                placed_steps[1 - group], return_weight[1 - group], waiting, counters,
+                values, placed_voxel[1 - group], placed_chord[1 - group],
+                placed_steps[1 - group], return_weight[1 - group], waiting,
             )  # fmt: skip
             return group_first
         steps = 0
@@ -483,86 +528,137 @@ def _walk_rays(
                     if shard_of(bx, by, bz, shard_mask) == shard:
                         block = open_block(bx, by, bz, shard_arrays, scan_id, stamp, decay_time)
                     cache_keys[slot] = key
-                    cache_bases[slot] = block * BLOCK_VOXELS if block >= 0 else FOREIGN_BASE
+                    cache_bases[slot] = BLOCK_CHUNKS * (block + 1) if block >= 0 else 0
                     cache_weights[slot] = block_scale[block] if block >= 0 else 1.0
                 entered_base[lane, b] = cache_bases[slot]
                 entered_weight[lane, b] = cache_weights[slot]
                 weighted |= cache_weights[slot] != 1.0
-            ends_here = has_return[r] and entered_base[lane, blocks - 1] >= 0
+            ends_here = has_return[r] and entered_base[lane, blocks - 1] > 0
             return_weight[group, lane] = entered_weight[lane, blocks - 1] if ends_here else 0.0
+        for lane in range(lanes, LANES):  # repeats of the first ray: placed in no block
+            for b in range(lane_blocks[lane]):
+                entered_base[lane, b] = 0
+                entered_weight[lane, b] = 1.0
         place_lanes(
-            step_code, step_chord, entered_base, entered_weight, weighted, steps, lines,
-            placed_voxel[group],
+            step_code, step_chord, entered_base, entered_weight, weighted, steps,
+            sa.block_chunks, sa.s_pool, placed_voxel[group],
         )  # fmt: skip
         _add_group(
-            lines, pairs, block_hit, placed_voxel[1 - group], placed_chord[1 - group],
-            placed_steps[1 - group], return_weight[1 - group], waiting, counters,
+            values, placed_voxel[1 - group], placed_chord[1 - group], placed_steps[1 - group],
+            return_weight[1 - group], waiting,
         )  # fmt: skip
         waiting = lanes
+        waiting_visits = visits
         group = 1 - group
         group_first += lanes
 
 
 @nb.njit(cache=True, nogil=True)
 def _add_group(
-    lines: NDArray[np.float32],
-    pairs: NDArray[np.uint64],
-    block_hit: NDArray[np.bool_],
+    values: ValueArrays,
     voxels: NDArray[np.int64],
     chords: NDArray[np.float64],
     steps: NDArray[np.int64],
     return_weight: NDArray[np.float64],
     lanes: int,
-    counters: NDArray[np.int64],
 ) -> None:
-    """Add a group's placed visits (``lockstep.place_lanes``) to the blocks, ray by ray in
-    order (``lines``: the blocks' s and n, flat; ``pairs``: the same memory, one word a
-    voxel, which is 0 exactly when s and n are: they are never -0): ``s += float32(chord)``
-    for every chord above 0 in float32 in this shard, then the ray's return,
-    ``n += float32(return_weight)`` in its end voxel (none where the weight is 0), whose
-    block is marked. Counts the voxels that
-    became observed (``counters[1]``) and the visits (``counters[3]``)."""
+    """Add a group's placed visits (``lockstep.place_lanes``: an index in the ``s`` chunks,
+    or negative: a chunk not allocated when placed, or another shard's) to the blocks, ray
+    by ray in order: ``s += float32(chord)`` for every chord above 0 in float32 in this
+    shard, then the ray's return, ``n += float32(return_weight)`` in its end voxel (none
+    where the weight is 0), whose block is marked. Counts the voxels that became observed
+    (``counters[1]``) and the visits (``counters[3]``); marks for a flush into float64 the
+    blocks where a float32 part reached its limit (``limits``).
+
+    The arrays are taken out of their tuple once: numba counts references of every array
+    a helper takes, on every call, even inlined (about 40 cycles an array), so the paths
+    of this loop use no helper."""
+    (block_chunks, s_pool, chunk_owner, block_nrec, n_recs, n_pool, block_href, hi_pool,
+     block_hit, block_flush, pools, counters, limits) = values  # fmt: skip
     observed = 0
     visits = 0
+    lines = s_pool.reshape(-1)
+    s_limit, n_limit = limits[0], limits[1]
     for lane in range(lanes):
         last = steps[lane]
-        for k in range(last + 1):
-            voxel = voxels[k * LANES + lane]
-            chord = chords[k * LANES + lane]
-            c = np.float32(chord)
-            if c > 0.0 and voxel >= 0:  # (a chord below float32's least is no update)
-                observed += pairs[voxel] == 0
-                lines[2 * voxel] += c
+        ret = return_weight[lane] > 0.0
+        for k in range(last + 2):  # the steps, then the return
+            is_return = k == last + 1
+            if is_return and not ret:
+                break
+            voxel = voxels[last * LANES + lane] if is_return else voxels[k * LANES + lane]
+            c = np.float32(0.0) if is_return else np.float32(chords[k * LANES + lane])
+            # (a chord below float32's least is no update)
+            if not is_return and not (c > 0.0 and voxel >= FOREIGN_LIMIT):
+                continue
+            if voxel < 0:  # its chunk is new (since it was placed): shard.s_index
+                slot = (-voxel - 1) >> CHUNK_BITS
+                chunk = block_chunks[slot]
+                if chunk < 0:
+                    chunk = pools[S_USED]
+                    pools[S_USED] = chunk + 1
+                    block_chunks[slot] = chunk
+                    chunk_owner[chunk] = slot
+                voxel = chunk * CHUNK_VOXELS + (voxel & (CHUNK_VOXELS - 1))
+                voxels[last * LANES + lane if is_return else k * LANES + lane] = voxel
+            before = lines[voxel]
+            block = -1
+            place = 0
+            if before == 0.0 or is_return:  # shard.block_place_of
+                slot = chunk_owner[voxel >> CHUNK_BITS]
+                block = slot // BLOCK_CHUNKS - 1
+                place = (slot % BLOCK_CHUNKS) * CHUNK_VOXELS + (voxel & (CHUNK_VOXELS - 1))
+            if before == 0.0:  # observed before? (shard.voxel_stats)
+                seen = False
+                hi = block_href[block]
+                if hi >= 0:
+                    seen = hi_pool[hi, place, 0] != 0.0 or hi_pool[hi, place, 1] != 0.0
+                row = block_nrec[block]
+                if not seen and row >= 0:
+                    chunk = n_recs[row, place >> N_CHUNK_BITS]
+                    seen = chunk >= 0 and n_pool[chunk, place % N_CHUNK_VOXELS] != 0.0
+                observed += not seen
+            if not is_return:
+                after = before + c
+                lines[voxel] = after
+                if after >= s_limit:
+                    slot = chunk_owner[voxel >> CHUNK_BITS]
+                    block_flush[slot // BLOCK_CHUNKS - 1] = True
+                    pools[FLUSH_PENDING] = 1
                 visits += 1
-        # the end voxel takes the return; an end point exactly on a face gives a zero
-        # chord there, still with its return
-        if return_weight[lane] > 0.0:
-            voxel = voxels[last * LANES + lane]
-            observed += pairs[voxel] == 0
-            lines[2 * voxel + 1] += np.float32(return_weight[lane])
-            block_hit[voxel // BLOCK_VOXELS] = True
+                continue
+            # the end voxel takes the return; an end point exactly on a face gives a zero
+            # chord there, still with its return (shard.n_index)
+            row = block_nrec[block]
+            if row < 0:
+                row = pools[NREC_USED]
+                pools[NREC_USED] = row + 1
+                block_nrec[block] = row
+                for part in range(N_BLOCK_CHUNKS):
+                    n_recs[row, part] = -1
+            chunk = n_recs[row, place >> N_CHUNK_BITS]
+            if chunk < 0:
+                chunk = pools[NCHUNK_USED]
+                pools[NCHUNK_USED] = chunk + 1
+                n_recs[row, place >> N_CHUNK_BITS] = chunk
+            n = n_pool[chunk, place % N_CHUNK_VOXELS] + np.float32(return_weight[lane])
+            n_pool[chunk, place % N_CHUNK_VOXELS] = n
+            block_hit[block] = True
+            if n >= n_limit:
+                block_flush[block] = True
+                pools[FLUSH_PENDING] = 1
             visits += chords[last * LANES + lane] <= 0.0
     counters[1] += observed
     counters[3] += visits
 
 
-StoreView = tuple[
-    tuple[NDArray[np.int64], ...],  # table_keys of each shard
-    tuple[NDArray[np.int32], ...],  # table_blocks of each shard
-    tuple[NDArray[np.float32], ...],  # block_sn of each shard
-    tuple[NDArray[np.float64], ...],  # block_t of each shard
-]
-"""The arrays of every shard that a read-only walk reads (``store_view``)."""
+StoreView = tuple[ShardArrays, ...]
+"""The arrays of every shard, as a read-only walk reads them (``store_view``)."""
 
 
 def store_view(store: BlockStore) -> StoreView:
     """The store's arrays for ``read_walk`` (valid until the store next changes)."""
-    return (
-        tuple(sh.table_keys for sh in store.shards),
-        tuple(sh.table_blocks for sh in store.shards),
-        tuple(sh.block_sn for sh in store.shards),
-        tuple(sh.block_t for sh in store.shards),
-    )
+    return tuple(sh.arrays() for sh in store.shards)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -601,7 +697,6 @@ def read_walk(
     ``event_*`` arrays (ray, voxel index, decayed s and n, chord, whether a return),
     which must hold ``visit_bounds`` events per ray.
     """
-    tables_keys, tables_blocks, blocks_sn, blocks_t = view
     decays = math.isfinite(decay_time)
     events = 0
     # blocks found so far (block number, -1 when absent; shard), direct-mapped as in
@@ -647,19 +742,20 @@ def read_walk(
                 if cache_keys[slot] == key:
                     block = cache_blocks[slot]
                 else:
-                    block = find_block(tables_keys[shard], tables_blocks[shard], key)
+                    block = find_block(view[shard].table_keys, view[shard].table_blocks, key)
                     cache_keys[slot] = key
                     cache_blocks[slot] = block
                 f = 1.0
                 if block >= 0 and decays:
-                    f = math.exp(-abs(stamp - blocks_t[shard][block]) / decay_time)
+                    f = math.exp(-abs(stamp - view[shard].block_t[block]) / decay_time)
             local = morton_x | morton_y | morton_z
             cx, cy, cz = vx, vy, vz
             s = 0.0
             n = 0.0
             if block >= 0:
-                s = blocks_sn[shard][block, local, 0] * f
-                n = blocks_sn[shard][block, local, 1] * f
+                s, n = voxel_stats(view[shard], block, local)
+                s *= f
+                n *= f
             if steps == 0:
                 break
             if t_max_x <= t_max_y and t_max_x <= t_max_z:
