@@ -38,7 +38,7 @@ from mfp_mapper.core.blocks import (
     voxel_inside,
 )
 from mfp_mapper.core.model import hit_probability_one
-from mfp_mapper.core.shard import ShardArrays, voxel_stats
+from mfp_mapper.core.shard import ShardArrays, block_values
 
 UNKNOWN = -1
 OCCUPIED = 100
@@ -222,13 +222,15 @@ def _observed_extent(
     extent: NDArray[np.int64],
 ) -> None:
     """Widen ``extent`` [i_min, j_min, i_max, j_max] to the observed voxels in [lo, hi]."""
+    s_block = np.empty(BLOCK_VOXELS)
+    n_block = np.empty(BLOCK_VOXELS)
     for b in range(used):
         bx, by, bz = block_origin(sa.block_ijk, b)
         if block_outside(bx, by, bz, lo, hi):
             continue
+        block_values(sa, b, s_block, n_block)
         for v in range(BLOCK_VOXELS):
-            s, n = voxel_stats(sa, b, v)
-            if s > 0.0 or n > 0.0:
+            if s_block[v] > 0.0 or n_block[v] > 0.0:
                 dx, dy, dz = local_coords(v)
                 x, y, z = bx + dx, by + dy, bz + dz
                 if voxel_inside(x, y, z, lo, hi):
@@ -260,6 +262,8 @@ def _band_max_percent(
     observed voxels in [lo, hi] whose centre height lies in [z_min, z_max]; with
     ``trinary``, to OCCUPIED (p >= occupied), FREE (p < free) or _UNCERTAIN."""
     height, width = cells.shape
+    s_block = np.empty(BLOCK_VOXELS)
+    n_block = np.empty(BLOCK_VOXELS)
     for b in range(used):
         bx, by, bz = block_origin(sa.block_ijk, b)
         if (
@@ -270,8 +274,9 @@ def _band_max_percent(
             or by >= j0 + height
         ):
             continue
+        block_values(sa, b, s_block, n_block)
         for v in range(BLOCK_VOXELS):
-            s, n = voxel_stats(sa, b, v)
+            s, n = s_block[v], n_block[v]
             if not (s > 0.0 or n > 0.0):
                 continue
             dx, dy, dz = local_coords(v)

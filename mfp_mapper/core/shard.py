@@ -13,7 +13,7 @@ Where a block's statistics live (``ShardArrays``):
 * Exact for hours: a voxel's float32 sums take at most ``limits`` (``s`` up to
   ``FLUSH_EDGES`` voxel edges of chord, ``n`` up to ``N_LIMIT``) before its block is flushed
   into a float64 block of ``hi_pool`` (``block_href[b]``) after the scan: a voxel's
-  statistics are the float64 sum plus the float32 one (``voxel_stats``).
+  statistics are the float64 sum plus the float32 one (``block_values``, ``voxel_stats``).
 """
 
 from __future__ import annotations
@@ -138,78 +138,116 @@ def chunk_slot(block: int, chunk: int) -> int:
 
 
 @nb.njit(inline="always", cache=True)
-def s_index(sa: ShardArrays, voxel: int) -> int:
+def s_index(
+    block_chunks: NDArray[np.int32],
+    chunk_owner: NDArray[np.int32],
+    pools: NDArray[np.int64],
+    voxel: int,
+) -> int:
     """``s_pool`` index (flat) of a placed visit ``voxel`` (>= FOREIGN_LIMIT): itself when
     its chunk was allocated when placed, else its chunk's, allocated now if still needed
-    (the caller made room: ``Shard.ensure_room``)."""
+    (the caller made room: ``Shard.ensure_room``). Helpers take single arrays, not
+    ``ShardArrays``: numba counts the references of every array a call takes."""
     if voxel >= 0:
         return voxel
     slot = (-voxel - 1) >> CHUNK_BITS
-    chunk = sa.block_chunks[slot]
+    chunk = block_chunks[slot]
     if chunk < 0:
-        chunk = sa.pools[S_USED]
-        sa.pools[S_USED] = chunk + 1
-        sa.block_chunks[slot] = chunk
-        sa.chunk_owner[chunk] = slot
+        chunk = pools[S_USED]
+        pools[S_USED] = chunk + 1
+        block_chunks[slot] = chunk
+        chunk_owner[chunk] = slot
     return chunk * CHUNK_VOXELS + (voxel & _CHUNK_MASK)
 
 
 @nb.njit(inline="always", cache=True)
-def block_place_of(sa: ShardArrays, index: int) -> tuple[int, int]:
-    """Block and place in the block of ``s_pool`` index ``index``."""
-    slot = sa.chunk_owner[index >> CHUNK_BITS]
-    block = slot // BLOCK_CHUNKS - 1
-    return block, (slot % BLOCK_CHUNKS) * CHUNK_VOXELS + (index & _CHUNK_MASK)
-
-
-@nb.njit(inline="always", cache=True)
-def n_index(sa: ShardArrays, block: int, place: int, create: bool) -> int:
+def n_index(
+    block_nrec: NDArray[np.int32],
+    n_recs: NDArray[np.int32],
+    pools: NDArray[np.int64],
+    block: int,
+    place: int,
+    create: bool,
+) -> int:
     """``n_pool`` index (flat) of a voxel, created when ``create`` (the caller made room),
     else -1 where the voxel's n chunk does not exist."""
-    row = sa.block_nrec[block]
+    row = block_nrec[block]
     if row < 0:
         if not create:
             return -1
-        row = sa.pools[NREC_USED]
-        sa.pools[NREC_USED] = row + 1
-        sa.block_nrec[block] = row
+        row = pools[NREC_USED]
+        pools[NREC_USED] = row + 1
+        block_nrec[block] = row
         for k in range(N_BLOCK_CHUNKS):
-            sa.n_recs[row, k] = -1
+            n_recs[row, k] = -1
     part = place >> N_CHUNK_BITS
-    chunk = sa.n_recs[row, part]
+    chunk = n_recs[row, part]
     if chunk < 0:
         if not create:
             return -1
-        chunk = sa.pools[NCHUNK_USED]
-        sa.pools[NCHUNK_USED] = chunk + 1
-        sa.n_recs[row, part] = chunk
+        chunk = pools[NCHUNK_USED]
+        pools[NCHUNK_USED] = chunk + 1
+        n_recs[row, part] = chunk
     return chunk * N_CHUNK_VOXELS + (place & _N_CHUNK_MASK)
 
 
-@nb.njit(inline="always", cache=True)
-def voxel_stats(sa: ShardArrays, block: int, place: int) -> tuple[float, float]:
-    """``s`` and ``n`` (float64) of voxel ``place`` of block ``block``: the float32 parts,
-    plus the float64 parts where the block was flushed."""
-    s = 0.0
-    chunk = sa.block_chunks[chunk_slot(block, place >> CHUNK_BITS)]
-    if chunk >= 0:
-        s = np.float64(sa.s_pool[chunk, place & _CHUNK_MASK])
-    n = 0.0
-    k = n_index(sa, block, place, False)
-    if k >= 0:
-        n = np.float64(sa.n_pool.reshape(-1)[k])
+@nb.njit(cache=True, nogil=True)
+def block_values(
+    sa: ShardArrays, block: int, s: NDArray[np.float64], n: NDArray[np.float64]
+) -> None:
+    """``s`` and ``n`` (float64, 512 each) of every voxel of ``block``: the float32 parts
+    plus the float64 parts where the block was flushed. Readers take a block at a time
+    (a call per voxel would cost more than the reading)."""
+    s[:] = 0.0
+    n[:] = 0.0
+    for k in range(BLOCK_CHUNKS):
+        chunk = sa.block_chunks[chunk_slot(block, k)]
+        if chunk >= 0:
+            for i in range(CHUNK_VOXELS):
+                s[k * CHUNK_VOXELS + i] = sa.s_pool[chunk, i]
+    row = sa.block_nrec[block]
+    if row >= 0:
+        for k in range(N_BLOCK_CHUNKS):
+            chunk = sa.n_recs[row, k]
+            if chunk >= 0:
+                for i in range(N_CHUNK_VOXELS):
+                    n[k * N_CHUNK_VOXELS + i] = sa.n_pool[chunk, i]
     hi = sa.block_href[block]
     if hi >= 0:
-        s += sa.hi_pool[hi, place, 0]
-        n += sa.hi_pool[hi, place, 1]
-    return s, n
+        for i in range(BLOCK_VOXELS):
+            s[i] += sa.hi_pool[hi, i, 0]
+            n[i] += sa.hi_pool[hi, i, 1]
 
 
 @nb.njit(inline="always", cache=True)
-def mark_flush(sa: ShardArrays, block: int) -> None:
-    """Have ``block`` flushed into float64 after the scan (``Shard.flush``)."""
-    sa.block_flush[block] = True
-    sa.pools[FLUSH_PENDING] = 1
+def voxel_stats(
+    block_chunks: NDArray[np.int32],
+    s_pool: NDArray[np.float32],
+    block_nrec: NDArray[np.int32],
+    n_recs: NDArray[np.int32],
+    n_pool: NDArray[np.float32],
+    block_href: NDArray[np.int32],
+    hi_pool: NDArray[np.float64],
+    block: int,
+    place: int,
+) -> tuple[float, float]:
+    """``s`` and ``n`` (float64) of voxel ``place`` of block ``block`` (``block_values`` for
+    one voxel)."""
+    s = 0.0
+    chunk = block_chunks[chunk_slot(block, place >> CHUNK_BITS)]
+    if chunk >= 0:
+        s = np.float64(s_pool[chunk, place & _CHUNK_MASK])
+    n = 0.0
+    row = block_nrec[block]
+    if row >= 0:
+        chunk = n_recs[row, place >> N_CHUNK_BITS]
+        if chunk >= 0:
+            n = np.float64(n_pool[chunk, place & _N_CHUNK_MASK])
+    hi = block_href[block]
+    if hi >= 0:
+        s += hi_pool[hi, place, 0]
+        n += hi_pool[hi, place, 1]
+    return s, n
 
 
 @nb.njit(inline="always", cache=True)
@@ -313,7 +351,7 @@ def _flush_blocks(sa: ShardArrays, blocks: NDArray[np.int64]) -> None:
                     sa.s_pool[chunk, i] = 0.0
         if sa.block_nrec[b] >= 0:
             for place in range(BLOCK_VOXELS):
-                k = n_index(sa, b, place, False)
+                k = n_index(sa.block_nrec, sa.n_recs, sa.pools, b, place, False)
                 if k >= 0:
                     sa.hi_pool[hi, place, 1] += np.float64(flat_n[k])
                     flat_n[k] = 0.0
@@ -324,12 +362,11 @@ def _flush_blocks(sa: ShardArrays, blocks: NDArray[np.int64]) -> None:
 @nb.njit(cache=True, nogil=True)
 def _observed_per_block(sa: ShardArrays, used: int, out: NDArray[np.int64]) -> None:
     """``out[b]``: the observed voxels (s > 0 or n > 0) of block b."""
+    s = np.empty(BLOCK_VOXELS)
+    n = np.empty(BLOCK_VOXELS)
     for b in range(used):
-        count = 0
-        for place in range(BLOCK_VOXELS):
-            s, n = voxel_stats(sa, b, place)
-            count += (s > 0.0) | (n > 0.0)
-        out[b] = count
+        block_values(sa, b, s, n)
+        out[b] = np.count_nonzero((s > 0.0) | (n > 0.0))
 
 
 def _grown(array: NDArray, rows: int, fill: float | int = 0) -> NDArray:

@@ -25,21 +25,22 @@ from mfp_mapper.core.blocks import (
     BLOCK_VOXELS,
     CHUNK_BITS,
     CHUNK_VOXELS,
+    N_BLOCK_CHUNKS,
     block_key,
     find_block,
 )
 from mfp_mapper.core.shard import (
+    FLUSH_PENDING,
     NCHUNK_USED,
     NREC_USED,
     S_USED,
     Shard,
     ShardArrays,
+    block_values,
     chunk_slot,
-    mark_flush,
     n_index,
     open_block,
     s_index,
-    voxel_stats,
 )
 from mfp_mapper.core.store import BlockStore
 
@@ -58,9 +59,14 @@ def _merge_blocks(
     store's chunks: ``Shard.ensure_room``), zeroing what it read; returns ``used``, or the
     block where the shard ran out of blocks (grow it and call again from there)."""
     s_limit, n_limit = sa.limits[0], sa.limits[1]
+    s_add = np.empty(BLOCK_VOXELS)
+    n_add = np.empty(BLOCK_VOXELS)
+    s_map = np.empty(BLOCK_VOXELS)
+    n_map = np.empty(BLOCK_VOXELS)
     flat_s = sa.s_pool.reshape(-1)
     flat_n = sa.n_pool.reshape(-1)
-    staged_n = staged.n_pool.reshape(-1)
+    block_chunks, chunk_owner, pools = sa.block_chunks, sa.chunk_owner, sa.pools
+    block_nrec, n_recs = sa.block_nrec, sa.n_recs
     for b in range(start, used):
         mb = open_block(
             staged.block_ijk[b, 0], staged.block_ijk[b, 1], staged.block_ijk[b, 2], sa,
@@ -69,51 +75,47 @@ def _merge_blocks(
         if mb < 0:
             return b
         scale = np.float32(sa.block_scale[mb])
-        new = 0
+        block_values(staged, b, s_add, n_add)  # the scan's (float32: no float64 part)
+        block_values(sa, mb, s_map, n_map)
         flush = False
-        for k in range(BLOCK_CHUNKS):
-            chunk = staged.block_chunks[chunk_slot(b, k)]
-            if chunk < 0:
+        new = 0
+        for place in range(BLOCK_VOXELS):
+            s, n = np.float32(s_add[place]), np.float32(n_add[place])
+            if s == 0.0 and n == 0.0:
                 continue
-            slot = chunk_slot(mb, k)
-            base = s_index(sa, -(slot + 1) * CHUNK_VOXELS)
-            for i in range(CHUNK_VOXELS):
-                add = staged.s_pool[chunk, i]
-                if add != 0.0:
-                    before = flat_s[base + i]
-                    if before == 0.0:
-                        s, n = voxel_stats(sa, mb, k * CHUNK_VOXELS + i)
-                        new += s == 0.0 and n == 0.0
-                    flat_s[base + i] = before + add * scale
-                    flush |= flat_s[base + i] >= s_limit
-                    staged.s_pool[chunk, i] = 0.0  # merged: the staged store is empty after
-        if staged.block_nrec[b] >= 0:
-            for place in range(BLOCK_VOXELS):
-                k = n_index(staged, b, place, False)
-                if k < 0 or staged_n[k] == 0.0:
-                    continue
-                chunk = sa.block_chunks[chunk_slot(mb, place >> CHUNK_BITS)]
-                s_before = 0.0 if chunk < 0 else flat_s[chunk * CHUNK_VOXELS + place % 64]
-                m = n_index(sa, mb, place, True)
-                if s_before == 0.0 and flat_n[m] == 0.0 and staged_s_zero(staged, b, place):
-                    s, n = voxel_stats(sa, mb, place)
-                    new += s == 0.0 and n == 0.0
-                flat_n[m] += staged_n[k] * scale
-                flush |= flat_n[m] >= n_limit
-                staged_n[k] = 0.0
+            new += s_map[place] == 0.0 and n_map[place] == 0.0
+            if s != 0.0:
+                voxel = -(chunk_slot(mb, place >> CHUNK_BITS) + 1) * CHUNK_VOXELS
+                k = s_index(block_chunks, chunk_owner, pools, voxel + place % CHUNK_VOXELS)
+                flat_s[k] += s * scale
+                flush |= flat_s[k] >= s_limit
+            if n != 0.0:
+                k = n_index(block_nrec, n_recs, pools, mb, place, True)
+                flat_n[k] += n * scale
+                flush |= flat_n[k] >= n_limit
+        _zero_block(staged, b)  # merged: the staged store is empty again after
         if staged.block_hit[b]:
             sa.block_hit[mb] = True
         if flush:
-            mark_flush(sa, mb)
+            sa.block_flush[mb] = True
+            sa.pools[FLUSH_PENDING] = 1
         sa.counters[1] += new
     return used
 
 
-@nb.njit(inline="always", cache=True)
-def staged_s_zero(staged: ShardArrays, block: int, place: int) -> bool:
-    """Whether the staged ``s`` of a voxel is 0 (then the s pass above did not count it)."""
-    chunk = staged.block_chunks[chunk_slot(block, place >> CHUNK_BITS)]
-    return chunk < 0 or staged.s_pool[chunk, place % CHUNK_VOXELS] == 0.0
+@nb.njit(cache=True, nogil=True)
+def _zero_block(sa: ShardArrays, block: int) -> None:
+    """Zero the float32 parts of ``block``."""
+    for k in range(BLOCK_CHUNKS):
+        chunk = sa.block_chunks[chunk_slot(block, k)]
+        if chunk >= 0:
+            sa.s_pool[chunk] = 0.0
+    row = sa.block_nrec[block]
+    if row >= 0:
+        for k in range(N_BLOCK_CHUNKS):
+            chunk = sa.n_recs[row, k]
+            if chunk >= 0:
+                sa.n_pool[chunk] = 0.0
 
 
 MERGE_CHUNK_BLOCKS = 8192

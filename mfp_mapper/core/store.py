@@ -59,6 +59,7 @@ from mfp_mapper.core.shard import (
     S_USED,
     Shard,
     ShardArrays,
+    block_values,
     chunk_slot,
     n_index,
     open_block,
@@ -152,6 +153,9 @@ def _set_voxels(
     last_key = np.int64(-1)  # map files list voxels block by block: one probe a block
     block = -1
     s_limit, n_limit = sa.limits[0], sa.limits[1]
+    block_chunks, chunk_owner, pools = sa.block_chunks, sa.chunk_owner, sa.pools
+    block_nrec, n_recs = sa.block_nrec, sa.n_recs
+    flat_s, flat_n = sa.s_pool.reshape(-1), sa.n_pool.reshape(-1)
     for j in range(start, ijk.shape[0]):
         bx = ijk[j, 0] >> BLOCK_BITS
         by = ijk[j, 1] >> BLOCK_BITS
@@ -196,10 +200,10 @@ def _set_voxels(
             sa.hi_pool[hi, local, 1] = nj
         else:
             if sj != 0.0:
-                slot = chunk_slot(block, local >> CHUNK_BITS)
-                sa.s_pool.reshape(-1)[s_index(sa, -(slot + 1) * CHUNK_VOXELS + (local & 63))] = sj
+                voxel = -(chunk_slot(block, local >> CHUNK_BITS) + 1) * CHUNK_VOXELS + (local & 63)
+                flat_s[s_index(block_chunks, chunk_owner, pools, voxel)] = sj
             if nj != 0.0:
-                sa.n_pool.reshape(-1)[n_index(sa, block, local, True)] = nj
+                flat_n[n_index(block_nrec, n_recs, pools, block, local, True)] = nj
         if nj > 0.0:
             sa.block_hit[block] = True
         if sj > 0.0 or nj > 0.0:
@@ -212,20 +216,28 @@ def _set_voxels(
 def _lookup(
     ijk: NDArray[np.int64],
     shard_mask: int,
-    shards: tuple[ShardArrays, ...],
+    shard: int,
+    sa: ShardArrays,
     s: NDArray[np.float64],
     n: NDArray[np.float64],
     t: NDArray[np.float64],
 ) -> None:
-    """Statistics of each voxel index (left as given where its block is absent)."""
+    """Statistics of each voxel index of ``shard`` (left as given elsewhere, and where its
+    block is absent)."""
+    block_chunks, s_pool, block_nrec, n_recs = sa.block_chunks, sa.s_pool, sa.block_nrec, sa.n_recs
+    n_pool, block_href, hi_pool = sa.n_pool, sa.block_href, sa.hi_pool
     for j in range(ijk.shape[0]):
         bx = ijk[j, 0] >> BLOCK_BITS
         by = ijk[j, 1] >> BLOCK_BITS
         bz = ijk[j, 2] >> BLOCK_BITS
-        sa = shards[shard_of(bx, by, bz, shard_mask)]
+        if shard_of(bx, by, bz, shard_mask) != shard:
+            continue
         block = find_block(sa.table_keys, sa.table_blocks, block_key(bx, by, bz))
         if block >= 0:
-            s[j], n[j] = voxel_stats(sa, block, local_index(ijk[j, 0], ijk[j, 1], ijk[j, 2]))
+            s[j], n[j] = voxel_stats(
+                block_chunks, s_pool, block_nrec, n_recs, n_pool, block_href, hi_pool, block,
+                local_index(ijk[j, 0], ijk[j, 1], ijk[j, 2]),
+            )  # fmt: skip
             t[j] = sa.block_t[block]
 
 
@@ -246,6 +258,8 @@ def _select_voxels(
     without reading their voxels.
     """
     count = 0
+    s_block = np.empty(BLOCK_VOXELS)
+    n_block = np.empty(BLOCK_VOXELS)
     for b in range(used):
         if min_extinction > 0.0 and not sa.block_hit[b]:
             continue  # no return in the block: no voxel has n >= min_extinction * s > 0
@@ -256,8 +270,9 @@ def _select_voxels(
         inside = voxel_inside(x0, y0, z0, lo, hi) and voxel_inside(
             x0 + last, y0 + last, z0 + last, lo, hi
         )
+        block_values(sa, b, s_block, n_block)
         for i in range(BLOCK_VOXELS):
-            s, n = voxel_stats(sa, b, i)
+            s, n = s_block[i], n_block[i]
             # s == 0 < n: a return on a face, most likely DoO 1 (kept by any threshold)
             if (s > 0.0 and n >= min_extinction * s) or (s == 0.0 and n > 0.0):
                 if not inside:
@@ -282,17 +297,20 @@ def _gather_voxels(
 ) -> None:
     """Write the voxels marked in ``keep`` (blocks x voxels) to the output arrays, in order."""
     j = 0
+    s_block = np.empty(BLOCK_VOXELS)
+    n_block = np.empty(BLOCK_VOXELS)
     for b in range(keep.shape[0]):
         if kept_per_block[b] == 0:
             continue
         x0, y0, z0 = block_origin(sa.block_ijk, b)
+        block_values(sa, b, s_block, n_block)
         for i in range(BLOCK_VOXELS):
             if keep[b, i]:
                 dx, dy, dz = local_coords(i)
                 ijk[j, 0] = x0 + dx
                 ijk[j, 1] = y0 + dy
                 ijk[j, 2] = z0 + dz
-                s[j], n[j] = voxel_stats(sa, b, i)
+                s[j], n[j] = s_block[i], n_block[i]
                 t_last[j] = sa.block_t[b]
                 j += 1
 
@@ -303,8 +321,7 @@ def _block_stats(
 ) -> None:
     """``s`` and ``n`` (blocks x 512) of blocks ``start..start + len(s)``."""
     for k in range(s.shape[0]):
-        for i in range(BLOCK_VOXELS):
-            s[k, i], n[k, i] = voxel_stats(sa, start + k, i)
+        block_values(sa, start + k, s[k], n[k])
 
 
 @nb.njit(cache=True, nogil=True)
@@ -320,22 +337,24 @@ def _clear_voxels(
     count = 0
     flat_s = sa.s_pool.reshape(-1)
     flat_n = sa.n_pool.reshape(-1)
+    s_block = np.empty(BLOCK_VOXELS)
+    n_block = np.empty(BLOCK_VOXELS)
     for b in range(used):
         x0, y0, z0 = block_origin(sa.block_ijk, b)
         if block_outside(x0, y0, z0, lo, hi):
             continue
         left = 0
         href = sa.block_href[b]
+        block_values(sa, b, s_block, n_block)
         for i in range(BLOCK_VOXELS):
-            s, n = voxel_stats(sa, b, i)
-            if s == 0.0 and n == 0.0:
+            if s_block[i] == 0.0 and n_block[i] == 0.0:
                 continue
             dx, dy, dz = local_coords(i)
             if voxel_inside(x0 + dx, y0 + dy, z0 + dz, lo, hi):
                 chunk = sa.block_chunks[chunk_slot(b, i >> CHUNK_BITS)]
                 if chunk >= 0:
                     flat_s[chunk * CHUNK_VOXELS + (i % CHUNK_VOXELS)] = 0.0
-                k = n_index(sa, b, i, False)
+                k = n_index(sa.block_nrec, sa.n_recs, sa.pools, b, i, False)
                 if k >= 0:
                     flat_n[k] = 0.0
                 if href >= 0:
@@ -429,7 +448,8 @@ class BlockStore:
         n = np.zeros(count)
         t = np.full(count, -np.inf)
         ijk64 = np.ascontiguousarray(ijk, dtype=np.int64)
-        _lookup(ijk64, self.shard_mask, tuple(sh.arrays() for sh in self.shards), s, n, t)
+        for sid, sh in enumerate(self.shards):
+            _lookup(ijk64, self.shard_mask, sid, sh.arrays(), s, n, t)
         return VoxelArrays(ijk.astype(np.int32), s, n, t)
 
     def export(

@@ -58,7 +58,6 @@ from mfp_mapper.core.shard import (
     ValueArrays,
     open_block,
     value_arrays,
-    voxel_stats,
 )
 from mfp_mapper.core.store import BlockStore
 
@@ -739,21 +738,41 @@ def read_walk(
                     | ((by & _READ_CACHE_MASK) << _READ_CACHE_BITS)
                     | (bz & _READ_CACHE_MASK)
                 )
+                here = view[shard]
                 if cache_keys[slot] == key:
                     block = cache_blocks[slot]
                 else:
-                    block = find_block(view[shard].table_keys, view[shard].table_blocks, key)
+                    block = find_block(here.table_keys, here.table_blocks, key)
                     cache_keys[slot] = key
                     cache_blocks[slot] = block
                 f = 1.0
                 if block >= 0 and decays:
-                    f = math.exp(-abs(stamp - view[shard].block_t[block]) / decay_time)
+                    f = math.exp(-abs(stamp - here.block_t[block]) / decay_time)
+                # the shard's statistics, out of their tuple once a block (shard.voxel_stats)
+                block_chunks, s_pool, block_nrec = here.block_chunks, here.s_pool, here.block_nrec
+                n_recs, n_pool, block_href, hi_pool = (
+                    here.n_recs,
+                    here.n_pool,
+                    here.block_href,
+                    here.hi_pool,
+                )
             local = morton_x | morton_y | morton_z
             cx, cy, cz = vx, vy, vz
             s = 0.0
             n = 0.0
             if block >= 0:
-                s, n = voxel_stats(view[shard], block, local)
+                chunk = block_chunks[BLOCK_CHUNKS * (block + 1) + (local >> CHUNK_BITS)]
+                if chunk >= 0:
+                    s = np.float64(s_pool[chunk, local % CHUNK_VOXELS])
+                row = block_nrec[block]
+                if row >= 0:
+                    chunk = n_recs[row, local >> N_CHUNK_BITS]
+                    if chunk >= 0:
+                        n = np.float64(n_pool[chunk, local % N_CHUNK_VOXELS])
+                hi = block_href[block]
+                if hi >= 0:
+                    s += hi_pool[hi, local, 0]
+                    n += hi_pool[hi, local, 1]
                 s *= f
                 n *= f
             if steps == 0:
