@@ -369,11 +369,16 @@ def _observed_per_block(sa: ShardArrays, used: int, out: NDArray[np.int64]) -> N
         out[b] = np.count_nonzero((s > 0.0) | (n > 0.0))
 
 
+def _row_bytes(array: NDArray) -> int:
+    return array.itemsize * int(np.prod(array.shape[1:]))
+
+
 def _grown(array: NDArray, rows: int, fill: float | int = 0) -> NDArray:
     """``array`` with at least ``rows`` rows (1.25 times as many when it must grow)."""
     if array.shape[0] >= rows:
         return array
-    out = np.full((max(rows, array.shape[0] * 5 // 4 + 16), *array.shape[1:]), fill, array.dtype)
+    shape = (max(rows, array.shape[0] * 5 // 4 + 16), *array.shape[1:])
+    out = np.zeros(shape, array.dtype) if fill == 0 else np.full(shape, fill, array.dtype)
     out[: array.shape[0]] = array
     return out
 
@@ -412,16 +417,18 @@ class Shard:
     def _resize_index(self, capacity: int) -> None:
         """Size the per-block arrays and the hash table for ``capacity`` blocks."""
         used = self.used
-        fills = (
-            ("block_ijk", 0), ("block_t", -np.inf), ("block_scan", -1), ("block_hit", False),
-            ("block_scale", 1.0), ("block_nrec", -1), ("block_href", -1), ("block_flush", False),
+        # rows past the used blocks are written by open_block before they are read, so
+        # their memory stays untouched (not resident) until then
+        names = (
+            "block_ijk", "block_t", "block_scan", "block_hit", "block_scale", "block_nrec",
+            "block_href", "block_flush",
         )  # fmt: skip
-        for name, fill in fills:
+        for name in names:
             old = getattr(self, name)
-            new = np.full((capacity, *old.shape[1:]), fill, dtype=old.dtype)
+            new = np.empty((capacity, *old.shape[1:]), dtype=old.dtype)
             new[:used] = old[:used]
             setattr(self, name, new)
-        chunks = np.full(BLOCK_CHUNKS * (capacity + 1), FOREIGN_CHUNK, dtype=np.int32)
+        chunks = np.empty(BLOCK_CHUNKS * (capacity + 1), dtype=np.int32)
         chunks[: BLOCK_CHUNKS * (used + 1)] = self.block_chunks[: BLOCK_CHUNKS * (used + 1)]
         self.block_chunks = chunks
         self.table_keys = np.full(_next_pow2(2 * capacity), EMPTY_KEY, dtype=np.int64)
@@ -442,7 +449,7 @@ class Shard:
             self.s_pool = region
         self.chunk_owner = _grown(self.chunk_owner, need)
         rows = min(n_parts, int(pools[NREC_USED]) // 4 + 64) if n_rows is None else n_rows
-        self.n_recs = _grown(self.n_recs, int(pools[NREC_USED]) + rows, -1)
+        self.n_recs = _grown(self.n_recs, int(pools[NREC_USED]) + rows)  # rows set when made
         self.n_pool = _grown(self.n_pool, int(pools[NCHUNK_USED]) + n_parts)
         self.hi_pool = _grown(self.hi_pool, int(pools[HI_USED]) + hi_blocks)
 
@@ -473,9 +480,9 @@ class Shard:
         return int(self.counters[0])
 
     def grow(self, min_free: int = 0, at_most: int | None = None) -> None:
-        """Double the block capacity (or more, for ``min_free``; no more than ``at_most``
+        """Grow the block capacity by a quarter (or more, for ``min_free``; no more than ``at_most``
         blocks, when that still leaves ``min_free``), keeping every block."""
-        capacity = max(2 * self.capacity, self.used + min_free)
+        capacity = max(self.capacity * 5 // 4, self.used + min_free)
         if at_most is not None:
             capacity = max(min(capacity, at_most), self.used + min_free)
         self._resize_index(capacity)
@@ -511,7 +518,7 @@ class Shard:
         table[have] = np.arange(old_chunks.shape[0], dtype=np.int32)
         table[~have] = -(slots[~have] + 1)
         self.block_chunks[BLOCK_CHUNKS : BLOCK_CHUNKS * (kept + 1)] = table.reshape(-1)
-        self.block_chunks[BLOCK_CHUNKS * (kept + 1) :] = FOREIGN_CHUNK
+        self.block_chunks[BLOCK_CHUNKS * (kept + 1) : BLOCK_CHUNKS * (used + 1)] = FOREIGN_CHUNK
         self.chunk_owner[: old_chunks.shape[0]] = slots[have]
         self.pools[S_USED] = old_chunks.shape[0]
         _release_rows(self.s_pool, old_chunks.shape[0], s_used)
@@ -524,9 +531,8 @@ class Shard:
         n_values = self.n_pool[recs[have_n]]
         recs[have_n] = np.arange(n_values.shape[0], dtype=np.int32)
         self.n_pool[: n_values.shape[0]] = n_values
-        self.n_pool[n_values.shape[0] :] = 0.0
+        self.n_pool[n_values.shape[0] : self.pools[NCHUNK_USED]] = 0.0  # new chunks read 0
         self.n_recs[: recs.shape[0]] = recs
-        self.n_recs[recs.shape[0] :] = -1
         rows[has_row] = np.arange(recs.shape[0], dtype=np.int32)
         self.block_nrec[:kept] = rows
         self.pools[NREC_USED], self.pools[NCHUNK_USED] = recs.shape[0], n_values.shape[0]
@@ -534,16 +540,9 @@ class Shard:
         has_hi = his >= 0
         hi_values = self.hi_pool[his[has_hi]]
         self.hi_pool[: hi_values.shape[0]] = hi_values
-        self.hi_pool[hi_values.shape[0] :] = 0.0
         his[has_hi] = np.arange(hi_values.shape[0], dtype=np.int32)
         self.block_href[:kept] = his
         self.pools[HI_USED] = hi_values.shape[0]
-        self.block_t[kept:used] = -np.inf
-        self.block_scan[kept:used] = -1
-        self.block_hit[kept:used] = False
-        self.block_nrec[kept:used] = -1
-        self.block_href[kept:used] = -1
-        self.block_flush[kept:used] = False
         self.counters[0] = kept
         rebuild_table(self.block_ijk, kept, self.table_keys, self.table_blocks)
         return dropped
@@ -553,18 +552,6 @@ class Shard:
         whose statistics the caller has zeroed (a merged staged store: the merge zeroes what
         it read): the next blocks reuse those pages instead of fresh ones the system must
         fault in and zero. The per-block arrays and the hash table are as a new shard's."""
-        used = self.used
-        self.block_ijk[:used] = 0
-        self.block_t[:used] = -np.inf
-        self.block_scan[:used] = -1
-        self.block_hit[:used] = False
-        self.block_scale[:used] = 1.0
-        self.block_nrec[:used] = -1
-        self.block_href[:used] = -1
-        self.block_flush[:used] = False
-        self.block_chunks[BLOCK_CHUNKS:] = FOREIGN_CHUNK
-        self.n_recs[: self.pools[NREC_USED]] = -1
-        self.hi_pool[: self.pools[HI_USED]] = 0.0
         self.counters[:] = 0
         self.pools[:] = 0
         self.table_keys.fill(EMPTY_KEY)
@@ -572,16 +559,27 @@ class Shard:
 
     @property
     def nbytes(self) -> int:
-        """Memory in use: the s chunks up to the most ever held, the n and float64 parts,
-        and the index."""
+        """Memory in use (what Bonxai's ``memUsage`` counts, too): the s chunks up to the
+        most ever held, the rows used of the n and float64 parts and of the per-block arrays
+        (rows past them are never written before they are used: not resident), and the
+        hash table."""
         self._high_water = max(self._high_water, int(self.pools[S_USED]))
-        index = (
-            self.block_ijk, self.block_t, self.block_scan, self.block_hit, self.block_scale,
-            self.block_chunks, self.block_nrec, self.block_href, self.block_flush,
-            self.table_keys, self.table_blocks, self.chunk_owner, self.n_recs, self.n_pool,
-            self.hi_pool,
+        rows = (
+            (self.s_pool, self._high_water), (self.chunk_owner, self._high_water),
+            (self.n_recs, self.pools[NREC_USED]), (self.n_pool, self.pools[NCHUNK_USED]),
+            (self.hi_pool, self.pools[HI_USED]),
+            (self.block_chunks, BLOCK_CHUNKS * (self.used + 1)),
         )  # fmt: skip
-        return self._high_water * self.s_pool[0].nbytes + sum(a.nbytes for a in index)
+        per_block = (
+            self.block_ijk, self.block_t, self.block_scan, self.block_hit, self.block_scale,
+            self.block_nrec, self.block_href, self.block_flush,
+        )  # fmt: skip
+        return (
+            sum(_row_bytes(a) * int(used) for a, used in rows)
+            + self.used * sum(_row_bytes(a) for a in per_block)
+            + self.table_keys.nbytes
+            + self.table_blocks.nbytes
+        )
 
 
 def _zeros_on_huge_pages(shape: tuple[int, ...]) -> NDArray[np.float32]:
