@@ -580,15 +580,10 @@ def _add_group(
     s_limit, n_limit = limits[0], limits[1]
     for lane in range(lanes):
         last = steps[lane]
-        ret = return_weight[lane] > 0.0
-        for k in range(last + 2):  # the steps, then the return
-            is_return = k == last + 1
-            if is_return and not ret:
-                break
-            voxel = voxels[last * LANES + lane] if is_return else voxels[k * LANES + lane]
-            c = np.float32(0.0) if is_return else np.float32(chords[k * LANES + lane])
-            # (a chord below float32's least is no update)
-            if not is_return and not (c > 0.0 and voxel >= FOREIGN_LIMIT):
+        for k in range(last + 1):
+            voxel = voxels[k * LANES + lane]
+            c = np.float32(chords[k * LANES + lane])
+            if not c > 0.0 or voxel < FOREIGN_LIMIT:
                 continue
             if voxel < 0:  # its chunk is new (since it was placed): shard.s_index
                 slot = (-voxel - 1) >> CHUNK_BITS
@@ -599,54 +594,68 @@ def _add_group(
                     block_chunks[slot] = chunk
                     chunk_owner[chunk] = slot
                 voxel = chunk * CHUNK_VOXELS + (voxel & (CHUNK_VOXELS - 1))
-                voxels[last * LANES + lane if is_return else k * LANES + lane] = voxel
+                voxels[k * LANES + lane] = voxel
             before = lines[voxel]
-            block = -1
-            place = 0
-            if before == 0.0 or is_return:  # shard.block_place_of
+            after = before + c
+            lines[voxel] = after
+            visits += 1
+            if before == 0.0 or after >= s_limit:  # rare: a first visit, or a flush due
                 slot = chunk_owner[voxel >> CHUNK_BITS]
                 block = slot // BLOCK_CHUNKS - 1
-                place = (slot % BLOCK_CHUNKS) * CHUNK_VOXELS + (voxel & (CHUNK_VOXELS - 1))
-            if before == 0.0:  # observed before? (shard.voxel_stats)
-                seen = False
-                hi = block_href[block]
-                if hi >= 0:
-                    seen = hi_pool[hi, place, 0] != 0.0 or hi_pool[hi, place, 1] != 0.0
-                row = block_nrec[block]
-                if not seen and row >= 0:
-                    chunk = n_recs[row, place >> N_CHUNK_BITS]
-                    seen = chunk >= 0 and n_pool[chunk, place % N_CHUNK_VOXELS] != 0.0
-                observed += not seen
-            if not is_return:
-                after = before + c
-                lines[voxel] = after
                 if after >= s_limit:
-                    slot = chunk_owner[voxel >> CHUNK_BITS]
-                    block_flush[slot // BLOCK_CHUNKS - 1] = True
+                    block_flush[block] = True
                     pools[FLUSH_PENDING] = 1
-                visits += 1
-                continue
-            # the end voxel takes the return; an end point exactly on a face gives a zero
-            # chord there, still with its return (shard.n_index)
-            row = block_nrec[block]
-            if row < 0:
-                row = pools[NREC_USED]
-                pools[NREC_USED] = row + 1
-                block_nrec[block] = row
-                for part in range(N_BLOCK_CHUNKS):
-                    n_recs[row, part] = -1
-            chunk = n_recs[row, place >> N_CHUNK_BITS]
+                if before == 0.0:  # observed before? (shard.voxel_stats)
+                    place = (slot % BLOCK_CHUNKS) * CHUNK_VOXELS + (voxel & (CHUNK_VOXELS - 1))
+                    seen = False
+                    hi = block_href[block]
+                    if hi >= 0:
+                        seen = hi_pool[hi, place, 0] != 0.0 or hi_pool[hi, place, 1] != 0.0
+                    row = block_nrec[block]
+                    if not seen and row >= 0:
+                        chunk = n_recs[row, place >> N_CHUNK_BITS]
+                        seen = chunk >= 0 and n_pool[chunk, place % N_CHUNK_VOXELS] != 0.0
+                    observed += not seen
+        if return_weight[lane] <= 0.0:
+            continue
+        # the end voxel takes the return; an end point exactly on a face gives a zero
+        # chord there, still with its return (shard.s_index, shard.n_index)
+        voxel = voxels[last * LANES + lane]
+        if voxel < 0:
+            slot = (-voxel - 1) >> CHUNK_BITS
+            chunk = block_chunks[slot]
             if chunk < 0:
-                chunk = pools[NCHUNK_USED]
-                pools[NCHUNK_USED] = chunk + 1
-                n_recs[row, place >> N_CHUNK_BITS] = chunk
-            n = n_pool[chunk, place % N_CHUNK_VOXELS] + np.float32(return_weight[lane])
-            n_pool[chunk, place % N_CHUNK_VOXELS] = n
-            block_hit[block] = True
-            if n >= n_limit:
-                block_flush[block] = True
-                pools[FLUSH_PENDING] = 1
-            visits += chords[last * LANES + lane] <= 0.0
+                chunk = pools[S_USED]
+                pools[S_USED] = chunk + 1
+                block_chunks[slot] = chunk
+                chunk_owner[chunk] = slot
+            voxel = chunk * CHUNK_VOXELS + (voxel & (CHUNK_VOXELS - 1))
+        slot = chunk_owner[voxel >> CHUNK_BITS]
+        block = slot // BLOCK_CHUNKS - 1
+        place = (slot % BLOCK_CHUNKS) * CHUNK_VOXELS + (voxel & (CHUNK_VOXELS - 1))
+        row = block_nrec[block]
+        if row < 0:
+            row = pools[NREC_USED]
+            pools[NREC_USED] = row + 1
+            block_nrec[block] = row
+            for part in range(N_BLOCK_CHUNKS):
+                n_recs[row, part] = -1
+        chunk = n_recs[row, place >> N_CHUNK_BITS]
+        if chunk < 0:
+            chunk = pools[NCHUNK_USED]
+            pools[NCHUNK_USED] = chunk + 1
+            n_recs[row, place >> N_CHUNK_BITS] = chunk
+        n_before = n_pool[chunk, place % N_CHUNK_VOXELS]
+        if n_before == 0.0 and lines[voxel] == 0.0:  # observed before? (float64 parts)
+            hi = block_href[block]
+            observed += hi < 0 or (hi_pool[hi, place, 0] == 0.0 and hi_pool[hi, place, 1] == 0.0)
+        n = n_before + np.float32(return_weight[lane])
+        n_pool[chunk, place % N_CHUNK_VOXELS] = n
+        block_hit[block] = True
+        if n >= n_limit:
+            block_flush[block] = True
+            pools[FLUSH_PENDING] = 1
+        visits += chords[last * LANES + lane] <= 0.0
     counters[1] += observed
     counters[3] += visits
 
