@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from mfp_mapper import Mapper
+from mfp_mapper.core.shard import HI_USED
 
 RES = 0.1
 SCANS = 3000
@@ -83,3 +84,22 @@ def test_parked_sensor_keeps_every_sum(path: str) -> None:
             assert abs(s.get(voxel, 0.0) - total) <= 1e-3 * total, voxel
     assert all(expected_s.get(v, 0.0) > 0.0 or value < tiny for v, value in s.items())
     assert {v: value for v, value in n.items() if value > 0} == expected_n  # n exact
+
+
+def test_flushes_bit_for_bit_with_two_threads() -> None:
+    """The float64 parts are flushed per block after each scan: one and two threads (a
+    shard each) give the same sums, bit for bit."""
+    points, origin = parked_scan()
+    maps = []
+    for threads in (1, 2):
+        mapper = Mapper(RES, max_range=10.0, min_range=0.0, threads=threads)
+        for k in range(200):  # the voxel at the sensor passes the float32 limit each scan
+            mapper.integrate(points, origin, 0.1 * k)
+        maps.append(mapper.stored_voxels())
+        assert sum(int(sh.pools[HI_USED]) for sh in mapper._store.shards) > 0  # flushed
+        mapper.close()
+    one, two = maps
+    order_one, order_two = np.lexsort(one.ijk.T), np.lexsort(two.ijk.T)
+    np.testing.assert_array_equal(one.ijk[order_one], two.ijk[order_two])
+    np.testing.assert_array_equal(one.s[order_one], two.s[order_two])
+    np.testing.assert_array_equal(one.n[order_one], two.n[order_two])
