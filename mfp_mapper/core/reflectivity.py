@@ -143,6 +143,44 @@ def from_map_arrays(arrays: Mapping[str, np.ndarray]) -> ReflectivityArrays | No
     return table
 
 
+def select_rows(arrays: Mapping[str, np.ndarray], keep: NDArray[np.bool_]) -> dict[str, np.ndarray]:
+    """The table members of map-file ``arrays`` with only the rows where ``keep`` (over its
+    rows) is True; {} when they hold no table."""
+    if "reflectivity_counts" not in arrays:
+        return {}
+    out = {k: arrays[k] for k in ARRAY_KEYS if k in arrays}
+    for key in ARRAY_KEYS[:3]:
+        out[key] = np.asarray(arrays[key])[keep]
+    return out
+
+
+def rows_within(
+    arrays: Mapping[str, np.ndarray], lo: NDArray[np.int64], hi: NDArray[np.int64]
+) -> NDArray[np.bool_]:
+    """Which table rows of map-file ``arrays`` have a voxel index within [lo, hi]."""
+    ijk = np.asarray(arrays.get("reflectivity_ijk", np.zeros((0, 3), np.int32)))
+    return np.all((ijk >= lo) & (ijk <= hi), axis=1)
+
+
+def concatenate_tables(parts: Sequence[Mapping[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """The table members of disjoint map-file arrays (e.g. tiles) as one; {} when none
+    holds a table. ValueError when their bins differ."""
+    tables = [t for t in (from_map_arrays(p) for p in parts) if t is not None]
+    if not tables:
+        return {}
+    for other in tables[1:]:
+        if other.bins != tables[0].bins:
+            raise ValueError(f"reflectivity bins differ: {tables[0].bins} and {other.bins}")
+    return to_map_arrays(
+        ReflectivityArrays(
+            tables[0].bins,
+            np.concatenate([t.ijk for t in tables]).astype(np.int32),
+            np.concatenate([t.counts for t in tables]),
+            np.concatenate([t.t_last for t in tables]),
+        )
+    )
+
+
 def table_problem(table: ReflectivityArrays) -> str | None:
     """What is wrong with a table's arrays (duplicates are found when stored), or None."""
     rows = len(table)
