@@ -34,6 +34,7 @@ from mfp_mapper.core.reflectivity import (
     ARRAY_KEYS as REFLECTIVITY_KEYS,
 )
 from mfp_mapper.core.reflectivity import (
+    ReflectivityBins,
     concatenate_tables,
     rows_within,
     select_rows,
@@ -332,6 +333,26 @@ class TiledMap:
                 for name in ("s", "n", "t_last", "observed"):
                     getattr(out, name)[rows] = getattr(part, name)
         return out
+
+    def reflectivity(
+        self, points: ArrayLike, stamp: float | None = None
+    ) -> tuple[ReflectivityBins, NDArray[np.float64]] | None:
+        """``Mapper.reflectivity`` over the tiles: each tile holding a point is read once;
+        None when no tile read holds histograms."""
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        keys = tile_keys(self._empty_mapper().query(pts).ijk, self.tile_blocks)
+        bins, counts = None, None
+        for key in {(int(a), int(b), int(c)) for a, b, c in keys}:
+            if key not in self.tiles:
+                continue
+            part = self.tile_mapper(key).reflectivity(pts[np.all(keys == key, axis=1)], stamp)
+            if part is None:
+                continue
+            if counts is None:
+                bins, counts = part[0], np.zeros((len(pts), part[0].count))
+            if part[0] == bins:
+                counts[np.all(keys == key, axis=1)] = part[1]
+        return None if bins is None or counts is None else (bins, counts)
 
     def _empty_mapper(self) -> Mapper:
         """A Mapper with this map's settings and no voxel."""
