@@ -856,13 +856,15 @@ def _mean_origin(rays: Rays) -> FloatArray:
 
 def compile_kernels(decay_time: float = math.inf) -> float:
     """Run the compiled kernels of a live scan once on a few rays (``integrate``, ``stage``
-    and ``commit``, ``query``, ``voxels``), so that numba compiles them, or loads them from
+    and ``commit``, with reflectivity histograms, ``query``, ``voxels``), so that numba compiles them, or loads them from
     its cache, before the first real scan; returns the seconds it took."""
     t0 = time.perf_counter()
     points = np.array([[2.0, 0.5, 0.3], [-1.0, 3.0, 0.8], [0.5, -2.5, -0.4]])
     mapper = Mapper(0.5, decay_time=decay_time)
-    mapper.integrate(points, np.zeros(3), 1.0)
-    mapper.commit(mapper.stage(points, np.zeros(3), 2.0))
+    values = ScanReflectivity(np.ones(len(points)), ReflectivityBins("warm-up", (2.0,)))
+    mapper.integrate(points, np.zeros(3), 1.0, reflectivity=values)
+    mapper.commit(mapper.stage(points, np.zeros(3), 2.0, None, values))
     mapper.query(points)
+    mapper.reflectivity(points, 2.0)
     mapper.voxels()
     return time.perf_counter() - t0
