@@ -856,8 +856,9 @@ def _mean_origin(rays: Rays) -> FloatArray:
 
 def compile_kernels(decay_time: float = math.inf) -> float:
     """Run the compiled kernels of a live scan once on a few rays (``integrate``, ``stage``
-    and ``commit``, with reflectivity histograms, ``query``, ``voxels``), so that numba compiles them, or loads them from
-    its cache, before the first real scan; returns the seconds it took."""
+    and ``commit``, with reflectivity histograms, ``query``, ``voxels``), so that numba
+    compiles them, or loads them from its cache, before the first real scan; returns the
+    seconds it took."""
     t0 = time.perf_counter()
     points = np.array([[2.0, 0.5, 0.3], [-1.0, 3.0, 0.8], [0.5, -2.5, -0.4]])
     mapper = Mapper(0.5, decay_time=decay_time)
