@@ -15,6 +15,11 @@ total equals the voxel's ``n`` read at the same time (up to float32 rounding) wh
 return had an intensity. Tables merge exactly (``merge_reflectivity``): every row brought to
 the latest time of its inputs, then added.
 
+Rows follow their voxels: blocks evicted by the memory bound (``max_voxels``, ``keep_radius``)
+and voxels cleared (``clear_box``) drop their rows (``Mapper``). One case is not followed: a
+ray whose return a shard's walk cut to keep one scan within its block budget
+(``traversal.cut_to_blocks``, a scan far beyond ``max_voxels``) keeps its histogram count.
+
 The core knows nothing of sensors: it takes intensity values and bin edges
 (``ReflectivityBins``: a label naming the field they came from, and the edges). The
 sensing layer chooses the edges per field (``sensing.reflectivity``); maps merge only when
