@@ -433,6 +433,7 @@ def _walk_rays(
     chunk_room = sa.chunk_owner.shape[0]
     n_room = min(sa.n_recs.shape[0] - pools[NREC_USED], sa.n_pool.shape[0] - pools[NCHUNK_USED])
     values = value_arrays(sa)
+    block_chunks = sa.block_chunks
     # blocks opened in this call, direct-mapped by their low index bits: neighbouring rays
     # cross the same blocks, and this table (768 KiB) stays in cache where the hash does not
     cache_keys = np.full(1 << (3 * _WALK_CACHE_BITS), -1, dtype=np.int64)
@@ -445,7 +446,7 @@ def _walk_rays(
     # the group's steps (step k of lane l at k * LANES + l) and the blocks each ray enters
     step_code = np.empty(longest * LANES, dtype=np.int16)
     entered_key = np.empty((LANES, longest), dtype=np.int64)
-    entered_base = np.empty((LANES, longest), dtype=np.int64)
+    entered_chunks = np.empty((LANES, longest * BLOCK_CHUNKS), dtype=np.int32)  # their tables
     entered_weight = np.empty((LANES, longest))
     lane_blocks = np.empty(LANES, dtype=np.int64)
     lane_floats = np.empty((FLOAT_ROWS, LANES))
@@ -512,6 +513,7 @@ def _walk_rays(
         for lane in range(lanes):
             r = group_first + lane
             blocks = lane_blocks[lane]
+            base = 0
             # the blocks the ray enters
             for b in range(blocks):
                 key = entered_key[lane, b]
@@ -529,18 +531,21 @@ def _walk_rays(
                     cache_keys[slot] = key
                     cache_bases[slot] = BLOCK_CHUNKS * (block + 1) if block >= 0 else 0
                     cache_weights[slot] = block_scale[block] if block >= 0 else 1.0
-                entered_base[lane, b] = cache_bases[slot]
+                base = cache_bases[slot]
+                for c in range(BLOCK_CHUNKS):
+                    entered_chunks[lane, b * BLOCK_CHUNKS + c] = block_chunks[base + c]
                 entered_weight[lane, b] = cache_weights[slot]
                 weighted |= cache_weights[slot] != 1.0
-            ends_here = has_return[r] and entered_base[lane, blocks - 1] > 0
+            ends_here = has_return[r] and base > 0
             return_weight[group, lane] = entered_weight[lane, blocks - 1] if ends_here else 0.0
         for lane in range(lanes, LANES):  # repeats of the first ray: placed in no block
             for b in range(lane_blocks[lane]):
-                entered_base[lane, b] = 0
+                for c in range(BLOCK_CHUNKS):
+                    entered_chunks[lane, b * BLOCK_CHUNKS + c] = block_chunks[c]
                 entered_weight[lane, b] = 1.0
         place_lanes(
-            step_code, step_chord, entered_base, entered_weight, weighted, steps,
-            sa.block_chunks, sa.s_pool, placed_voxel[group],
+            step_code, step_chord, entered_chunks, entered_weight, weighted, steps, sa.s_pool,
+            placed_voxel[group],
         )  # fmt: skip
         _add_group(
             values, placed_voxel[1 - group], placed_chord[1 - group], placed_steps[1 - group],
