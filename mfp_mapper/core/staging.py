@@ -61,9 +61,8 @@ def _merge_blocks(
     s_limit, n_limit = sa.limits[0], sa.limits[1]
     s_add = np.empty(BLOCK_VOXELS)
     n_add = np.empty(BLOCK_VOXELS)
-    s_map = np.empty(BLOCK_VOXELS)
-    n_map = np.empty(BLOCK_VOXELS)
     flat_s = sa.s_pool.reshape(-1)
+    marks = flat_s.view(np.uint32)  # 0: unobserved (shard's notes)
     flat_n = sa.n_pool.reshape(-1)
     block_chunks, chunk_owner, pools = sa.block_chunks, sa.chunk_owner, sa.pools
     block_nrec, n_recs = sa.block_nrec, sa.n_recs
@@ -76,19 +75,20 @@ def _merge_blocks(
             return b
         scale = np.float32(sa.block_scale[mb])
         block_values(staged, b, s_add, n_add)  # the scan's (float32: no float64 part)
-        block_values(sa, mb, s_map, n_map)
         flush = False
         new = 0
         for place in range(BLOCK_VOXELS):
             s, n = np.float32(s_add[place]), np.float32(n_add[place])
             if s == 0.0 and n == 0.0:
                 continue
-            new += s_map[place] == 0.0 and n_map[place] == 0.0
-            if s != 0.0:
-                voxel = -(chunk_slot(mb, place >> CHUNK_BITS) + 1) * CHUNK_VOXELS
-                k = s_index(block_chunks, chunk_owner, pools, voxel + place % CHUNK_VOXELS)
-                flat_s[k] += s * scale
-                flush |= flat_s[k] >= s_limit
+            # every observed voxel has its s chunk, -0 there while its s is 0 (shard's notes;
+            # the staged voxel has its chunk too: room for as many)
+            voxel = -(chunk_slot(mb, place >> CHUNK_BITS) + 1) * CHUNK_VOXELS
+            k = s_index(block_chunks, chunk_owner, pools, voxel + place % CHUNK_VOXELS)
+            new += marks[k] == 0
+            after = flat_s[k] + s * scale
+            flat_s[k] = after if after != 0.0 else -0.0
+            flush |= after >= s_limit
             if n != 0.0:
                 k = n_index(block_nrec, n_recs, pools, mb, place, True)
                 flat_n[k] += n * scale

@@ -156,6 +156,7 @@ def _set_voxels(
     block_chunks, chunk_owner, pools = sa.block_chunks, sa.chunk_owner, sa.pools
     block_nrec, n_recs = sa.block_nrec, sa.n_recs
     flat_s, flat_n = sa.s_pool.reshape(-1), sa.n_pool.reshape(-1)
+    marks = flat_s.view(np.uint32)  # 0: unobserved (shard's notes)
     for j in range(start, ijk.shape[0]):
         bx = ijk[j, 0] >> BLOCK_BITS
         by = ijk[j, 1] >> BLOCK_BITS
@@ -208,6 +209,11 @@ def _set_voxels(
             sa.block_hit[block] = True
         if sj > 0.0 or nj > 0.0:
             observed += 1
+            # its s chunk, -0 there while its float32 s is 0 (shard's notes)
+            voxel = -(chunk_slot(block, local >> CHUNK_BITS) + 1) * CHUNK_VOXELS + (local & 63)
+            k = s_index(block_chunks, chunk_owner, pools, voxel)
+            if marks[k] == 0:
+                flat_s[k] = -0.0
     counts[0] += observed
     return -1
 

@@ -532,8 +532,9 @@ def _walk_rays(
                     cache_bases[slot] = BLOCK_CHUNKS * (block + 1) if block >= 0 else 0
                     cache_weights[slot] = block_scale[block] if block >= 0 else 1.0
                 base = cache_bases[slot]
+                table = np.uint64(base)  # (unsigned: no check for a negative index)
                 for c in range(BLOCK_CHUNKS):
-                    entered_chunks[lane, b * BLOCK_CHUNKS + c] = block_chunks[base + c]
+                    entered_chunks[lane, b * BLOCK_CHUNKS + c] = block_chunks[table + np.uint64(c)]
                 entered_weight[lane, b] = cache_weights[slot]
                 weighted |= cache_weights[slot] != 1.0
             ends_here = has_return[r] and base > 0
@@ -571,7 +572,8 @@ def _add_group(
     by ray in order: ``s += float32(chord)`` for every chord above 0 in float32 in this
     shard, then the ray's return, ``n += float32(return_weight)`` in its end voxel (none
     where the weight is 0), whose block is marked. Counts the voxels that became observed
-    (``counters[1]``) and the visits (``counters[3]``); marks for a flush into float64 the
+    (``counters[1]``; a voxel's ``s`` is +0 exactly while unobserved: ``shard``'s module
+    notes) and the visits (``counters[3]``); marks for a flush into float64 the
     blocks where a float32 part reached its limit (``limits``).
 
     The arrays are taken out of their tuple once: numba counts references of every array
@@ -582,6 +584,7 @@ def _add_group(
     observed = 0
     visits = 0
     lines = s_pool.reshape(-1)
+    marks = lines.view(np.uint32)  # 0 exactly where a voxel is unobserved
     s_limit, n_limit = limits[0], limits[1]
     for lane in range(lanes):
         last = steps[lane]
@@ -600,27 +603,13 @@ def _add_group(
                     chunk_owner[chunk] = slot
                 voxel = chunk * CHUNK_VOXELS + (voxel & (CHUNK_VOXELS - 1))
                 voxels[k * LANES + lane] = voxel
-            before = lines[voxel]
-            after = before + c
+            observed += marks[voxel] == 0  # a first visit (shard.UNOBSERVED)
+            after = lines[voxel] + c
             lines[voxel] = after
             visits += 1
-            if before == 0.0 or after >= s_limit:  # rare: a first visit, or a flush due
-                slot = chunk_owner[voxel >> CHUNK_BITS]
-                block = slot // BLOCK_CHUNKS - 1
-                if after >= s_limit:
-                    block_flush[block] = True
-                    pools[FLUSH_PENDING] = 1
-                if before == 0.0:  # observed before? (shard.voxel_stats)
-                    place = (slot % BLOCK_CHUNKS) * CHUNK_VOXELS + (voxel & (CHUNK_VOXELS - 1))
-                    seen = False
-                    hi = block_href[block]
-                    if hi >= 0:
-                        seen = hi_pool[hi, place, 0] != 0.0 or hi_pool[hi, place, 1] != 0.0
-                    row = block_nrec[block]
-                    if not seen and row >= 0:
-                        chunk = n_recs[row, place >> N_CHUNK_BITS]
-                        seen = chunk >= 0 and n_pool[chunk, place % N_CHUNK_VOXELS] != 0.0
-                    observed += not seen
+            if after >= s_limit:  # rare: a flush due
+                block_flush[chunk_owner[voxel >> CHUNK_BITS] // BLOCK_CHUNKS - 1] = True
+                pools[FLUSH_PENDING] = 1
         if return_weight[lane] <= 0.0:
             continue
         # the end voxel takes the return; an end point exactly on a face gives a zero
@@ -650,11 +639,10 @@ def _add_group(
             chunk = pools[NCHUNK_USED]
             pools[NCHUNK_USED] = chunk + 1
             n_recs[row, place >> N_CHUNK_BITS] = chunk
-        n_before = n_pool[chunk, place % N_CHUNK_VOXELS]
-        if n_before == 0.0 and lines[voxel] == 0.0:  # observed before? (float64 parts)
-            hi = block_href[block]
-            observed += hi < 0 or (hi_pool[hi, place, 0] == 0.0 and hi_pool[hi, place, 1] == 0.0)
-        n = n_before + np.float32(return_weight[lane])
+        if marks[voxel] == 0:  # observed now, s still 0: its mark (shard.UNOBSERVED)
+            observed += 1
+            lines[voxel] = np.float32(-0.0)
+        n = n_pool[chunk, place % N_CHUNK_VOXELS] + np.float32(return_weight[lane])
         n_pool[chunk, place % N_CHUNK_VOXELS] = n
         block_hit[block] = True
         if n >= n_limit:
@@ -777,7 +765,7 @@ def read_walk(
             if block >= 0:
                 chunk = block_chunks[BLOCK_CHUNKS * (block + 1) + (local >> CHUNK_BITS)]
                 if chunk >= 0:
-                    s = np.float64(s_pool[chunk, local % CHUNK_VOXELS])
+                    s = np.float64(s_pool[chunk, local % CHUNK_VOXELS]) + 0.0  # (not -0)
                 row = block_nrec[block]
                 if row >= 0:
                     chunk = n_recs[row, local >> N_CHUNK_BITS]
