@@ -35,8 +35,9 @@ from mfp_mapper.core.blocks import BLOCK_BITS, KEY_BITS, KEY_OFFSET
 LANES = 8
 """Rays per lockstep walk (one AVX-512 vector of float64)."""
 
-FLOAT_ROWS = 8
-"""Rows of the float lane state: t_max x, y, z; t_delta x, y, z; t at the last face; length."""
+FLOAT_ROWS = 11
+"""Rows of the float lane state: t_max x, y, z; 1 / direction x, y, z; t at the last face;
+length; origin x, y, z (voxel units)."""
 INT_ROWS = 10
 """Rows of the integer lane state: voxel x, y, z; step x, y, z; end voxel x, y, z; steps."""
 
@@ -155,8 +156,9 @@ def walk_lanes(  # type: ignore[no-untyped-def]
         )
         count = context.cast(builder, count, signature.args[2], types.intp)
         t_max = [_row(builder, floats.data, k, _VF) for k in range(3)]
-        t_delta = [_row(builder, floats.data, 3 + k, _VF) for k in range(3)]
+        inverse = [_row(builder, floats.data, 3 + k, _VF) for k in range(3)]
         t_prev0, length = _row(builder, floats.data, 6, _VF), _row(builder, floats.data, 7, _VF)
+        origin = [_row(builder, floats.data, 8 + k, _VF) for k in range(3)]
         voxel = [_row(builder, ints.data, k, _VI) for k in range(3)]
         step = [_row(builder, ints.data, 3 + k, _VI) for k in range(3)]
         end = [_row(builder, ints.data, 6 + k, _VI) for k in range(3)]
@@ -224,18 +226,33 @@ def walk_lanes(  # type: ignore[no-untyped-def]
             chord = builder.fmul(builder.fsub(t_next, t_prev), length)
             builder.store(chord, _at(builder, chords.data, offset, _VF), align=8)
             builder.store(t_next, t_prev_slot)
+            # the next face of the stepped axis, at t = (face - origin) / direction, as
+            # traversal.face_t computes it: from the face, not summed step by step
+            moved = [
+                builder.add(v[axis], builder.select(take[axis], step[axis], zero))
+                for axis in range(3)
+            ]
+            face = builder.select(take[0], moved[0], builder.select(take[1], moved[1], moved[2]))
+            rising = builder.select(take[0], up[0], builder.select(take[1], up[1], up[2]))
+            face = builder.add(face, builder.zext(rising, _VI))
+            from_origin = builder.fsub(
+                builder.sitofp(face, _VF),
+                builder.select(take[0], origin[0], builder.select(take[1], origin[1], origin[2])),
+            )
+            after = builder.fmul(
+                from_origin,
+                builder.select(take[0], inverse[0], builder.select(take[1], inverse[1], inverse[2])),
+            )
             for axis in range(3):
-                moved = builder.add(v[axis], builder.select(take[axis], step[axis], zero))
-                at_end = builder.icmp_signed("==", moved, end[axis])
-                after = builder.select(at_end, inf, builder.fadd(t[axis], t_delta[axis]))
-                builder.store(moved, v_slots[axis])
-                builder.store(builder.select(take[axis], after, t[axis]), t_slots[axis])
+                at_end = builder.icmp_signed("==", moved[axis], end[axis])
+                builder.store(moved[axis], v_slots[axis])
+                stepped = builder.select(at_end, inf, after)
+                builder.store(builder.select(take[axis], stepped, t[axis]), t_slots[axis])
             # the next voxel's index in its block: the stepped axis' bits counted up or
             # down within their own positions (a wrap enters the next block)
             bits = builder.select(
                 take[0], axis_bits[0], builder.select(take[1], axis_bits[1], axis_bits[2])
             )
-            rising = builder.select(take[0], up[0], builder.select(take[1], up[1], up[2]))
             others = builder.and_(local, builder.not_(bits))
             counted_up = builder.and_(
                 builder.add(builder.or_(local, builder.not_(bits)), _splat(_VI, 1)), bits

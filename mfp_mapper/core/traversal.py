@@ -29,6 +29,7 @@ from mfp_mapper.core.blocks import (
     BLOCK_VOXELS,
     KEY_BITS,
     MAX_VOXEL_INDEX,
+    SHARD_TILE_BITS,
     block_key,
     block_of_key,
     find_block,
@@ -280,22 +281,31 @@ def _walk_part(
     scan: ScanStamp,
     share: int | None = None,
 ) -> int:
-    """Walk ``rays`` into ``shard`` (its visits only), growing it when it runs out of room,
-    by at most ``share`` blocks (None: no bound): beyond, the rays not walked yet are cut
-    (``cut_to_blocks``). Returns how many were cut."""
+    """Walk the stretches of ``rays`` in ``shard``'s tiles (``split_rays``) into ``shard``,
+    growing it when it runs out of room, by at most ``share`` blocks (None: no bound):
+    beyond, the rays not walked yet are cut (``cut_to_blocks``). Returns how many were
+    cut."""
     room, visits = ray_bounds(rays.origins_vox, rays.ends_vox)
     walk = RayArrays(rays.origins_vox, rays.ends_vox, rays.lengths, rays.has_return, room, visits)
+    pieces = split_rays(walk.origins_vox, walk.ends_vox, walk.has_return, 0, shard_id, shard_mask)
     limit = None if share is None else shard.used + share
     first, cut, cut_done = 0, 0, False
-    while first < len(rays):
-        first = _walk_rays(walk, first, shard_id, shard_mask, shard.arrays(), scan)
-        if first < len(rays):  # the next group of rays (see _walk_rays) did not fit
-            need = int(walk.room_needed[first : first + LANES].sum())
+    while first < len(pieces.ray):
+        first = _walk_rays(walk, pieces, first, shard_id, shard_mask, shard.arrays(), scan)
+        if first < len(pieces.ray):  # the next group of pieces (see _walk_rays) did not fit
+            need = int(pieces.room[first : first + LANES].sum())
             if limit is not None and shard.used + need > limit and not cut_done:
-                rest = cut_to_blocks(walk, first, limit - shard.used)
+                ray = int(pieces.ray[first])
+                rest = cut_to_blocks(walk, ray, limit - shard.used)
                 if rest is None:  # not even a step each: the rest is not walked
-                    return len(rays) - first
+                    return len(rays) - ray
                 (walk, cut), cut_done = rest, True
+                # the cut rays' stretches, less those of the first one walked already
+                walked = int(np.count_nonzero(pieces.ray[:first] == ray))
+                pieces = split_rays(
+                    walk.origins_vox, walk.ends_vox, walk.has_return, ray, shard_id, shard_mask
+                )
+                first = min(walked, int(np.count_nonzero(pieces.ray == ray)))
                 continue
             shard.grow(min_free=need, at_most=limit)  # the limit is checked at each growth
     return cut
@@ -339,12 +349,23 @@ def cut_to_blocks(walk: RayArrays, first: int, blocks: int) -> tuple[RayArrays, 
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
+def face_t(face, origin, inverse):  # type: ignore[no-untyped-def]
+    """Where a ray crosses the voxel face at integer ``face`` along one axis: the ray
+    parameter ``(face - origin) * inverse`` (``inverse`` = 1 / the ray's extent on that
+    axis, voxel units). Every walk computes each face's t from the face itself, never by
+    summing steps, so a walk can start at any face in exactly the state the walk from the
+    origin has there (``split_rays``), and t grows with the face (rounding is monotone)."""
+    return (face - origin) * inverse
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
 def _ray_start(origins_vox, ends_vox, r):  # type: ignore[no-untyped-def]
     """Ray ``r``'s start for a voxel walk (voxel units): first voxel, end voxel, steps per
-    axis, where each axis' next face is crossed (ray parameter t in [0, 1]), t between faces,
-    and the number of steps. An axis already at the end voxel's index is never stepped again
-    (t_max = inf), so a walk takes exactly ``steps`` steps and ends in floor(end), whatever
-    the rounding. Shared by ``_walk_rays`` and ``read_walk``: same voxels, same chords."""
+    axis, where each axis' next face is crossed (ray parameter t in [0, 1], ``face_t``),
+    1 / the ray's extent per axis, and the number of steps. An axis already at the end
+    voxel's index is never stepped again (t_max = inf), so a walk takes exactly ``steps``
+    steps and ends in floor(end), whatever the rounding. Shared by ``_walk_rays``,
+    ``split_rays`` and ``read_walk``: same voxels, same chords."""
     ox = origins_vox[r, 0]
     oy = origins_vox[r, 1]
     oz = origins_vox[r, 2]
@@ -360,39 +381,208 @@ def _ray_start(origins_vox, ends_vox, r):  # type: ignore[no-untyped-def]
     step_x = 1 if ex > vx else -1
     step_y = 1 if ey > vy else -1
     step_z = 1 if ez > vz else -1
-    t_max_x = ((vx + (dx > 0)) - ox) / dx if ex != vx else np.inf
-    t_max_y = ((vy + (dy > 0)) - oy) / dy if ey != vy else np.inf
-    t_max_z = ((vz + (dz > 0)) - oz) / dz if ez != vz else np.inf
-    t_delta_x = abs(1.0 / dx) if ex != vx else 0.0
-    t_delta_y = abs(1.0 / dy) if ey != vy else 0.0
-    t_delta_z = abs(1.0 / dz) if ez != vz else 0.0
+    inverse_x = 1.0 / dx if ex != vx else 0.0
+    inverse_y = 1.0 / dy if ey != vy else 0.0
+    inverse_z = 1.0 / dz if ez != vz else 0.0
+    t_max_x = face_t(vx + (step_x > 0), ox, inverse_x) if ex != vx else np.inf
+    t_max_y = face_t(vy + (step_y > 0), oy, inverse_y) if ey != vy else np.inf
+    t_max_z = face_t(vz + (step_z > 0), oz, inverse_z) if ez != vz else np.inf
     steps = abs(ex - vx) + abs(ey - vy) + abs(ez - vz)
     return (vx, vy, vz, ex, ey, ez, step_x, step_y, step_z, t_max_x, t_max_y, t_max_z,
-            t_delta_x, t_delta_y, t_delta_z, steps)  # fmt: skip
+            inverse_x, inverse_y, inverse_z, steps)  # fmt: skip
+
+
+class Pieces(NamedTuple):
+    """The stretches of rays one shard walks (``split_rays``), in ray order: each is
+    walked from exactly the state the walk from the ray's origin has where it starts."""
+
+    ray: NDArray[np.int64]
+    """The ray each piece is a stretch of."""
+    voxel: NDArray[np.int64]
+    """(P, 4): the piece's first voxel, and its steps (it ends in the voxel that many
+    steps further)."""
+    t_state: NDArray[np.float64]
+    """(P, 4): where the walk crosses each axis' next face there (``face_t``, inf for an
+    axis at its end voxel), and t where it entered the first voxel."""
+    room: NDArray[np.int64]
+    """Upper bound of the blocks the piece can create."""
+    has_return: NDArray[np.bool_]
+    """The piece ends the ray, and the ray has a return."""
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _faces_before(v0, end, step, origin, inverse, t, strict):  # type: ignore[no-untyped-def]
+    """How many faces of one axis a walk from voxel ``v0`` to ``end`` crosses before t
+    (``strict``: those at t itself come after). The faces' t grow with their index
+    (``face_t``): a guess from the position at t, corrected both ways."""
+    faces = abs(end - v0)
+    if faces == 0:
+        return 0
+    up = step > 0
+    guess = (int(np.floor(origin + t / inverse)) - v0) * step
+    count = min(max(guess, 0), faces)
+    while count > 0:
+        t_face = face_t(v0 + up + step * (count - 1), origin, inverse)
+        if t_face < t or (not strict and t_face == t):
+            break
+        count -= 1
+    while count < faces:
+        t_face = face_t(v0 + up + step * count, origin, inverse)
+        if not (t_face < t or (not strict and t_face == t)):
+            break
+        count += 1
+    return count
+
+
+@nb.njit(cache=True, nogil=True)
+def split_rays(
+    origins_vox: NDArray[np.float64],
+    ends_vox: NDArray[np.float64],
+    has_return: NDArray[np.bool_],
+    first: int,
+    shard: int,
+    shard_mask: int,
+) -> Pieces:
+    """The stretches of rays ``first..`` in ``shard``'s tiles (``blocks.shard_of``), in
+    ray order, a ray's in the order the walk takes them; one piece a ray with one shard.
+
+    A ray's walk is a merge of three sorted sequences, the t of each axis' faces
+    (``face_t``), taken in order of t, x before y before z at equal t. A tile is entered
+    at one of its faces, at that face's t: the voxel there, and every axis' next face,
+    follow from counting each axis' faces before that t (``_faces_before``), so the
+    piece's walk takes the steps and chords of the whole walk, bit for bit."""
+    total = origins_vox.shape[0]
+    tile_shift = BLOCK_BITS + SHARD_TILE_BITS
+    bound = 0
+    for r in range(first, total):
+        bound += 1
+        if shard_mask:
+            for axis in range(3):
+                lo = int(np.floor(origins_vox[r, axis])) >> tile_shift
+                hi = int(np.floor(ends_vox[r, axis])) >> tile_shift
+                bound += abs(hi - lo)
+    ray = np.empty(bound, dtype=np.int64)
+    voxel = np.empty((bound, 4), dtype=np.int64)
+    t_state = np.empty((bound, 4))
+    room = np.empty(bound, dtype=np.int64)
+    returns = np.empty(bound, dtype=np.bool_)
+    v = np.empty(3, dtype=np.int64)
+    v0 = np.empty(3, dtype=np.int64)
+    end = np.empty(3, dtype=np.int64)
+    step = np.empty(3, dtype=np.int64)
+    origin = np.empty(3)
+    inverse = np.empty(3)
+    t_max = np.empty(3)
+    tile = np.empty(3, dtype=np.int64)
+    crossings = np.empty(3, dtype=np.int64)
+    t_cross = np.empty(3)
+    count = np.empty(3, dtype=np.int64)
+    k = 0
+    for r in range(first, total):
+        (v0[0], v0[1], v0[2], end[0], end[1], end[2], step[0], step[1], step[2],
+         t_max[0], t_max[1], t_max[2], inverse[0], inverse[1], inverse[2],
+         steps) = _ray_start(origins_vox, ends_vox, r)  # fmt: skip
+        for axis in range(3):
+            origin[axis] = origins_vox[r, axis]
+            v[axis] = v0[axis]
+            tile[axis] = v0[axis] >> tile_shift
+            crossings[axis] = abs((end[axis] >> tile_shift) - tile[axis]) if shard_mask else 0
+        here = (tile[0] + tile[1] + tile[2]) & shard_mask
+        t_prev = 0.0
+        start_steps = 0
+        while True:
+            for axis in range(3):  # the t of each axis' next tile face (inf: none left)
+                t_cross[axis] = np.inf
+                if crossings[axis] > 0:
+                    face = (tile[axis] + (step[axis] > 0)) << tile_shift
+                    t_cross[axis] = face_t(face, origin[axis], inverse[axis])
+            if crossings[0] + crossings[1] + crossings[2] == 0:
+                a = -1
+            elif crossings[0] > 0 and (
+                (t_cross[0] <= t_cross[1] or crossings[1] == 0)
+                and (t_cross[0] <= t_cross[2] or crossings[2] == 0)
+            ):
+                a = 0
+            elif crossings[1] > 0 and (t_cross[1] <= t_cross[2] or crossings[2] == 0):
+                a = 1
+            else:
+                a = 2
+            if a >= 0:
+                t_enter = t_cross[a]
+                tile[a] += step[a]
+                crossings[a] -= 1
+                there = (tile[0] + tile[1] + tile[2]) & shard_mask
+                if there == here:
+                    continue
+                # the voxel the walk enters there, after how many steps
+                entered = (tile[a] << tile_shift) if step[a] > 0 else ((tile[a] + 1) << tile_shift) - 1
+                count[a] = abs(entered - v0[a])
+                for b in range(3):
+                    if b != a:
+                        count[b] = _faces_before(
+                            v0[b], end[b], step[b], origin[b], inverse[b], t_enter, b > a
+                        )
+                at = count[0] + count[1] + count[2]
+            else:
+                there = -1
+                at = steps + 1
+            if here == shard:  # the piece up to this crossing (or to the ray's end)
+                ray[k] = r
+                voxel[k, 0] = v[0]
+                voxel[k, 1] = v[1]
+                voxel[k, 2] = v[2]
+                voxel[k, 3] = at - 1 - start_steps
+                t_state[k, 0] = t_max[0]
+                t_state[k, 1] = t_max[1]
+                t_state[k, 2] = t_max[2]
+                t_state[k, 3] = t_prev
+                blocks = 2
+                for b in range(3):
+                    last = end[b] if a < 0 else v0[b] + step[b] * (count[b] - (b == a))
+                    blocks += abs((last >> BLOCK_BITS) - (v[b] >> BLOCK_BITS))
+                room[k] = blocks
+                returns[k] = a < 0 and has_return[r]
+                k += 1
+            if a < 0:
+                break
+            if there == shard:  # the walk's state where it enters this shard's tile
+                for b in range(3):
+                    v[b] = v0[b] + step[b] * count[b]
+                    t_max[b] = (
+                        face_t(v[b] + (step[b] > 0), origin[b], inverse[b])
+                        if v[b] != end[b]
+                        else np.inf
+                    )
+                t_prev = min(t_enter, 1.0)
+                start_steps = at
+            here = there
+    return Pieces(ray[:k], voxel[:k], t_state[:k], room[:k], returns[:k])
 
 
 @nb.njit(cache=True, nogil=True)
 def _walk_rays(
     rays: RayArrays,
+    pieces: Pieces,
     first: int,
     shard: int,
     shard_mask: int,
     shard_arrays: ShardArrays,
     scan: ScanStamp,
 ) -> int:
-    """Walk rays ``first..`` (voxel units) and add their visits to ``shard``'s blocks (the
-    visits to other shards' blocks are left to their threads).
+    """Walk pieces ``first..`` of ``rays`` (voxel units; ``split_rays``: the stretches of
+    the rays in ``shard``'s tiles) and add their visits to ``shard``'s blocks.
 
-    The rays go ``LANES`` at a time, a group. ``lockstep.walk_lanes`` steps them all at
+    The pieces go ``LANES`` at a time, a group. ``lockstep.walk_lanes`` steps them all at
     once and writes every step out; for each ray the blocks it enters are gathered and
     looked up (lookups independent of each other, so their memory latencies overlap);
     ``lockstep.place_lanes`` turns the steps into store indices and weighted chords and
     starts loading their cache lines. Then the group before, whose lines were loaded
-    meanwhile, is added (``_add_group``), ray by ray in ray order. Before each group,
-    checks there is room for the blocks it may create; returns the index of the first ray
-    not walked (the caller grows and calls again), or N.
+    meanwhile, is added (``_add_group``), piece by piece in ray order. Before each group,
+    checks there is room for the blocks it may create; returns the index of the first
+    piece not walked (the caller grows and calls again), or their number.
     """
-    origins_vox, ends_vox, lengths, has_return, room_needed, visits_needed = rays
+    origins_vox, ends_vox, lengths = rays.origins_vox, rays.ends_vox, rays.lengths
+    piece_ray, piece_voxel, piece_t, room_needed, piece_return = pieces
     scan_id, stamp, decay_time = scan
     table_keys, _, _, block_sn, block_t, _, block_hit, counters, block_scale = shard_arrays
     capacity = min(block_t.shape[0], table_keys.shape[0] // 2)
@@ -401,10 +591,10 @@ def _walk_rays(
     cache_keys = np.full(1 << (3 * _WALK_CACHE_BITS), -1, dtype=np.int64)
     cache_bases = np.empty(cache_keys.shape[0], dtype=np.int64)  # first voxel, or FOREIGN_BASE
     cache_weights = np.empty(cache_keys.shape[0])  # the scan's weight there (< 1: a late scan)
-    total = lengths.shape[0]
+    total = piece_ray.shape[0]
     longest = 1
-    for r in range(first, total):
-        longest = max(longest, visits_needed[r])
+    for p in range(first, total):
+        longest = max(longest, piece_voxel[p, 3] + 1)
     # the group's steps (step k of lane l at k * LANES + l) and the blocks each ray enters
     step_code = np.empty(longest * LANES, dtype=np.int16)
     entered_key = np.empty((LANES, longest), dtype=np.int64)
@@ -435,38 +625,42 @@ def _walk_rays(
             )  # fmt: skip
             return group_first
         steps = 0
-        for lane in range(LANES):  # lanes past the last ray repeat the group's first ray
-            r = group_first + (lane if lane < lanes else 0)
-            (vx, vy, vz, ex, ey, ez, step_x, step_y, step_z, t_max_x, t_max_y, t_max_z,
-             t_delta_x, t_delta_y, t_delta_z, ray_steps) = _ray_start(
-                origins_vox, ends_vox, r)  # fmt: skip
-            lane_floats[0, lane] = t_max_x
-            lane_floats[1, lane] = t_max_y
-            lane_floats[2, lane] = t_max_z
-            lane_floats[3, lane] = t_delta_x
-            lane_floats[4, lane] = t_delta_y
-            lane_floats[5, lane] = t_delta_z
-            lane_floats[6, lane] = 0.0
+        for lane in range(LANES):  # lanes past the last piece repeat the group's first
+            p = group_first + (lane if lane < lanes else 0)
+            r = piece_ray[p]
+            (_, _, _, ex, ey, ez, step_x, step_y, step_z, _, _, _, inverse_x, inverse_y,
+             inverse_z, _) = _ray_start(origins_vox, ends_vox, r)  # fmt: skip
+            lane_floats[0, lane] = piece_t[p, 0]
+            lane_floats[1, lane] = piece_t[p, 1]
+            lane_floats[2, lane] = piece_t[p, 2]
+            lane_floats[3, lane] = inverse_x
+            lane_floats[4, lane] = inverse_y
+            lane_floats[5, lane] = inverse_z
+            lane_floats[6, lane] = piece_t[p, 3]
             lane_floats[7, lane] = lengths[r]
-            lane_ints[0, lane] = vx
-            lane_ints[1, lane] = vy
-            lane_ints[2, lane] = vz
+            lane_floats[8, lane] = origins_vox[r, 0]
+            lane_floats[9, lane] = origins_vox[r, 1]
+            lane_floats[10, lane] = origins_vox[r, 2]
+            lane_ints[0, lane] = piece_voxel[p, 0]
+            lane_ints[1, lane] = piece_voxel[p, 1]
+            lane_ints[2, lane] = piece_voxel[p, 2]
             lane_ints[3, lane] = step_x
             lane_ints[4, lane] = step_y
             lane_ints[5, lane] = step_z
             lane_ints[6, lane] = ex
             lane_ints[7, lane] = ey
             lane_ints[8, lane] = ez
-            lane_ints[9, lane] = ray_steps
-            placed_steps[group, lane] = ray_steps
-            steps = max(steps, ray_steps + 1)
+            piece_steps = piece_voxel[p, 3]
+            lane_ints[9, lane] = piece_steps
+            placed_steps[group, lane] = piece_steps
+            steps = max(steps, piece_steps + 1)
         step_chord = placed_chord[group]
         walk_lanes(  # type: ignore[call-arg]
             lane_floats, lane_ints, steps, entered_key, lane_blocks, step_code, step_chord
         )  # fmt: skip
         weighted = False  # a block where the scan is late (weight < 1)
         for lane in range(lanes):
-            r = group_first + lane
+            p = group_first + lane
             blocks = lane_blocks[lane]
             # the blocks the ray enters
             for b in range(blocks):
@@ -488,7 +682,7 @@ def _walk_rays(
                 entered_base[lane, b] = cache_bases[slot]
                 entered_weight[lane, b] = cache_weights[slot]
                 weighted |= cache_weights[slot] != 1.0
-            ends_here = has_return[r] and entered_base[lane, blocks - 1] >= 0
+            ends_here = piece_return[p] and entered_base[lane, blocks - 1] >= 0
             return_weight[group, lane] = entered_weight[lane, blocks - 1] if ends_here else 0.0
         place_lanes(
             step_code, step_chord, entered_base, entered_weight, weighted, steps, lines,
@@ -616,7 +810,7 @@ def read_walk(
         ox, oy, oz = origins_vox[r, 0], origins_vox[r, 1], origins_vox[r, 2]
         dx, dy, dz = ends_vox[r, 0] - ox, ends_vox[r, 1] - oy, ends_vox[r, 2] - oz
         (vx, vy, vz, ex, ey, ez, step_x, step_y, step_z, t_max_x, t_max_y, t_max_z,
-         t_delta_x, t_delta_y, t_delta_z, steps) = _ray_start(origins_vox, ends_vox, r)  # fmt: skip
+         inverse_x, inverse_y, inverse_z, steps) = _ray_start(origins_vox, ends_vox, r)  # fmt: skip
         t_prev = 0.0
         morton_x = _SPREAD[vx & _LOCAL_MASK] << 2
         morton_y = _SPREAD[vy & _LOCAL_MASK] << 1
@@ -665,21 +859,27 @@ def read_walk(
             if t_max_x <= t_max_y and t_max_x <= t_max_z:
                 t_next = t_max_x
                 vx += step_x
-                t_max_x = t_max_x + t_delta_x if vx != ex else np.inf
+                t_max_x = (
+                    face_t(vx + (step_x > 0), ox, inverse_x) if vx != ex else np.inf
+                )
                 axis_local = vx & _LOCAL_MASK
                 morton_x = _SPREAD[axis_local] << 2
                 new_block = axis_local == wrap_x
             elif t_max_y <= t_max_z:
                 t_next = t_max_y
                 vy += step_y
-                t_max_y = t_max_y + t_delta_y if vy != ey else np.inf
+                t_max_y = (
+                    face_t(vy + (step_y > 0), oy, inverse_y) if vy != ey else np.inf
+                )
                 axis_local = vy & _LOCAL_MASK
                 morton_y = _SPREAD[axis_local] << 1
                 new_block = axis_local == wrap_y
             else:
                 t_next = t_max_z
                 vz += step_z
-                t_max_z = t_max_z + t_delta_z if vz != ez else np.inf
+                t_max_z = (
+                    face_t(vz + (step_z > 0), oz, inverse_z) if vz != ez else np.inf
+                )
                 axis_local = vz & _LOCAL_MASK
                 morton_z = _SPREAD[axis_local]
                 new_block = axis_local == wrap_z

@@ -165,8 +165,9 @@ def _one_ray_walk_sums(
         end = [int(np.floor(x)) for x in e]
         step = [1 if end[a] > v[a] else -1 for a in range(3)]
         moves = [end[a] != v[a] for a in range(3)]
-        t_max = [((v[a] + (d[a] > 0)) - o[a]) / d[a] if moves[a] else np.inf for a in range(3)]
-        t_delta = [abs(1.0 / d[a]) if moves[a] else 0.0 for a in range(3)]
+        inverse = [1.0 / d[a] if moves[a] else 0.0 for a in range(3)]
+        # the t of a face, from the face itself: (face - origin) / extent
+        t_max = [((v[a] + (d[a] > 0)) - o[a]) * inverse[a] if moves[a] else np.inf for a in range(3)]
         t_prev = 0.0
         for _ in range(sum(abs(end[a] - v[a]) for a in range(3))):
             here = tuple(v)
@@ -178,7 +179,8 @@ def _one_ray_walk_sums(
                 axis = 2
             t_next = min(t_max[axis], 1.0)
             v[axis] += step[axis]
-            t_max[axis] = t_max[axis] + t_delta[axis] if v[axis] != end[axis] else np.inf
+            face = v[axis] + (step[axis] > 0)
+            t_max[axis] = (face - o[axis]) * inverse[axis] if v[axis] != end[axis] else np.inf
             chord = (t_next - t_prev) * length
             t_prev = t_next
             if chord > 0.0:
