@@ -241,7 +241,9 @@ def walk_lanes(  # type: ignore[no-untyped-def]
             )
             after = builder.fmul(
                 from_origin,
-                builder.select(take[0], inverse[0], builder.select(take[1], inverse[1], inverse[2])),
+                builder.select(
+                    take[0], inverse[0], builder.select(take[1], inverse[1], inverse[2])
+                ),
             )
             for axis in range(3):
                 at_end = builder.icmp_signed("==", moved[axis], end[axis])

@@ -5,8 +5,8 @@ Layout (chosen for speed and memory; docs/performance.md measures it):
 * Voxels live in dense blocks of ``BLOCK_EDGE**3``; a ray stays in one block for several
   steps, so most updates are an array index into the block the walk is already in.
 * Blocks are found through open-addressing hash tables, split into ``shards`` by tiles
-  of blocks (``blocks.shard_of``); each thread of an integration writes only to its own shard, so threads need
-  no locks (see ``traversal``).
+  of blocks (``blocks.shard_of``); each thread of an integration writes only to its own
+  shard, so threads need no locks (see ``traversal``).
 * ``s`` and ``n`` are float32, side by side (8 bytes a voxel), and the voxels of a block
   are in Morton order, so one 64-byte cache line holds a 2x2x2 cube of voxels: a ray
   crossing it finds its next voxel in the same line. Each block keeps the time ``t`` its

@@ -198,8 +198,9 @@ def integrate_rays(
     max_new_blocks: int | None = None,
 ) -> int:
     """Add every ray's chords and returns to the store (scan ``scan_id`` at ``stamp``), one
-    thread per shard, each walking every ray into its own shard.
-    ``run_parallel(fn, items)`` calls ``fn`` on every item, in parallel.
+    thread per shard: the rays are split into their stretches in each shard's tiles
+    (``split_rays``, a share of the rays a thread), then each thread walks its shard's
+    stretches. ``run_parallel(fn, items)`` calls ``fn`` on every item, in parallel.
 
     ``max_new_blocks``: the blocks the scan may add (its share in each shard): a shard that
     would grow beyond its share cuts the rays it has not walked yet (``cut_to_blocks``), so
@@ -208,10 +209,20 @@ def integrate_rays(
     shards = len(store.shards)
     share = None if max_new_blocks is None else -(-int(max_new_blocks) // shards)
     cut = [0] * shards
+    size = max(-(-len(rays) // shards), 1)
+    bounds = [(start, min(start + size, len(rays))) for start in range(0, len(rays), size)]
+    split: list[tuple[Pieces, NDArray[np.int64]]] = [None] * len(bounds)  # type: ignore[list-item]
+
+    def split_part(c: int) -> None:
+        split[c] = split_rays(
+            rays.origins_vox, rays.ends_vox, rays.has_return, *bounds[c], store.shard_mask, True
+        )
 
     def walk(k: int) -> None:
-        cut[k] = _walk_part(rays, store.shards[k], k, store.shard_mask, scan, share)
+        parts = [(*bounds[c], split[c]) for c in range(len(bounds))]
+        cut[k] = _walk_part(rays, parts, store.shards[k], k, store.shard_mask, scan, share)
 
+    run_parallel(split_part, range(len(bounds)))
     run_parallel(walk, range(shards))
     return max(cut)
 
@@ -275,40 +286,69 @@ class ScanStamp(NamedTuple):
 
 def _walk_part(
     rays: Rays,
+    parts: list[tuple[int, int, tuple[Pieces, NDArray[np.int64]]]],
     shard: Shard,
     shard_id: int,
     shard_mask: int,
     scan: ScanStamp,
     share: int | None = None,
 ) -> int:
-    """Walk the stretches of ``rays`` in ``shard``'s tiles (``split_rays``) into ``shard``,
-    growing it when it runs out of room, by at most ``share`` blocks (None: no bound):
-    beyond, the rays not walked yet are cut (``cut_to_blocks``). Returns how many were
-    cut."""
+    """Walk the stretches of ``rays`` in ``shard``'s tiles into ``shard``: ``parts`` are
+    the rays ``start:stop`` split by ``split_rays`` (by tile), in ray order. Grows the
+    shard when it runs out of room, by at most ``share`` blocks (None: no bound): beyond,
+    the rays not walked yet are cut (``cut_to_blocks``). Returns how many were cut.
+
+    A part whose pieces may create more blocks than the share has left is split again
+    by ray, so that the rays cut are the last ones."""
     room, visits = ray_bounds(rays.origins_vox, rays.ends_vox)
     walk = RayArrays(rays.origins_vox, rays.ends_vox, rays.lengths, rays.has_return, room, visits)
-    pieces = split_rays(walk.origins_vox, walk.ends_vox, walk.has_return, 0, shard_id, shard_mask)
     limit = None if share is None else shard.used + share
-    first, cut, cut_done = 0, 0, False
-    while first < len(pieces.ray):
-        first = _walk_rays(walk, pieces, first, shard_id, shard_mask, shard.arrays(), scan)
-        if first < len(pieces.ray):  # the next group of pieces (see _walk_rays) did not fit
+
+    def own(start: int, stop: int, by_tile: bool) -> Pieces:
+        pieces, offsets = split_rays(
+            walk.origins_vox, walk.ends_vox, walk.has_return, start, stop, shard_mask, by_tile
+        )
+        return _shard_pieces(pieces, offsets, shard_id)
+
+    cut, cut_done = 0, False
+    for start, stop, (split, offsets) in parts:
+        pieces = _shard_pieces(split, offsets, shard_id)
+        if cut_done:  # the rays were cut since they were split
+            pieces = own(start, stop, True)
+        if limit is not None and shard.used + int(pieces.room.sum()) > limit:
+            pieces = own(start, stop, False)
+        first = 0
+        while first < len(pieces.ray):
+            first = _walk_rays(walk, pieces, first, shard_id, shard_mask, shard.arrays(), scan)
+            if first == len(pieces.ray):
+                break
+            # the next group of pieces (see _walk_rays) did not fit
             need = int(pieces.room[first : first + LANES].sum())
             if limit is not None and shard.used + need > limit and not cut_done:
-                ray = int(pieces.ray[first])
+                ray = int(pieces.ray[first])  # pieces in ray order here
                 rest = cut_to_blocks(walk, ray, limit - shard.used)
                 if rest is None:  # not even a step each: the rest is not walked
                     return len(rays) - ray
                 (walk, cut), cut_done = rest, True
                 # the cut rays' stretches, less those of the first one walked already
                 walked = int(np.count_nonzero(pieces.ray[:first] == ray))
-                pieces = split_rays(
-                    walk.origins_vox, walk.ends_vox, walk.has_return, ray, shard_id, shard_mask
-                )
+                pieces = own(ray, stop, False)
                 first = min(walked, int(np.count_nonzero(pieces.ray == ray)))
                 continue
             shard.grow(min_free=need, at_most=limit)  # the limit is checked at each growth
     return cut
+
+
+def _shard_pieces(pieces: Pieces, offsets: NDArray[np.int64], shard: int) -> Pieces:
+    """Shard ``shard``'s pieces of ``split_rays``' (views)."""
+    mine = slice(int(offsets[shard]), int(offsets[shard + 1]))
+    return Pieces(
+        pieces.ray[mine],
+        pieces.voxel[mine],
+        pieces.t_state[mine],
+        pieces.room[mine],
+        pieces.has_return[mine],
+    )
 
 
 def cut_to_blocks(walk: RayArrays, first: int, blocks: int) -> tuple[RayArrays, int] | None:
@@ -393,8 +433,8 @@ def _ray_start(origins_vox, ends_vox, r):  # type: ignore[no-untyped-def]
 
 
 class Pieces(NamedTuple):
-    """The stretches of rays one shard walks (``split_rays``), in ray order: each is
-    walked from exactly the state the walk from the ray's origin has where it starts."""
+    """The stretches of rays one shard walks (``split_rays``): each is walked from exactly
+    the state the walk from the ray's origin has where it starts."""
 
     ray: NDArray[np.int64]
     """The ray each piece is a stretch of."""
@@ -402,8 +442,9 @@ class Pieces(NamedTuple):
     """(P, 4): the piece's first voxel, and its steps (it ends in the voxel that many
     steps further)."""
     t_state: NDArray[np.float64]
-    """(P, 4): where the walk crosses each axis' next face there (``face_t``, inf for an
-    axis at its end voxel), and t where it entered the first voxel."""
+    """(P, 7): where the walk crosses each axis' next face there (``face_t``, inf for an
+    axis at its end voxel), t where it entered the first voxel, and 1 / the ray's extent
+    per axis."""
     room: NDArray[np.int64]
     """Upper bound of the blocks the piece can create."""
     has_return: NDArray[np.bool_]
@@ -411,7 +452,7 @@ class Pieces(NamedTuple):
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _faces_before(v0, end, step, origin, inverse, t, strict):  # type: ignore[no-untyped-def]
+def _faces_before(v0, end, step, origin, extent, inverse, t, strict):  # type: ignore[no-untyped-def]
     """How many faces of one axis a walk from voxel ``v0`` to ``end`` crosses before t
     (``strict``: those at t itself come after). The faces' t grow with their index
     (``face_t``): a guess from the position at t, corrected both ways."""
@@ -419,8 +460,7 @@ def _faces_before(v0, end, step, origin, inverse, t, strict):  # type: ignore[no
     if faces == 0:
         return 0
     up = step > 0
-    guess = (int(np.floor(origin + t / inverse)) - v0) * step
-    count = min(max(guess, 0), faces)
+    count = min(max((int(np.floor(origin + t * extent)) - v0) * step, 0), faces)
     while count > 0:
         t_face = face_t(v0 + up + step * (count - 1), origin, inverse)
         if t_face < t or (not strict and t_face == t):
@@ -434,27 +474,38 @@ def _faces_before(v0, end, step, origin, inverse, t, strict):  # type: ignore[no
     return count
 
 
+_TILE_BUCKET_BITS = 4
+"""``split_rays`` orders a shard's pieces by tile, by the low 4 bits of each tile index."""
+
+
 @nb.njit(cache=True, nogil=True)
 def split_rays(
     origins_vox: NDArray[np.float64],
     ends_vox: NDArray[np.float64],
     has_return: NDArray[np.bool_],
     first: int,
-    shard: int,
+    stop: int,
     shard_mask: int,
-) -> Pieces:
-    """The stretches of rays ``first..`` in ``shard``'s tiles (``blocks.shard_of``), in
-    ray order, a ray's in the order the walk takes them; one piece a ray with one shard.
+    by_tile: bool,
+) -> tuple[Pieces, NDArray[np.int64]]:
+    """The stretches of rays ``first:stop`` in each shard's tiles (``blocks.shard_of``),
+    and where each shard's are: shard k's are pieces ``offsets[k]:offsets[k + 1]``. One
+    piece a ray with one shard.
 
     A ray's walk is a merge of three sorted sequences, the t of each axis' faces
     (``face_t``), taken in order of t, x before y before z at equal t. A tile is entered
     at one of its faces, at that face's t: the voxel there, and every axis' next face,
     follow from counting each axis' faces before that t (``_faces_before``), so the
-    piece's walk takes the steps and chords of the whole walk, bit for bit."""
-    total = origins_vox.shape[0]
+    piece's walk takes the steps and chords of the whole walk, bit for bit.
+
+    A shard's pieces are in ray order, a ray's in the order of its walk; with
+    ``by_tile``, by tile (the low bits of its index), in ray order within each: two
+    pieces that can share a voxel are in one tile, so every voxel still gets its chords
+    in ray order, as from one thread walking whole rays, while neighbouring lanes
+    (``LANES``) walk alike stretches of one tile."""
     tile_shift = BLOCK_BITS + SHARD_TILE_BITS
     bound = 0
-    for r in range(first, total):
+    for r in range(first, stop):
         bound += 1
         if shard_mask:
             for axis in range(3):
@@ -463,14 +514,16 @@ def split_rays(
                 bound += abs(hi - lo)
     ray = np.empty(bound, dtype=np.int64)
     voxel = np.empty((bound, 4), dtype=np.int64)
-    t_state = np.empty((bound, 4))
+    t_state = np.empty((bound, 7))
     room = np.empty(bound, dtype=np.int64)
     returns = np.empty(bound, dtype=np.bool_)
+    owner = np.empty(bound, dtype=np.int64)
     v = np.empty(3, dtype=np.int64)
     v0 = np.empty(3, dtype=np.int64)
     end = np.empty(3, dtype=np.int64)
     step = np.empty(3, dtype=np.int64)
     origin = np.empty(3)
+    extent = np.empty(3)
     inverse = np.empty(3)
     t_max = np.empty(3)
     tile = np.empty(3, dtype=np.int64)
@@ -478,55 +531,62 @@ def split_rays(
     t_cross = np.empty(3)
     count = np.empty(3, dtype=np.int64)
     k = 0
-    for r in range(first, total):
+    for r in range(first, stop):
         (v0[0], v0[1], v0[2], end[0], end[1], end[2], step[0], step[1], step[2],
          t_max[0], t_max[1], t_max[2], inverse[0], inverse[1], inverse[2],
          steps) = _ray_start(origins_vox, ends_vox, r)  # fmt: skip
         for axis in range(3):
             origin[axis] = origins_vox[r, axis]
+            extent[axis] = ends_vox[r, axis] - origin[axis]
             v[axis] = v0[axis]
             tile[axis] = v0[axis] >> tile_shift
             crossings[axis] = abs((end[axis] >> tile_shift) - tile[axis]) if shard_mask else 0
+            t_cross[axis] = np.inf  # the t of the axis' next tile face (inf: none left)
+            if crossings[axis] > 0:
+                face = (tile[axis] + (step[axis] > 0)) << tile_shift
+                t_cross[axis] = face_t(face, origin[axis], inverse[axis])
         here = (tile[0] + tile[1] + tile[2]) & shard_mask
         t_prev = 0.0
         start_steps = 0
         while True:
-            for axis in range(3):  # the t of each axis' next tile face (inf: none left)
-                t_cross[axis] = np.inf
-                if crossings[axis] > 0:
-                    face = (tile[axis] + (step[axis] > 0)) << tile_shift
-                    t_cross[axis] = face_t(face, origin[axis], inverse[axis])
-            if crossings[0] + crossings[1] + crossings[2] == 0:
-                a = -1
-            elif crossings[0] > 0 and (
-                (t_cross[0] <= t_cross[1] or crossings[1] == 0)
-                and (t_cross[0] <= t_cross[2] or crossings[2] == 0)
-            ):
+            # the next tile face the walk crosses: least t, x before y before z
+            if t_cross[0] <= t_cross[1] and t_cross[0] <= t_cross[2]:
                 a = 0
-            elif crossings[1] > 0 and (t_cross[1] <= t_cross[2] or crossings[2] == 0):
+            elif t_cross[1] <= t_cross[2]:
                 a = 1
             else:
                 a = 2
-            if a >= 0:
+            if crossings[a] == 0:  # every t_cross is inf: no tile face left
+                a = -1
+                there = -1
+                at = steps + 1
+                t_enter = 1.0
+            else:
                 t_enter = t_cross[a]
                 tile[a] += step[a]
                 crossings[a] -= 1
+                t_cross[a] = np.inf
+                if crossings[a] > 0:
+                    face = (tile[a] + (step[a] > 0)) << tile_shift
+                    t_cross[a] = face_t(face, origin[a], inverse[a])
                 there = (tile[0] + tile[1] + tile[2]) & shard_mask
-                if there == here:
-                    continue
-                # the voxel the walk enters there, after how many steps
-                entered = (tile[a] << tile_shift) if step[a] > 0 else ((tile[a] + 1) << tile_shift) - 1
-                count[a] = abs(entered - v0[a])
-                for b in range(3):
-                    if b != a:
-                        count[b] = _faces_before(
-                            v0[b], end[b], step[b], origin[b], inverse[b], t_enter, b > a
-                        )
-                at = count[0] + count[1] + count[2]
-            else:
-                there = -1
-                at = steps + 1
-            if here == shard:  # the piece up to this crossing (or to the ray's end)
+                if there != here:
+                    # the voxel the walk enters there, after how many steps
+                    if step[a] > 0:
+                        count[a] = (tile[a] << tile_shift) - v0[a]
+                    else:
+                        count[a] = v0[a] - ((tile[a] + 1) << tile_shift) + 1
+                    for b in range(3):
+                        if b != a:
+                            count[b] = _faces_before(
+                                v0[b], end[b], step[b], origin[b], extent[b], inverse[b],
+                                t_enter, b > a,
+                            )  # fmt: skip
+                    at = count[0] + count[1] + count[2]
+                else:
+                    at = 0
+            if there != here:  # the piece up to here
+                owner[k] = here
                 ray[k] = r
                 voxel[k, 0] = v[0]
                 voxel[k, 1] = v[1]
@@ -536,6 +596,9 @@ def split_rays(
                 t_state[k, 1] = t_max[1]
                 t_state[k, 2] = t_max[2]
                 t_state[k, 3] = t_prev
+                t_state[k, 4] = inverse[0]
+                t_state[k, 5] = inverse[1]
+                t_state[k, 6] = inverse[2]
                 blocks = 2
                 for b in range(3):
                     last = end[b] if a < 0 else v0[b] + step[b] * (count[b] - (b == a))
@@ -545,7 +608,7 @@ def split_rays(
                 k += 1
             if a < 0:
                 break
-            if there == shard:  # the walk's state where it enters this shard's tile
+            if there != here:  # the walk's state where it enters the next tile
                 for b in range(3):
                     v[b] = v0[b] + step[b] * count[b]
                     t_max[b] = (
@@ -556,7 +619,29 @@ def split_rays(
                 t_prev = min(t_enter, 1.0)
                 start_steps = at
             here = there
-    return Pieces(ray[:k], voxel[:k], t_state[:k], room[:k], returns[:k])
+    if shard_mask == 0:
+        offsets = np.array([0, k], dtype=np.int64)
+        return Pieces(ray[:k], voxel[:k], t_state[:k], room[:k], returns[:k]), offsets
+    # a stable counting sort by shard, then tile bucket
+    bits = _TILE_BUCKET_BITS if by_tile else 0
+    mask = (1 << bits) - 1
+    bucket = np.empty(k, dtype=np.int64)
+    starts = np.zeros(((shard_mask + 1) << (3 * bits)) + 1, dtype=np.int64)
+    for p in range(k):
+        key = owner[p]
+        for b in range(3):
+            key = (key << bits) | ((voxel[p, b] >> tile_shift) & mask)
+        bucket[p] = key
+        starts[key + 1] += 1
+    for key in range(1, starts.shape[0]):
+        starts[key] += starts[key - 1]
+    offsets = starts[:: 1 << (3 * bits)].copy()
+    order = np.empty(k, dtype=np.int64)
+    for p in range(k):
+        order[starts[bucket[p]]] = p
+        starts[bucket[p]] += 1
+    pieces = Pieces(ray[order], voxel[order], t_state[order], room[order], returns[order])
+    return pieces, offsets
 
 
 @nb.njit(cache=True, nogil=True)
@@ -628,14 +713,15 @@ def _walk_rays(
         for lane in range(LANES):  # lanes past the last piece repeat the group's first
             p = group_first + (lane if lane < lanes else 0)
             r = piece_ray[p]
-            (_, _, _, ex, ey, ez, step_x, step_y, step_z, _, _, _, inverse_x, inverse_y,
-             inverse_z, _) = _ray_start(origins_vox, ends_vox, r)  # fmt: skip
+            ex = int(np.floor(ends_vox[r, 0]))
+            ey = int(np.floor(ends_vox[r, 1]))
+            ez = int(np.floor(ends_vox[r, 2]))
             lane_floats[0, lane] = piece_t[p, 0]
             lane_floats[1, lane] = piece_t[p, 1]
             lane_floats[2, lane] = piece_t[p, 2]
-            lane_floats[3, lane] = inverse_x
-            lane_floats[4, lane] = inverse_y
-            lane_floats[5, lane] = inverse_z
+            lane_floats[3, lane] = piece_t[p, 4]
+            lane_floats[4, lane] = piece_t[p, 5]
+            lane_floats[5, lane] = piece_t[p, 6]
             lane_floats[6, lane] = piece_t[p, 3]
             lane_floats[7, lane] = lengths[r]
             lane_floats[8, lane] = origins_vox[r, 0]
@@ -644,9 +730,9 @@ def _walk_rays(
             lane_ints[0, lane] = piece_voxel[p, 0]
             lane_ints[1, lane] = piece_voxel[p, 1]
             lane_ints[2, lane] = piece_voxel[p, 2]
-            lane_ints[3, lane] = step_x
-            lane_ints[4, lane] = step_y
-            lane_ints[5, lane] = step_z
+            lane_ints[3, lane] = 1 if ex > int(np.floor(origins_vox[r, 0])) else -1
+            lane_ints[4, lane] = 1 if ey > int(np.floor(origins_vox[r, 1])) else -1
+            lane_ints[5, lane] = 1 if ez > int(np.floor(origins_vox[r, 2])) else -1
             lane_ints[6, lane] = ex
             lane_ints[7, lane] = ey
             lane_ints[8, lane] = ez
@@ -859,27 +945,21 @@ def read_walk(
             if t_max_x <= t_max_y and t_max_x <= t_max_z:
                 t_next = t_max_x
                 vx += step_x
-                t_max_x = (
-                    face_t(vx + (step_x > 0), ox, inverse_x) if vx != ex else np.inf
-                )
+                t_max_x = face_t(vx + (step_x > 0), ox, inverse_x) if vx != ex else np.inf
                 axis_local = vx & _LOCAL_MASK
                 morton_x = _SPREAD[axis_local] << 2
                 new_block = axis_local == wrap_x
             elif t_max_y <= t_max_z:
                 t_next = t_max_y
                 vy += step_y
-                t_max_y = (
-                    face_t(vy + (step_y > 0), oy, inverse_y) if vy != ey else np.inf
-                )
+                t_max_y = face_t(vy + (step_y > 0), oy, inverse_y) if vy != ey else np.inf
                 axis_local = vy & _LOCAL_MASK
                 morton_y = _SPREAD[axis_local] << 1
                 new_block = axis_local == wrap_y
             else:
                 t_next = t_max_z
                 vz += step_z
-                t_max_z = (
-                    face_t(vz + (step_z > 0), oz, inverse_z) if vz != ez else np.inf
-                )
+                t_max_z = face_t(vz + (step_z > 0), oz, inverse_z) if vz != ez else np.inf
                 axis_local = vz & _LOCAL_MASK
                 morton_z = _SPREAD[axis_local]
                 new_block = axis_local == wrap_z
