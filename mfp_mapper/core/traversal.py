@@ -315,40 +315,33 @@ def _walk_part(
         pieces = _shard_pieces(split, offsets, shard_id)
         if cut_done:  # the rays were cut since they were split
             pieces = own(start, stop, True)
-        if limit is not None and shard.used + int(pieces.room.sum()) > limit:
+        if limit is not None and shard.used + int(pieces.room[pieces.order].sum()) > limit:
             pieces = own(start, stop, False)
         first = 0
-        while first < len(pieces.ray):
+        while first < len(pieces.order):
             first = _walk_rays(walk, pieces, first, shard_id, shard_mask, shard.arrays(), scan)
-            if first == len(pieces.ray):
+            if first == len(pieces.order):
                 break
             # the next group of pieces (see _walk_rays) did not fit
-            need = int(pieces.room[first : first + LANES].sum())
+            need = int(pieces.room[pieces.order[first : first + LANES]].sum())
             if limit is not None and shard.used + need > limit and not cut_done:
-                ray = int(pieces.ray[first])  # pieces in ray order here
+                ray = int(pieces.ray[pieces.order[first]])  # pieces in ray order here
                 rest = cut_to_blocks(walk, ray, limit - shard.used)
                 if rest is None:  # not even a step each: the rest is not walked
                     return len(rays) - ray
                 (walk, cut), cut_done = rest, True
                 # the cut rays' stretches, less those of the first one walked already
-                walked = int(np.count_nonzero(pieces.ray[:first] == ray))
+                walked = int(np.count_nonzero(pieces.ray[pieces.order[:first]] == ray))
                 pieces = own(ray, stop, False)
-                first = min(walked, int(np.count_nonzero(pieces.ray == ray)))
+                first = min(walked, int(np.count_nonzero(pieces.ray[pieces.order] == ray)))
                 continue
             shard.grow(min_free=need, at_most=limit)  # the limit is checked at each growth
     return cut
 
 
 def _shard_pieces(pieces: Pieces, offsets: NDArray[np.int64], shard: int) -> Pieces:
-    """Shard ``shard``'s pieces of ``split_rays``' (views)."""
-    mine = slice(int(offsets[shard]), int(offsets[shard + 1]))
-    return Pieces(
-        pieces.ray[mine],
-        pieces.voxel[mine],
-        pieces.t_state[mine],
-        pieces.room[mine],
-        pieces.has_return[mine],
-    )
+    """Shard ``shard``'s pieces of ``split_rays``'."""
+    return pieces._replace(order=pieces.order[offsets[shard] : offsets[shard + 1]])
 
 
 def cut_to_blocks(walk: RayArrays, first: int, blocks: int) -> tuple[RayArrays, int] | None:
@@ -449,6 +442,8 @@ class Pieces(NamedTuple):
     """Upper bound of the blocks the piece can create."""
     has_return: NDArray[np.bool_]
     """The piece ends the ray, and the ray has a return."""
+    order: NDArray[np.int64]
+    """The pieces to walk, in the order to walk them (indices)."""
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -621,7 +616,8 @@ def split_rays(
             here = there
     if shard_mask == 0:
         offsets = np.array([0, k], dtype=np.int64)
-        return Pieces(ray[:k], voxel[:k], t_state[:k], room[:k], returns[:k]), offsets
+        pieces = Pieces(ray[:k], voxel[:k], t_state[:k], room[:k], returns[:k], np.arange(k))
+        return pieces, offsets
     # a stable counting sort by shard, then tile bucket
     bits = _TILE_BUCKET_BITS if by_tile else 0
     mask = (1 << bits) - 1
@@ -640,8 +636,7 @@ def split_rays(
     for p in range(k):
         order[starts[bucket[p]]] = p
         starts[bucket[p]] += 1
-    pieces = Pieces(ray[order], voxel[order], t_state[order], room[order], returns[order])
-    return pieces, offsets
+    return Pieces(ray[:k], voxel[:k], t_state[:k], room[:k], returns[:k], order), offsets
 
 
 @nb.njit(cache=True, nogil=True)
@@ -667,7 +662,7 @@ def _walk_rays(
     piece not walked (the caller grows and calls again), or their number.
     """
     origins_vox, ends_vox, lengths = rays.origins_vox, rays.ends_vox, rays.lengths
-    piece_ray, piece_voxel, piece_t, room_needed, piece_return = pieces
+    piece_ray, piece_voxel, piece_t, room_needed, piece_return, order = pieces
     scan_id, stamp, decay_time = scan
     table_keys, _, _, block_sn, block_t, _, block_hit, counters, block_scale = shard_arrays
     capacity = min(block_t.shape[0], table_keys.shape[0] // 2)
@@ -676,10 +671,10 @@ def _walk_rays(
     cache_keys = np.full(1 << (3 * _WALK_CACHE_BITS), -1, dtype=np.int64)
     cache_bases = np.empty(cache_keys.shape[0], dtype=np.int64)  # first voxel, or FOREIGN_BASE
     cache_weights = np.empty(cache_keys.shape[0])  # the scan's weight there (< 1: a late scan)
-    total = piece_ray.shape[0]
+    total = order.shape[0]
     longest = 1
-    for p in range(first, total):
-        longest = max(longest, piece_voxel[p, 3] + 1)
+    for i in range(first, total):
+        longest = max(longest, piece_voxel[order[i], 3] + 1)
     # the group's steps (step k of lane l at k * LANES + l) and the blocks each ray enters
     step_code = np.empty(longest * LANES, dtype=np.int16)
     entered_key = np.empty((LANES, longest), dtype=np.int64)
@@ -702,7 +697,7 @@ def _walk_rays(
         lanes = min(LANES, total - group_first)
         blocks_needed = 0
         for lane in range(lanes):
-            blocks_needed += room_needed[group_first + lane]
+            blocks_needed += room_needed[order[group_first + lane]]
         if lanes == 0 or counters[0] + blocks_needed > capacity:
             _add_group(
                 lines, pairs, block_hit, placed_voxel[1 - group], placed_chord[1 - group],
@@ -711,7 +706,7 @@ def _walk_rays(
             return group_first
         steps = 0
         for lane in range(LANES):  # lanes past the last piece repeat the group's first
-            p = group_first + (lane if lane < lanes else 0)
+            p = order[group_first + (lane if lane < lanes else 0)]
             r = piece_ray[p]
             ex = int(np.floor(ends_vox[r, 0]))
             ey = int(np.floor(ends_vox[r, 1]))
@@ -746,7 +741,7 @@ def _walk_rays(
         )  # fmt: skip
         weighted = False  # a block where the scan is late (weight < 1)
         for lane in range(lanes):
-            p = group_first + lane
+            p = order[group_first + lane]
             blocks = lane_blocks[lane]
             # the blocks the ray enters
             for b in range(blocks):

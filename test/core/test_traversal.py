@@ -278,6 +278,7 @@ def test_stretches_start_in_the_state_of_the_whole_walk(shards: int) -> None:
     has_return = np.ones(len(origins), dtype=np.bool_)
     pieces, offsets = split_rays(origins, ends, has_return, 0, len(origins), shards - 1, True)
     assert offsets[0] == 0 and offsets[-1] == len(pieces.ray) and np.all(np.diff(offsets) >= 0)
+    np.testing.assert_array_equal(np.sort(pieces.order), np.arange(len(pieces.ray)))
     covered: dict[int, list[int]] = {}
     for p in range(len(pieces.ray)):
         r = int(pieces.ray[p])
