@@ -5,8 +5,8 @@ A voxel walk (Amanatides & Woo) is a chain of unpredictable three-way branches, 
 step: written for one ray, a step costs 2.5 ns (hall scene at 0.2 m, bare walk). In
 ``walk_lanes`` each lane of a vector is one ray, every lane takes its step at once, and the
 branch becomes a select per lane: the same comparisons and the same float64 operations in
-the same order, so every lane's voxels and chords are bit-for-bit those of the one-ray
-walk (``test_traversal`` checks the store against the brute-force chords).
+the same order (each face's t from the face, ``traversal.face_t``), so every lane's
+voxels and chords are bit-for-bit those of the one-ray walk (``test_traversal`` checks the store against the brute-force chords).
 ``place_lanes`` then turns the steps into store indices and weighted chords, the blocks
 gathered per lane, and starts loading the store's cache lines.
 
@@ -133,7 +133,8 @@ def walk_lanes(  # type: ignore[no-untyped-def]
 ):
     """Take ``steps`` steps of ``LANES`` rays at once, from the lane state (C-contiguous
     ``float_state`` (FLOAT_ROWS, LANES) float64, ``int_state`` (INT_ROWS, LANES) int64, as
-    ``traversal._ray_start`` gives them; neither is changed).
+    ``traversal._ray_start`` gives them, or a stretch of a ray ``traversal.split_rays``
+    starts mid-ray, with its t at entry; neither is changed).
 
     Step k writes, for every lane, the voxel the ray is in before it leaves it: at
     ``out_code[k * LANES + lane]`` (int16) its index in its block (``blocks.local_index``)

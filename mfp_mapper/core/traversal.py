@@ -6,11 +6,16 @@ metres of the ray inside that voxel, so a ray's chords add up to its length — 
 that ends in a return gives its end voxel ``n += 1`` (the chord from where it entered that
 voxel up to the return point is its last chord).
 
-Threads: the store has one shard per thread, and a thread alone writes to its shard. Every
-thread walks every ray and adds only the visits to its own shard's blocks, in ray order:
-the same float32 sums as one thread, bit for bit, and nothing passes between threads. (Each
-thread walking its share of the rays and mailing the visits to other shards' blocks, as
-before issue 22's lockstep walk, was slower: about half the visits were mail.)
+Threads split the space: the store has one shard per thread, a shard owns tiles of
+8x8x8 blocks in a 3-D checkerboard (``blocks.shard_of``), and a thread alone writes to its
+shard. The rays are first split into their stretches in each tile (``split_rays``, a
+share of the rays a thread), then each thread walks only its own shard's stretches. A
+walk computes the t of each face from the face itself (``face_t``), never by summing
+steps, so a stretch starts in exactly the state the walk from the ray's origin has there:
+the same voxels and chords, bit for bit. A thread walks its stretches tile by tile, in ray
+order within a tile, so every voxel gets its chords in ray order: the store of one thread
+walking whole rays, whatever the number of threads. (Before: every thread walked every
+ray and added only its own shard's visits, 1.33-1.39x at 0.1 m and nothing at 0.2 m.)
 """
 
 from __future__ import annotations
