@@ -8,6 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mfp_mapper import Mapper
+from mfp_mapper.core.lockstep import T_NEVER, T_ONE
 from mfp_mapper.core.traversal import ray_bounds
 
 RES = 0.25
@@ -155,7 +156,7 @@ def _one_ray_walk_sums(
     origins_vox: np.ndarray, ends_vox: np.ndarray, lengths: np.ndarray, has_return: np.ndarray
 ) -> tuple[dict[tuple[int, int, int], np.float32], dict[tuple[int, int, int], np.float32]]:
     """The store a one-ray-at-a-time walk builds, in plain Python: every ray's voxels and
-    chords by Amanatides & Woo with the walk's float64 operations, summed in float32 in
+    chords by Amanatides & Woo with the walk's fixed-point t, summed in float32 in
     ray order (the order the store adds them)."""
     s: dict[tuple[int, int, int], np.float32] = {}
     n: dict[tuple[int, int, int], np.float32] = {}
@@ -165,12 +166,12 @@ def _one_ray_walk_sums(
         end = [int(np.floor(x)) for x in e]
         step = [1 if end[a] > v[a] else -1 for a in range(3)]
         moves = [end[a] != v[a] for a in range(3)]
-        inverse = [1.0 / d[a] if moves[a] else 0.0 for a in range(3)]
-        # the t of a face, from the face itself: (face - origin) / extent
+        # t in the walk's fixed point (lockstep.T_ONE): the j-th face at t_max + j * t_delta
         t_max = [
-            ((v[a] + (d[a] > 0)) - o[a]) * inverse[a] if moves[a] else np.inf for a in range(3)
+            _fixed(((v[a] + (d[a] > 0)) - o[a]) / d[a]) if moves[a] else T_NEVER for a in range(3)
         ]
-        t_prev = 0.0
+        t_delta = [_fixed(abs(1.0 / d[a])) if moves[a] else 0 for a in range(3)]
+        t_prev = 0
         for _ in range(sum(abs(end[a] - v[a]) for a in range(3))):
             here = tuple(v)
             if t_max[0] <= t_max[1] and t_max[0] <= t_max[2]:
@@ -179,15 +180,14 @@ def _one_ray_walk_sums(
                 axis = 1
             else:
                 axis = 2
-            t_next = min(t_max[axis], 1.0)
+            t_next = min(t_max[axis], T_ONE)
             v[axis] += step[axis]
-            face = v[axis] + (step[axis] > 0)
-            t_max[axis] = (face - o[axis]) * inverse[axis] if v[axis] != end[axis] else np.inf
-            chord = (t_next - t_prev) * length
+            t_max[axis] = t_max[axis] + t_delta[axis] if v[axis] != end[axis] else T_NEVER
+            chord = float(t_next - t_prev) * (length / T_ONE)
             t_prev = t_next
             if chord > 0.0:
                 s[here] = np.float32(s.get(here, np.float32(0.0)) + np.float32(chord))
-        chord = (1.0 - t_prev) * length
+        chord = float(T_ONE - t_prev) * (length / T_ONE)
         if chord > 0.0:
             s[tuple(v)] = np.float32(s.get(tuple(v), np.float32(0.0)) + np.float32(chord))
         if hit:
@@ -225,29 +225,32 @@ def test_many_rays_at_once_give_the_one_ray_walks_sums_bit_for_bit(seed: int) ->
     assert all(np.float32(n[v]) == c for v, c in expected_n.items())
 
 
-def _walk_states(o: np.ndarray, e: np.ndarray) -> list[tuple[tuple[int, ...], tuple[float, ...]]]:
-    """Every state of the one-ray walk (plain Python, the walk's float64 operations): the
+def _walk_states(o: np.ndarray, e: np.ndarray) -> list[tuple[tuple[int, ...], tuple[int, ...]]]:
+    """Every state of the one-ray walk (plain Python, the walk's fixed-point t): the
     voxel, each axis' next face t and t where the voxel was entered, step by step."""
     d = e - o
     v = [int(np.floor(x)) for x in o]
     end = [int(np.floor(x)) for x in e]
     step = [1 if end[a] > v[a] else -1 for a in range(3)]
-    inverse = [1.0 / d[a] if end[a] != v[a] else 0.0 for a in range(3)]
-    t_max = [
-        ((v[a] + (d[a] > 0)) - o[a]) * inverse[a] if end[a] != v[a] else np.inf for a in range(3)
-    ]
-    t_prev = 0.0
+    moves = [end[a] != v[a] for a in range(3)]
+    t_max = [_fixed(((v[a] + (d[a] > 0)) - o[a]) / d[a]) if moves[a] else T_NEVER for a in range(3)]
+    t_delta = [_fixed(abs(1.0 / d[a])) if moves[a] else 0 for a in range(3)]
+    t_prev = 0
     states = [(tuple(v), (*t_max, t_prev))]
     for _ in range(sum(abs(end[a] - v[a]) for a in range(3))):
         axis = (
             0 if t_max[0] <= t_max[1] and t_max[0] <= t_max[2] else 1 if t_max[1] <= t_max[2] else 2
         )
-        t_prev = min(t_max[axis], 1.0)
+        t_prev = min(t_max[axis], T_ONE)
         v[axis] += step[axis]
-        face = v[axis] + (step[axis] > 0)
-        t_max[axis] = (face - o[axis]) * inverse[axis] if v[axis] != end[axis] else np.inf
+        t_max[axis] = t_max[axis] + t_delta[axis] if v[axis] != end[axis] else T_NEVER
         states.append((tuple(v), (*t_max, t_prev)))
     return states
+
+
+def _fixed(t: float) -> int:
+    """t in the walks' fixed point, as ``traversal._fixed`` (at most 2)."""
+    return int(min(t, 2.0) * T_ONE)
 
 
 def _tile_rays(seed: int, count: int) -> tuple[np.ndarray, np.ndarray]:
