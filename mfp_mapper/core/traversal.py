@@ -306,13 +306,12 @@ def _walk_part(
     """Walk the stretches of ``rays`` in ``shard``'s tiles into ``shard``: ``parts`` are
     the rays ``start:stop`` split by ``split_rays`` (by tile), in ray order. Grows the
     shard when it runs out of room, by at most ``share`` blocks (None: no bound): beyond,
-    the rays not walked yet are cut (``cut_to_blocks``). Returns how many were cut.
-
-    A part whose pieces may create more blocks than the share has left is split again
-    by ray, so that the rays cut are the last ones."""
+    the rays not walked whole yet are cut (``cut_to_blocks``; their stretches walked
+    already stay) and split again, by ray. Returns how many were cut."""
     room, visits = ray_bounds(rays.origins_vox, rays.ends_vox)
     walk = RayArrays(rays.origins_vox, rays.ends_vox, rays.lengths, rays.has_return, room, visits)
     limit = None if share is None else shard.used + share
+    most = _NO_LIMIT if limit is None else limit
 
     def own(start: int, stop: int, by_tile: bool) -> Pieces:
         pieces, offsets = split_rays(
@@ -325,28 +324,44 @@ def _walk_part(
         pieces = _shard_pieces(split, offsets, shard_id)
         if cut_done:  # the rays were cut since they were split
             pieces = own(start, stop, True)
-        if limit is not None and shard.used + int(pieces.room[pieces.order].sum()) > limit:
-            pieces = own(start, stop, False)
         first = 0
         while first < len(pieces.order):
-            first = _walk_rays(walk, pieces, first, shard_id, shard_mask, shard.arrays(), scan)
+            first = _walk_rays(
+                walk, pieces, first, shard_id, shard_mask, shard.arrays(), scan, most
+            )
             if first == len(pieces.order):
                 break
             # the next group of pieces (see _walk_rays) did not fit
             need = int(pieces.room[pieces.order[first : first + LANES]].sum())
             if limit is not None and shard.used + need > limit and not cut_done:
-                ray = int(pieces.ray[pieces.order[first]])  # pieces in ray order here
-                rest = cut_to_blocks(walk, ray, limit - shard.used)
-                if rest is None:  # not even a step each: the rest is not walked
+                # the rays not walked whole are cut; their stretches walked stay
+                rest = pieces.order[first:]
+                ray = int(pieces.ray[rest].min())
+                cut_rays = cut_to_blocks(walk, ray, limit - shard.used)
+                if cut_rays is None:  # not even a step each: the rest is not walked
                     return len(rays) - ray
-                (walk, cut), cut_done = rest, True
-                # the cut rays' stretches, less those of the first one walked already
-                walked = int(np.count_nonzero(pieces.ray[pieces.order[:first]] == ray))
+                (walk, cut), cut_done = cut_rays, True
+                walked = {
+                    (int(pieces.ray[p]), *pieces.voxel[p, :3].tolist())
+                    for p in pieces.order[:first]
+                    if pieces.ray[p] >= ray
+                }
                 pieces = own(ray, stop, False)
-                first = min(walked, int(np.count_nonzero(pieces.ray[pieces.order] == ray)))
+                keep = [
+                    (int(pieces.ray[p]), *pieces.voxel[p, :3].tolist()) not in walked
+                    for p in pieces.order
+                ]
+                pieces = pieces._replace(order=pieces.order[np.array(keep, dtype=bool)])
+                first = 0
                 continue
+            if limit is not None and shard.used + need > limit:  # cut, and still too many
+                return max(cut, len(rays) - int(pieces.ray[pieces.order[first:]].min()))
             shard.grow(min_free=need, at_most=limit)  # the limit is checked at each growth
     return cut
+
+
+_NO_LIMIT = 1 << 62
+"""``_walk_rays``' block limit when a scan may add any number of blocks."""
 
 
 def _walk_whole(rays: Rays, shard: Shard, scan: ScanStamp, share: int | None = None) -> int:
@@ -354,11 +369,12 @@ def _walk_whole(rays: Rays, shard: Shard, scan: ScanStamp, share: int | None = N
     room, visits = ray_bounds(rays.origins_vox, rays.ends_vox)
     walk = RayArrays(rays.origins_vox, rays.ends_vox, rays.lengths, rays.has_return, room, visits)
     limit = None if share is None else shard.used + share
+    most = _NO_LIMIT if limit is None else limit
     none = np.empty(0, dtype=np.int64)
     no_pieces = Pieces(none, none.reshape(0, 4), none.reshape(0, 7), none, none.astype(bool), none)
     first, cut, cut_done = 0, 0, False
     while first < len(rays):
-        first = _walk_rays(walk, no_pieces, first, 0, 0, shard.arrays(), scan)
+        first = _walk_rays(walk, no_pieces, first, 0, 0, shard.arrays(), scan, most)
         if first < len(rays):  # the next group of rays (see _walk_rays) did not fit
             need = int(walk.room_needed[first : first + LANES].sum())
             if limit is not None and shard.used + need > limit and not cut_done:
@@ -367,6 +383,8 @@ def _walk_whole(rays: Rays, shard: Shard, scan: ScanStamp, share: int | None = N
                     return len(rays) - first
                 (walk, cut), cut_done = rest, True
                 continue
+            if limit is not None and shard.used + need > limit:  # cut, and still too many
+                return max(cut, len(rays) - first)
             shard.grow(min_free=need, at_most=limit)  # the limit is checked at each growth
     return cut
 
@@ -662,6 +680,7 @@ def _walk_rays(
     shard_mask: int,
     shard_arrays: ShardArrays,
     scan: ScanStamp,
+    block_limit: int,
 ) -> int:
     """Walk pieces ``first..`` of ``rays`` (voxel units; ``split_rays``: the stretches of
     the rays in ``shard``'s tiles) and add their visits to ``shard``'s blocks; with one
@@ -675,7 +694,8 @@ def _walk_rays(
     starts loading their cache lines. Then the group before, whose lines were loaded
     meanwhile, is added (``_add_group``), piece by piece in ray order. Before each group,
     checks there is room for the blocks it may create; returns the index of the first
-    piece not walked (the caller grows and calls again), or their number.
+    piece not walked (the caller grows and calls again), or their number; the shard holds
+    at most ``block_limit`` blocks (the caller cuts the rays beyond).
     """
     origins_vox, ends_vox, lengths = rays.origins_vox, rays.ends_vox, rays.lengths
     has_return, ray_room, ray_visits = rays.has_return, rays.room_needed, rays.visits_needed
@@ -683,7 +703,7 @@ def _walk_rays(
     whole = shard_mask == 0
     scan_id, stamp, decay_time = scan
     table_keys, _, _, block_sn, block_t, _, block_hit, counters, block_scale = shard_arrays
-    capacity = min(block_t.shape[0], table_keys.shape[0] // 2)
+    capacity = min(block_t.shape[0], table_keys.shape[0] // 2, block_limit)
     # blocks opened in this call, direct-mapped by their low index bits: neighbouring rays
     # cross the same blocks, and this table (768 KiB) stays in cache where the hash does not
     cache_keys = np.full(1 << (3 * _WALK_CACHE_BITS), -1, dtype=np.int64)
