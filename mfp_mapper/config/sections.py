@@ -162,6 +162,24 @@ class SensorModelSection(Section):
         applies="both",
         flag="--no-return-range",
     )
+    first_echo_only: bool = setting(
+        False,
+        "Use only the first echo of each laser shot. False (the default): every echo the "
+        "cloud marks (Nebula return_type, ouster-ros points2, Livox tag, target_index) joins "
+        "its shot's ray, one Poisson process along the beam (docs/model.md, 'Every echo of a "
+        "shot').",
+        applies="both",
+        flag="--first-echo-only",
+    )
+    echo_blind_stretch: float = setting(
+        0.5,
+        "Metres of beam after each echo left out of the free space a shot clears: right "
+        "behind an echo a lidar sees later echoes at a fraction of their rate (docs/model.md).",
+        0.0,
+        100.0,
+        applies="both",
+        flag="--echo-blind-stretch",
+    )
 
 
 @dataclass(frozen=True)

@@ -65,7 +65,8 @@ FloatArray = NDArray[np.float64]
 class StagedScan:
     """A scan integrated into a store of its own by ``Mapper.stage``, for ``commit``."""
 
-    inputs: tuple[ArrayLike, ArrayLike, ArrayLike | None]  # points, origins, no_return
+    inputs: tuple[ArrayLike, ArrayLike, ArrayLike | None, ArrayLike | None]
+    """points, origins, no_return, continued"""
     origin: FloatArray | None  # the map origin its rays are relative to
     rays: Rays
     store: BlockStore
@@ -187,6 +188,7 @@ class Mapper:
         origins: ArrayLike,
         stamp: float,
         no_return: ArrayLike | None = None,
+        continued: ArrayLike | None = None,
     ) -> IntegrationSummary:
         """Add one scan: rays from ``origins`` ((3,) or (N, 3)) to ``points`` (N, 3), map frame.
 
@@ -194,12 +196,19 @@ class Mapper:
         ``no_return`` flag (N,) is set: then it is walked up to its point (at most
         ``max_range``) and carries no return. Rays shorter than ``min_range`` and rays with
         NaN/Inf are dropped and counted.
+
+        ``continued`` (N,): rays that continue a shot past its previous echo (a later echo:
+        its origin is where that echo's blind stretch ends; see ``traversal.prepare_rays``):
+        kept whatever their length, zero included (a return with no chord), and not counted
+        in the scan's mean sensor position.
         """
         t0, cpu0 = time.perf_counter(), time.thread_time()
         self._worker_cpu = 0.0
         if not math.isfinite(stamp):
             raise ValueError(f"stamp must be finite seconds, got {stamp}")
-        rays, pts, dropped = self._place(points, origins, no_return, set_origin=True)
+        rays, pts, dropped = self._place(
+            points, origins, no_return, set_origin=True, continued=continued
+        )
         summary = self._summary(rays, pts, dropped)
         if len(rays):
             budget = scan_block_budget(self.max_voxels)
@@ -234,6 +243,7 @@ class Mapper:
         origins: ArrayLike,
         stamp: float,
         no_return: ArrayLike | None = None,
+        continued: ArrayLike | None = None,
     ) -> StagedScan:
         """Integrate one scan (as ``integrate``) into a store of its own, leaving the map
         untouched: the long part of an integration, which needs no lock around the map
@@ -246,7 +256,9 @@ class Mapper:
         origin, org = self._origin, np.asarray(origins, dtype=np.float64)
         if origin is None and org.shape[-1:] == (3,):  # bad shapes: _place names them
             origin = self._origin_from(org.reshape(-1, 3))
-        rays, pts, dropped = self._place(points, origins, no_return, set_origin=False, at=origin)
+        rays, pts, dropped = self._place(
+            points, origins, no_return, set_origin=False, at=origin, continued=continued
+        )
         summary = self._summary(rays, pts, dropped)
         store, self._spare_stage = self._spare_stage, None
         if store is None:
@@ -269,7 +281,8 @@ class Mapper:
                 prefault(staged_shard, shard)
         summary.seconds = time.perf_counter() - t0
         summary.cpu_seconds = time.thread_time() - cpu0 + self._worker_cpu
-        return StagedScan((points, origins, no_return), origin, rays, store, float(stamp), summary)
+        inputs = (points, origins, no_return, continued)
+        return StagedScan(inputs, origin, rays, store, float(stamp), summary)
 
     def commit(
         self, staged: StagedScan, pause: Callable[[], None] | None = None
@@ -285,7 +298,8 @@ class Mapper:
         summary = staged.summary
         if staged.origin is not None and self._origin is not None:
             if not np.array_equal(staged.origin, self._origin):  # reset in between
-                return self.integrate(*staged.inputs[:2], staged.stamp, staged.inputs[2])
+                points, origins, no_return, continued = staged.inputs
+                return self.integrate(points, origins, staged.stamp, no_return, continued)
         elif staged.origin is not None:
             self._origin = staged.origin
         rays = staged.rays
@@ -328,12 +342,18 @@ class Mapper:
         self.version += 1
 
     def place_rays(
-        self, points: ArrayLike, origins: ArrayLike, no_return: ArrayLike | None = None
+        self,
+        points: ArrayLike,
+        origins: ArrayLike,
+        no_return: ArrayLike | None = None,
+        continued: ArrayLike | None = None,
     ) -> tuple[Rays, dict[str, int]]:
         """The rays ``integrate`` would walk for this scan (voxel units of the store, the
         same checks, cuts and drops), and the drops by reason; the map is not changed
         (an empty map's origin is not set). ``Rays.source`` indexes the input points."""
-        rays, _, dropped = self._place(points, origins, no_return, set_origin=False)
+        rays, _, dropped = self._place(
+            points, origins, no_return, set_origin=False, continued=continued
+        )
         return rays, dropped
 
     def _place(
@@ -343,6 +363,7 @@ class Mapper:
         no_return: ArrayLike | None,
         set_origin: bool,
         at: FloatArray | None = None,
+        continued: ArrayLike | None = None,
     ) -> tuple[Rays, FloatArray, dict[str, int]]:
         """The rays in voxel units of the store (``at``: of a map with that origin, when
         the map has none yet), the points as float64 and the drops by reason."""
@@ -363,7 +384,12 @@ class Mapper:
         flags = None if no_return is None else np.asarray(no_return, dtype=np.bool_)
         if flags is not None and flags.shape != (pts.shape[0],):
             raise ValueError(f"no_return must have shape ({pts.shape[0]},), got {flags.shape}")
-        rays, dropped = prepare_rays(pts_rel, org, self.resolution, self.min_range, reach, flags)
+        later = None if continued is None else np.asarray(continued, dtype=np.bool_)
+        if later is not None and later.shape != (pts.shape[0],):
+            raise ValueError(f"continued must have shape ({pts.shape[0]},), got {later.shape}")
+        rays, dropped = prepare_rays(
+            pts_rel, org, self.resolution, self.min_range, reach, flags, later
+        )
         return rays, pts, dropped
 
     def store_view(self) -> tuple[StoreView, int]:
@@ -706,8 +732,13 @@ def _check_settings(
 
 
 def _mean_origin(rays: Rays) -> FloatArray:
-    """The rays' mean origin in voxel units (einsum: 0.3 ms for 107 k rays, where
+    """The rays' mean sensor position in voxel units (the origins of rays that continue a
+    shot past an echo left out; einsum: 0.3 ms for 107 k rays, where
     ``mean(axis=0)`` takes 1.6 ms)."""
+    if rays.continued is not None and rays.continued.any():
+        from_sensor = rays.origins_vox[~rays.continued]
+        if len(from_sensor):
+            return np.einsum("ij->j", from_sensor) / len(from_sensor)
     return np.einsum("ij->j", rays.origins_vox) / len(rays)
 
 

@@ -177,8 +177,9 @@ class ScanLoop:
         """A prepared cloud's rays in the map frame at its poses (de-skew, extrinsic, height
         band); raises ``ScanDropped`` (``no_poses``, ``too_new``, ``too_old``, ``gap``,
         ``empty``). A caller may move the placed rays (pose refinement) before ``commit``."""
-        placed = pipeline.place_scan(
-            prepared.cloud, prepared.stamp, poses, extrinsic, self.placement
+        placed = pipeline.echo_rays(
+            pipeline.place_scan(prepared.cloud, prepared.stamp, poses, extrinsic, self.placement),
+            self.sensor_model,
         )
         if self.on_placed is not None:
             self.on_placed(placed.stamp, placed.points, placed.origins)
@@ -233,7 +234,10 @@ def integrate_scan(mapper: Mapper, placed: PlacedScan) -> IntegrationSummary:
     (the map is then unchanged; the drop carries the placed scan's and the core's point
     drops; on success ``ScanCounts.add`` counts both)."""
     return require_rays(
-        mapper.integrate(placed.points, placed.origins, placed.stamp, placed.no_return), placed
+        mapper.integrate(
+            placed.points, placed.origins, placed.stamp, placed.no_return, placed.continued
+        ),
+        placed,
     )
 
 
@@ -245,7 +249,9 @@ def merge_scan(
 ) -> IntegrationSummary:
     """``integrate_scan`` in two steps: walked without any lock (``Mapper.stage``), merged
     under ``merge_lock`` (``Mapper.commit``, ``pause`` between chunks)."""
-    staged = mapper.stage(placed.points, placed.origins, placed.stamp, placed.no_return)
+    staged = mapper.stage(
+        placed.points, placed.origins, placed.stamp, placed.no_return, placed.continued
+    )
     require_rays(staged.summary, placed)
     with merge_lock:
         return mapper.commit(staged, pause=pause)

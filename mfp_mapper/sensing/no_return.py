@@ -114,8 +114,17 @@ def with_no_return_rays(cloud: ParsedCloud, no_return_range: float) -> tuple[Par
         cell=None,
         ring=None,
         no_return=flags,
+        shot=_with_new_shots(cloud.shot, count),
     )
     return extended, found
+
+
+def _with_new_shots(shot: NDArray[np.int64] | None, count: int) -> NDArray[np.int64] | None:
+    """``shot`` and ``count`` new shots of one ray each (the recovered firings)."""
+    if shot is None:
+        return None
+    first = int(shot.max(initial=-1)) + 1
+    return np.concatenate([shot, np.arange(first, first + count, dtype=np.int64)])
 
 
 def _organized(cloud: ParsedCloud, height: int, width: int) -> Recovery:

@@ -20,13 +20,14 @@ A drop is a ``ScanDropped`` exception carrying its ``reason``; point-level losse
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from mfp_mapper.config.sections import PlacementSection
+from mfp_mapper.config.sections import PlacementSection, SensorModelSection
+from mfp_mapper.sensing import echoes
 from mfp_mapper.sensing.deskew import PoseSource, cloud_to_map
 from mfp_mapper.sensing.no_return import with_no_return_rays
 from mfp_mapper.sensing.pointcloud import (
@@ -95,6 +96,11 @@ class PlacedScan:
     points_dropped: dict[str, int] = field(default_factory=dict)
     no_return: NDArray[np.bool_] | None = None
     """Rays that end without a return (recovered firings), or None."""
+    shot: NDArray[np.int64] | None = None
+    """Which laser shot each ray belongs to (``ParsedCloud.shot``; after ``echo_rays``: a
+    dense index 0, 1, ...), or None: every ray its own shot."""
+    continued: NDArray[np.bool_] | None = None
+    """Rays that continue their shot past an earlier echo (``echo_rays``), or None."""
 
 
 def parse_scan(msg: Any) -> ParsedCloud:
@@ -162,11 +168,12 @@ def place_scan(
     hi = tuple(getattr(settings, f"point_cloud_max_{a}") for a in "xyz")
     keep, outside = band_mask(points, lo, hi)
     dropped.update({k: v for k, v in outside.items() if v})
-    flags = cloud.no_return
+    flags, shot = cloud.no_return, cloud.shot
     if keep is not None:
         points = points[keep]
         origins = origins[keep] if origins.ndim == 2 else origins
         flags = flags[keep] if flags is not None else None
+        shot = shot[keep] if shot is not None else None
     if points.shape[0] == 0:
         bounds = ", ".join(f"{a} [{lo[k]}, {hi[k]}]" for k, a in enumerate("xyz"))
         raise ScanDropped(
@@ -175,7 +182,40 @@ def place_scan(
             points_dropped=dropped,
         )
     deskewed = bool(settings.deskew and cloud.time_offset is not None)
-    return PlacedScan(stamp, points, origins, deskewed, dropped, flags)
+    return PlacedScan(stamp, points, origins, deskewed, dropped, flags, shot)
+
+
+def echo_rays(placed: PlacedScan, settings: SensorModelSection) -> PlacedScan:
+    """A placed scan whose points carry shots (``shot``) as the core's rays, one per echo
+    (``echoes.shot_segments``: a shot's later echoes continue its ray past the blind
+    stretch; only the first echoes with ``first_echo_only``); unchanged without shots.
+    Raises ScanDropped ``empty`` when no ray is left."""
+    if placed.shot is None:
+        return placed
+    seg = echoes.shot_segments(
+        placed.points,
+        placed.origins,
+        placed.shot,
+        placed.no_return,
+        settings.echo_blind_stretch,
+        settings.core("max_range"),
+        settings.min_range,
+        settings.first_echo_only,
+    )
+    dropped = dict(placed.points_dropped)
+    for reason, count in seg.dropped.items():
+        dropped[reason] = dropped.get(reason, 0) + count
+    if seg.points.shape[0] == 0:
+        raise ScanDropped("empty", "no echo of any shot is usable", points_dropped=dropped)
+    return replace(
+        placed,
+        points=seg.points,
+        origins=seg.origins,
+        points_dropped=dropped,
+        no_return=seg.no_return,
+        shot=seg.shot,
+        continued=seg.continued if seg.continued.any() else None,
+    )
 
 
 def band_mask(
