@@ -278,6 +278,12 @@ class PlacementSection(Section):
         applies="both",
         flag="--max-z",
     )
+    second_return_topic: str = setting(
+        "",
+        "Topic of a second cloud holding the second returns of the clouds on cloud_in, in the "
+        "same pixel layout and with the same stamps (ouster-ros 'points2'); each pair is "
+        "integrated as one cloud, the two returns of a pixel as one shot. Empty: off.",
+    )
     cloud_queue_size: int = setting(
         5,
         "Clouds waiting for integration; when full the oldest is dropped (counted).",

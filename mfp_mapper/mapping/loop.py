@@ -152,11 +152,15 @@ class ScanLoop:
     # --- the two halves ------------------------------------------------------------------
 
     def prepare(self, msg: Any) -> PreparedScan:
-        """Parse a PointCloud2 (any object with its attributes), add its no-return rays and
-        count its points; raises ``ScanDropped`` (``malformed``, ``empty``)."""
-        cloud, note = pipeline.add_no_return_rays(
-            pipeline.parse_scan(msg), self.sensor_model.no_return_range
-        )
+        """Parse a PointCloud2 (any object with its attributes) or a ``ReturnPair``, add its
+        no-return rays and count its points; raises ``ScanDropped`` (``malformed``,
+        ``empty``)."""
+        if isinstance(msg, pipeline.ReturnPair):
+            cloud, note = pipeline.parse_pair(msg, self.sensor_model.no_return_range)
+        else:
+            cloud, note = pipeline.add_no_return_rays(
+                pipeline.parse_scan(msg), self.sensor_model.no_return_range
+            )
         stamp = pipeline.scan_stamp(msg)
         with self.counts_lock:
             self.counts.points_in += cloud.points_in

@@ -6,7 +6,7 @@ Shots (``ParsedCloud.shot``: points with equal values are echoes of one shot):
 - Nebula (Autoware): ``return_type`` beside ``channel`` and ``azimuth``: a shot is one
   (channel, azimuth) pair (``nebula_shots``);
 - ouster-ros: the second return is a second cloud (``points2``) of the same pixel layout: a
-  shot is one pixel of the two clouds of one stamp (``with_second_return``);
+  shot is one pixel of the two clouds of one stamp (``pipeline.with_second_return``);
 - Livox (livox_ros_driver2): the return number in bits 4-5 of ``tag``: a shot is one
   (``line``, time) pair of a multi-return cloud (``livox_shots``);
 - terrestrial scanner exports (RIEGL, rTLS): ``target_index`` / ``target_count``: echo k of
@@ -64,7 +64,9 @@ def dense_ids(*keys: NDArray[np.generic]) -> NDArray[np.int64]:
 def nebula_shots(channel: NDArray[np.generic], azimuth: NDArray[np.generic]) -> NDArray[np.int64]:
     """Shots of a Nebula cloud: one per (``channel``, ``azimuth``) (the returns of a
     dual-return firing share both)."""
-    bits = np.ascontiguousarray(azimuth).view(np.uint32 if azimuth.dtype.itemsize == 4 else np.uint64)
+    bits = np.ascontiguousarray(azimuth).view(
+        np.uint32 if azimuth.dtype.itemsize == 4 else np.uint64
+    )
     return dense_ids(channel, bits)
 
 

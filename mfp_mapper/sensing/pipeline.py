@@ -103,6 +103,86 @@ class PlacedScan:
     """Rays that continue their shot past an earlier echo (``echo_rays``), or None."""
 
 
+@dataclass(frozen=True)
+class ReturnPair:
+    """A cloud of first returns and the cloud of the second returns of the same firings
+    (ouster-ros ``points`` and ``points2``: same stamp, same pixel layout), mapped as one
+    cloud (``parse_pair``). Its header is the first cloud's."""
+
+    first: Any
+    second: Any
+
+    @property
+    def header(self) -> Any:
+        return self.first.header
+
+
+def parse_pair(pair: ReturnPair, no_return_range: float) -> tuple[ParsedCloud, str]:
+    """The points of both clouds of ``pair`` as one cloud whose shots are the pixels (the
+    first cloud's no-return firings recovered first, see ``add_no_return_rays``); raises
+    ScanDropped ``malformed`` (either cloud, or layouts that differ) or ``empty``."""
+    first = parse_scan(pair.first)
+    if first.shot is None:
+        first.shot = pixel_shots(first)
+    first, note = add_no_return_rays(first, no_return_range)
+    try:
+        second = parse_pointcloud2(pair.second)
+    except CloudFormatError as err:
+        raise ScanDropped("malformed", f"second-return cloud: {err}") from None
+    if second.grid_shape != (int(pair.first.height), int(pair.first.width)):
+        raise ScanDropped(
+            "malformed",
+            f"second-return cloud of {second.grid_shape[0]} x {second.grid_shape[1]} points "
+            f"for a first-return cloud of {pair.first.height} x {pair.first.width}: the two "
+            "returns of a pixel must be at the same place of both clouds",
+            first.points_in,
+            first.dropped,
+        )
+    return with_second_return(first, second), note
+
+
+def pixel_shots(cloud: ParsedCloud) -> NDArray[np.int64]:
+    """Shots of an organized cloud's points: their pixels (row * width + column)."""
+    return (
+        np.arange(len(cloud), dtype=np.int64) if cloud.cell is None else cloud.cell.astype(np.int64)
+    )
+
+
+def with_second_return(first: ParsedCloud, second: ParsedCloud) -> ParsedCloud:
+    """One cloud of ``first`` (its ``shot`` set: pixels, and maybe recovered no-return
+    firings) and ``second``, a cloud of the second returns in the same pixel layout
+    (ouster-ros ``points2``): a point of ``second`` joins the shot of its pixel. Per-point
+    times and intensities are kept when both clouds have them."""
+    assert first.shot is not None
+    shot = np.concatenate([first.shot, pixel_shots(second)])
+    both = len(first) + len(second)
+
+    def joined(a: NDArray[Any] | None, b: NDArray[Any] | None) -> NDArray[Any] | None:
+        return None if a is None or b is None else np.concatenate([a, b])
+
+    flags = None
+    if first.no_return is not None:
+        flags = np.concatenate([first.no_return, np.zeros(len(second), dtype=np.bool_)])
+    dropped = dict(first.dropped)
+    for reason, count in second.dropped.items():
+        dropped[reason] = dropped.get(reason, 0) + count
+    return replace(
+        first,
+        xyz=np.concatenate([first.xyz, second.xyz]),
+        time_offset=joined(first.time_offset, second.time_offset),
+        intensity=joined(first.intensity, second.intensity),
+        points_in=first.points_in + second.points_in,
+        dropped=dropped,
+        grid_shape=(1, both),
+        cell=None,
+        ring=None,
+        no_return=flags,
+        bad_times=first.bad_times + second.bad_times,
+        shot=shot,
+        echo_field="second_return",
+    )
+
+
 def parse_scan(msg: Any) -> ParsedCloud:
     """The valid points of a PointCloud2; ScanDropped ``malformed`` or ``empty``."""
     try:

@@ -221,7 +221,9 @@ def _read_shots(cloud: ParsedCloud, records: NDArray[np.void]) -> None:
         tag = column("tag")
         assert tag is not None
         time_name = next((n for n in TIME_FIELDS if n in names), None)
-        shot = echoes.livox_shots(tag, column("line"), None if time_name is None else column(time_name))
+        shot = echoes.livox_shots(
+            tag, column("line"), None if time_name is None else column(time_name)
+        )
         if shot is not None:
             cloud.shot, cloud.echo_field = shot, "tag"
 

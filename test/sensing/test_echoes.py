@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from core.test_traversal import brute_force_chords, map_chords
 
 from mfp_mapper import Mapper
 from mfp_mapper.sensing.echoes import (
@@ -19,7 +20,6 @@ from mfp_mapper.sensing.echoes import (
 )
 from mfp_mapper.sensing.pointcloud import parse_pointcloud2
 from mfp_mapper.sources.scan_files import cloud_message_from_columns
-from core.test_traversal import brute_force_chords, map_chords
 
 RES = 0.2
 
