@@ -68,7 +68,7 @@ from mfp_mapper.config.param_file import ParamFileError, read_sections
 from mfp_mapper.config.schema import SPECS, NodeConfig
 from mfp_mapper.core.mapper import Mapper, compile_kernels, mapper_kwargs
 from mfp_mapper.mapping.live import LiveIntegrator, LiveSettings
-from mfp_mapper.mapping.return_pairs import ReturnPairer
+from mfp_mapper.mapping.return_pairs import PAIR_TIMEOUT, ReturnPairer
 from mfp_mapper.ros.guarded_node import GuardedLifecycleNode, tracked
 from mfp_mapper.ros.localization import Localization
 from mfp_mapper.ros.map_files import MapFiles
@@ -318,6 +318,10 @@ class MfpMapperNode(GuardedLifecycleNode):
                     event_callbacks=SubscriptionEventCallbacks(message_lost=self._on_clouds_lost),
                 )
             )
+            wall = Clock(clock_type=ClockType.STEADY_TIME)
+            self._active.append(
+                self.create_timer(PAIR_TIMEOUT / 4.0, self._on_pair_timer, clock=wall)
+            )
         odom_qos = QoSProfile(
             history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.BEST_EFFORT
         )
@@ -459,6 +463,14 @@ class MfpMapperNode(GuardedLifecycleNode):
         pairer = self._pairer
         for ready in [msg] if pairer is None else pairer.first(msg):
             self.worker.submit(ready)
+
+    @tracked
+    def _on_pair_timer(self) -> None:
+        """First-return clouds whose second never came are mapped alone."""
+        pairer = self._pairer
+        if pairer is not None:
+            for ready in pairer.expired():
+                self.worker.submit(ready)
 
     @tracked
     def _on_second_return(self, msg: PointCloud2) -> None:

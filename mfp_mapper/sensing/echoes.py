@@ -121,13 +121,14 @@ class Segments:
 
     points: FloatArray
     origins: FloatArray
-    """(N, 3): the sensor for a shot's first echo, else where the blind stretch after the
-    echo before it ends (the echo itself when it lies inside that stretch)."""
+    """(3,) the sensor, when every ray starts there, or (N, 3): the sensor for a shot's
+    first echo, else where the blind stretch after the echo before it ends (the echo itself
+    when it lies inside that stretch)."""
     no_return: NDArray[np.bool_] | None
     continued: NDArray[np.bool_]
     """Rays that continue a shot past an earlier echo (``Mapper.integrate``'s flag)."""
     shot: NDArray[np.int64]
-    """Dense shot index of each ray (0, 1, ... in the order of the shots' first rays)."""
+    """The shot of each ray (its id in the input)."""
     order: NDArray[np.intp]
     """Index of each ray's input point."""
     dropped: dict[str, int] = field(default_factory=dict)
@@ -144,34 +145,40 @@ def shot_segments(
     first_only: bool = False,
 ) -> Segments:
     """The rays of a scan whose points (map frame, seen from ``origins`` (3,) or (N, 3)) are
-    echoes grouped by ``shot`` (-1: an echo of an unknown shot, dropped as
+    echoes grouped by ``shot`` (ids >= 0; -1: an echo of an unknown shot, dropped as
     ``echo_without_first``).
 
-    Per shot, nearest first: echoes closer than ``min_range`` are dropped
-    (``below_min_range``), an echo within ``IDENTICAL_RANGE`` of the one before is the same
-    echo twice (``identical_return``); the first echo is a ray from the sensor, each later
-    one a ray from ``blind_stretch`` m past the echo before (``continued``). Past
-    ``max_range`` from the sensor a later echo's ray is cut there with no return, and the
-    echoes after it are dropped (``beyond_max_range``; a first echo is cut by the core).
-    ``first_only``: only the first echo of each shot (``later_echo``: the others).
+    A shot of one echo is a ray from the sensor, as without shots (in the input order, so
+    the walk keeps its locality). The echoes of a shot of several, nearest first: echoes
+    closer than ``min_range`` are dropped (``below_min_range``), an echo within
+    ``IDENTICAL_RANGE`` of the one before is the same echo twice (``identical_return``);
+    the first echo is a ray from the sensor, each later one a ray from ``blind_stretch`` m
+    past the echo before (``continued``). Past ``max_range`` from the sensor a later echo's
+    ray is cut there with no return, and the echoes after it are dropped
+    (``beyond_max_range``; a first echo is cut by the core). ``first_only``: only the first
+    echo of each shot (``later_echo``: the others). The rays of shots of several echoes
+    follow the others.
     """
     count = points.shape[0]
+    known = shot >= 0
+    dropped = {"echo_without_first": int(count - known.sum())}
+    echoes_of = np.bincount(shot[known])
+    several = known.copy()
+    several[known] = echoes_of[shot[known]] > 1
+    single = np.flatnonzero(known & ~several)
+    group = np.flatnonzero(several)
     org = np.broadcast_to(origins, (count, 3)) if origins.ndim == 1 else origins
-    offset = points - org
-    rng = np.sqrt(np.einsum("ij,ij->i", offset, offset))
     flags = np.zeros(count, dtype=np.bool_) if no_return is None else no_return
-    keep = shot >= 0
-    dropped = {"echo_without_first": int(count - keep.sum())}
-    near = keep & (rng < min_range)
+    offset = points[group] - org[group]
+    rng = np.sqrt(np.einsum("ij,ij->i", offset, offset))
+    near = rng < min_range
     dropped["below_min_range"] = int(near.sum())
-    keep &= ~near
-    order = np.flatnonzero(keep)
-    order = order[np.lexsort((rng[order], shot[order]))]
-    sid, r = shot[order], rng[order]
-    same = np.zeros(order.size, dtype=np.bool_)
-    same[1:] = sid[1:] == sid[:-1]
-    twice = same.copy()
-    twice[1:] &= (r[1:] - r[:-1]) < IDENTICAL_RANGE
+    group, rng = group[~near], rng[~near]
+    by_shot = np.lexsort((rng, shot[group]))
+    order, r = group[by_shot], rng[by_shot]
+    sid = shot[order]
+    twice = np.zeros(order.size, dtype=np.bool_)
+    twice[1:] = (sid[1:] == sid[:-1]) & ((r[1:] - r[:-1]) < IDENTICAL_RANGE)
     dropped["identical_return"] = int(twice.sum())
     order, sid, r = order[~twice], sid[~twice], r[~twice]
     later = np.zeros(order.size, dtype=np.bool_)
@@ -189,9 +196,9 @@ def shot_segments(
     gone = later & (beyond_run | (start >= max_range))
     dropped["beyond_max_range"] = int(gone.sum())
     order, r, start, later, sid = (a[~gone] for a in (order, r, start, later, sid))
-    ends = points[order].copy()
+    ends = points[order]
     ray_origin = org[order].copy()
-    out_flags = flags[order].copy()
+    out_flags = flags[order]
     unit = (ends - ray_origin) / np.where(r > 0, r, 1.0)[:, None]
     cut = later & (r > max_range)
     ends[cut] = ray_origin[cut] + unit[cut] * max_range
@@ -200,15 +207,27 @@ def shot_segments(
     moved = later & ~inside
     ray_origin[moved] = ray_origin[moved] + unit[moved] * start[moved, None]
     ray_origin[inside] = ends[inside]
-    new_shot = np.ones(order.size, dtype=np.bool_)
-    new_shot[1:] = sid[1:] != sid[:-1]
-    dense = np.cumsum(new_shot) - 1
+    dropped = {k: v for k, v in dropped.items() if v}
+    if not later.any() and (origins.ndim == 1 or single.size == 0):
+        # no ray continues a shot: the rays as without shots (one origin when there is one)
+        every = np.concatenate([single, order])
+        out_origins = origins if origins.ndim == 1 else origins[every]
+        any_flag = no_return is not None or cut.any()
+        return Segments(
+            points[every],
+            out_origins,
+            np.concatenate([flags[single], out_flags]) if any_flag else None,
+            np.zeros(every.size, dtype=np.bool_),
+            shot[every],
+            every,
+            dropped,
+        )
     return Segments(
-        ends,
-        ray_origin,
-        out_flags if no_return is not None or cut.any() else None,
-        later,
-        dense.astype(np.int64),
-        order,
-        {k: v for k, v in dropped.items() if v},
+        np.concatenate([points[single], ends]),
+        np.concatenate([org[single], ray_origin]),
+        np.concatenate([flags[single], out_flags]) if no_return is not None or cut.any() else None,
+        np.concatenate([np.zeros(single.size, dtype=np.bool_), later]),
+        np.concatenate([shot[single], sid]),
+        np.concatenate([single, order]),
+        dropped,
     )

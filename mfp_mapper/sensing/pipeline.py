@@ -97,8 +97,8 @@ class PlacedScan:
     no_return: NDArray[np.bool_] | None = None
     """Rays that end without a return (recovered firings), or None."""
     shot: NDArray[np.int64] | None = None
-    """Which laser shot each ray belongs to (``ParsedCloud.shot``; after ``echo_rays``: a
-    dense index 0, 1, ...), or None: every ray its own shot."""
+    """Which laser shot each ray belongs to (``ParsedCloud.shot``: ids >= 0 after
+    ``echo_rays``, which drops the -1), or None: every ray its own shot."""
     continued: NDArray[np.bool_] | None = None
     """Rays that continue their shot past an earlier echo (``echo_rays``), or None."""
 

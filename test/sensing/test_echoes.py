@@ -91,11 +91,12 @@ def test_identical_returns_are_one_echo_and_first_only_keeps_the_nearest() -> No
     ids = np.array([1, 1, 1, 1, 2])
     seg = shot_segments(points, sensor, ids, None, 0.5)
     assert seg.dropped == {"identical_return": 2}
-    assert seg.continued.tolist() == [False, True, False]
-    assert np.allclose(seg.origins[1], u * 5.5)
+    assert seg.continued.tolist() == [False, False, True]  # single-echo shots first
+    assert np.allclose(seg.points, [u * 3.0, u * 5.0, u * 7.0])
+    assert np.allclose(seg.origins[2], u * 5.5)
     first = shot_segments(points, sensor, ids, None, 0.5, first_only=True)
     assert first.dropped == {"identical_return": 2, "later_echo": 1}
-    assert np.allclose(first.points, [u * 5.0, u * 3.0])
+    assert np.allclose(first.points, [u * 3.0, u * 5.0])
     assert not first.continued.any()
 
 
@@ -171,3 +172,58 @@ def test_target_index_joins_echoes_seen_in_one_direction() -> None:
     cloud = parse_pointcloud2(msg)
     assert cloud.echo_field == "target_index"
     assert cloud.shot is not None and cloud.shot.tolist() == shot.tolist()
+
+
+def _simulated_shots(
+    rate: float, blind: float, max_echoes: int, wall: float, shots: int, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """A sensor at the origin in a medium of extinction ``rate`` (1/m) closed by a wall at
+    ``wall`` m: each shot's echoes are a Poisson process along its beam (exponential free
+    paths), the sensor blind for ``blind`` m after each echo, at most ``max_echoes`` echoes
+    (the wall returns the beam when it gets there). Echo points and their shot ids."""
+    rng = np.random.default_rng(seed)
+    dirs = rng.normal(size=(shots, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    pos = np.zeros(shots)
+    alive = np.ones(shots, dtype=bool)
+    points, ids = [], []
+    for _ in range(max_echoes):
+        pos = pos + rng.exponential(1.0 / rate, shots)
+        at_wall = alive & (pos >= wall)
+        echo = alive & ~at_wall
+        for mask, r in ((echo, pos), (at_wall, np.full(shots, wall))):
+            points.append(dirs[mask] * r[mask, None])
+            ids.append(np.flatnonzero(mask))
+        alive &= ~at_wall
+        pos = pos + blind
+    return np.concatenate(points), np.concatenate(ids).astype(np.int64)
+
+
+def _pooled_rate(mapper: Mapper, inner: float, outer: float) -> float:
+    """sum n / sum s over the voxels wholly inside the medium between ``inner`` and
+    ``outer`` metres of the sensor."""
+    vox = mapper.voxels()
+    half = mapper.resolution * np.sqrt(3.0) / 2.0
+    dist = np.linalg.norm(vox.centers, axis=1)
+    inside = (dist - half > inner) & (dist + half < outer)
+    return float(vox.n[inside].sum() / vox.s[inside].sum())
+
+
+def test_simulated_medium_all_echoes_recover_the_extinction_independent_rays_do_not() -> None:
+    rate, blind, wall = 0.4, 0.75, 10.0
+    points, ids = _simulated_shots(rate, blind, 4, wall, 12_000)
+    assert np.bincount(np.bincount(ids))[2:].sum() > 5_000  # many shots with several echoes
+    seg = shot_segments(points, np.zeros(3), ids, None, blind)
+    shots = Mapper(0.5, max_range=100.0)
+    shots.integrate(seg.points, seg.origins, 0.0, seg.no_return, seg.continued)
+    independent = Mapper(0.5, max_range=100.0)
+    independent.integrate(points, np.zeros(3), 0.0)  # each echo a ray from the sensor
+    one_process = _pooled_rate(shots, 1.0, wall - 0.5)
+    as_rays = _pooled_rate(independent, 1.0, wall - 0.5)
+    assert one_process == pytest.approx(rate, rel=0.03)
+    assert abs(as_rays / rate - 1.0) > 0.15  # double-counted free space: biased low
+    assert as_rays < rate
+    no_blind = shot_segments(points, np.zeros(3), ids, None, 0.0)
+    unaware = Mapper(0.5, max_range=100.0)
+    unaware.integrate(no_blind.points, no_blind.origins, 0.0, None, no_blind.continued)
+    assert _pooled_rate(unaware, 1.0, wall - 0.5) < 0.9 * rate  # the blind stretch counted
