@@ -197,10 +197,34 @@ def parse_pointcloud2(msg: Any, header_stamp: float | None = None) -> ParsedClou
     return cloud
 
 
+def _drop_identical(cloud: ParsedCloud) -> None:
+    """Remove the points equal to the one before them on their beam
+    (``echoes.identical_points``: a dual-return driver without a return field), counted as
+    ``identical_return``."""
+    assert cloud.ring is not None
+    twice = echoes.identical_points(cloud.xyz, cloud.ring)
+    if twice.size == 0:
+        return
+    keep = np.ones(len(cloud), dtype=np.bool_)
+    keep[twice] = False
+    cells = np.arange(len(cloud)) if cloud.cell is None else cloud.cell
+    cloud.xyz = cloud.xyz[keep]
+    for name in ("time_offset", "intensity", "ring", "no_return"):
+        values = getattr(cloud, name)
+        if values is not None:
+            setattr(cloud, name, values[keep])
+    cloud.cell = cells[keep]
+    cloud.dropped = {**cloud.dropped, "identical_return": int(twice.size)}
+
+
 def _read_shots(cloud: ParsedCloud, records: NDArray[np.void]) -> None:
     """Set ``cloud.shot`` from the echo fields of the kept points (``ECHO_FIELDS``)."""
     names = records.dtype.names or ()
-    if not any(n in names for n in ECHO_FIELDS) or len(cloud) == 0:
+    if len(cloud) == 0:
+        return
+    if not any(n in names for n in ECHO_FIELDS):
+        if cloud.ring is not None and records.shape[0] == 1:
+            _drop_identical(cloud)
         return
 
     def column(name: str) -> NDArray[Any] | None:

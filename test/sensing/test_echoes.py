@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 from collections import defaultdict
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -227,3 +228,41 @@ def test_simulated_medium_all_echoes_recover_the_extinction_independent_rays_do_
     unaware = Mapper(0.5, max_range=100.0)
     unaware.integrate(no_blind.points, no_blind.origins, 0.0, None, no_blind.continued)
     assert _pooled_rate(unaware, 1.0, wall - 0.5) < 0.9 * rate  # the blind stretch counted
+
+
+def test_a_real_nebula_dual_return_frame_groups_firings_into_shots(shared_data: Path) -> None:
+    """Nebula's VLP-16 frame (dual return: types 4, 5, 6, 9, 10): the echoes of a shot lie
+    on one beam, its identical returns are removed, its later echoes lie behind."""
+    from mfp_mapper.sources.scan_files import read_pcd
+
+    cols = read_pcd(shared_data / "nebula_frames" / "velodyne_vlp16_1673400472138016708.pcd")
+    cloud = parse_pointcloud2(cloud_message_from_columns(cols))
+    assert cloud.echo_field == "return_type" and cloud.shot is not None
+    seg = shot_segments(cloud.xyz, np.zeros(3), cloud.shot, None, 0.75)
+    assert seg.dropped["identical_return"] >= 100
+    later = np.flatnonzero(seg.continued)
+    assert later.size > 1000
+    unit = cloud.xyz / np.linalg.norm(cloud.xyz, axis=1, keepdims=True)
+    for k in later:  # each later echo's shot: the same beam, the echo before it nearer
+        mine = seg.order[seg.shot == seg.shot[k]]
+        assert np.all(unit[mine] @ unit[seg.order[k]] > np.cos(np.radians(0.01)))
+        assert np.linalg.norm(seg.points[k]) > np.linalg.norm(seg.origins[k]) - 1e-9
+
+
+def test_identical_blocks_of_a_driver_without_a_return_field_are_removed() -> None:
+    """ros-drivers/velodyne, Hesai's driver: the two blocks of a dual-return firing are
+    published next to each other, identical when one return was seen."""
+    rng = np.random.default_rng(1)
+    xyz = rng.normal(size=(64, 3)).astype(np.float32) * 5
+    ring = np.tile(np.arange(16, dtype=np.uint16), 4)
+    second = xyz.copy()
+    second[::3] *= 1.5  # a real second return where the beam saw two
+    # per firing (16 beams), its first block then its second block
+    blocks = [a[16 * f : 16 * f + 16] for f in range(4) for a in (xyz, second)]
+    both = np.concatenate(blocks)
+    cols = {"x": both[:, 0], "y": both[:, 1], "z": both[:, 2], "ring": np.tile(ring[:16], 8)}
+    cloud = parse_pointcloud2(cloud_message_from_columns(cols))
+    twice = 64 - len(range(0, 64, 3))
+    assert cloud.dropped["identical_return"] == twice
+    assert len(cloud) == 128 - twice
+    assert cloud.cell is not None and cloud.ring is not None and len(cloud.ring) == len(cloud)
