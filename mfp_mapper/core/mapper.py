@@ -735,11 +735,13 @@ def _mean_origin(rays: Rays) -> FloatArray:
     """The rays' mean sensor position in voxel units (the origins of rays that continue a
     shot past an echo left out; einsum: 0.3 ms for 107 k rays, where
     ``mean(axis=0)`` takes 1.6 ms)."""
-    if rays.continued is not None and rays.continued.any():
-        from_sensor = rays.origins_vox[~rays.continued]
-        if len(from_sensor):
-            return np.einsum("ij->j", from_sensor) / len(from_sensor)
-    return np.einsum("ij->j", rays.origins_vox) / len(rays)
+    total = np.einsum("ij->j", rays.origins_vox)
+    if rays.continued is not None:
+        later = np.flatnonzero(rays.continued)
+        if 0 < later.size < len(rays):  # (a few: their sum is taken out)
+            total -= np.einsum("ij->j", rays.origins_vox[later])
+            return total / (len(rays) - later.size)
+    return total / len(rays)
 
 
 def compile_kernels(decay_time: float = math.inf) -> float:

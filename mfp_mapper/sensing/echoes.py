@@ -26,8 +26,10 @@ with no chord.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
+import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
@@ -171,86 +173,156 @@ def shot_segments(
     echoes grouped by ``shot`` (ids >= 0; -1: an echo of an unknown shot, dropped as
     ``echo_without_first``).
 
-    A shot of one echo is a ray from the sensor, as without shots (in the input order, so
-    the walk keeps its locality). The echoes of a shot of several, nearest first: echoes
-    closer than ``min_range`` are dropped (``below_min_range``), an echo within
-    ``IDENTICAL_RANGE`` of the one before is the same echo twice (``identical_return``);
-    the first echo is a ray from the sensor, each later one a ray from ``blind_stretch`` m
-    past the echo before (``continued``). Past ``max_range`` from the sensor a later echo's
-    ray is cut there with no return, and the echoes after it are dropped
-    (``beyond_max_range``; a first echo is cut by the core). ``first_only``: only the first
-    echo of each shot (``later_echo``: the others). The rays of shots of several echoes
-    follow the others.
+    A shot of one echo is a ray from the sensor, as without shots. The echoes of a shot of
+    several, nearest first: echoes closer than ``min_range`` are dropped
+    (``below_min_range``), an echo within ``IDENTICAL_RANGE`` of the one before is the same
+    echo twice (``identical_return``); the first echo is a ray from the sensor, each later
+    one a ray from ``blind_stretch`` m past the echo before (``continued``). Past
+    ``max_range`` from the sensor a later echo's ray is cut there with no return, and the
+    echoes after it are dropped (``beyond_max_range``; a first echo is cut by the core).
+    ``first_only``: only the first echo of each shot (``later_echo``: the others). The rays
+    are in the input order of their points (``order``): the walk keeps the cloud's
+    locality, a later echo's ray among the first echoes next to it.
     """
     count = points.shape[0]
-    known = shot >= 0
-    dropped = {"echo_without_first": int(count - known.sum())}
-    echoes_of = np.bincount(shot[known])
-    several = known.copy()
-    several[known] = echoes_of[shot[known]] > 1
-    single = np.flatnonzero(known & ~several)
-    group = np.flatnonzero(several)
-    org = np.broadcast_to(origins, (count, 3)) if origins.ndim == 1 else origins
-    flags = np.zeros(count, dtype=np.bool_) if no_return is None else no_return
-    offset = points[group] - org[group]
-    rng = np.sqrt(np.einsum("ij,ij->i", offset, offset))
-    near = rng < min_range
-    dropped["below_min_range"] = int(near.sum())
-    group, rng = group[~near], rng[~near]
-    by_shot = np.lexsort((rng, shot[group]))
-    order, r = group[by_shot], rng[by_shot]
-    sid = shot[order]
-    twice = np.zeros(order.size, dtype=np.bool_)
-    twice[1:] = (sid[1:] == sid[:-1]) & ((r[1:] - r[:-1]) < IDENTICAL_RANGE)
-    dropped["identical_return"] = int(twice.sum())
-    order, sid, r = order[~twice], sid[~twice], r[~twice]
-    later = np.zeros(order.size, dtype=np.bool_)
-    later[1:] = sid[1:] == sid[:-1]
-    if first_only:
-        dropped["later_echo"] = int(later.sum())
-        order, sid, r, later = order[~later], sid[~later], r[~later], later[~later]
-    start = np.zeros(order.size)
-    prev = np.flatnonzero(later) - 1
-    start[later] = np.minimum(r[prev] + blind_stretch, r[later])
-    prev_beyond = np.zeros(order.size, dtype=np.bool_)
-    prev_beyond[later] = r[prev] >= max_range
-    # echoes after one beyond max_range: the ray was cut there, the rest is unknown
-    beyond_run = np.maximum.accumulate(np.where(prev_beyond, sid, -1)) == sid
-    gone = later & (beyond_run | (start >= max_range))
-    dropped["beyond_max_range"] = int(gone.sum())
-    order, r, start, later, sid = (a[~gone] for a in (order, r, start, later, sid))
-    ends = points[order]
-    ray_origin = org[order].copy()
-    out_flags = flags[order]
-    unit = (ends - ray_origin) / np.where(r > 0, r, 1.0)[:, None]
-    cut = later & (r > max_range)
-    ends[cut] = ray_origin[cut] + unit[cut] * max_range
-    out_flags[cut] = True
-    inside = later & (start >= r)  # an echo inside the blind stretch: its return, no chord
-    moved = later & ~inside
-    ray_origin[moved] = ray_origin[moved] + unit[moved] * start[moved, None]
-    ray_origin[inside] = ends[inside]
-    dropped = {k: v for k, v in dropped.items() if v}
-    if not later.any() and (origins.ndim == 1 or single.size == 0):
-        # no ray continues a shot: the rays as without shots (one origin when there is one)
-        every = np.concatenate([single, order])
-        out_origins = origins if origins.ndim == 1 else origins[every]
-        any_flag = no_return is not None or cut.any()
-        return Segments(
-            points[every],
-            out_origins,
-            np.concatenate([flags[single], out_flags]) if any_flag else None,
-            np.zeros(every.size, dtype=np.bool_),
-            shot[every],
-            every,
-            dropped,
-        )
-    return Segments(
-        np.concatenate([points[single], ends]),
-        np.concatenate([org[single], ray_origin]),
-        np.concatenate([flags[single], out_flags]) if no_return is not None or cut.any() else None,
-        np.concatenate([np.zeros(single.size, dtype=np.bool_), later]),
-        np.concatenate([shot[single], sid]),
-        np.concatenate([single, order]),
-        dropped,
-    )
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    org = np.ascontiguousarray(np.atleast_2d(origins), dtype=np.float64)
+    ids = np.ascontiguousarray(shot, dtype=np.int64)
+    keep = np.empty(count, dtype=np.bool_)
+    continued = np.zeros(count, dtype=np.bool_)
+    starts = np.empty((count, 3))
+    cut = np.zeros(count, dtype=np.bool_)
+    cut_ends = np.empty((count, 3))
+    drops = np.zeros(len(_DROPS), dtype=np.int64)
+    _segment_shots(
+        pts, org, ids, int(ids.max(initial=-1)) + 1, float(blind_stretch), float(max_range),
+        float(min_range), bool(first_only), keep, continued, starts, cut, cut_ends, drops,
+    )  # fmt: skip
+    dropped = {name: int(v) for name, v in zip(_DROPS, drops, strict=True) if v}
+    every = not dropped
+    rows = np.arange(count) if every else np.flatnonzero(keep)
+    later = continued if every else continued[rows]
+    any_cut = bool(cut.any())
+    out_points = points if every and not any_cut else pts[rows]
+    if any_cut:
+        at = np.flatnonzero(cut if every else cut[rows])
+        out_points[at] = cut_ends[rows[at]]
+    out_no_return = None
+    if no_return is not None or any_cut:
+        flags = np.zeros(count, dtype=np.bool_) if no_return is None else no_return
+        out_no_return = flags[rows] | (cut if every else cut[rows])
+    if not later.any() and origins.ndim == 1:  # no ray continues a shot: one origin
+        out_origins = origins
+    else:
+        out_origins = np.empty((rows.size, 3))
+        out_origins[:] = origins if origins.ndim == 1 else origins[rows]
+        at = np.flatnonzero(later)
+        out_origins[at] = starts[rows[at]]
+    return Segments(out_points, out_origins, out_no_return, later, ids[rows], rows, dropped)
+
+
+_DROPS = (
+    "echo_without_first", "below_min_range", "identical_return", "later_echo",
+    "beyond_max_range",
+)  # fmt: skip
+"""The reasons ``shot_segments`` drops an echo, in the order of ``_segment_shots``' counts."""
+
+
+@nb.njit(cache=True, nogil=True)
+def _segment_shots(
+    points: FloatArray,
+    origins: FloatArray,
+    shot: NDArray[np.int64],
+    shots: int,
+    blind: float,
+    max_range: float,
+    min_range: float,
+    first_only: bool,
+    keep: NDArray[np.bool_],
+    continued: NDArray[np.bool_],
+    starts: FloatArray,
+    cut: NDArray[np.bool_],
+    cut_ends: FloatArray,
+    drops: NDArray[np.int64],
+) -> None:
+    """``shot_segments`` in two passes over the points and one over the shots of several
+    echoes (their members gathered by a counting sort, each shot's few echoes sorted by
+    range in place): ``keep``, ``continued`` and its ray's start, ``cut`` at ``max_range``
+    and the cut end, the drops by reason (``_DROPS``). Against the numpy version it
+    replaced (a lexsort of the grouped echoes, gathers of every point): 0.17 -> 0.0x s for
+    the 1.05 M echoes of tls_conifers."""
+    count = points.shape[0]
+    per_point = origins.shape[0] > 1
+    echoes = np.zeros(shots + 1, dtype=np.int64)
+    for i in range(count):
+        keep[i] = shot[i] >= 0
+        if keep[i]:
+            echoes[shot[i]] += 1
+        else:
+            drops[0] += 1
+    first = np.zeros(shots + 1, dtype=np.int64)
+    for k in range(shots):
+        first[k + 1] = first[k] + (echoes[k] if echoes[k] > 1 else 0)
+    members = np.empty(first[shots], dtype=np.int64)
+    fill = first.copy()
+    for i in range(count):
+        k = shot[i]
+        if k >= 0 and echoes[k] > 1:
+            members[fill[k]] = i
+            fill[k] += 1
+    ranges = np.empty(members.size)
+    for j in range(members.size):
+        i = members[j]
+        o = i if per_point else 0
+        dx = points[i, 0] - origins[o, 0]
+        dy = points[i, 1] - origins[o, 1]
+        dz = points[i, 2] - origins[o, 2]
+        ranges[j] = math.sqrt(dx * dx + dy * dy + dz * dz)
+    for k in range(shots):
+        lo, hi = first[k], first[k + 1]
+        for j in range(lo + 1, hi):  # insertion sort by range: a shot has a few echoes
+            m, r = members[j], ranges[j]
+            q = j - 1
+            while q >= lo and ranges[q] > r:
+                members[q + 1] = members[q]
+                ranges[q + 1] = ranges[q]
+                q -= 1
+            members[q + 1] = m
+            ranges[q + 1] = r
+        have = False
+        stopped = False
+        before = 0.0
+        for j in range(lo, hi):
+            i, r = members[j], ranges[j]
+            if r < min_range:
+                keep[i] = False
+                drops[1] += 1
+                continue
+            if not have:  # the first echo: a ray from the sensor
+                have = True
+                before = r
+                continue
+            if r - before < IDENTICAL_RANGE:
+                keep[i] = False
+                drops[2] += 1
+                continue
+            if first_only:
+                keep[i] = False
+                drops[3] += 1
+                continue
+            start = min(before + blind, r)
+            if stopped or before >= max_range or start >= max_range:
+                keep[i] = False
+                drops[4] += 1
+                stopped = True
+                continue
+            o = i if per_point else 0
+            continued[i] = True
+            for axis in range(3):
+                unit = (points[i, axis] - origins[o, axis]) / r
+                starts[i, axis] = origins[o, axis] + unit * start if start < r else points[i, axis]
+                cut_ends[i, axis] = origins[o, axis] + unit * max_range
+            if r > max_range:
+                cut[i] = True
+                stopped = True
+            before = r

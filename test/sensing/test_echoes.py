@@ -92,12 +92,13 @@ def test_identical_returns_are_one_echo_and_first_only_keeps_the_nearest() -> No
     ids = np.array([1, 1, 1, 1, 2])
     seg = shot_segments(points, sensor, ids, None, 0.5)
     assert seg.dropped == {"identical_return": 2}
-    assert seg.continued.tolist() == [False, False, True]  # single-echo shots first
-    assert np.allclose(seg.points, [u * 3.0, u * 5.0, u * 7.0])
-    assert np.allclose(seg.origins[2], u * 5.5)
+    assert seg.continued.tolist() == [False, True, False]  # the input order of the shots
+    assert np.allclose(seg.points, [u * 5.0, u * 7.0, u * 3.0])
+    assert seg.order.tolist() == [0, 3, 4]
+    assert np.allclose(seg.origins[1], u * 5.5)
     first = shot_segments(points, sensor, ids, None, 0.5, first_only=True)
     assert first.dropped == {"identical_return": 2, "later_echo": 1}
-    assert np.allclose(first.points, [u * 3.0, u * 5.0])
+    assert np.allclose(first.points, [u * 5.0, u * 3.0])
     assert not first.continued.any()
 
 
