@@ -104,7 +104,7 @@ def cost(path: Path, resolution: float, rounds: int, blind_m: float) -> None:
                 summary = mapper.integrate(first, np.zeros(3), 0.0)
             else:  # every echo: shots grouped into segments, then integrated
                 seg = shot_segments(xyz, np.zeros(3), shot, None, blind_m)
-                summary = mapper.integrate(seg.points, seg.origins, 0.0, None, seg.continued)
+                summary = mapper.integrate(seg.points, seg.origins, 0.0, continued=seg.continued)
             timings[name].append(time.perf_counter() - t0)
             rays[name] = summary.rays_used
     ratios = [a / f for a, f in zip(timings["all"], timings["first"], strict=True)]

@@ -96,6 +96,10 @@ class PlacedScan:
     points_dropped: dict[str, int] = field(default_factory=dict)
     no_return: NDArray[np.bool_] | None = None
     """Rays that end without a return (recovered firings), or None."""
+    intensity: NDArray[np.float32] | None = None
+    """Each ray's return intensity (``ParsedCloud.intensity``), or None."""
+    intensity_field: str | None = None
+    """The cloud field ``intensity`` came from (``ParsedCloud.intensity_field``)."""
     shot: NDArray[np.int64] | None = None
     """Which laser shot each ray belongs to (``ParsedCloud.shot``: ids >= 0 after
     ``echo_rays``, which drops the -1), or None: every ray its own shot."""
@@ -249,11 +253,13 @@ def place_scan(
     keep, outside = band_mask(points, lo, hi)
     dropped.update({k: v for k, v in outside.items() if v})
     flags, shot = cloud.no_return, cloud.shot
+    intensity = cloud.intensity
     if keep is not None:
         points = points[keep]
         origins = origins[keep] if origins.ndim == 2 else origins
         flags = flags[keep] if flags is not None else None
         shot = shot[keep] if shot is not None else None
+        intensity = intensity[keep] if intensity is not None else None
     if points.shape[0] == 0:
         bounds = ", ".join(f"{a} [{lo[k]}, {hi[k]}]" for k, a in enumerate("xyz"))
         raise ScanDropped(
@@ -262,7 +268,9 @@ def place_scan(
             points_dropped=dropped,
         )
     deskewed = bool(settings.deskew and cloud.time_offset is not None)
-    return PlacedScan(stamp, points, origins, deskewed, dropped, flags, shot)
+    return PlacedScan(
+        stamp, points, origins, deskewed, dropped, flags, intensity, cloud.intensity_field, shot
+    )
 
 
 def echo_rays(placed: PlacedScan, settings: SensorModelSection) -> PlacedScan:
@@ -293,6 +301,7 @@ def echo_rays(placed: PlacedScan, settings: SensorModelSection) -> PlacedScan:
         origins=seg.origins,
         points_dropped=dropped,
         no_return=seg.no_return,
+        intensity=None if placed.intensity is None else placed.intensity[seg.order],
         shot=seg.shot,
         continued=seg.continued if seg.continued.any() else None,
     )

@@ -72,7 +72,7 @@ def test_a_shot_is_one_process_along_its_beam_exactly(blind: float) -> None:
     points, ids, _ = _random_shots(rng, 60, sensor)
     seg = shot_segments(points, sensor, ids, None, blind, min_range=0.4)
     mapper = Mapper(RES, max_range=100.0, min_range=0.4)
-    summary = mapper.integrate(seg.points, seg.origins, 0.0, seg.no_return, seg.continued)
+    summary = mapper.integrate(seg.points, seg.origins, 0.0, seg.no_return, continued=seg.continued)
     assert summary.rays_used == len(points)  # later segments shorter than min_range kept
     s, n = map_chords(mapper)
     want_s, want_n = _brute_force(sensor, points, ids, blind)
@@ -217,7 +217,7 @@ def test_simulated_medium_all_echoes_recover_the_extinction_independent_rays_do_
     assert np.bincount(np.bincount(ids))[2:].sum() > 5_000  # many shots with several echoes
     seg = shot_segments(points, np.zeros(3), ids, None, blind)
     shots = Mapper(0.5, max_range=100.0)
-    shots.integrate(seg.points, seg.origins, 0.0, seg.no_return, seg.continued)
+    shots.integrate(seg.points, seg.origins, 0.0, seg.no_return, continued=seg.continued)
     independent = Mapper(0.5, max_range=100.0)
     independent.integrate(points, np.zeros(3), 0.0)  # each echo a ray from the sensor
     one_process = _pooled_rate(shots, 1.0, wall - 0.5)
@@ -227,7 +227,7 @@ def test_simulated_medium_all_echoes_recover_the_extinction_independent_rays_do_
     assert as_rays < rate
     no_blind = shot_segments(points, np.zeros(3), ids, None, 0.0)
     unaware = Mapper(0.5, max_range=100.0)
-    unaware.integrate(no_blind.points, no_blind.origins, 0.0, None, no_blind.continued)
+    unaware.integrate(no_blind.points, no_blind.origins, 0.0, continued=no_blind.continued)
     assert _pooled_rate(unaware, 1.0, wall - 0.5) < 0.9 * rate  # the blind stretch counted
 
 
