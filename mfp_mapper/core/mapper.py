@@ -539,12 +539,16 @@ class Mapper:
     def _origin_from(self, sensor_origins: FloatArray) -> FloatArray | None:
         """The origin a first scan gives the map: its first finite sensor position, rounded
         to a multiple of ``ORIGIN_QUANTUM_VOXELS`` voxels (None: no finite position)."""
-        finite = sensor_origins.reshape(-1, 3)
-        finite = finite[np.isfinite(finite).all(axis=1)]
-        if not len(finite):
-            return None
+        rows = sensor_origins.reshape(-1, 3)
+        if len(rows) and np.isfinite(rows[0]).all():  # (the usual case: no pass over all)
+            first = rows[0]
+        else:
+            finite = rows[np.isfinite(rows).all(axis=1)]
+            if not len(finite):
+                return None
+            first = finite[0]
         quantum = ORIGIN_QUANTUM_VOXELS * self.resolution
-        return np.round(finite[0] / quantum) * quantum
+        return np.round(first / quantum) * quantum
 
     def _run_parallel(self, fn: Callable[[int], None], items: Sequence[int]) -> None:
         if self._pool is None or len(items) == 1:

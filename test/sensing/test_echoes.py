@@ -267,3 +267,27 @@ def test_identical_blocks_of_a_driver_without_a_return_field_are_removed() -> No
     assert cloud.dropped["identical_return"] == twice
     assert len(cloud) == 128 - twice
     assert cloud.cell is not None and cloud.ring is not None and len(cloud.ring) == len(cloud)
+
+
+def test_a_livox_multi_return_cloud_is_read_by_tag_line_and_timestamp() -> None:
+    """livox_ros_driver2's PointCloud2 (xfer_format 0): x y z intensity tag line timestamp;
+    two returns of one firing share line and timestamp, bits 4-5 of tag number them."""
+    u = np.array([0.0, 0.8, 0.6])
+    xyz = np.array([u * 3.0, u * 5.0, u * 4.0, u * 4.0 + 0.5])
+    msg = cloud_message_from_columns(
+        {
+            "x": xyz[:, 0].astype(np.float32), "y": xyz[:, 1].astype(np.float32),
+            "z": xyz[:, 2].astype(np.float32), "intensity": np.full(4, 20.0, np.float32),
+            "tag": np.array([0x00, 0x10, 0x00, 0x00], np.uint8),
+            "line": np.array([2, 2, 3, 2], np.uint8),
+            "timestamp": np.array([7e9, 7e9, 7e9, 7.1e9]),
+        },
+        7.0,
+        "livox_frame",
+    )  # fmt: skip
+    cloud = parse_pointcloud2(msg)
+    assert cloud.echo_field == "tag" and cloud.shot is not None
+    assert cloud.shot[0] == cloud.shot[1] and len(set(cloud.shot.tolist())) == 3
+    seg = shot_segments(cloud.xyz, np.zeros(3), cloud.shot, None, 0.75)
+    assert seg.continued.tolist() == [False, True, False, False]
+    assert np.allclose(seg.origins[1], u * 3.75, atol=1e-6)
