@@ -181,7 +181,8 @@ class ScanLoop:
 
     def place(self, prepared: PreparedScan, poses: PoseSource, extrinsic: Extrinsic) -> PlacedScan:
         """A prepared cloud's rays in the map frame at its poses (de-skew, extrinsic, height
-        band); raises ``ScanDropped`` (``no_poses``, ``too_new``, ``too_old``, ``gap``,
+        band, the echoes of a shot as one process: ``pipeline.echo_rays``); raises
+        ``ScanDropped`` (``no_poses``, ``too_new``, ``too_old``, ``gap``,
         ``empty``). A caller may move the placed rays (pose refinement) before ``commit``."""
         placed = pipeline.echo_rays(
             pipeline.place_scan(prepared.cloud, prepared.stamp, poses, extrinsic, self.placement),

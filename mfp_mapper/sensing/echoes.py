@@ -12,9 +12,10 @@ Shots (``ParsedCloud.shot``: points with equal values are echoes of one shot):
 - terrestrial scanner exports (RIEGL, rTLS): ``target_index`` / ``target_count``: echo k of
   a shot is the echo k-1 of the same count seen in the same direction (``target_shots``).
 
-Drivers without a return field (Hesai's official driver, ros-drivers/velodyne) publish both
-blocks of a dual-return firing, identical when only one return was seen: within a shot,
-an echo at the range of the one before (``IDENTICAL_RANGE``) is removed.
+Drivers publish both returns of a dual-return firing, identical when only one return was
+seen: within a shot, an echo within ``IDENTICAL_RANGE`` of the one before is removed; in
+a cloud without a return field (Hesai's official driver, ros-drivers/velodyne: no shots
+known), a point equal to the one before it on its beam (``identical_points``).
 
 A shot is one Poisson process along the beam (docs/model.md, "Every echo of a shot"):
 ``shot_segments`` turns its echoes, nearest first, into rays the core walks as they are —

@@ -10,7 +10,10 @@ and counts everything under the names of ``DROP_REASONS``:
 2. ``pose_deadline``: the latest time a pose must cover (the stamp, or the last point's
    time when de-skewing) — the live worker waits for odometry up to it;
 3. ``place_scan``: points into the map frame at the poses of their times, then the height
-   band (``no_poses``, ``too_new``, ``too_old``, ``gap``);
+   band (``no_poses``, ``too_new``, ``too_old``, ``gap``); ``echo_rays``: a cloud whose
+   points carry shots (``ParsedCloud.shot``: several echoes per laser shot) becomes one ray
+   per echo, a shot one process along its beam (``sensing.echoes``); a ``ReturnPair``
+   (ouster-ros ``points`` + ``points2``) is parsed as one cloud by ``parse_pair``;
 4. (``mapping.loop``) integration into the Mapper (``no_usable_rays`` when the core used
    no ray).
 
