@@ -650,6 +650,13 @@ class MfpMapperNode(GuardedLifecycleNode):
         }
         if self.localization is not None:
             extra["localization"] = self.localization.report()
+        pairer = self._pairer
+        if pairer is not None:
+            extra["second_return"] = {
+                "paired": pairer.paired,
+                "alone": pairer.alone,
+                "unpaired_second": pairer.unpaired_second,
+            }
         report = status_report(
             c, queued, self._map_figures, self.outputs.counters, self._status_window, extra
         )

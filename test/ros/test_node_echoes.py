@@ -182,3 +182,7 @@ def test_nebula_dual_return_clouds_and_ouster_points2(
     want_s, want_n = _expected(pixels)
     assert n == want_n == int((first_r > 0).sum() + (second_r > 0).sum())
     assert s == pytest.approx(want_s, rel=1e-5)
+    # the Nebula cloud had no second and was mapped alone; the Ouster pair was paired
+    status = f.wait_status(lambda st: st.get("second_return", {}).get("paired") == 1, 10.0)
+    assert status is not None
+    assert status["second_return"] == {"paired": 1, "alone": 1, "unpaired_second": 0}
