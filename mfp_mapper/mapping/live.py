@@ -211,8 +211,9 @@ class LiveIntegrator:
             require_rays(summary, placed)
         else:
             summary = merge_scan(mapper, placed, self.whole_map, self._let_readers_in)
-        if rays:
-            self._seconds_per_ray = _average(self._seconds_per_ray, summary.seconds / rays)
+        if rays:  # down at once (the first scans load kernels and fault memory in)
+            per_ray, mean = summary.seconds / rays, self._seconds_per_ray
+            self._seconds_per_ray = per_ray if per_ray < mean else _average(mean, per_ray)
         return summary
 
     def _let_readers_in(self) -> None:
