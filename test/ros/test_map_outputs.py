@@ -25,7 +25,7 @@ pytestmark = pytest.mark.ros
 
 ROBOT = np.array([1.3, -0.7, 0.0])
 """Where the parked robot's base stands in the odometry (map) frame."""
-RADIUS = 4.0
+RADIUS = 9.0
 SCANS = 4
 
 
