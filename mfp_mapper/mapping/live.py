@@ -6,7 +6,8 @@ the scan pipeline, in order: the worker parses and places each cloud, then hands
 walker, which integrates it while the worker prepares the next one (the walk releases the
 GIL; the worker stays at most one placed scan ahead; in localization mode the worker aligns
 and integrates each scan itself). A scan expected to take at most ``DIRECT_MAX_S`` (its rays
-times the recent seconds per ray) is integrated straight into the map under ``whole_map``
+times the recent CPU seconds per ray: a busy machine that slows every scan down must not
+switch to the slower staged path) is integrated straight into the map under ``whole_map``
 (``Mapper.integrate``); a longer one is walked into a store of its own without any lock
 (``Mapper.stage``), then added to the map in one merge (``Mapper.commit``) that lets queries
 in between chunks. Staging costs a second pass over every block the scan touched: 2.1x the
@@ -57,15 +58,15 @@ if TYPE_CHECKING:
 STAGES = ("queued", "parse", "place", "handoff", "walk", "merge")
 """The stages of an integrated cloud timed in ``LiveCounters.stage_seconds``: waiting in the
 queue (and for poses), parse (with no-return rays), placement (poses, de-skew, band), placed
-and waiting for the walker (busy with the scan before), the walk into a staged store
-(``Mapper.stage``), the merge into the map (``Mapper.commit``, with the wait for the map
-lock)."""
+and waiting for the walker (busy with the scan before), the walk (``Mapper.integrate``
+into the map, or ``Mapper.stage`` into a store of its own), then the wait for the map lock
+and, for a staged scan, the merge into the map (``Mapper.commit``)."""
 
 RETRY_PERIOD = 0.02
 """Seconds between two tries of a waiting cloud (sooner when new poses arrived)."""
 DIRECT_MAX_S = 0.5
-"""A scan expected to integrate within this many seconds goes straight into the map under
-the map lock (queries wait for it); a longer one is staged and merged (see the module
+"""A scan expected to integrate within this many CPU seconds goes straight into the map
+under the map lock (queries wait for it); a longer one is staged and merged (see the module
 docstring)."""
 
 
@@ -185,7 +186,7 @@ class LiveIntegrator:
         self._thread: threading.Thread | None = None
         self._walker: threading.Thread | None = None
         self._publisher: threading.Thread | None = None
-        self._seconds_per_ray = 0.0  # moving average of a scan's integration (0: none yet)
+        self._seconds_per_ray = 0.0  # CPU seconds a ray of the last scans took (0: none yet)
         self._handoff: _Placed | None = None  # placed, waiting for the walker (under _cv)
         self._prepare_at = 0.0  # time.monotonic() from which the worker takes the next cloud
         self._walk_s = 0.0  # moving averages (s): a scan's walk + merge, its parse + place
@@ -212,7 +213,7 @@ class LiveIntegrator:
         else:
             summary = merge_scan(mapper, placed, self.whole_map, self._let_readers_in)
         if rays:  # down at once (the first scans load kernels and fault memory in)
-            per_ray, mean = summary.seconds / rays, self._seconds_per_ray
+            per_ray, mean = summary.cpu_seconds / rays, self._seconds_per_ray
             self._seconds_per_ray = per_ray if per_ray < mean else _average(mean, per_ray)
         return summary
 
