@@ -35,6 +35,16 @@ maps the same messages in a child process without ROS, through the same loop (pa
 place, ``Mapper.integrate``, and ``Mapper.stage`` + ``commit`` as the node does), so the
 node's time per scan reads as a ratio of the core's, measured in the same run.
 
+``--stream norlab``: the 14 real VLP-32C-like scans of ``../shared/data/norlab_sequence``
+(~41k points, x y z, in base_link) looped at 10 Hz with the recording's odometry (the robot
+barely moves: every scan reaches nearly the whole map); ``--resolution`` sets the map's
+(0.2 m by default). ``--baseline REF`` runs the node of another commit too (``git archive``
+into the log directory), alternating with this checkout's ``--repeat`` times, the same
+stream and parameters (``--param NAME=VALUE``; ``--baseline-param`` for the baseline's own):
+the ratio of the two under the same load is the figure to read on a shared machine.
+
+    .venv/bin/python benchmarks/bench_node.py --stream norlab --resolution 0.1 --baseline main
+
 ``--big-scan 2e6``: service latency while one large scan integrates (item of issue 18).
 A static robot in a 30 x 30 m room (0.1 m voxels) sends a small scan, then one of that
 many points (1024 rows x 2048 azimuths, -30..30 deg); while the node integrates it, a
