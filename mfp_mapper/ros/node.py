@@ -476,7 +476,10 @@ class MfpMapperNode(GuardedLifecycleNode):
 
     @tracked
     def _on_publish_timer(self) -> None:
-        self.worker.request_publish()
+        """Ask for a publication, once the kernels are loaded: a publication that compiled
+        them would hold the map lock meanwhile (seconds)."""
+        if self._kernels != "compiling":
+            self.worker.request_publish()
 
     # --- queries and services ----------------------------------------------------------------
 
