@@ -395,7 +395,7 @@ class LiveIntegrator:
                         wait = min(wait, max(self._prepare_at - time.monotonic(), 0.001))
                     self._cv.wait(wait)
                     item = self._next()
-                if self._stop.is_set():
+                if self._stop.is_set() or item is None:
                     return
             self._try(item)
 
