@@ -122,6 +122,18 @@ class MapSection(Section):
         applies="both",
         flag="--prior-scale",
     )
+    reflectivity_bins: int = setting(
+        8,
+        "Bins J of the reflectivity histogram each voxel with returns keeps (Appendix B; "
+        "docs/model.md): clouds with an intensity field (Ouster 'reflectivity', else "
+        "'intensity') are binned on log-spaced edges fixed per field. 0: no histograms. A "
+        "loaded map keeps its own bins.",
+        0,
+        64,
+        name="reflectivity.bins",
+        applies="both",
+        flag="--reflectivity-bins",
+    )
 
 
 @dataclass(frozen=True)

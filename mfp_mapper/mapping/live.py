@@ -42,7 +42,13 @@ from mfp_mapper.config.frames import frame_name
 from mfp_mapper.config.sections import PlacementSection, SensorModelSection
 from mfp_mapper.core.mapper import IntegrationSummary, Mapper
 from mfp_mapper.mapping.live_localization import pose_matrix
-from mfp_mapper.mapping.loop import PreparedScan, ScanCounts, ScanLoop, merge_scan, require_rays
+from mfp_mapper.mapping.loop import (
+    PreparedScan,
+    ScanCounts,
+    ScanLoop,
+    integrate_scan,
+    merge_scan,
+)
 from mfp_mapper.mapping.pose_correction import NoCorrection, PoseCorrection
 from mfp_mapper.mapping.whole_map import MERGE_PAUSE_S, WholeMap
 from mfp_mapper.sensing import pipeline
@@ -206,10 +212,7 @@ class LiveIntegrator:
         rays = len(placed.points)
         if 0.0 < self._seconds_per_ray * rays <= DIRECT_MAX_S:
             with self.whole_map:
-                summary = mapper.integrate(
-                    placed.points, placed.origins, placed.stamp, placed.no_return
-                )
-            require_rays(summary, placed)
+                summary = integrate_scan(mapper, placed)
         else:
             summary = merge_scan(mapper, placed, self.whole_map, self._let_readers_in)
         if rays:  # down at once (the first scans load kernels and fault memory in)

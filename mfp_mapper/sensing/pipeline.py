@@ -95,6 +95,10 @@ class PlacedScan:
     points_dropped: dict[str, int] = field(default_factory=dict)
     no_return: NDArray[np.bool_] | None = None
     """Rays that end without a return (recovered firings), or None."""
+    intensity: NDArray[np.float32] | None = None
+    """Each ray's return intensity (``ParsedCloud.intensity``), or None."""
+    intensity_field: str | None = None
+    """The cloud field ``intensity`` came from (``ParsedCloud.intensity_field``)."""
 
 
 def parse_scan(msg: Any) -> ParsedCloud:
@@ -163,10 +167,12 @@ def place_scan(
     keep, outside = band_mask(points, lo, hi)
     dropped.update({k: v for k, v in outside.items() if v})
     flags = cloud.no_return
+    intensity = cloud.intensity
     if keep is not None:
         points = points[keep]
         origins = origins[keep] if origins.ndim == 2 else origins
         flags = flags[keep] if flags is not None else None
+        intensity = intensity[keep] if intensity is not None else None
     if points.shape[0] == 0:
         bounds = ", ".join(f"{a} [{lo[k]}, {hi[k]}]" for k, a in enumerate("xyz"))
         raise ScanDropped(
@@ -175,7 +181,9 @@ def place_scan(
             points_dropped=dropped,
         )
     deskewed = bool(settings.deskew and cloud.time_offset is not None)
-    return PlacedScan(stamp, points, origins, deskewed, dropped, flags)
+    return PlacedScan(
+        stamp, points, origins, deskewed, dropped, flags, intensity, cloud.intensity_field
+    )
 
 
 def band_mask(

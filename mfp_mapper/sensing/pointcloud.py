@@ -85,6 +85,11 @@ class FieldSpec:
     count: int = 1
 
 
+INTENSITY_FIELDS = ("reflectivity", "intensity")
+"""Fields read as a point's return intensity, the first a cloud has (``ParsedCloud.intensity``;
+``sensing.reflectivity`` bins them)."""
+
+
 @dataclass
 class ParsedCloud:
     """Valid points of one cloud in the sensor frame.
@@ -116,6 +121,9 @@ class ParsedCloud:
     """Points with a finite position but a NaN/Inf time (counted in ``nonfinite``)."""
     unknown_time_field: str | None = None
     """A field that looks like per-point time but is not in ``TIME_FIELDS`` (no de-skew)."""
+    intensity_field: str | None = None
+    """Which field ``intensity`` holds (``sensing.reflectivity.INTENSITY_FIELDS``: Ouster's
+    ``reflectivity`` when present, else ``intensity``); None when neither is there."""
 
     def __len__(self) -> int:
         return int(self.xyz.shape[0])
@@ -170,13 +178,15 @@ def parse_pointcloud2(msg: Any, header_stamp: float | None = None) -> ParsedClou
     xyz = _xyz(records)
     time_offset, base = _time_offset(records, msg, header_stamp)
     names = records.dtype.names or ()
+    intensity_name = next((n for n in INTENSITY_FIELDS if n in names), None)
     intensity = (
-        records["intensity"].reshape(-1).astype(np.float32) if "intensity" in names else None
+        None if intensity_name is None else records[intensity_name].reshape(-1).astype(np.float32)
     )
     ring_name = next((n for n in RING_FIELDS if n in names), None)
     ring = None if ring_name is None else records[ring_name].reshape(-1).astype(np.int64)
     cloud = _drop_invalid(xyz, time_offset, intensity, ring)
     cloud.grid_shape = (int(records.shape[0]), int(records.shape[1]))
+    cloud.intensity_field = intensity_name
     cloud.time_base = base
     if time_offset is not None:
         cloud.time_field = next(n for n in TIME_FIELDS if n in names)
@@ -226,7 +236,7 @@ def _check_fields(fields: Mapping[str, _Field], point_step: int) -> None:
                 f"field {f.name!r} ends at byte {end} but point_step is {point_step}: "
                 "every field must fit inside one point"
             )
-    for name in ("x", "y", "z", "intensity", *TIME_FIELDS, *RING_FIELDS):
+    for name in ("x", "y", "z", *INTENSITY_FIELDS, *TIME_FIELDS, *RING_FIELDS):
         if name in fields and fields[name].count > 1:
             raise CloudFormatError(f"field {name!r} has count {fields[name].count}: expected 1")
 
@@ -247,7 +257,9 @@ def _records(msg: Any, fields: Mapping[str, _Field]) -> NDArray[np.void]:
         )
     order = ">" if msg.is_bigendian else "<"
     used = [
-        name for name in ("x", "y", "z", "intensity", *TIME_FIELDS, *RING_FIELDS) if name in fields
+        name
+        for name in ("x", "y", "z", *INTENSITY_FIELDS, *TIME_FIELDS, *RING_FIELDS)
+        if name in fields
     ]
     dtype = np.dtype(
         {
