@@ -357,8 +357,9 @@ class OutputsSection(Section):
     )
     publish_rate: float = setting(
         1.0,
-        "Rate (Hz) of ~/degree_of_occupancy and ~/std; published only when the map changed "
-        "and someone subscribes. 0: never.",
+        "Rate (Hz) of ~/degree_of_occupancy, ~/std and ~/projected_map; published only when "
+        "the map changed and someone subscribes, and spaced out so that building them holds "
+        "the map at most a tenth of the time (a large map with publish_radius 0). 0: never.",
         0.0,
         100.0,
     )
@@ -378,7 +379,8 @@ class OutputsSection(Section):
     )
     publish_radius: float = setting(
         0.0,
-        "Publish only voxels within this distance (m) of the robot. 0: the whole map.",
+        "Publish only voxels within this distance (m) of the robot. 0: the whole map (its "
+        "cost grows with the map's size; docs/node.md 'Map outputs').",
         0.0,
         1.0e6,
         dynamic=True,

@@ -892,9 +892,9 @@ def _mean_origin(rays: Rays) -> FloatArray:
 
 def compile_kernels(decay_time: float = math.inf) -> float:
     """Run the compiled kernels of a live scan once on a few rays (``integrate``, ``stage``
-    and ``commit``, with reflectivity histograms, ``query``, ``voxels``), so that numba
-    compiles them, or loads them from its cache, before the first real scan; returns the
-    seconds it took."""
+    and ``commit``, with reflectivity histograms, ``query``, ``voxels``, the projected
+    grids), so that numba compiles them, or loads them from its cache, before the first real
+    scan or publication (which would hold the map meanwhile); returns the seconds it took."""
     t0 = time.perf_counter()
     points = np.array([[2.0, 0.5, 0.3], [-1.0, 3.0, 0.8], [0.5, -2.5, -0.4]])
     mapper = Mapper(0.5, decay_time=decay_time)
@@ -903,5 +903,7 @@ def compile_kernels(decay_time: float = math.inf) -> float:
     mapper.commit(mapper.stage(points, np.zeros(3), 2.0, None, values))
     mapper.query(points)
     mapper.reflectivity(points, 2.0)
-    mapper.voxels()
+    mapper.voxels(min_doo=0.1, bounds=(np.full(3, -5.0), np.full(3, 5.0)))
+    mapper.hit_probability_grid(-1.0, 1.0, trinary=(0.25, 0.01))
+    mapper.hit_probability_grid(-1.0, 1.0, center=(0.0, 0.0), radius=2.0)
     return time.perf_counter() - t0

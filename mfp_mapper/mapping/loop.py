@@ -282,14 +282,6 @@ def merge_scan(
         return mapper.commit(staged, pause=pause)
 
 
-def staged(
-    merge_lock: AbstractContextManager[Any], pause: Callable[[], None] | None = None
-) -> ScanConsumer:
-    """The consumer of a loop whose map is read while scans integrate (the live worker):
-    ``merge_scan`` with this lock and pause, so readers wait for a merge, never a scan."""
-    return lambda mapper, placed: merge_scan(mapper, placed, merge_lock, pause)
-
-
 def require_rays(summary: IntegrationSummary, placed: PlacedScan) -> IntegrationSummary:
     """``summary``, or ScanDropped ``no_usable_rays`` when the core used none of the placed
     scan's rays (see ``integrate_scan``)."""

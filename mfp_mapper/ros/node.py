@@ -12,11 +12,13 @@ default) it configures and activates itself; else a lifecycle manager drives it
 
 Threads: one executor thread runs every ROS callback (rclpy's multi-threaded executor
 cost about 70% of a core in overhead); subscription callbacks only queue clouds and store
-poses. The worker thread integrates and publishes between scans; ``~/save_map`` and the
-autosave write in a thread of their own. ``worker.map_lock`` guards the Mapper; the worker
-holds it only to merge a scan it walked without it (``Mapper.stage``/``commit``), letting
-queries in between chunks; GetMap, saving and reset take ``worker.whole_map`` (no scan
-half merged). So services answer during a long scan. SIGINT / SIGTERM stop it
+poses. The worker threads parse, place and integrate (``mapping.live``); the map outputs
+are built and sent on a publishing thread of their own; ``~/save_map`` and the autosave
+write in a thread of their own. ``worker.map_lock`` guards the Mapper: the walker holds it
+through a quick scan (``Mapper.integrate``, at most ``live.DIRECT_MAX_S`` expected) or only
+to merge a long one it walked without it (``Mapper.stage``/``commit``), letting queries in
+between chunks; GetMap, saving and reset take ``worker.whole_map`` (no scan half merged).
+So services answer during a long scan. SIGINT / SIGTERM stop it
 as ``ros.shutdown`` says: the executor stops between callbacks, then the final save.
 """
 
@@ -511,7 +513,10 @@ class MfpMapperNode(GuardedLifecycleNode):
 
     @tracked
     def _on_publish_timer(self) -> None:
-        self.worker.request_publish()
+        """Ask for a publication, once the kernels are loaded: a publication that compiled
+        them would hold the map lock meanwhile (seconds)."""
+        if self._kernels != "compiling":
+            self.worker.request_publish()
 
     # --- queries and services ----------------------------------------------------------------
 
