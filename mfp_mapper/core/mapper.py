@@ -23,6 +23,7 @@ from mfp_mapper.core.memory_bound import (
     scan_block_budget,
     scan_new_blocks,
 )
+from mfp_mapper.core.packed import PackedBlocks, packed_problem
 from mfp_mapper.core.staging import clear_staged, merge_shard, prefault, staged_updates
 from mfp_mapper.core.store import (
     BLOCK_EDGE,
@@ -526,6 +527,11 @@ class Mapper:
         refer to), without the derived statistics of ``voxels``: what a map file holds."""
         return self._store.export()
 
+    def stored_blocks(self) -> PackedBlocks:
+        """Every observed voxel as stored, packed block by block (``core.packed``): what a
+        map file holds, without an index array per voxel; ``from_blocks`` inverts it."""
+        return self._store.export_blocks()
+
     def voxels(
         self,
         stamp: float | None = None,
@@ -661,6 +667,27 @@ class Mapper:
         mapper._store.assign(voxels, mapper.decay_time)
         finite_t = voxels.t_last[np.isfinite(voxels.t_last)]
         mapper.last_stamp = float(finite_t.max()) if finite_t.size else None
+        mapper.version += 1
+        return mapper
+
+    @classmethod
+    def from_blocks(
+        cls,
+        packed: PackedBlocks,
+        *,
+        resolution: float,
+        origin: ArrayLike = (0.0, 0.0, 0.0),
+        **settings: object,
+    ) -> Mapper:
+        """A Mapper holding packed blocks (``stored_blocks``; indices relative to
+        ``origin``); ``settings`` are the constructor's keyword arguments. Raises
+        ``ValueError`` on bad settings or blocks."""
+        problem = packed_problem(packed)
+        if problem:
+            raise ValueError(problem)
+        mapper = cls(resolution, origin=origin, **settings)  # type: ignore[arg-type]
+        mapper._store.assign_blocks(packed)
+        mapper.last_stamp = float(packed.block_t.max()) if packed.block_t.size else None
         mapper.version += 1
         return mapper
 

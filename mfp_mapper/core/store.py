@@ -45,6 +45,7 @@ from mfp_mapper.core.blocks import (
     shard_of,
     voxel_inside,
 )
+from mfp_mapper.core.packed import PackedBlocks, pack_shards, unpack_into
 from mfp_mapper.core.shard import Shard, ShardArrays, open_block
 
 MIN_RESOLUTION = 1e-3
@@ -335,6 +336,17 @@ class BlockStore:
             if twice >= 0:
                 raise ValueError(f"ijk lists voxel {ijk[twice].tolist()} more than once")
         self.num_voxels = int(counts[0])
+
+    def export_blocks(self) -> PackedBlocks:
+        """Every observed voxel, packed block by block (``packed``; a copy)."""
+        return pack_shards(self.shards)
+
+    def assign_blocks(self, packed: PackedBlocks) -> None:
+        """Set the voxels of packed blocks (checked by ``packed_problem``) in an empty
+        store; the inverse of ``export_blocks``."""
+        if self.num_blocks:
+            raise ValueError("assign_blocks needs an empty store")
+        self.num_voxels = unpack_into(self.shards, self.shard_mask, packed)
 
     def lookup(self, ijk: NDArray[np.int64]) -> VoxelArrays:
         """Statistics of these voxels (zeros and t_last=-inf where never observed)."""

@@ -33,6 +33,7 @@ from mfp_mapper.core.model import Prior
 from mfp_mapper.core.store import BLOCK_BITS
 from mfp_mapper.core.voxel_stats import SegmentStats
 from mfp_mapper.mapio.atomic import write_text_atomic
+from mfp_mapper.mapio.blockfile import BLOCK_MEMBERS, take_blocks
 from mfp_mapper.mapio.checks import (
     TILE_DIR,
     TILES_FORMAT,
@@ -45,6 +46,7 @@ from mfp_mapper.mapio.mapfile import (
     FORMAT_VERSION,
     MapFileError,
     mapper_from_arrays,
+    num_voxels,
     read_map_arrays,
     write_map_arrays,
 )
@@ -87,19 +89,26 @@ def tile_keys(ijk: NDArray[np.integer], tile_blocks: int) -> NDArray[np.int64]:
 
 
 def split_by_tile(arrays: MapArrays, tile_blocks: int) -> Iterator[tuple[TileKey, MapArrays]]:
-    """The map-file arrays of each tile of a map (settings repeated in every tile)."""
-    keys = tile_keys(arrays["ijk"], tile_blocks)
+    """The map-file arrays of each tile of a map (settings repeated in every tile): blocks
+    (``map_blocks``) stay blocks, voxel lists (``map_arrays``) stay voxel lists."""
+    blocks = "block_ijk" in arrays
+    index = np.asarray(arrays["block_ijk"] if blocks else arrays["ijk"], dtype=np.int64)
+    keys = np.floor_divide(index, tile_blocks) if blocks else tile_keys(index, tile_blocks)
     if keys.shape[0] == 0:
         return
-    rel = keys - keys.min(axis=0)  # tiles span < 2^21 per axis: one int64 key per voxel
+    rel = keys - keys.min(axis=0)  # tiles span < 2^21 per axis: one int64 key per row
     packed = (rel[:, 0] << 42) | (rel[:, 1] << 21) | rel[:, 2]
     order = np.argsort(packed, kind="stable")
     starts = np.flatnonzero(np.diff(packed[order], prepend=-1))
     ends = np.append(starts[1:], order.shape[0])
-    settings = {k: v for k, v in arrays.items() if k not in VOXEL_KEYS}
+    members = BLOCK_MEMBERS if blocks else VOXEL_KEYS
+    settings = {k: v for k, v in arrays.items() if k not in members}
     for lo, hi in zip(starts, ends, strict=True):
         pick = order[lo:hi]
-        tile = {k: np.asarray(arrays[k])[pick] for k in VOXEL_KEYS}
+        if blocks:
+            tile = take_blocks(dict(arrays), np.sort(pick))
+        else:
+            tile = {k: np.asarray(arrays[k])[pick] for k in VOXEL_KEYS}
         x, y, z = (int(v) for v in keys[pick[0]])
         yield (x, y, z), {**settings, **tile}
 
@@ -114,13 +123,13 @@ def tile_file(key: TileKey, generation: str) -> str:
 
 
 def write_tile(
-    directory: str | Path, key: TileKey, arrays: MapArrays, generation: str, compress: bool = True
+    directory: str | Path, key: TileKey, arrays: MapArrays, generation: str
 ) -> TileEntry:
     """Write one tile's map file (atomically); the index is written by ``write_index``."""
     name = tile_file(key, generation)
-    write_map_arrays(Path(directory) / name, arrays, compress)
-    t = np.asarray(arrays["t_last"])
-    return TileEntry(key, name, int(t.shape[0]), float(t.max()) if t.size else -math.inf)
+    write_map_arrays(Path(directory) / name, arrays)
+    t = np.asarray(arrays["block_t"] if "block_t" in arrays else arrays["t_last"])
+    return TileEntry(key, name, num_voxels(arrays), float(t.max()) if t.size else -math.inf)
 
 
 def _json_number(value: float) -> float | None:
@@ -160,22 +169,16 @@ def write_index(
 
 
 def write_tiled(
-    directory: str | Path,
-    arrays: MapArrays,
-    tile_blocks: int = DEFAULT_TILE_BLOCKS,
-    compress: bool = True,
+    directory: str | Path, arrays: MapArrays, tile_blocks: int = DEFAULT_TILE_BLOCKS
 ) -> list[TileEntry]:
-    """Write map-file ``arrays`` as a tiled map in ``directory`` (``compress=False``:
-    stored, not deflated, for scratch maps read back soon)."""
+    """Write map-file ``arrays`` (blocks or voxel lists) as a tiled map in ``directory``."""
     if tile_blocks < 1:
         raise ValueError(f"tile_blocks must be >= 1, got {tile_blocks}")
     root = Path(directory)
     check_tiled_output(root)
     (root / TILE_DIR).mkdir(parents=True, exist_ok=True)
     generation = new_generation()
-    entries = [
-        write_tile(root, k, a, generation, compress) for k, a in split_by_tile(arrays, tile_blocks)
-    ]
+    entries = [write_tile(root, k, a, generation) for k, a in split_by_tile(arrays, tile_blocks)]
     write_index(root, arrays, tile_blocks, entries)
     return entries
 
@@ -388,13 +391,13 @@ def merge_tile(tiled: Sequence[TiledMap], key: TileKey) -> MapArrays:
     )
 
 
-def write_map_path(path: str | Path, arrays: MapArrays, compress: bool = True) -> int:
-    """Write map-file ``arrays`` where ``path`` says: a tiled map when ``path`` is a
-    directory (or ends with a slash; an existing tiled map keeps its tile edge), else one
-    map file; both atomically. Returns the number of voxels written."""
+def write_map_path(path: str | Path, arrays: MapArrays) -> int:
+    """Write map-file ``arrays`` (blocks or voxel lists) where ``path`` says: a tiled map
+    when ``path`` is a directory (or ends with a slash; an existing tiled map keeps its tile
+    edge), else one map file; both atomically. Returns the number of voxels written."""
     if str(path).endswith(("/", "\\")) or Path(path).is_dir():
         tile_blocks = TiledMap(path).tile_blocks if is_tiled(path) else DEFAULT_TILE_BLOCKS
-        write_tiled(path, arrays, tile_blocks, compress)
+        write_tiled(path, arrays, tile_blocks)
     else:
-        write_map_arrays(path, arrays, compress)
-    return int(np.asarray(arrays["s"]).shape[0])
+        write_map_arrays(path, arrays)
+    return num_voxels(arrays)

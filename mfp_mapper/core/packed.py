@@ -1,0 +1,301 @@
+"""Packed blocks: the store's voxels as compact per-block arrays (what map files hold).
+
+The store keeps every voxel of an 8x8x8 block (``store``); most of them are never observed
+and only 1-3% of observed voxels hold a return. ``PackedBlocks`` keeps, per block, its
+index, its time and a 512-bit mask of observed voxels, then ``s`` of the observed voxels
+only; and, for the blocks holding a return, a mask of the voxels with ``n > 0`` and their
+``n``. Blocks are sorted by index (x, then y, then z), voxels by their Morton place in the
+block (``blocks.local_index``). Values keep the store's precision (float32), so packing and
+unpacking are exact; ``pack_store`` and ``unpack_into`` are compiled walks over the blocks,
+no per-voxel index arrays.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+from numpy.typing import NDArray
+
+from mfp_mapper.core.blocks import (
+    BLOCK_VOXELS,
+    KEY_BITS,
+    KEY_OFFSET,
+    MAX_VOXEL_INDEX,
+    block_key,
+    shard_of,
+)
+from mfp_mapper.core.shard import Shard, ShardArrays, open_block
+
+MASK_WORDS = BLOCK_VOXELS // 64
+"""uint64 words of a block's voxel mask: bit ``i % 64`` of word ``i // 64`` is voxel ``i``
+(Morton place) of the block."""
+MAX_BLOCK_INDEX = MAX_VOXEL_INDEX >> 3
+"""Largest |block index| a store holds."""
+
+
+@dataclass
+class PackedBlocks:
+    """Observed voxels block by block (see the module docstring).
+
+    ``block_ijk`` int32 (B, 3) sorted, each block once; ``block_t`` float64 (B,);
+    ``observed`` uint64 (B, 8); ``s`` (M,) one per set bit of ``observed``, block by block;
+    ``hit_block`` int64 (H,) increasing rows of the blocks holding a return; ``hit`` uint64
+    (H, 8) their voxels with ``n > 0`` (a subset of ``observed``); ``n`` (K,) one per set
+    bit of ``hit``. ``s`` and ``n`` are float32 from a store, float64 where sums were
+    merged."""
+
+    block_ijk: NDArray[np.int32]
+    block_t: NDArray[np.float64]
+    observed: NDArray[np.uint64]
+    s: NDArray[np.floating]
+    hit_block: NDArray[np.int64]
+    hit: NDArray[np.uint64]
+    n: NDArray[np.floating]
+
+    @property
+    def num_voxels(self) -> int:
+        return int(self.s.shape[0])
+
+
+def sort_keys(block_ijk: NDArray[np.integer]) -> NDArray[np.int64]:
+    """One int64 per block index whose order is (x, y, z) lexicographic (``block_key``)."""
+    b = np.asarray(block_ijk, dtype=np.int64) + KEY_OFFSET
+    return (b[:, 0] << (2 * KEY_BITS)) | (b[:, 1] << KEY_BITS) | b[:, 2]
+
+
+def voxel_starts(mask: NDArray[np.uint64]) -> NDArray[np.int64]:
+    """Index of each block's first value (B + 1 entries: the last is the total)."""
+    counts = np.bitwise_count(mask).sum(axis=1, dtype=np.int64)
+    out = np.zeros(mask.shape[0] + 1, dtype=np.int64)
+    np.cumsum(counts, out=out[1:])
+    return out
+
+
+def packed_problem(p: PackedBlocks) -> str | None:
+    """What is wrong with packed blocks (shapes, order, masks, values), or None."""
+    b = p.block_ijk.shape[0]
+    if p.block_ijk.shape != (b, 3) or p.block_t.shape != (b,) or p.observed.shape != (b, 8):
+        return "blocks need block_ijk (B, 3), block_t (B,) and observed (B, 8)"
+    h = p.hit_block.shape[0]
+    if p.hit_block.shape != (h,) or p.hit.shape != (h, 8):
+        return "blocks with a return need hit_block (H,) and hit (H, 8)"
+    if b and int(np.abs(p.block_ijk).max()) > MAX_BLOCK_INDEX:
+        return f"block indices beyond +-{MAX_BLOCK_INDEX}, the map's range"
+    if b > 1 and not np.all(np.diff(sort_keys(p.block_ijk)) > 0):
+        return "blocks are not sorted by index, or a block is listed twice"
+    if not np.isfinite(p.block_t).all():
+        return "block times hold NaN or infinite values (seconds expected)"
+    if p.s.shape != (int(np.bitwise_count(p.observed).sum()),):
+        return (
+            f"s holds {p.s.shape} values, the observed masks {np.bitwise_count(p.observed).sum()}"
+        )
+    if h and (int(p.hit_block[0]) < 0 or int(p.hit_block[-1]) >= b):
+        return f"hit_block rows outside [0, {b})"
+    if h > 1 and not np.all(np.diff(p.hit_block) > 0):
+        return "hit_block is not increasing"
+    if np.any(p.hit & ~p.observed[p.hit_block]):
+        return "a voxel with a return is not marked observed"
+    if p.n.shape != (int(np.bitwise_count(p.hit).sum()),):
+        return f"n holds {p.n.shape} values, the hit masks {np.bitwise_count(p.hit).sum()}"
+    for key, arr in (("s", p.s), ("n", p.n)):
+        if arr.dtype.kind != "f" or not (np.isfinite(arr).all() and arr.min(initial=0.0) >= 0):
+            return f"{key} holds negative, NaN or infinite values"
+    return None
+
+
+@nb.njit(cache=True, nogil=True)
+def _masks(
+    block_sn: NDArray[np.float32],
+    used: int,
+    observed: NDArray[np.uint64],
+    hit: NDArray[np.uint64],
+    counts: NDArray[np.int64],
+) -> None:
+    """Observed and hit masks of the first ``used`` blocks; ``counts[b]`` = (observed, hits)."""
+    for b in range(used):
+        n_obs = 0
+        n_hit = 0
+        for w in range(8):
+            mo = np.uint64(0)
+            mh = np.uint64(0)
+            for j in range(64):
+                i = w * 64 + j
+                s = block_sn[b, i, 0]
+                n = block_sn[b, i, 1]
+                if n > 0.0:
+                    mh |= np.uint64(1) << np.uint64(j)
+                    mo |= np.uint64(1) << np.uint64(j)
+                    n_hit += 1
+                    n_obs += 1
+                elif s > 0.0:
+                    mo |= np.uint64(1) << np.uint64(j)
+                    n_obs += 1
+            observed[b, w] = mo
+            hit[b, w] = mh
+        counts[b, 0] = n_obs
+        counts[b, 1] = n_hit
+
+
+@nb.njit(cache=True, nogil=True)
+def _gather(
+    block_sn: NDArray[np.float32],
+    rows: NDArray[np.int64],
+    s_start: NDArray[np.int64],
+    n_start: NDArray[np.int64],
+    s_out: NDArray[np.float32],
+    n_out: NDArray[np.float32],
+) -> None:
+    """Write the observed ``s`` and the ``n > 0`` of block ``rows[k]`` from ``s_start[k]``
+    and ``n_start[k]`` (-1: no return in it)."""
+    for k in range(rows.shape[0]):
+        b = rows[k]
+        js = s_start[k]
+        jn = n_start[k]
+        for i in range(BLOCK_VOXELS):
+            s = block_sn[b, i, 0]
+            n = block_sn[b, i, 1]
+            if s > 0.0 or n > 0.0:
+                s_out[js] = s
+                js += 1
+                if n > 0.0:
+                    n_out[jn] = n
+                    jn += 1
+
+
+def pack_shards(shards: list[Shard]) -> PackedBlocks:
+    """The observed voxels of these shards, packed and sorted (a copy: the shards may
+    change afterwards). Blocks without an observed voxel are left out."""
+    parts = []
+    for sh in shards:
+        used = sh.used
+        observed = np.empty((used, 8), dtype=np.uint64)
+        hit = np.empty((used, 8), dtype=np.uint64)
+        counts = np.empty((used, 2), dtype=np.int64)
+        _masks(sh.block_sn, used, observed, hit, counts)
+        rows = np.flatnonzero(counts[:, 0] > 0)
+        parts.append((sh, rows, observed[rows], hit[rows], counts[rows]))
+    block_ijk = np.concatenate([sh.block_ijk[r] for sh, r, *_ in parts])
+    order = np.argsort(sort_keys(block_ijk), kind="stable")
+    shard_of_row = np.concatenate([np.full(len(r), k) for k, (_, r, *_) in enumerate(parts)])
+    observed = np.concatenate([p[2] for p in parts])[order]
+    hit = np.concatenate([p[3] for p in parts])[order]
+    counts = np.concatenate([p[4] for p in parts])[order]
+    s_start = np.zeros(len(order) + 1, dtype=np.int64)
+    np.cumsum(counts[:, 0], out=s_start[1:])
+    n_start = np.zeros(len(order) + 1, dtype=np.int64)
+    np.cumsum(counts[:, 1], out=n_start[1:])
+    s = np.empty(int(s_start[-1]), dtype=np.float32)
+    n = np.empty(int(n_start[-1]), dtype=np.float32)
+    local_rows = np.concatenate([r for _, r, *_ in parts]).astype(np.int64)[order]
+    shard_of_row = shard_of_row[order]
+    block_t = np.concatenate([sh.block_t[r] for sh, r, *_ in parts])[order]
+    for k, (sh, *_) in enumerate(parts):
+        mine = np.flatnonzero(shard_of_row == k)
+        _gather(sh.block_sn, local_rows[mine], s_start[mine], n_start[mine], s, n)
+    hit_block = np.flatnonzero(counts[:, 1] > 0).astype(np.int64)
+    return PackedBlocks(
+        block_ijk[order].astype(np.int32, copy=False), block_t, observed, s, hit_block,
+        hit[hit_block], n,
+    )  # fmt: skip
+
+
+@nb.njit(cache=True, nogil=True)
+def _unpack(
+    block_ijk: NDArray[np.int32],
+    block_t: NDArray[np.float64],
+    observed: NDArray[np.uint64],
+    s_start: NDArray[np.int64],
+    s: NDArray[np.floating],
+    hit_of_block: NDArray[np.int64],
+    hit: NDArray[np.uint64],
+    n_start: NDArray[np.int64],
+    n: NDArray[np.floating],
+    shard: int,
+    shard_mask: int,
+    shard_arrays: ShardArrays,
+    start: int,
+    counts: NDArray[np.int64],
+) -> int:
+    """Open the blocks of ``shard`` from row ``start`` on and set their voxels; returns the
+    number of rows, or the row where the shard ran out of room (grow it and call again).
+    ``counts[0]`` receives the voxels set that are observed (s > 0 or n > 0)."""
+    block_sn, block_hit = shard_arrays[3], shard_arrays[6]
+    block_times = shard_arrays[4]
+    for b in range(start, block_ijk.shape[0]):
+        bx = np.int64(block_ijk[b, 0])
+        by = np.int64(block_ijk[b, 1])
+        bz = np.int64(block_ijk[b, 2])
+        if shard_of(bx, by, bz, shard_mask) != shard:
+            continue
+        block = open_block(bx, by, bz, shard_arrays, -1, block_t[b], np.inf)
+        if block < 0:
+            return b
+        block_times[block] = block_t[b]
+        h = hit_of_block[b]
+        js = s_start[b]
+        jn = n_start[h] if h >= 0 else 0
+        for w in range(8):
+            mo = observed[b, w]
+            mh = hit[h, w] if h >= 0 else np.uint64(0)
+            if mo == 0:
+                continue
+            for j in range(64):
+                bit = np.uint64(1) << np.uint64(j)
+                if mo & bit:
+                    i = w * 64 + j
+                    sv = np.float32(s[js])
+                    js += 1
+                    nv = np.float32(0.0)
+                    if mh & bit:
+                        nv = np.float32(n[jn])
+                        jn += 1
+                    block_sn[block, i, 0] = sv
+                    block_sn[block, i, 1] = nv
+                    if nv > 0.0:
+                        block_hit[block] = True
+                    if sv > 0.0 or nv > 0.0:
+                        counts[0] += 1
+    return block_ijk.shape[0]
+
+
+def unpack_into(shards: list[Shard], shard_mask: int, packed: PackedBlocks) -> int:
+    """Set the voxels of ``packed`` (checked by ``packed_problem``) in empty ``shards``;
+    returns the number of observed voxels set. float64 values are rounded to float32."""
+    rows = packed.block_ijk.shape[0]
+    s_start = voxel_starts(packed.observed)
+    n_start = voxel_starts(packed.hit)
+    hit_of_block = np.full(rows, -1, dtype=np.int64)
+    hit_of_block[packed.hit_block] = np.arange(packed.hit_block.shape[0])
+    b = packed.block_ijk.astype(np.int64)
+    per_shard = np.bincount((b[:, 0] + b[:, 1] + b[:, 2]) & shard_mask, minlength=len(shards))
+    counts = np.zeros(1, dtype=np.int64)
+    block_ijk = np.ascontiguousarray(packed.block_ijk, dtype=np.int32)
+    for sid, sh in enumerate(shards):
+        if per_shard[sid] > sh.capacity - sh.used:
+            sh.grow(min_free=int(per_shard[sid]))
+        start = 0
+        while (
+            start := _unpack(
+                block_ijk,
+                packed.block_t,
+                packed.observed,
+                s_start,
+                packed.s,
+                hit_of_block,
+                packed.hit,
+                n_start,
+                packed.n,
+                sid,
+                shard_mask,
+                sh.arrays(),
+                start,
+                counts,
+            )  # fmt: skip
+        ) < rows:
+            sh.grow()
+    return int(counts[0])
+
+
+__all__ = ["MASK_WORDS", "PackedBlocks", "block_key", "pack_shards", "packed_problem"]
