@@ -40,7 +40,13 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from mfp_mapper.core.blocks import BLOCK_BITS, BLOCK_EDGE
-from mfp_mapper.core.packed import MASK_WORDS, PackedBlocks, sort_keys, voxel_starts
+from mfp_mapper.core.packed import (
+    MASK_WORDS,
+    MAX_BLOCK_INDEX,
+    PackedBlocks,
+    sort_keys,
+    voxel_starts,
+)
 from mfp_mapper.core.store import VoxelArrays
 
 BLOCK_MEMBERS = (
@@ -235,6 +241,8 @@ class BlockReader:
         self.members = members
         self._map = np.memmap(path, dtype=np.uint8, mode="r") if path.stat().st_size else None
         self.block_ijk = self.view("block_ijk").copy()
+        if self.block_ijk.size and int(np.abs(self.block_ijk).max()) > MAX_BLOCK_INDEX:
+            raise BlockFileError(f"block indices beyond +-{MAX_BLOCK_INDEX}, the map's range")
         self.keys = sort_keys(self.block_ijk)
         if self.keys.shape[0] > 1 and not np.all(np.diff(self.keys) > 0):
             raise BlockFileError("blocks are not sorted by index, or a block is listed twice")

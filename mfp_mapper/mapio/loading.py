@@ -1,28 +1,23 @@
 """A Mapper from a map file or a tiled map, and a Mapper to a map file or a tiled map: the one
 road between map files and the core (``load_map``, ``save_map``: what one writes, the other
-reads); ``MapFileQueries`` answers queries from a map file reading only the blocks they
-need."""
+reads)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
-from mfp_mapper.core.blocks import BLOCK_BITS
 from mfp_mapper.core.mapper import Mapper
-from mfp_mapper.core.packed import sort_keys
-from mfp_mapper.core.store import MAX_VOXEL_INDEX
-from mfp_mapper.core.voxel_stats import SegmentStats, VoxelStats
-from mfp_mapper.mapio.blockfile import BlockReader, packed_to_voxels
+from mfp_mapper.mapio.blockfile import packed_to_voxels
 from mfp_mapper.mapio.mapfile import (
     map_blocks,
     mapper_from_contents,
-    read_map_blocks,
     read_map_file,
     write_map,
 )
+from mfp_mapper.mapio.queries import MapFileQueries
 from mfp_mapper.mapio.tiles import (
     DEFAULT_TILE_BLOCKS,
     TiledMap,
@@ -32,9 +27,6 @@ from mfp_mapper.mapio.tiles import (
 
 MAP_FILE_SUFFIX = ".npz"
 """A map path with this suffix is one map file; any other is a tiled map (a directory)."""
-MAX_SEGMENT_SAMPLES = 4_000_000
-"""Samples along the segments of one query (one a voxel) beyond which a map file is read
-whole instead of block by block."""
 
 
 def load_map(
@@ -44,38 +36,24 @@ def load_map(
 ) -> Mapper:
     """Read a map written by ``save_map`` (any version), or a tiled map (a directory:
     ``mapio.tiles``); with ``bounds`` = (lower, upper) corners in metres, only the voxels
-    whose centres lie inside (of a version 3 file, only the blocks reaching into them are
-    read; of a tiled map, only such tiles). Keyword arguments override stored settings
-    (not ``resolution`` or ``origin``); the stamps are checked against the decay time the
-    map will have (``decay_time`` when overridden: a file's times are checked against the
-    settings that will decay it). Raises ``MapFileError`` naming the file and the
-    problem."""
+    whose centres lie inside (of a tiled map, only the tiles reaching into them are read).
+    Keyword arguments override stored settings (not ``resolution`` or ``origin``); the
+    stamps are checked against the decay time the map will have (``decay_time`` when
+    overridden: a file's times are checked against the settings that will decay it).
+    Raises ``MapFileError`` naming the file and the problem."""
     p = Path(path)
     decay = overrides.get("decay_time")
     decay_time = None if decay is None else float(decay)  # type: ignore[arg-type]
     if p.is_dir():
         return TiledMap(p, decay_time).load(bounds, **overrides)
-    if bounds is None:
-        return mapper_from_contents(read_map_file(p, decay_time), p, **overrides)
-    lo_i, hi_i = None, None
-
-    def in_box(reader: BlockReader) -> NDArray[np.int64]:
-        return reader.rows_in_box(lo_i, hi_i)  # type: ignore[arg-type]
-
-    c = read_map_blocks(p, lambda r: np.zeros(0, dtype=np.int64), decay_time)
-    if c is None:  # an older file: read whole
-        c = read_map_file(p, decay_time)
+    c = read_map_file(p, decay_time)
+    if bounds is not None:
+        voxels = c.voxels if c.packed is None else packed_to_voxels(c.packed)
         lo_i, hi_i = index_bounds(bounds, c.resolution, c.origin)
-        voxels = c.voxels
-    else:
-        lo_i, hi_i = index_bounds(bounds, c.resolution, c.origin)
-        part = read_map_blocks(p, in_box, decay_time)
-        assert part is not None and part.packed is not None
-        voxels = packed_to_voxels(part.packed)
-    keep = np.all((voxels.ijk >= lo_i) & (voxels.ijk <= hi_i), axis=1)
-    for name in ("ijk", "s", "n", "t_last"):
-        setattr(voxels, name, getattr(voxels, name)[keep])
-    c.voxels, c.packed = voxels, None
+        keep = np.all((voxels.ijk >= lo_i) & (voxels.ijk <= hi_i), axis=1)
+        for name in ("ijk", "s", "n", "t_last"):
+            setattr(voxels, name, getattr(voxels, name)[keep])
+        c.voxels, c.packed = voxels, None
     return mapper_from_contents(c, p, **overrides)
 
 
@@ -97,90 +75,4 @@ def save_map(mapper: Mapper, path: str | Path, tile_blocks: int = DEFAULT_TILE_B
     return len(write_tiled(path, map_blocks(mapper), tile_blocks))
 
 
-class MapFileQueries:
-    """A map file opened for ``query`` and ``query_segments``: each call reads only the
-    blocks it needs (version 3; an older file is read whole once). ``MapFileError`` as
-    ``load_map``."""
-
-    def __init__(self, path: str | Path, decay_time: float | None = None) -> None:
-        self.path = Path(path)
-        self._decay_time = decay_time
-        self._whole: Mapper | None = None
-        c = read_map_blocks(self.path, _no_rows, decay_time)
-        if c is None:  # an older file
-            self._whole = self._empty = self._read_whole()
-        else:
-            self._empty = mapper_from_contents(c, self.path)
-        self.resolution = self._empty.resolution
-        self.frame_id = self._empty.frame_id
-        self.decay_time = self._empty.decay_time
-        self.origin = np.asarray(self._empty.origin or (0.0, 0.0, 0.0))
-
-    def _read_whole(self) -> Mapper:
-        return mapper_from_contents(read_map_file(self.path, self._decay_time), self.path)
-
-    def _blocks(self, keys: NDArray[np.int64]) -> Mapper:
-        """A Mapper of the file's blocks whose ``packed.sort_keys`` are among ``keys``."""
-        if self._whole is not None:
-            return self._whole
-        c = read_map_blocks(self.path, lambda r: r.rows_of_keys(keys), self._decay_time)
-        assert c is not None
-        return mapper_from_contents(c, self.path)
-
-    def _voxel_index(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Each point in voxel units, of the points the map's index range holds."""
-        rel = (points - self.origin) / self.resolution
-        with np.errstate(invalid="ignore"):
-            valid = np.all(np.abs(rel) < MAX_VOXEL_INDEX - 2, axis=1)
-        return rel[valid]
-
-    def query(self, points: ArrayLike, stamp: float | None = None) -> VoxelStats:
-        """``Mapper.query``, reading the blocks that hold the points."""
-        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        blocks = np.floor(self._voxel_index(pts)).astype(np.int64) >> BLOCK_BITS
-        return self._blocks(sort_keys(blocks)).query(pts, stamp)
-
-    def query_segments(
-        self, starts: ArrayLike, ends: ArrayLike, stamp: float | None = None
-    ) -> SegmentStats:
-        """``Mapper.query_segments``, reading the blocks within a voxel of the segments
-        (the whole file when they are very long: ``MAX_SEGMENT_SAMPLES``)."""
-        a = np.asarray(starts, dtype=np.float64).reshape(-1, 3)
-        b = np.asarray(ends, dtype=np.float64).reshape(-1, 3)
-        va, vb = self._voxel_index(a), self._voxel_index(b)
-        if a.shape != b.shape or va.shape != a.shape or vb.shape != b.shape:
-            return self._empty.query_segments(a, b, stamp)  # the core refuses these
-        keys = segment_block_keys(va, vb)
-        if keys is None:
-            if self._whole is None:
-                self._whole = self._read_whole()
-            return self._whole.query_segments(a, b, stamp)
-        return self._blocks(keys).query_segments(a, b, stamp)
-
-
-def _no_rows(reader: BlockReader) -> NDArray[np.int64]:
-    return np.zeros(0, dtype=np.int64)
-
-
-def segment_block_keys(
-    va: NDArray[np.float64], vb: NDArray[np.float64]
-) -> NDArray[np.int64] | None:
-    """The blocks (``packed.sort_keys``, unique) within a voxel of the segments ``va`` ->
-    ``vb`` (voxel units): samples at most a voxel apart along each, every block within a
-    voxel of a sample. None when that takes more than ``MAX_SEGMENT_SAMPLES`` samples."""
-    steps = np.ceil(np.linalg.norm(vb - va, axis=1)).astype(np.int64) + 1
-    total = int(steps.sum())
-    if total > MAX_SEGMENT_SAMPLES:
-        return None
-    seg = np.repeat(np.arange(len(steps)), steps)
-    first = np.repeat(np.cumsum(steps) - steps, steps)
-    frac = (np.arange(total) - first) / np.maximum(steps - 1, 1)[seg]
-    samples = va[seg] + (vb - va)[seg] * frac[:, None]
-    lo, hi = (np.floor(samples + d).astype(np.int64) >> BLOCK_BITS for d in (-1.0, 1.0))
-    keys = [
-        sort_keys(np.stack([x[:, 0], y[:, 1], z[:, 2]], axis=1))
-        for x in (lo, hi)
-        for y in (lo, hi)
-        for z in (lo, hi)
-    ]
-    return np.unique(np.concatenate(keys)) if keys else np.zeros(0, dtype=np.int64)
+__all__ = ["MapFileQueries", "is_map_file_name", "load_map", "save_map"]

@@ -50,6 +50,7 @@ from mfp_mapper.mapio.mapfile import (
     read_map_arrays,
     write_map_arrays,
 )
+from mfp_mapper.mapio.queries import MapFileQueries
 
 INDEX_NAME = "index.json"
 DEFAULT_TILE_BLOCKS = 32
@@ -294,6 +295,18 @@ class TiledMap:
             arrays = {**arrays, **{k: arrays[k][keep] for k in VOXEL_KEYS}}
         return mapper_from_arrays(arrays, self.root, **overrides)
 
+    def tile_queries(self, key: TileKey) -> MapFileQueries:
+        """One tile opened for queries (reading the blocks they need), its settings checked
+        against the index."""
+        path = self.root / self.tiles[key].file
+        q = MapFileQueries(path, self.decay_time)
+        try:
+            names = [str(self.root / INDEX_NAME), str(path)]
+            check_mergeable([self.settings(), q.settings()], names)
+        except ValueError as err:
+            raise MapFileError(path, str(err)) from None
+        return q
+
     def tile_mapper(self, key: TileKey) -> Mapper:
         """One tile as a Mapper of its own."""
         return mapper_from_arrays(self.read_tile(key), self.root / self.tiles[key].file)
@@ -306,7 +319,8 @@ class TiledMap:
             yield key, self.tile_mapper(key)
 
     def query(self, points: ArrayLike, stamp: float | None = None) -> VoxelStats:
-        """``Mapper.query`` over the tiles: each tile holding a point is read once."""
+        """``Mapper.query`` over the tiles: of each tile holding a point, the blocks holding
+        points are read."""
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         out = self._empty_mapper().query(
             pts, stamp
@@ -315,7 +329,7 @@ class TiledMap:
         for key in {(int(a), int(b), int(c)) for a, b, c in keys}:
             if key in self.tiles:
                 rows = np.flatnonzero(np.all(keys == key, axis=1))
-                part = self.tile_mapper(key).query(pts[rows], stamp)
+                part = self.tile_queries(key).query(pts[rows], stamp)
                 for name in ("s", "n", "t_last", "observed"):
                     getattr(out, name)[rows] = getattr(part, name)
         return out
