@@ -102,6 +102,8 @@ def packed_problem(p: PackedBlocks) -> str | None:
     for key, arr in (("s", p.s), ("n", p.n)):
         if arr.dtype.kind != "f" or not (np.isfinite(arr).all() and arr.min(initial=0.0) >= 0):
             return f"{key} holds negative, NaN or infinite values"
+        if arr.max(initial=0.0) > np.finfo(np.float32).max:
+            return f"{key} holds values beyond float32's range (the store's)"
     return None
 
 
@@ -113,25 +115,23 @@ def _masks(
     hit: NDArray[np.uint64],
     counts: NDArray[np.int64],
 ) -> None:
-    """Observed and hit masks of the first ``used`` blocks; ``counts[b]`` = (observed, hits)."""
+    """Observed and hit masks of the first ``used`` blocks; ``counts[b]`` = (observed, hits).
+    Branch-free (observed voxels are scattered: a branch per voxel mispredicts)."""
     for b in range(used):
         n_obs = 0
         n_hit = 0
-        for w in range(8):
+        for w in range(MASK_WORDS):
             mo = np.uint64(0)
             mh = np.uint64(0)
             for j in range(64):
-                i = w * 64 + j
-                s = block_sn[b, i, 0]
-                n = block_sn[b, i, 1]
-                if n > 0.0:
-                    mh |= np.uint64(1) << np.uint64(j)
-                    mo |= np.uint64(1) << np.uint64(j)
-                    n_hit += 1
-                    n_obs += 1
-                elif s > 0.0:
-                    mo |= np.uint64(1) << np.uint64(j)
-                    n_obs += 1
+                s = block_sn[b, w * 64 + j, 0]
+                n = block_sn[b, w * 64 + j, 1]
+                is_hit = np.uint64(n > 0.0)
+                is_obs = np.uint64((s > 0.0) | (n > 0.0))
+                mh |= is_hit << np.uint64(j)
+                mo |= is_obs << np.uint64(j)
+                n_hit += is_hit
+                n_obs += is_obs
             observed[b, w] = mo
             hit[b, w] = mh
         counts[b, 0] = n_obs
@@ -148,7 +148,8 @@ def _gather(
     n_out: NDArray[np.float32],
 ) -> None:
     """Write the observed ``s`` and the ``n > 0`` of block ``rows[k]`` from ``s_start[k]``
-    and ``n_start[k]`` (-1: no return in it)."""
+    and ``n_start[k]``. Branch-free: every voxel is written and the place advances only
+    past kept ones, so each output needs one slot more than it keeps."""
     for k in range(rows.shape[0]):
         b = rows[k]
         js = s_start[k]
@@ -156,12 +157,10 @@ def _gather(
         for i in range(BLOCK_VOXELS):
             s = block_sn[b, i, 0]
             n = block_sn[b, i, 1]
-            if s > 0.0 or n > 0.0:
-                s_out[js] = s
-                js += 1
-                if n > 0.0:
-                    n_out[jn] = n
-                    jn += 1
+            s_out[js] = s
+            n_out[jn] = n
+            js += (s > 0.0) | (n > 0.0)
+            jn += n > 0.0
 
 
 def pack_shards(shards: list[Shard]) -> PackedBlocks:
@@ -186,8 +185,8 @@ def pack_shards(shards: list[Shard]) -> PackedBlocks:
     np.cumsum(counts[:, 0], out=s_start[1:])
     n_start = np.zeros(len(order) + 1, dtype=np.int64)
     np.cumsum(counts[:, 1], out=n_start[1:])
-    s = np.empty(int(s_start[-1]), dtype=np.float32)
-    n = np.empty(int(n_start[-1]), dtype=np.float32)
+    s = np.empty(int(s_start[-1]) + 1, dtype=np.float32)  # + 1: ``_gather`` writes ahead
+    n = np.empty(int(n_start[-1]) + 1, dtype=np.float32)
     local_rows = np.concatenate([r for _, r, *_ in parts]).astype(np.int64)[order]
     shard_of_row = shard_of_row[order]
     block_t = np.concatenate([sh.block_t[r] for sh, r, *_ in parts])[order]
@@ -196,8 +195,8 @@ def pack_shards(shards: list[Shard]) -> PackedBlocks:
         _gather(sh.block_sn, local_rows[mine], s_start[mine], n_start[mine], s, n)
     hit_block = np.flatnonzero(counts[:, 1] > 0).astype(np.int64)
     return PackedBlocks(
-        block_ijk[order].astype(np.int32, copy=False), block_t, observed, s, hit_block,
-        hit[hit_block], n,
+        block_ijk[order].astype(np.int32, copy=False), block_t, observed, s[:-1], hit_block,
+        hit[hit_block], n[:-1],
     )  # fmt: skip
 
 
@@ -220,7 +219,9 @@ def _unpack(
 ) -> int:
     """Open the blocks of ``shard`` from row ``start`` on and set their voxels; returns the
     number of rows, or the row where the shard ran out of room (grow it and call again).
-    ``counts[0]`` receives the voxels set that are observed (s > 0 or n > 0)."""
+    ``counts[0]`` receives the voxels set that are observed (s > 0 or n > 0). ``s`` and
+    ``n`` hold one value more than the masks say (read ahead, never kept): every voxel of a
+    block is written, branch-free."""
     block_sn, block_hit = shard_arrays[3], shard_arrays[6]
     block_times = shard_arrays[4]
     for b in range(start, block_ijk.shape[0]):
@@ -235,28 +236,24 @@ def _unpack(
         block_times[block] = block_t[b]
         h = hit_of_block[b]
         js = s_start[b]
-        jn = n_start[h] if h >= 0 else 0
-        for w in range(8):
+        jn = n_start[h] if h >= 0 else n.shape[0] - 1
+        observed_here = 0
+        for w in range(MASK_WORDS):
             mo = observed[b, w]
             mh = hit[h, w] if h >= 0 else np.uint64(0)
-            if mo == 0:
-                continue
             for j in range(64):
-                bit = np.uint64(1) << np.uint64(j)
-                if mo & bit:
-                    i = w * 64 + j
-                    sv = np.float32(s[js])
-                    js += 1
-                    nv = np.float32(0.0)
-                    if mh & bit:
-                        nv = np.float32(n[jn])
-                        jn += 1
-                    block_sn[block, i, 0] = sv
-                    block_sn[block, i, 1] = nv
-                    if nv > 0.0:
-                        block_hit[block] = True
-                    if sv > 0.0 or nv > 0.0:
-                        counts[0] += 1
+                o = (mo >> np.uint64(j)) & np.uint64(1)
+                x = (mh >> np.uint64(j)) & np.uint64(1)
+                sv = np.float32(s[js]) * np.float32(o)
+                nv = np.float32(n[jn]) * np.float32(x)
+                block_sn[block, w * 64 + j, 0] = sv
+                block_sn[block, w * 64 + j, 1] = nv
+                js += o
+                jn += x
+                observed_here += (sv > 0.0) | (nv > 0.0)
+        if h >= 0:
+            block_hit[block] = True
+        counts[0] += observed_here
     return block_ijk.shape[0]
 
 
@@ -272,6 +269,8 @@ def unpack_into(shards: list[Shard], shard_mask: int, packed: PackedBlocks) -> i
     per_shard = np.bincount((b[:, 0] + b[:, 1] + b[:, 2]) & shard_mask, minlength=len(shards))
     counts = np.zeros(1, dtype=np.int64)
     block_ijk = np.ascontiguousarray(packed.block_ijk, dtype=np.int32)
+    s = np.append(packed.s, packed.s.dtype.type(0))  # read ahead by ``_unpack``
+    n = np.append(packed.n, packed.n.dtype.type(0))
     for sid, sh in enumerate(shards):
         if per_shard[sid] > sh.capacity - sh.used:
             sh.grow(min_free=int(per_shard[sid]))
@@ -282,11 +281,11 @@ def unpack_into(shards: list[Shard], shard_mask: int, packed: PackedBlocks) -> i
                 packed.block_t,
                 packed.observed,
                 s_start,
-                packed.s,
+                s,
                 hit_of_block,
                 packed.hit,
                 n_start,
-                packed.n,
+                n,
                 sid,
                 shard_mask,
                 sh.arrays(),

@@ -37,6 +37,7 @@ from __future__ import annotations
 import io
 import math
 import struct
+import tokenize
 import zipfile
 import zlib
 from collections.abc import Callable, Collection, Mapping
@@ -320,10 +321,10 @@ SETTINGS_MEMBERS = tuple(k for k in MEMBER_KINDS if k not in VOXEL_MEMBERS)
 _READ_ERRORS = (
     zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, OSError, ValueError, KeyError,
     IndexError, TypeError, ArithmeticError, UnicodeError, NotImplementedError, RuntimeError,
-    zlib.error, struct.error, BlockFileError,
+    zlib.error, struct.error, BlockFileError, SyntaxError, tokenize.TokenError,
 )  # fmt: skip
 """What a damaged archive can raise while read (RuntimeError: an encrypted member;
-zlib.error: a damaged deflate stream)."""
+zlib.error: a damaged deflate stream; SyntaxError, TokenError: a damaged ``.npy`` header)."""
 
 
 def _read(archive: zipfile.ZipFile, name: str) -> np.ndarray:

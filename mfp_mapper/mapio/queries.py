@@ -4,6 +4,7 @@ use."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -37,9 +38,24 @@ class MapFileQueries:
         self.path = Path(path)
         self._decay_time = decay_time
         self._whole: Mapper | None = None
-        c = read_map_blocks(self.path, _no_rows, decay_time)
+        self.block_ijk: NDArray[np.int32] = np.zeros((0, 3), dtype=np.int32)
+        """Every block of the file (block indices)."""
+        self.num_voxels = 0
+        self.t_max = -math.inf
+        """The latest block time of the file (s)."""
+
+        def index_only(reader: BlockReader) -> NDArray[np.int64]:
+            self.block_ijk = reader.block_ijk
+            self.num_voxels = int(reader.members["s"].shape[0])
+            self.t_max = float(reader.view("block_t").max(initial=-math.inf))
+            return np.zeros(0, dtype=np.int64)
+
+        c = read_map_blocks(self.path, index_only, decay_time)
         if c is None:  # an older file
             self._whole = self._empty = self._read_whole()
+            packed = self._whole.stored_blocks()
+            self.block_ijk, self.num_voxels = packed.block_ijk, packed.num_voxels
+            self.t_max = float(packed.block_t.max(initial=-math.inf))
         else:
             self._empty = mapper_from_contents(c, self.path)
         self.resolution = self._empty.resolution
@@ -91,10 +107,6 @@ class MapFileQueries:
                 self._whole = self._read_whole()
             return self._whole.query_segments(a, b, stamp)
         return self._blocks(keys).query_segments(a, b, stamp)
-
-
-def _no_rows(reader: BlockReader) -> NDArray[np.int64]:
-    return np.zeros(0, dtype=np.int64)
 
 
 def segment_block_keys(

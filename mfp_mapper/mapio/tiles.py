@@ -298,13 +298,22 @@ class TiledMap:
     def tile_queries(self, key: TileKey) -> MapFileQueries:
         """One tile opened for queries (reading the blocks they need), its settings checked
         against the index."""
-        path = self.root / self.tiles[key].file
+        entry = self.tiles[key]
+        path = self.root / entry.file
         q = MapFileQueries(path, self.decay_time)
         try:
             names = [str(self.root / INDEX_NAME), str(path)]
             check_mergeable([self.settings(), q.settings()], names)
         except ValueError as err:
             raise MapFileError(path, str(err)) from None
+        inside = np.all(np.floor_divide(q.block_ijk, self.tile_blocks) == key, axis=1)
+        if q.num_voxels != entry.voxels or not inside.all():
+            raise MapFileError(path, f"does not hold the {entry.voxels} voxels of tile {key}")
+        if q.t_max > entry.t_max:
+            raise MapFileError(
+                path, f"t_last reaches {q.t_max} s, after the index's t_max "
+                f"{entry.t_max} s for tile {key}"
+            )  # fmt: skip
         return q
 
     def tile_mapper(self, key: TileKey) -> Mapper:
