@@ -269,7 +269,8 @@ def read_map_blocks(
 ) -> MapContents | None:
     """The settings and the blocks ``pick`` chooses (rows of the file's sorted blocks) of a
     version 3 file, read where they lie (a memory map: only their pages are read) and
-    checked; None for an older file (read it whole). MapFileError as ``read_map_file``."""
+    checked (the stamps: of every block); None for an older file (read it whole).
+    MapFileError as ``read_map_file``."""
     path = Path(path)
     problem = file_problem(path)
     if problem:
@@ -282,6 +283,7 @@ def read_map_blocks(
             settings, members = _open_blocks(path, f, archive, st.st_size)
         with BlockReader(path, members) as reader:
             settings.packed = reader.packed(np.unique(pick(reader)))
+            t_max = float(reader.view("block_t").max(initial=-math.inf))  # of every block
     except MapFileError:
         raise
     except BlockFileError as err:
@@ -292,11 +294,8 @@ def read_map_blocks(
         raise MapFileError(
             path, f"unreadable or truncated map file ({type(err).__name__}: {err})"
         ) from None
-    problem = packed_problem(settings.packed)
-    t = settings.packed.block_t
     decay = settings.decay_time if decay_time is None else decay_time
-    if not problem and t.size:
-        problem = future_problem(float(t.max()), decay, st.st_mtime, "t_last")
+    problem = packed_problem(settings.packed) or future_problem(t_max, decay, st.st_mtime, "t_last")
     if problem:
         raise MapFileError(path, problem)
     return settings
