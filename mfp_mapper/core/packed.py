@@ -108,95 +108,127 @@ def packed_problem(p: PackedBlocks) -> str | None:
 
 
 @nb.njit(cache=True, nogil=True)
-def _masks(
+def _pack_blocks(
     block_sn: NDArray[np.float32],
+    start: int,
     used: int,
     observed: NDArray[np.uint64],
     hit: NDArray[np.uint64],
     counts: NDArray[np.int64],
-) -> None:
-    """Observed and hit masks of the first ``used`` blocks; ``counts[b]`` = (observed, hits).
-    Branch-free (observed voxels are scattered: a branch per voxel mispredicts)."""
-    for b in range(used):
-        n_obs = 0
-        n_hit = 0
+    s_out: NDArray[np.float32],
+    n_out: NDArray[np.float32],
+    places: NDArray[np.int64],
+) -> int:
+    """Masks, counts (observed, hits) and values of blocks ``start`` to ``used``, in one
+    read of their memory: ``s`` of the observed voxels and ``n > 0`` appended to ``s_out``
+    and ``n_out`` from ``places`` (updated). Returns ``used``, or the block where an output
+    ran out of room (grow it and call again). Branch-free (observed voxels are scattered: a
+    branch per voxel mispredicts): every voxel is written and the place advances only past
+    kept ones."""
+    js = places[0]
+    jn = places[1]
+    for b in range(start, used):
+        if js + BLOCK_VOXELS >= s_out.shape[0] or jn + BLOCK_VOXELS >= n_out.shape[0]:
+            places[0] = js
+            places[1] = jn
+            return b
+        js0 = js
+        jn0 = jn
         for w in range(MASK_WORDS):
             mo = np.uint64(0)
             mh = np.uint64(0)
-            for j in range(64):
+            for j in range(64):  # the masks first: no store, no dependency between voxels
                 s = block_sn[b, w * 64 + j, 0]
                 n = block_sn[b, w * 64 + j, 1]
-                is_hit = np.uint64(n > 0.0)
-                is_obs = np.uint64((s > 0.0) | (n > 0.0))
-                mh |= is_hit << np.uint64(j)
-                mo |= is_obs << np.uint64(j)
-                n_hit += is_hit
-                n_obs += is_obs
+                mh |= np.uint64(n > 0.0) << np.uint64(j)
+                mo |= np.uint64((s > 0.0) | (n > 0.0)) << np.uint64(j)
             observed[b, w] = mo
             hit[b, w] = mh
-        counts[b, 0] = n_obs
-        counts[b, 1] = n_hit
+            if mo != 0:  # then the values of the words that hold some
+                for j in range(64):
+                    s_out[js] = block_sn[b, w * 64 + j, 0]
+                    js += (mo >> np.uint64(j)) & np.uint64(1)
+            if mh != 0:
+                for j in range(64):
+                    n_out[jn] = block_sn[b, w * 64 + j, 1]
+                    jn += (mh >> np.uint64(j)) & np.uint64(1)
+        counts[b, 0] = js - js0
+        counts[b, 1] = jn - jn0
+    places[0] = js
+    places[1] = jn
+    return used
 
 
 @nb.njit(cache=True, nogil=True)
-def _gather(
-    block_sn: NDArray[np.float32],
-    rows: NDArray[np.int64],
-    s_start: NDArray[np.int64],
-    n_start: NDArray[np.int64],
-    s_out: NDArray[np.float32],
-    n_out: NDArray[np.float32],
+def _copy_runs(
+    src: NDArray[np.float32],
+    src_start: NDArray[np.int64],
+    lengths: NDArray[np.int64],
+    dst: NDArray[np.float32],
 ) -> None:
-    """Write the observed ``s`` and the ``n > 0`` of block ``rows[k]`` from ``s_start[k]``
-    and ``n_start[k]``. Branch-free: every voxel is written and the place advances only
-    past kept ones, so each output needs one slot more than it keeps."""
-    for k in range(rows.shape[0]):
-        b = rows[k]
-        js = s_start[k]
-        jn = n_start[k]
-        for i in range(BLOCK_VOXELS):
-            s = block_sn[b, i, 0]
-            n = block_sn[b, i, 1]
-            s_out[js] = s
-            n_out[jn] = n
-            js += (s > 0.0) | (n > 0.0)
-            jn += n > 0.0
+    """Runs ``src[src_start[k]:src_start[k] + lengths[k]]`` one after the other in ``dst``."""
+    j = 0
+    for k in range(src_start.shape[0]):
+        for i in range(src_start[k], src_start[k] + lengths[k]):
+            dst[j] = src[i]
+            j += 1
 
 
-def pack_shards(shards: list[Shard]) -> PackedBlocks:
+def _pack_shard(sh: Shard, size_hint: int) -> tuple[
+    NDArray[np.uint64], NDArray[np.uint64], NDArray[np.int64], NDArray[np.float32],
+    NDArray[np.float32],
+]:  # fmt: skip
+    """Masks, counts and values (store order) of one shard's blocks (``_pack_blocks``)."""
+    used = sh.used
+    observed = np.empty((used, MASK_WORDS), dtype=np.uint64)
+    hit = np.empty((used, MASK_WORDS), dtype=np.uint64)
+    counts = np.empty((used, 2), dtype=np.int64)
+    s_out = np.empty(max(size_hint, BLOCK_VOXELS) + BLOCK_VOXELS + 1, dtype=np.float32)
+    n_out = np.empty(max(size_hint // 16, BLOCK_VOXELS) + BLOCK_VOXELS + 1, dtype=np.float32)
+    places = np.zeros(2, dtype=np.int64)
+    start = 0
+    while (
+        start := _pack_blocks(sh.block_sn, start, used, observed, hit, counts, s_out, n_out, places)
+    ) < used:
+        if places[0] + BLOCK_VOXELS >= s_out.shape[0]:
+            s_out = np.concatenate([s_out, np.empty_like(s_out)])
+        if places[1] + BLOCK_VOXELS >= n_out.shape[0]:
+            n_out = np.concatenate([n_out, np.empty_like(n_out)])
+    return observed, hit, counts, s_out, n_out
+
+
+def pack_shards(shards: list[Shard], size_hint: int = 0) -> PackedBlocks:
     """The observed voxels of these shards, packed and sorted (a copy: the shards may
-    change afterwards). Blocks without an observed voxel are left out."""
-    parts = []
-    for sh in shards:
-        used = sh.used
-        observed = np.empty((used, 8), dtype=np.uint64)
-        hit = np.empty((used, 8), dtype=np.uint64)
-        counts = np.empty((used, 2), dtype=np.int64)
-        _masks(sh.block_sn, used, observed, hit, counts)
-        rows = np.flatnonzero(counts[:, 0] > 0)
-        parts.append((sh, rows, observed[rows], hit[rows], counts[rows]))
-    block_ijk = np.concatenate([sh.block_ijk[r] for sh, r, *_ in parts])
+    change afterwards): one read of the blocks' memory, then the values copied in sorted
+    block order. Blocks without an observed voxel are left out. ``size_hint``: about how
+    many voxels the shards hold (the outputs grow when it is short)."""
+    parts = [_pack_shard(sh, size_hint // len(shards) + 1) for sh in shards]
+    keep = [np.flatnonzero(p[2][:, 0] > 0) for p in parts]
+    block_ijk = np.concatenate([sh.block_ijk[r] for sh, r in zip(shards, keep, strict=True)])
     order = np.argsort(sort_keys(block_ijk), kind="stable")
-    shard_of_row = np.concatenate([np.full(len(r), k) for k, (_, r, *_) in enumerate(parts)])
-    observed = np.concatenate([p[2] for p in parts])[order]
-    hit = np.concatenate([p[3] for p in parts])[order]
-    counts = np.concatenate([p[4] for p in parts])[order]
-    s_start = np.zeros(len(order) + 1, dtype=np.int64)
-    np.cumsum(counts[:, 0], out=s_start[1:])
-    n_start = np.zeros(len(order) + 1, dtype=np.int64)
-    np.cumsum(counts[:, 1], out=n_start[1:])
-    s = np.empty(int(s_start[-1]) + 1, dtype=np.float32)  # + 1: ``_gather`` writes ahead
-    n = np.empty(int(n_start[-1]) + 1, dtype=np.float32)
-    local_rows = np.concatenate([r for _, r, *_ in parts]).astype(np.int64)[order]
-    shard_of_row = shard_of_row[order]
-    block_t = np.concatenate([sh.block_t[r] for sh, r, *_ in parts])[order]
-    for k, (sh, *_) in enumerate(parts):
-        mine = np.flatnonzero(shard_of_row == k)
-        _gather(sh.block_sn, local_rows[mine], s_start[mine], n_start[mine], s, n)
-    hit_block = np.flatnonzero(counts[:, 1] > 0).astype(np.int64)
+    observed = np.concatenate([p[0][r] for p, r in zip(parts, keep, strict=True)])[order]
+    hit = np.concatenate([p[1][r] for p, r in zip(parts, keep, strict=True)])[order]
+    block_t = np.concatenate([sh.block_t[r] for sh, r in zip(shards, keep, strict=True)])[order]
+    values = []
+    for col in (0, 1):  # s, then n: each block's run in the shard's output, in sorted order
+        outputs = [p[3] if col == 0 else p[4] for p in parts]
+        starts, lengths, offset = [], [], 0
+        for k, p in enumerate(parts):
+            count = p[2][:, col]
+            first = np.cumsum(count) - count
+            starts.append(first[keep[k]] + offset)
+            lengths.append(count[keep[k]])
+            offset += len(outputs[k])
+        src = np.concatenate(outputs) if len(outputs) > 1 else outputs[0]
+        run_length = np.concatenate(lengths)[order]
+        out = np.empty(int(run_length.sum()), dtype=np.float32)
+        _copy_runs(src, np.concatenate(starts)[order], run_length, out)
+        values.append((out, run_length))
+    (s, _), (n, hits) = values
+    hit_block = np.flatnonzero(hits > 0).astype(np.int64)
     return PackedBlocks(
-        block_ijk[order].astype(np.int32, copy=False), block_t, observed, s[:-1], hit_block,
-        hit[hit_block], n[:-1],
+        block_ijk[order].astype(np.int32, copy=False), block_t, observed, s, hit_block,
+        hit[hit_block], n,
     )  # fmt: skip
 
 
@@ -219,9 +251,10 @@ def _unpack(
 ) -> int:
     """Open the blocks of ``shard`` from row ``start`` on and set their voxels; returns the
     number of rows, or the row where the shard ran out of room (grow it and call again).
-    ``counts[0]`` receives the voxels set that are observed (s > 0 or n > 0). ``s`` and
-    ``n`` hold one value more than the masks say (read ahead, never kept): every voxel of a
-    block is written, branch-free."""
+    ``counts[0]`` receives the voxels set that are observed (s > 0 or n > 0). The shards'
+    unused blocks read zero (``Shard``): only the 64-voxel words holding a voxel are
+    written, each whole, branch-free (``s`` and ``n`` hold one value more than the masks
+    say, read ahead, never kept)."""
     block_sn, block_hit = shard_arrays[3], shard_arrays[6]
     block_times = shard_arrays[4]
     for b in range(start, block_ijk.shape[0]):
@@ -240,17 +273,23 @@ def _unpack(
         observed_here = 0
         for w in range(MASK_WORDS):
             mo = observed[b, w]
-            mh = hit[h, w] if h >= 0 else np.uint64(0)
+            if mo == 0:
+                continue  # the block's memory reads zero where nothing is set
             for j in range(64):
                 o = (mo >> np.uint64(j)) & np.uint64(1)
-                x = (mh >> np.uint64(j)) & np.uint64(1)
                 sv = np.float32(s[js]) * np.float32(o)
-                nv = np.float32(n[jn]) * np.float32(x)
                 block_sn[block, w * 64 + j, 0] = sv
-                block_sn[block, w * 64 + j, 1] = nv
                 js += o
+                observed_here += sv > 0.0
+            mh = hit[h, w] if h >= 0 else np.uint64(0)
+            if mh == 0:
+                continue
+            for j in range(64):
+                x = (mh >> np.uint64(j)) & np.uint64(1)
+                nv = np.float32(n[jn]) * np.float32(x)
+                block_sn[block, w * 64 + j, 1] = nv
                 jn += x
-                observed_here += (sv > 0.0) | (nv > 0.0)
+                observed_here += (nv > 0.0) & (block_sn[block, w * 64 + j, 0] == 0.0)
         if h >= 0:
             block_hit[block] = True
         counts[0] += observed_here

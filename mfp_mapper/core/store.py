@@ -339,7 +339,7 @@ class BlockStore:
 
     def export_blocks(self) -> PackedBlocks:
         """Every observed voxel, packed block by block (``packed``; a copy)."""
-        return pack_shards(self.shards)
+        return pack_shards(self.shards, self.num_voxels)
 
     def assign_blocks(self, packed: PackedBlocks) -> None:
         """Set the voxels of packed blocks (checked by ``packed_problem``) in an empty
