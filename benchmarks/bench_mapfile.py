@@ -14,7 +14,9 @@ written and read in the same run by
 * ``mfp-mapper query`` as it runs (``MapFileQueries``: open the file, read the blocks of
   10 points, answer; and 100 segments of 20 m), against numpy's read of the voxel arrays.
 
-Reads find the file in the page cache (it was just written), as numpy's do.
+Reads find the file in the page cache (it was just written), as numpy's do; every timed
+write starts after ``os.sync()`` (a save's fsync would otherwise wait for the previous
+writes' dirty pages). Times are the best of ``--repeat`` interleaved rounds.
 
     python benchmarks/bench_mapfile.py                       # norlab + 30 M synthetic voxels
     python benchmarks/bench_mapfile.py --voxels 1e6 --scene none
@@ -24,6 +26,7 @@ Reads find the file in the page cache (it was just written), as numpy's do.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import tempfile
 import time
@@ -37,12 +40,17 @@ sys.path[:0] = [str(ROOT), str(ROOT / "test"), str(ROOT / "benchmarks")]
 from mfp_mapper import Mapper  # noqa: E402
 from mfp_mapper.core.store import VoxelArrays  # noqa: E402
 from mfp_mapper.mapio.loading import load_map, save_map  # noqa: E402
-from mfp_mapper.mapio.mapfile import map_blocks  # noqa: E402
+from mfp_mapper.mapio.mapfile import (  # noqa: E402
+    map_blocks,
+    mapper_from_contents,
+    read_map_file,
+)
 from mfp_mapper.mapio.queries import MapFileQueries  # noqa: E402
 from mfp_mapper.mapio.tiles import write_map_path  # noqa: E402
 
 
 def _timed(fn):  # type: ignore[no-untyped-def]
+    os.sync()  # every write starts with no dirty pages of the previous one (fsync waits)
     t0 = time.perf_counter()
     out = fn()
     return time.perf_counter() - t0, out
@@ -105,7 +113,8 @@ def run(name: str, mapper: Mapper, repeat: int, tmp: Path) -> None:
         t["np_savez"].append(_timed(lambda: np.savez(npz_path, **arrays))[0])
         t["node"].append(_timed(node_save)[0])
         t["snap"].append(_timed(lambda: map_blocks(mapper))[0])
-    r: dict[str, list[float]] = {k: [] for k in ("np_read", "np_npz", "load", "q_pts", "q_seg")}
+    keys = ("np_read", "np_npz", "load", "read", "fill", "q_pts", "q_seg")
+    r: dict[str, list[float]] = {k: [] for k in keys}
     rng = np.random.default_rng(1)
     centre = (ijk.mean(axis=0) + 0.5) * mapper.resolution + np.asarray(mapper.origin or (0, 0, 0))
     points = centre + rng.normal(scale=5.0, size=(10, 3))
@@ -116,6 +125,9 @@ def run(name: str, mapper: Mapper, repeat: int, tmp: Path) -> None:
         r["np_read"].append(_timed(lambda: numpy_read(np_path))[0])
         r["np_npz"].append(_timed(lambda: numpy_load_npz(npz_path))[0])
         r["load"].append(_timed(lambda: load_map(path))[0])
+        seconds, contents = _timed(lambda: read_map_file(path))
+        r["read"].append(seconds)
+        r["fill"].append(_timed(lambda c=contents: mapper_from_contents(c, path))[0])
         r["q_pts"].append(_timed(lambda: MapFileQueries(path).query(points))[0])
         r["q_seg"].append(_timed(lambda: MapFileQueries(path).query_segments(starts, ends))[0])
     loaded = load_map(path)
@@ -138,6 +150,9 @@ def run(name: str, mapper: Mapper, repeat: int, tmp: Path) -> None:
     print(f"  np.load (4 arrays)    {b['np_read']:7.3f} s")
     print(f"  np.load (npz)         {b['np_npz']:7.3f} s")
     print(f"  load_map              {b['load']:7.3f} s   {b['load'] / base_r:5.2f}x numpy read")
+    print(f"    read and check      {b['read']:7.3f} s   {b['read'] / base_r:5.2f}x numpy read")
+    print(f"    fill the store      {b['fill']:7.3f} s   {b['fill'] / base_r:5.2f}x numpy read")
+    print(f"  (the store: {mapper.memory_bytes / count:.1f} bytes/voxel in memory)")
     print(f"  query 10 points       {b['q_pts']:7.3f} s   {b['q_pts'] / base_r:5.3f}x numpy read")
     print(f"  query 100 segments    {b['q_seg']:7.3f} s   {b['q_seg'] / base_r:5.3f}x numpy read")
 
