@@ -6,12 +6,14 @@ index, its time and a 512-bit mask of observed voxels, then ``s`` of the observe
 only; and, for the blocks holding a return, a mask of the voxels with ``n > 0`` and their
 ``n``. Blocks are sorted by index (x, then y, then z), voxels by their Morton place in the
 block (``blocks.local_index``). Values keep the store's precision (float32), so packing and
-unpacking are exact; ``pack_store`` and ``unpack_into`` are compiled walks over the blocks,
-no per-voxel index arrays.
+unpacking are exact; ``pack_chunks`` (from the store's block-level export: dense ``s`` and
+``n`` of every voxel of a block) and ``unpack_into`` are compiled walks over the blocks, no
+per-voxel index arrays. ``unpack_into`` writes the store's layout (``Shard.block_sn``) directly.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numba as nb
@@ -109,14 +111,14 @@ def packed_problem(p: PackedBlocks) -> str | None:
 
 @nb.njit(cache=True, nogil=True)
 def _pack_blocks(
-    block_sn: NDArray[np.float32],
+    block_sn: NDArray[np.floating],
     start: int,
     used: int,
     observed: NDArray[np.uint64],
     hit: NDArray[np.uint64],
     counts: NDArray[np.int64],
-    s_out: NDArray[np.float32],
-    n_out: NDArray[np.float32],
+    s_out: NDArray[np.floating],
+    n_out: NDArray[np.floating],
     places: NDArray[np.int64],
 ) -> int:
     """Masks, counts (observed, hits) and values of blocks ``start`` to ``used``, in one
@@ -161,10 +163,10 @@ def _pack_blocks(
 
 @nb.njit(cache=True, nogil=True)
 def _copy_runs(
-    src: NDArray[np.float32],
+    src: NDArray[np.floating],
     src_start: NDArray[np.int64],
     lengths: NDArray[np.int64],
-    dst: NDArray[np.float32],
+    dst: NDArray[np.floating],
 ) -> None:
     """Runs ``src[src_start[k]:src_start[k] + lengths[k]]`` one after the other in ``dst``."""
     j = 0
@@ -174,21 +176,29 @@ def _copy_runs(
             j += 1
 
 
-def _pack_shard(sh: Shard, size_hint: int) -> tuple[
-    NDArray[np.uint64], NDArray[np.uint64], NDArray[np.int64], NDArray[np.float32],
-    NDArray[np.float32],
+BlockChunk = tuple[NDArray[np.int32], NDArray[np.float64], NDArray[np.floating]]
+"""A run of a store's blocks: their index (k, 3), time (k,), and ``s``, ``n`` of their 512
+voxels each (k, 512, 2; Morton order; float32 or float64, C order: the packing reads it at
+memory speed, a strided view 10 times slower)."""
+
+
+def _pack_chunk(chunk: BlockChunk, size_hint: int) -> tuple[
+    NDArray[np.uint64], NDArray[np.uint64], NDArray[np.int64], NDArray[np.floating],
+    NDArray[np.floating],
 ]:  # fmt: skip
-    """Masks, counts and values (store order) of one shard's blocks (``_pack_blocks``)."""
-    used = sh.used
+    """Masks, counts and values (chunk order) of one chunk of blocks (``_pack_blocks``)."""
+    block_sn = np.ascontiguousarray(chunk[2])
+    used = block_sn.shape[0]
     observed = np.empty((used, MASK_WORDS), dtype=np.uint64)
     hit = np.empty((used, MASK_WORDS), dtype=np.uint64)
     counts = np.empty((used, 2), dtype=np.int64)
-    s_out = np.empty(max(size_hint, BLOCK_VOXELS) + BLOCK_VOXELS + 1, dtype=np.float32)
-    n_out = np.empty(max(size_hint // 16, BLOCK_VOXELS) + BLOCK_VOXELS + 1, dtype=np.float32)
+    size = max(min(size_hint, used * BLOCK_VOXELS), BLOCK_VOXELS) + BLOCK_VOXELS + 1
+    s_out = np.empty(size, dtype=block_sn.dtype)
+    n_out = np.empty(max(size // 16, BLOCK_VOXELS) + BLOCK_VOXELS + 1, dtype=block_sn.dtype)
     places = np.zeros(2, dtype=np.int64)
     start = 0
     while (
-        start := _pack_blocks(sh.block_sn, start, used, observed, hit, counts, s_out, n_out, places)
+        start := _pack_blocks(block_sn, start, used, observed, hit, counts, s_out, n_out, places)
     ) < used:
         if places[0] + BLOCK_VOXELS >= s_out.shape[0]:
             s_out = np.concatenate([s_out, np.empty_like(s_out)])
@@ -197,39 +207,58 @@ def _pack_shard(sh: Shard, size_hint: int) -> tuple[
     return observed, hit, counts, s_out, n_out
 
 
-def pack_shards(shards: list[Shard], size_hint: int = 0) -> PackedBlocks:
-    """The observed voxels of these shards, packed and sorted (a copy: the shards may
-    change afterwards): one read of the blocks' memory, then the values copied in sorted
-    block order. Blocks without an observed voxel are left out. ``size_hint``: about how
-    many voxels the shards hold (the outputs grow when it is short)."""
-    parts = [_pack_shard(sh, size_hint // len(shards) + 1) for sh in shards]
+def pack_chunks(chunks: Iterable[BlockChunk], size_hint: int = 0) -> PackedBlocks:
+    """The observed voxels of runs of a store's blocks (``BlockChunk``), packed and sorted
+    (a copy: the store may change afterwards): one read of the blocks' statistics, then the
+    values copied in sorted block order. Blocks without an observed voxel are left out.
+    ``size_hint``: about how many voxels the chunks hold (the outputs grow when it is
+    short). Values keep their dtype; float64 values are stored as float32 where every one
+    survives the round trip (``compact``)."""
+    chunks = list(chunks)
+    parts = [_pack_chunk(c, size_hint + 1) for c in chunks]
     keep = [np.flatnonzero(p[2][:, 0] > 0) for p in parts]
-    block_ijk = np.concatenate([sh.block_ijk[r] for sh, r in zip(shards, keep, strict=True)])
+    block_ijk = np.concatenate(
+        [np.zeros((0, 3), np.int32)] + [c[0][r] for c, r in zip(chunks, keep, strict=True)]
+    )
     order = np.argsort(sort_keys(block_ijk), kind="stable")
-    observed = np.concatenate([p[0][r] for p, r in zip(parts, keep, strict=True)])[order]
-    hit = np.concatenate([p[1][r] for p, r in zip(parts, keep, strict=True)])[order]
-    block_t = np.concatenate([sh.block_t[r] for sh, r in zip(shards, keep, strict=True)])[order]
+    pairs = list(zip(parts, keep, strict=True))
+    no_mask = np.zeros((0, MASK_WORDS), np.uint64)
+    observed = np.concatenate([no_mask] + [p[0][r] for p, r in pairs])[order]
+    hit = np.concatenate([no_mask] + [p[1][r] for p, r in pairs])[order]
+    block_t = np.concatenate([np.zeros(0)] + [c[1][r] for c, r in zip(chunks, keep, strict=True)])
+    block_t = block_t[order]
     values = []
-    for col in (0, 1):  # s, then n: each block's run in the shard's output, in sorted order
+    for col in (0, 1):  # s, then n: each block's run in its chunk's output, in sorted order
         outputs = [p[3] if col == 0 else p[4] for p in parts]
-        starts, lengths, offset = [], [], 0
+        starts, lengths, offset = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)], 0
         for k, p in enumerate(parts):
             count = p[2][:, col]
             first = np.cumsum(count) - count
             starts.append(first[keep[k]] + offset)
             lengths.append(count[keep[k]])
             offset += len(outputs[k])
-        src = np.concatenate(outputs) if len(outputs) > 1 else outputs[0]
+        src = (
+            np.concatenate([np.zeros(0, np.float32), *outputs]) if len(outputs) != 1 else outputs[0]
+        )
         run_length = np.concatenate(lengths)[order]
-        out = np.empty(int(run_length.sum()), dtype=np.float32)
+        out = np.empty(int(run_length.sum()), dtype=src.dtype)
         _copy_runs(src, np.concatenate(starts)[order], run_length, out)
-        values.append((out, run_length))
+        values.append((compact(out), run_length))
     (s, _), (n, hits) = values
     hit_block = np.flatnonzero(hits > 0).astype(np.int64)
     return PackedBlocks(
         block_ijk[order].astype(np.int32, copy=False), block_t, observed, s, hit_block,
         hit[hit_block], n,
     )  # fmt: skip
+
+
+def compact(values: NDArray[np.floating]) -> NDArray[np.floating]:
+    """float32 values as they are; float64 ones as float32 when every one survives the
+    round trip, else as they are."""
+    if values.dtype == np.float32:
+        return values
+    small = values.astype(np.float32)
+    return small if np.array_equal(small, values) else values
 
 
 @nb.njit(cache=True, nogil=True)
@@ -336,4 +365,4 @@ def unpack_into(shards: list[Shard], shard_mask: int, packed: PackedBlocks) -> i
     return int(counts[0])
 
 
-__all__ = ["MASK_WORDS", "PackedBlocks", "block_key", "pack_shards", "packed_problem"]
+__all__ = ["MASK_WORDS", "BlockChunk", "PackedBlocks", "block_key", "pack_chunks", "packed_problem"]

@@ -44,6 +44,7 @@ from mfp_mapper.core.packed import (
     MASK_WORDS,
     MAX_BLOCK_INDEX,
     PackedBlocks,
+    compact,
     sort_keys,
     voxel_starts,
 )
@@ -413,15 +414,9 @@ def voxels_to_packed(v: VoxelArrays, decay_time: float) -> PackedBlocks:
     hit = hit_masks.reshape(-1, MASK_WORDS)
     hit_block = np.flatnonzero(hit.any(axis=1)).astype(np.int64)
     return PackedBlocks(
-        blocks[order[heads]].astype(np.int32), block_t, observed, _compact(s), hit_block,
-        hit[hit_block], _compact(n[has_n]),
+        blocks[order[heads]].astype(np.int32), block_t, observed, compact(s), hit_block,
+        hit[hit_block], compact(n[has_n]),
     )  # fmt: skip
-
-
-def _compact(values: NDArray[np.float64]) -> NDArray[np.floating]:
-    """float32 when every value survives the round trip, else the float64 values."""
-    small = values.astype(np.float32)
-    return small if np.array_equal(small, values) else values
 
 
 __all__ = ["BlockReader", "block_arrays", "packed_to_voxels", "take_blocks", "voxels_to_packed"]
