@@ -12,7 +12,8 @@ written and read in the same run by
   renamed) and the node's save (``map_blocks`` under the lock, then ``write_map_path``);
   ``load_map`` (read, CRCs and values checked, blocks set in the store);
 * ``mfp-mapper query`` as it runs (``MapFileQueries``: open the file, read the blocks of
-  10 points, answer; and 100 segments of 20 m), against numpy's read of the voxel arrays.
+  10 points, answer; and 100 segments of 20 m), against numpy's read of the voxel arrays;
+  and the command as a process against a Python process reading them with numpy.
 
 Reads find the file in the page cache (it was just written), as numpy's do; every timed
 write starts after ``os.sync()`` (a save's fsync would otherwise wait for the previous
@@ -27,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import subprocess
 import sys
 import tempfile
 import time
@@ -130,6 +132,17 @@ def run(name: str, mapper: Mapper, repeat: int, tmp: Path) -> None:
         r["fill"].append(_timed(lambda c=contents: mapper_from_contents(c, path))[0])
         r["q_pts"].append(_timed(lambda: MapFileQueries(path).query(points))[0])
         r["q_seg"].append(_timed(lambda: MapFileQueries(path).query_segments(starts, ends))[0])
+    cli = [sys.executable, "-m", "mfp_mapper.cli", "query", str(path)]
+    cli += [f"{v:.3f}" for v in points.ravel()]
+    reader = f"import numpy as np; f = open({str(np_path)!r}, 'rb'); [np.load(f) for _ in range(4)]"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    for _ in range(repeat):  # whole processes, as a user runs them (imports included)
+        r.setdefault("cli", []).append(
+            _timed(lambda: subprocess.run(cli, env=env, check=True, capture_output=True))[0]
+        )
+        r.setdefault("np_proc", []).append(
+            _timed(lambda: subprocess.run([sys.executable, "-c", reader], check=True))[0]
+        )
     loaded = load_map(path)
     assert loaded.num_voxels == mapper.num_voxels
     expect = mapper.query(points)
@@ -155,6 +168,9 @@ def run(name: str, mapper: Mapper, repeat: int, tmp: Path) -> None:
     print(f"  (the store: {mapper.memory_bytes / count:.1f} bytes/voxel in memory)")
     print(f"  query 10 points       {b['q_pts']:7.3f} s   {b['q_pts'] / base_r:5.3f}x numpy read")
     print(f"  query 100 segments    {b['q_seg']:7.3f} s   {b['q_seg'] / base_r:5.3f}x numpy read")
+    print(f"  process: numpy read   {b['np_proc']:7.3f} s   (python -c: imports and np.load)")
+    print(f"  process: query        {b['cli']:7.3f} s   {b['cli'] / b['np_proc']:5.2f}x numpy read"
+          " (mfp-mapper query, 10 points)")  # fmt: skip
 
 
 def main() -> None:

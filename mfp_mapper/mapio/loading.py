@@ -10,7 +10,6 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from mfp_mapper.core.mapper import Mapper
-from mfp_mapper.mapio.blockfile import packed_to_voxels
 from mfp_mapper.mapio.mapfile import (
     map_blocks,
     mapper_from_contents,
@@ -48,12 +47,12 @@ def load_map(
         return TiledMap(p, decay_time).load(bounds, **overrides)
     c = read_map_file(p, decay_time)
     if bounds is not None:
-        voxels = c.voxels if c.packed is None else packed_to_voxels(c.packed)
+        voxels = c.voxels
         lo_i, hi_i = index_bounds(bounds, c.resolution, c.origin)
         keep = np.all((voxels.ijk >= lo_i) & (voxels.ijk <= hi_i), axis=1)
         for name in ("ijk", "s", "n", "t_last"):
             setattr(voxels, name, getattr(voxels, name)[keep])
-        c.voxels, c.packed = voxels, None
+        c.voxels = voxels  # the box's voxels, as lists
     return mapper_from_contents(c, p, **overrides)
 
 

@@ -143,9 +143,27 @@ class MapContents:
     ranges: dict[str, float]
     """``max_range`` and ``min_range`` where the file has them; ``prior_shape`` and
     ``prior_rate`` always (1 and 1 where the file has none)."""
-    voxels: VoxelArrays
+    voxel_lists: VoxelArrays | None
+    """The voxels of a version 1 or 2 file (None: ``packed`` holds them)."""
     packed: PackedBlocks | None = None
-    """The voxels of a version 3 file (``voxels`` then empty)."""
+    """The voxels of a version 3 file, as stored."""
+
+    @property
+    def voxels(self) -> VoxelArrays:
+        """The voxels as lists (of a version 3 file: unpacked, float64, the first time)."""
+        if self.voxel_lists is None:
+            self.voxel_lists = (
+                packed_to_voxels(self.packed) if self.packed is not None else _no_voxels()
+            )
+        return self.voxel_lists
+
+    @voxels.setter
+    def voxels(self, voxels: VoxelArrays) -> None:
+        self.voxel_lists, self.packed = voxels, None
+
+
+def _no_voxels() -> VoxelArrays:
+    return VoxelArrays(np.zeros((0, 3), np.int32), np.zeros(0), np.zeros(0), np.zeros(0))
 
 
 def write_map(path: str | Path, mapper: MapSource) -> None:
@@ -403,8 +421,7 @@ def check_settings(path: Path, a: dict[str, np.ndarray], blocks: bool = False) -
     if problem:
         raise MapFileError(path, problem)
     ox, oy, oz = (float(v) for v in origin)
-    empty = VoxelArrays(np.zeros((0, 3), np.int32), np.zeros(0), np.zeros(0), np.zeros(0))
-    return MapContents(resolution, (ox, oy, oz), decay_time, str(a["frame_id"]), ranges, empty)
+    return MapContents(resolution, (ox, oy, oz), decay_time, str(a["frame_id"]), ranges, None)
 
 
 def read_map_arrays(
@@ -416,7 +433,7 @@ def read_map_arrays(
     twice (one sort of packed keys; ``check_duplicates=False`` when a Mapper is built from
     them: its store finds them and names the voxel)."""
     c = read_map_file(path, decay_time)
-    voxels = c.voxels if c.packed is None else packed_to_voxels(c.packed)
+    voxels = c.voxels
     if c.packed is None and check_duplicates and has_duplicates(voxels.ijk):
         raise MapFileError(path, "ijk lists a voxel more than once")
     return {
