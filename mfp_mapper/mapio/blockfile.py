@@ -344,6 +344,35 @@ def take_blocks(arrays: dict[str, Any], rows: NDArray[np.int64]) -> dict[str, np
     )
 
 
+def concat_packed(parts: list[PackedBlocks]) -> PackedBlocks:
+    """Packed blocks of disjoint block sets (e.g. tiles) as one, sorted (a block in two
+    parts is refused by ``packed_problem`` later)."""
+    if len(parts) == 1:
+        return parts[0]
+    rows = np.cumsum([0] + [p.block_ijk.shape[0] for p in parts])
+    block_ijk = np.concatenate([np.zeros((0, 3), np.int32)] + [p.block_ijk for p in parts])
+    observed = np.concatenate([np.zeros((0, MASK_WORDS), np.uint64)] + [p.observed for p in parts])
+    hit_all = np.concatenate([np.zeros((0, MASK_WORDS), np.uint64)] + [p.hit for p in parts])
+    hit_rows = np.concatenate(
+        [np.zeros(0, np.int64)] + [p.hit_block + r for p, r in zip(parts, rows, strict=False)]
+    )
+    s_all = np.concatenate([np.zeros(0, np.float32)] + [p.s for p in parts])
+    n_all = np.concatenate([np.zeros(0, np.float32)] + [p.n for p in parts])
+    order = np.argsort(sort_keys(block_ijk), kind="stable")
+    start = voxel_starts(observed)
+    hit_of_block = np.full(block_ijk.shape[0], -1, dtype=np.int64)
+    hit_of_block[hit_rows] = np.arange(hit_rows.shape[0])
+    sorted_hits = hit_of_block[order]
+    hit_block = np.flatnonzero(sorted_hits >= 0).astype(np.int64)
+    hidx = sorted_hits[hit_block]
+    nstart = voxel_starts(hit_all)
+    return PackedBlocks(
+        block_ijk[order], np.concatenate([np.zeros(0)] + [p.block_t for p in parts])[order],
+        observed[order], compact(s_all[_ranges(start[order], start[order + 1])]), hit_block,
+        hit_all[hidx], compact(n_all[_ranges(nstart[hidx], nstart[hidx + 1])]),
+    )  # fmt: skip
+
+
 # --- voxel lists <-> packed blocks ------------------------------------------------------
 
 _MORTON = np.array(
@@ -419,4 +448,7 @@ def voxels_to_packed(v: VoxelArrays, decay_time: float) -> PackedBlocks:
     )  # fmt: skip
 
 
-__all__ = ["BlockReader", "block_arrays", "packed_to_voxels", "take_blocks", "voxels_to_packed"]
+__all__ = [
+    "BlockReader", "block_arrays", "concat_packed", "packed_to_voxels", "take_blocks",
+    "voxels_to_packed",
+]  # fmt: skip

@@ -459,7 +459,7 @@ def mapper_from_arrays(
     ``resolution`` or ``origin``), as ``load_map`` does."""
     resolution = float(arrays["resolution"])
     origin = np.asarray(arrays.get("origin", np.zeros(3)), dtype=np.float64).reshape(3)
-    settings = _mapper_settings(arrays, path, dict(overrides))
+    settings = mapper_settings(arrays, path, dict(overrides))
     voxels = VoxelArrays(arrays["ijk"], arrays["s"], arrays["n"], arrays["t_last"])
     try:
         return Mapper.from_arrays(voxels, resolution=resolution, origin=origin, **settings)
@@ -473,7 +473,7 @@ def mapper_from_contents(c: MapContents, path: str | Path, **overrides: object) 
     if c.packed is None:
         arrays = {**contents_settings(c), **{k: getattr(c.voxels, k) for k in VOXEL_MEMBERS}}
         return mapper_from_arrays(arrays, path, **overrides)
-    settings = _mapper_settings(contents_settings(c), path, overrides)
+    settings = mapper_settings(contents_settings(c), path, overrides)
     try:
         return Mapper.from_blocks(
             c.packed, resolution=c.resolution, origin=np.array(c.origin), **settings
@@ -495,7 +495,7 @@ def contents_settings(c: MapContents) -> dict[str, np.ndarray]:
     }
 
 
-def _mapper_settings(
+def mapper_settings(
     arrays: Mapping[str, Any], path: str | Path, overrides: dict[str, object]
 ) -> dict[str, object]:
     """The Mapper keyword arguments of map-file settings with ``overrides`` (not

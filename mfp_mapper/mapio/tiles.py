@@ -30,10 +30,11 @@ from numpy.typing import ArrayLike, NDArray
 from mfp_mapper.core.mapper import Mapper, VoxelStats
 from mfp_mapper.core.merge import check_mergeable, merge_map_arrays
 from mfp_mapper.core.model import Prior
+from mfp_mapper.core.packed import PackedBlocks
 from mfp_mapper.core.store import BLOCK_BITS
 from mfp_mapper.core.voxel_stats import SegmentStats
 from mfp_mapper.mapio.atomic import write_text_atomic
-from mfp_mapper.mapio.blockfile import BLOCK_MEMBERS, take_blocks
+from mfp_mapper.mapio.blockfile import BLOCK_MEMBERS, concat_packed, take_blocks
 from mfp_mapper.mapio.checks import (
     TILE_DIR,
     TILES_FORMAT,
@@ -45,9 +46,12 @@ from mfp_mapper.mapio.mapfile import (
     FORMAT_NAME,
     FORMAT_VERSION,
     MapFileError,
+    contents_settings,
     mapper_from_arrays,
+    mapper_settings,
     num_voxels,
     read_map_arrays,
+    read_map_file,
     write_map_arrays,
 )
 from mfp_mapper.mapio.queries import MapFileQueries
@@ -271,6 +275,31 @@ class TiledMap:
             )  # fmt: skip
         return arrays
 
+    def read_tile_blocks(self, key: TileKey) -> PackedBlocks | None:
+        """The packed blocks of one tile (None when it is a version 1 or 2 file: read it
+        with ``read_tile``), checked as ``read_tile`` checks its voxels."""
+        entry = self.tiles[key]
+        path = self.root / entry.file
+        contents = read_map_file(path)
+        packed = contents.packed
+        if packed is None:
+            return None
+        try:
+            names = [str(self.root / INDEX_NAME), str(path)]
+            check_mergeable([self.settings(), contents_settings(contents)], names)
+        except ValueError as err:
+            raise MapFileError(path, str(err)) from None
+        inside = np.all(np.floor_divide(packed.block_ijk, self.tile_blocks) == key, axis=1)
+        if packed.num_voxels != entry.voxels or not inside.all():
+            raise MapFileError(path, f"does not hold the {entry.voxels} voxels of tile {key}")
+        t_max = float(packed.block_t.max(initial=-math.inf))
+        if t_max > entry.t_max:
+            raise MapFileError(
+                path, f"t_last reaches {t_max} s, after the index's t_max {entry.t_max} s "
+                f"for tile {key}"
+            )  # fmt: skip
+        return packed
+
     def keys_in(self, bounds: tuple[ArrayLike, ArrayLike] | None = None) -> list[TileKey]:
         """Tiles that may hold voxel centres inside ``bounds`` (metres; None: all)."""
         keys = sorted(self.tiles)
@@ -286,7 +315,21 @@ class TiledMap:
         self, bounds: tuple[ArrayLike, ArrayLike] | None = None, **overrides: object
     ) -> Mapper:
         """A Mapper with the voxels whose centres lie in ``bounds`` (metres, inclusive;
-        None: the whole map), read from the tiles that reach into them."""
+        None: the whole map), read from the tiles that reach into them (the whole map of
+        version 3 tiles: block by block, as a map file loads)."""
+        if bounds is None:
+            blocks = [self.read_tile_blocks(k) for k in self.keys_in()]
+            if all(b is not None for b in blocks):
+                settings = mapper_settings(self.settings(), self.root, dict(overrides))
+                try:
+                    return Mapper.from_blocks(
+                        concat_packed([b for b in blocks if b is not None]),
+                        resolution=self.resolution,
+                        origin=np.asarray(self.origin or (0.0, 0.0, 0.0)),
+                        **settings,
+                    )
+                except ValueError as err:
+                    raise MapFileError(self.root, str(err)) from err
         parts = [self.read_tile(k) for k in self.keys_in(bounds)]
         arrays = concatenate(parts, self.settings())
         if bounds is not None:
