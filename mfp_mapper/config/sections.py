@@ -122,6 +122,18 @@ class MapSection(Section):
         applies="both",
         flag="--prior-scale",
     )
+    reflectivity_bins: int = setting(
+        8,
+        "Bins J of the reflectivity histogram each voxel with returns keeps (Appendix B; "
+        "docs/model.md): clouds with an intensity field (Ouster 'reflectivity', else "
+        "'intensity') are binned on log-spaced edges fixed per field. 0: no histograms. A "
+        "loaded map keeps its own bins.",
+        0,
+        64,
+        name="reflectivity.bins",
+        applies="both",
+        flag="--reflectivity-bins",
+    )
 
 
 @dataclass(frozen=True)
@@ -161,6 +173,25 @@ class SensorModelSection(Section):
         1.0e5,
         applies="both",
         flag="--no-return-range",
+    )
+    first_echo_only: bool = setting(
+        False,
+        "Use only the first echo of each laser shot. False (the default): every echo the "
+        "cloud marks (Nebula return_type, ouster-ros points2, Livox tag, target_index) joins "
+        "its shot's ray, one Poisson process along the beam (docs/model.md, 'Every echo of a "
+        "shot').",
+        applies="both",
+        flag="--first-echo-only",
+    )
+    echo_blind_stretch: float = setting(
+        0.75,
+        "Metres of beam after each echo left out of the free space a shot clears: right "
+        "behind an echo a lidar sees later echoes at a fraction of their rate (measured on a "
+        "RIEGL scan of conifers; docs/model.md, 'Every echo of a shot').",
+        0.0,
+        100.0,
+        applies="both",
+        flag="--echo-blind-stretch",
     )
 
 
@@ -259,6 +290,12 @@ class PlacementSection(Section):
         dynamic=True,
         applies="both",
         flag="--max-z",
+    )
+    second_return_topic: str = setting(
+        "",
+        "Topic of a second cloud holding the second returns of the clouds on cloud_in, in the "
+        "same pixel layout and with the same stamps (ouster-ros 'points2'); each pair is "
+        "integrated as one cloud, the two returns of a pixel as one shot. Empty: off.",
     )
     cloud_queue_size: int = setting(
         5,

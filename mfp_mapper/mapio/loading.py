@@ -10,15 +10,20 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.core.reflectivity import rows_within, select_rows
 from mfp_mapper.mapio.mapfile import (
+    contents_settings,
     map_blocks,
+    mapper_from_arrays,
     mapper_from_contents,
     read_map_file,
+    reflectivity_members,
     write_map,
 )
 from mfp_mapper.mapio.queries import MapFileQueries
 from mfp_mapper.mapio.tiles import (
     DEFAULT_TILE_BLOCKS,
+    VOXEL_KEYS,
     TiledMap,
     index_bounds,
     write_tiled,
@@ -47,12 +52,16 @@ def load_map(
         return TiledMap(p, decay_time).load(bounds, **overrides)
     c = read_map_file(p, decay_time)
     if bounds is not None:
-        voxels = c.voxels
+        v = c.voxels
+        arrays = {
+            **contents_settings(c), "ijk": v.ijk, "s": v.s, "n": v.n, "t_last": v.t_last,
+            **reflectivity_members(c.reflectivity),
+        }  # fmt: skip
         lo_i, hi_i = index_bounds(bounds, c.resolution, c.origin)
-        keep = np.all((voxels.ijk >= lo_i) & (voxels.ijk <= hi_i), axis=1)
-        for name in ("ijk", "s", "n", "t_last"):
-            setattr(voxels, name, getattr(voxels, name)[keep])
-        c.voxels = voxels  # the box's voxels, as lists
+        keep = np.all((v.ijk >= lo_i) & (v.ijk <= hi_i), axis=1)
+        arrays = {**arrays, **{k: arrays[k][keep] for k in VOXEL_KEYS}}
+        arrays.update(select_rows(arrays, rows_within(arrays, lo_i, hi_i)))
+        return mapper_from_arrays(arrays, p, **overrides)
     return mapper_from_contents(c, p, **overrides)
 
 

@@ -16,6 +16,9 @@ its head so that a reader needing a few blocks reads only those. Every version h
 ``version``    int64 ()        file format version (3)
 =============  ==============  ===================================================
 
+and, for a map with a reflectivity field (docs/model.md), its histograms: ``reflectivity_ijk``
+int32 (K, 3), ``reflectivity_counts`` float64 (K, J), ``reflectivity_t_last`` float64 (K,),
+``reflectivity_edges`` float64 (J - 1,) and ``reflectivity_field`` str (``core.reflectivity``);
 plus ``max_range`` and ``min_range`` (float64, metres) and ``prior_shape``, ``prior_rate``
 (float64: the Gamma prior on the extinction the estimates use, docs/model.md; a file
 without them was written with the uniform prior, 1 and 1). Versions 1 and 2 (still read)
@@ -51,7 +54,12 @@ from numpy.typing import NDArray
 from mfp_mapper.core.errors import CoreError
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.core.packed import PackedBlocks, packed_problem
-from mfp_mapper.core.store import VoxelArrays, voxel_problem
+from mfp_mapper.core.reflectivity import (
+    ReflectivityArrays,
+    from_map_arrays,
+    to_map_arrays,
+)
+from mfp_mapper.core.store import MAX_VOXEL_INDEX, VoxelArrays, voxel_problem
 from mfp_mapper.mapio.atomic import atomic_output
 from mfp_mapper.mapio.blockfile import (
     BLOCK_MEMBERS,
@@ -131,6 +139,8 @@ class MapSource(Protocol):
 
     def stored_blocks(self) -> PackedBlocks: ...
 
+    def stored_reflectivity(self) -> ReflectivityArrays | None: ...
+
 
 @dataclass
 class MapContents:
@@ -147,6 +157,8 @@ class MapContents:
     """The voxels of a version 1 or 2 file (None: ``packed`` holds them)."""
     packed: PackedBlocks | None = None
     """The voxels of a version 3 file, as stored."""
+    reflectivity: ReflectivityArrays | None = None
+    """The reflectivity histograms (``reflectivity_*`` members), when the file has them."""
 
     @property
     def voxels(self) -> VoxelArrays:
@@ -188,11 +200,20 @@ def settings_arrays(mapper: MapSource) -> dict[str, np.ndarray]:
     }
 
 
+def reflectivity_members(table: ReflectivityArrays | None) -> dict[str, np.ndarray]:
+    """The ``reflectivity_*`` members of a map file holding ``table`` ({} for None)."""
+    return {} if table is None else to_map_arrays(table)
+
+
 def map_blocks(mapper: MapSource) -> dict[str, np.ndarray]:
     """The members of ``mapper``'s map file (version 3: packed blocks): a snapshot,
     independent of the mapper afterwards (a caller takes it under a lock and writes it
     outside)."""
-    return {**settings_arrays(mapper), **block_arrays(mapper.stored_blocks())}
+    return {
+        **settings_arrays(mapper),
+        **reflectivity_members(mapper.stored_reflectivity()),
+        **block_arrays(mapper.stored_blocks()),
+    }
 
 
 def map_arrays(mapper: MapSource) -> dict[str, np.ndarray]:
@@ -205,6 +226,7 @@ def map_arrays(mapper: MapSource) -> dict[str, np.ndarray]:
         "s": voxels.s.astype(np.float64, copy=False),
         "n": voxels.n.astype(np.float64, copy=False),
         "t_last": voxels.t_last.astype(np.float64, copy=False),
+        **reflectivity_members(mapper.stored_reflectivity()),
     }
 
 
@@ -255,6 +277,7 @@ def read_map_file(path: str | Path, decay_time: float | None = None) -> MapConte
                 small = {k: _read(archive, k) for k in headers if k not in VOXEL_MEMBERS}
                 settings = check_settings(path, small, blocks=False)
                 settings.voxels = VoxelArrays(*(_read(archive, k) for k in VOXEL_MEMBERS))
+                settings.reflectivity = _reflectivity(path, small)
     except MapFileError:
         raise
     except BlockFileError as err:
@@ -275,6 +298,7 @@ def read_map_file(path: str | Path, decay_time: float | None = None) -> MapConte
         t = v.t_last
     if not problem and t.size:
         problem = future_problem(float(t.max()), decay, st.st_mtime, "t_last")
+    problem = problem or reflectivity_problem(settings.reflectivity, decay, st.st_mtime)
     if problem:
         raise MapFileError(path, problem)
     return settings
@@ -313,7 +337,11 @@ def read_map_blocks(
             path, f"unreadable or truncated map file ({type(err).__name__}: {err})"
         ) from None
     decay = settings.decay_time if decay_time is None else decay_time
-    problem = packed_problem(settings.packed) or future_problem(t_max, decay, st.st_mtime, "t_last")
+    problem = (
+        packed_problem(settings.packed)
+        or future_problem(t_max, decay, st.st_mtime, "t_last")
+        or reflectivity_problem(settings.reflectivity, decay, st.st_mtime)
+    )
     if problem:
         raise MapFileError(path, problem)
     return settings
@@ -330,7 +358,27 @@ def _open_blocks(
     headers = check_headers(path, archive, file_size, SETTINGS_MEMBERS)
     small = {k: _read(archive, k) for k in headers}
     settings = check_settings(path, small, blocks=True)
+    settings.reflectivity = _reflectivity(path, small)
     return settings, locate_members(f, archive, BLOCK_MEMBERS, file_size)
+
+
+def _reflectivity(path: Path, small: dict[str, np.ndarray]) -> ReflectivityArrays | None:
+    """The reflectivity histograms of a map file's small members (None: it has none)."""
+    try:
+        return from_map_arrays(small)
+    except ValueError as err:
+        raise MapFileError(path, str(err)) from None
+
+
+def reflectivity_problem(
+    table: ReflectivityArrays | None, decay_time: float, written_at: float
+) -> str | None:
+    """The histograms' indices within the map's range, their stamps not in the future."""
+    if table is None or not len(table):
+        return None
+    if max(-int(table.ijk.min()), int(table.ijk.max())) > MAX_VOXEL_INDEX:
+        return f"reflectivity_ijk holds indices beyond +-{MAX_VOXEL_INDEX}, the map's range"
+    return future_problem(float(table.t_last.max()), decay_time, written_at, "reflectivity_t_last")
 
 
 VOXEL_MEMBERS = ("ijk", "s", "n", "t_last")
@@ -448,6 +496,7 @@ def read_map_arrays(
         "frame_id": np.str_(c.frame_id),
         "format": np.str_(FORMAT_NAME),
         "version": np.int64(FORMAT_VERSION),
+        **reflectivity_members(c.reflectivity),
     }
 
 
@@ -462,7 +511,10 @@ def mapper_from_arrays(
     settings = mapper_settings(arrays, path, dict(overrides))
     voxels = VoxelArrays(arrays["ijk"], arrays["s"], arrays["n"], arrays["t_last"])
     try:
-        return Mapper.from_arrays(voxels, resolution=resolution, origin=origin, **settings)
+        table = from_map_arrays(arrays)
+        return Mapper.from_arrays(
+            voxels, resolution=resolution, origin=origin, reflectivity=table, **settings
+        )
     except ValueError as err:
         raise MapFileError(path, str(err)) from err
 
@@ -471,13 +523,15 @@ def mapper_from_contents(c: MapContents, path: str | Path, **overrides: object) 
     """A new Mapper holding a map file's contents (``read_map_file``); ``overrides`` as
     ``mapper_from_arrays`` takes them."""
     if c.packed is None:
-        arrays = {**contents_settings(c), **{k: getattr(c.voxels, k) for k in VOXEL_MEMBERS}}
+        voxels = {k: getattr(c.voxels, k) for k in VOXEL_MEMBERS}
+        arrays = {**contents_settings(c), **voxels, **reflectivity_members(c.reflectivity)}
         return mapper_from_arrays(arrays, path, **overrides)
     settings = mapper_settings(contents_settings(c), path, overrides)
     try:
         return Mapper.from_blocks(
-            c.packed, resolution=c.resolution, origin=np.array(c.origin), **settings
-        )
+            c.packed, resolution=c.resolution, origin=np.array(c.origin),
+            reflectivity=c.reflectivity, **settings,
+        )  # fmt: skip
     except ValueError as err:
         raise MapFileError(path, str(err)) from err
 

@@ -13,6 +13,7 @@ from numpy.typing import ArrayLike, NDArray
 from mfp_mapper.core.blocks import BLOCK_BITS
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.core.packed import sort_keys
+from mfp_mapper.core.reflectivity import ReflectivityBins
 from mfp_mapper.core.store import MAX_VOXEL_INDEX
 from mfp_mapper.core.voxel_stats import SegmentStats, VoxelStats
 from mfp_mapper.mapio.blockfile import BlockReader
@@ -30,7 +31,8 @@ whole instead of block by block."""
 
 class MapFileQueries:
     """A map file opened for ``query`` and ``query_segments``: each call reads only the
-    blocks it needs (version 3; an older file is read whole once). Blocks read are checked
+    blocks it needs (version 3; an older file, or one with reflectivity histograms, is read
+    whole once). Blocks read are checked
     (masks, counts, values, stamps); a whole read also checks the CRCs. ``MapFileError``
     as ``load_map``."""
 
@@ -51,7 +53,7 @@ class MapFileQueries:
             return np.zeros(0, dtype=np.int64)
 
         c = read_map_blocks(self.path, index_only, decay_time)
-        if c is None:  # an older file
+        if c is None or c.reflectivity is not None:  # an older file, or histograms
             self._whole = self._empty = self._read_whole()
             packed = self._whole.stored_blocks()
             self.block_ijk, self.num_voxels = packed.block_ijk, packed.num_voxels
@@ -90,6 +92,12 @@ class MapFileQueries:
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         blocks = np.floor(self._voxel_index(pts)).astype(np.int64) >> BLOCK_BITS
         return self._blocks(sort_keys(blocks)).query(pts, stamp)
+
+    def reflectivity(
+        self, points: ArrayLike, stamp: float | None = None
+    ) -> tuple[ReflectivityBins, NDArray[np.float64]] | None:
+        """``Mapper.reflectivity`` (a file with histograms is read whole; None without)."""
+        return None if self._whole is None else self._whole.reflectivity(points, stamp)
 
     def query_segments(
         self, starts: ArrayLike, ends: ArrayLike, stamp: float | None = None
