@@ -23,6 +23,7 @@ from mfp_mapper.core.memory_bound import (
     scan_block_budget,
     scan_new_blocks,
 )
+from mfp_mapper.core.packed import PackedBlocks, packed_problem
 from mfp_mapper.core.reflectivity import (
     ReflectivityArrays,
     ReflectivityBins,
@@ -691,6 +692,11 @@ class Mapper:
         refer to), without the derived statistics of ``voxels``: what a map file holds."""
         return self._store.export()
 
+    def stored_blocks(self) -> PackedBlocks:
+        """Every observed voxel as stored, packed block by block (``core.packed``): what a
+        map file holds, without an index array per voxel; ``from_blocks`` inverts it."""
+        return self._store.export_blocks()
+
     def voxels(
         self,
         stamp: float | None = None,
@@ -833,6 +839,32 @@ class Mapper:
             mapper._reflectivity.assign(reflectivity)
         finite_t = voxels.t_last[np.isfinite(voxels.t_last)]
         mapper.last_stamp = float(finite_t.max()) if finite_t.size else None
+        mapper.version += 1
+        return mapper
+
+    @classmethod
+    def from_blocks(
+        cls,
+        packed: PackedBlocks,
+        *,
+        resolution: float,
+        origin: ArrayLike = (0.0, 0.0, 0.0),
+        reflectivity: ReflectivityArrays | None = None,
+        **settings: object,
+    ) -> Mapper:
+        """A Mapper holding packed blocks (``stored_blocks``; indices relative to
+        ``origin``), and the reflectivity histograms when given (as ``from_arrays``);
+        ``settings`` are the constructor's keyword arguments. Raises ``ValueError`` on bad
+        settings, blocks or histograms."""
+        problem = packed_problem(packed)
+        if problem:
+            raise ValueError(problem)
+        mapper = cls(resolution, origin=origin, **settings)  # type: ignore[arg-type]
+        mapper._store.assign_blocks(packed)
+        if reflectivity is not None:
+            mapper._reflectivity = ReflectivityTable(reflectivity.bins, max(len(reflectivity), 16))
+            mapper._reflectivity.assign(reflectivity)
+        mapper.last_stamp = float(packed.block_t.max()) if packed.block_t.size else None
         mapper.version += 1
         return mapper
 

@@ -23,6 +23,7 @@ Every ray's contribution is summed into the store: sums, never deduplication.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numba as nb
@@ -45,6 +46,7 @@ from mfp_mapper.core.blocks import (
     shard_of,
     voxel_inside,
 )
+from mfp_mapper.core.packed import BlockChunk, PackedBlocks, pack_chunks, unpack_into
 from mfp_mapper.core.shard import Shard, ShardArrays, open_block
 
 MIN_RESOLUTION = 1e-3
@@ -335,6 +337,25 @@ class BlockStore:
             if twice >= 0:
                 raise ValueError(f"ijk lists voxel {ijk[twice].tolist()} more than once")
         self.num_voxels = int(counts[0])
+
+    def block_chunks(self) -> Iterator[BlockChunk]:
+        """Every block's index, time and the ``s``, ``n`` of its 512 voxels ((k, 512, 2),
+        Morton order), shard by shard (views of the store, valid until it changes): a
+        block-level export without per-voxel index arrays (``packed.BlockChunk``)."""
+        for sh in self.shards:
+            used = sh.used
+            yield sh.block_ijk[:used], sh.block_t[:used], sh.block_sn[:used]
+
+    def export_blocks(self) -> PackedBlocks:
+        """Every observed voxel, packed block by block (``packed``; a copy)."""
+        return pack_chunks(self.block_chunks(), self.num_voxels)
+
+    def assign_blocks(self, packed: PackedBlocks) -> None:
+        """Set the voxels of packed blocks (checked by ``packed_problem``) in an empty
+        store; the inverse of ``export_blocks``."""
+        if self.num_blocks:
+            raise ValueError("assign_blocks needs an empty store")
+        self.num_voxels = unpack_into(self.shards, self.shard_mask, packed)
 
     def lookup(self, ijk: NDArray[np.int64]) -> VoxelArrays:
         """Statistics of these voxels (zeros and t_last=-inf where never observed)."""
