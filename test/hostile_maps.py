@@ -23,9 +23,12 @@ from typing import Any
 
 import numpy as np
 
-from mfp_mapper.mapio.mapfile import write_map_arrays
+from mfp_mapper.mapio.blockfile import take_blocks, write_npz_stored
+from mfp_mapper.mapio.mapfile import as_block_arrays, write_map_arrays
 from mfp_mapper.mapio.tiles import INDEX_NAME, write_tiled
 
+PARTIAL_READERS = {"v3_flipped_value": "query"}
+"""Kinds whose damage lies where one command never reads: that command answers."""
 QUERY_POINT = (0.05, 0.05, 0.05)
 """Inside voxel (0, 0, 0) of every corpus map: a query there reads tile (0, 0, 0)."""
 FUTURE = 1e9
@@ -52,6 +55,34 @@ def good_arrays(**change: Any) -> dict[str, Any]:
     }
     arrays.update(change)
     return arrays
+
+
+def write_legacy_map(path: Path, arrays: dict[str, Any], compress: bool = True) -> Path:
+    """A version 1 or 2 map file as the writer before version 3 wrote it (commit e8b3188):
+    each array through ``np.lib.format.write_array``, deflated at level 1 (the command
+    line) or stored (the node)."""
+    method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
+    level = 1 if compress else None
+    with zipfile.ZipFile(path, "w", compression=method, compresslevel=level) as archive:
+        for name, value in arrays.items():
+            with archive.open(f"{name}.npy", "w", force_zip64=True) as member:
+                np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
+    return path
+
+
+def block_members(**change: Any) -> dict[str, Any]:
+    """The members of ``good_arrays`` as a version 3 file writes them, with ``change``."""
+    members = as_block_arrays(good_arrays())
+    members.update(change)
+    return members
+
+
+def _v3(d: Path, **change: Any) -> Path:
+    """A version 3 file of ``block_members(**change)``, written without checks."""
+    path = d / "map.npz"
+    with open(path, "wb") as f:
+        write_npz_stored(f, block_members(**change))
+    return path
 
 
 def _npz(path: Path, arrays: dict[str, Any]) -> Path:
@@ -585,6 +616,76 @@ def index_no_format(d: Path) -> Path:
     return _edit_index(d, lambda i: i.pop("format"))
 
 
+# --- version 3 kinds ---------------------------------------------------------------------
+
+
+def v3_flipped_value(d: Path) -> Path:
+    """A bit of one s value flipped on disk (still a plausible number): the CRC finds it.
+    ``query`` reads only the blocks it needs (block (0, 0, 0) here) and answers: CRCs are
+    checked by whole reads (``PARTIAL_READERS``)."""
+    path = d / "map.npz"
+    write_map_arrays(path, good_arrays())
+    raw = bytearray(path.read_bytes())
+    s_data = raw.find(b"\n", raw.find(b"'descr': '<f4'")) + 1  # s comes before n
+    raw[s_data + 8] ^= 1  # the third voxel's s (3.0, in block (5, 0, 0)) changes a little
+    path.write_bytes(bytes(raw))
+    return path
+
+
+def v3_unsorted_blocks(d: Path) -> Path:
+    return _v3(d, **take_blocks(block_members(), np.array([1, 0])))
+
+
+def v3_block_start_lies(d: Path) -> Path:
+    return _v3(d, block_start=np.array([0, 1, 3], dtype="<i8"))
+
+
+def v3_hit_not_observed(d: Path) -> Path:
+    hit = block_members()["hit"].copy()
+    hit[0, 7] |= np.uint64(1)  # voxel 448 of block (0, 0, 0): not observed
+    n = np.array([1.0, 0.5, 2.0], dtype="<f4")
+    return _v3(d, hit=hit, n=n, hit_start=np.array([0, 2, 3], dtype="<i8"))
+
+
+def v3_deflated(d: Path) -> Path:
+    path = _v3(d)
+    members = list(_members(path).items())
+    return _rezip(path, members, zipfile.ZIP_DEFLATED)
+
+
+def v3_negative_s(d: Path) -> Path:
+    return _v3(d, s=np.array([1.0, -2.0, 3.0], dtype="<f4"))
+
+
+def v3_nan_block_t(d: Path) -> Path:
+    return _v3(d, block_t=np.array([np.nan, 99.0]))
+
+
+def v3_block_out_of_range(d: Path) -> Path:
+    return _v3(d, block_ijk=np.array([[0, 0, 0], [2**22, 0, 0]], dtype="<i4"))
+
+
+def v3_mask_shape(d: Path) -> Path:
+    return _v3(d, observed=np.zeros((2, 4), dtype="<u8"))
+
+
+def v3_int_s(d: Path) -> Path:
+    return _v3(d, s=np.array([1, 2, 3], dtype="<i4"))
+
+
+def v3_as_version_2(d: Path) -> Path:
+    return _v3(d, version=np.int64(2))
+
+
+def v3_missing_hit(d: Path) -> Path:
+    members = block_members()
+    del members["hit"]
+    path = d / "map.npz"
+    with open(path, "wb") as f:
+        write_npz_stored(f, members)
+    return path
+
+
 def tiled_without_index(d: Path) -> Path:
     root = _tiled(d)
     (root / INDEX_NAME).unlink()
@@ -593,6 +694,18 @@ def tiled_without_index(d: Path) -> Path:
 
 KINDS: dict[str, tuple[Builder, str]] = {
     # .npz: the archive
+    "v3_flipped_value": (v3_flipped_value, "fails its CRC-32 check"),
+    "v3_unsorted_blocks": (v3_unsorted_blocks, "not sorted by index"),
+    "v3_block_start_lies": (v3_block_start_lies, "does not count"),
+    "v3_hit_not_observed": (v3_hit_not_observed, "not marked observed"),
+    "v3_deflated": (v3_deflated, "version 3 members are stored"),
+    "v3_negative_s": (v3_negative_s, "s holds negative"),
+    "v3_nan_block_t": (v3_nan_block_t, "block times hold NaN"),
+    "v3_block_out_of_range": (v3_block_out_of_range, "block indices beyond"),
+    "v3_mask_shape": (v3_mask_shape, "observed must have shape (2, 8)"),
+    "v3_int_s": (v3_int_s, "s has dtype <i4"),
+    "v3_as_version_2": (v3_as_version_2, "version 2 cannot hold blocks"),
+    "v3_missing_hit": (v3_missing_hit, "version 3 map without hit"),
     "truncated": (truncated, "unreadable or truncated"),
     "empty_file": (empty_file, "unreadable or truncated"),
     "wrong_magic": (wrong_magic, "unreadable or truncated"),

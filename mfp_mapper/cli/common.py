@@ -31,16 +31,21 @@ def jsonable(value: Any) -> Any:
     return jsonable(value)
 
 
-def load_map_arg(path: str, bounds: Any = None, lazy_tiles: bool = False) -> Any:
+def load_map_arg(
+    path: str, bounds: Any = None, lazy_tiles: bool = False, queries: bool = False
+) -> Any:
     """A Mapper (only ``bounds`` when given); with ``lazy_tiles``, a tiled map is opened as a
-    ``TiledMap`` that reads its tiles when asked."""
-    from mfp_mapper.mapio.loading import load_map
+    ``TiledMap`` that reads its tiles when asked; with ``queries`` too, a map file is opened
+    as a ``MapFileQueries`` that reads the blocks each query needs."""
+    from mfp_mapper.mapio.loading import MapFileQueries, load_map
     from mfp_mapper.mapio.mapfile import MapFileError
     from mfp_mapper.mapio.tiles import TiledMap
 
     try:
         if lazy_tiles and Path(path).is_dir():
             return TiledMap(path)
+        if queries:
+            return MapFileQueries(path)
         return load_map(path, bounds=bounds)
     except FileNotFoundError:
         raise CliError(f"{path}: no such map file") from None

@@ -22,7 +22,9 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
         "the metres through never-observed voxels. With --json: a list of point rows, or "
         '{"points": [...], "segments": [...]} when segments are asked.',
     )
-    p.add_argument("map", help="map file (.npz) or tiled map (only the tiles needed are read)")
+    p.add_argument(
+        "map", help="map file (.npz) or tiled map (only the blocks or tiles needed are read)"
+    )
     p.add_argument(
         "coords",
         nargs="*",
@@ -89,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
         segments += read_segment_file(args.segments)
     if not args.coords and not segments:
         raise CliError("nothing to query: give points X Y Z, --segment or --segments")
-    mapper = load_map_arg(args.map, lazy_tiles=True)  # a tiled map reads the tiles it needs
+    mapper = load_map_arg(args.map, lazy_tiles=True, queries=True)  # reads what it needs
     points = np.asarray(args.coords, dtype=np.float64).reshape(-1, 3)
     ends = np.asarray(segments, dtype=np.float64).reshape(-1, 6)
     try:

@@ -40,6 +40,11 @@ FOREIGN_CHUNK = -(1 << 31)
 MAX_VOXEL_INDEX = (KEY_OFFSET << BLOCK_BITS) - BLOCK_EDGE
 """Largest |voxel index| the store can hold (block indices are packed in 21 bits each)."""
 
+SHARD_TILE_BITS = 3
+"""Shards own tiles of ``2**SHARD_TILE_BITS`` blocks along each axis (32 voxels), in a 3-D
+checkerboard (``shard_of``): a thread walks a ray only through its own shard's tiles
+(``traversal.split_rays``), so tiles are large enough that a ray crosses few of them."""
+
 IndexBox = tuple[int, int, int]
 """A corner of an inclusive voxel index range, as kernels take it: a tuple, not an array
 (numba reference-counts array arguments on every call, even of inlined helpers)."""
@@ -70,7 +75,11 @@ def block_of_key(key: int) -> tuple[int, int, int]:
 
 @nb.njit(inline="always", cache=True)
 def shard_of(bx: int, by: int, bz: int, shard_mask: int) -> int:
-    return (bx + by + bz) & shard_mask
+    """The shard of block ``(bx, by, bz)``: the sum of its tile's indices, masked (a
+    tile's six neighbours are in other shards)."""
+    return (
+        (bx >> SHARD_TILE_BITS) + (by >> SHARD_TILE_BITS) + (bz >> SHARD_TILE_BITS)
+    ) & shard_mask
 
 
 @nb.njit(inline="always", cache=True)

@@ -4,9 +4,10 @@ the integrating walk (``traversal._walk_rays`` drives them and adds what they wr
 A voxel walk (Amanatides & Woo) is a chain of unpredictable three-way branches, one per
 step: written for one ray, a step costs 2.5 ns (hall scene at 0.2 m, bare walk). In
 ``walk_lanes`` each lane of a vector is one ray, every lane takes its step at once, and the
-branch becomes a select per lane: the same comparisons and the same float64 operations in
-the same order, so every lane's voxels and chords are bit-for-bit those of the one-ray
-walk (``test_traversal`` checks the store against the brute-force chords).
+branch becomes a select per lane: the same comparisons and the same operations in the
+same order (t in fixed point, ``T_ONE``), so every lane's voxels and chords are bit-for-bit
+those of the one-ray walk (``test_traversal`` checks the store against the brute-force
+chords).
 ``place_lanes`` then turns the steps into store indices and weighted chords, the blocks
 gathered per lane, and starts loading the store's cache lines.
 
@@ -23,8 +24,6 @@ only.
 
 from __future__ import annotations
 
-import math
-
 from llvmlite import ir
 from numba import types
 from numba.core import cgutils
@@ -35,10 +34,19 @@ from mfp_mapper.core.blocks import BLOCK_BITS, BLOCK_CHUNKS, CHUNK_BITS, KEY_BIT
 LANES = 8
 """Rays per lockstep walk (one AVX-512 vector of float64)."""
 
-FLOAT_ROWS = 8
-"""Rows of the float lane state: t_max x, y, z; t_delta x, y, z; t at the last face; length."""
-INT_ROWS = 10
-"""Rows of the integer lane state: voxel x, y, z; step x, y, z; end voxel x, y, z; steps."""
+FLOAT_ROWS = 1
+"""Rows of the float lane state: the chord of one unit of t (length / ``T_ONE``)."""
+INT_ROWS = 17
+"""Rows of the integer lane state: voxel x, y, z; step x, y, z; end voxel x, y, z; steps;
+t_max x, y, z; t_delta x, y, z; t at the last face (t in fixed point, ``T_ONE``)."""
+T_ONE = 1 << 60
+"""The ray parameter t (0 at the origin, 1 at the end) in the walks' fixed point: t times
+2^60, an int64. Sums of int64 are exact, so the t of a ray's j-th face along an axis,
+``t_max + j * t_delta``, is the same however the walk got there: a walk can start at
+any face in exactly the state the walk from the origin has there
+(``traversal.split_rays``)."""
+T_NEVER = (1 << 63) - 1
+"""t of a face never crossed (an axis at its end voxel)."""
 
 ENTERED_SHIFT = 3 * BLOCK_BITS
 """A step's code (``walk_lanes``) has this bit set when the step enters a new block."""
@@ -148,7 +156,9 @@ def walk_lanes(  # type: ignore[no-untyped-def]
 ):
     """Take ``steps`` steps of ``LANES`` rays at once, from the lane state (C-contiguous
     ``float_state`` (FLOAT_ROWS, LANES) float64, ``int_state`` (INT_ROWS, LANES) int64, as
-    ``traversal._ray_start`` gives them; neither is changed).
+    ``traversal._ray_start`` gives them, or a stretch of a ray ``traversal.split_rays``
+    starts mid-ray, with its t at entry; t in fixed point, ``T_ONE``; neither is
+    changed).
 
     Step k writes, for every lane, the voxel the ray is in before it leaves it: at
     ``out_code[k * LANES + lane]`` (int16) its index in its block (``blocks.local_index``)
@@ -170,12 +180,13 @@ def walk_lanes(  # type: ignore[no-untyped-def]
             for t, a in zip(signature.args, args, strict=True)
         )
         count = context.cast(builder, count, signature.args[2], types.intp)
-        t_max = [_row(builder, floats.data, k, _VF) for k in range(3)]
-        t_delta = [_row(builder, floats.data, 3 + k, _VF) for k in range(3)]
-        t_prev0, length = _row(builder, floats.data, 6, _VF), _row(builder, floats.data, 7, _VF)
+        per_t = _row(builder, floats.data, 0, _VF)
         voxel = [_row(builder, ints.data, k, _VI) for k in range(3)]
         step = [_row(builder, ints.data, 3 + k, _VI) for k in range(3)]
         end = [_row(builder, ints.data, 6 + k, _VI) for k in range(3)]
+        t_max = [_row(builder, ints.data, 10 + k, _VI) for k in range(3)]
+        t_delta = [_row(builder, ints.data, 13 + k, _VI) for k in range(3)]
+        t_prev0 = _row(builder, ints.data, 16, _VI)
         last = _row(builder, ints.data, 9, _VI)
         # element index in ``entered_key`` of each lane's row start, minus one
         row_start = builder.mul(
@@ -207,7 +218,7 @@ def walk_lanes(  # type: ignore[no-untyped-def]
         every = ir.Constant(_VB, [1] * LANES)
         entering_slot = cgutils.alloca_once_value(builder, every)  # step 0 enters a block
         entered_slot = cgutils.alloca_once_value(builder, builder.sub(row_start, _splat(_VI, 1)))
-        inf, one = _splat(_VF, math.inf), _splat(_VF, 1.0)
+        never, one = _splat(_VI, T_NEVER), _splat(_VI, T_ONE)
         with cgutils.for_range(builder, count) as loop:
             t = [builder.load(s) for s in t_slots]
             v = [builder.load(s) for s in v_slots]
@@ -227,31 +238,31 @@ def walk_lanes(  # type: ignore[no-untyped-def]
             # leave through the nearest face, as the one-ray walk chooses it: x when
             # t_x <= t_y and t_x <= t_z, else y when t_y <= t_z, else z
             take_x = builder.and_(
-                builder.fcmp_ordered("<=", t[0], t[1]), builder.fcmp_ordered("<=", t[0], t[2])
+                builder.icmp_signed("<=", t[0], t[1]), builder.icmp_signed("<=", t[0], t[2])
             )
-            y_before_z = builder.fcmp_ordered("<=", t[1], t[2])
+            y_before_z = builder.icmp_signed("<=", t[1], t[2])
             take = [
                 take_x,
                 builder.and_(builder.not_(take_x), y_before_z),
                 builder.not_(builder.or_(take_x, y_before_z)),
             ]
             t_next = builder.select(take[0], t[0], builder.select(take[1], t[1], t[2]))
-            t_next = builder.select(builder.fcmp_ordered("<", one, t_next), one, t_next)
-            chord = builder.fmul(builder.fsub(t_next, t_prev), length)
+            t_next = builder.select(builder.icmp_signed("<", one, t_next), one, t_next)
+            chord = builder.fmul(builder.sitofp(builder.sub(t_next, t_prev), _VF), per_t)
             builder.store(chord, _at(builder, chords.data, offset, _VF), align=8)
             builder.store(t_next, t_prev_slot)
             for axis in range(3):
                 moved = builder.add(v[axis], builder.select(take[axis], step[axis], zero))
                 at_end = builder.icmp_signed("==", moved, end[axis])
-                after = builder.select(at_end, inf, builder.fadd(t[axis], t_delta[axis]))
+                after = builder.select(at_end, never, builder.add(t[axis], t_delta[axis]))
                 builder.store(moved, v_slots[axis])
                 builder.store(builder.select(take[axis], after, t[axis]), t_slots[axis])
+            rising = builder.select(take[0], up[0], builder.select(take[1], up[1], up[2]))
             # the next voxel's index in its block: the stepped axis' bits counted up or
             # down within their own positions (a wrap enters the next block)
             bits = builder.select(
                 take[0], axis_bits[0], builder.select(take[1], axis_bits[1], axis_bits[2])
             )
-            rising = builder.select(take[0], up[0], builder.select(take[1], up[1], up[2]))
             others = builder.and_(local, builder.not_(bits))
             counted_up = builder.and_(
                 builder.add(builder.or_(local, builder.not_(bits)), _splat(_VI, 1)), bits

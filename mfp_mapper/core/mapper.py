@@ -23,6 +23,7 @@ from mfp_mapper.core.memory_bound import (
     scan_block_budget,
     scan_new_blocks,
 )
+from mfp_mapper.core.packed import PackedBlocks, packed_problem
 from mfp_mapper.core.reflectivity import (
     ReflectivityArrays,
     ReflectivityBins,
@@ -72,7 +73,8 @@ FloatArray = NDArray[np.float64]
 class StagedScan:
     """A scan integrated into a store of its own by ``Mapper.stage``, for ``commit``."""
 
-    inputs: tuple[ArrayLike, ArrayLike, ArrayLike | None]  # points, origins, no_return
+    inputs: tuple[ArrayLike, ArrayLike, ArrayLike | None, ArrayLike | None]
+    """points, origins, no_return, continued"""
     origin: FloatArray | None  # the map origin its rays are relative to
     rays: Rays
     store: BlockStore
@@ -206,6 +208,7 @@ class Mapper:
         stamp: float,
         no_return: ArrayLike | None = None,
         reflectivity: ScanReflectivity | None = None,
+        continued: ArrayLike | None = None,
     ) -> IntegrationSummary:
         """Add one scan: rays from ``origins`` ((3,) or (N, 3)) to ``points`` (N, 3), map frame.
 
@@ -217,13 +220,20 @@ class Mapper:
         ``reflectivity``: the intensity of each point and its bins (Appendix B): each
         return adds to its voxel's histogram (``takes_reflectivity`` says which bins the
         map takes: ValueError for others, the map unchanged).
+
+        ``continued`` (N,): rays that continue a shot past its previous echo (a later echo:
+        its origin is where that echo's blind stretch ends; see ``traversal.prepare_rays``):
+        kept whatever their length, zero included (a return with no chord), and not counted
+        in the scan's mean sensor position.
         """
         t0, cpu0 = time.perf_counter(), time.thread_time()
         self._worker_cpu = 0.0
         if not math.isfinite(stamp):
             raise ValueError(f"stamp must be finite seconds, got {stamp}")
         self._check_reflectivity(reflectivity, points)
-        rays, pts, dropped = self._place(points, origins, no_return, set_origin=True)
+        rays, pts, dropped = self._place(
+            points, origins, no_return, set_origin=True, continued=continued
+        )
         summary = self._summary(rays, pts, dropped)
         if len(rays):
             budget = scan_block_budget(self.max_voxels)
@@ -264,6 +274,7 @@ class Mapper:
         stamp: float,
         no_return: ArrayLike | None = None,
         reflectivity: ScanReflectivity | None = None,
+        continued: ArrayLike | None = None,
     ) -> StagedScan:
         """Integrate one scan (as ``integrate``) into a store of its own, leaving the map
         untouched: the long part of an integration, which needs no lock around the map
@@ -277,7 +288,9 @@ class Mapper:
         origin, org = self._origin, np.asarray(origins, dtype=np.float64)
         if origin is None and org.shape[-1:] == (3,):  # bad shapes: _place names them
             origin = self._origin_from(org.reshape(-1, 3))
-        rays, pts, dropped = self._place(points, origins, no_return, set_origin=False, at=origin)
+        rays, pts, dropped = self._place(
+            points, origins, no_return, set_origin=False, at=origin, continued=continued
+        )
         summary = self._summary(rays, pts, dropped)
         store, self._spare_stage = self._spare_stage, None
         if store is None:
@@ -301,8 +314,8 @@ class Mapper:
         summary.seconds = time.perf_counter() - t0
         summary.cpu_seconds = time.thread_time() - cpu0 + self._worker_cpu
         return StagedScan(
-            (points, origins, no_return), origin, rays, store, float(stamp), summary,
-            reflectivity, self._scan_returns(rays, reflectivity),
+            (points, origins, no_return, continued), origin, rays, store, float(stamp),
+            summary, reflectivity, self._scan_returns(rays, reflectivity),
         )  # fmt: skip
 
     def commit(
@@ -319,8 +332,9 @@ class Mapper:
         summary = staged.summary
         if staged.origin is not None and self._origin is not None:
             if not np.array_equal(staged.origin, self._origin):  # reset in between
+                points, origins, no_return, continued = staged.inputs
                 return self.integrate(
-                    *staged.inputs[:2], staged.stamp, staged.inputs[2], staged.reflectivity
+                    points, origins, staged.stamp, no_return, staged.reflectivity, continued
                 )
         elif staged.origin is not None:
             self._origin = staged.origin
@@ -461,12 +475,18 @@ class Mapper:
         return None if self._reflectivity is None else self._reflectivity.export()
 
     def place_rays(
-        self, points: ArrayLike, origins: ArrayLike, no_return: ArrayLike | None = None
+        self,
+        points: ArrayLike,
+        origins: ArrayLike,
+        no_return: ArrayLike | None = None,
+        continued: ArrayLike | None = None,
     ) -> tuple[Rays, dict[str, int]]:
         """The rays ``integrate`` would walk for this scan (voxel units of the store, the
         same checks, cuts and drops), and the drops by reason; the map is not changed
         (an empty map's origin is not set). ``Rays.source`` indexes the input points."""
-        rays, _, dropped = self._place(points, origins, no_return, set_origin=False)
+        rays, _, dropped = self._place(
+            points, origins, no_return, set_origin=False, continued=continued
+        )
         return rays, dropped
 
     def _place(
@@ -476,6 +496,7 @@ class Mapper:
         no_return: ArrayLike | None,
         set_origin: bool,
         at: FloatArray | None = None,
+        continued: ArrayLike | None = None,
     ) -> tuple[Rays, FloatArray, dict[str, int]]:
         """The rays in voxel units of the store (``at``: of a map with that origin, when
         the map has none yet), the points as float64 and the drops by reason."""
@@ -496,7 +517,12 @@ class Mapper:
         flags = None if no_return is None else np.asarray(no_return, dtype=np.bool_)
         if flags is not None and flags.shape != (pts.shape[0],):
             raise ValueError(f"no_return must have shape ({pts.shape[0]},), got {flags.shape}")
-        rays, dropped = prepare_rays(pts_rel, org, self.resolution, self.min_range, reach, flags)
+        later = None if continued is None else np.asarray(continued, dtype=np.bool_)
+        if later is not None and later.shape != (pts.shape[0],):
+            raise ValueError(f"continued must have shape ({pts.shape[0]},), got {later.shape}")
+        rays, dropped = prepare_rays(
+            pts_rel, org, self.resolution, self.min_range, reach, flags, later
+        )
         return rays, pts, dropped
 
     def store_view(self) -> tuple[StoreView, int]:
@@ -515,12 +541,16 @@ class Mapper:
     def _origin_from(self, sensor_origins: FloatArray) -> FloatArray | None:
         """The origin a first scan gives the map: its first finite sensor position, rounded
         to a multiple of ``ORIGIN_QUANTUM_VOXELS`` voxels (None: no finite position)."""
-        finite = sensor_origins.reshape(-1, 3)
-        finite = finite[np.isfinite(finite).all(axis=1)]
-        if not len(finite):
-            return None
+        rows = sensor_origins.reshape(-1, 3)
+        if len(rows) and np.isfinite(rows[0]).all():  # (the usual case: no pass over all)
+            first = rows[0]
+        else:
+            finite = rows[np.isfinite(rows).all(axis=1)]
+            if not len(finite):
+                return None
+            first = finite[0]
         quantum = ORIGIN_QUANTUM_VOXELS * self.resolution
-        return np.round(finite[0] / quantum) * quantum
+        return np.round(first / quantum) * quantum
 
     def _run_parallel(self, fn: Callable[[int], None], items: Sequence[int]) -> None:
         if self._pool is None or len(items) == 1:
@@ -662,6 +692,11 @@ class Mapper:
         """Every observed voxel as stored (index relative to ``origin``, s, n, the time they
         refer to), without the derived statistics of ``voxels``: what a map file holds."""
         return self._store.export()
+
+    def stored_blocks(self) -> PackedBlocks:
+        """Every observed voxel as stored, packed block by block (``core.packed``): what a
+        map file holds, without an index array per voxel; ``from_blocks`` inverts it."""
+        return self._store.export_blocks()
 
     def voxels(
         self,
@@ -808,6 +843,32 @@ class Mapper:
         mapper.version += 1
         return mapper
 
+    @classmethod
+    def from_blocks(
+        cls,
+        packed: PackedBlocks,
+        *,
+        resolution: float,
+        origin: ArrayLike = (0.0, 0.0, 0.0),
+        reflectivity: ReflectivityArrays | None = None,
+        **settings: object,
+    ) -> Mapper:
+        """A Mapper holding packed blocks (``stored_blocks``; indices relative to
+        ``origin``), and the reflectivity histograms when given (as ``from_arrays``);
+        ``settings`` are the constructor's keyword arguments. Raises ``ValueError`` on bad
+        settings, blocks or histograms."""
+        problem = packed_problem(packed)
+        if problem:
+            raise ValueError(problem)
+        mapper = cls(resolution, origin=origin, **settings)  # type: ignore[arg-type]
+        mapper._store.assign_blocks(packed)
+        if reflectivity is not None:
+            mapper._reflectivity = ReflectivityTable(reflectivity.bins, max(len(reflectivity), 16))
+            mapper._reflectivity.assign(reflectivity)
+        mapper.last_stamp = float(packed.block_t.max()) if packed.block_t.size else None
+        mapper.version += 1
+        return mapper
+
     def close(self) -> None:
         """Stop the worker threads (the map stays readable)."""
         if self._pool is not None:
@@ -850,16 +911,23 @@ def _check_settings(
 
 
 def _mean_origin(rays: Rays) -> FloatArray:
-    """The rays' mean origin in voxel units (einsum: 0.3 ms for 107 k rays, where
+    """The rays' mean sensor position in voxel units (the origins of rays that continue a
+    shot past an echo left out; einsum: 0.3 ms for 107 k rays, where
     ``mean(axis=0)`` takes 1.6 ms)."""
-    return np.einsum("ij->j", rays.origins_vox) / len(rays)
+    total = np.einsum("ij->j", rays.origins_vox)
+    if rays.continued is not None:
+        later = np.flatnonzero(rays.continued)
+        if 0 < later.size < len(rays):  # (a few: their sum is taken out)
+            total -= np.einsum("ij->j", rays.origins_vox[later])
+            return total / (len(rays) - later.size)
+    return total / len(rays)
 
 
 def compile_kernels(decay_time: float = math.inf) -> float:
     """Run the compiled kernels of a live scan once on a few rays (``integrate``, ``stage``
-    and ``commit``, with reflectivity histograms, ``query``, ``voxels``), so that numba
-    compiles them, or loads them from its cache, before the first real scan; returns the
-    seconds it took."""
+    and ``commit``, with reflectivity histograms, ``query``, ``voxels``, the projected
+    grids), so that numba compiles them, or loads them from its cache, before the first real
+    scan or publication (which would hold the map meanwhile); returns the seconds it took."""
     t0 = time.perf_counter()
     points = np.array([[2.0, 0.5, 0.3], [-1.0, 3.0, 0.8], [0.5, -2.5, -0.4]])
     mapper = Mapper(0.5, decay_time=decay_time)
@@ -868,5 +936,7 @@ def compile_kernels(decay_time: float = math.inf) -> float:
     mapper.commit(mapper.stage(points, np.zeros(3), 2.0, None, values))
     mapper.query(points)
     mapper.reflectivity(points, 2.0)
-    mapper.voxels()
+    mapper.voxels(min_doo=0.1, bounds=(np.full(3, -5.0), np.full(3, 5.0)))
+    mapper.hit_probability_grid(-1.0, 1.0, trinary=(0.25, 0.01))
+    mapper.hit_probability_grid(-1.0, 1.0, center=(0.0, 0.0), radius=2.0)
     return time.perf_counter() - t0

@@ -4,9 +4,9 @@ Layout (chosen for speed and memory; docs/performance.md measures it):
 
 * Voxels live in blocks of ``BLOCK_EDGE**3``, in Morton order; a ray stays in one block for
   several steps, so most updates are an array index into the block the walk is already in.
-* Blocks are found through open-addressing hash tables, split into ``shards`` by block
-  parity; each thread of an integration writes only to its own shard, so threads need
-  no locks (see ``traversal``).
+* Blocks are found through open-addressing hash tables, split into ``shards`` by tiles
+  of blocks (``blocks.shard_of``); each thread of an integration writes only to its own
+  shard, so threads need no locks (see ``traversal``).
 * ``s`` is float32 in chunks of 64 voxels (a 4x4x4 cube, 256 bytes: four cache lines),
   allocated when a ray first reaches the chunk; ``n`` is float32 in chunks of 16 voxels,
   allocated when a return first lands in one (``shard`` says where everything lives). Free
@@ -52,6 +52,7 @@ from mfp_mapper.core.blocks import (
     shard_of,
     voxel_inside,
 )
+from mfp_mapper.core.packed import BlockChunk, PackedBlocks, pack_chunks, voxel_arrays_of
 from mfp_mapper.core.shard import (
     HI_USED,
     NCHUNK_USED,
@@ -446,6 +447,28 @@ class BlockStore:
             if done >= 0:
                 raise ValueError(f"ijk lists voxel {ijk[done].tolist()} more than once")
         self.num_voxels = int(counts[0])
+
+    def block_chunks(self) -> Iterator[BlockChunk]:
+        """Every block's index, time and the ``s``, ``n`` of its 512 voxels ((k, 512, 2),
+        Morton order, float64: the float32 parts plus the float64 ones), runs of blocks shard
+        by shard (copies, ``blocks``): a block-level export without per-voxel index arrays
+        (``packed.BlockChunk``)."""
+        for run in self.blocks():
+            yield run.ijk, run.t, np.stack([run.s, run.n], axis=-1)
+
+    def export_blocks(self) -> PackedBlocks:
+        """Every observed voxel, packed block by block (``packed``; a copy)."""
+        return pack_chunks(self.block_chunks(), self.num_voxels)
+
+    def assign_blocks(self, packed: PackedBlocks) -> None:
+        """Set the voxels of packed blocks (checked by ``packed_problem``) in an empty
+        store; the inverse of ``export_blocks``. Through ``assign`` (the voxels' index
+        arrays made from the masks): the store's chunks, its float64 parts and the marks of
+        observed voxels (``shard``'s notes) are set in one place."""
+        if self.num_blocks:
+            raise ValueError("assign_blocks needs an empty store")
+        ijk, s, n, t = voxel_arrays_of(packed)
+        self.assign(VoxelArrays(ijk.astype(np.int32), s, n, t), math.inf)
 
     def lookup(self, ijk: NDArray[np.int64]) -> VoxelArrays:
         """Statistics of these voxels (zeros and t_last=-inf where never observed)."""

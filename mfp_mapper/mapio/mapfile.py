@@ -1,20 +1,19 @@
 """The map file: a contract other programs read.
 
-An ``.npz`` archive (never pickles) holding
+An ``.npz`` archive (never pickles, members stored, not deflated). Version 3 (written
+now) holds the store's blocks as they are in memory (``mapio.blockfile``: per block its
+index, time and a mask of observed voxels, then ``s`` of the observed voxels and ``n`` of
+those with a return, float32 as in memory), about 5 bytes a voxel, with a block index at
+its head so that a reader needing a few blocks reads only those. Every version holds
 
 =============  ==============  ===================================================
-``ijk``        int32 (N, 3)    voxel index relative to ``origin``:
-                               floor((coordinate - origin) / resolution), map frame
-``s``          float64 (N,)    metres travelled by rays inside the voxel
-``n``          float64 (N,)    first returns inside the voxel (real after decay)
-``t_last``     float64 (N,)    time (s) the statistics refer to (last update)
 ``resolution`` float64 ()      voxel edge, metres
 ``origin``     float64 (3,)    map-frame position of the corner of voxel (0, 0, 0),
-                               metres (version 2; absent in version 1: zero)
+                               metres (version >= 2; absent in version 1: zero)
 ``decay_time`` float64 ()      time constant, seconds (inf = static map)
 ``frame_id``   str ()          the map frame
 ``format``     str ()          ``"mfp_mapper.map"``
-``version``    int64 ()        file format version (2)
+``version``    int64 ()        file format version (3)
 =============  ==============  ===================================================
 
 and, for a map with a reflectivity field (docs/model.md), its histograms: ``reflectivity_ijk``
@@ -22,26 +21,29 @@ int32 (K, 3), ``reflectivity_counts`` float64 (K, J), ``reflectivity_t_last`` fl
 ``reflectivity_edges`` float64 (J - 1,) and ``reflectivity_field`` str (``core.reflectivity``);
 plus ``max_range`` and ``min_range`` (float64, metres) and ``prior_shape``, ``prior_rate``
 (float64: the Gamma prior on the extinction the estimates use, docs/model.md; a file
-without them was written with the uniform prior, 1 and 1). The centre of voxel ``ijk`` is
-``origin + (ijk + 0.5) * resolution`` (map frame, metres). Every voxel is listed once, in no
-particular order. Files are written atomically (``mapio.atomic``).
+without them was written with the uniform prior, 1 and 1). Versions 1 and 2 (still read)
+list the voxels instead: ``ijk`` int32 (N, 3), ``s``, ``n``, ``t_last`` float64 (N,), in
+no particular order. The centre of voxel ``ijk`` is ``origin + (ijk + 0.5) * resolution``
+(map frame, metres). Files are written atomically (``mapio.atomic``).
 
 Reading checks the file before allocating (``mapio.checks``): a regular file; the arrays'
 shapes and dtypes from their ``.npy`` headers, sizes against the archive's own sizes and
 together against the file's real size; then the settings (resolution in
 [``MIN_RESOLUTION``, ``MAX_RESOLUTION``], decay time, ranges, frame, origin), and only then
-the voxels: finite, indices within the store's range, stamps not in the future of the file
-under decay, no voxel twice (checked while the voxels are stored, in compiled code). Any
-problem is a ``MapFileError`` naming the file.
+the voxels: CRC-32 of each version 3 member, finite, indices within the store's range,
+stamps not in the future of the file under decay, no voxel twice (version 3: blocks sorted,
+masks and counts consistent). Any problem is a ``MapFileError`` naming the file.
 """
 
 from __future__ import annotations
 
+import io
 import math
 import struct
+import tokenize
 import zipfile
 import zlib
-from collections.abc import Mapping
+from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -51,6 +53,7 @@ from numpy.typing import NDArray
 
 from mfp_mapper.core.errors import CoreError
 from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.core.packed import PackedBlocks, packed_problem
 from mfp_mapper.core.reflectivity import (
     ReflectivityArrays,
     from_map_arrays,
@@ -58,6 +61,19 @@ from mfp_mapper.core.reflectivity import (
 )
 from mfp_mapper.core.store import MAX_VOXEL_INDEX, VoxelArrays, voxel_problem
 from mfp_mapper.mapio.atomic import atomic_output
+from mfp_mapper.mapio.blockfile import (
+    BLOCK_MEMBERS,
+    BlockFileError,
+    BlockReader,
+    Member,
+    block_arrays,
+    locate_members,
+    packed_of,
+    packed_to_voxels,
+    read_all,
+    voxels_to_packed,
+    write_npz_stored,
+)
 from mfp_mapper.mapio.checks import (
     ALLOWED_COMPRESSION,
     MEMBER_KINDS,
@@ -72,8 +88,11 @@ from mfp_mapper.mapio.checks import (
 )
 
 FORMAT_NAME = "mfp_mapper.map"
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 REQUIRED_KEYS = ("ijk", "s", "n", "t_last", "resolution", "decay_time", "frame_id")
+"""Members of a version 1 or 2 file."""
+SETTING_KEYS = ("resolution", "decay_time", "frame_id")
+"""Settings every version holds."""
 
 OPTIONAL_SETTINGS = {"max_range": None, "min_range": None, "prior_shape": 1.0, "prior_rate": 1.0}
 """Settings a file may lack: None, the Mapper's default; else what an older file meant."""
@@ -118,6 +137,8 @@ class MapSource(Protocol):
 
     def stored_voxels(self) -> VoxelArrays: ...
 
+    def stored_blocks(self) -> PackedBlocks: ...
+
     def stored_reflectivity(self) -> ReflectivityArrays | None: ...
 
 
@@ -132,26 +153,42 @@ class MapContents:
     ranges: dict[str, float]
     """``max_range`` and ``min_range`` where the file has them; ``prior_shape`` and
     ``prior_rate`` always (1 and 1 where the file has none)."""
-    voxels: VoxelArrays
+    voxel_lists: VoxelArrays | None
+    """The voxels of a version 1 or 2 file (None: ``packed`` holds them)."""
+    packed: PackedBlocks | None = None
+    """The voxels of a version 3 file, as stored."""
     reflectivity: ReflectivityArrays | None = None
     """The reflectivity histograms (``reflectivity_*`` members), when the file has them."""
 
+    @property
+    def voxels(self) -> VoxelArrays:
+        """The voxels as lists (of a version 3 file: unpacked, float64, the first time)."""
+        if self.voxel_lists is None:
+            self.voxel_lists = (
+                packed_to_voxels(self.packed) if self.packed is not None else _no_voxels()
+            )
+        return self.voxel_lists
+
+    @voxels.setter
+    def voxels(self, voxels: VoxelArrays) -> None:
+        self.voxel_lists, self.packed = voxels, None
+
+
+def _no_voxels() -> VoxelArrays:
+    return VoxelArrays(np.zeros((0, 3), np.int32), np.zeros(0), np.zeros(0), np.zeros(0))
+
 
 def write_map(path: str | Path, mapper: MapSource) -> None:
-    """Write ``mapper`` to ``path`` (.npz) atomically."""
-    write_map_arrays(path, map_arrays(mapper))
+    """Write ``mapper`` to ``path`` (.npz, version 3) atomically."""
+    write_map_arrays(path, map_blocks(mapper))
 
 
-def map_arrays(mapper: MapSource) -> dict[str, np.ndarray]:
-    """The arrays of the map file: a snapshot, independent of the mapper afterwards (so a
-    caller can take it under a lock and compress and write it outside)."""
-    voxels = mapper.stored_voxels()
+def settings_arrays(mapper: MapSource) -> dict[str, np.ndarray]:
+    """The settings members of ``mapper``'s map file."""
     origin = mapper.origin if mapper.origin is not None else (0.0, 0.0, 0.0)
     return {
-        "ijk": voxels.ijk.astype(np.int32, copy=False),
-        "s": voxels.s.astype(np.float64, copy=False),
-        "n": voxels.n.astype(np.float64, copy=False),
-        "t_last": voxels.t_last.astype(np.float64, copy=False),
+        "format": np.str_(FORMAT_NAME),
+        "version": np.int64(FORMAT_VERSION),
         "resolution": np.float64(mapper.resolution),
         "origin": np.array(origin, dtype=np.float64),
         "decay_time": np.float64(mapper.decay_time),
@@ -160,9 +197,6 @@ def map_arrays(mapper: MapSource) -> dict[str, np.ndarray]:
         "prior_shape": np.float64(mapper.prior_shape),
         "prior_rate": np.float64(mapper.prior_rate),
         "frame_id": np.str_(mapper.frame_id),
-        "format": np.str_(FORMAT_NAME),
-        "version": np.int64(FORMAT_VERSION),
-        **reflectivity_members(mapper.stored_reflectivity()),
     }
 
 
@@ -171,79 +205,191 @@ def reflectivity_members(table: ReflectivityArrays | None) -> dict[str, np.ndarr
     return {} if table is None else to_map_arrays(table)
 
 
-def write_map_arrays(path: str | Path, arrays: dict[str, Any], compress: bool = True) -> None:
-    """Write ``map_arrays`` output to ``path`` (.npz) atomically.
+def map_blocks(mapper: MapSource) -> dict[str, np.ndarray]:
+    """The members of ``mapper``'s map file (version 3: packed blocks): a snapshot,
+    independent of the mapper afterwards (a caller takes it under a lock and writes it
+    outside)."""
+    return {
+        **settings_arrays(mapper),
+        **reflectivity_members(mapper.stored_reflectivity()),
+        **block_arrays(mapper.stored_blocks()),
+    }
 
-    Deflated at level 1 (what ``np.load`` reads like any ``.npz``): 5x faster than
-    ``np.savez_compressed``'s level 6, for a file about 6% larger. ``compress=False``
-    stores the arrays as they are (scratch files that are read back soon).
-    """
-    method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
-    with (
-        atomic_output(path) as tmp,
-        zipfile.ZipFile(
-            tmp, "w", compression=method, compresslevel=1 if compress else None, allowZip64=True
-        ) as archive,
-    ):
-        for name, value in arrays.items():
-            with archive.open(f"{name}.npy", "w", force_zip64=True) as member:
-                np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
+
+def map_arrays(mapper: MapSource) -> dict[str, np.ndarray]:
+    """The map as voxel lists (``ijk``, float64 ``s``, ``n``, ``t_last``) with its settings:
+    what merging and tiling work on; ``write_map_arrays`` writes it (as version 3)."""
+    voxels = mapper.stored_voxels()
+    return {
+        **settings_arrays(mapper),
+        "ijk": voxels.ijk.astype(np.int32, copy=False),
+        "s": voxels.s.astype(np.float64, copy=False),
+        "n": voxels.n.astype(np.float64, copy=False),
+        "t_last": voxels.t_last.astype(np.float64, copy=False),
+        **reflectivity_members(mapper.stored_reflectivity()),
+    }
+
+
+def as_block_arrays(arrays: Mapping[str, Any]) -> dict[str, Any]:
+    """Map-file members in version 3: ``arrays`` as they are when they hold blocks
+    (``map_blocks``), voxel lists (``map_arrays``) packed (``blockfile.voxels_to_packed``:
+    float32 values where that loses nothing)."""
+    if "block_ijk" in arrays:
+        return dict(arrays)
+    voxels = VoxelArrays(arrays["ijk"], arrays["s"], arrays["n"], arrays["t_last"])
+    packed = voxels_to_packed(voxels, float(arrays["decay_time"]))
+    settings = {k: v for k, v in arrays.items() if k not in VOXEL_MEMBERS}
+    return {**settings, "version": np.int64(FORMAT_VERSION), **block_arrays(packed)}
+
+
+def num_voxels(arrays: Mapping[str, Any]) -> int:
+    """The voxel count of map-file arrays (blocks or voxel lists)."""
+    return int(np.asarray(arrays["s"]).shape[0])
+
+
+def write_map_arrays(path: str | Path, arrays: Mapping[str, Any]) -> None:
+    """Write map-file ``arrays`` (``map_blocks`` or ``map_arrays`` output) to ``path`` as a
+    version 3 file, atomically: members stored (no deflate), each written once from
+    memory."""
+    members = as_block_arrays(arrays)
+    with atomic_output(path) as tmp:
+        write_npz_stored(tmp, members)
 
 
 def read_map_file(path: str | Path, decay_time: float | None = None) -> MapContents:
-    """Read and check a map file; raises ``MapFileError`` naming the file and the problem
-    (never another exception: a file is data, whatever it holds). ``decay_time``: the decay
-    time (s, inf: none) its voxels will decay under, when not the file's own (a node's
-    ``decay_time`` overrides it): its stamps are checked against that one."""
+    """Read and check a map file (any version); raises ``MapFileError`` naming the file and
+    the problem (never another exception: a file is data, whatever it holds).
+    ``decay_time``: the decay time (s, inf: none) its voxels will decay under, when not the
+    file's own (a node's ``decay_time`` overrides it): its stamps are checked against that
+    one. Version 3 contents come as ``packed`` blocks, older ones as ``voxels``."""
     path = Path(path)
     problem = file_problem(path)
     if problem:
         raise MapFileError(path, problem)
     try:
         st = path.stat()
-        with zipfile.ZipFile(path) as archive:
-            headers = check_headers(path, archive, st.st_size)
-            small = {k: _read(archive, k) for k in headers if k not in VOXEL_MEMBERS}
-            settings = check_settings(path, small)
-            voxels = VoxelArrays(*(_read(archive, k) for k in VOXEL_MEMBERS))
-            try:
-                settings.reflectivity = from_map_arrays(small)
-            except ValueError as err:
-                raise MapFileError(path, str(err)) from None
+        with open(path, "rb") as f, zipfile.ZipFile(f) as archive:
+            if _holds_blocks(archive):
+                settings, members = _open_blocks(path, f, archive, st.st_size)
+                settings.packed = packed_of(read_all(f, members))
+            else:
+                headers = check_headers(path, archive, st.st_size)
+                small = {k: _read(archive, k) for k in headers if k not in VOXEL_MEMBERS}
+                settings = check_settings(path, small, blocks=False)
+                settings.voxels = VoxelArrays(*(_read(archive, k) for k in VOXEL_MEMBERS))
+                settings.reflectivity = _reflectivity(path, small)
     except MapFileError:
         raise
+    except BlockFileError as err:
+        raise MapFileError(path, str(err)) from None
     except MemoryError:
         raise MapFileError(path, "not enough memory to read its arrays") from None
     except _READ_ERRORS as err:
         raise MapFileError(
             path, f"unreadable or truncated map file ({type(err).__name__}: {err})"
         ) from None
-    problem = voxel_problem(voxels.ijk, voxels.s, voxels.n, voxels.t_last)
     decay = settings.decay_time if decay_time is None else decay_time
-    if not problem and voxels.t_last.size:
-        t_max = float(voxels.t_last.max())
-        problem = future_problem(t_max, decay, st.st_mtime, "t_last")
-    table = settings.reflectivity
-    if not problem and table is not None and len(table):
-        if max(-int(table.ijk.min()), int(table.ijk.max())) > MAX_VOXEL_INDEX:
-            problem = f"reflectivity_ijk holds indices beyond +-{MAX_VOXEL_INDEX}, the map's range"
-        else:
-            t_max = float(table.t_last.max())
-            problem = future_problem(t_max, decay, st.st_mtime, "reflectivity_t_last")
+    if settings.packed is not None:
+        problem = packed_problem(settings.packed)
+        t = settings.packed.block_t
+    else:
+        v = settings.voxels
+        problem = voxel_problem(v.ijk, v.s, v.n, v.t_last)
+        t = v.t_last
+    if not problem and t.size:
+        problem = future_problem(float(t.max()), decay, st.st_mtime, "t_last")
+    problem = problem or reflectivity_problem(settings.reflectivity, decay, st.st_mtime)
     if problem:
         raise MapFileError(path, problem)
-    settings.voxels = voxels
     return settings
 
 
+def read_map_blocks(
+    path: str | Path,
+    pick: Callable[[BlockReader], NDArray[np.int64]],
+    decay_time: float | None = None,
+) -> MapContents | None:
+    """The settings and the blocks ``pick`` chooses (rows of the file's sorted blocks) of a
+    version 3 file, read where they lie (a memory map: only their pages are read) and
+    checked (the stamps: of every block); None for an older file (read it whole).
+    MapFileError as ``read_map_file``."""
+    path = Path(path)
+    problem = file_problem(path)
+    if problem:
+        raise MapFileError(path, problem)
+    try:
+        st = path.stat()
+        with open(path, "rb") as f, zipfile.ZipFile(f) as archive:
+            if not _holds_blocks(archive):
+                return None
+            settings, members = _open_blocks(path, f, archive, st.st_size)
+        with BlockReader(path, members) as reader:
+            settings.packed = reader.packed(np.unique(pick(reader)))
+            t_max = float(reader.view("block_t").max(initial=-math.inf))  # of every block
+    except MapFileError:
+        raise
+    except BlockFileError as err:
+        raise MapFileError(path, str(err)) from None
+    except MemoryError:
+        raise MapFileError(path, "not enough memory to read its arrays") from None
+    except _READ_ERRORS as err:
+        raise MapFileError(
+            path, f"unreadable or truncated map file ({type(err).__name__}: {err})"
+        ) from None
+    decay = settings.decay_time if decay_time is None else decay_time
+    problem = (
+        packed_problem(settings.packed)
+        or future_problem(t_max, decay, st.st_mtime, "t_last")
+        or reflectivity_problem(settings.reflectivity, decay, st.st_mtime)
+    )
+    if problem:
+        raise MapFileError(path, problem)
+    return settings
+
+
+def _holds_blocks(archive: zipfile.ZipFile) -> bool:
+    return "block_ijk.npy" in archive.NameToInfo
+
+
+def _open_blocks(
+    path: Path, f: io.BufferedReader, archive: zipfile.ZipFile, file_size: int
+) -> tuple[MapContents, dict[str, Member]]:
+    """The settings and block members of a version 3 file, checked (no voxel read)."""
+    headers = check_headers(path, archive, file_size, SETTINGS_MEMBERS)
+    small = {k: _read(archive, k) for k in headers}
+    settings = check_settings(path, small, blocks=True)
+    settings.reflectivity = _reflectivity(path, small)
+    return settings, locate_members(f, archive, BLOCK_MEMBERS, file_size)
+
+
+def _reflectivity(path: Path, small: dict[str, np.ndarray]) -> ReflectivityArrays | None:
+    """The reflectivity histograms of a map file's small members (None: it has none)."""
+    try:
+        return from_map_arrays(small)
+    except ValueError as err:
+        raise MapFileError(path, str(err)) from None
+
+
+def reflectivity_problem(
+    table: ReflectivityArrays | None, decay_time: float, written_at: float
+) -> str | None:
+    """The histograms' indices within the map's range, their stamps not in the future."""
+    if table is None or not len(table):
+        return None
+    if max(-int(table.ijk.min()), int(table.ijk.max())) > MAX_VOXEL_INDEX:
+        return f"reflectivity_ijk holds indices beyond +-{MAX_VOXEL_INDEX}, the map's range"
+    return future_problem(float(table.t_last.max()), decay_time, written_at, "reflectivity_t_last")
+
+
 VOXEL_MEMBERS = ("ijk", "s", "n", "t_last")
+SETTINGS_MEMBERS = tuple(k for k in MEMBER_KINDS if k not in VOXEL_MEMBERS)
 _READ_ERRORS = (
     zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, OSError, ValueError, KeyError,
     IndexError, TypeError, ArithmeticError, UnicodeError, NotImplementedError, RuntimeError,
-    zlib.error, struct.error,
+    zlib.error, struct.error, BlockFileError, SyntaxError, tokenize.TokenError,
 )  # fmt: skip
 """What a damaged archive can raise while read (RuntimeError: an encrypted member;
-zlib.error: a damaged deflate stream)."""
+zlib.error: a damaged deflate stream; SyntaxError, TokenError: a damaged ``.npy`` header)."""
 
 
 def _read(archive: zipfile.ZipFile, name: str) -> np.ndarray:
@@ -252,16 +398,20 @@ def _read(archive: zipfile.ZipFile, name: str) -> np.ndarray:
 
 
 def check_headers(
-    path: Path, archive: zipfile.ZipFile, file_size: int
+    path: Path,
+    archive: zipfile.ZipFile,
+    file_size: int,
+    names: Collection[str] = tuple(MEMBER_KINDS),
 ) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
-    """Shapes and dtypes of the known members (``checks.MEMBER_KINDS``; others are never
-    read), checked before any array is read: against the zip's sizes, together against the
-    file's real size, and against the format (``checks.header_problem``)."""
+    """Shapes and dtypes of the known members among ``names`` (``checks.MEMBER_KINDS``;
+    others are never read), checked before any array is read: against the zip's sizes,
+    together against the file's real size, and against the format
+    (``checks.header_problem``)."""
     headers: dict[str, tuple[tuple[int, ...], np.dtype]] = {}
     declared = 0
     for info in archive.infolist():
         name = info.filename[: -len(".npy")]
-        if not info.filename.endswith(".npy") or name not in MEMBER_KINDS:
+        if not info.filename.endswith(".npy") or name not in names:
             continue
         if name in headers:
             raise MapFileError(path, f"member {info.filename} appears twice")
@@ -285,7 +435,7 @@ def check_headers(
             raise MapFileError(path, problem)
         headers[name] = (shape, dtype)
         declared += math.prod(shape) * dtype.itemsize
-    missing = [k for k in REQUIRED_KEYS if k not in headers]
+    missing = [k for k in REQUIRED_KEYS if k not in headers and k in names]
     if missing:
         raise MapFileError(path, f"not an mfp_mapper map: missing {', '.join(missing)}")
     problem = header_problem(headers) or expansion_problem(declared, file_size)
@@ -294,9 +444,10 @@ def check_headers(
     return headers
 
 
-def check_settings(path: Path, a: dict[str, np.ndarray]) -> MapContents:
-    """The settings of a map file (its small members, read before the voxels), checked;
-    the voxels of the returned contents are empty."""
+def check_settings(path: Path, a: dict[str, np.ndarray], blocks: bool = False) -> MapContents:
+    """The settings of a map file (its small members, read before the voxels), checked
+    (``blocks``: the file holds blocks, version 3); the voxels of the returned contents are
+    empty."""
     if "format" in a and str(a["format"]) != FORMAT_NAME:
         raise MapFileError(path, f"format is {str(a['format'])!r}, expected {FORMAT_NAME!r}")
     version = int(a["version"]) if "version" in a else 1
@@ -304,6 +455,9 @@ def check_settings(path: Path, a: dict[str, np.ndarray]) -> MapContents:
         raise MapFileError(path, f"file format version {version} is not in [1, {FORMAT_VERSION}]")
     if version >= 2 and "origin" not in a:
         raise MapFileError(path, f"version {version} needs origin")
+    if blocks != (version >= 3):
+        held = "blocks (block_ijk)" if blocks else "voxel lists (ijk)"
+        raise MapFileError(path, f"file format version {version} cannot hold {held}")
     resolution, decay_time = float(a["resolution"]), float(a["decay_time"])
     ranges = optional_settings(a)
     problem = settings_problem(
@@ -315,25 +469,26 @@ def check_settings(path: Path, a: dict[str, np.ndarray]) -> MapContents:
     if problem:
         raise MapFileError(path, problem)
     ox, oy, oz = (float(v) for v in origin)
-    empty = VoxelArrays(np.zeros((0, 3), np.int32), np.zeros(0), np.zeros(0), np.zeros(0))
-    return MapContents(resolution, (ox, oy, oz), decay_time, str(a["frame_id"]), ranges, empty)
+    return MapContents(resolution, (ox, oy, oz), decay_time, str(a["frame_id"]), ranges, None)
 
 
 def read_map_arrays(
     path: str | Path, check_duplicates: bool = True, decay_time: float | None = None
 ) -> dict[str, np.ndarray]:
-    """The arrays of a map file as stored (float64 sums kept, no Mapper built), checked as
+    """The voxel lists of a map file (float64, no Mapper built; version 3 blocks unpacked,
+    ``map_arrays``'s layout), checked as
     ``read_map_file`` checks them (against ``decay_time`` when given), and for voxels listed
     twice (one sort of packed keys; ``check_duplicates=False`` when a Mapper is built from
     them: its store finds them and names the voxel)."""
     c = read_map_file(path, decay_time)
-    if check_duplicates and has_duplicates(c.voxels.ijk):
+    voxels = c.voxels
+    if c.packed is None and check_duplicates and has_duplicates(voxels.ijk):
         raise MapFileError(path, "ijk lists a voxel more than once")
     return {
-        "ijk": c.voxels.ijk,
-        "s": c.voxels.s,
-        "n": c.voxels.n,
-        "t_last": c.voxels.t_last,
+        "ijk": voxels.ijk,
+        "s": voxels.s,
+        "n": voxels.n,
+        "t_last": voxels.t_last,
         "resolution": np.float64(c.resolution),
         "origin": np.array(c.origin, dtype=np.float64),
         "decay_time": np.float64(c.decay_time),
@@ -353,6 +508,54 @@ def mapper_from_arrays(
     ``resolution`` or ``origin``), as ``load_map`` does."""
     resolution = float(arrays["resolution"])
     origin = np.asarray(arrays.get("origin", np.zeros(3)), dtype=np.float64).reshape(3)
+    settings = mapper_settings(arrays, path, dict(overrides))
+    voxels = VoxelArrays(arrays["ijk"], arrays["s"], arrays["n"], arrays["t_last"])
+    try:
+        table = from_map_arrays(arrays)
+        return Mapper.from_arrays(
+            voxels, resolution=resolution, origin=origin, reflectivity=table, **settings
+        )
+    except ValueError as err:
+        raise MapFileError(path, str(err)) from err
+
+
+def mapper_from_contents(c: MapContents, path: str | Path, **overrides: object) -> Mapper:
+    """A new Mapper holding a map file's contents (``read_map_file``); ``overrides`` as
+    ``mapper_from_arrays`` takes them."""
+    if c.packed is None:
+        voxels = {k: getattr(c.voxels, k) for k in VOXEL_MEMBERS}
+        arrays = {**contents_settings(c), **voxels, **reflectivity_members(c.reflectivity)}
+        return mapper_from_arrays(arrays, path, **overrides)
+    settings = mapper_settings(contents_settings(c), path, overrides)
+    try:
+        return Mapper.from_blocks(
+            c.packed, resolution=c.resolution, origin=np.array(c.origin),
+            reflectivity=c.reflectivity, **settings,
+        )  # fmt: skip
+    except ValueError as err:
+        raise MapFileError(path, str(err)) from err
+
+
+def contents_settings(c: MapContents) -> dict[str, np.ndarray]:
+    """The settings of map-file contents as map-file arrays."""
+    return {
+        "resolution": np.float64(c.resolution),
+        "origin": np.array(c.origin, dtype=np.float64),
+        "decay_time": np.float64(c.decay_time),
+        **{k: np.float64(v) for k, v in c.ranges.items()},
+        "frame_id": np.str_(c.frame_id),
+        "format": np.str_(FORMAT_NAME),
+        "version": np.int64(FORMAT_VERSION),
+    }
+
+
+def mapper_settings(
+    arrays: Mapping[str, Any], path: str | Path, overrides: dict[str, object]
+) -> dict[str, object]:
+    """The Mapper keyword arguments of map-file settings with ``overrides`` (not
+    ``resolution`` or ``origin``: MapFileError)."""
+    resolution = float(arrays["resolution"])
+    origin = np.asarray(arrays.get("origin", np.zeros(3)), dtype=np.float64).reshape(3)
     settings: dict[str, object] = {
         "decay_time": float(arrays["decay_time"]),
         "frame_id": str(arrays["frame_id"]),
@@ -362,14 +565,7 @@ def mapper_from_arrays(
     for fixed, stored in (("resolution", resolution), ("origin", origin)):
         if fixed in settings and np.any(np.asarray(settings.pop(fixed)) != stored):
             raise MapFileError(path, f"stored {fixed} {stored} cannot be changed")
-    voxels = VoxelArrays(arrays["ijk"], arrays["s"], arrays["n"], arrays["t_last"])
-    try:
-        table = from_map_arrays(arrays)
-        return Mapper.from_arrays(
-            voxels, resolution=resolution, origin=origin, reflectivity=table, **settings
-        )
-    except ValueError as err:
-        raise MapFileError(path, str(err)) from err
+    return settings
 
 
 def has_duplicates(ijk: NDArray[np.integer]) -> bool:

@@ -51,7 +51,7 @@ def as_tiled(path: Path, scratch: Path, tile_blocks: int) -> TiledMap:
     else:
         arrays = read_map_arrays(path)
     target = Path(tempfile.mkdtemp(prefix="input-", dir=scratch))
-    write_tiled(target, arrays, tile_blocks, compress=False)
+    write_tiled(target, arrays, tile_blocks)
     return TiledMap(target)
 
 

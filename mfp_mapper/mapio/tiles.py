@@ -30,6 +30,7 @@ from numpy.typing import ArrayLike, NDArray
 from mfp_mapper.core.mapper import Mapper, VoxelStats
 from mfp_mapper.core.merge import check_mergeable, merge_map_arrays
 from mfp_mapper.core.model import Prior
+from mfp_mapper.core.packed import PackedBlocks
 from mfp_mapper.core.reflectivity import (
     ARRAY_KEYS as REFLECTIVITY_KEYS,
 )
@@ -42,6 +43,7 @@ from mfp_mapper.core.reflectivity import (
 from mfp_mapper.core.store import BLOCK_BITS
 from mfp_mapper.core.voxel_stats import SegmentStats
 from mfp_mapper.mapio.atomic import write_text_atomic
+from mfp_mapper.mapio.blockfile import BLOCK_MEMBERS, concat_packed, take_blocks
 from mfp_mapper.mapio.checks import (
     TILE_DIR,
     TILES_FORMAT,
@@ -53,10 +55,15 @@ from mfp_mapper.mapio.mapfile import (
     FORMAT_NAME,
     FORMAT_VERSION,
     MapFileError,
+    contents_settings,
     mapper_from_arrays,
+    mapper_settings,
+    num_voxels,
     read_map_arrays,
+    read_map_file,
     write_map_arrays,
 )
+from mfp_mapper.mapio.queries import MapFileQueries
 
 INDEX_NAME = "index.json"
 DEFAULT_TILE_BLOCKS = 32
@@ -96,22 +103,27 @@ def tile_keys(ijk: NDArray[np.integer], tile_blocks: int) -> NDArray[np.int64]:
 
 
 def split_by_tile(arrays: MapArrays, tile_blocks: int) -> Iterator[tuple[TileKey, MapArrays]]:
-    """The map-file arrays of each tile of a map (settings repeated in every tile)."""
-    keys = tile_keys(arrays["ijk"], tile_blocks)
+    """The map-file arrays of each tile of a map (settings repeated in every tile): blocks
+    (``map_blocks``) stay blocks, voxel lists (``map_arrays``) stay voxel lists."""
+    blocks = "block_ijk" in arrays
+    index = np.asarray(arrays["block_ijk"] if blocks else arrays["ijk"], dtype=np.int64)
+    keys = np.floor_divide(index, tile_blocks) if blocks else tile_keys(index, tile_blocks)
     if keys.shape[0] == 0:
         return
-    rel = keys - keys.min(axis=0)  # tiles span < 2^21 per axis: one int64 key per voxel
+    rel = keys - keys.min(axis=0)  # tiles span < 2^21 per axis: one int64 key per row
     packed = (rel[:, 0] << 42) | (rel[:, 1] << 21) | rel[:, 2]
     order = np.argsort(packed, kind="stable")
     starts = np.flatnonzero(np.diff(packed[order], prepend=-1))
     ends = np.append(starts[1:], order.shape[0])
-    settings = {
-        k: v for k, v in arrays.items() if k not in VOXEL_KEYS and k not in REFLECTIVITY_KEYS
-    }
+    members = BLOCK_MEMBERS if blocks else VOXEL_KEYS
+    settings = {k: v for k, v in arrays.items() if k not in members and k not in REFLECTIVITY_KEYS}
     table_keys = tile_keys(arrays.get("reflectivity_ijk", np.zeros((0, 3), np.int32)), tile_blocks)
     for lo, hi in zip(starts, ends, strict=True):
         pick = order[lo:hi]
-        tile = {k: np.asarray(arrays[k])[pick] for k in VOXEL_KEYS}
+        if blocks:
+            tile = take_blocks(dict(arrays), np.sort(pick))
+        else:
+            tile = {k: np.asarray(arrays[k])[pick] for k in VOXEL_KEYS}
         x, y, z = (int(v) for v in keys[pick[0]])
         # the histograms of the tile's voxels (every one belongs to a voxel with returns)
         tile.update(select_rows(arrays, np.all(table_keys == (x, y, z), axis=1)))
@@ -128,13 +140,13 @@ def tile_file(key: TileKey, generation: str) -> str:
 
 
 def write_tile(
-    directory: str | Path, key: TileKey, arrays: MapArrays, generation: str, compress: bool = True
+    directory: str | Path, key: TileKey, arrays: MapArrays, generation: str
 ) -> TileEntry:
     """Write one tile's map file (atomically); the index is written by ``write_index``."""
     name = tile_file(key, generation)
-    write_map_arrays(Path(directory) / name, arrays, compress)
-    t = np.asarray(arrays["t_last"])
-    return TileEntry(key, name, int(t.shape[0]), float(t.max()) if t.size else -math.inf)
+    write_map_arrays(Path(directory) / name, arrays)
+    t = np.asarray(arrays["block_t"] if "block_t" in arrays else arrays["t_last"])
+    return TileEntry(key, name, num_voxels(arrays), float(t.max()) if t.size else -math.inf)
 
 
 def _json_number(value: float) -> float | None:
@@ -174,22 +186,16 @@ def write_index(
 
 
 def write_tiled(
-    directory: str | Path,
-    arrays: MapArrays,
-    tile_blocks: int = DEFAULT_TILE_BLOCKS,
-    compress: bool = True,
+    directory: str | Path, arrays: MapArrays, tile_blocks: int = DEFAULT_TILE_BLOCKS
 ) -> list[TileEntry]:
-    """Write map-file ``arrays`` as a tiled map in ``directory`` (``compress=False``:
-    stored, not deflated, for scratch maps read back soon)."""
+    """Write map-file ``arrays`` (blocks or voxel lists) as a tiled map in ``directory``."""
     if tile_blocks < 1:
         raise ValueError(f"tile_blocks must be >= 1, got {tile_blocks}")
     root = Path(directory)
     check_tiled_output(root)
     (root / TILE_DIR).mkdir(parents=True, exist_ok=True)
     generation = new_generation()
-    entries = [
-        write_tile(root, k, a, generation, compress) for k, a in split_by_tile(arrays, tile_blocks)
-    ]
+    entries = [write_tile(root, k, a, generation) for k, a in split_by_tile(arrays, tile_blocks)]
     write_index(root, arrays, tile_blocks, entries)
     return entries
 
@@ -283,6 +289,32 @@ class TiledMap:
             )  # fmt: skip
         return arrays
 
+    def read_tile_blocks(self, key: TileKey) -> PackedBlocks | None:
+        """The packed blocks of one tile (None when it is a version 1 or 2 file, or holds
+        reflectivity histograms: read it with ``read_tile``), checked as ``read_tile``
+        checks its voxels."""
+        entry = self.tiles[key]
+        path = self.root / entry.file
+        contents = read_map_file(path)
+        packed = contents.packed
+        if packed is None or contents.reflectivity is not None:
+            return None
+        try:
+            names = [str(self.root / INDEX_NAME), str(path)]
+            check_mergeable([self.settings(), contents_settings(contents)], names)
+        except ValueError as err:
+            raise MapFileError(path, str(err)) from None
+        inside = np.all(np.floor_divide(packed.block_ijk, self.tile_blocks) == key, axis=1)
+        if packed.num_voxels != entry.voxels or not inside.all():
+            raise MapFileError(path, f"does not hold the {entry.voxels} voxels of tile {key}")
+        t_max = float(packed.block_t.max(initial=-math.inf))
+        if t_max > entry.t_max:
+            raise MapFileError(
+                path, f"t_last reaches {t_max} s, after the index's t_max {entry.t_max} s "
+                f"for tile {key}"
+            )  # fmt: skip
+        return packed
+
     def keys_in(self, bounds: tuple[ArrayLike, ArrayLike] | None = None) -> list[TileKey]:
         """Tiles that may hold voxel centres inside ``bounds`` (metres; None: all)."""
         keys = sorted(self.tiles)
@@ -298,7 +330,22 @@ class TiledMap:
         self, bounds: tuple[ArrayLike, ArrayLike] | None = None, **overrides: object
     ) -> Mapper:
         """A Mapper with the voxels whose centres lie in ``bounds`` (metres, inclusive;
-        None: the whole map), read from the tiles that reach into them."""
+        None: the whole map), read from the tiles that reach into them (the whole map of
+        version 3 tiles: block by block, as a map file loads)."""
+        if bounds is None:
+            blocks = [self.read_tile_blocks(k) for k in self.keys_in()]
+            if all(b is not None for b in blocks):
+                settings = mapper_settings(self.settings(), self.root, dict(overrides))
+                try:
+                    return Mapper.from_blocks(
+                        concat_packed([b for b in blocks if b is not None]),
+                        resolution=self.resolution,
+                        origin=np.asarray(self.origin or (0.0, 0.0, 0.0)),
+                        reflectivity=None,
+                        **settings,
+                    )
+                except ValueError as err:
+                    raise MapFileError(self.root, str(err)) from err
         parts = [self.read_tile(k) for k in self.keys_in(bounds)]
         arrays = concatenate(parts, self.settings())
         if bounds is not None:
@@ -307,6 +354,27 @@ class TiledMap:
             arrays = {**arrays, **{k: arrays[k][keep] for k in VOXEL_KEYS}}
             arrays.update(select_rows(arrays, rows_within(arrays, lo_i, hi_i)))
         return mapper_from_arrays(arrays, self.root, **overrides)
+
+    def tile_queries(self, key: TileKey) -> MapFileQueries:
+        """One tile opened for queries (reading the blocks they need), its settings checked
+        against the index."""
+        entry = self.tiles[key]
+        path = self.root / entry.file
+        q = MapFileQueries(path, self.decay_time)
+        try:
+            names = [str(self.root / INDEX_NAME), str(path)]
+            check_mergeable([self.settings(), q.settings()], names)
+        except ValueError as err:
+            raise MapFileError(path, str(err)) from None
+        inside = np.all(np.floor_divide(q.block_ijk, self.tile_blocks) == key, axis=1)
+        if q.num_voxels != entry.voxels or not inside.all():
+            raise MapFileError(path, f"does not hold the {entry.voxels} voxels of tile {key}")
+        if q.t_max > entry.t_max:
+            raise MapFileError(
+                path, f"t_last reaches {q.t_max} s, after the index's t_max "
+                f"{entry.t_max} s for tile {key}"
+            )  # fmt: skip
+        return q
 
     def tile_mapper(self, key: TileKey) -> Mapper:
         """One tile as a Mapper of its own."""
@@ -320,7 +388,8 @@ class TiledMap:
             yield key, self.tile_mapper(key)
 
     def query(self, points: ArrayLike, stamp: float | None = None) -> VoxelStats:
-        """``Mapper.query`` over the tiles: each tile holding a point is read once."""
+        """``Mapper.query`` over the tiles: of each tile holding a point, the blocks holding
+        points are read."""
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         out = self._empty_mapper().query(
             pts, stamp
@@ -329,7 +398,7 @@ class TiledMap:
         for key in {(int(a), int(b), int(c)) for a, b, c in keys}:
             if key in self.tiles:
                 rows = np.flatnonzero(np.all(keys == key, axis=1))
-                part = self.tile_mapper(key).query(pts[rows], stamp)
+                part = self.tile_queries(key).query(pts[rows], stamp)
                 for name in ("s", "n", "t_last", "observed"):
                     getattr(out, name)[rows] = getattr(part, name)
         return out
@@ -430,13 +499,13 @@ def merge_tile(tiled: Sequence[TiledMap], key: TileKey) -> MapArrays:
     )
 
 
-def write_map_path(path: str | Path, arrays: MapArrays, compress: bool = True) -> int:
-    """Write map-file ``arrays`` where ``path`` says: a tiled map when ``path`` is a
-    directory (or ends with a slash; an existing tiled map keeps its tile edge), else one
-    map file; both atomically. Returns the number of voxels written."""
+def write_map_path(path: str | Path, arrays: MapArrays) -> int:
+    """Write map-file ``arrays`` (blocks or voxel lists) where ``path`` says: a tiled map
+    when ``path`` is a directory (or ends with a slash; an existing tiled map keeps its tile
+    edge), else one map file; both atomically. Returns the number of voxels written."""
     if str(path).endswith(("/", "\\")) or Path(path).is_dir():
         tile_blocks = TiledMap(path).tile_blocks if is_tiled(path) else DEFAULT_TILE_BLOCKS
-        write_tiled(path, arrays, tile_blocks, compress)
+        write_tiled(path, arrays, tile_blocks)
     else:
-        write_map_arrays(path, arrays, compress)
-    return int(np.asarray(arrays["s"]).shape[0])
+        write_map_arrays(path, arrays)
+    return num_voxels(arrays)

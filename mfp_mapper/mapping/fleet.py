@@ -44,7 +44,7 @@ from pathlib import Path
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.core.merge import MergeError, check_mergeable
 from mfp_mapper.mapio.loading import is_map_file_name, save_map
-from mfp_mapper.mapio.mapfile import MapFileError, map_arrays
+from mfp_mapper.mapio.mapfile import MapFileError, map_blocks
 from mfp_mapper.mapio.tiles import (
     DEFAULT_TILE_BLOCKS,
     TILE_DIR,
@@ -261,7 +261,7 @@ def replay_task(
         return TaskResult(task, None, [], None, note=str(err), seconds=time.perf_counter() - t0)
     try:
         partial = Path(work_dir) / "partials" / f"task{task.index:05d}"
-        entries = write_tiled(partial, map_arrays(result.mapper), tile_blocks, compress=False)
+        entries = write_tiled(partial, map_blocks(result.mapper), tile_blocks)
     finally:
         result.mapper.close()
     return TaskResult(
@@ -302,11 +302,10 @@ def reduce_task(
     partials: Sequence[str],
     out_dir: str,
     generation: str,
-    compress: bool = True,
 ) -> list[TileEntry]:
     """Merge tiles ``keys`` of the partial maps and write them into ``out_dir``."""
     tiled = [TiledMap(p) for p in partials]
-    return [write_tile(out_dir, k, merge_tile(tiled, k), generation, compress) for k in keys]
+    return [write_tile(out_dir, k, merge_tile(tiled, k), generation) for k in keys]
 
 
 # --- the run ------------------------------------------------------------------------------
@@ -375,9 +374,7 @@ def map_fleet(
         t1 = time.perf_counter()
         tiled_out = work / SCRATCH_MERGED if is_map_file_name(out) else out
         generation = new_generation()
-        entries = _reduce_all(
-            executor, partials, tiled_out, generation, fleet, compress=tiled_out == out
-        )
+        entries = _reduce_all(executor, partials, tiled_out, generation, fleet)
         result.seconds_reduce = time.perf_counter() - t1
         t2 = time.perf_counter()
         settings = TiledMap(partials[0].partial).settings()  # type: ignore[arg-type]
@@ -645,10 +642,8 @@ def _reduce_all(
     out_dir: Path,
     generation: str,
     fleet: FleetOptions,
-    compress: bool,
 ) -> list[TileEntry]:
-    """The shuffle: tiles grouped into about 4 reduce tasks per worker; ``compress``: the
-    tiles are the output (deflated), not scratch for a map file (stored)."""
+    """The shuffle: tiles grouped into about 4 reduce tasks per worker."""
     holders: dict[TileKey, list[str]] = {}
     for r in partials:
         for key in r.tiles:
@@ -660,7 +655,7 @@ def _reduce_all(
     jobs = [(group, sorted({p for k in group for p in holders[k]})) for group in groups if group]
     progress = StageProgress("reduce", len(jobs), fleet.progress)
     entries: list[TileEntry] = []
-    runs = executor.run(_reduce_job, jobs, str(out_dir), generation, compress)
+    runs = executor.run(_reduce_job, jobs, str(out_dir), generation)
     try:
         for done, (_, outcome, error) in enumerate(runs, 1):
             if error is not None:
@@ -674,10 +669,10 @@ def _reduce_all(
 
 
 def _reduce_job(
-    job: tuple[list[TileKey], list[str]], out_dir: str, generation: str, compress: bool
+    job: tuple[list[TileKey], list[str]], out_dir: str, generation: str
 ) -> list[TileEntry]:
     keys, partials = job
-    return reduce_task(keys, partials, out_dir, generation, compress)
+    return reduce_task(keys, partials, out_dir, generation)
 
 
 def default_workers() -> int:

@@ -154,11 +154,15 @@ class ScanLoop:
     # --- the two halves ------------------------------------------------------------------
 
     def prepare(self, msg: Any) -> PreparedScan:
-        """Parse a PointCloud2 (any object with its attributes), add its no-return rays and
-        count its points; raises ``ScanDropped`` (``malformed``, ``empty``)."""
-        cloud, note = pipeline.add_no_return_rays(
-            pipeline.parse_scan(msg), self.sensor_model.no_return_range
-        )
+        """Parse a PointCloud2 (any object with its attributes) or a ``ReturnPair``, add its
+        no-return rays and count its points; raises ``ScanDropped`` (``malformed``,
+        ``empty``)."""
+        if isinstance(msg, pipeline.ReturnPair):
+            cloud, note = pipeline.parse_pair(msg, self.sensor_model.no_return_range)
+        else:
+            cloud, note = pipeline.add_no_return_rays(
+                pipeline.parse_scan(msg), self.sensor_model.no_return_range
+            )
         stamp = pipeline.scan_stamp(msg)
         with self.counts_lock:
             self.counts.points_in += cloud.points_in
@@ -177,10 +181,12 @@ class ScanLoop:
 
     def place(self, prepared: PreparedScan, poses: PoseSource, extrinsic: Extrinsic) -> PlacedScan:
         """A prepared cloud's rays in the map frame at its poses (de-skew, extrinsic, height
-        band); raises ``ScanDropped`` (``no_poses``, ``too_new``, ``too_old``, ``gap``,
+        band, the echoes of a shot as one process: ``pipeline.echo_rays``); raises
+        ``ScanDropped`` (``no_poses``, ``too_new``, ``too_old``, ``gap``,
         ``empty``). A caller may move the placed rays (pose refinement) before ``commit``."""
-        placed = pipeline.place_scan(
-            prepared.cloud, prepared.stamp, poses, extrinsic, self.placement
+        placed = pipeline.echo_rays(
+            pipeline.place_scan(prepared.cloud, prepared.stamp, poses, extrinsic, self.placement),
+            self.sensor_model,
         )
         if self.on_placed is not None:
             self.on_placed(placed.stamp, placed.points, placed.origins)
@@ -237,7 +243,7 @@ def integrate_scan(mapper: Mapper, placed: PlacedScan) -> IntegrationSummary:
     return require_rays(
         mapper.integrate(
             placed.points, placed.origins, placed.stamp, placed.no_return,
-            scan_reflectivity(mapper, placed),
+            scan_reflectivity(mapper, placed), placed.continued,
         ),
         placed,
     )  # fmt: skip
@@ -269,19 +275,11 @@ def merge_scan(
     under ``merge_lock`` (``Mapper.commit``, ``pause`` between chunks)."""
     staged = mapper.stage(
         placed.points, placed.origins, placed.stamp, placed.no_return,
-        scan_reflectivity(mapper, placed),
+        scan_reflectivity(mapper, placed), placed.continued,
     )  # fmt: skip
     require_rays(staged.summary, placed)
     with merge_lock:
         return mapper.commit(staged, pause=pause)
-
-
-def staged(
-    merge_lock: AbstractContextManager[Any], pause: Callable[[], None] | None = None
-) -> ScanConsumer:
-    """The consumer of a loop whose map is read while scans integrate (the live worker):
-    ``merge_scan`` with this lock and pause, so readers wait for a merge, never a scan."""
-    return lambda mapper, placed: merge_scan(mapper, placed, merge_lock, pause)
 
 
 def require_rays(summary: IntegrationSummary, placed: PlacedScan) -> IntegrationSummary:

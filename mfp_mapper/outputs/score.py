@@ -363,9 +363,15 @@ class Scorer:
         """Sum of log(full chord, m) of the return events: turns a return voxel's probability
         into a density of the return's range along the ray (``log_density_per_ray``)."""
         self.reflectivity = ReflectivityScore(mapper)
+        self.echoes: EchoScores | None = None
+        """The held-out echoes scored with maps of all echoes and of first echoes
+        (``EchoMaps``), when the training had echoes."""
 
     def __call__(self, _replay_mapper: Mapper, placed: PlacedScan) -> IntegrationSummary:
         placed = select_rays(placed, self.ray_slice)
+        if self.echoes is not None:
+            self.echoes.score(placed)
+        placed = first_echoes(placed)
         rays, dropped = self.mapper.place_rays(placed.points, placed.origins, placed.no_return)
         summary = IntegrationSummary(rays_in=placed.points.shape[0], dropped=dropped)
         summary.rays_used = len(rays)
@@ -391,31 +397,160 @@ class Scorer:
 
 
 def select_rays(placed: PlacedScan, rays: slice | None) -> PlacedScan:
-    """The scan with only the rays ``rays`` selects (e.g. every other shot)."""
+    """The scan with only the rays ``rays`` selects (e.g. every other shot): of a scan with
+    echoes (``placed.shot``), the rays of the shots it selects."""
     if rays is None:
         return placed
+    if placed.shot is None:
+        return _take(placed, rays)
+    chosen = np.zeros(int(placed.shot.max(initial=-1)) + 1, dtype=np.bool_)
+    chosen[rays] = True
+    return _take(placed, chosen[placed.shot])
+
+
+def _take(placed: PlacedScan, rays: slice | NDArray[np.bool_]) -> PlacedScan:
+    """The scan with the rays ``rays`` selects (a slice or a mask)."""
     origins = placed.origins if placed.origins.ndim == 1 else placed.origins[rays]
-    flags = None if placed.no_return is None else placed.no_return[rays]
-    intensity = None if placed.intensity is None else placed.intensity[rays]
+
+    def pick(values: NDArray[Any] | None) -> NDArray[Any] | None:
+        return None if values is None else values[rays]
+
     return replace(
-        placed, points=placed.points[rays], origins=origins, no_return=flags, intensity=intensity
+        placed,
+        points=placed.points[rays],
+        origins=origins,
+        no_return=pick(placed.no_return),
+        intensity=pick(placed.intensity),
+        shot=pick(placed.shot),
+        continued=pick(placed.continued),
     )
 
 
+def first_echoes(placed: PlacedScan) -> PlacedScan:
+    """The scan with the first echo of each shot only (the rays from the sensor)."""
+    if placed.continued is None:
+        return placed
+    return replace(_take(placed, ~placed.continued), continued=None)
+
+
+def later_echoes(placed: PlacedScan) -> PlacedScan:
+    """The rays of a scan's later echoes that carry a return and a chord: each from where
+    the blind stretch after the echo before ends (echoes inside it are not scored)."""
+    assert placed.continued is not None
+    span = placed.points - placed.origins
+    keep = placed.continued & (np.einsum("ij,ij->i", span, span) > 0.0)
+    if placed.no_return is not None:
+        keep &= ~placed.no_return
+    return _take(placed, keep)
+
+
+class EchoMaps:
+    """Two maps of the training echoes (``score`` on an input with echoes): ``all`` (each
+    shot one process along its beam) and ``first_only`` (its first echo). The replay's own
+    map is the one the settings ask for; the other is built beside it."""
+
+    def __init__(self) -> None:
+        self.maps: dict[str, Mapper] = {}
+
+    def add(self, mapper: Mapper, placed: PlacedScan) -> None:
+        """Add a training scan with shots to both maps (``mapper``: the replay's)."""
+        if not self.maps:
+            twin = _empty_like(mapper)
+            if placed.continued is None:  # the settings ask for first echoes only
+                self.maps = {"all": twin, "first_only": mapper}
+            else:
+                self.maps = {"all": mapper, "first_only": twin}
+        other = self.maps["first_only"] if self.maps["all"] is mapper else self.maps["all"]
+        if other is self.maps["first_only"]:
+            placed = first_echoes(placed)
+        if len(placed.points):
+            other.integrate(
+                placed.points,
+                placed.origins,
+                placed.stamp,
+                placed.no_return,
+                continued=placed.continued,
+            )
+
+
+def _empty_like(mapper: Mapper) -> Mapper:
+    """An empty map with ``mapper``'s settings."""
+    return Mapper(
+        mapper.resolution,
+        max_range=mapper.max_range,
+        min_range=mapper.min_range,
+        decay_time=mapper.decay_time,
+        frame_id=mapper.frame_id,
+        threads=mapper.threads,
+        max_voxels=mapper.max_voxels,
+        keep_radius=mapper.keep_radius,
+        origin=mapper.origin,
+        prior_shape=mapper.prior.shape,
+        prior_rate=mapper.prior.rate,
+    )
+
+
+class EchoScores:
+    """Held-out shots scored by each map of ``EchoMaps``: the first echo as a ray from the
+    sensor, each later echo given the echo before it (its ray from the end of that echo's
+    blind stretch; the blind stretch is not scored), with each map's prior."""
+
+    def __init__(self, maps: EchoMaps) -> None:
+        self.maps = maps.maps
+        self.sums = {name: np.zeros(4) for name in self.maps}  # first ll, rays, later ll, echoes
+        self.in_blind = 0
+
+    def score(self, placed: PlacedScan) -> None:
+        first = first_echoes(placed)
+        later = later_echoes(placed) if placed.continued is not None else None
+        if placed.continued is not None and later is not None:
+            self.in_blind += int(placed.continued.sum()) - len(later.points)
+        for name, mapper in self.maps.items():
+            sums = self.sums[name]
+            for k, part in ((0, first), (2, later)):
+                if part is None or not len(part.points):
+                    continue
+                rays, _ = mapper.place_rays(
+                    part.points, part.origins, part.no_return, part.continued
+                )
+                if len(rays):
+                    per_ray, _, _ = score_rays(mapper, rays, part.stamp)
+                    sums[k] += float(per_ray.sum())
+                    sums[k + 1] += len(rays)
+
+    def result(self) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for name, (first, rays, later, echoes) in self.sums.items():
+            out[name] = {
+                "first_echo_log_likelihood_per_ray": first / max(rays, 1),
+                "later_echo_log_likelihood_per_echo": later / max(echoes, 1),
+                "first_echoes": int(rays),
+                "later_echoes": int(echoes),
+                "prior": _prior_json(self.maps[name].prior),
+            }
+        out["later_echoes_in_blind_stretch"] = self.in_blind
+        return out
+
+
 def training_consumer(
-    classic: ClassicMap | None, rays: slice | None
+    classic: ClassicMap | None, rays: slice | None, echo_maps: EchoMaps | None = None
 ) -> Callable[[Mapper, PlacedScan], IntegrationSummary]:
-    """Integrates each training scan (its ``rays``) and updates the classic map with it."""
+    """Integrates each training scan (its ``rays``) and updates the classic map with it
+    (from its first echoes); a scan with shots also goes into ``echo_maps``."""
 
     def consume(mapper: Mapper, placed: PlacedScan) -> IntegrationSummary:
         placed = select_rays(placed, rays)
         if classic is not None:
-            found, _ = mapper.place_rays(placed.points, placed.origins, placed.no_return)
+            first = first_echoes(placed)
+            found, _ = mapper.place_rays(first.points, first.origins, first.no_return)
             if len(found):
                 _, _, ev = score_rays(mapper, found, placed.stamp, events=True)
                 assert ev is not None
                 classic.update(ev)
-        return integrate_scan(mapper, placed)
+        summary = integrate_scan(mapper, placed)
+        if echo_maps is not None and placed.shot is not None:
+            echo_maps.add(mapper, placed)
+        return summary
 
     return consume
 
@@ -441,6 +576,8 @@ def report(scorer: Scorer, main: str) -> dict[str, Any]:
     reflectivity = scorer.reflectivity.result()
     if reflectivity is not None:
         out["reflectivity"] = reflectivity
+    if scorer.echoes is not None:
+        out["echoes"] = scorer.echoes.result()
     return out
 
 
@@ -822,10 +959,13 @@ def score_split(
     the held-out part with ``Scorer`` (``within_training``: see ``split_options``)."""
     train_opts, held_opts, train_rays, held_rays = split_options(opts, split, within_training)
     classic_map = ClassicMap() if classic else None
+    echo_maps = EchoMaps()
     trained = run_input(
-        recording, train_opts, training_consumer(classic_map, train_rays), progress, log
+        recording, train_opts, training_consumer(classic_map, train_rays, echo_maps), progress, log
     )
     scorer = Scorer(trained.mapper, priors, classic_map, sample, held_rays)
+    if echo_maps.maps:
+        scorer.echoes = EchoScores(echo_maps)
     run_input(recording, held_opts, scorer, progress, log)
     return scorer
 

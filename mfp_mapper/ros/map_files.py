@@ -31,7 +31,7 @@ from mfp_mapper.config.schema import NodeConfig
 from mfp_mapper.core.mapper import Mapper, mapper_kwargs
 from mfp_mapper.mapio.atomic import remove_stale_temp_files
 from mfp_mapper.mapio.loading import load_map
-from mfp_mapper.mapio.mapfile import MapFileError, map_arrays
+from mfp_mapper.mapio.mapfile import MapFileError, map_blocks
 from mfp_mapper.mapio.tiles import INDEX_NAME, is_tiled, write_map_path
 from mfp_mapper.mapping.live import LiveIntegrator
 from mfp_mapper.ros.guarded_node import GuardedNode, tracked_role
@@ -197,7 +197,7 @@ class MapFiles:
                     unchanged = version == self._saved_version
                     if only_if_changed and unchanged:
                         return True, "map unchanged since the last save"
-                    arrays = map_arrays(worker.mapper)
+                    arrays = map_blocks(worker.mapper)
                 replaced = ""
                 if not self._save_elsewhere:
                     on_disk = file_identity(path)
@@ -211,7 +211,7 @@ class MapFiles:
                         return True, text
                     if replaced:  # someone else's file now: never overwritten
                         path = recovery_path(path)
-                count = write_map_path(path, arrays, compress=False)
+                count = write_map_path(path, arrays)
                 self._saved_version = version
                 if not replaced and not self._save_elsewhere:
                     self._on_disk = file_identity(path)

@@ -1,8 +1,9 @@
 """The node's map outputs: the degree-of-occupancy, std and reflectivity clouds and the
 projected grid.
 
-Built from the Mapper under the map lock (only as long as the export takes), converted and
-published outside it. The integration worker calls ``publish`` between two scans.
+Selected from the Mapper under the map lock (only as long as the compiled export or grid
+takes), converted and published outside it, on the live worker's publishing thread
+(``LiveIntegrator.request_publish``): integration never waits for a message to be built.
 """
 
 from __future__ import annotations
@@ -28,8 +29,9 @@ from mfp_mapper.ros.messages import cloud_msg, grid_msg, stamp_msg
 from mfp_mapper.sensing.pointcloud import pack_cloud
 
 PUBLISH_DUTY = 0.1
-"""Largest share of wall time the map outputs may take: after a publication that took
-``dt`` seconds, the next one waits at least ``dt * (1 / PUBLISH_DUTY - 1)``."""
+"""Largest share of wall time the map outputs may hold the map lock (integration waits for
+it): after a publication that held it ``dt`` seconds, the next one waits at least
+``dt * (1 / PUBLISH_DUTY - 1)``."""
 
 
 TOPICS = {
@@ -128,7 +130,7 @@ class MapOutputs:
         for key in due:
             self.published[key] = version
         dt = time.perf_counter() - t0 - lock_times[0]
-        self._not_before = time.monotonic() + dt * (1.0 / PUBLISH_DUTY - 1.0)
+        self._not_before = time.monotonic() + lock_times[1] * (1.0 / PUBLISH_DUTY - 1.0)
         c = self.counters
         c.seconds += dt
         c.locked_seconds += lock_times[1]

@@ -107,3 +107,28 @@ def test_a_scan_within_scan_new_blocks_is_walked_whole(monkeypatch: pytest.Monke
     a, b = map_arrays(whole), map_arrays(bounded)
     for key in ("ijk", "s", "n"):
         np.testing.assert_array_equal(a[key], b[key])
+
+
+@pytest.mark.parametrize("threads", [2, 4])
+def test_threads_keep_a_scan_within_scan_new_blocks(
+    monkeypatch: pytest.MonkeyPatch, threads: int
+) -> None:
+    """Each thread walks its shard's stretches tile by tile; a shard that would outgrow its
+    share cuts the rays it has not walked whole (what it walked of them stays): the scan's
+    new blocks stay bounded, and a scan within the bound is walked whole, as one thread."""
+    monkeypatch.setattr(memory_bound, "SCAN_NEW_BLOCKS", 3_000)
+    points = _far_rays(2_000, distance=200.0)
+    mapper = Mapper(RES, max_range=math.inf, threads=threads)
+    summary = mapper.integrate(points, np.zeros(3), 0.0)
+    assert summary.rays_cut_by_budget > 0 and summary.rays_used == 2_000
+    assert mapper._store.num_blocks <= 3_000
+    mapper.close()
+    near = _far_rays(200, distance=30.0)
+    whole, split = Mapper(RES, max_range=math.inf), Mapper(RES, max_range=math.inf, threads=threads)
+    assert whole.integrate(near, np.zeros(3), 0.0).rays_cut_by_budget == 0
+    assert split.integrate(near, np.zeros(3), 0.0).rays_cut_by_budget == 0
+    a, b = map_arrays(whole), map_arrays(split)
+    order_a, order_b = np.lexsort(a["ijk"].T), np.lexsort(b["ijk"].T)
+    for key in ("ijk", "s", "n"):
+        np.testing.assert_array_equal(a[key][order_a], b[key][order_b])
+    split.close()

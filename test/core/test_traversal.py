@@ -8,6 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mfp_mapper import Mapper
+from mfp_mapper.core.lockstep import T_NEVER, T_ONE
 from mfp_mapper.core.traversal import ray_bounds
 
 RES = 0.25
@@ -155,7 +156,7 @@ def _one_ray_walk_sums(
     origins_vox: np.ndarray, ends_vox: np.ndarray, lengths: np.ndarray, has_return: np.ndarray
 ) -> tuple[dict[tuple[int, int, int], np.float32], dict[tuple[int, int, int], np.float32]]:
     """The store a one-ray-at-a-time walk builds, in plain Python: every ray's voxels and
-    chords by Amanatides & Woo with the walk's float64 operations, summed in float32 in
+    chords by Amanatides & Woo with the walk's fixed-point t, summed in float32 in
     ray order (the order the store adds them)."""
     s: dict[tuple[int, int, int], np.float32] = {}
     n: dict[tuple[int, int, int], np.float32] = {}
@@ -165,9 +166,12 @@ def _one_ray_walk_sums(
         end = [int(np.floor(x)) for x in e]
         step = [1 if end[a] > v[a] else -1 for a in range(3)]
         moves = [end[a] != v[a] for a in range(3)]
-        t_max = [((v[a] + (d[a] > 0)) - o[a]) / d[a] if moves[a] else np.inf for a in range(3)]
-        t_delta = [abs(1.0 / d[a]) if moves[a] else 0.0 for a in range(3)]
-        t_prev = 0.0
+        # t in the walk's fixed point (lockstep.T_ONE): the j-th face at t_max + j * t_delta
+        t_max = [
+            _fixed(((v[a] + (d[a] > 0)) - o[a]) / d[a]) if moves[a] else T_NEVER for a in range(3)
+        ]
+        t_delta = [_fixed(abs(1.0 / d[a])) if moves[a] else 0 for a in range(3)]
+        t_prev = 0
         for _ in range(sum(abs(end[a] - v[a]) for a in range(3))):
             here = tuple(v)
             if t_max[0] <= t_max[1] and t_max[0] <= t_max[2]:
@@ -176,14 +180,14 @@ def _one_ray_walk_sums(
                 axis = 1
             else:
                 axis = 2
-            t_next = min(t_max[axis], 1.0)
+            t_next = min(t_max[axis], T_ONE)
             v[axis] += step[axis]
-            t_max[axis] = t_max[axis] + t_delta[axis] if v[axis] != end[axis] else np.inf
-            chord = (t_next - t_prev) * length
+            t_max[axis] = t_max[axis] + t_delta[axis] if v[axis] != end[axis] else T_NEVER
+            chord = float(t_next - t_prev) * (length / T_ONE)
             t_prev = t_next
             if chord > 0.0:
                 s[here] = np.float32(s.get(here, np.float32(0.0)) + np.float32(chord))
-        chord = (1.0 - t_prev) * length
+        chord = float(T_ONE - t_prev) * (length / T_ONE)
         if chord > 0.0:
             s[tuple(v)] = np.float32(s.get(tuple(v), np.float32(0.0)) + np.float32(chord))
         if hit:
@@ -219,3 +223,95 @@ def test_many_rays_at_once_give_the_one_ray_walks_sums_bit_for_bit(seed: int) ->
     mismatched = [v for v, c in expected_s.items() if np.float32(s[v]) != c]
     assert not mismatched, mismatched[:5]
     assert all(np.float32(n[v]) == c for v, c in expected_n.items())
+
+
+def _walk_states(o: np.ndarray, e: np.ndarray) -> list[tuple[tuple[int, ...], tuple[int, ...]]]:
+    """Every state of the one-ray walk (plain Python, the walk's fixed-point t): the
+    voxel, each axis' next face t and t where the voxel was entered, step by step."""
+    d = e - o
+    v = [int(np.floor(x)) for x in o]
+    end = [int(np.floor(x)) for x in e]
+    step = [1 if end[a] > v[a] else -1 for a in range(3)]
+    moves = [end[a] != v[a] for a in range(3)]
+    t_max = [_fixed(((v[a] + (d[a] > 0)) - o[a]) / d[a]) if moves[a] else T_NEVER for a in range(3)]
+    t_delta = [_fixed(abs(1.0 / d[a])) if moves[a] else 0 for a in range(3)]
+    t_prev = 0
+    states = [(tuple(v), (*t_max, t_prev))]
+    for _ in range(sum(abs(end[a] - v[a]) for a in range(3))):
+        axis = (
+            0 if t_max[0] <= t_max[1] and t_max[0] <= t_max[2] else 1 if t_max[1] <= t_max[2] else 2
+        )
+        t_prev = min(t_max[axis], T_ONE)
+        v[axis] += step[axis]
+        t_max[axis] = t_max[axis] + t_delta[axis] if v[axis] != end[axis] else T_NEVER
+        states.append((tuple(v), (*t_max, t_prev)))
+    return states
+
+
+def _fixed(t: float) -> int:
+    """t in the walks' fixed point, as ``traversal._fixed`` (at most 2)."""
+    return int(min(t, 2.0) * T_ONE)
+
+
+def _tile_rays(seed: int, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rays in voxel units across many shard tiles, some along tile faces, edges and
+    through tile corners exactly."""
+    from mfp_mapper.core.blocks import BLOCK_BITS, SHARD_TILE_BITS
+
+    tile = float(1 << (BLOCK_BITS + SHARD_TILE_BITS))
+    rng = np.random.default_rng(seed)
+    origins = rng.uniform(-1.5 * tile, 1.5 * tile, (count, 3))
+    ends = origins + rng.normal(0.0, 1.5 * tile, (count, 3))
+    origins[::7] = np.round(origins[::7] / tile) * tile  # on tile faces, edges, corners
+    ends[::5] = np.round(ends[::5] / tile) * tile
+    ends[3::11] = 2.0 * ends[3::11] - origins[3::11]  # through a tile corner
+    ends[1::13, 1] = origins[1::13, 1]  # in a plane
+    ends[2::17, :2] = origins[2::17, :2]  # along an axis
+    return origins, ends
+
+
+@pytest.mark.parametrize("shards", [2, 4, 8])
+def test_stretches_start_in_the_state_of_the_whole_walk(shards: int) -> None:
+    """A thread walks only the stretches of rays in its shard's tiles (``split_rays``):
+    each starts in exactly the state the walk from the ray's origin has there (voxel, every
+    axis' next face, t at entry), and the stretches of a ray cover its walk once."""
+    from mfp_mapper.core.traversal import split_rays
+
+    origins, ends = _tile_rays(3, 300)
+    has_return = np.ones(len(origins), dtype=np.bool_)
+    pieces, offsets = split_rays(origins, ends, has_return, 0, len(origins), shards - 1, True)
+    assert offsets[0] == 0 and offsets[-1] == len(pieces.ray) and np.all(np.diff(offsets) >= 0)
+    np.testing.assert_array_equal(np.sort(pieces.order), np.arange(len(pieces.ray)))
+    covered: dict[int, list[int]] = {}
+    for p in range(len(pieces.ray)):
+        r = int(pieces.ray[p])
+        states = _walk_states(origins[r], ends[r])
+        voxel, steps = tuple(pieces.voxel[p, :3].tolist()), int(pieces.voxel[p, 3])
+        at = [k for k, (v, _) in enumerate(states) if v == voxel]
+        assert len(at) == 1, (r, voxel)
+        expected = states[at[0]][1]
+        assert tuple(pieces.t_state[p, :4].tolist()) == expected, (r, p)  # bit for bit
+        covered.setdefault(r, []).extend(range(at[0], at[0] + steps + 1))
+        assert pieces.has_return[p] == (at[0] + steps == len(states) - 1)
+    for r in range(len(origins)):
+        assert sorted(covered[r]) == list(range(len(_walk_states(origins[r], ends[r])))), r
+
+
+def test_one_two_four_and_eight_threads_give_the_same_store_bit_for_bit() -> None:
+    """Rays across tiles, along tile faces and through tile corners: every thread count
+    gives the voxels and float32 sums of one thread walking whole rays, over two scans."""
+    origins, ends = _tile_rays(4, 2_000)
+    maps = [Mapper(1.0, max_range=1e4, threads=t) for t in (1, 2, 4, 8)]
+    for scan in range(2):
+        for mapper in maps:
+            mapper.integrate(ends + 0.37 * scan, origins, float(scan))
+    expected = maps[0].voxels()
+    order = np.lexsort(expected.ijk.T)
+    for mapper in maps[1:]:
+        got = mapper.voxels()
+        other = np.lexsort(got.ijk.T)
+        np.testing.assert_array_equal(got.ijk[other], expected.ijk[order])
+        np.testing.assert_array_equal(got.s[other], expected.s[order])
+        np.testing.assert_array_equal(got.n[other], expected.n[order])
+        assert mapper.num_blocks == maps[0].num_blocks
+        mapper.close()

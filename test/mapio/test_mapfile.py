@@ -51,14 +51,49 @@ def test_file_holds_the_documented_arrays(mapper: Mapper, tmp_path: Path) -> Non
     path = tmp_path / "map.npz"
     save_map(mapper, path)
     with np.load(path, allow_pickle=False) as f:
-        assert f["ijk"].dtype == np.int32 and f["ijk"].shape == (mapper.num_voxels, 3)
-        for key in ("s", "n", "t_last"):
-            assert f[key].dtype == np.float64 and f[key].shape == (mapper.num_voxels,)
+        assert int(f["version"]) == 3 and str(f["format"]) == "mfp_mapper.map"
+        block_ijk, observed, hit = f["block_ijk"], f["observed"], f["hit"]
+        assert block_ijk.dtype == np.int32 and observed.dtype == np.uint64
+        assert f["s"].dtype == np.float32 and f["n"].dtype == np.float32  # as in memory
+        assert f["s"].shape == (mapper.num_voxels,)
+        assert np.bitwise_count(observed).sum() == mapper.num_voxels
+        assert np.array_equal(np.diff(f["block_start"]), np.bitwise_count(observed).sum(1))
+        assert np.all(hit & ~observed[f["hit_block"]] == 0)
+        assert f["n"].shape == (np.count_nonzero(mapper.voxels().n),)
         assert float(f["resolution"]) == 0.2 and str(f["frame_id"]) == "odom"
         assert float(f["decay_time"]) == 30.0
-        # ijk is floor(coordinate / resolution): the voxel centre maps back onto it
-        centers = (f["ijk"] + 0.5) * float(f["resolution"])
-        assert np.array_equal(np.floor(centers / 0.2).astype(np.int32), f["ijk"])
+        # the documented decoding gives back every voxel: block index * 8 + Morton offsets
+        rows, place = np.nonzero(np.unpackbits(observed.view(np.uint8), axis=1, bitorder="little"))
+        bits = [(place >> (2 - axis)) & 1 | (place >> (4 - axis)) & 2 | (place >> (6 - axis)) & 4
+                for axis in range(3)]  # fmt: skip
+        ijk = block_ijk[rows].astype(np.int64) * 8 + np.stack(bits, axis=1)
+        s, t_last = f["s"], f["block_t"][rows]
+    v = mapper.stored_voxels()
+    order_a, order_b = np.lexsort(v.ijk.T), np.lexsort(ijk.T)
+    assert np.array_equal(v.ijk[order_a], ijk[order_b])
+    assert np.array_equal(v.s[order_a], s[order_b])
+    assert np.array_equal(v.t_last[order_a], t_last[order_b])
+
+
+LEGACY = Path(__file__).parent / "data"
+"""A map and a tiled map written by the version 2 writer (commit e8b3188): 2,899 voxels of
+``anchors_scene(n_scans=2, azimuths=6)`` at 0.5 m, max_range 15 m, decay 30 s, frame odom."""
+
+
+@pytest.mark.parametrize("name", ["legacy_v2.npz", "legacy_v2_tiled"])
+def test_files_of_the_version_2_writer_still_load(name: str, tmp_path: Path) -> None:
+    loaded = load_map(LEGACY / name)
+    v = loaded.stored_voxels()
+    assert (loaded.num_voxels, loaded.frame_id, loaded.decay_time) == (2899, "odom", 30.0)
+    assert v.s.sum() == pytest.approx(2508.773651440628, rel=1e-6)
+    assert v.n.sum() == pytest.approx(62.983698189258575, rel=1e-6)
+    assert np.count_nonzero(v.n) == 58
+    # and saved again (version 3), they hold the same voxels
+    save_map(loaded, tmp_path / "again.npz")
+    again = load_map(tmp_path / "again.npz").stored_voxels()
+    order_a, order_b = np.lexsort(v.ijk.T), np.lexsort(again.ijk.T)
+    for key in ("ijk", "s", "n", "t_last"):
+        assert np.array_equal(getattr(v, key)[order_a], getattr(again, key)[order_b]), key
 
 
 def test_static_map_round_trips_infinite_decay_time(tmp_path: Path) -> None:
@@ -75,16 +110,16 @@ def test_save_is_atomic_and_leaves_no_temporary_file(
     save_map(mapper, path)
     before = path.read_bytes()
 
-    write_array = np.lib.format.write_array
+    write_header = np.lib.format.write_array_header_1_0
     written: list[str] = []
 
-    def fail_on_third_array(member: Any, array: np.ndarray, **kwargs: Any) -> None:
-        written.append(array.dtype.str)
+    def fail_on_third_array(member: Any, header: dict, **kwargs: Any) -> None:
+        written.append(header["descr"])
         if len(written) == 3:
             raise OSError("disk full")
-        write_array(member, array, **kwargs)
+        write_header(member, header, **kwargs)
 
-    monkeypatch.setattr(np.lib.format, "write_array", fail_on_third_array)
+    monkeypatch.setattr(np.lib.format, "write_array_header_1_0", fail_on_third_array)
     with pytest.raises(OSError, match="disk full"):
         save_map(mapper, path)
     assert len(written) == 3  # failed part way, with arrays already in the archive
@@ -173,12 +208,14 @@ def test_pickled_objects_are_never_loaded(tmp_path: Path) -> None:
 
 def _v1_file(mapper: Mapper, path: Path) -> Path:
     """A version-1 file as the code before the origin wrote it (no origin, version 1)."""
-    from mfp_mapper.mapio.mapfile import map_arrays, write_map_arrays
+    from hostile_maps import write_legacy_map
+
+    from mfp_mapper.mapio.mapfile import map_arrays
 
     arrays = map_arrays(mapper)
     del arrays["origin"]
     arrays["version"] = np.int64(1)
-    write_map_arrays(path, arrays)
+    write_legacy_map(path, arrays)
     return path
 
 
@@ -198,8 +235,9 @@ def test_geo_referenced_map_round_trips_its_origin(tmp_path: Path) -> None:
     assert m.origin is not None and np.abs(np.array(m.origin) - utm).max() < 6553.6 / 2
     save_map(m, tmp_path / "geo.npz")
     with np.load(tmp_path / "geo.npz") as f:
-        assert int(f["version"]) == 2 and np.array_equal(f["origin"], np.array(m.origin))
-        centers = np.asarray(f["origin"]) + (f["ijk"] + 0.5) * float(f["resolution"])
+        assert int(f["version"]) == 3 and np.array_equal(f["origin"], np.array(m.origin))
+        ijk = m.stored_voxels().ijk
+        centers = np.asarray(f["origin"]) + (ijk + 0.5) * float(f["resolution"])
     loaded = load_map(tmp_path / "geo.npz")
     assert loaded.origin == m.origin
     q = loaded.query(centers)

@@ -505,10 +505,10 @@ def test_a_slow_save_does_not_stall_odometry(
     started, release = threading.Event(), threading.Event()
     write = map_files.write_map_path
 
-    def held_write(path: Any, arrays: Any, compress: bool = True) -> int:
+    def held_write(path: Any, arrays: Any) -> int:
         started.set()
         release.wait(30.0)
-        return write(path, arrays, compress)
+        return write(path, arrays)
 
     monkeypatch.setattr(map_files, "write_map_path", held_write)
     path = tmp_path / "slow.npz"
@@ -541,7 +541,7 @@ def test_a_slow_save_does_not_stall_odometry(
         assert pending.result().success, pending.result().message
         assert path.is_file()
 
-        def broken_write(path: Any, arrays: Any, compress: bool = True) -> int:
+        def broken_write(path: Any, arrays: Any) -> int:
             raise RuntimeError("unexpected")
 
         monkeypatch.setattr(map_files, "write_map_path", broken_write)

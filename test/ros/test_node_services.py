@@ -196,11 +196,11 @@ def test_services_answer_during_a_long_scan_and_see_whole_scans(
 
 
 def _write_box_map(path: Path, voxels: float) -> tuple[int, np.ndarray]:
-    """A map file of a dense box of about ``voxels`` voxels (stored uncompressed); returns
-    the voxel count and their ``s``."""
+    """A map file of a dense box of about ``voxels`` voxels; returns the voxel count and
+    their ``s``."""
     from mfp_mapper import Mapper
     from mfp_mapper.core.store import VoxelArrays
-    from mfp_mapper.mapio.mapfile import map_arrays, write_map_arrays
+    from mfp_mapper.mapio.mapfile import write_map
 
     side = round(voxels ** (1 / 3))
     grid = np.stack(np.meshgrid(*(np.arange(side),) * 3, indexing="ij"), -1).reshape(-1, 3)
@@ -211,7 +211,7 @@ def _write_box_map(path: Path, voxels: float) -> tuple[int, np.ndarray]:
     mapper = Mapper.from_arrays(
         VoxelArrays(ijk, s, np.ones(count), np.full(count, T0)), resolution=RES, frame_id="odom"
     )
-    write_map_arrays(path, map_arrays(mapper), compress=False)
+    write_map(path, mapper)
     return count, s
 
 

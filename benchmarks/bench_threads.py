@@ -1,0 +1,85 @@
+"""How the threads of one scan would scale with free cores: CPU time of each part.
+
+Wall time of two threads means little on a machine whose cores other work keeps busy.
+This benchmark runs the parts of a threaded integration one after another in one thread
+and reads each part's thread CPU time: the split of the rays into the shards' stretches
+(``traversal.split_rays``, shared among the threads) and each shard's walk. The critical
+path with T threads is split / T + the slowest shard's walk; against one thread's walk
+of whole rays that is the speed-up the threads can give (memory bandwidth aside).
+
+    python benchmarks/bench_threads.py                      # hall and OS1-128, 0.2 and 0.1 m
+    python benchmarks/bench_threads.py --shards 2 4 8 16 --resolutions 0.1
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import numpy as np
+
+sys.path[:0] = [str(Path(__file__).resolve().parent)]
+from bench_core import OUSTER, _scene  # noqa: E402
+
+from mfp_mapper import Mapper  # noqa: E402
+from mfp_mapper.core.store import BlockStore  # noqa: E402
+from mfp_mapper.core.traversal import integrate_rays  # noqa: E402
+
+
+def scan_parts(scene: str, resolution: float, shards: int) -> tuple[float, float, float, float]:
+    """Medians over the later scans (ms): the split, the sum and the slowest of the
+    shards' walks, and the critical path with ``shards`` threads."""
+    scans = _scene(scene)
+    placer = Mapper(resolution, max_range=100.0)  # places the rays (no origin: raw frame)
+    store = BlockStore(shards=shards)
+    calls: list[list[float]] = []
+
+    def one_after_another(fn: Callable[[int], None], items: Sequence[int]) -> None:
+        times = []
+        for item in items:
+            cpu0 = time.thread_time()
+            fn(item)
+            times.append(time.thread_time() - cpu0)
+        calls.append(times)
+
+    rows = []
+    for k, (points, origin) in enumerate(scans):
+        rays, _ = placer.place_rays(points, origin)
+        calls.clear()
+        cpu0 = time.thread_time()
+        integrate_rays(store, rays, store.begin_scan(), float(k), math.inf, one_after_another)
+        whole = time.thread_time() - cpu0
+        store.finish_scan()
+        split = calls[0] if len(calls) > 1 else [0.0]
+        walks = calls[-1] if calls else [whole]
+        rows.append((sum(split), sum(walks), max(walks), sum(split) / shards + max(walks)))
+    return tuple(1e3 * float(np.median(column)) for column in zip(*rows[1:], strict=True))  # type: ignore[return-value]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--resolutions", type=float, nargs="+", default=[0.2, 0.1])
+    parser.add_argument("--shards", type=int, nargs="+", default=[2, 4, 8])
+    args = parser.parse_args()
+    scenes = ["anchors"] + (["ouster_street"] if OUSTER.is_dir() else [])
+    print("scene, resolution, shards: split / walks (sum; slowest) / critical path, ms")
+    for scene in scenes:
+        for resolution in args.resolutions:
+            one = scan_parts(scene, resolution, 1)[1]
+            print(f"{scene} {resolution} m, 1 thread: {one:.1f} ms")
+            for shards in args.shards:
+                split, walks, slowest, path = scan_parts(scene, resolution, shards)
+                print(
+                    f"{scene} {resolution} m, {shards}: {split:.1f} / {walks:.1f}; "
+                    f"{slowest:.1f} / {path:.1f}  ({one / path:.2f}x)"
+                )
+
+
+if __name__ == "__main__":
+    main()

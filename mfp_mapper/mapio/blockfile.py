@@ -1,0 +1,454 @@
+"""Map files of version 3: the store's blocks as they are in memory, read by block.
+
+A version 3 map file is an ``.npz`` (a zip of ``.npy`` arrays, every member stored, none
+deflated) holding the settings of every version (``mapfile``) and the packed blocks of
+``core.packed``:
+
+===============  ==============  =====================================================
+``block_ijk``    int32 (B, 3)    block index (voxel index >> 3), sorted by x, y, z; once
+``block_start``  int64 (B + 1,)  row of ``s`` where each block's voxels begin (last: M)
+``hit_block``    int64 (H,)      rows of the blocks holding a return, increasing
+``hit_start``    int64 (H + 1,)  row of ``n`` where each of those blocks begins (last: K)
+``block_t``      float64 (B,)    time (s) the block's statistics refer to (its voxels' t_last)
+``observed``     uint64 (B, 8)   bit ``i % 64`` of word ``i // 64``: the voxel of Morton
+                                 place ``i`` in the block is observed (s > 0 or n > 0)
+``hit``          uint64 (H, 8)   the same for the voxels with a return (n > 0)
+``s``            float32 (M,)    metres of rays in each observed voxel, block by block
+                                 (float64 in a file of merged sums)
+``n``            float32 (K,)    returns in each voxel with a return (float64 likewise)
+===============  ==============  =====================================================
+
+The block index (``block_ijk``, ``block_start``, ``hit_block``, ``hit_start``) comes first,
+so a reader that needs a few blocks reads the index, finds its blocks by binary search and
+reads their masks and values where they lie (``BlockFile.packed``); a full read checks each
+member's CRC-32. Arrays are little-endian. Writes go through ``mapio.atomic``.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import struct
+import zipfile
+import zlib
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from mfp_mapper.core.blocks import BLOCK_BITS, BLOCK_EDGE
+from mfp_mapper.core.packed import (
+    MASK_WORDS,
+    MAX_BLOCK_INDEX,
+    PackedBlocks,
+    compact,
+    sort_keys,
+    voxel_starts,
+)
+from mfp_mapper.core.store import VoxelArrays
+
+BLOCK_MEMBERS = (
+    "block_ijk", "block_start", "hit_block", "hit_start", "block_t", "observed", "hit", "s", "n",
+)  # fmt: skip
+"""The block members of a version 3 map file, in the order written (the index first)."""
+
+_DTYPES: dict[str, tuple[str, ...]] = {
+    "block_ijk": ("<i4",),
+    "block_start": ("<i8",),
+    "hit_block": ("<i8",),
+    "hit_start": ("<i8",),
+    "block_t": ("<f8",),
+    "observed": ("<u8",),
+    "hit": ("<u8",),
+    "s": ("<f4", "<f8"),
+    "n": ("<f4", "<f8"),
+}
+_LOCAL_HEADER = struct.Struct("<4s5H3L2H")
+_LOCAL_MAGIC = b"PK\x03\x04"
+
+
+def block_arrays(packed: PackedBlocks) -> dict[str, np.ndarray]:
+    """The block members of a map file for ``packed`` (index arrays added)."""
+    return {
+        "block_ijk": np.ascontiguousarray(packed.block_ijk, dtype="<i4"),
+        "block_start": voxel_starts(packed.observed),
+        "hit_block": np.ascontiguousarray(packed.hit_block, dtype="<i8"),
+        "hit_start": voxel_starts(packed.hit),
+        "block_t": np.ascontiguousarray(packed.block_t, dtype="<f8"),
+        "observed": np.ascontiguousarray(packed.observed, dtype="<u8"),
+        "hit": np.ascontiguousarray(packed.hit, dtype="<u8"),
+        "s": np.ascontiguousarray(packed.s),
+        "n": np.ascontiguousarray(packed.n),
+    }
+
+
+def packed_of(arrays: dict[str, Any]) -> PackedBlocks:
+    """The packed blocks of map-file block members (``block_arrays``)."""
+    return PackedBlocks(
+        arrays["block_ijk"], arrays["block_t"], arrays["observed"], arrays["s"],
+        arrays["hit_block"], arrays["hit"], arrays["n"],
+    )  # fmt: skip
+
+
+def write_npz_stored(out: BinaryIO, arrays: dict[str, Any]) -> None:
+    """Write ``arrays`` as an uncompressed ``.npz`` to ``out`` (what ``np.load`` reads):
+    each array's bytes go to the file once, without a copy (the CRC is computed on the
+    way)."""
+    with zipfile.ZipFile(out, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as archive:
+        for name, value in arrays.items():
+            arr = np.asanyarray(value)
+            if arr.dtype.hasobject:
+                raise ValueError(f"{name}: object arrays are never written")
+            arr = arr if arr.flags.c_contiguous else arr.copy(order="C")  # keeps 0-d
+            header = io.BytesIO()
+            fmt = np.lib.format
+            fmt.write_array_header_1_0(header, fmt.header_data_from_array_1_0(arr))
+            with archive.open(f"{name}.npy", "w", force_zip64=True) as member:
+                member.write(header.getvalue())
+                if arr.nbytes:
+                    member.write(arr.reshape(-1).view(np.uint8).data)
+
+
+@dataclass(frozen=True)
+class Member:
+    """Where one stored ``.npy`` member's array lies in the file."""
+
+    name: str
+    offset: int  # of the array's first byte
+    shape: tuple[int, ...]
+    dtype: np.dtype
+    header: bytes  # the .npy header (for the CRC)
+    crc: int
+
+    @property
+    def nbytes(self) -> int:
+        return math.prod(self.shape) * self.dtype.itemsize
+
+
+class BlockFileError(ValueError):
+    """A version 3 member that cannot be read (``mapfile`` names the file)."""
+
+
+def locate_members(
+    f: BinaryIO, archive: zipfile.ZipFile, names: Iterable[str], file_size: int
+) -> dict[str, Member]:
+    """The block members of a version 3 file: stored, headers and sizes checked."""
+    out: dict[str, Member] = {}
+    wanted = set(names)
+    for info in archive.infolist():
+        name = info.filename[: -len(".npy")]
+        if not info.filename.endswith(".npy") or name not in wanted:
+            continue
+        if name in out:
+            raise BlockFileError(f"member {info.filename} appears twice")
+        if info.compress_type != zipfile.ZIP_STORED:
+            raise BlockFileError(f"{name} is compressed: version 3 members are stored")
+        f.seek(info.header_offset)
+        raw = f.read(_LOCAL_HEADER.size)
+        if len(raw) != _LOCAL_HEADER.size or raw[:4] != _LOCAL_MAGIC:
+            raise BlockFileError(f"{name}: no zip local header where the directory says")
+        fields = _LOCAL_HEADER.unpack(raw)
+        data = info.header_offset + _LOCAL_HEADER.size + fields[-2] + fields[-1]
+        f.seek(data)
+        version = np.lib.format.read_magic(f)
+        if version == (1, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
+        else:
+            shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
+        start = f.tell()
+        if fortran and len(shape) > 1:
+            raise BlockFileError(f"{name} is in Fortran order (C order expected)")
+        if dtype.str not in _DTYPES[name]:
+            want = " or ".join(_DTYPES[name])
+            raise BlockFileError(f"{name} has dtype {dtype.str}, expected {want}")
+        if any(d < 0 for d in shape):
+            raise BlockFileError(f"{name} declares a negative size {shape}")
+        nbytes = math.prod(shape) * dtype.itemsize
+        if nbytes != info.file_size - (start - data) or data + info.file_size > file_size:
+            raise BlockFileError(
+                f"{name} claims {nbytes} bytes ({shape} {dtype}) in a member of "
+                f"{info.file_size - (start - data)}"
+            )  # fmt: skip
+        f.seek(data)
+        header = f.read(start - data)
+        out[name] = Member(name, start, tuple(shape), dtype, header, info.CRC)
+    missing = [k for k in BLOCK_MEMBERS if k not in out]
+    if missing:
+        raise BlockFileError(f"version 3 map without {', '.join(missing)}")
+    problem = shape_problem({k: m.shape for k, m in out.items()})
+    if problem:
+        raise BlockFileError(problem)
+    return out
+
+
+def shape_problem(shapes: dict[str, tuple[int, ...]]) -> str | None:
+    """The block members' shapes against each other (B blocks, H with a return)."""
+    b = shapes["block_ijk"][0] if len(shapes["block_ijk"]) == 2 else -1
+    h = shapes["hit_block"][0] if len(shapes["hit_block"]) == 1 else -1
+    want = {
+        "block_ijk": (b, 3), "block_start": (b + 1,), "block_t": (b,), "observed": (b, MASK_WORDS),
+        "hit_block": (h,), "hit_start": (h + 1,), "hit": (h, MASK_WORDS),
+    }  # fmt: skip
+    for name, shape in want.items():
+        if shapes[name] != shape:
+            return f"{name} must have shape {shape} (B = {b} blocks, H = {h}), got {shapes[name]}"
+    for name in ("s", "n"):
+        if len(shapes[name]) != 1:
+            return f"{name} must be one-dimensional, got shape {shapes[name]}"
+    return None
+
+
+def read_member(f: io.BufferedReader, m: Member) -> np.ndarray:
+    """A whole member, its CRC-32 checked."""
+    out = np.empty(m.shape, dtype=m.dtype)
+    f.seek(m.offset)
+    view = out.reshape(-1).view(np.uint8).data
+    got = f.readinto(view) if m.nbytes else 0
+    if got != m.nbytes:
+        raise BlockFileError(f"{m.name} is truncated ({got} of {m.nbytes} bytes)")
+    if zlib.crc32(view, zlib.crc32(m.header)) != m.crc:
+        raise BlockFileError(f"{m.name} fails its CRC-32 check: the file is damaged")
+    return out
+
+
+def read_all(f: io.BufferedReader, members: dict[str, Member]) -> dict[str, np.ndarray]:
+    """Every block member, checked: CRCs, the index against the masks."""
+    arrays = {k: read_member(f, members[k]) for k in BLOCK_MEMBERS}
+    problem = index_problem(arrays)
+    if problem:
+        raise BlockFileError(problem)
+    return arrays
+
+
+def index_problem(a: dict[str, np.ndarray]) -> str | None:
+    """``block_start`` and ``hit_start`` against the masks, ``s`` and ``n``."""
+    if not np.array_equal(a["block_start"], voxel_starts(a["observed"])):
+        return "block_start does not count the observed masks"
+    if not np.array_equal(a["hit_start"], voxel_starts(a["hit"])):
+        return "hit_start does not count the hit masks"
+    if a["s"].shape[0] != a["block_start"][-1] or a["n"].shape[0] != a["hit_start"][-1]:
+        return "s and n do not hold one value per bit of the masks"
+    return None
+
+
+class BlockReader:
+    """Reads chosen blocks of a version 3 file through a memory map (only the pages of
+    those blocks are read from disk). Close it (or use ``with``)."""
+
+    def __init__(self, path: Path, members: dict[str, Member]) -> None:
+        self.members = members
+        self._map = np.memmap(path, dtype=np.uint8, mode="r") if path.stat().st_size else None
+        self.block_ijk = self.view("block_ijk").copy()
+        if self.block_ijk.size and int(np.abs(self.block_ijk).max()) > MAX_BLOCK_INDEX:
+            raise BlockFileError(f"block indices beyond +-{MAX_BLOCK_INDEX}, the map's range")
+        self.keys = sort_keys(self.block_ijk)
+        if self.keys.shape[0] > 1 and not np.all(np.diff(self.keys) > 0):
+            raise BlockFileError("blocks are not sorted by index, or a block is listed twice")
+
+    def view(self, name: str) -> np.ndarray:
+        m = self.members[name]
+        if self._map is None or m.nbytes == 0:
+            return np.zeros(m.shape, dtype=m.dtype)
+        return np.ndarray(m.shape, dtype=m.dtype, buffer=self._map, offset=m.offset)
+
+    def close(self) -> None:
+        self._map = None
+
+    def __enter__(self) -> BlockReader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def rows_of(self, block_ijk: ArrayLike) -> NDArray[np.int64]:
+        """Rows of the file's blocks among ``block_ijk`` (absent ones left out)."""
+        return self.rows_of_keys(sort_keys(np.asarray(block_ijk, dtype=np.int64).reshape(-1, 3)))
+
+    def rows_of_keys(self, keys: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Rows of the file's blocks whose ``sort_keys`` are among ``keys`` (sorted, unique;
+        absent ones left out)."""
+        want = np.unique(keys)
+        pos = np.searchsorted(self.keys, want)
+        found = pos < self.keys.shape[0]
+        found[found] = self.keys[pos[found]] == want[found]
+        return pos[found].astype(np.int64)
+
+    def rows_in_box(self, lo: NDArray[np.int64], hi: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Rows of the blocks holding voxel indices in [lo, hi] (inclusive)."""
+        blo, bhi = np.asarray(lo) >> BLOCK_BITS, np.asarray(hi) >> BLOCK_BITS
+        inside = np.all((self.block_ijk >= blo) & (self.block_ijk <= bhi), axis=1)
+        return np.flatnonzero(inside)
+
+    def packed(self, rows: NDArray[np.int64]) -> PackedBlocks:
+        """The blocks of ``rows`` (sorted, unique), read where they lie; their counts are
+        checked against their masks."""
+        rows = np.asarray(rows, dtype=np.int64)
+        observed = self.view("observed")[rows]
+        start = self.view("block_start")
+        s_lo, s_hi = start[rows], start[rows + 1]
+        hit_rows = self.view("hit_block").copy()
+        if hit_rows.shape[0] > 1 and not np.all(np.diff(hit_rows) > 0):
+            raise BlockFileError("hit_block is not increasing")
+        pos = np.searchsorted(hit_rows, rows)
+        has = pos < hit_rows.shape[0]
+        has[has] = hit_rows[pos[has]] == rows[has]
+        hpos = pos[has]
+        hit = self.view("hit")[hpos]
+        hstart = self.view("hit_start")
+        n_lo, n_hi = hstart[hpos], hstart[hpos + 1]
+        counts = np.bitwise_count(observed).sum(axis=1)
+        hit_counts = np.bitwise_count(hit).sum(axis=1)
+        if not (np.array_equal(s_hi - s_lo, counts) and np.array_equal(n_hi - n_lo, hit_counts)):
+            raise BlockFileError("block_start or hit_start does not count the masks")
+        s_total, n_total = self.members["s"].shape[0], self.members["n"].shape[0]
+        if (s_lo.size and (s_lo.min() < 0 or s_hi.max() > s_total)) or (
+            n_lo.size and (n_lo.min() < 0 or n_hi.max() > n_total)
+        ):
+            raise BlockFileError("block_start or hit_start points outside s or n")
+        return PackedBlocks(
+            self.block_ijk[rows], self.view("block_t")[rows], observed,
+            self.view("s")[_ranges(s_lo, s_hi)], np.flatnonzero(has).astype(np.int64), hit,
+            self.view("n")[_ranges(n_lo, n_hi)],
+        )  # fmt: skip
+
+
+def _ranges(lo: NDArray[np.int64], hi: NDArray[np.int64]) -> NDArray[np.int64]:
+    """The indices lo[0]..hi[0]-1, lo[1]..hi[1]-1, ... in one array."""
+    lengths = hi - lo
+    heads = np.cumsum(lengths) - lengths
+    return np.arange(int(lengths.sum()), dtype=np.int64) + np.repeat(lo - heads, lengths)
+
+
+def take_blocks(arrays: dict[str, Any], rows: NDArray[np.int64]) -> dict[str, np.ndarray]:
+    """The block members (``block_arrays``) of the blocks ``rows`` (increasing) of
+    ``arrays``."""
+    start, hit_rows = arrays["block_start"], arrays["hit_block"]
+    pos = np.searchsorted(hit_rows, rows)
+    has = pos < hit_rows.shape[0]
+    has[has] = hit_rows[pos[has]] == rows[has]
+    hpos = pos[has]
+    hstart = arrays["hit_start"]
+    return block_arrays(
+        PackedBlocks(
+            arrays["block_ijk"][rows],
+            arrays["block_t"][rows],
+            arrays["observed"][rows],
+            arrays["s"][_ranges(start[rows], start[rows + 1])],
+            np.flatnonzero(has).astype(np.int64),
+            arrays["hit"][hpos],
+            arrays["n"][_ranges(hstart[hpos], hstart[hpos + 1])],
+        )  # fmt: skip
+    )
+
+
+def concat_packed(parts: list[PackedBlocks]) -> PackedBlocks:
+    """Packed blocks of disjoint block sets (e.g. tiles) as one, sorted (a block in two
+    parts is refused by ``packed_problem`` later)."""
+    if len(parts) == 1:
+        return parts[0]
+    rows = np.cumsum([0] + [p.block_ijk.shape[0] for p in parts])
+    block_ijk = np.concatenate([np.zeros((0, 3), np.int32)] + [p.block_ijk for p in parts])
+    observed = np.concatenate([np.zeros((0, MASK_WORDS), np.uint64)] + [p.observed for p in parts])
+    hit_all = np.concatenate([np.zeros((0, MASK_WORDS), np.uint64)] + [p.hit for p in parts])
+    hit_rows = np.concatenate(
+        [np.zeros(0, np.int64)] + [p.hit_block + r for p, r in zip(parts, rows, strict=False)]
+    )
+    s_all = np.concatenate([np.zeros(0, np.float32)] + [p.s for p in parts])
+    n_all = np.concatenate([np.zeros(0, np.float32)] + [p.n for p in parts])
+    order = np.argsort(sort_keys(block_ijk), kind="stable")
+    start = voxel_starts(observed)
+    hit_of_block = np.full(block_ijk.shape[0], -1, dtype=np.int64)
+    hit_of_block[hit_rows] = np.arange(hit_rows.shape[0])
+    sorted_hits = hit_of_block[order]
+    hit_block = np.flatnonzero(sorted_hits >= 0).astype(np.int64)
+    hidx = sorted_hits[hit_block]
+    nstart = voxel_starts(hit_all)
+    return PackedBlocks(
+        block_ijk[order], np.concatenate([np.zeros(0)] + [p.block_t for p in parts])[order],
+        observed[order], compact(s_all[_ranges(start[order], start[order + 1])]), hit_block,
+        hit_all[hidx], compact(n_all[_ranges(nstart[hidx], nstart[hidx + 1])]),
+    )  # fmt: skip
+
+
+# --- voxel lists <-> packed blocks ------------------------------------------------------
+
+_MORTON = np.array(
+    [[(i >> 2 & 1) | (i >> 4 & 2) | (i >> 6 & 4), (i >> 1 & 1) | (i >> 3 & 2) | (i >> 5 & 4),
+      (i & 1) | (i >> 2 & 2) | (i >> 4 & 4)] for i in range(BLOCK_EDGE**3)],
+    dtype=np.int64,
+)  # fmt: skip
+"""Offsets (x, y, z) in its block of the voxel of each Morton place (``blocks.local_coords``)."""
+_PLACE = np.zeros((BLOCK_EDGE,) * 3, dtype=np.int64)
+_PLACE[_MORTON[:, 0], _MORTON[:, 1], _MORTON[:, 2]] = np.arange(BLOCK_EDGE**3)
+
+
+def packed_to_voxels(p: PackedBlocks) -> VoxelArrays:
+    """The voxel list of packed blocks (float64 values; ``t_last`` is the block's time),
+    voxels in block order."""
+    obs = np.unpackbits(p.observed.view(np.uint8), axis=1, bitorder="little").astype(bool)
+    rows, place = np.nonzero(obs)
+    ijk = (p.block_ijk[rows].astype(np.int64) << BLOCK_BITS) + _MORTON[place]
+    hits = np.zeros_like(obs)
+    hits[p.hit_block] = np.unpackbits(p.hit.view(np.uint8), axis=1, bitorder="little")
+    n = np.zeros(rows.shape[0])
+    n[hits[obs]] = p.n
+    return VoxelArrays(
+        ijk.astype(np.int32), p.s.astype(np.float64), n, p.block_t[rows].astype(np.float64)
+    )
+
+
+def voxels_to_packed(v: VoxelArrays, decay_time: float) -> PackedBlocks:
+    """Voxel lists as packed blocks: voxels of one block are brought to its latest time
+    (decayed, as the store does), voxels with s = n = 0 dropped; s and n stay float32 when
+    that loses nothing, else float64. ValueError names a voxel listed twice."""
+    ijk = np.asarray(v.ijk, dtype=np.int64).reshape(-1, 3)
+    s, n, t = (np.asarray(a, dtype=np.float64) for a in (v.s, v.n, v.t_last))
+    keep = (s > 0) | (n > 0)
+    if not keep.all():
+        ijk, s, n, t = ijk[keep], s[keep], n[keep], t[keep]
+    blocks = ijk >> BLOCK_BITS
+    local = ijk & (BLOCK_EDGE - 1)
+    place = _PLACE[local[:, 0], local[:, 1], local[:, 2]]
+    bkey = sort_keys(blocks)
+    order = np.lexsort((place, bkey)) if ijk.shape[0] else np.zeros(0, dtype=np.int64)
+    bkey, place = bkey[order], place[order]
+    new_block = np.ones(order.shape[0], dtype=bool)
+    new_block[1:] = bkey[1:] != bkey[:-1]
+    twice = ~new_block[1:] & (place[1:] == place[:-1])
+    if twice.any():
+        raise ValueError(f"ijk lists voxel {ijk[order[1:][twice][0]].tolist()} more than once")
+    heads = np.flatnonzero(new_block)
+    row = np.cumsum(new_block) - 1
+    s, n, t = s[order], n[order], t[order]
+    block_t = np.maximum.reduceat(t, heads) if heads.size else np.zeros(0)
+    if math.isfinite(decay_time):
+        scale = np.exp((t - block_t[row]) / decay_time)
+        s, n = s * scale, n * scale
+    flat = row * MASK_WORDS + (place >> 6)
+    bits = np.left_shift(np.uint64(1), (place & 63).astype(np.uint64))
+    masks = np.zeros(heads.shape[0] * MASK_WORDS, dtype=np.uint64)
+    if flat.size:
+        runs = np.flatnonzero(np.diff(flat, prepend=-1))
+        masks[flat[runs]] = np.bitwise_or.reduceat(bits, runs)
+    observed = masks.reshape(-1, MASK_WORDS)
+    has_n = n > 0
+    hit_masks = np.zeros_like(masks)
+    if has_n.any():
+        fh, bh = flat[has_n], bits[has_n]
+        runs = np.flatnonzero(np.diff(fh, prepend=-1))
+        hit_masks[fh[runs]] = np.bitwise_or.reduceat(bh, runs)
+    hit = hit_masks.reshape(-1, MASK_WORDS)
+    hit_block = np.flatnonzero(hit.any(axis=1)).astype(np.int64)
+    return PackedBlocks(
+        blocks[order[heads]].astype(np.int32), block_t, observed, compact(s), hit_block,
+        hit[hit_block], compact(n[has_n]),
+    )  # fmt: skip
+
+
+__all__ = [
+    "BlockReader", "block_arrays", "concat_packed", "packed_to_voxels", "take_blocks",
+    "voxels_to_packed",
+]  # fmt: skip
