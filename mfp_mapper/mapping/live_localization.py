@@ -154,8 +154,10 @@ def move_scan(placed: PlacedScan, m: FloatArray) -> PlacedScan:
 class LiveLocalizer:
     """The correction ``map <- odom`` and its alignment state (module docstring).
 
-    ``localize`` runs on the worker thread; ``initial_pose``, ``transform`` and ``report``
-    from any thread (under ``self.lock``).
+    ``localize`` runs on the worker thread (a wide search, with ``done``, on a thread of its
+    own while the worker holds its clouds back: one alignment at a time); ``initial_pose``,
+    ``transform`` and ``report`` from any thread (under ``self.lock``, never held through an
+    alignment).
     """
 
     def __init__(
@@ -208,6 +210,9 @@ class LiveLocalizer:
         self.normals_computed = 0
         self._building: threading.Thread | None = None
         self._built_at = -math.inf
+        self._searching = False
+        """A wide search runs in the background (``localize`` with ``done``)."""
+        self._searched: PlacedScan | Exception | None = None
 
     # --- the field ------------------------------------------------------------------------
 
@@ -305,10 +310,19 @@ class LiveLocalizer:
     # --- the worker -----------------------------------------------------------------------
 
     def localize(
-        self, placed: PlacedScan, robot_pose: Callable[[float], FloatArray | None]
-    ) -> PlacedScan:
+        self,
+        placed: PlacedScan,
+        robot_pose: Callable[[float], FloatArray | None],
+        done: Callable[[], None] | None = None,
+    ) -> PlacedScan | None:
         """The placed cloud (odometry frame) in the map frame, at the corrected pose.
-        ``robot_pose(stamp)``: the robot in the odometry frame (4x4) or None."""
+        ``robot_pose(stamp)``: the robot in the odometry frame (4x4) or None.
+
+        With ``done``, a wide search runs in a thread of its own (``mfp_localization_search``)
+        on its own copy of the scan and the correction, holding no lock of the caller's
+        through the search: None is returned at once, ``done()`` is called when the search
+        ended and ``finished()`` gives the cloud then (``searching`` says whether one runs).
+        Tracking alignments, short, run on the calling thread."""
         cfg = self.settings
         with self.lock:
             pending, self._pending = self._pending, None
@@ -332,6 +346,53 @@ class LiveLocalizer:
                 self.skipped_motion += 1
             return moved
         self._last_align_stamp, self._last_align_odom = placed.stamp, odom
+        job = (placed, moved, correction, pyramid, wide, version, odom)
+        if done is None or not wide:
+            return self._align(*job)
+
+        def search() -> None:
+            result: PlacedScan | Exception
+            try:
+                result = self._align(*job)
+            except Exception as err:  # handed to the worker, which counts the cloud
+                result = err
+            with self.lock:
+                self._searched, self._searching = result, False
+            done()
+
+        with self.lock:
+            self._searched, self._searching = None, True
+        threading.Thread(target=search, name="mfp_localization_search", daemon=True).start()
+        return None
+
+    @property
+    def searching(self) -> bool:
+        """Whether a wide search started by ``localize`` (with ``done``) is still running."""
+        with self.lock:
+            return self._searching
+
+    def finished(self) -> PlacedScan | None:
+        """The cloud of the last wide search run in the background, in the map frame (once;
+        None while it runs or when taken); raises what the search raised."""
+        with self.lock:
+            result, self._searched = self._searched, None
+        if isinstance(result, Exception):
+            raise result
+        return result
+
+    def _align(
+        self,
+        placed: PlacedScan,
+        moved: PlacedScan,
+        correction: FloatArray,
+        pyramid: FieldPyramid,
+        wide: bool,
+        version: int,
+        odom: FloatArray | None,
+    ) -> PlacedScan:
+        """Align ``moved`` (``placed`` moved by ``correction``, version ``version``) and
+        record the outcome; the cloud at the corrected pose, or ``moved`` when refused."""
+        cfg = self.settings
         t0 = time.perf_counter()
         ret = np.ones(len(moved.points), dtype=bool)
         if moved.no_return is not None:
