@@ -29,7 +29,7 @@ import math
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -47,7 +47,7 @@ from mfp_mapper.sensing.pipeline import PlacedScan
 from mfp_mapper.sensing.pointcloud import ParsedCloud
 from mfp_mapper.sensing.pose_inputs import Log, PoseCounters, PoseInputs
 from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer
-from mfp_mapper.sensing.tf_tree import TfTree
+from mfp_mapper.sensing.tf_tree import TfTree, TransformRecord
 
 if TYPE_CHECKING:
     from mfp_mapper.config.schema import NodeConfig, XyzRpy
@@ -263,9 +263,9 @@ class LiveIntegrator:
         self._wake()
         return ok
 
-    def add_transforms(self, msg: Any, static: bool) -> int:
-        """``poses.add_transforms``, then wake the worker."""
-        kept = self.pose_inputs.add_transforms(msg, static)
+    def add_transforms(self, records: Sequence[TransformRecord], static: bool) -> int:
+        """``pose_inputs.add_transforms`` (one message's transforms), then wake the worker."""
+        kept = self.pose_inputs.add_transforms(records, static)
         self._wake()
         return kept
 
