@@ -23,8 +23,9 @@ refusals while localized). Before the first acceptance, and when lost, the searc
 the wider ``initial_max_shift`` / ``initial_max_angle``. A refusal for lack of gain
 (``no_gain``, or ``exact_check``: the scan's surfaces constrain every direction and the
 best pose in range is no better than the current one) confirms a localized or lost pose
-(lost -> localized) rather than counting toward lost; it does not end ``initializing``,
-which needs an accepted correction (a pose never confirmed by a gain is not claimed).
+(lost -> localized) rather than counting toward lost; while ``initializing`` it ends it
+only under the checks of a first acceptance below (a right ``/initialpose``, or odometry
+that starts where the map says, finds no gain: without this it stayed ``initializing``).
 
 A gain only says the pose is a local optimum; it does not say the scan belongs there (after
 odometry jumps 5 m a scan still finds a small gain against the wrong walls). So each scan's
@@ -36,10 +37,10 @@ its correction is not applied, its pose is not vouched for, and it counts toward
 (AMCL's short- against long-term likelihood, without the random particles: a jump further
 than the wide search needs an ``/initialpose``).
 
-A first acceptance (after the start or an ``/initialpose``) is claimed only when it fits as
-well as the scans before the ``/initialpose`` did, keeps the robot within the wide window of
-where the evidence put it (``beyond_window``), and is the best of wide searches started just
-beyond the window around it (``PROBES``; a better one is moved to, unclaimed:
+A first acceptance or confirmation (after the start or an ``/initialpose``) is claimed only
+when it fits as well as the scans before the ``/initialpose`` did, keeps the robot within
+the wide window of where the evidence put it (``beyond_window``), and is the best of wide
+searches started just beyond the window around it (``PROBES``; a better one is moved to, unclaimed:
 ``better_elsewhere``). ``sigma`` includes what the grid cannot resolve (``with_grid``).
 """
 
@@ -407,7 +408,7 @@ class LiveLocalizer:
         if al.accepted and cfg.exact_check and (wide or cfg.exact_check_tracking):
             al = self._verify(al, moved, options)
         step = pose_matrix(al.translation, al.rotation)
-        if al.accepted and wide and self.state == "initializing":
+        if (al.accepted or al.refusal in CONFIRMING) and wide and self.state == "initializing":
             al, step = self._better_elsewhere(al, step, pyramid, pts, org, options, normals)
         al = replace(al, sigma=with_grid(al.sigma, pyramid.fields[0].resolution, pts, org))
         ms = 1e3 * (time.perf_counter() - t0)
@@ -586,12 +587,19 @@ class LiveLocalizer:
             self.last["fit_per_ray"] = (
                 round(float(al.fit_per_ray), 4) if math.isfinite(al.fit_per_ray) else None
             )
+            # a first claim: an acceptance, or while initializing a confirmation of the pose
+            # (no gain in the wide search, none better just beyond it: a right /initialpose)
+            first = al.accepted or (
+                self.state == "initializing"
+                and al.refusal in CONFIRMING
+                and math.isfinite(al.fit_per_ray)
+            )
             poor = self._poor_fit(al)
             if poor:
                 al = replace(al, accepted=False, reason=poor, refusal="poor_fit")
                 self.last.update(accepted=False, reason=poor)
             elif (
-                al.accepted
+                first
                 and self.state != "localized"
                 and self._beyond_window(step @ self.correction, odom)
             ):
@@ -600,7 +608,7 @@ class LiveLocalizer:
                 self.last.update(accepted=False, reason=beyond)
             elif math.isfinite(al.fit_per_ray) and (al.accepted or al.refusal in CONFIRMING):
                 ref = self.fit_reference
-                if al.accepted and (math.isnan(ref) or self.state != "localized"):
+                if first and (math.isnan(ref) or self.state != "localized"):
                     self.fit_reference = al.fit_per_ray  # (re)gained: the fit here
                 elif not math.isnan(ref):
                     self.fit_reference = ref + FIT_AVERAGE * (al.fit_per_ray - ref)
@@ -621,7 +629,9 @@ class LiveLocalizer:
                 return True
             if al.refusal in CONFIRMING:  # the best pose in range is no better: the current stands
                 self.consecutive_refused = 0
-                if self.state == "lost":  # localized before, and the scans agree again
+                # lost: localized before, and the scans agree again; initializing: confirmed
+                # under the checks of a first acceptance
+                if self.state == "lost" or first:
                     self.state = "localized"
                 if self.state == "localized":
                     self._vouch(stamp, odom, al.sigma)
@@ -660,8 +670,8 @@ class LiveLocalizer:
     def _poor_fit(self, al: Alignment) -> str:
         """(under the lock) Why the scan fits the map too poorly to be used, or ''."""
         drop, ref, fit = self.settings.fit_drop, self.fit_reference, al.fit_per_ray
-        if math.isnan(ref) and al.accepted:  # a first acceptance: as well as before, if any
-            ref = self._fit_before
+        if math.isnan(ref) and (al.accepted or al.refusal in CONFIRMING):
+            ref = self._fit_before  # a first claim: as well as before, if any
         if drop <= 0.0 or math.isnan(ref) or not math.isfinite(fit) or fit >= ref - drop:
             return ""
         return (
