@@ -35,6 +35,16 @@ maps the same messages in a child process without ROS, through the same loop (pa
 place, ``Mapper.integrate``, and ``Mapper.stage`` + ``commit`` as the node does), so the
 node's time per scan reads as a ratio of the core's, measured in the same run.
 
+``--stream norlab``: the 14 real VLP-32C-like scans of ``../shared/data/norlab_sequence``
+(~41k points, x y z, in base_link) looped at 10 Hz with the recording's odometry (the robot
+barely moves: every scan reaches nearly the whole map); ``--resolution`` sets the map's
+(0.2 m by default). ``--baseline REF`` runs the node of another commit too (``git archive``
+into the log directory), alternating with this checkout's ``--repeat`` times, the same
+stream and parameters (``--param NAME=VALUE``; ``--baseline-param`` for the baseline's own):
+the ratio of the two under the same load is the figure to read on a shared machine.
+
+    .venv/bin/python benchmarks/bench_node.py --stream norlab --resolution 0.1 --baseline main
+
 ``--big-scan 2e6``: service latency while one large scan integrates (item of issue 18).
 A static robot in a 30 x 30 m room (0.1 m voxels) sends a small scan, then one of that
 many points (1024 rows x 2048 azimuths, -30..30 deg); while the node integrates it, a
@@ -98,6 +108,8 @@ SCAN_PERIOD = 0.1
 ODOM_PERIOD = 0.02
 LIDAR_HEIGHT = 1.8
 OUSTER = ROOT.parent / "shared" / "data" / "ouster_street"
+NORLAB = ROOT.parent / "shared" / "data" / "norlab_sequence"
+"""``--stream norlab``: 14 real VLP-32C-like scans (~41k points) looped at 10 Hz."""
 OUSTER_SEQUENCE = (0, 1, 2, 1)
 """``--stream ouster``: the recording's three scans sent back and forth, one every 0.1 s."""
 WARMUP_S = 3.0
@@ -174,6 +186,39 @@ class OusterPoses:
         return pos, rot.as_quat()
 
 
+class NorlabPoses:
+    """Poses of ``--stream norlab``: the recording's odometry of scan ``k % 14`` at
+    ``k * 0.1`` s, linearly interpolated in between (the robot barely moves: ~1 cm)."""
+
+    def __init__(self) -> None:
+        from mfp_mapper.sources.pose_files import read_odometry_csv
+
+        rows = read_odometry_csv(NORLAB / "trajectory.csv")
+        self.positions = np.asarray(rows["position"], dtype=np.float64)
+        self.quaternions = np.asarray(rows["quaternion"], dtype=np.float64)
+
+    def at(self, rel: float) -> tuple[np.ndarray, np.ndarray]:
+        """Position and quaternion (x y z w) ``rel`` seconds into the stream."""
+        count = len(self.positions)
+        i, frac = divmod(rel / SCAN_PERIOD, 1.0)
+        a, b = int(i) % count, (int(i) + 1) % count
+        pos = (1 - frac) * self.positions[a] + frac * self.positions[b]
+        q = (1 - frac) * self.quaternions[a] + frac * self.quaternions[b]
+        return pos, q / np.linalg.norm(q)
+
+
+def _norlab_clouds() -> list[PackedCloud]:
+    """The norlab scans as x y z float32 clouds in base_link (the lidar frame)."""
+    from mfp_mapper.sensing.pointcloud import pack_columns
+    from mfp_mapper.sources.scan_files import read_vtk_points
+
+    clouds = []
+    for path in sorted((NORLAB / "scans").glob("cloud_*.vtk")):
+        xyz = read_vtk_points(path).astype(np.float32)
+        clouds.append(pack_columns({a: xyz[:, i].copy() for i, a in enumerate("xyz")}))
+    return clouds
+
+
 def _precompute(stream: dict[str, Any], n_scans: int) -> tuple[Trajectory, list[dict]]:
     """Sweeps of a loop of ``n_scans`` (relative times); the yaw turns once per loop."""
     traj = Trajectory(0.0, velocity=(1.0, 0.2, 0.0), yaw_rate=2 * np.pi / (n_scans * SCAN_PERIOD))
@@ -242,10 +287,22 @@ class Stream:
         return int(np.mean([c.width * c.height for c in self.clouds]))
 
 
-def make_stream(name: str, n_scans: int) -> Stream:
-    """The clouds and poses of a stream (``STREAMS`` or ``ouster``)."""
+def make_stream(name: str, n_scans: int, resolution: float | None = None) -> Stream:
+    """The clouds and poses of a stream (``STREAMS``, ``norlab`` or ``ouster``); the map
+    resolution the stream's own unless ``resolution``."""
+    stream = _make_stream(name, n_scans)
+    if resolution:
+        stream.resolution = resolution
+    return stream
+
+
+def _make_stream(name: str, n_scans: int) -> Stream:
     from mfp_mapper.sensing.pointcloud import pack_columns, pack_records
 
+    if name == "norlab":
+        if not NORLAB.is_dir():
+            raise SystemExit(f"--stream norlab: {NORLAB} not found")
+        return Stream(name, _norlab_clouds(), NorlabPoses().at, 0.2, 0.0, "base_link")
     if name == "ouster":
         if not OUSTER.is_dir():
             raise SystemExit(f"--stream ouster: {OUSTER} not found")
@@ -279,7 +336,11 @@ def run_stream(
     tf_poses: bool = False,
     node_env: dict[str, str] | None = None,
     queue_size: int = 0,
+    extra: dict[str, Any] | None = None,
+    tree: Path | None = None,
 ) -> dict[str, Any]:
+    """Stream to a node for ``duration`` s; ``extra``: more node parameters; ``tree``: the
+    checkout whose node runs (default: this one)."""
     from mfp_mapper.ros.messages import cloud_msg
 
     domain = int(os.environ["ROS_DOMAIN_ID"])
@@ -293,11 +354,12 @@ def run_stream(
     }
     if queue_size:
         params["cloud_queue_size"] = queue_size
+    params.update(extra or {})
     if tf_poses:
         params["frame_id"] = "odom"
     elif stream.frame != "base_link":
         params["lidar.translation"] = [0.0, 0.0, stream.mount_z]
-    node = NodeProcess(domain, params, workdir / f"{stream.name}.log", env=node_env)
+    node = NodeProcess(domain, params, workdir / f"{stream.name}.log", env=node_env, cwd=tree)
     feeder = Feeder()
     tf = TfPoses(feeder, (0.0, 0.0, stream.mount_z)) if tf_poses else None
     # built once: the driver's own CPU stays small (it shares the cores with the node)
@@ -431,7 +493,9 @@ def _report(
     return result
 
 
-def core_times(name: str, n_scans: int, threads: int, count: int) -> dict[str, Any]:
+def core_times(
+    name: str, n_scans: int, threads: int, count: int, resolution: float | None = None
+) -> dict[str, Any]:
     """Without ROS, in this process: the stream's first ``count`` clouds through the
     node's loop (parse, place) into two Mappers, one by ``Mapper.integrate`` (the core
     alone), one by ``stage`` + ``commit`` (what the node does); median ms of the scans
@@ -442,7 +506,7 @@ def core_times(name: str, n_scans: int, threads: int, count: int) -> dict[str, A
     from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer
     from mfp_mapper.sources.scan_files import CloudMessage, Header, Time
 
-    stream = make_stream(name, n_scans)
+    stream = make_stream(name, n_scans, resolution)
     t0 = 1_000.0
     poses = PoseBuffer(max_age=1e9)
     for rel in np.arange(0.0, (count + 1) * SCAN_PERIOD + 1e-9, ODOM_PERIOD):
@@ -484,12 +548,22 @@ def core_times(name: str, n_scans: int, threads: int, count: int) -> dict[str, A
     }
 
 
-def _core_child(name: str, n_scans: int, threads: int) -> dict[str, Any]:
+def _core_child(
+    name: str, n_scans: int, threads: int, resolution: float | None = None
+) -> dict[str, Any]:
     """``core_times`` in a fresh process (its own memory, as the node's)."""
     import subprocess
 
     out = subprocess.run(
-        [sys.executable, __file__, "--core-child", name, str(n_scans), str(threads)],
+        [
+            sys.executable,
+            __file__,
+            "--core-child",
+            name,
+            str(n_scans),
+            str(threads),
+            str(resolution or 0.0),
+        ],  # fmt: skip
         check=True,
         capture_output=True,
         text=True,
@@ -607,17 +681,40 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument(
         "--stream",
-        choices=[*STREAMS, "ouster", "all"],
+        choices=[*STREAMS, "ouster", "norlab", "all"],
         default="all",
-        help="all: the simulated streams (vlp16, os1-128); ouster: the real OS1-128 scans",
+        help="all: the simulated streams (vlp16, os1-128); ouster: the real OS1-128 scans; "
+        "norlab: the real VLP-32C-like scans",
     )
+    parser.add_argument("--resolution", type=float, help="the map resolution (m)")
+    parser.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="another node parameter (a JSON value or a string), repeatable",
+    )
+    parser.add_argument(
+        "--baseline",
+        metavar="REF",
+        help="also run the node of this git commit (git archive into a temporary directory), "
+        "alternating with this checkout's",
+    )
+    parser.add_argument(
+        "--baseline-param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="node parameters of the baseline only (default: those of --param)",
+    )
+    parser.add_argument("--repeat", type=int, default=1, help="runs of each node, alternating")
     parser.add_argument(
         "--core",
         action=argparse.BooleanOptionalAction,
         default=None,
         help="also time the same clouds without ROS (default: with --stream ouster)",
     )
-    parser.add_argument("--core-child", nargs=3, help=argparse.SUPPRESS)
+    parser.add_argument("--core-child", nargs=4, help=argparse.SUPPRESS)
     parser.add_argument("--duration", type=float, default=15.0, help="seconds per stream")
     parser.add_argument("--scans", type=int, default=20, help="distinct sweeps in the loop")
     parser.add_argument("--logs", type=Path, help="keep the node logs in this directory")
@@ -647,8 +744,9 @@ def main() -> int:
     parser.add_argument("--json", type=Path, help="also write the results to this file")
     args = parser.parse_args()
     if args.core_child:
-        name, n_scans, threads = args.core_child
-        print(json.dumps(core_times(name, int(n_scans), int(threads), CORE_SCANS)))
+        name, n_scans, threads, res = args.core_child
+        times = core_times(name, int(n_scans), int(threads), CORE_SCANS, float(res) or None)
+        print(json.dumps(times))
         return 0
     if args.default_dds:
         args.dds = "none"
@@ -679,43 +777,88 @@ def main() -> int:
             if args.big_scan:
                 run_big_scan(int(args.big_scan), logs)
                 return 0
+            extra = _params(args.param)
+            nodes: list[tuple[str, Path | None, dict[str, Any]]] = [("this", None, extra)]
+            if args.baseline:
+                base_extra = _params(args.baseline_param) if args.baseline_param else extra
+                nodes.insert(0, (args.baseline, _export(args.baseline, logs), base_extra))
             for name in STREAMS if args.stream == "all" else [args.stream]:
                 core = args.core if args.core is not None else name == "ouster"
-                before = _core_child(name, args.scans, args.threads) if core else None
-                stream = make_stream(name, args.scans)
-                result = run_stream(
-                    stream,
-                    args.duration,
-                    logs,
-                    args.threads,
-                    args.tf_poses,
-                    node_env,
-                    args.queue_size,
+                before = (
+                    _core_child(name, args.scans, args.threads, args.resolution) if core else None
                 )
+                stream = make_stream(name, args.scans, args.resolution)
+                for rep in range(args.repeat):
+                    for label, tree, params in nodes:
+                        print(f"[{name}] run {rep + 1}/{args.repeat}: node of {label}", flush=True)
+                        result = run_stream(
+                            stream,
+                            args.duration,
+                            logs,
+                            args.threads,
+                            args.tf_poses,
+                            node_env,
+                            args.queue_size,
+                            params,
+                            tree,
+                        )
+                        result["node"] = label
+                        results.append(result)
                 if before is not None:  # the core before and after the node: its time drifts
-                    after = _core_child(name, args.scans, args.threads)
-                    result["core_ms_per_scan"] = _core_pair(before, after)
-                results.append(result)
+                    after = _core_child(name, args.scans, args.threads, args.resolution)
+                    results[-1]["core_ms_per_scan"] = _core_pair(before, after)
     finally:
         rclpy.try_shutdown()
     if args.json:
         args.json.write_text(json.dumps(results))
     print(f"load average at the end: {os.getloadavg()[0]:.2f} (1 min), on {os.cpu_count()} cores")
-    print("\nstream      res   pts/scan  rate(Hz)  latency mean/max (s)  integ. CPU  node CPU")
+    print(
+        "\nstream      node      res   pts/scan  rate(Hz)  latency mean/max (s)  integ. CPU  "
+        "node CPU  drops  map pubs (ms, locked ms, voxels)"
+    )
     for r in results:
         if not r["clouds_integrated"]:
             print(f"{r['stream']:<10} nothing integrated: {r['clouds_dropped']}")
             continue
         print(
-            f"{r['stream']:<10} {r['resolution_m']:>4}  {r['points_per_scan']:>8}  "
+            f"{r['stream']:<10} {r['node'][:8]:<8} {r['resolution_m']:>4}  "
+            f"{r['points_per_scan']:>8}  "
             f"{r['rate_hz']:>8}  {r['latency_mean_s']:.3f} / {r['latency_max_s']:.3f}"
             f"          {100 * r['integration_cpu_share_of_one_core']:>5.0f}%    "
-            f"{100 * r['node_cpu_share_of_one_core']:>5.0f}%"
+            f"{100 * r['node_cpu_share_of_one_core']:>5.0f}%  "
+            f"{sum(r['clouds_dropped'].values()):>5}"
+            f"  {r['publications']} ({r['publish_ms_mean']}, {r['publish_map_locked_ms_mean']}, "
+            f"{r['published_voxels']})"
         )
     for r in results:
         if r["clouds_integrated"] and r["stage_ms_per_scan"]:
             _print_split(r)
     return 0
+
+
+def _params(pairs: list[str]) -> dict[str, Any]:
+    """``NAME=VALUE`` node parameters: a JSON value, else the string."""
+    out: dict[str, Any] = {}
+    for pair in pairs:
+        key, _, value = pair.partition("=")
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
+    return out
+
+
+def _export(ref: str, workdir: Path) -> Path:
+    """The tree of git commit ``ref`` in a directory of ``workdir`` (``git archive``)."""
+    import subprocess
+
+    target = workdir / f"tree-{ref.replace('/', '_')}"
+    target.mkdir(parents=True, exist_ok=True)
+    archive = subprocess.run(
+        ["git", "-C", str(ROOT), "archive", ref], check=True, capture_output=True
+    ).stdout
+    subprocess.run(["tar", "-x", "-C", str(target)], input=archive, check=True)
+    return target
 
 
 def _core_pair(before: dict[str, Any], after: dict[str, Any]) -> dict[str, Any]:

@@ -153,11 +153,17 @@ def run(args: argparse.Namespace) -> int:
         for line in score.summary_lines(rep, f"{label}: " if len(results) > 1 else ""):
             print(line)
     if len(results) > 1:
-        print(f"{'row':<28} {'loglik/ray':>11} {'density/ray':>11} {'ece':>8}")
+        refl = any("reflectivity" in rep for _, rep in results)  # the reflectivity field
+        extra = f" {'refl/return':>11} {'refl gain':>9}" if refl else ""
+        print(f"{'row':<28} {'loglik/ray':>11} {'density/ray':>11} {'ece':>8}{extra}")
         for label, rep in results:
+            cells = ""
+            if refl and "reflectivity" in rep:
+                r = rep["reflectivity"]
+                cells = f" {r['log_likelihood_per_return']:>11.4f} {r['gain_per_return']:>+9.4f}"
             print(
                 f"{label:<28} {rep['log_likelihood_per_ray']:>11.4f} "
-                f"{rep['log_density_per_ray']:>11.4f} {rep['ece']:>8.5f}"
+                f"{rep['log_density_per_ray']:>11.4f} {rep['ece']:>8.5f}{cells}"
             )
     single = results[0][1] if len(results) == 1 else None
     if args.json:

@@ -122,6 +122,18 @@ class MapSection(Section):
         applies="both",
         flag="--prior-scale",
     )
+    reflectivity_bins: int = setting(
+        8,
+        "Bins J of the reflectivity histogram each voxel with returns keeps (Appendix B; "
+        "docs/model.md): clouds with an intensity field (Ouster 'reflectivity', else "
+        "'intensity') are binned on log-spaced edges fixed per field. 0: no histograms. A "
+        "loaded map keeps its own bins.",
+        0,
+        64,
+        name="reflectivity.bins",
+        applies="both",
+        flag="--reflectivity-bins",
+    )
 
 
 @dataclass(frozen=True)
@@ -161,6 +173,25 @@ class SensorModelSection(Section):
         1.0e5,
         applies="both",
         flag="--no-return-range",
+    )
+    first_echo_only: bool = setting(
+        False,
+        "Use only the first echo of each laser shot. False (the default): every echo the "
+        "cloud marks (Nebula return_type, ouster-ros points2, Livox tag, target_index) joins "
+        "its shot's ray, one Poisson process along the beam (docs/model.md, 'Every echo of a "
+        "shot').",
+        applies="both",
+        flag="--first-echo-only",
+    )
+    echo_blind_stretch: float = setting(
+        0.75,
+        "Metres of beam after each echo left out of the free space a shot clears: right "
+        "behind an echo a lidar sees later echoes at a fraction of their rate (measured on a "
+        "RIEGL scan of conifers; docs/model.md, 'Every echo of a shot').",
+        0.0,
+        100.0,
+        applies="both",
+        flag="--echo-blind-stretch",
     )
 
 
@@ -260,6 +291,12 @@ class PlacementSection(Section):
         applies="both",
         flag="--max-z",
     )
+    second_return_topic: str = setting(
+        "",
+        "Topic of a second cloud holding the second returns of the clouds on cloud_in, in the "
+        "same pixel layout and with the same stamps (ouster-ros 'points2'); each pair is "
+        "integrated as one cloud, the two returns of a pixel as one shot. Empty: off.",
+    )
     cloud_queue_size: int = setting(
         5,
         "Clouds waiting for integration; when full the oldest is dropped (counted).",
@@ -320,8 +357,9 @@ class OutputsSection(Section):
     )
     publish_rate: float = setting(
         1.0,
-        "Rate (Hz) of ~/degree_of_occupancy and ~/std; published only when the map changed "
-        "and someone subscribes. 0: never.",
+        "Rate (Hz) of ~/degree_of_occupancy, ~/std and ~/projected_map; published only when "
+        "the map changed and someone subscribes, and spaced out so that building them holds "
+        "the map at most a tenth of the time (a large map with publish_radius 0). 0: never.",
         0.0,
         100.0,
     )
@@ -341,7 +379,8 @@ class OutputsSection(Section):
     )
     publish_radius: float = setting(
         0.0,
-        "Publish only voxels within this distance (m) of the robot. 0: the whole map.",
+        "Publish only voxels within this distance (m) of the robot. 0: the whole map (its "
+        "cost grows with the map's size; docs/node.md 'Map outputs').",
         0.0,
         1.0e6,
         dynamic=True,

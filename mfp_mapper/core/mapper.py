@@ -23,6 +23,12 @@ from mfp_mapper.core.memory_bound import (
     scan_block_budget,
     scan_new_blocks,
 )
+from mfp_mapper.core.reflectivity import (
+    ReflectivityArrays,
+    ReflectivityBins,
+    ReflectivityTable,
+    ScanReflectivity,
+)
 from mfp_mapper.core.staging import clear_staged, merge_shard, prefault, staged_updates
 from mfp_mapper.core.store import (
     BLOCK_EDGE,
@@ -65,12 +71,16 @@ FloatArray = NDArray[np.float64]
 class StagedScan:
     """A scan integrated into a store of its own by ``Mapper.stage``, for ``commit``."""
 
-    inputs: tuple[ArrayLike, ArrayLike, ArrayLike | None]  # points, origins, no_return
+    inputs: tuple[ArrayLike, ArrayLike, ArrayLike | None, ArrayLike | None]
+    """points, origins, no_return, continued"""
     origin: FloatArray | None  # the map origin its rays are relative to
     rays: Rays
     store: BlockStore
     stamp: float
     summary: IntegrationSummary
+    reflectivity: ScanReflectivity | None = None
+    returns: tuple[NDArray[np.int64], NDArray[np.int64]] | None = None
+    """The return voxels and intensity bins of its rays (``Mapper._scan_returns``)."""
 
 
 def _cpu_of(fn: Callable[[int], None], item: int) -> float:
@@ -94,6 +104,7 @@ def mapper_kwargs(map_section: MapSection, sensor_model: SensorModelSection) -> 
         "prior_shape": map_section.prior_shape,
         "prior_rate": map_section.prior_rate,
         "prior_scale": map_section.prior_scale,
+        "reflectivity_bins": map_section.reflectivity_bins,
     }
 
 
@@ -125,6 +136,7 @@ class Mapper:
         prior_shape: float = _DEFAULTS["prior_shape"],
         prior_rate: float = _DEFAULTS["prior_rate"],
         prior_scale: float = _DEFAULTS["prior_scale"],
+        reflectivity_bins: int = _DEFAULTS["reflectivity_bins"],
     ) -> None:
         _check_settings(
             resolution, max_range, min_range, decay_time, threads, max_voxels, keep_radius
@@ -162,6 +174,12 @@ class Mapper:
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
         self._worker_cpu = 0.0  # CPU seconds of the pool threads in the current integrate()
         self._spare_stage: BlockStore | None = None  # an emptied staged store, for reuse
+        if not 0 <= int(reflectivity_bins) <= 64:
+            raise ValueError(f"reflectivity_bins must lie in [0, 64], got {reflectivity_bins}")
+        self.reflectivity_bins = int(reflectivity_bins)
+        """J, the bins of the reflectivity histograms a source should give (0: none kept):
+        a setting for the sensing layer, which chooses the edges (``takes_reflectivity``)."""
+        self._reflectivity: ReflectivityTable | None = None
 
     @classmethod
     def of(
@@ -187,6 +205,8 @@ class Mapper:
         origins: ArrayLike,
         stamp: float,
         no_return: ArrayLike | None = None,
+        reflectivity: ScanReflectivity | None = None,
+        continued: ArrayLike | None = None,
     ) -> IntegrationSummary:
         """Add one scan: rays from ``origins`` ((3,) or (N, 3)) to ``points`` (N, 3), map frame.
 
@@ -194,17 +214,31 @@ class Mapper:
         ``no_return`` flag (N,) is set: then it is walked up to its point (at most
         ``max_range``) and carries no return. Rays shorter than ``min_range`` and rays with
         NaN/Inf are dropped and counted.
+
+        ``reflectivity``: the intensity of each point and its bins (Appendix B): each
+        return adds to its voxel's histogram (``takes_reflectivity`` says which bins the
+        map takes: ValueError for others, the map unchanged).
+
+        ``continued`` (N,): rays that continue a shot past its previous echo (a later echo:
+        its origin is where that echo's blind stretch ends; see ``traversal.prepare_rays``):
+        kept whatever their length, zero included (a return with no chord), and not counted
+        in the scan's mean sensor position.
         """
         t0, cpu0 = time.perf_counter(), time.thread_time()
         self._worker_cpu = 0.0
         if not math.isfinite(stamp):
             raise ValueError(f"stamp must be finite seconds, got {stamp}")
-        rays, pts, dropped = self._place(points, origins, no_return, set_origin=True)
+        self._check_reflectivity(reflectivity, points)
+        rays, pts, dropped = self._place(
+            points, origins, no_return, set_origin=True, continued=continued
+        )
         summary = self._summary(rays, pts, dropped)
         if len(rays):
             budget = scan_block_budget(self.max_voxels)
             rays, summary.rays_cut_by_budget = fit_scan_budget(rays, budget, self.resolution)
+            blocks = self._store.num_blocks
             self._bound.make_room(self._store, rays.origins_vox, rays.ends_vox, self._center())
+            self._prune_if_evicted(blocks)
             scan_id = self._store.begin_scan()
             summary.rays_cut_by_budget += integrate_rays(
                 self._store,
@@ -218,11 +252,14 @@ class Mapper:
             summary.new_voxels, summary.blocks_touched, summary.voxels_touched = (
                 self._store.finish_scan()
             )
+            self._add_returns(reflectivity, self._scan_returns(rays, reflectivity), stamp)
             self.last_stamp = (
                 float(stamp) if self.last_stamp is None else max(self.last_stamp, stamp)
             )
             self.last_origin = _mean_origin(rays) * self.resolution + self._offset
+            blocks = self._store.num_blocks
             self._bound.enforce(self._store, self._center())
+            self._prune_if_evicted(blocks)
             self.version += 1
         summary.seconds = time.perf_counter() - t0
         summary.cpu_seconds = time.thread_time() - cpu0 + self._worker_cpu
@@ -234,6 +271,8 @@ class Mapper:
         origins: ArrayLike,
         stamp: float,
         no_return: ArrayLike | None = None,
+        reflectivity: ScanReflectivity | None = None,
+        continued: ArrayLike | None = None,
     ) -> StagedScan:
         """Integrate one scan (as ``integrate``) into a store of its own, leaving the map
         untouched: the long part of an integration, which needs no lock around the map
@@ -243,10 +282,13 @@ class Mapper:
         self._worker_cpu = 0.0
         if not math.isfinite(stamp):
             raise ValueError(f"stamp must be finite seconds, got {stamp}")
+        self._check_reflectivity(reflectivity, points)
         origin, org = self._origin, np.asarray(origins, dtype=np.float64)
         if origin is None and org.shape[-1:] == (3,):  # bad shapes: _place names them
             origin = self._origin_from(org.reshape(-1, 3))
-        rays, pts, dropped = self._place(points, origins, no_return, set_origin=False, at=origin)
+        rays, pts, dropped = self._place(
+            points, origins, no_return, set_origin=False, at=origin, continued=continued
+        )
         summary = self._summary(rays, pts, dropped)
         store, self._spare_stage = self._spare_stage, None
         if store is None:
@@ -269,7 +311,10 @@ class Mapper:
                 prefault(staged_shard, shard)
         summary.seconds = time.perf_counter() - t0
         summary.cpu_seconds = time.thread_time() - cpu0 + self._worker_cpu
-        return StagedScan((points, origins, no_return), origin, rays, store, float(stamp), summary)
+        return StagedScan(
+            (points, origins, no_return, continued), origin, rays, store, float(stamp),
+            summary, reflectivity, self._scan_returns(rays, reflectivity),
+        )  # fmt: skip
 
     def commit(
         self, staged: StagedScan, pause: Callable[[], None] | None = None
@@ -285,12 +330,18 @@ class Mapper:
         summary = staged.summary
         if staged.origin is not None and self._origin is not None:
             if not np.array_equal(staged.origin, self._origin):  # reset in between
-                return self.integrate(*staged.inputs[:2], staged.stamp, staged.inputs[2])
+                points, origins, no_return, continued = staged.inputs
+                return self.integrate(
+                    points, origins, staged.stamp, no_return, staged.reflectivity, continued
+                )
         elif staged.origin is not None:
             self._origin = staged.origin
         rays = staged.rays
         if len(rays):
+            self._check_reflectivity(staged.reflectivity, staged.inputs[0])  # a reset between
+            blocks = self._store.num_blocks
             self._bound.make_room(self._store, rays.origins_vox, rays.ends_vox, self._center())
+            self._prune_if_evicted(blocks)
             scan_id = self._store.begin_scan()
             # one shard after the other: pause is not thread-safe; merging is memory-bound
             for k, shard in enumerate(self._store.shards):
@@ -299,6 +350,7 @@ class Mapper:
                 )
             summary.new_voxels, summary.blocks_touched, _ = self._store.finish_scan()
             summary.voxels_touched = staged_updates(staged.store)
+            self._add_returns(staged.reflectivity, staged.returns, staged.stamp)
             self._scan_added(rays, staged.stamp)
             if clear_staged(staged.store):  # merged whole: its memory serves the next stage
                 self._spare_stage = staged.store
@@ -324,16 +376,115 @@ class Mapper:
         """After a scan went into the store: its stamp and place, the memory bound."""
         self.last_stamp = float(stamp) if self.last_stamp is None else max(self.last_stamp, stamp)
         self.last_origin = _mean_origin(rays) * self.resolution + self._offset
+        blocks = self._store.num_blocks
         self._bound.enforce(self._store, self._center())
+        self._prune_if_evicted(blocks)
         self.version += 1
 
+    # --- the reflectivity field (core.reflectivity) --------------------------------------
+
+    def takes_reflectivity(self, bins: ReflectivityBins) -> bool:
+        """Whether ``integrate`` takes intensities binned by ``bins``: the map keeps
+        histograms (``reflectivity_bins`` > 0, or a loaded table) and holds none yet or
+        ones with the same bins."""
+        if self._reflectivity is not None:
+            return self._reflectivity.bins == bins
+        return self.reflectivity_bins > 0
+
+    @property
+    def reflectivity_scale(self) -> ReflectivityBins | None:
+        """The bins of the map's histograms; None while it holds none."""
+        return None if self._reflectivity is None else self._reflectivity.bins
+
+    def _check_reflectivity(self, reflectivity: ScanReflectivity | None, points: ArrayLike) -> None:
+        """ValueError (nothing changed) for intensities the map cannot take."""
+        if reflectivity is None:
+            return
+        if not self.takes_reflectivity(reflectivity.bins):
+            raise ValueError(
+                f"reflectivity binned as {reflectivity.bins} but the map "
+                + (
+                    "keeps none (reflectivity_bins 0)"
+                    if self._reflectivity is None
+                    else f"holds {self._reflectivity.bins}"
+                )
+            )
+        count = np.shape(points)[0] if np.ndim(points) else 0
+        if np.shape(reflectivity.values) != (count,):
+            raise ValueError(
+                f"reflectivity values must have shape ({count},), got "
+                f"{np.shape(reflectivity.values)}"
+            )
+
+    def _scan_returns(
+        self, rays: Rays, reflectivity: ScanReflectivity | None
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64]] | None:
+        """The voxel (the one whose ``n`` it adds to: floor of its end, as the walk) and
+        bin of every return of the rays."""
+        if reflectivity is None or not len(rays) or rays.source is None:
+            return None
+        returned = rays.has_return
+        ijk = np.floor(rays.ends_vox[returned]).astype(np.int64)
+        values = np.asarray(reflectivity.values)[rays.source[returned]]
+        return ijk, reflectivity.bins.bin_of(values)
+
+    def _add_returns(
+        self,
+        reflectivity: ScanReflectivity | None,
+        returns: tuple[NDArray[np.int64], NDArray[np.int64]] | None,
+        stamp: float,
+    ) -> None:
+        if reflectivity is None or returns is None:
+            return
+        if self._reflectivity is None:
+            self._reflectivity = ReflectivityTable(reflectivity.bins)
+        self._reflectivity.add(returns[0], returns[1], stamp, self.decay_time)
+
+    def _prune_if_evicted(self, blocks_before: int) -> None:
+        """After the memory bound evicted blocks: drop the histograms of voxels that no
+        longer hold a return."""
+        if self._reflectivity is not None and self._store.num_blocks < blocks_before:
+            self._drop_lost_histograms()
+
+    def _drop_lost_histograms(self) -> None:
+        assert self._reflectivity is not None
+        ijk = self._reflectivity.voxel_indices().astype(np.int64)
+        self._reflectivity.keep(self._store.lookup(ijk).n > 0)
+
+    def reflectivity(
+        self, points: ArrayLike, stamp: float | None = None
+    ) -> tuple[ReflectivityBins, FloatArray] | None:
+        """The bins and the reflectivity histogram (M, J: decayed return counts per bin,
+        zeros where none) of the voxel containing each point, decayed to ``stamp`` when
+        given; None when the map holds no histograms."""
+        if self._reflectivity is None:
+            return None
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        with np.errstate(invalid="ignore"):
+            valid = np.all(np.abs((pts - self._offset) / self.resolution) < MAX_VOXEL_INDEX, axis=1)
+        ijk = self.voxel_index(np.where(valid[:, None], pts, self._offset))
+        counts, _ = self._reflectivity.histograms(ijk, stamp, self.decay_time)
+        counts[~valid] = 0.0
+        return self._reflectivity.bins, counts
+
+    def stored_reflectivity(self) -> ReflectivityArrays | None:
+        """The histograms as stored (index relative to ``origin``, counts, the time they
+        refer to): what a map file holds; None when the map holds none."""
+        return None if self._reflectivity is None else self._reflectivity.export()
+
     def place_rays(
-        self, points: ArrayLike, origins: ArrayLike, no_return: ArrayLike | None = None
+        self,
+        points: ArrayLike,
+        origins: ArrayLike,
+        no_return: ArrayLike | None = None,
+        continued: ArrayLike | None = None,
     ) -> tuple[Rays, dict[str, int]]:
         """The rays ``integrate`` would walk for this scan (voxel units of the store, the
         same checks, cuts and drops), and the drops by reason; the map is not changed
         (an empty map's origin is not set). ``Rays.source`` indexes the input points."""
-        rays, _, dropped = self._place(points, origins, no_return, set_origin=False)
+        rays, _, dropped = self._place(
+            points, origins, no_return, set_origin=False, continued=continued
+        )
         return rays, dropped
 
     def _place(
@@ -343,6 +494,7 @@ class Mapper:
         no_return: ArrayLike | None,
         set_origin: bool,
         at: FloatArray | None = None,
+        continued: ArrayLike | None = None,
     ) -> tuple[Rays, FloatArray, dict[str, int]]:
         """The rays in voxel units of the store (``at``: of a map with that origin, when
         the map has none yet), the points as float64 and the drops by reason."""
@@ -363,7 +515,12 @@ class Mapper:
         flags = None if no_return is None else np.asarray(no_return, dtype=np.bool_)
         if flags is not None and flags.shape != (pts.shape[0],):
             raise ValueError(f"no_return must have shape ({pts.shape[0]},), got {flags.shape}")
-        rays, dropped = prepare_rays(pts_rel, org, self.resolution, self.min_range, reach, flags)
+        later = None if continued is None else np.asarray(continued, dtype=np.bool_)
+        if later is not None and later.shape != (pts.shape[0],):
+            raise ValueError(f"continued must have shape ({pts.shape[0]},), got {later.shape}")
+        rays, dropped = prepare_rays(
+            pts_rel, org, self.resolution, self.min_range, reach, flags, later
+        )
         return rays, pts, dropped
 
     def store_view(self) -> tuple[StoreView, int]:
@@ -382,12 +539,16 @@ class Mapper:
     def _origin_from(self, sensor_origins: FloatArray) -> FloatArray | None:
         """The origin a first scan gives the map: its first finite sensor position, rounded
         to a multiple of ``ORIGIN_QUANTUM_VOXELS`` voxels (None: no finite position)."""
-        finite = sensor_origins.reshape(-1, 3)
-        finite = finite[np.isfinite(finite).all(axis=1)]
-        if not len(finite):
-            return None
+        rows = sensor_origins.reshape(-1, 3)
+        if len(rows) and np.isfinite(rows[0]).all():  # (the usual case: no pass over all)
+            first = rows[0]
+        else:
+            finite = rows[np.isfinite(rows).all(axis=1)]
+            if not len(finite):
+                return None
+            first = finite[0]
         quantum = ORIGIN_QUANTUM_VOXELS * self.resolution
-        return np.round(finite[0] / quantum) * quantum
+        return np.round(first / quantum) * quantum
 
     def _run_parallel(self, fn: Callable[[int], None], items: Sequence[int]) -> None:
         if self._pool is None or len(items) == 1:
@@ -405,6 +566,8 @@ class Mapper:
     def reset(self) -> None:
         """Forget every voxel (parameters stay)."""
         self._store = BlockStore(shards=len(self._store.shards))
+        if self._reflectivity is not None:
+            self._reflectivity = ReflectivityTable(self._reflectivity.bins)
         self.last_stamp = None
         self.last_origin = None
         if not self._origin_given:
@@ -421,6 +584,8 @@ class Mapper:
             raise ValueError(f"box corners must be numbers, got {a.tolist()}, {b.tolist()}")
         lo, hi = self._index_bounds((np.minimum(a, b), np.maximum(a, b)))
         cleared = self._store.clear_box(lo, hi)
+        if self._reflectivity is not None:
+            self._reflectivity.clear_box(lo, hi)
         if cleared:
             self.version += 1
         return cleared
@@ -633,7 +798,9 @@ class Mapper:
 
     @property
     def memory_bytes(self) -> int:
-        return self._store.nbytes
+        """Bytes of the map: the blocks and, when kept, the reflectivity histograms."""
+        table = 0 if self._reflectivity is None else self._reflectivity.nbytes
+        return self._store.nbytes + table
 
     # --- arrays -------------------------------------------------------------------------
 
@@ -644,11 +811,13 @@ class Mapper:
         *,
         resolution: float,
         origin: ArrayLike = (0.0, 0.0, 0.0),
+        reflectivity: ReflectivityArrays | None = None,
         **settings: object,
     ) -> Mapper:
         """A Mapper holding these voxels (indices relative to ``origin``, as in the map file;
-        each voxel once). ``settings`` are the constructor's keyword arguments. Raises
-        ``ValueError`` on bad settings or voxels."""
+        each voxel once), and the reflectivity histograms (``stored_reflectivity``) when
+        given. ``settings`` are the constructor's keyword arguments. Raises
+        ``ValueError`` on bad settings, voxels or histograms."""
         problem = voxel_problem(voxels.ijk, voxels.s, voxels.n, voxels.t_last)
         if problem:
             raise ValueError(problem)
@@ -659,6 +828,9 @@ class Mapper:
             raise ValueError("voxels need ijk (N, 3) and s, n, t_last (N,)")
         mapper = cls(resolution, origin=origin, **settings)  # type: ignore[arg-type]
         mapper._store.assign(voxels, mapper.decay_time)
+        if reflectivity is not None:
+            mapper._reflectivity = ReflectivityTable(reflectivity.bins, max(len(reflectivity), 16))
+            mapper._reflectivity.assign(reflectivity)
         finite_t = voxels.t_last[np.isfinite(voxels.t_last)]
         mapper.last_stamp = float(finite_t.max()) if finite_t.size else None
         mapper.version += 1
@@ -706,20 +878,32 @@ def _check_settings(
 
 
 def _mean_origin(rays: Rays) -> FloatArray:
-    """The rays' mean origin in voxel units (einsum: 0.3 ms for 107 k rays, where
+    """The rays' mean sensor position in voxel units (the origins of rays that continue a
+    shot past an echo left out; einsum: 0.3 ms for 107 k rays, where
     ``mean(axis=0)`` takes 1.6 ms)."""
-    return np.einsum("ij->j", rays.origins_vox) / len(rays)
+    total = np.einsum("ij->j", rays.origins_vox)
+    if rays.continued is not None:
+        later = np.flatnonzero(rays.continued)
+        if 0 < later.size < len(rays):  # (a few: their sum is taken out)
+            total -= np.einsum("ij->j", rays.origins_vox[later])
+            return total / (len(rays) - later.size)
+    return total / len(rays)
 
 
 def compile_kernels(decay_time: float = math.inf) -> float:
     """Run the compiled kernels of a live scan once on a few rays (``integrate``, ``stage``
-    and ``commit``, ``query``, ``voxels``), so that numba compiles them, or loads them from
-    its cache, before the first real scan; returns the seconds it took."""
+    and ``commit``, with reflectivity histograms, ``query``, ``voxels``, the projected
+    grids), so that numba compiles them, or loads them from its cache, before the first real
+    scan or publication (which would hold the map meanwhile); returns the seconds it took."""
     t0 = time.perf_counter()
     points = np.array([[2.0, 0.5, 0.3], [-1.0, 3.0, 0.8], [0.5, -2.5, -0.4]])
     mapper = Mapper(0.5, decay_time=decay_time)
-    mapper.integrate(points, np.zeros(3), 1.0)
-    mapper.commit(mapper.stage(points, np.zeros(3), 2.0))
+    values = ScanReflectivity(np.ones(len(points)), ReflectivityBins("warm-up", (2.0,)))
+    mapper.integrate(points, np.zeros(3), 1.0, reflectivity=values)
+    mapper.commit(mapper.stage(points, np.zeros(3), 2.0, None, values))
     mapper.query(points)
-    mapper.voxels()
+    mapper.reflectivity(points, 2.0)
+    mapper.voxels(min_doo=0.1, bounds=(np.full(3, -5.0), np.full(3, 5.0)))
+    mapper.hit_probability_grid(-1.0, 1.0, trinary=(0.25, 0.01))
+    mapper.hit_probability_grid(-1.0, 1.0, center=(0.0, 0.0), radius=2.0)
     return time.perf_counter() - t0

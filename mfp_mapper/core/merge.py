@@ -20,6 +20,14 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from mfp_mapper.core.reflectivity import (
+    ARRAY_KEYS as REFLECTIVITY_KEYS,
+)
+from mfp_mapper.core.reflectivity import (
+    from_map_arrays,
+    merge_reflectivity,
+    to_map_arrays,
+)
 from mfp_mapper.core.store import BLOCK_BITS, VoxelArrays
 
 MapArrays = Mapping[str, np.ndarray]
@@ -58,6 +66,18 @@ def check_mergeable(maps: Sequence[MapArrays], names: Sequence[str] | None = Non
                     f"cannot merge maps with different {key.replace('_', ' ')}: "
                     f"{labels[0]} has {_show(first)}, {label} has {_show(value)}"
                 )
+    scales = [
+        (label, (str(m["reflectivity_field"]), tuple(np.ravel(m["reflectivity_edges"]).tolist())))
+        for label, m in zip(labels, maps, strict=True)
+        if "reflectivity_edges" in m and "reflectivity_field" in m
+    ]
+    for label, scale in scales[1:]:
+        if scale != scales[0][1]:
+            raise MergeError(
+                f"cannot merge maps with different reflectivity bins: {scales[0][0]} has "
+                f"{scales[0][1][0]} {list(scales[0][1][1])}, {label} has {scale[0]} "
+                f"{list(scale[1])}"
+            )
 
 
 def _show(value: object) -> str:
@@ -140,6 +160,17 @@ def merge_map_arrays(
     merged = merge_voxels(
         [VoxelArrays(m["ijk"], m["s"], m["n"], m["t_last"]) for m in maps], decay_time
     )
-    out = {k: v for k, v in maps[0].items() if k not in ("ijk", "s", "n", "t_last")}
+    out = {
+        k: v
+        for k, v in maps[0].items()
+        if k not in ("ijk", "s", "n", "t_last") and k not in REFLECTIVITY_KEYS
+    }
     out.update(ijk=merged.ijk, s=merged.s, n=merged.n, t_last=merged.t_last)
+    try:
+        tables = [t for t in (from_map_arrays(m) for m in maps) if t is not None]
+        table = merge_reflectivity(tables, decay_time)
+    except ValueError as err:
+        raise MergeError(f"cannot merge the reflectivity histograms: {err}") from None
+    if table is not None:
+        out.update(to_map_arrays(table))
     return out

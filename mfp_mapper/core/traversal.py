@@ -79,6 +79,8 @@ class Rays:
     """How many of the rays had their ``no_return`` flag set (see ``prepare_rays``)."""
     source: NDArray[np.int64] | None = None
     """Index of each ray's input point (``prepare_rays`` drops some points)."""
+    continued: NDArray[np.bool_] | None = None
+    """Rays that continue a shot past an earlier echo (``prepare_rays``), or None: none."""
 
     def __len__(self) -> int:
         return int(self.lengths.shape[0])
@@ -91,6 +93,7 @@ def prepare_rays(
     min_range: float,
     max_range: float,
     no_return: NDArray[np.bool_] | None = None,
+    continued: NDArray[np.bool_] | None = None,
 ) -> tuple[Rays, dict[str, int]]:
     """The usable rays in voxel units, and how many were dropped for which reason.
 
@@ -98,6 +101,11 @@ def prepare_rays(
     is cut there and carries no return; so does a ray whose ``no_return`` flag (N,) is set:
     its point only marks where its credited free space ends. NaN/Inf, shorter than
     ``min_range`` (or zero), and reaching beyond the indexable range are dropped.
+
+    ``continued`` (N,) flags rays that continue a shot past an earlier echo (their origin is
+    that echo plus the blind stretch, not the sensor; ``sensing.echoes``): ``min_range``
+    does not apply to them and a zero length is kept (a return with no chord: an echo
+    inside the blind stretch of the one before).
     """
     count = points.shape[0]
     source = np.empty(count, dtype=np.int64)
@@ -108,9 +116,12 @@ def prepare_rays(
     flags = np.zeros(0, dtype=np.bool_) if no_return is None else no_return
     if flags.size and flags.shape != (count,):
         raise ValueError(f"no_return must have shape ({count},), got {flags.shape}")
+    later = np.zeros(0, dtype=np.bool_) if continued is None else continued
+    if later.size and later.shape != (count,):
+        raise ValueError(f"continued must have shape ({count},), got {later.shape}")
     used = _prepare_rays(
         points, np.atleast_2d(origins), resolution, min_range, max_range, MAX_VOXEL_INDEX,
-        flags, out.origins_vox, out.ends_vox, out.lengths, out.has_return, source, drops,
+        flags, later, out.origins_vox, out.ends_vox, out.lengths, out.has_return, source, drops,
     )  # fmt: skip
     dropped = {
         "nonfinite": int(drops[0]),
@@ -124,6 +135,7 @@ def prepare_rays(
         out.has_return[:used],
         int(drops[3]),
         source[:used],
+        later[source[:used]] if later.size else None,
     )
     return rays, dropped
 
@@ -137,6 +149,7 @@ def _prepare_rays(
     max_range: float,
     max_index: float,
     no_return: NDArray[np.bool_],
+    continued: NDArray[np.bool_],
     origins_vox: NDArray[np.float64],
     ends_vox: NDArray[np.float64],
     lengths: NDArray[np.float64],
@@ -147,10 +160,12 @@ def _prepare_rays(
     """One pass over the points: fill the first rays of the outputs, count the drops
     ([nonfinite, below_min_range, out_of_bounds], then the flagged rays kept); returns how
     many rays are usable; ``source`` receives each ray's point index.
-    ``no_return`` is empty (every point a return) or one flag per point."""
+    ``no_return`` is empty (every point a return) or one flag per point; ``continued`` is
+    empty (every ray from the sensor) or one flag per point."""
     k = 0
     per_point = origins.shape[0] > 1
     flagged = no_return.shape[0] > 0
+    any_continued = continued.shape[0] > 0
     for i in range(points.shape[0]):
         o = i if per_point else 0
         dx = points[i, 0] - origins[o, 0]
@@ -160,11 +175,11 @@ def _prepare_rays(
         if not math.isfinite(length):  # NaN or Inf in the point or its origin
             drops[0] += 1
             continue
-        if length < min_range or length == 0.0:
+        if (length < min_range or length == 0.0) and not (any_continued and continued[i]):
             drops[1] += 1
             continue
         reach = min(length, max_range)
-        scale = reach / length
+        scale = reach / length if length > 0.0 else 1.0
         inside = True
         for axis, d in ((0, dx), (1, dy), (2, dz)):
             o_vox = origins[o, axis] / resolution

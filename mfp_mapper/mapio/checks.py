@@ -77,6 +77,12 @@ MEMBER_KINDS: dict[str, tuple[tuple[int, ...] | None, str, str]] = {
     "frame_id": ((), "U", "a string"),
     "format": ((), "U", "a string"),
     "version": ((), "iu", "an integer"),
+    # the reflectivity histograms (core.reflectivity): K rows of J bins, checked below
+    "reflectivity_ijk": (None, "iu", "an integer (K, 3) array"),
+    "reflectivity_counts": (None, "f", "a float (K, J) array"),
+    "reflectivity_t_last": (None, "f", "a float array of length K"),
+    "reflectivity_edges": (None, "f", "a float array of J - 1 bin edges"),
+    "reflectivity_field": ((), "U", "a string"),
 }
 """The members a map file may hold; others are not read."""
 
@@ -130,7 +136,9 @@ def header_problem(headers: dict[str, tuple[tuple[int, ...], np.dtype]]) -> str 
     ijk = headers.get("ijk")
     for name, (shape, dtype) in headers.items():
         want, kinds, text = MEMBER_KINDS[name]
-        if want is None:
+        if want is None and name.startswith("reflectivity_"):
+            want = _reflectivity_shape(name, headers)
+        elif want is None:
             count = ijk[0][0] if ijk and len(ijk[0]) == 2 else -1
             want = (count, 3) if name == "ijk" else (count,)
             text = text.replace("length N", f"length {count} (the rows of ijk)")
@@ -146,6 +154,23 @@ def header_problem(headers: dict[str, tuple[tuple[int, ...], np.dtype]]) -> str 
         if not ok:
             return f"{name} must be {text}, got {dtype} {shape}"
     return None
+
+
+def _reflectivity_shape(
+    name: str, headers: dict[str, tuple[tuple[int, ...], np.dtype]]
+) -> tuple[int, ...]:
+    """The shape a reflectivity member must have: K rows (of ``reflectivity_ijk``), J bins
+    (one more than ``reflectivity_edges``)."""
+    rows_shape = headers.get("reflectivity_ijk", ((-1, 3), np.dtype(np.int32)))[0]
+    rows = rows_shape[0] if len(rows_shape) == 2 else -1
+    edges_shape = headers.get("reflectivity_edges", ((-1,), np.dtype(np.float64)))[0]
+    bins = edges_shape[0] + 1 if len(edges_shape) == 1 else -1
+    return {
+        "reflectivity_ijk": (rows, 3),
+        "reflectivity_counts": (rows, bins),
+        "reflectivity_t_last": (rows,),
+        "reflectivity_edges": (bins - 1,) if 1 <= bins <= 64 else (-1,),
+    }[name]
 
 
 def expansion_problem(declared: int, file_size: int) -> str | None:

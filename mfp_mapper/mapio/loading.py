@@ -10,6 +10,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.core.reflectivity import rows_within, select_rows
 from mfp_mapper.mapio.mapfile import map_arrays, mapper_from_arrays, read_map_arrays, write_map
 from mfp_mapper.mapio.tiles import (
     DEFAULT_TILE_BLOCKS,
@@ -45,6 +46,7 @@ def load_map(
         lo_i, hi_i = index_bounds(bounds, float(arrays["resolution"]), arrays.get("origin"))
         keep = np.all((arrays["ijk"] >= lo_i) & (arrays["ijk"] <= hi_i), axis=1)
         arrays = {**arrays, **{k: arrays[k][keep] for k in VOXEL_KEYS}}
+        arrays.update(select_rows(arrays, rows_within(arrays, lo_i, hi_i)))
     return mapper_from_arrays(arrays, p, **overrides)
 
 

@@ -17,6 +17,9 @@ An ``.npz`` archive (never pickles) holding
 ``version``    int64 ()        file format version (2)
 =============  ==============  ===================================================
 
+and, for a map with a reflectivity field (docs/model.md), its histograms: ``reflectivity_ijk``
+int32 (K, 3), ``reflectivity_counts`` float64 (K, J), ``reflectivity_t_last`` float64 (K,),
+``reflectivity_edges`` float64 (J - 1,) and ``reflectivity_field`` str (``core.reflectivity``);
 plus ``max_range`` and ``min_range`` (float64, metres) and ``prior_shape``, ``prior_rate``
 (float64: the Gamma prior on the extinction the estimates use, docs/model.md; a file
 without them was written with the uniform prior, 1 and 1). The centre of voxel ``ijk`` is
@@ -48,7 +51,12 @@ from numpy.typing import NDArray
 
 from mfp_mapper.core.errors import CoreError
 from mfp_mapper.core.mapper import Mapper
-from mfp_mapper.core.store import VoxelArrays, voxel_problem
+from mfp_mapper.core.reflectivity import (
+    ReflectivityArrays,
+    from_map_arrays,
+    to_map_arrays,
+)
+from mfp_mapper.core.store import MAX_VOXEL_INDEX, VoxelArrays, voxel_problem
 from mfp_mapper.mapio.atomic import atomic_output
 from mfp_mapper.mapio.checks import (
     ALLOWED_COMPRESSION,
@@ -110,6 +118,8 @@ class MapSource(Protocol):
 
     def stored_voxels(self) -> VoxelArrays: ...
 
+    def stored_reflectivity(self) -> ReflectivityArrays | None: ...
+
 
 @dataclass
 class MapContents:
@@ -123,6 +133,8 @@ class MapContents:
     """``max_range`` and ``min_range`` where the file has them; ``prior_shape`` and
     ``prior_rate`` always (1 and 1 where the file has none)."""
     voxels: VoxelArrays
+    reflectivity: ReflectivityArrays | None = None
+    """The reflectivity histograms (``reflectivity_*`` members), when the file has them."""
 
 
 def write_map(path: str | Path, mapper: MapSource) -> None:
@@ -150,7 +162,13 @@ def map_arrays(mapper: MapSource) -> dict[str, np.ndarray]:
         "frame_id": np.str_(mapper.frame_id),
         "format": np.str_(FORMAT_NAME),
         "version": np.int64(FORMAT_VERSION),
+        **reflectivity_members(mapper.stored_reflectivity()),
     }
+
+
+def reflectivity_members(table: ReflectivityArrays | None) -> dict[str, np.ndarray]:
+    """The ``reflectivity_*`` members of a map file holding ``table`` ({} for None)."""
+    return {} if table is None else to_map_arrays(table)
 
 
 def write_map_arrays(path: str | Path, arrays: dict[str, Any], compress: bool = True) -> None:
@@ -188,6 +206,10 @@ def read_map_file(path: str | Path, decay_time: float | None = None) -> MapConte
             small = {k: _read(archive, k) for k in headers if k not in VOXEL_MEMBERS}
             settings = check_settings(path, small)
             voxels = VoxelArrays(*(_read(archive, k) for k in VOXEL_MEMBERS))
+            try:
+                settings.reflectivity = from_map_arrays(small)
+            except ValueError as err:
+                raise MapFileError(path, str(err)) from None
     except MapFileError:
         raise
     except MemoryError:
@@ -197,10 +219,17 @@ def read_map_file(path: str | Path, decay_time: float | None = None) -> MapConte
             path, f"unreadable or truncated map file ({type(err).__name__}: {err})"
         ) from None
     problem = voxel_problem(voxels.ijk, voxels.s, voxels.n, voxels.t_last)
+    decay = settings.decay_time if decay_time is None else decay_time
     if not problem and voxels.t_last.size:
         t_max = float(voxels.t_last.max())
-        decay = settings.decay_time if decay_time is None else decay_time
         problem = future_problem(t_max, decay, st.st_mtime, "t_last")
+    table = settings.reflectivity
+    if not problem and table is not None and len(table):
+        if max(-int(table.ijk.min()), int(table.ijk.max())) > MAX_VOXEL_INDEX:
+            problem = f"reflectivity_ijk holds indices beyond +-{MAX_VOXEL_INDEX}, the map's range"
+        else:
+            t_max = float(table.t_last.max())
+            problem = future_problem(t_max, decay, st.st_mtime, "reflectivity_t_last")
     if problem:
         raise MapFileError(path, problem)
     settings.voxels = voxels
@@ -312,6 +341,7 @@ def read_map_arrays(
         "frame_id": np.str_(c.frame_id),
         "format": np.str_(FORMAT_NAME),
         "version": np.int64(FORMAT_VERSION),
+        **reflectivity_members(c.reflectivity),
     }
 
 
@@ -334,7 +364,10 @@ def mapper_from_arrays(
             raise MapFileError(path, f"stored {fixed} {stored} cannot be changed")
     voxels = VoxelArrays(arrays["ijk"], arrays["s"], arrays["n"], arrays["t_last"])
     try:
-        return Mapper.from_arrays(voxels, resolution=resolution, origin=origin, **settings)
+        table = from_map_arrays(arrays)
+        return Mapper.from_arrays(
+            voxels, resolution=resolution, origin=origin, reflectivity=table, **settings
+        )
     except ValueError as err:
         raise MapFileError(path, str(err)) from err
 

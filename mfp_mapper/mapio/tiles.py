@@ -30,6 +30,15 @@ from numpy.typing import ArrayLike, NDArray
 from mfp_mapper.core.mapper import Mapper, VoxelStats
 from mfp_mapper.core.merge import check_mergeable, merge_map_arrays
 from mfp_mapper.core.model import Prior
+from mfp_mapper.core.reflectivity import (
+    ARRAY_KEYS as REFLECTIVITY_KEYS,
+)
+from mfp_mapper.core.reflectivity import (
+    ReflectivityBins,
+    concatenate_tables,
+    rows_within,
+    select_rows,
+)
 from mfp_mapper.core.store import BLOCK_BITS
 from mfp_mapper.core.voxel_stats import SegmentStats
 from mfp_mapper.mapio.atomic import write_text_atomic
@@ -96,11 +105,16 @@ def split_by_tile(arrays: MapArrays, tile_blocks: int) -> Iterator[tuple[TileKey
     order = np.argsort(packed, kind="stable")
     starts = np.flatnonzero(np.diff(packed[order], prepend=-1))
     ends = np.append(starts[1:], order.shape[0])
-    settings = {k: v for k, v in arrays.items() if k not in VOXEL_KEYS}
+    settings = {
+        k: v for k, v in arrays.items() if k not in VOXEL_KEYS and k not in REFLECTIVITY_KEYS
+    }
+    table_keys = tile_keys(arrays.get("reflectivity_ijk", np.zeros((0, 3), np.int32)), tile_blocks)
     for lo, hi in zip(starts, ends, strict=True):
         pick = order[lo:hi]
         tile = {k: np.asarray(arrays[k])[pick] for k in VOXEL_KEYS}
         x, y, z = (int(v) for v in keys[pick[0]])
+        # the histograms of the tile's voxels (every one belongs to a voxel with returns)
+        tile.update(select_rows(arrays, np.all(table_keys == (x, y, z), axis=1)))
         yield (x, y, z), {**settings, **tile}
 
 
@@ -257,6 +271,8 @@ class TiledMap:
         except ValueError as err:
             raise MapFileError(path, str(err)) from None
         inside = np.all(tile_keys(arrays["ijk"], self.tile_blocks) == key, axis=1)
+        table_ijk = arrays.get("reflectivity_ijk", np.zeros((0, 3), np.int32))
+        inside = np.append(inside, np.all(tile_keys(table_ijk, self.tile_blocks) == key, axis=1))
         if arrays["s"].shape[0] != entry.voxels or not inside.all():
             raise MapFileError(path, f"does not hold the {entry.voxels} voxels of tile {key}")
         t_last = arrays["t_last"]
@@ -289,6 +305,7 @@ class TiledMap:
             lo_i, hi_i = index_bounds(bounds, self.resolution, self.origin)
             keep = np.all((arrays["ijk"] >= lo_i) & (arrays["ijk"] <= hi_i), axis=1)
             arrays = {**arrays, **{k: arrays[k][keep] for k in VOXEL_KEYS}}
+            arrays.update(select_rows(arrays, rows_within(arrays, lo_i, hi_i)))
         return mapper_from_arrays(arrays, self.root, **overrides)
 
     def tile_mapper(self, key: TileKey) -> Mapper:
@@ -316,6 +333,26 @@ class TiledMap:
                 for name in ("s", "n", "t_last", "observed"):
                     getattr(out, name)[rows] = getattr(part, name)
         return out
+
+    def reflectivity(
+        self, points: ArrayLike, stamp: float | None = None
+    ) -> tuple[ReflectivityBins, NDArray[np.float64]] | None:
+        """``Mapper.reflectivity`` over the tiles: each tile holding a point is read once;
+        None when no tile read holds histograms."""
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        keys = tile_keys(self._empty_mapper().query(pts).ijk, self.tile_blocks)
+        bins, counts = None, None
+        for key in {(int(a), int(b), int(c)) for a, b, c in keys}:
+            if key not in self.tiles:
+                continue
+            part = self.tile_mapper(key).reflectivity(pts[np.all(keys == key, axis=1)], stamp)
+            if part is None:
+                continue
+            if counts is None:
+                bins, counts = part[0], np.zeros((len(pts), part[0].count))
+            if part[0] == bins:
+                counts[np.all(keys == key, axis=1)] = part[1]
+        return None if bins is None or counts is None else (bins, counts)
 
     def _empty_mapper(self) -> Mapper:
         """A Mapper with this map's settings and no voxel."""
@@ -360,7 +397,8 @@ def index_bounds(
 
 
 def concatenate(parts: Sequence[MapArrays], settings: MapArrays) -> MapArrays:
-    """Disjoint map-file arrays (e.g. tiles) as one: no voxel may appear twice."""
+    """Disjoint map-file arrays (e.g. tiles) as one: no voxel may appear twice (their
+    reflectivity histograms too; MapFileError when their bins differ)."""
     voxels: MapArrays = {
         "ijk": np.zeros((0, 3), np.int32),
         "s": np.zeros(0),
@@ -369,7 +407,11 @@ def concatenate(parts: Sequence[MapArrays], settings: MapArrays) -> MapArrays:
     }
     if parts:
         voxels = {k: np.concatenate([np.asarray(p[k]) for p in parts]) for k in VOXEL_KEYS}
-    return {**settings, **voxels}
+    try:
+        table = concatenate_tables(parts)
+    except ValueError as err:
+        raise MapFileError("<tiles>", str(err)) from None
+    return {**settings, **voxels, **table}
 
 
 def write_map_file(tiled: TiledMap, path: str | Path) -> int:

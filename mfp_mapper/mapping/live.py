@@ -7,18 +7,22 @@ walker, which integrates it while the worker prepares the next one (the walk rel
 GIL; the worker stays at most one placed scan ahead; in localization mode the worker aligns
 and integrates each scan itself, a wide search running in the background meanwhile: the
 worker keeps taking clouds, keeps the newest for after the search and drops the older ones
-``superseded``, never ``queue_full`` for the search's sake). A scan is walked into a store
-of its own without any lock (``Mapper.stage``), then added to the map in one merge
-(``Mapper.commit``, a few percent of the scan's time). A reader that needs whole scans
-(GetMap, saving, reset) takes ``whole_map``: it waits at most for a merge, never for a scan;
-a query takes ``map_lock`` alone, which the merge lets go between chunks. A cloud its
-poses do not cover yet waits (at most ``odom_wait`` seconds) in a list of its own while
-the clouds behind it go on: **no head-of-line blocking**, and when
-the queue is full the oldest *waiting* cloud is dropped before any placeable one. Between
-two scans it calls ``publish`` (given to the constructor or ``set_publish``) when
-``request_publish`` asked for it, so publishing never waits for an integration and the
-executor never waits for the map. Everything is counted under the pipeline's names
-(``pipeline.DROP_REASONS``).
+``superseded``, never ``queue_full`` for the search's sake). A scan expected to take at most
+``DIRECT_MAX_S`` (its rays times the recent CPU seconds per ray: a busy machine that slows
+every scan down must not switch to the slower staged path) is integrated straight into the
+map under ``whole_map`` (``Mapper.integrate``); a longer one is walked into a store of its
+own without any lock (``Mapper.stage``), then added to the map in one merge
+(``Mapper.commit``) that lets queries in between chunks. Staging costs a second pass over
+every block the scan touched: 2.1x the direct integration for a VLP-32C scan at 0.1 m, which
+touches ~147k blocks, nearly the whole map (docs/performance.md). A reader that needs whole
+scans (GetMap, saving, reset) takes ``whole_map``; a query takes ``map_lock`` alone: either
+waits at most ``DIRECT_MAX_S``, or for a merge, never for a long scan. A cloud its poses do
+not cover yet waits (at most ``odom_wait`` seconds) in a list of its own while the clouds
+behind it go on: **no head-of-line blocking**, and when the queue is full the oldest
+*waiting* cloud is dropped before any placeable one. A thread of its own calls ``publish``
+(given to the constructor or ``set_publish``) when ``request_publish`` asked for it, so a
+cloud never waits for a publication and the executor never waits for the map. Everything is
+counted under the pipeline's names (``pipeline.DROP_REASONS``).
 """
 
 from __future__ import annotations
@@ -37,9 +41,15 @@ import numpy as np
 
 from mfp_mapper.config.frames import frame_name
 from mfp_mapper.config.sections import PlacementSection, SensorModelSection
-from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.core.mapper import IntegrationSummary, Mapper
 from mfp_mapper.mapping.live_localization import pose_matrix
-from mfp_mapper.mapping.loop import PreparedScan, ScanCounts, ScanLoop, staged
+from mfp_mapper.mapping.loop import (
+    PreparedScan,
+    ScanCounts,
+    ScanLoop,
+    integrate_scan,
+    merge_scan,
+)
 from mfp_mapper.mapping.pose_correction import NoCorrection, PoseCorrection
 from mfp_mapper.mapping.whole_map import MERGE_PAUSE_S, WholeMap
 from mfp_mapper.sensing import pipeline
@@ -55,12 +65,16 @@ if TYPE_CHECKING:
 STAGES = ("queued", "parse", "place", "handoff", "walk", "merge")
 """The stages of an integrated cloud timed in ``LiveCounters.stage_seconds``: waiting in the
 queue (and for poses), parse (with no-return rays), placement (poses, de-skew, band), placed
-and waiting for the walker (busy with the scan before), the walk into a staged store
-(``Mapper.stage``), the merge into the map (``Mapper.commit``, with the wait for the map
-lock)."""
+and waiting for the walker (busy with the scan before), the walk (``Mapper.integrate``
+into the map, or ``Mapper.stage`` into a store of its own), then the wait for the map lock
+and, for a staged scan, the merge into the map (``Mapper.commit``)."""
 
 RETRY_PERIOD = 0.02
 """Seconds between two tries of a waiting cloud (sooner when new poses arrived)."""
+DIRECT_MAX_S = 0.5
+"""A scan expected to integrate within this many CPU seconds goes straight into the map
+under the map lock (queries wait for it); a longer one is staged and merged (see the module
+docstring)."""
 
 
 @dataclass(frozen=True)
@@ -179,6 +193,8 @@ class LiveIntegrator:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._walker: threading.Thread | None = None
+        self._publisher: threading.Thread | None = None
+        self._seconds_per_ray = 0.0  # CPU seconds a ray of the last scans took (0: none yet)
         self._handoff: _Placed | None = None  # placed, waiting for the walker (under _cv)
         self._searching: _Placed | None = None  # its wide search runs in the background
         self._held: _Placed | None = None  # the newest cloud placed meanwhile (under _cv)
@@ -191,8 +207,22 @@ class LiveIntegrator:
             settings.sensor_model or SensorModelSection(),
             counts=self.counters,
             counts_lock=self._cv,
-            consume=staged(self.whole_map, self._let_readers_in),
+            consume=self._consume,
         )
+
+    def _consume(self, mapper: Mapper, placed: PlacedScan) -> IntegrationSummary:
+        """A placed scan into the map: directly under ``whole_map`` when expected within
+        ``DIRECT_MAX_S``, else staged and merged (module docstring)."""
+        rays = len(placed.points)
+        if 0.0 < self._seconds_per_ray * rays <= DIRECT_MAX_S:
+            with self.whole_map:
+                summary = integrate_scan(mapper, placed)
+        else:
+            summary = merge_scan(mapper, placed, self.whole_map, self._let_readers_in)
+        if rays:  # down at once (the first scans load kernels and fault memory in)
+            per_ray, mean = summary.cpu_seconds / rays, self._seconds_per_ray
+            self._seconds_per_ray = per_ray if per_ray < mean else _average(mean, per_ray)
+        return summary
 
     def _let_readers_in(self) -> None:
         """Between two chunks of a merge: a reader waiting for ``map_lock`` takes it."""
@@ -204,11 +234,13 @@ class LiveIntegrator:
 
     @property
     def running(self) -> bool:
-        """Whether the worker or the walker thread is still alive (e.g. walking a long scan)."""
-        return any(t is not None and t.is_alive() for t in (self._thread, self._walker))
+        """Whether the worker, walker or publishing thread is still alive (e.g. walking a
+        long scan)."""
+        threads = (self._thread, self._walker, self._publisher)
+        return any(t is not None and t.is_alive() for t in threads)
 
     def set_publish(self, publish: Callable[[], None] | None) -> None:
-        """What the worker calls between two scans after ``request_publish``."""
+        """What the publishing thread calls after ``request_publish``."""
         self._publish = publish
 
     @property
@@ -310,7 +342,7 @@ class LiveIntegrator:
         return len(self._queue) + len(self._waiting) + sum(job is not None for job in pending)
 
     def request_publish(self) -> None:
-        """Ask the worker to publish between two scans."""
+        """Ask the publishing thread to publish (at once unless it is still publishing)."""
         with self._cv:
             self._publish_due = True
             self._cv.notify_all()
@@ -323,15 +355,19 @@ class LiveIntegrator:
         self._prepare_at = 0.0
         self._thread = threading.Thread(target=self.run, name="mfp_integration", daemon=True)
         self._walker = threading.Thread(target=self._walk, name="mfp_walk", daemon=True)
+        self._publisher = threading.Thread(
+            target=self._publish_loop, name="mfp_publish", daemon=True
+        )
         self._thread.start()
         self._walker.start()
+        self._publisher.start()
 
     def stop(self, timeout: float = 10.0) -> None:
         self._stop.set()
         with self._cv:
             self._cv.notify_all()
         end = time.monotonic() + timeout
-        for thread in (self._thread, self._walker):
+        for thread in (self._thread, self._walker, self._publisher):
             if thread is not None:
                 thread.join(timeout=max(end - time.monotonic(), 0.0))
         with self._cv:
@@ -357,14 +393,11 @@ class LiveIntegrator:
         return None
 
     def run(self) -> None:
-        """Integrate clouds in order, a waiting one not blocking those behind it; publish
-        between scans when asked."""
+        """Integrate clouds in order, a waiting one not blocking those behind it."""
         while not self._stop.is_set():
             with self._cv:
                 item = self._next()
-                while item is None and not (
-                    self._publish_due or self._stop.is_set() or self._search_ended()
-                ):
+                while item is None and not (self._stop.is_set() or self._search_ended()):
                     wait = RETRY_PERIOD if self._waiting else 0.5
                     if self._queue and self._handoff is None:  # the walker is busy
                         wait = min(wait, max(self._prepare_at - time.monotonic(), 0.001))
@@ -372,17 +405,27 @@ class LiveIntegrator:
                     item = self._next()
                 if self._stop.is_set():
                     return
-                publish, self._publish_due = self._publish_due, False
                 ended = self._search_ended()
             if ended:
                 self._after_search()
-            if publish and self._publish is not None:
-                try:
-                    self._publish()
-                except Exception as err:  # a failed publication must not stop the worker
-                    self._log("publish", f"publishing the map failed: {err!r}", False)
             if item is not None:
                 self._try(item)
+
+    def _publish_loop(self) -> None:
+        """The publishing thread: ``publish`` whenever ``request_publish`` asked for it
+        (requests made meanwhile become one)."""
+        while True:
+            with self._cv:
+                while not (self._publish_due or self._stop.is_set()):
+                    self._cv.wait(0.5)
+                if self._stop.is_set():
+                    return
+                self._publish_due = False
+            if self._publish is not None:
+                try:
+                    self._publish()
+                except Exception as err:  # a failed publication must not stop the thread
+                    self._log("publish", f"publishing the map failed: {err!r}", False)
 
     def _try(self, item: _Pending) -> None:
         generation = self.pose_inputs.generation

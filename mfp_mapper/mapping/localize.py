@@ -254,13 +254,10 @@ def _loop(
             entry.alignment, entry.exact_gain = al, gain
             if al.accepted:
                 entry.position, entry.quaternion = _apply(al, pos0, rot0)
-                placed = PlacedScan(
-                    placed.stamp,
-                    placed.points @ al.rotation.T + al.translation,
-                    np.asarray(placed.origins) @ al.rotation.T + al.translation,
-                    placed.deskewed,
-                    placed.points_dropped,
-                    placed.no_return,
+                placed = replace(  # the shots and continued rays go with it
+                    placed,
+                    points=placed.points @ al.rotation.T + al.translation,
+                    origins=np.asarray(placed.origins) @ al.rotation.T + al.translation,
                 )
         entry.seconds = time.perf_counter() - t0
         if fixed is None:

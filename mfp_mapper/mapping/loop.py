@@ -29,11 +29,13 @@ from numpy.typing import NDArray
 from mfp_mapper.config.frames import frame_name
 from mfp_mapper.config.sections import PlacementSection, SensorModelSection
 from mfp_mapper.core.mapper import IntegrationSummary, Mapper
+from mfp_mapper.core.reflectivity import ScanReflectivity
 from mfp_mapper.sensing import pipeline
 from mfp_mapper.sensing.deskew import PoseSource
 from mfp_mapper.sensing.pipeline import PlacedScan, ScanDropped
 from mfp_mapper.sensing.pointcloud import ParsedCloud
 from mfp_mapper.sensing.poses import Extrinsic
+from mfp_mapper.sensing.reflectivity import bins_for
 
 FloatArray = NDArray[np.float64]
 
@@ -152,11 +154,15 @@ class ScanLoop:
     # --- the two halves ------------------------------------------------------------------
 
     def prepare(self, msg: Any) -> PreparedScan:
-        """Parse a PointCloud2 (any object with its attributes), add its no-return rays and
-        count its points; raises ``ScanDropped`` (``malformed``, ``empty``)."""
-        cloud, note = pipeline.add_no_return_rays(
-            pipeline.parse_scan(msg), self.sensor_model.no_return_range
-        )
+        """Parse a PointCloud2 (any object with its attributes) or a ``ReturnPair``, add its
+        no-return rays and count its points; raises ``ScanDropped`` (``malformed``,
+        ``empty``)."""
+        if isinstance(msg, pipeline.ReturnPair):
+            cloud, note = pipeline.parse_pair(msg, self.sensor_model.no_return_range)
+        else:
+            cloud, note = pipeline.add_no_return_rays(
+                pipeline.parse_scan(msg), self.sensor_model.no_return_range
+            )
         stamp = pipeline.scan_stamp(msg)
         with self.counts_lock:
             self.counts.points_in += cloud.points_in
@@ -175,10 +181,12 @@ class ScanLoop:
 
     def place(self, prepared: PreparedScan, poses: PoseSource, extrinsic: Extrinsic) -> PlacedScan:
         """A prepared cloud's rays in the map frame at its poses (de-skew, extrinsic, height
-        band); raises ``ScanDropped`` (``no_poses``, ``too_new``, ``too_old``, ``gap``,
+        band, the echoes of a shot as one process: ``pipeline.echo_rays``); raises
+        ``ScanDropped`` (``no_poses``, ``too_new``, ``too_old``, ``gap``,
         ``empty``). A caller may move the placed rays (pose refinement) before ``commit``."""
-        placed = pipeline.place_scan(
-            prepared.cloud, prepared.stamp, poses, extrinsic, self.placement
+        placed = pipeline.echo_rays(
+            pipeline.place_scan(prepared.cloud, prepared.stamp, poses, extrinsic, self.placement),
+            self.sensor_model,
         )
         if self.on_placed is not None:
             self.on_placed(placed.stamp, placed.points, placed.origins)
@@ -233,8 +241,28 @@ def integrate_scan(mapper: Mapper, placed: PlacedScan) -> IntegrationSummary:
     (the map is then unchanged; the drop carries the placed scan's and the core's point
     drops; on success ``ScanCounts.add`` counts both)."""
     return require_rays(
-        mapper.integrate(placed.points, placed.origins, placed.stamp, placed.no_return), placed
-    )
+        mapper.integrate(
+            placed.points, placed.origins, placed.stamp, placed.no_return,
+            scan_reflectivity(mapper, placed), placed.continued,
+        ),
+        placed,
+    )  # fmt: skip
+
+
+def scan_reflectivity(mapper: Mapper, placed: PlacedScan) -> ScanReflectivity | None:
+    """The placed rays' intensities and the bins the map takes them in: the map's own bins
+    when it holds histograms of the same field, else ``reflectivity_bins`` bins of the
+    field's edges (``sensing.reflectivity``); None without an intensity field, with
+    ``reflectivity_bins`` 0, or when the map holds histograms of another field."""
+    field_name = placed.intensity_field
+    if placed.intensity is None or field_name is None:
+        return None
+    held = mapper.reflectivity_scale
+    if held is not None:
+        bins = held if held.field == field_name else None
+    else:
+        bins = bins_for(field_name, mapper.reflectivity_bins)
+    return None if bins is None else ScanReflectivity(placed.intensity, bins)
 
 
 def merge_scan(
@@ -245,18 +273,13 @@ def merge_scan(
 ) -> IntegrationSummary:
     """``integrate_scan`` in two steps: walked without any lock (``Mapper.stage``), merged
     under ``merge_lock`` (``Mapper.commit``, ``pause`` between chunks)."""
-    staged = mapper.stage(placed.points, placed.origins, placed.stamp, placed.no_return)
+    staged = mapper.stage(
+        placed.points, placed.origins, placed.stamp, placed.no_return,
+        scan_reflectivity(mapper, placed), placed.continued,
+    )  # fmt: skip
     require_rays(staged.summary, placed)
     with merge_lock:
         return mapper.commit(staged, pause=pause)
-
-
-def staged(
-    merge_lock: AbstractContextManager[Any], pause: Callable[[], None] | None = None
-) -> ScanConsumer:
-    """The consumer of a loop whose map is read while scans integrate (the live worker):
-    ``merge_scan`` with this lock and pause, so readers wait for a merge, never a scan."""
-    return lambda mapper, placed: merge_scan(mapper, placed, merge_lock, pause)
 
 
 def require_rays(summary: IntegrationSummary, placed: PlacedScan) -> IntegrationSummary:

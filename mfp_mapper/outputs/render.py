@@ -10,7 +10,10 @@ matplotlib with the Agg backend (no display needed). ``render_map`` writes
 - ``std_topdown.png``: the posterior std of the voxel drawn (largest DoO, ties to the most
   evidence, then the highest: no storage-order artefact);
 - ``slice.png``: a vertical x-z slice at one y: most likely DoO and std;
-- ``histogram.png``: histograms of the most likely DoO and of the std.
+- ``histogram.png``: histograms of the most likely DoO and of the std;
+- ``reflectivity_topdown.png`` (a map with reflectivity histograms, docs/model.md): per column
+  the mean intensity of the lowest voxel holding returns (the ground's: road markings,
+  crosswalks), on a log colour scale, cropped like the top-down pictures.
 
 Unobserved voxels are grey. ``plot_convergence`` writes ``convergence.png``: one cell
 probed repeatedly (10 returns, then rays passing through), the degree of occupancy next to
@@ -29,6 +32,7 @@ from numpy.typing import NDArray
 
 from mfp_mapper.core import model
 from mfp_mapper.core.mapper import Mapper, VoxelStats
+from mfp_mapper.core.reflectivity import ReflectivityBins, mean_value
 
 MAX_IMAGE_CELLS = 1600
 """Top-down and slice images are coarsened so that no side exceeds this many cells."""
@@ -57,6 +61,8 @@ class RenderResult:
     top_down: NDArray[np.float64] | None = None
     """The top-down DoO grid drawn ((x, y) cells, NaN unobserved)."""
     top_down_std: NDArray[np.float64] | None = None
+    reflectivity: NDArray[np.float64] | None = None
+    """The reflectivity grid drawn ((x, y) cells, NaN where no voxel holds returns)."""
 
 
 BAND_HEIGHT = 2.25
@@ -360,7 +366,60 @@ def render_map(
     fig.savefig(path)
     plt.close(fig)
     result.files.append(path)
+    histograms = mapper.reflectivity(stats.centers, stamp)
+    if histograms is not None:
+        drawn = _reflectivity_topdown(plt, stats, histograms, (box_lo, box_hi), out, frame)
+        if drawn is not None:
+            result.reflectivity = drawn[0]
+            result.files.append(drawn[1])
     return result
+
+
+def _reflectivity_topdown(
+    plt: Any,
+    stats: VoxelStats,
+    histograms: tuple[ReflectivityBins, NDArray[np.float64]],
+    box: tuple[NDArray[np.int64], NDArray[np.int64]],
+    out: Path,
+    frame: str,
+) -> tuple[NDArray[np.float64], Path] | None:
+    """``reflectivity_topdown.png``: per column (within ``box``, x-y voxel indices) the mean
+    intensity of the lowest voxel holding returns; None when no voxel in the box holds any."""
+    from matplotlib.colors import LogNorm
+
+    bins, counts = histograms
+    held = counts.sum(axis=1) > 0
+    ijk2 = stats.ijk[:, :2].astype(np.int64)
+    held &= np.all((ijk2 >= box[0]) & (ijk2 <= box[1]), axis=1)
+    if not held.any():
+        return None
+    index = np.flatnonzero(held)
+    factor = _coarsening(ijk2[index])
+    cells, shape, lo = _grid(ijk2[index], factor)
+    filled, pick = _pick_per_cell(
+        cells, shape, (counts[index].sum(axis=1), -stats.centers[index, 2])
+    )
+    grid = _values(filled, pick, mean_value(counts[index], bins))
+    edges = np.asarray(bins.edges, dtype=np.float64)
+    vmin = float(edges[0] / 2) if edges.size and edges[0] > 0 else 1.0
+    vmax = float(edges[-1] * 2) if edges.size and edges[-1] > 0 else 256.0
+    cell = stats.resolution * factor
+    extent = [lo[0] * cell, (lo[0] + shape[0]) * cell, lo[1] * cell, (lo[1] + shape[1]) * cell]
+    fig, ax = plt.subplots(figsize=(7.5, 5.5), dpi=110)
+    im = ax.imshow(
+        np.ma.masked_invalid(grid.T), origin="lower", extent=extent,
+        cmap=plt.get_cmap("inferno").with_extremes(bad="0.82"),
+        norm=LogNorm(vmin=vmin, vmax=vmax), interpolation="nearest", aspect="equal",
+    )  # fmt: skip
+    ax.set_title(f"Mean {bins.field} of the lowest voxel with returns per column", fontsize=10)
+    ax.set_xlabel(f"x [m] ({frame})")
+    ax.set_ylabel(f"y [m] ({frame})")
+    fig.colorbar(im, ax=ax, label=f"{bins.field} (mean of the voxel's histogram)", shrink=0.85)
+    fig.tight_layout()
+    path = out / "reflectivity_topdown.png"
+    fig.savefig(path)
+    plt.close(fig)
+    return grid, path
 
 
 def _band_text(band: tuple[float, float]) -> str:

@@ -9,6 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.core.reflectivity import mean_value, most_likely_bin
 
 
 def jsonable(value: Any) -> Any:
@@ -72,7 +73,33 @@ def query_rows(
             "mean_free_path": float(st.mean_free_path[k]),
         }
         rows.append({**row, **{key: (v if seen else None) for key, v in estimates.items()}})
+    for row, refl in zip(rows, reflectivity_rows(mapper, points, stamp), strict=False):
+        row["reflectivity"] = refl
     return rows
+
+
+def reflectivity_rows(
+    mapper: Any, points: NDArray[np.float64], stamp: float | None = None
+) -> list[dict[str, Any]]:
+    """The reflectivity histogram of the voxel holding each point (Appendix B: decayed
+    return counts per intensity bin, their mean intensity and fullest bin; None for those
+    where the voxel holds no return); [] when the map keeps no histograms."""
+    found = mapper.reflectivity(points, stamp)
+    if found is None:
+        return []
+    bins, counts = found
+    means = mean_value(counts, bins)
+    fullest = most_likely_bin(counts)
+    return [
+        {
+            "field": bins.field,
+            "edges": list(bins.edges),
+            "counts": counts[k].tolist(),
+            "mean": None if fullest[k] < 0 else float(means[k]),
+            "most_likely_bin": None if fullest[k] < 0 else int(fullest[k]),
+        }
+        for k in range(counts.shape[0])
+    ]
 
 
 def query_lines(rows: list[dict[str, Any]]) -> list[str]:
@@ -93,6 +120,12 @@ def query_lines(rows: list[dict[str, Any]]) -> list[str]:
             f"n {row['n']:g}, s {row['s']:.2f} m, mean free path "
             + (f"{mfp:.2f} m" if math.isfinite(mfp) else "inf")
         )
+        refl = row.get("reflectivity")
+        if refl is not None and refl["mean"] is not None:
+            lines[-1] += (
+                f", {refl['field']} mean {refl['mean']:.1f} (fullest bin "
+                f"{refl['most_likely_bin']} of {len(refl['counts'])})"
+            )
     return lines
 
 

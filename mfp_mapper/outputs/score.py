@@ -21,6 +21,15 @@ per scan (a voxel holding a return of the scan +0.85, else crossed -0.4, clamped
 p_o`` — the paper's a = 0.2, b = 0.47 (``classic_paper``), or a and b fitted by maximum
 likelihood on the scored events themselves (``classic_fitted``: the best that model can do,
 an upper bound).
+
+Reflectivity (Appendix B; ``ReflectivityScore``): when the map holds intensity histograms and
+the held-out scans have the same intensity field, each held-out return's intensity bin is
+scored under its voxel's histogram (decayed to the scan's time) smoothed toward the global
+histogram of all training returns by a Dirichlet prior of total weight
+``REFLECTIVITY_CONCENTRATION``: ``(n_j + c g_j) / (n + c)`` (a voxel without returns
+predicts ``g``); ``reflectivity.baseline_per_return`` scores the same returns under ``g``
+alone. ``g`` is the map's histograms summed (at the latest time), with half a return added to
+every bin so that no bin has probability 0.
 """
 
 from __future__ import annotations
@@ -37,6 +46,7 @@ from numpy.typing import NDArray
 from mfp_mapper.core.likelihood import ScanEvents, score_rays
 from mfp_mapper.core.mapper import IntegrationSummary, Mapper
 from mfp_mapper.core.model import UNIFORM, Prior, family_prior
+from mfp_mapper.core.reflectivity import smoothed
 from mfp_mapper.mapping.loop import integrate_scan
 from mfp_mapper.sensing.pipeline import PlacedScan, ScanDropped
 from mfp_mapper.sources.recording import Recording
@@ -57,6 +67,13 @@ PAPER_B = 0.47
 """Classic forward model: return probability in an occupied voxel."""
 _KEY_BITS = 21
 _KEY_OFFSET = 1 << (_KEY_BITS - 1)
+REFLECTIVITY_CONCENTRATION = 1.0
+"""Total weight c (returns) of the Dirichlet prior that smooths a voxel's reflectivity
+histogram toward the global one: chosen by leave-one-scan-out on ouster_street (each scan
+predicted by the other two) over c in {0.5, 1, 2, 4, 8} at 8 bins: c = 1 scored best or within
+0.01 nats/return of the best at 0.1 and 0.2 m (docs/scoring.md)."""
+GLOBAL_PSEUDO_COUNT = 0.5
+"""Returns added to every bin of the global histogram (no bin of probability 0)."""
 
 
 class Metrics:
@@ -261,6 +278,69 @@ class EventSample:
         return s, n, chord, hit, np.concatenate(self.weights)
 
 
+class ReflectivityScore:
+    """Held-out returns' intensity bins under the map's smoothed histograms and under the
+    global histogram (module docstring)."""
+
+    def __init__(self, mapper: Mapper) -> None:
+        self.mapper = mapper
+        self.returns = 0
+        self.log_likelihood = 0.0
+        self.baseline = 0.0
+        self._background: FloatArray | None = None
+
+    def background(self) -> FloatArray:
+        """The global histogram of the training returns (probabilities, J)."""
+        if self._background is None:
+            table = self.mapper.stored_reflectivity()
+            assert table is not None
+            counts = table.counts
+            if len(table) and math.isfinite(self.mapper.decay_time):
+                at = float(table.t_last.max())
+                counts = counts * np.exp((table.t_last - at) / self.mapper.decay_time)[:, None]
+            total = counts.sum(axis=0) + GLOBAL_PSEUDO_COUNT
+            self._background = total / total.sum()
+        return self._background
+
+    def add(self, placed: PlacedScan, rays: Any) -> None:
+        """Score the returns of the rays (``Mapper.place_rays`` of ``placed``) that carry an
+        intensity of the map's field."""
+        scale = self.mapper.reflectivity_scale
+        if scale is None or placed.intensity is None or placed.intensity_field != scale.field:
+            return
+        picked = np.asarray(rays.source)[rays.has_return]
+        bins = scale.bin_of(placed.intensity[picked])
+        valid = bins >= 0
+        if not valid.any():
+            return
+        found = self.mapper.reflectivity(placed.points[picked[valid]], placed.stamp)
+        assert found is not None
+        background = self.background()
+        p = smoothed(found[1], background, REFLECTIVITY_CONCENTRATION)
+        b = bins[valid]
+        self.returns += int(b.size)
+        self.log_likelihood += float(np.log(p[np.arange(b.size), b]).sum())
+        self.baseline += float(np.log(background[b]).sum())
+
+    def result(self) -> dict[str, Any] | None:
+        """The ``reflectivity`` part of the report, None when no return was scored."""
+        scale = self.mapper.reflectivity_scale
+        if not self.returns or scale is None:
+            return None
+        per_return = self.log_likelihood / self.returns
+        baseline = self.baseline / self.returns
+        return {
+            "returns": self.returns,
+            "log_likelihood_per_return": per_return,
+            "baseline_per_return": baseline,
+            "gain_per_return": per_return - baseline,
+            "field": scale.field,
+            "bins": scale.count,
+            "edges": list(scale.edges),
+            "concentration": REFLECTIVITY_CONCENTRATION,
+        }
+
+
 class Scorer:
     """Scores placed scans against ``mapper`` (a ``ScanConsumer`` of the replay)."""
 
@@ -282,9 +362,16 @@ class Scorer:
         self.return_log_chord = 0.0
         """Sum of log(full chord, m) of the return events: turns a return voxel's probability
         into a density of the return's range along the ray (``log_density_per_ray``)."""
+        self.reflectivity = ReflectivityScore(mapper)
+        self.echoes: EchoScores | None = None
+        """The held-out echoes scored with maps of all echoes and of first echoes
+        (``EchoMaps``), when the training had echoes."""
 
     def __call__(self, _replay_mapper: Mapper, placed: PlacedScan) -> IntegrationSummary:
         placed = select_rays(placed, self.ray_slice)
+        if self.echoes is not None:
+            self.echoes.score(placed)
+        placed = first_echoes(placed)
         rays, dropped = self.mapper.place_rays(placed.points, placed.origins, placed.no_return)
         summary = IntegrationSummary(rays_in=placed.points.shape[0], dropped=dropped)
         summary.rays_used = len(rays)
@@ -304,33 +391,166 @@ class Scorer:
         if self.sample is not None:
             self.sample.rays += len(rays)
             self.sample.add(ev)
+        self.reflectivity.add(placed, rays)
         summary.voxels_touched = len(ev)
         return summary
 
 
 def select_rays(placed: PlacedScan, rays: slice | None) -> PlacedScan:
-    """The scan with only the rays ``rays`` selects (e.g. every other shot)."""
+    """The scan with only the rays ``rays`` selects (e.g. every other shot): of a scan with
+    echoes (``placed.shot``), the rays of the shots it selects."""
     if rays is None:
         return placed
+    if placed.shot is None:
+        return _take(placed, rays)
+    chosen = np.zeros(int(placed.shot.max(initial=-1)) + 1, dtype=np.bool_)
+    chosen[rays] = True
+    return _take(placed, chosen[placed.shot])
+
+
+def _take(placed: PlacedScan, rays: slice | NDArray[np.bool_]) -> PlacedScan:
+    """The scan with the rays ``rays`` selects (a slice or a mask)."""
     origins = placed.origins if placed.origins.ndim == 1 else placed.origins[rays]
-    flags = None if placed.no_return is None else placed.no_return[rays]
-    return replace(placed, points=placed.points[rays], origins=origins, no_return=flags)
+
+    def pick(values: NDArray[Any] | None) -> NDArray[Any] | None:
+        return None if values is None else values[rays]
+
+    return replace(
+        placed,
+        points=placed.points[rays],
+        origins=origins,
+        no_return=pick(placed.no_return),
+        intensity=pick(placed.intensity),
+        shot=pick(placed.shot),
+        continued=pick(placed.continued),
+    )
+
+
+def first_echoes(placed: PlacedScan) -> PlacedScan:
+    """The scan with the first echo of each shot only (the rays from the sensor)."""
+    if placed.continued is None:
+        return placed
+    return replace(_take(placed, ~placed.continued), continued=None)
+
+
+def later_echoes(placed: PlacedScan) -> PlacedScan:
+    """The rays of a scan's later echoes that carry a return and a chord: each from where
+    the blind stretch after the echo before ends (echoes inside it are not scored)."""
+    assert placed.continued is not None
+    span = placed.points - placed.origins
+    keep = placed.continued & (np.einsum("ij,ij->i", span, span) > 0.0)
+    if placed.no_return is not None:
+        keep &= ~placed.no_return
+    return _take(placed, keep)
+
+
+class EchoMaps:
+    """Two maps of the training echoes (``score`` on an input with echoes): ``all`` (each
+    shot one process along its beam) and ``first_only`` (its first echo). The replay's own
+    map is the one the settings ask for; the other is built beside it."""
+
+    def __init__(self) -> None:
+        self.maps: dict[str, Mapper] = {}
+
+    def add(self, mapper: Mapper, placed: PlacedScan) -> None:
+        """Add a training scan with shots to both maps (``mapper``: the replay's)."""
+        if not self.maps:
+            twin = _empty_like(mapper)
+            if placed.continued is None:  # the settings ask for first echoes only
+                self.maps = {"all": twin, "first_only": mapper}
+            else:
+                self.maps = {"all": mapper, "first_only": twin}
+        other = self.maps["first_only"] if self.maps["all"] is mapper else self.maps["all"]
+        if other is self.maps["first_only"]:
+            placed = first_echoes(placed)
+        if len(placed.points):
+            other.integrate(
+                placed.points,
+                placed.origins,
+                placed.stamp,
+                placed.no_return,
+                continued=placed.continued,
+            )
+
+
+def _empty_like(mapper: Mapper) -> Mapper:
+    """An empty map with ``mapper``'s settings."""
+    return Mapper(
+        mapper.resolution,
+        max_range=mapper.max_range,
+        min_range=mapper.min_range,
+        decay_time=mapper.decay_time,
+        frame_id=mapper.frame_id,
+        threads=mapper.threads,
+        max_voxels=mapper.max_voxels,
+        keep_radius=mapper.keep_radius,
+        origin=mapper.origin,
+        prior_shape=mapper.prior.shape,
+        prior_rate=mapper.prior.rate,
+    )
+
+
+class EchoScores:
+    """Held-out shots scored by each map of ``EchoMaps``: the first echo as a ray from the
+    sensor, each later echo given the echo before it (its ray from the end of that echo's
+    blind stretch; the blind stretch is not scored), with each map's prior."""
+
+    def __init__(self, maps: EchoMaps) -> None:
+        self.maps = maps.maps
+        self.sums = {name: np.zeros(4) for name in self.maps}  # first ll, rays, later ll, echoes
+        self.in_blind = 0
+
+    def score(self, placed: PlacedScan) -> None:
+        first = first_echoes(placed)
+        later = later_echoes(placed) if placed.continued is not None else None
+        if placed.continued is not None and later is not None:
+            self.in_blind += int(placed.continued.sum()) - len(later.points)
+        for name, mapper in self.maps.items():
+            sums = self.sums[name]
+            for k, part in ((0, first), (2, later)):
+                if part is None or not len(part.points):
+                    continue
+                rays, _ = mapper.place_rays(
+                    part.points, part.origins, part.no_return, part.continued
+                )
+                if len(rays):
+                    per_ray, _, _ = score_rays(mapper, rays, part.stamp)
+                    sums[k] += float(per_ray.sum())
+                    sums[k + 1] += len(rays)
+
+    def result(self) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for name, (first, rays, later, echoes) in self.sums.items():
+            out[name] = {
+                "first_echo_log_likelihood_per_ray": first / max(rays, 1),
+                "later_echo_log_likelihood_per_echo": later / max(echoes, 1),
+                "first_echoes": int(rays),
+                "later_echoes": int(echoes),
+                "prior": _prior_json(self.maps[name].prior),
+            }
+        out["later_echoes_in_blind_stretch"] = self.in_blind
+        return out
 
 
 def training_consumer(
-    classic: ClassicMap | None, rays: slice | None
+    classic: ClassicMap | None, rays: slice | None, echo_maps: EchoMaps | None = None
 ) -> Callable[[Mapper, PlacedScan], IntegrationSummary]:
-    """Integrates each training scan (its ``rays``) and updates the classic map with it."""
+    """Integrates each training scan (its ``rays``) and updates the classic map with it
+    (from its first echoes); a scan with shots also goes into ``echo_maps``."""
 
     def consume(mapper: Mapper, placed: PlacedScan) -> IntegrationSummary:
         placed = select_rays(placed, rays)
         if classic is not None:
-            found, _ = mapper.place_rays(placed.points, placed.origins, placed.no_return)
+            first = first_echoes(placed)
+            found, _ = mapper.place_rays(first.points, first.origins, first.no_return)
             if len(found):
                 _, _, ev = score_rays(mapper, found, placed.stamp, events=True)
                 assert ev is not None
                 classic.update(ev)
-        return integrate_scan(mapper, placed)
+        summary = integrate_scan(mapper, placed)
+        if echo_maps is not None and placed.shot is not None:
+            echo_maps.add(mapper, placed)
+        return summary
 
     return consume
 
@@ -353,6 +573,11 @@ def report(scorer: Scorer, main: str) -> dict[str, Any]:
         part["log_density_per_ray"] = (part["log_likelihood"] - scorer.return_log_chord) / max(
             part["rays"], 1
         )
+    reflectivity = scorer.reflectivity.result()
+    if reflectivity is not None:
+        out["reflectivity"] = reflectivity
+    if scorer.echoes is not None:
+        out["echoes"] = scorer.echoes.result()
     return out
 
 
@@ -385,6 +610,13 @@ def summary_lines(report_: dict[str, Any], label: str = "") -> list[str]:
             f"{r['log_loss_per_event']:>10.5f} {r['brier']:>8.5f} {r['ece']:>8.5f}"
         )
     lines += [f"{name}: {why}" for name, r in rows if (why := nonfinite_reason(r)) is not None]
+    refl = report_.get("reflectivity")
+    if isinstance(refl, dict):
+        lines.append(
+            f"reflectivity ({refl['field']}, {refl['bins']} bins, {refl['returns']:,} returns): "
+            f"{refl['log_likelihood_per_return']:.4f} nats/return, one global histogram "
+            f"{refl['baseline_per_return']:.4f} (gain {refl['gain_per_return']:+.4f})"
+        )
     return lines
 
 
@@ -727,10 +959,13 @@ def score_split(
     the held-out part with ``Scorer`` (``within_training``: see ``split_options``)."""
     train_opts, held_opts, train_rays, held_rays = split_options(opts, split, within_training)
     classic_map = ClassicMap() if classic else None
+    echo_maps = EchoMaps()
     trained = run_input(
-        recording, train_opts, training_consumer(classic_map, train_rays), progress, log
+        recording, train_opts, training_consumer(classic_map, train_rays, echo_maps), progress, log
     )
     scorer = Scorer(trained.mapper, priors, classic_map, sample, held_rays)
+    if echo_maps.maps:
+        scorer.echoes = EchoScores(echo_maps)
     run_input(recording, held_opts, scorer, progress, log)
     return scorer
 

@@ -1,7 +1,9 @@
-"""The node's map outputs: the degree-of-occupancy and std clouds and the projected grid.
+"""The node's map outputs: the degree-of-occupancy, std and reflectivity clouds and the
+projected grid.
 
-Built from the Mapper under the map lock (only as long as the export takes), converted and
-published outside it. The integration worker calls ``publish`` between two scans.
+Selected from the Mapper under the map lock (only as long as the compiled export or grid
+takes), converted and published outside it, on the live worker's publishing thread
+(``LiveIntegrator.request_publish``): integration never waits for a message to be built.
 """
 
 from __future__ import annotations
@@ -21,28 +23,33 @@ from sensor_msgs.msg import PointCloud2
 
 from mfp_mapper.config.sections import OutputsSection
 from mfp_mapper.core.gridmap import GridTooLarge, unobserved_hit_probability
+from mfp_mapper.core.reflectivity import mean_value, most_likely_bin
 from mfp_mapper.mapping.live import LiveIntegrator
 from mfp_mapper.ros.messages import cloud_msg, grid_msg, stamp_msg
 from mfp_mapper.sensing.pointcloud import pack_cloud
 
 PUBLISH_DUTY = 0.1
-"""Largest share of wall time the map outputs may take: after a publication that took
-``dt`` seconds, the next one waits at least ``dt * (1 / PUBLISH_DUTY - 1)``."""
+"""Largest share of wall time the map outputs may hold the map lock (integration waits for
+it): after a publication that held it ``dt`` seconds, the next one waits at least
+``dt * (1 / PUBLISH_DUTY - 1)``."""
 
 
 TOPICS = {
     "degree_of_occupancy": "~/degree_of_occupancy",
     "std": "~/std",
     "projected_map": "~/projected_map",
+    "reflectivity": "~/reflectivity",
 }
 """The map outputs' topics (node-private names)."""
 OCTOMAP_TOPICS = {
     "degree_of_occupancy": "octomap_point_cloud_centers",
     "std": "~/std",
     "projected_map": "projected_map",
+    "reflectivity": "~/reflectivity",
 }
 """With ``octomap_topics``: octomap_server's names (relative: in the node's namespace) for
-the voxel-centre cloud and the grid; ``~/std`` has no octomap_server counterpart."""
+the voxel-centre cloud and the grid; ``~/std`` and ``~/reflectivity`` have no octomap_server
+counterpart."""
 
 
 @dataclass
@@ -81,7 +88,8 @@ class MapOutputs:
         self._doo_pub = node.create_publisher(PointCloud2, names["degree_of_occupancy"], qos)
         self._std_pub = node.create_publisher(PointCloud2, names["std"], qos)
         self._grid_pub = node.create_publisher(OccupancyGrid, names["projected_map"], qos)
-        self.publishers = [self._doo_pub, self._std_pub, self._grid_pub]
+        self._reflectivity_pub = node.create_publisher(PointCloud2, names["reflectivity"], qos)
+        self.publishers = [self._doo_pub, self._std_pub, self._grid_pub, self._reflectivity_pub]
         self.counters = PublishCounters()
         # the map version each output last went out with: a late transient-local subscriber
         # of one output gets it even when the other already went out for this version
@@ -96,7 +104,8 @@ class MapOutputs:
         """Publish the map outputs if the map changed and someone subscribes."""
         listening = {
             "clouds": self._doo_pub.get_subscription_count()
-            + self._std_pub.get_subscription_count(),
+            + self._std_pub.get_subscription_count()
+            + self._reflectivity_pub.get_subscription_count(),
             "grid": self._grid_pub.get_subscription_count(),
         }
         if not any(listening.values()):
@@ -121,7 +130,7 @@ class MapOutputs:
         for key in due:
             self.published[key] = version
         dt = time.perf_counter() - t0 - lock_times[0]
-        self._not_before = time.monotonic() + dt * (1.0 / PUBLISH_DUTY - 1.0)
+        self._not_before = time.monotonic() + lock_times[1] * (1.0 / PUBLISH_DUTY - 1.0)
         c = self.counters
         c.seconds += dt
         c.locked_seconds += lock_times[1]
@@ -145,7 +154,9 @@ class MapOutputs:
         return stamp_msg(stamp) if stamp is not None else self._node.get_clock().now().to_msg()
 
     def _publish_clouds(self, lock_times: list[float]) -> None:
-        """Publish the degree-of-occupancy and std clouds of the filtered voxels."""
+        """Publish the degree-of-occupancy and std clouds of the filtered voxels, and the
+        reflectivity cloud of those holding returns (when the map keeps histograms): per
+        voxel the mean intensity of its returns and its fullest intensity bin."""
         cfg, worker = self._settings(), self._worker
         with self._timed_map_lock(lock_times):
             robot = worker.robot_position
@@ -159,9 +170,13 @@ class MapOutputs:
                 bounds=window,
             )
             stamp = worker.mapper.last_stamp
+            histograms = worker.mapper.reflectivity(vox.centers)
         sel = vox
         if window is not None and robot is not None:
-            sel = vox.select(np.sum((vox.centers - robot) ** 2, axis=1) <= radius**2)
+            near = np.sum((vox.centers - robot) ** 2, axis=1) <= radius**2
+            sel = vox.select(near)
+            if histograms is not None:
+                histograms = (histograms[0], histograms[1][near])
         xyz = {a: sel.centers[:, k] for k, a in enumerate("xyz")}
         header_stamp = self._header_stamp(stamp)
         frame = worker.map_frame
@@ -169,6 +184,15 @@ class MapOutputs:
         std = pack_cloud({**xyz, "std": sel.std})
         self._doo_pub.publish(cloud_msg(doo, frame, header_stamp))
         self._std_pub.publish(cloud_msg(std, frame, header_stamp))
+        if histograms is not None:
+            bins, counts = histograms
+            held = counts.sum(axis=1) > 0
+            cloud = pack_cloud({
+                **{a: v[held] for a, v in xyz.items()},
+                "reflectivity": mean_value(counts[held], bins).astype(np.float32),
+                "reflectivity_bin": most_likely_bin(counts[held]).astype(np.float32),
+            })  # fmt: skip
+            self._reflectivity_pub.publish(cloud_msg(cloud, frame, header_stamp))
         self.counters.voxels = len(sel)
 
     def grid(self, lock_times: list[float] | None = None, projected: bool = False) -> OccupancyGrid:

@@ -12,11 +12,13 @@ default) it configures and activates itself; else a lifecycle manager drives it
 
 Threads: one executor thread runs every ROS callback (rclpy's multi-threaded executor
 cost about 70% of a core in overhead); subscription callbacks only queue clouds and store
-poses. The worker thread integrates and publishes between scans; ``~/save_map`` and the
-autosave write in a thread of their own. ``worker.map_lock`` guards the Mapper; the worker
-holds it only to merge a scan it walked without it (``Mapper.stage``/``commit``), letting
-queries in between chunks; GetMap, saving and reset take ``worker.whole_map`` (no scan
-half merged). So services answer during a long scan. SIGINT / SIGTERM stop it
+poses. The worker threads parse, place and integrate (``mapping.live``); the map outputs
+are built and sent on a publishing thread of their own; ``~/save_map`` and the autosave
+write in a thread of their own. ``worker.map_lock`` guards the Mapper: the walker holds it
+through a quick scan (``Mapper.integrate``, at most ``live.DIRECT_MAX_S`` expected) or only
+to merge a long one it walked without it (``Mapper.stage``/``commit``), letting queries in
+between chunks; GetMap, saving and reset take ``worker.whole_map`` (no scan half merged).
+So services answer during a long scan. SIGINT / SIGTERM stop it
 as ``ros.shutdown`` says: the executor stops between callbacks, then the final save.
 """
 
@@ -68,6 +70,7 @@ from mfp_mapper.config.param_file import ParamFileError, read_sections
 from mfp_mapper.config.schema import SPECS, NodeConfig
 from mfp_mapper.core.mapper import Mapper, compile_kernels, mapper_kwargs
 from mfp_mapper.mapping.live import LiveIntegrator, LiveSettings
+from mfp_mapper.mapping.return_pairs import PAIR_TIMEOUT, ReturnPairer
 from mfp_mapper.ros.guarded_node import GuardedLifecycleNode, tracked
 from mfp_mapper.ros.localization import Localization
 from mfp_mapper.ros.map_files import MapFiles
@@ -136,6 +139,8 @@ class MfpMapperNode(GuardedLifecycleNode):
             lambda: self.cfg.query,
         )
         self._transport_explained = False
+        self._pairer: ReturnPairer | None = None
+        """Pairs the clouds of ``cloud_in`` and ``second_return_topic`` (when set)."""
         self._clock_warned = False
         self.worker: LiveIntegrator  # set by configure
         self.localization: Localization | None = None  # localization.enabled
@@ -304,6 +309,22 @@ class MfpMapperNode(GuardedLifecycleNode):
                 event_callbacks=SubscriptionEventCallbacks(message_lost=self._on_clouds_lost),
             )
         ]
+        second_topic = self.cfg.placement.second_return_topic
+        self._pairer = ReturnPairer() if second_topic else None
+        if second_topic:
+            self._active.append(
+                self.create_subscription(
+                    PointCloud2,
+                    second_topic,
+                    self._on_second_return,
+                    qos_profile_sensor_data,
+                    event_callbacks=SubscriptionEventCallbacks(message_lost=self._on_clouds_lost),
+                )
+            )
+            wall = Clock(clock_type=ClockType.STEADY_TIME)
+            self._active.append(
+                self.create_timer(PAIR_TIMEOUT / 4.0, self._on_pair_timer, clock=wall)
+            )
         odom_qos = QoSProfile(
             history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.BEST_EFFORT
         )
@@ -447,7 +468,25 @@ class MfpMapperNode(GuardedLifecycleNode):
     @tracked
     def _on_cloud(self, msg: PointCloud2) -> None:
         self.worker.observe_clock(self._now())
-        self.worker.submit(msg)
+        pairer = self._pairer
+        for ready in [msg] if pairer is None else pairer.first(msg):
+            self.worker.submit(ready)
+
+    @tracked
+    def _on_pair_timer(self) -> None:
+        """First-return clouds whose second never came are mapped alone."""
+        pairer = self._pairer
+        if pairer is not None:
+            for ready in pairer.expired():
+                self.worker.submit(ready)
+
+    @tracked
+    def _on_second_return(self, msg: PointCloud2) -> None:
+        """A cloud of second returns (``second_return_topic``): mapped with its first."""
+        pairer = self._pairer
+        if pairer is not None:
+            for ready in pairer.second(msg):
+                self.worker.submit(ready)
 
     @tracked
     def _on_tf(self, data: bytes) -> None:
@@ -480,7 +519,10 @@ class MfpMapperNode(GuardedLifecycleNode):
 
     @tracked
     def _on_publish_timer(self) -> None:
-        self.worker.request_publish()
+        """Ask for a publication, once the kernels are loaded: a publication that compiled
+        them would hold the map lock meanwhile (seconds)."""
+        if self._kernels != "compiling":
+            self.worker.request_publish()
 
     # --- queries and services ----------------------------------------------------------------
 
@@ -619,6 +661,13 @@ class MfpMapperNode(GuardedLifecycleNode):
         }
         if self.localization is not None:
             extra["localization"] = self.localization.report()
+        pairer = self._pairer
+        if pairer is not None:
+            extra["second_return"] = {
+                "paired": pairer.paired,
+                "alone": pairer.alone,
+                "unpaired_second": pairer.unpaired_second,
+            }
         report = status_report(
             c, queued, self._map_figures, self.outputs.counters, self._status_window, extra
         )

@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 from mfp_mapper.config.frames import frame_name
 from mfp_mapper.config.sections import QuerySection
 from mfp_mapper.core.mapper import Mapper
+from mfp_mapper.core.reflectivity import ReflectivityBins, mean_value
 from mfp_mapper.sensing.tf_tree import TransformUnavailable
 
 FloatArray = NDArray[np.float64]
@@ -96,6 +97,8 @@ class QueryResult:
     observed: NDArray[np.bool_]
     segment_clear_probability: FloatArray
     segment_unknown_length: FloatArray
+    reflectivity: tuple[ReflectivityBins, FloatArray] | None = None
+    """The bins and each point's reflectivity histogram (M, J), when the map keeps them."""
 
 
 def answer(
@@ -113,14 +116,16 @@ def answer(
     with lock:
         stats = mapper.query(points, stamp)
         segments = mapper.query_segments(starts, ends, stamp)
+        reflectivity = mapper.reflectivity(points, stamp)
     unseen = ~stats.observed
     hit, doo, std, mfp = (
         np.where(unseen, math.nan, v)
         for v in (stats.hit_probability, stats.most_likely_doo, stats.std, stats.mean_free_path)
     )
     return QueryResult(
-        hit, doo, std, mfp, stats.observed, segments.clear_probability, segments.unknown_length
-    )
+        hit, doo, std, mfp, stats.observed, segments.clear_probability, segments.unknown_length,
+        reflectivity,
+    )  # fmt: skip
 
 
 def _doubles(values: FloatArray) -> array.array[float]:
@@ -141,6 +146,12 @@ def fill_response(response: Any, result: QueryResult, map_frame: str, message: s
     response.observed = result.observed.tolist()
     response.segment_clear_probability = _doubles(result.segment_clear_probability)
     response.segment_unknown_length = _doubles(result.segment_unknown_length)
+    if result.reflectivity is not None:
+        bins, counts = result.reflectivity
+        response.reflectivity_counts = _doubles(counts.reshape(-1))
+        response.reflectivity_mean = _doubles(mean_value(counts, bins))
+        response.reflectivity_field = bins.field
+        response.reflectivity_edges = _doubles(np.asarray(bins.edges, dtype=np.float64))
     return response
 
 

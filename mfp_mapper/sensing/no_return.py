@@ -114,8 +114,20 @@ def with_no_return_rays(cloud: ParsedCloud, no_return_range: float) -> tuple[Par
         cell=None,
         ring=None,
         no_return=flags,
+        shot=_with_new_shots(cloud.shot, count, cloud.grid_shape[0] * cloud.grid_shape[1]),
     )
     return extended, found
+
+
+def _with_new_shots(
+    shot: NDArray[np.int64] | None, count: int, cells: int
+) -> NDArray[np.int64] | None:
+    """``shot`` and ``count`` new shots of one ray each (the recovered firings), numbered
+    past both ``shot`` and the ``cells`` of the cloud's grid (a shot may be a pixel)."""
+    if shot is None:
+        return None
+    first = max(int(shot.max(initial=-1)) + 1, cells)
+    return np.concatenate([shot, np.arange(first, first + count, dtype=np.int64)])
 
 
 def _organized(cloud: ParsedCloud, height: int, width: int) -> Recovery:

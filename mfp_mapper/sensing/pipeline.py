@@ -10,7 +10,10 @@ and counts everything under the names of ``DROP_REASONS``:
 2. ``pose_deadline``: the latest time a pose must cover (the stamp, or the last point's
    time when de-skewing) — the live worker waits for odometry up to it;
 3. ``place_scan``: points into the map frame at the poses of their times, then the height
-   band (``no_poses``, ``too_new``, ``too_old``, ``gap``);
+   band (``no_poses``, ``too_new``, ``too_old``, ``gap``); ``echo_rays``: a cloud whose
+   points carry shots (``ParsedCloud.shot``: several echoes per laser shot) becomes one ray
+   per echo, a shot one process along its beam (``sensing.echoes``); a ``ReturnPair``
+   (ouster-ros ``points`` + ``points2``) is parsed as one cloud by ``parse_pair``;
 4. (``mapping.loop``) integration into the Mapper (``no_usable_rays`` when the core used
    no ray).
 
@@ -20,13 +23,14 @@ A drop is a ``ScanDropped`` exception carrying its ``reason``; point-level losse
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from mfp_mapper.config.sections import PlacementSection
+from mfp_mapper.config.sections import PlacementSection, SensorModelSection
+from mfp_mapper.sensing import echoes
 from mfp_mapper.sensing.deskew import PoseSource, cloud_to_map
 from mfp_mapper.sensing.no_return import with_no_return_rays
 from mfp_mapper.sensing.pointcloud import (
@@ -97,6 +101,95 @@ class PlacedScan:
     points_dropped: dict[str, int] = field(default_factory=dict)
     no_return: NDArray[np.bool_] | None = None
     """Rays that end without a return (recovered firings), or None."""
+    intensity: NDArray[np.float32] | None = None
+    """Each ray's return intensity (``ParsedCloud.intensity``), or None."""
+    intensity_field: str | None = None
+    """The cloud field ``intensity`` came from (``ParsedCloud.intensity_field``)."""
+    shot: NDArray[np.int64] | None = None
+    """Which laser shot each ray belongs to (``ParsedCloud.shot``: ids >= 0 after
+    ``echo_rays``, which drops the -1), or None: every ray its own shot."""
+    continued: NDArray[np.bool_] | None = None
+    """Rays that continue their shot past an earlier echo (``echo_rays``), or None."""
+
+
+@dataclass(frozen=True)
+class ReturnPair:
+    """A cloud of first returns and the cloud of the second returns of the same firings
+    (ouster-ros ``points`` and ``points2``: same stamp, same pixel layout), mapped as one
+    cloud (``parse_pair``). Its header is the first cloud's."""
+
+    first: Any
+    second: Any
+
+    @property
+    def header(self) -> Any:
+        return self.first.header
+
+
+def parse_pair(pair: ReturnPair, no_return_range: float) -> tuple[ParsedCloud, str]:
+    """The points of both clouds of ``pair`` as one cloud whose shots are the pixels (the
+    first cloud's no-return firings recovered first, see ``add_no_return_rays``); raises
+    ScanDropped ``malformed`` (either cloud, or layouts that differ) or ``empty``."""
+    first = parse_scan(pair.first)
+    if first.shot is None:
+        first.shot = pixel_shots(first)
+    first, note = add_no_return_rays(first, no_return_range)
+    try:
+        second = parse_pointcloud2(pair.second)
+    except CloudFormatError as err:
+        raise ScanDropped("malformed", f"second-return cloud: {err}") from None
+    if second.grid_shape != (int(pair.first.height), int(pair.first.width)):
+        raise ScanDropped(
+            "malformed",
+            f"second-return cloud of {second.grid_shape[0]} x {second.grid_shape[1]} points "
+            f"for a first-return cloud of {pair.first.height} x {pair.first.width}: the two "
+            "returns of a pixel must be at the same place of both clouds",
+            first.points_in,
+            first.dropped,
+        )
+    return with_second_return(first, second), note
+
+
+def pixel_shots(cloud: ParsedCloud) -> NDArray[np.int64]:
+    """Shots of an organized cloud's points: their pixels (row * width + column)."""
+    return (
+        np.arange(len(cloud), dtype=np.int64) if cloud.cell is None else cloud.cell.astype(np.int64)
+    )
+
+
+def with_second_return(first: ParsedCloud, second: ParsedCloud) -> ParsedCloud:
+    """One cloud of ``first`` (its ``shot`` set: pixels, and maybe recovered no-return
+    firings) and ``second``, a cloud of the second returns in the same pixel layout
+    (ouster-ros ``points2``): a point of ``second`` joins the shot of its pixel. Per-point
+    times and intensities are kept when both clouds have them."""
+    assert first.shot is not None
+    shot = np.concatenate([first.shot, pixel_shots(second)])
+    both = len(first) + len(second)
+
+    def joined(a: NDArray[Any] | None, b: NDArray[Any] | None) -> NDArray[Any] | None:
+        return None if a is None or b is None else np.concatenate([a, b])
+
+    flags = None
+    if first.no_return is not None:
+        flags = np.concatenate([first.no_return, np.zeros(len(second), dtype=np.bool_)])
+    dropped = dict(first.dropped)
+    for reason, count in second.dropped.items():
+        dropped[reason] = dropped.get(reason, 0) + count
+    return replace(
+        first,
+        xyz=np.concatenate([first.xyz, second.xyz]),
+        time_offset=joined(first.time_offset, second.time_offset),
+        intensity=joined(first.intensity, second.intensity),
+        points_in=first.points_in + second.points_in,
+        dropped=dropped,
+        grid_shape=(1, both),
+        cell=None,
+        ring=None,
+        no_return=flags,
+        bad_times=first.bad_times + second.bad_times,
+        shot=shot,
+        echo_field="second_return",
+    )
 
 
 def parse_scan(msg: Any) -> ParsedCloud:
@@ -164,11 +257,14 @@ def place_scan(
     hi = tuple(getattr(settings, f"point_cloud_max_{a}") for a in "xyz")
     keep, outside = band_mask(points, lo, hi)
     dropped.update({k: v for k, v in outside.items() if v})
-    flags = cloud.no_return
+    flags, shot = cloud.no_return, cloud.shot
+    intensity = cloud.intensity
     if keep is not None:
         points = points[keep]
         origins = origins[keep] if origins.ndim == 2 else origins
         flags = flags[keep] if flags is not None else None
+        shot = shot[keep] if shot is not None else None
+        intensity = intensity[keep] if intensity is not None else None
     if points.shape[0] == 0:
         bounds = ", ".join(f"{a} [{lo[k]}, {hi[k]}]" for k, a in enumerate("xyz"))
         raise ScanDropped(
@@ -177,7 +273,43 @@ def place_scan(
             points_dropped=dropped,
         )
     deskewed = bool(settings.deskew and cloud.time_offset is not None)
-    return PlacedScan(stamp, points, origins, deskewed, dropped, flags)
+    return PlacedScan(
+        stamp, points, origins, deskewed, dropped, flags, intensity, cloud.intensity_field, shot
+    )
+
+
+def echo_rays(placed: PlacedScan, settings: SensorModelSection) -> PlacedScan:
+    """A placed scan whose points carry shots (``shot``) as the core's rays, one per echo
+    (``echoes.shot_segments``: a shot's later echoes continue its ray past the blind
+    stretch; only the first echoes with ``first_echo_only``); unchanged without shots.
+    Raises ScanDropped ``empty`` when no ray is left."""
+    if placed.shot is None:
+        return placed
+    seg = echoes.shot_segments(
+        placed.points,
+        placed.origins,
+        placed.shot,
+        placed.no_return,
+        settings.echo_blind_stretch,
+        settings.core("max_range"),
+        settings.min_range,
+        settings.first_echo_only,
+    )
+    dropped = dict(placed.points_dropped)
+    for reason, count in seg.dropped.items():
+        dropped[reason] = dropped.get(reason, 0) + count
+    if seg.points.shape[0] == 0:
+        raise ScanDropped("empty", "no echo of any shot is usable", points_dropped=dropped)
+    return replace(
+        placed,
+        points=seg.points,
+        origins=seg.origins,
+        points_dropped=dropped,
+        no_return=seg.no_return,
+        intensity=None if placed.intensity is None else placed.intensity[seg.order],
+        shot=seg.shot,
+        continued=seg.continued if seg.continued.any() else None,
+    )
 
 
 def band_mask(

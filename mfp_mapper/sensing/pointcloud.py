@@ -16,6 +16,8 @@ from typing import Any, Literal, Protocol
 import numpy as np
 from numpy.typing import ArrayLike, DTypeLike, NDArray
 
+from mfp_mapper.sensing import echoes
+
 INT8 = 1
 UINT8 = 2
 INT16 = 3
@@ -53,6 +55,10 @@ points is usable and the first point is taken to be at the header stamp.
 """
 RING_FIELDS = ("ring", "channel")
 """Beam index fields recognised (Velodyne/Ouster ``ring``, Hesai/Nebula ``channel``)."""
+ECHO_FIELDS = ("return_type", "azimuth", "tag", "line", "target_index", "target_count")
+"""Fields that tell which points are echoes of one laser shot (``sensing.echoes``): Nebula
+``return_type`` with ``channel`` and ``azimuth``; Livox ``tag`` (return number in bits 4-5)
+with ``line``; ``target_index`` / ``target_count`` of terrestrial scan exports."""
 RELATIVE_LIMIT = 1.0
 """Offsets (s) all within +-this are relative to the header stamp."""
 ABSOLUTE_TOLERANCE = 2.0
@@ -83,6 +89,11 @@ class FieldSpec:
     offset: int
     datatype: int
     count: int = 1
+
+
+INTENSITY_FIELDS = ("reflectivity", "intensity")
+"""Fields read as a point's return intensity, the first a cloud has (``ParsedCloud.intensity``;
+``sensing.reflectivity`` bins them)."""
 
 
 @dataclass
@@ -116,6 +127,15 @@ class ParsedCloud:
     """Points with a finite position but a NaN/Inf time (counted in ``nonfinite``)."""
     unknown_time_field: str | None = None
     """A field that looks like per-point time but is not in ``TIME_FIELDS`` (no de-skew)."""
+    intensity_field: str | None = None
+    """Which field ``intensity`` holds (``sensing.reflectivity.INTENSITY_FIELDS``: Ouster's
+    ``reflectivity`` when present, else ``intensity``); None when neither is there."""
+    shot: NDArray[np.int64] | None = None
+    """Points with equal values are echoes of one laser shot (-1: of a shot whose first
+    echo is missing); None: every point is its own shot (``sensing.echoes``)."""
+    echo_field: str | None = None
+    """The field the shots were read from (``return_type``, ``tag``, ``target_index``, or
+    ``second_return`` for two clouds paired by pixel), when ``shot`` is set."""
 
     def __len__(self) -> int:
         return int(self.xyz.shape[0])
@@ -170,18 +190,76 @@ def parse_pointcloud2(msg: Any, header_stamp: float | None = None) -> ParsedClou
     xyz = _xyz(records)
     time_offset, base = _time_offset(records, msg, header_stamp)
     names = records.dtype.names or ()
+    intensity_name = next((n for n in INTENSITY_FIELDS if n in names), None)
     intensity = (
-        records["intensity"].reshape(-1).astype(np.float32) if "intensity" in names else None
+        None if intensity_name is None else records[intensity_name].reshape(-1).astype(np.float32)
     )
     ring_name = next((n for n in RING_FIELDS if n in names), None)
     ring = None if ring_name is None else records[ring_name].reshape(-1).astype(np.int64)
     cloud = _drop_invalid(xyz, time_offset, intensity, ring)
     cloud.grid_shape = (int(records.shape[0]), int(records.shape[1]))
+    cloud.intensity_field = intensity_name
     cloud.time_base = base
     if time_offset is not None:
         cloud.time_field = next(n for n in TIME_FIELDS if n in names)
     cloud.unknown_time_field = unknown_time_field([str(f.name) for f in msg.fields])
+    _read_shots(cloud, records)
     return cloud
+
+
+def _drop_identical(cloud: ParsedCloud) -> None:
+    """Remove the points equal to the one before them on their beam
+    (``echoes.identical_points``: a dual-return driver without a return field), counted as
+    ``identical_return``."""
+    assert cloud.ring is not None
+    twice = echoes.identical_points(cloud.xyz, cloud.ring)
+    if twice.size == 0:
+        return
+    keep = np.ones(len(cloud), dtype=np.bool_)
+    keep[twice] = False
+    cells = np.arange(len(cloud)) if cloud.cell is None else cloud.cell
+    cloud.xyz = cloud.xyz[keep]
+    for name in ("time_offset", "intensity", "ring", "no_return"):
+        values = getattr(cloud, name)
+        if values is not None:
+            setattr(cloud, name, values[keep])
+    cloud.cell = cells[keep]
+    cloud.dropped = {**cloud.dropped, "identical_return": int(twice.size)}
+
+
+def _read_shots(cloud: ParsedCloud, records: NDArray[np.void]) -> None:
+    """Set ``cloud.shot`` from the echo fields of the kept points (``ECHO_FIELDS``)."""
+    names = records.dtype.names or ()
+    if len(cloud) == 0:
+        return
+    if not any(n in names for n in ECHO_FIELDS):
+        if cloud.ring is not None and records.shape[0] == 1:
+            _drop_identical(cloud)
+        return
+
+    def column(name: str) -> NDArray[Any] | None:
+        if name not in names:
+            return None
+        values = records[name].reshape(-1)
+        return values if cloud.cell is None else values[cloud.cell]
+
+    if "target_index" in names and "target_count" in names:
+        index, count = column("target_index"), column("target_count")
+        assert index is not None and count is not None
+        cloud.shot, cloud.echo_field = echoes.target_shots(cloud.xyz, index, count), "target_index"
+    elif "return_type" in names and "azimuth" in names and "channel" in names:
+        channel, azimuth = column("channel"), column("azimuth")
+        assert channel is not None and azimuth is not None
+        cloud.shot, cloud.echo_field = echoes.nebula_shots(channel, azimuth), "return_type"
+    elif "tag" in names:
+        tag = column("tag")
+        assert tag is not None
+        time_name = next((n for n in TIME_FIELDS if n in names), None)
+        shot = echoes.livox_shots(
+            tag, column("line"), None if time_name is None else column(time_name)
+        )
+        if shot is not None:
+            cloud.shot, cloud.echo_field = shot, "tag"
 
 
 def read_xyz(msg: Any) -> NDArray[np.float64]:
@@ -226,7 +304,7 @@ def _check_fields(fields: Mapping[str, _Field], point_step: int) -> None:
                 f"field {f.name!r} ends at byte {end} but point_step is {point_step}: "
                 "every field must fit inside one point"
             )
-    for name in ("x", "y", "z", "intensity", *TIME_FIELDS, *RING_FIELDS):
+    for name in ("x", "y", "z", *INTENSITY_FIELDS, *TIME_FIELDS, *RING_FIELDS, *ECHO_FIELDS):
         if name in fields and fields[name].count > 1:
             raise CloudFormatError(f"field {name!r} has count {fields[name].count}: expected 1")
 
@@ -247,7 +325,9 @@ def _records(msg: Any, fields: Mapping[str, _Field]) -> NDArray[np.void]:
         )
     order = ">" if msg.is_bigendian else "<"
     used = [
-        name for name in ("x", "y", "z", "intensity", *TIME_FIELDS, *RING_FIELDS) if name in fields
+        name
+        for name in ("x", "y", "z", *INTENSITY_FIELDS, *TIME_FIELDS, *RING_FIELDS, *ECHO_FIELDS)
+        if name in fields
     ]
     dtype = np.dtype(
         {

@@ -144,8 +144,12 @@ def test_unobserved_hit_probability_bounds_every_unhit_voxel() -> None:
     assert np.all(model.hit_probability(s, np.zeros_like(s), res) < prior)
 
 
-@pytest.mark.parametrize("threads", [1, 2])
-def test_mapper_trinary_grid_marks_the_wall_and_matches_the_reference(threads: int) -> None:
+@pytest.mark.parametrize(("threads", "free"), [(1, None), (2, None), (1, 0.02), (1, 0.2)])
+def test_mapper_trinary_grid_marks_the_wall_and_matches_the_reference(
+    threads: int, free: float | None
+) -> None:
+    """The compiled grid (with its shortcut for voxels surely free) against the per-voxel
+    reference; ``free``: the free threshold (None: the unobserved voxel's probability)."""
     res, z_min, z_max = 0.1, 0.3, 2.0
     mapper = Mapper(res, max_range=30.0, threads=threads)
     world = BoxWorld()
@@ -155,7 +159,8 @@ def test_mapper_trinary_grid_marks_the_wall_and_matches_the_reference(threads: i
         rng = world.cast(origin, dirs)
         keep = np.isfinite(rng) & (rng < 30.0)
         mapper.integrate(origin + dirs[keep] * rng[keep, None], origin, float(k))
-    thresholds = (DEFAULT_OCCUPIED_THRESHOLD, unobserved_hit_probability(res))
+    free_threshold = unobserved_hit_probability(res) if free is None else free
+    thresholds = (DEFAULT_OCCUPIED_THRESHOLD, free_threshold)
     grid = mapper.hit_probability_grid(z_min, z_max, trinary=thresholds)
     band = ([-np.inf, -np.inf, z_min], [np.inf, np.inf, z_max])
     vox = mapper.voxels(bounds=band)
@@ -166,7 +171,8 @@ def test_mapper_trinary_grid_marks_the_wall_and_matches_the_reference(threads: i
     # the face x = 5 of the box, y 3..5: every cell of it occupied (one of the two columns)
     for y in np.arange(3.05, 5.0, 0.1):
         assert max(grid.value_at(4.95, y), grid.value_at(5.05, y)) == 100, y
-    assert grid.value_at(2.0, 0.5) == 0  # crossed by rays, never a return
+    if free is None:
+        assert grid.value_at(2.0, 0.5) == 0  # crossed by rays, never a return
     assert grid.value_at(6.5, 4.5) == UNKNOWN  # inside the box
     assert set(np.unique(grid.data)) == {-1, 0, 100}
     raw = mapper.hit_probability_grid(z_min, z_max)

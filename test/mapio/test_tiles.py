@@ -126,3 +126,42 @@ def test_damaged_tiled_maps_are_clear_errors(mapper: Mapper, tmp_path) -> None: 
     save_map(other, root / entry.file)
     with pytest.raises(MapFileError, match="different resolution"):
         load_map(root)
+
+
+@pytest.mark.parametrize("output", ["merged.npz", "merged_tiles"])
+def test_merging_tiled_maps_merges_their_reflectivity_exactly(tmp_path, output: str) -> None:  # type: ignore[no-untyped-def]
+    """``mfp-mapper merge`` of two tiled maps (scans split between them, out of order, with
+    decay) holds the histograms of one map of all the scans."""
+    from mfp_mapper.cli import main
+    from mfp_mapper.core.reflectivity import ScanReflectivity
+    from mfp_mapper.sensing.reflectivity import bins_for
+
+    bins = bins_for("intensity", 8)
+    assert bins is not None
+    scans = list(anchors_scene(n_scans=4, azimuths=120))
+    rng = np.random.default_rng(4)
+    values = [rng.integers(0, 256, len(points)).astype(np.float32) for points, _ in scans]
+    stamps = [100.0, 103.0, 101.0, 102.0]
+
+    def map_of(picks: list[int]) -> Mapper:
+        m = Mapper(RES, decay_time=20.0, max_range=30.0, origin=(0.0, 0.0, 0.0))
+        for k in picks:
+            points, origin = scans[k]
+            m.integrate(points, origin, stamps[k], reflectivity=ScanReflectivity(values[k], bins))
+        return m
+
+    both = map_of([0, 1, 2, 3])
+    save_map(map_of([0, 1]), tmp_path / "a", tile_blocks=TILE_BLOCKS)
+    save_map(map_of([2, 3]), tmp_path / "b", tile_blocks=TILE_BLOCKS)
+    out = tmp_path / output
+    assert main(["merge", str(tmp_path / "a"), str(tmp_path / "b"), "-o", str(out)]) == 0
+    merged = load_map(out)
+    want, got = both.stored_reflectivity(), merged.stored_reflectivity()
+    assert want is not None and got is not None and len(want) == len(got) and got.bins == bins
+    centers = (want.ijk + 0.5) * RES
+    a, b = both.reflectivity(centers, 104.0), merged.reflectivity(centers, 104.0)
+    assert a is not None and b is not None
+    np.testing.assert_allclose(a[1], b[1], rtol=1e-5)
+    np.testing.assert_allclose(
+        b[1].sum(axis=1), merged.query(centers, 104.0).n, rtol=1e-5
+    )  # totals are still the voxels' n

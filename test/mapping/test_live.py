@@ -298,3 +298,62 @@ def test_the_two_threads_map_what_the_offline_loop_maps() -> None:
     assert np.array_equal(live.ijk, ref.ijk)
     np.testing.assert_allclose(live.s, ref.s, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(live.n, ref.n, rtol=1e-5, atol=1e-6)
+
+
+def _spied_worker() -> tuple[LiveIntegrator, list[tuple[str, tuple]]]:
+    """A worker whose Mapper records every ``integrate`` and ``stage`` call (the path each
+    scan took and its inputs)."""
+    worker, _ = _worker(odom_wait=5.0, cloud_queue_size=10)
+    mapper, calls = worker.mapper, []
+    for name in ("integrate", "stage"):
+        real = getattr(mapper, name)
+
+        def spy(*args: Any, _name: str = name, _real: Any = real, **kw: Any) -> Any:
+            calls.append((_name, args))
+            return _real(*args, **kw)
+
+        setattr(mapper, name, spy)
+    return worker, calls
+
+
+def _scans(worker: LiveIntegrator, count: int) -> None:
+    for t in np.arange(T0 - 0.1, T0 + 0.1 * count + 0.3, 0.1):
+        worker.add_odometry(odom_sample(float(t)))
+    for k in range(count):
+        xyz = np.random.default_rng(k).uniform(-6.0, 6.0, (400, 3)).astype(np.float32)
+        cols = {a: xyz[:, i] for i, a in enumerate("xyz")}
+        worker.submit(cloud_message_from_columns(cols, T0 + 0.1 * k, "base_link"))
+    drain(worker)
+    assert worker.counters.clouds_integrated == count
+
+
+def test_quick_scans_integrate_straight_into_the_map_bit_for_bit() -> None:
+    """The first scan (no time per ray known yet) is staged and merged, the next ones,
+    expected well within ``DIRECT_MAX_S``, go through ``Mapper.integrate``: the map is bit
+    for bit that of the same calls on a Mapper of its own."""
+    worker, calls = _spied_worker()
+    _scans(worker, 4)
+    assert [name for name, _ in calls] == ["stage", "integrate", "integrate", "integrate"]
+    reference = Mapper(0.2)
+    for _, args in calls:
+        reference.integrate(*args)
+    got, want = worker.mapper.stored_voxels(), reference.stored_voxels()
+    for field in ("ijk", "s", "n", "t_last"):
+        assert np.array_equal(getattr(got, field), getattr(want, field)), field
+
+
+def test_scans_expected_to_hold_the_map_long_are_staged(monkeypatch: Any) -> None:
+    """With ``DIRECT_MAX_S`` 0 every scan is staged and merged (readers wait for merges
+    only): the map is bit for bit that of ``stage`` + ``commit`` of the same scans."""
+    import mfp_mapper.mapping.live as live
+
+    monkeypatch.setattr(live, "DIRECT_MAX_S", 0.0)
+    worker, calls = _spied_worker()
+    _scans(worker, 3)
+    assert [name for name, _ in calls] == ["stage"] * 3
+    reference = Mapper(0.2)
+    for _, args in calls:
+        reference.commit(reference.stage(*args))
+    got, want = worker.mapper.stored_voxels(), reference.stored_voxels()
+    for field in ("ijk", "s", "n", "t_last"):
+        assert np.array_equal(getattr(got, field), getattr(want, field)), field

@@ -102,3 +102,37 @@ def test_counts_of_a_dropped_empty_cloud_keep_its_points() -> None:
 def test_unknown_reasons_are_refused() -> None:
     with pytest.raises(ValueError, match="unknown drop reason"):
         pipeline.ScanDropped("bad_cloud", "old vocabulary")
+
+
+def test_intensities_go_through_the_loop_into_the_histograms() -> None:
+    """A cloud's ``reflectivity`` (Ouster) wins over its ``intensity``; points left out by the
+    height band take their intensity with them; the map keeps its first field, a cloud of
+    another field is integrated without histograms; ``reflectivity_bins`` 0 keeps none."""
+    n = 50
+    ouster = _cloud(
+        n, reflectivity=np.full(n, 100.0, np.float32), intensity=np.full(n, 3.0, np.float32)
+    )
+    velodyne = _cloud(n, T0 + 0.2, intensity=np.arange(n, dtype=np.float32))
+    cloud = pipeline.parse_scan(ouster)
+    assert cloud.intensity_field == "reflectivity" and np.all(cloud.intensity == 100.0)
+    band = PlacementSection(point_cloud_max_z=3.0)
+    mapper = Mapper(0.2)
+    kept = []
+    for msg in (ouster, velodyne):
+        parsed = pipeline.parse_scan(msg)
+        placed = pipeline.place_scan(
+            parsed, pipeline.scan_stamp(msg), _poses(T0, T0 + 0.2), Extrinsic(), band
+        )
+        assert placed.intensity is not None and len(placed.intensity) == len(placed.points)
+        kept.append(len(placed.points))
+        loop.integrate_scan(mapper, placed)
+        if msg is velodyne:
+            assert loop.scan_reflectivity(mapper, placed) is None  # another field
+    table = mapper.stored_reflectivity()
+    assert table is not None and table.bins.field == "reflectivity"
+    assert table.counts[:, 6].sum() == table.counts.sum()  # 100 is in [64, 128)
+    assert table.counts.sum() == kept[0] < n  # every return of the band, the Ouster cloud's
+    off = Mapper(0.2, reflectivity_bins=0)
+    loop.integrate_scan(off, placed)
+    assert off.stored_reflectivity() is None
+    assert pipeline.parse_scan(_cloud(n)).intensity_field is None

@@ -73,3 +73,57 @@ def test_ply_readable_by_open3d_when_installed(mapper: Mapper, tmp_path: Path) -
     path = tmp_path / "map.ply"
     count = export_ply(mapper, path)
     assert len(o3d.io.read_point_cloud(str(path)).points) == count
+
+
+def test_ply_and_query_of_a_map_with_reflectivity(tmp_path: Path) -> None:
+    """The reflectivity properties (mean intensity, fullest bin) of the PLY, one file or
+    tiled, and the query rows' histograms, against the map's own histograms."""
+    from mfp_mapper.cli import main
+    from mfp_mapper.core.reflectivity import ReflectivityBins, ScanReflectivity
+    from mfp_mapper.mapio.loading import save_map
+
+    bins = ReflectivityBins("intensity", (2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0))
+    m = Mapper(0.5, frame_id="odom")
+    rng = np.random.default_rng(1)
+    pts = rng.uniform([2, -2, 0], [6, 2, 2], (500, 3))
+    values = np.where(pts[:, 0] < 4.0, 3.0, 100.0)  # near: bin 1; far: bin 6
+    m.integrate(pts, np.zeros(3), 1.0, reflectivity=ScanReflectivity(values, bins))
+    vox = m.voxels()
+    order_ref = np.lexsort((vox.centers[:, 2], vox.centers[:, 1], vox.centers[:, 0]))
+    for tiled in (False, True):
+        path = tmp_path / ("map.ply" if not tiled else "tiled.ply")
+        if tiled:
+            save_map(m, tmp_path / "tiled_map", tile_blocks=1)
+            assert main(["export", str(tmp_path / "tiled_map"), "-o", str(path)]) == 0
+        else:
+            export_ply(m, path)
+        ply = read_ply(path)
+        order = np.lexsort((ply["z"], ply["y"], ply["x"]))
+        fullest = ply["reflectivity_bin"][order]
+        hit = vox.n[order_ref] > 0
+        near = vox.centers[order_ref, 0] < 4.0
+        assert np.all(fullest[~hit] == -1) and np.isnan(ply["reflectivity"][order][~hit]).all()
+        assert set(fullest[hit & near].tolist()) <= {1.0, 6.0}  # a voxel across x = 4 m
+        assert np.all(fullest[hit & (vox.centers[order_ref, 0] < 3.5)] == 1)
+        assert np.all(fullest[hit & (vox.centers[order_ref, 0] > 4.5)] == 6)
+        assert ply["reflectivity"][order][hit & (vox.centers[order_ref, 0] > 4.5)] == pytest.approx(
+            np.sqrt(64.0 * 128.0)
+        )
+    # query: the histogram of the voxel holding a point
+    out = tmp_path / "q.json"
+    save_map(m, tmp_path / "m.npz")
+    far = vox.centers[order_ref][hit & (vox.centers[order_ref, 0] > 4.5)][0]
+    import contextlib
+    import io
+    import json
+
+    buffer = io.StringIO()
+    with contextlib.redirect_stdout(buffer):
+        assert main(["query", str(tmp_path / "m.npz"), *map(str, far), "--json"]) == 0
+    row = json.loads(buffer.getvalue())[0]["reflectivity"]
+    assert row["field"] == "intensity" and row["most_likely_bin"] == 6
+    assert sum(row["counts"]) == pytest.approx(m.query(far[None]).n[0])
+    plain = Mapper(0.5)
+    plain.integrate(pts, np.zeros(3), 1.0)
+    export_ply(plain, out.with_suffix(".ply"))
+    assert "reflectivity" not in read_ply(out.with_suffix(".ply"))

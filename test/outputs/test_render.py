@@ -81,3 +81,33 @@ def test_mean_and_min_evidence(hall_rays, tmp_path: Path) -> None:  # type: igno
     assert np.isnan(strict.top_down).sum() > np.isnan(top.top_down).sum()
     with pytest.raises(ValueError, match="most-likely' or 'mean"):
         render_map(mapper, tmp_path / "bad", value="median")
+
+
+def test_reflectivity_view_shows_the_ground_s_intensity(tmp_path: Path) -> None:
+    """A floor whose left half returns intensity 3 and right half 100, under a roof of
+    intensity 200: the view draws the floor (the lowest voxel with returns per column)."""
+    from mfp_mapper.core.reflectivity import ReflectivityBins, ScanReflectivity
+
+    bins = ReflectivityBins("intensity", (2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0))
+    rng = np.random.default_rng(2)
+    floor = np.column_stack([rng.uniform(-4, 4, 4000), rng.uniform(-4, 4, 4000), np.zeros(4000)])
+    roof = floor + [0.0, 0.0, 3.0]
+    points = np.vstack([floor, roof])
+    values = np.concatenate([np.where(floor[:, 0] < 0, 3.0, 100.0), np.full(4000, 200.0)])
+    mapper = Mapper(0.5)
+    mapper.integrate(
+        points, np.array([0.0, 0.0, 1.5]), 0.0, reflectivity=ScanReflectivity(values, bins)
+    )
+    result = render_map(mapper, tmp_path, z_min=-1.0, z_max=4.0)
+    assert tmp_path / "reflectivity_topdown.png" in result.files
+    grid = result.reflectivity
+    assert grid is not None
+    x0 = result.extent[0]
+    columns = x0 + (np.arange(grid.shape[0]) + 0.5) * (result.extent[1] - x0) / grid.shape[0]
+    left, right = grid[columns < -0.5], grid[columns > 0.5]
+    assert np.nanmax(left) == pytest.approx(np.sqrt(8.0))
+    assert np.nanmin(left) == pytest.approx(np.sqrt(8.0))
+    assert np.nanmin(right) == pytest.approx(np.sqrt(64.0 * 128.0))
+    plain = Mapper(0.5)
+    plain.integrate(points, np.array([0.0, 0.0, 1.5]), 0.0)
+    assert render_map(plain, tmp_path / "plain").reflectivity is None

@@ -110,7 +110,9 @@ class NodeProcess:
         name: str | None = None,
         params_file: Path | None = PARAMS_FILE,
         env: dict[str, str] | None = None,
+        cwd: Path | None = None,
     ) -> None:
+        """``cwd``: the checkout whose ``mfp_mapper`` runs (default: this one)."""
         args = [sys.executable, "-m", "mfp_mapper.node", "--ros-args"]
         if name:
             args += ["-r", f"__node:={name}"]
@@ -125,7 +127,7 @@ class NodeProcess:
             env={**ros_env(domain), **(env or {})},
             stdout=self._log,
             stderr=subprocess.STDOUT,
-            cwd=ROOT,
+            cwd=cwd or ROOT,
         )
 
     @property

@@ -219,6 +219,46 @@ def test_map_clouds_published_in_the_odometry_frame(sim: Sim, feeder: Feeder) ->
     assert np.all(xyz[:, 2] > -0.5)  # nothing below the ground: poses and extrinsic applied
 
 
+def test_reflectivity_cloud_and_query(sim: Sim, feeder: Feeder) -> None:
+    """~/reflectivity: the voxels holding returns of the Velodyne-layout sweeps (intensity 10,
+    the map's field: the first cloud's), in bin [8, 16) of the log-spaced edges; ~/query
+    answers each point's histogram. The Ouster-layout sweeps' ``reflectivity`` is another
+    field: their returns count in n, not in the histograms."""
+    from mfp_mapper_msgs.srv import QueryMap
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2
+
+    got: list[Any] = []
+    latched = QoSProfile(
+        depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
+    )
+    sub = feeder.node.create_subscription(
+        PointCloud2, f"{feeder.ns}/reflectivity", got.append, latched
+    )
+    try:
+        assert feeder.wait(lambda: bool(got) and got[-1].width > 100, 20.0)
+        msg = got[-1]
+        assert msg.header.frame_id == "odom"
+        assert [f.name for f in msg.fields] == ["x", "y", "z", "reflectivity", "reflectivity_bin"]
+        cloud = read_cloud(msg)
+        assert np.all(cloud["reflectivity_bin"] == 3)
+        np.testing.assert_allclose(cloud["reflectivity"], np.sqrt(8.0 * 16.0), rtol=1e-6)
+        client = feeder.node.create_client(QueryMap, f"{feeder.ns}/query")
+        assert client.wait_for_service(10.0)
+        request = QueryMap.Request()
+        request.points_xyz = [float(cloud[a][0]) for a in "xyz"] + [0.0, 0.0, 50.0]
+        response = feeder.call(client, request)
+        assert response.success, response.message
+        assert response.reflectivity_field == "intensity"
+        assert list(response.reflectivity_edges) == [2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0]
+        counts = np.asarray(response.reflectivity_counts).reshape(2, 8)
+        assert counts[0, 3] > 0 and counts[0].sum() == counts[0, 3] and counts[1].sum() == 0
+        mean = np.asarray(response.reflectivity_mean)
+        assert mean[0] == pytest.approx(np.sqrt(128.0)) and np.isnan(mean[1])
+    finally:
+        feeder.node.destroy_subscription(sub)
+
+
 def _grid(resp: Any) -> tuple[np.ndarray, tuple[float, float], float]:
     info = resp.map.info
     data = np.array(resp.map.data, dtype=np.int8).reshape(info.height, info.width)

@@ -1,0 +1,99 @@
+"""The node's map clouds over real DDS: exactly the voxels they should hold.
+
+The node runs in its own process; this process drives a parked robot (odometry at a fixed
+position away from the map origin) through ``synthetic.BoxWorld``, then compares the
+``~/degree_of_occupancy`` cloud published after the last scan with the node's own map,
+saved by ``~/save_map`` and read back: the voxels with at least ``min_degree_of_occupancy``
+whose centre lies within ``publish_radius`` of the robot, each once, with its degree of
+occupancy. The map is published from a thread of its own while scans integrate
+(``mapping.live``), so this also checks that what goes out is a whole, consistent map.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from ros_helpers import Feeder, NodeProcess, Trajectory, read_cloud, stamp_msg
+from test_node import NODE_PARAMS, RES, T0, Sim
+
+from mfp_mapper.mapio import load_map
+
+pytestmark = pytest.mark.ros
+
+ROBOT = np.array([1.3, -0.7, 0.0])
+"""Where the parked robot's base stands in the odometry (map) frame."""
+RADIUS = 9.0
+SCANS = 4
+
+
+class ParkedTrajectory(Trajectory):
+    """The base standing still at ``ROBOT``, facing +x."""
+
+    def __init__(self, t0: float) -> None:
+        super().__init__(t0, velocity=(0.0, 0.0, 0.0), yaw_rate=0.0)
+
+    def position(self, t: np.ndarray | float) -> np.ndarray:
+        return super().position(t) + ROBOT
+
+
+def _stamp_seconds(stamp: Any) -> float:
+    return stamp.sec + stamp.nanosec * 1e-9
+
+
+def test_radius_limited_cloud_holds_exactly_the_voxels_near_the_robot(
+    ros_domain: int, tmp_path: Path
+) -> None:
+    from std_srvs.srv import Trigger
+
+    map_path = tmp_path / "map.npz"
+    params = {**NODE_PARAMS, "publish_radius": RADIUS, "map_path": str(map_path)}
+    node = NodeProcess(ros_domain, params, tmp_path / "node.log")
+    feeder = Feeder()
+    try:
+        assert feeder.wait_connected(30.0), f"node not discovered:\n{node.log()[-3000:]}"
+        assert feeder.wait(lambda: feeder.status is not None, 10.0)
+        sim = Sim(feeder)
+        sim.traj = ParkedTrajectory(T0)
+        starts = [T0 + 0.1 + 0.2 * k for k in range(SCANS)]
+        for start in starts:
+            sim.send_scan(start)
+        status = feeder.wait_status(lambda st: st["clouds_integrated"] >= SCANS, 40.0)
+        assert status["clouds_integrated"] == SCANS, f"{status}\n{node.log()[-3000:]}"
+        # the cloud of the last scan's map (its stamp is the map's last stamp)
+        last = _stamp_seconds(stamp_msg(starts[-1]))
+        assert feeder.wait(
+            lambda: feeder.doo is not None and _stamp_seconds(feeder.doo.header.stamp) >= last,
+            20.0,
+        ), node.log()[-3000:]
+        cloud = read_cloud(feeder.doo)
+        saved = feeder.call(feeder.save, Trigger.Request(), timeout=30.0)
+        assert saved.success, saved.message
+    finally:
+        feeder.destroy()
+        node.stop()
+
+    mapper = load_map(map_path)
+    every = mapper.voxels(min_doo=NODE_PARAMS["min_degree_of_occupancy"])
+    near = np.sum((every.centers - ROBOT) ** 2, axis=1) <= RADIUS**2
+    assert near.sum() > 50 and (~near).sum() > 50, "the radius must cut the map"
+    expected = every.select(near)
+
+    xyz = np.stack([cloud[a] for a in "xyz"], axis=1).astype(np.float64)
+    got_ijk = np.floor(xyz / RES).astype(np.int64)
+    want_ijk = np.floor(expected.centers / RES).astype(np.int64)
+    assert len(np.unique(got_ijk, axis=0)) == len(got_ijk), "a voxel published twice"
+    got_order, want_order = np.lexsort(got_ijk.T), np.lexsort(want_ijk.T)
+    assert np.array_equal(got_ijk[got_order], want_ijk[want_order])
+    np.testing.assert_allclose(
+        cloud["degree_of_occupancy"][got_order],
+        expected.most_likely_doo[want_order],
+        rtol=1e-6,
+    )
+    np.testing.assert_allclose(xyz[got_order], expected.centers[want_order], atol=1e-5)
+    print(
+        f"published {len(xyz)} of the map's {len(every.centers)} voxels with DoO >= "
+        f"{NODE_PARAMS['min_degree_of_occupancy']}: exactly those within {RADIUS} m of the robot"
+    )
