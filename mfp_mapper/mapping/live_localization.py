@@ -211,6 +211,10 @@ class LiveLocalizer:
         self.normals_computed = 0
         self._building: threading.Thread | None = None
         self._built_at = -math.inf
+        self._build_running = False
+        """A build thread runs (under ``lock``)."""
+        self._rebuild_due = False
+        """A forced build came while one ran: that thread builds again (under ``lock``)."""
         self._searching = False
         """A wide search runs in the background (``localize`` with ``done``)."""
         self._searched: PlacedScan | Exception | None = None
@@ -250,19 +254,32 @@ class LiveLocalizer:
 
     def build_in_background(self, mapper: Mapper, whole_map: Any, force: bool = False) -> bool:
         """Start ``build`` in a thread of its own unless one runs or (without ``force``) the
-        last started less than ``rebuild_period`` ago; True when started."""
+        last started less than ``rebuild_period`` ago; True when started. ``force`` while one
+        runs (a reset, a cleared box during a build): that thread builds once more after it,
+        from the map as it is then (the build under way may have copied the map before)."""
         now = time.monotonic()
-        if self._building is not None and self._building.is_alive():
-            return False
-        if not force and now - self._built_at < self.settings.rebuild_period:
-            return False
-        self._built_at = now
+        with self.lock:
+            if self._build_running:
+                self._rebuild_due = self._rebuild_due or force
+                return False
+            if not force and now - self._built_at < self.settings.rebuild_period:
+                return False
+            self._built_at = now
+            self._build_running = True
 
         def run() -> None:
-            try:
-                self.build(mapper, whole_map)
-            except Exception as err:  # a failed build keeps the previous field
-                self._log(f"building the localization field failed: {type(err).__name__}: {err}")
+            while True:
+                try:
+                    self.build(mapper, whole_map)
+                except Exception as err:  # a failed build keeps the previous field
+                    self._log(
+                        f"building the localization field failed: {type(err).__name__}: {err}"
+                    )
+                with self.lock:
+                    if not self._rebuild_due:
+                        self._build_running = False
+                        return
+                    self._rebuild_due = False
 
         self._building = threading.Thread(target=run, name="mfp_localization_field", daemon=True)
         self._building.start()

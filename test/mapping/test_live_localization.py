@@ -383,3 +383,22 @@ def test_a_right_initial_pose_is_confirmed_without_a_gain(at_start: bool) -> Non
     _, estimate = loc.pose_estimate()
     assert estimate is not None
     assert np.linalg.norm(estimate[1][:3, 3] - truth.translation) < 0.02, estimate
+
+
+def test_a_forced_build_during_a_build_builds_again_after_it() -> None:
+    """A reset while the field is built from the map before it: the forced rebuild is not
+    skipped (the node then stayed ``initializing`` on the old field for ever); the thread
+    under way builds once more, from the empty map: ``waiting_for_map``."""
+    import time
+
+    _, _, mapper = _scene_map("box")
+    worker, _ = _worker(mapper)
+    loc = _correction(worker).localizer
+    assert loc.build_in_background(mapper, worker.whole_map, force=True)
+    time.sleep(0.05)  # the map's statistics copied; the pyramid being computed
+    with worker.whole_map:
+        mapper.reset()
+    assert not loc.build_in_background(mapper, worker.whole_map, force=True)  # one runs
+    loc.wait_built(60.0)
+    report = loc.report()
+    assert report["state"] == "waiting_for_map" and report["field_voxels"] == 0, report
