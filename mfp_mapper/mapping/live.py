@@ -42,14 +42,9 @@ import numpy as np
 from mfp_mapper.config.frames import frame_name
 from mfp_mapper.config.sections import PlacementSection, SensorModelSection
 from mfp_mapper.core.mapper import IntegrationSummary, Mapper
+from mfp_mapper.mapping import loop
 from mfp_mapper.mapping.live_localization import pose_matrix
-from mfp_mapper.mapping.loop import (
-    PreparedScan,
-    ScanCounts,
-    ScanLoop,
-    integrate_scan,
-    merge_scan,
-)
+from mfp_mapper.mapping.loop import PreparedScan, ScanCounts, ScanLoop
 from mfp_mapper.mapping.pose_correction import NoCorrection, PoseCorrection
 from mfp_mapper.mapping.whole_map import MERGE_PAUSE_S, WholeMap
 from mfp_mapper.sensing import pipeline
@@ -216,9 +211,9 @@ class LiveIntegrator:
         rays = len(placed.points)
         if 0.0 < self._seconds_per_ray * rays <= DIRECT_MAX_S:
             with self.whole_map:
-                summary = integrate_scan(mapper, placed)
+                summary = loop.integrate_scan(mapper, placed)
         else:
-            summary = merge_scan(mapper, placed, self.whole_map, self._let_readers_in)
+            summary = loop.merge_scan(mapper, placed, self.whole_map, self._let_readers_in)
         if rays:  # down at once (the first scans load kernels and fault memory in)
             per_ray, mean = summary.cpu_seconds / rays, self._seconds_per_ray
             self._seconds_per_ray = per_ray if per_ray < mean else _average(mean, per_ray)
