@@ -5,23 +5,24 @@ transforms to its pose inputs (``worker.pose_inputs``, a ``PoseInputs``). Two th
 the scan pipeline, in order: the worker parses and places each cloud, then hands it to the
 walker, which integrates it while the worker prepares the next one (the walk releases the
 GIL; the worker stays at most one placed scan ahead; in localization mode the worker aligns
-and integrates each scan itself). A scan expected to take at most ``DIRECT_MAX_S`` (its rays
-times the recent CPU seconds per ray: a busy machine that slows every scan down must not
-switch to the slower staged path) is integrated straight into the map under ``whole_map``
-(``Mapper.integrate``); a longer one is walked into a store of its own without any lock
-(``Mapper.stage``), then added to the map in one merge (``Mapper.commit``) that lets queries
-in between chunks. Staging costs a second pass over every block the scan touched: 2.1x the
-direct integration for a VLP-32C scan at 0.1 m, which touches ~147k blocks, nearly the
-whole map (docs/performance.md). A reader that needs whole scans (GetMap, saving, reset)
-takes ``whole_map``; a query takes ``map_lock`` alone: either waits at most
-``DIRECT_MAX_S``, or for a merge, never for a long scan. A cloud its
-poses do not cover yet waits (at most ``odom_wait`` seconds) in a list of its own while
-the clouds behind it go on: **no head-of-line blocking**, and when
-the queue is full the oldest *waiting* cloud is dropped before any placeable one. A thread
-of its own calls ``publish`` (given to the constructor or ``set_publish``) when
-``request_publish`` asked for it, so a cloud never waits for a publication and the
-executor never waits for the map. Everything is counted under the pipeline's names
-(``pipeline.DROP_REASONS``).
+and integrates each scan itself, a wide search running in the background meanwhile: the
+worker keeps taking clouds, keeps the newest for after the search and drops the older ones
+``superseded``, never ``queue_full`` for the search's sake). A scan expected to take at most
+``DIRECT_MAX_S`` (its rays times the recent CPU seconds per ray: a busy machine that slows
+every scan down must not switch to the slower staged path) is integrated straight into the
+map under ``whole_map`` (``Mapper.integrate``); a longer one is walked into a store of its
+own without any lock (``Mapper.stage``), then added to the map in one merge
+(``Mapper.commit``) that lets queries in between chunks. Staging costs a second pass over
+every block the scan touched: 2.1x the direct integration for a VLP-32C scan at 0.1 m, which
+touches ~147k blocks, nearly the whole map (docs/performance.md). A reader that needs whole
+scans (GetMap, saving, reset) takes ``whole_map``; a query takes ``map_lock`` alone: either
+waits at most ``DIRECT_MAX_S``, or for a merge, never for a long scan. A cloud its poses do
+not cover yet waits (at most ``odom_wait`` seconds) in a list of its own while the clouds
+behind it go on: **no head-of-line blocking**, and when the queue is full the oldest
+*waiting* cloud is dropped before any placeable one. A thread of its own calls ``publish``
+(given to the constructor or ``set_publish``) when ``request_publish`` asked for it, so a
+cloud never waits for a publication and the executor never waits for the map. Everything is
+counted under the pipeline's names (``pipeline.DROP_REASONS``).
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ import math
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -41,14 +42,9 @@ import numpy as np
 from mfp_mapper.config.frames import frame_name
 from mfp_mapper.config.sections import PlacementSection, SensorModelSection
 from mfp_mapper.core.mapper import IntegrationSummary, Mapper
+from mfp_mapper.mapping import loop
 from mfp_mapper.mapping.live_localization import pose_matrix
-from mfp_mapper.mapping.loop import (
-    PreparedScan,
-    ScanCounts,
-    ScanLoop,
-    integrate_scan,
-    merge_scan,
-)
+from mfp_mapper.mapping.loop import PreparedScan, ScanCounts, ScanLoop
 from mfp_mapper.mapping.pose_correction import NoCorrection, PoseCorrection
 from mfp_mapper.mapping.whole_map import MERGE_PAUSE_S, WholeMap
 from mfp_mapper.sensing import pipeline
@@ -56,7 +52,7 @@ from mfp_mapper.sensing.pipeline import PlacedScan
 from mfp_mapper.sensing.pointcloud import ParsedCloud
 from mfp_mapper.sensing.pose_inputs import Log, PoseCounters, PoseInputs
 from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer
-from mfp_mapper.sensing.tf_tree import TfTree
+from mfp_mapper.sensing.tf_tree import TfTree, TransformRecord
 
 if TYPE_CHECKING:
     from mfp_mapper.config.schema import NodeConfig, XyzRpy
@@ -115,7 +111,8 @@ class _Placed:
     item: _Pending
     placed: PlacedScan
     placing: float  # time.monotonic() when its placement began
-    placed_at: float  # and ended
+    placed_at: float  # and ended (localization: and aligned)
+    robot_pose: Callable[[float], np.ndarray | None] | None = None
 
 
 @dataclass
@@ -194,6 +191,8 @@ class LiveIntegrator:
         self._publisher: threading.Thread | None = None
         self._seconds_per_ray = 0.0  # CPU seconds a ray of the last scans took (0: none yet)
         self._handoff: _Placed | None = None  # placed, waiting for the walker (under _cv)
+        self._searching: _Placed | None = None  # its wide search runs in the background
+        self._held: _Placed | None = None  # the newest cloud placed meanwhile (under _cv)
         self._prepare_at = 0.0  # time.monotonic() from which the worker takes the next cloud
         self._walk_s = 0.0  # moving averages (s): a scan's walk + merge, its parse + place
         self._prepare_s = 0.0
@@ -212,9 +211,9 @@ class LiveIntegrator:
         rays = len(placed.points)
         if 0.0 < self._seconds_per_ray * rays <= DIRECT_MAX_S:
             with self.whole_map:
-                summary = integrate_scan(mapper, placed)
+                summary = loop.integrate_scan(mapper, placed)
         else:
-            summary = merge_scan(mapper, placed, self.whole_map, self._let_readers_in)
+            summary = loop.merge_scan(mapper, placed, self.whole_map, self._let_readers_in)
         if rays:  # down at once (the first scans load kernels and fault memory in)
             per_ray, mean = summary.cpu_seconds / rays, self._seconds_per_ray
             self._seconds_per_ray = per_ray if per_ray < mean else _average(mean, per_ray)
@@ -291,9 +290,9 @@ class LiveIntegrator:
         self._wake()
         return ok
 
-    def add_transforms(self, msg: Any, static: bool) -> int:
-        """``poses.add_transforms``, then wake the worker."""
-        kept = self.pose_inputs.add_transforms(msg, static)
+    def add_transforms(self, records: Sequence[TransformRecord], static: bool) -> int:
+        """``pose_inputs.add_transforms`` (one message's transforms), then wake the worker."""
+        kept = self.pose_inputs.add_transforms(records, static)
         self._wake()
         return kept
 
@@ -334,7 +333,8 @@ class LiveIntegrator:
             return self._queued_locked()
 
     def _queued_locked(self) -> int:
-        return len(self._queue) + len(self._waiting) + (self._handoff is not None)
+        pending = (self._handoff, self._searching, self._held)
+        return len(self._queue) + len(self._waiting) + sum(job is not None for job in pending)
 
     def request_publish(self) -> None:
         """Ask the publishing thread to publish (at once unless it is still publishing)."""
@@ -392,15 +392,19 @@ class LiveIntegrator:
         while not self._stop.is_set():
             with self._cv:
                 item = self._next()
-                while item is None and not self._stop.is_set():
+                while item is None and not (self._stop.is_set() or self._search_ended()):
                     wait = RETRY_PERIOD if self._waiting else 0.5
                     if self._queue and self._handoff is None:  # the walker is busy
                         wait = min(wait, max(self._prepare_at - time.monotonic(), 0.001))
                     self._cv.wait(wait)
                     item = self._next()
-                if self._stop.is_set() or item is None:
+                if self._stop.is_set():
                     return
-            self._try(item)
+                ended = self._search_ended()
+            if ended:
+                self._after_search()
+            if item is not None:
+                self._try(item)
 
     def _publish_loop(self) -> None:
         """The publishing thread: ``publish`` whenever ``request_publish`` asked for it
@@ -437,12 +441,15 @@ class LiveIntegrator:
         while time.monotonic() < end:
             with self._cv:
                 item = self._next()
-                if item is None and not self._waiting:
+                ended = self._search_ended()
+                if item is None and not (self._waiting or self._searching or ended):
                     return
-            if item is None:
-                time.sleep(0.005)
-            else:
+            if ended:
+                self._after_search()
+            if item is not None:
                 self._try(item)
+            elif not ended:
+                time.sleep(0.005)
 
     def process(self, item: _Pending) -> bool:
         """Try to integrate one cloud; False when it must wait for poses."""
@@ -513,14 +520,82 @@ class LiveIntegrator:
             self.mapper.frame_id = placement.map_frame  # the run's frame, decided once
         t_place = time.monotonic()
         placed = self.loop.place(prepared, placement.poses, placement.extrinsic)
-        placed = self.correction.correct(placed, _robot_pose(placement))
         self.pose_inputs.note_robot(placement, prepared.stamp, frame_name(cfg.base_frame_id))
-        job = _Placed(item, placed, t_place, time.monotonic())
-        if not self.correction.aligns and self._walker is not None and self._walker.is_alive():
+        job = _Placed(item, placed, t_place, time.monotonic(), _robot_pose(placement))
+        if self.correction.aligns:
+            self._localize(job)
+        elif self._walker is not None and self._walker.is_alive():
             self._hand_over(job)
         else:
-            self._integrate(job)  # drain(), localization: all on the calling thread
+            self._integrate(job)  # drain(): all on the calling thread
         return True
+
+    # --- localization: a wide search never holds the clouds up -------------------------------
+
+    def _localize(self, job: _Placed) -> None:
+        """Align a placed scan and integrate it, on this thread. A wide search runs in the
+        background while the worker thread runs (not under ``drain``): the clouds placed
+        meanwhile are not aligned against a correction about to change; the newest one is
+        kept for after the search, an older one kept is dropped ``superseded``."""
+        with self._cv:
+            if self._searching is not None:
+                stale, self._held = self._held, job
+                if stale is not None:
+                    self._drop_locked(
+                        "superseded",
+                        "placed while the localization's wide search ran, and a newer cloud "
+                        "came: the newest is aligned after the search",
+                    )
+                return
+        background = self._thread is not None and self._thread.is_alive()
+        assert job.robot_pose is not None
+        corrected = self.correction.correct(
+            job.placed, job.robot_pose, self._wake if background else None
+        )
+        if corrected is None:
+            with self._cv:
+                self._searching = job
+            return
+        job.placed, job.placed_at = corrected, time.monotonic()
+        self._integrate(job)
+
+    def _search_ended(self) -> bool:
+        """(under ``_cv``) A background search ended and its cloud waits to be taken."""
+        return self._searching is not None and not self.correction.searching
+
+    def _after_search(self) -> None:
+        """The searched cloud into the map at the correction found, then the newest cloud
+        placed during the search aligned (by tracking once localized: the wide search again
+        else)."""
+        with self._cv:
+            job, self._searching = self._searching, None
+            held, self._held = self._held, None
+        if job is not None:
+            self._guarded(self._integrate_searched, job)
+        if held is not None:
+            self._guarded(self._localize, held)
+
+    def _integrate_searched(self, job: _Placed) -> None:
+        corrected = self.correction.finished()
+        if corrected is None:  # not expected: the search always leaves its cloud
+            raise RuntimeError("the wide search ended without its cloud")
+        job.placed, job.placed_at = corrected, time.monotonic()
+        self._integrate(job)
+
+    def _guarded(self, step: Callable[[_Placed], None], job: _Placed) -> None:
+        """``step(job)`` counted as ``process`` counts a cloud: a drop or an error is
+        counted, never raised."""
+        cpu0, wall0 = time.thread_time(), time.perf_counter()
+        try:
+            step(job)
+        except pipeline.ScanDropped as drop:
+            self._log_drop(drop.reason, drop.detail, self.loop.count_drop(drop))
+        except Exception as err:  # keep the node alive whatever a message holds
+            self._drop("error", f"{type(err).__name__}: {err}")
+        finally:
+            with self._cv:
+                self.counters.integration_cpu += time.thread_time() - cpu0
+                self.counters.integration_wall += time.perf_counter() - wall0
 
     # --- the walker thread: the placed scans into the map, in order --------------------------
 

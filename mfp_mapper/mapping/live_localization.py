@@ -23,8 +23,9 @@ refusals while localized). Before the first acceptance, and when lost, the searc
 the wider ``initial_max_shift`` / ``initial_max_angle``. A refusal for lack of gain
 (``no_gain``, or ``exact_check``: the scan's surfaces constrain every direction and the
 best pose in range is no better than the current one) confirms a localized or lost pose
-(lost -> localized) rather than counting toward lost; it does not end ``initializing``,
-which needs an accepted correction (a pose never confirmed by a gain is not claimed).
+(lost -> localized) rather than counting toward lost; while ``initializing`` it ends it
+only under the checks of a first acceptance below (a right ``/initialpose``, or odometry
+that starts where the map says, finds no gain: without this it stayed ``initializing``).
 
 A gain only says the pose is a local optimum; it does not say the scan belongs there (after
 odometry jumps 5 m a scan still finds a small gain against the wrong walls). So each scan's
@@ -36,10 +37,10 @@ its correction is not applied, its pose is not vouched for, and it counts toward
 (AMCL's short- against long-term likelihood, without the random particles: a jump further
 than the wide search needs an ``/initialpose``).
 
-A first acceptance (after the start or an ``/initialpose``) is claimed only when it fits as
-well as the scans before the ``/initialpose`` did, keeps the robot within the wide window of
-where the evidence put it (``beyond_window``), and is the best of wide searches started just
-beyond the window around it (``PROBES``; a better one is moved to, unclaimed:
+A first acceptance or confirmation (after the start or an ``/initialpose``) is claimed only
+when it fits as well as the scans before the ``/initialpose`` did, keeps the robot within
+the wide window of where the evidence put it (``beyond_window``), and is the best of wide
+searches started just beyond the window around it (``PROBES``; a better one is moved to, unclaimed:
 ``better_elsewhere``). ``sigma`` includes what the grid cannot resolve (``with_grid``).
 """
 
@@ -154,8 +155,10 @@ def move_scan(placed: PlacedScan, m: FloatArray) -> PlacedScan:
 class LiveLocalizer:
     """The correction ``map <- odom`` and its alignment state (module docstring).
 
-    ``localize`` runs on the worker thread; ``initial_pose``, ``transform`` and ``report``
-    from any thread (under ``self.lock``).
+    ``localize`` runs on the worker thread (a wide search, with ``done``, on a thread of its
+    own while the worker holds its clouds back: one alignment at a time); ``initial_pose``,
+    ``transform`` and ``report`` from any thread (under ``self.lock``, never held through an
+    alignment).
     """
 
     def __init__(
@@ -208,6 +211,13 @@ class LiveLocalizer:
         self.normals_computed = 0
         self._building: threading.Thread | None = None
         self._built_at = -math.inf
+        self._build_running = False
+        """A build thread runs (under ``lock``)."""
+        self._rebuild_due = False
+        """A forced build came while one ran: that thread builds again (under ``lock``)."""
+        self._searching = False
+        """A wide search runs in the background (``localize`` with ``done``)."""
+        self._searched: PlacedScan | Exception | None = None
 
     # --- the field ------------------------------------------------------------------------
 
@@ -244,19 +254,32 @@ class LiveLocalizer:
 
     def build_in_background(self, mapper: Mapper, whole_map: Any, force: bool = False) -> bool:
         """Start ``build`` in a thread of its own unless one runs or (without ``force``) the
-        last started less than ``rebuild_period`` ago; True when started."""
+        last started less than ``rebuild_period`` ago; True when started. ``force`` while one
+        runs (a reset, a cleared box during a build): that thread builds once more after it,
+        from the map as it is then (the build under way may have copied the map before)."""
         now = time.monotonic()
-        if self._building is not None and self._building.is_alive():
-            return False
-        if not force and now - self._built_at < self.settings.rebuild_period:
-            return False
-        self._built_at = now
+        with self.lock:
+            if self._build_running:
+                self._rebuild_due = self._rebuild_due or force
+                return False
+            if not force and now - self._built_at < self.settings.rebuild_period:
+                return False
+            self._built_at = now
+            self._build_running = True
 
         def run() -> None:
-            try:
-                self.build(mapper, whole_map)
-            except Exception as err:  # a failed build keeps the previous field
-                self._log(f"building the localization field failed: {type(err).__name__}: {err}")
+            while True:
+                try:
+                    self.build(mapper, whole_map)
+                except Exception as err:  # a failed build keeps the previous field
+                    self._log(
+                        f"building the localization field failed: {type(err).__name__}: {err}"
+                    )
+                with self.lock:
+                    if not self._rebuild_due:
+                        self._build_running = False
+                        return
+                    self._rebuild_due = False
 
         self._building = threading.Thread(target=run, name="mfp_localization_field", daemon=True)
         self._building.start()
@@ -305,10 +328,19 @@ class LiveLocalizer:
     # --- the worker -----------------------------------------------------------------------
 
     def localize(
-        self, placed: PlacedScan, robot_pose: Callable[[float], FloatArray | None]
-    ) -> PlacedScan:
+        self,
+        placed: PlacedScan,
+        robot_pose: Callable[[float], FloatArray | None],
+        done: Callable[[], None] | None = None,
+    ) -> PlacedScan | None:
         """The placed cloud (odometry frame) in the map frame, at the corrected pose.
-        ``robot_pose(stamp)``: the robot in the odometry frame (4x4) or None."""
+        ``robot_pose(stamp)``: the robot in the odometry frame (4x4) or None.
+
+        With ``done``, a wide search runs in a thread of its own (``mfp_localization_search``)
+        on its own copy of the scan and the correction, holding no lock of the caller's
+        through the search: None is returned at once, ``done()`` is called when the search
+        ended and ``finished()`` gives the cloud then (``searching`` says whether one runs).
+        Tracking alignments, short, run on the calling thread."""
         cfg = self.settings
         with self.lock:
             pending, self._pending = self._pending, None
@@ -332,6 +364,53 @@ class LiveLocalizer:
                 self.skipped_motion += 1
             return moved
         self._last_align_stamp, self._last_align_odom = placed.stamp, odom
+        job = (placed, moved, correction, pyramid, wide, version, odom)
+        if done is None or not wide:
+            return self._align(*job)
+
+        def search() -> None:
+            result: PlacedScan | Exception
+            try:
+                result = self._align(*job)
+            except Exception as err:  # handed to the worker, which counts the cloud
+                result = err
+            with self.lock:
+                self._searched, self._searching = result, False
+            done()
+
+        with self.lock:
+            self._searched, self._searching = None, True
+        threading.Thread(target=search, name="mfp_localization_search", daemon=True).start()
+        return None
+
+    @property
+    def searching(self) -> bool:
+        """Whether a wide search started by ``localize`` (with ``done``) is still running."""
+        with self.lock:
+            return self._searching
+
+    def finished(self) -> PlacedScan | None:
+        """The cloud of the last wide search run in the background, in the map frame (once;
+        None while it runs or when taken); raises what the search raised."""
+        with self.lock:
+            result, self._searched = self._searched, None
+        if isinstance(result, Exception):
+            raise result
+        return result
+
+    def _align(
+        self,
+        placed: PlacedScan,
+        moved: PlacedScan,
+        correction: FloatArray,
+        pyramid: FieldPyramid,
+        wide: bool,
+        version: int,
+        odom: FloatArray | None,
+    ) -> PlacedScan:
+        """Align ``moved`` (``placed`` moved by ``correction``, version ``version``) and
+        record the outcome; the cloud at the corrected pose, or ``moved`` when refused."""
+        cfg = self.settings
         t0 = time.perf_counter()
         ret = np.ones(len(moved.points), dtype=bool)
         if moved.no_return is not None:
@@ -346,7 +425,7 @@ class LiveLocalizer:
         if al.accepted and cfg.exact_check and (wide or cfg.exact_check_tracking):
             al = self._verify(al, moved, options)
         step = pose_matrix(al.translation, al.rotation)
-        if al.accepted and wide and self.state == "initializing":
+        if (al.accepted or al.refusal in CONFIRMING) and wide and self.state == "initializing":
             al, step = self._better_elsewhere(al, step, pyramid, pts, org, options, normals)
         al = replace(al, sigma=with_grid(al.sigma, pyramid.fields[0].resolution, pts, org))
         ms = 1e3 * (time.perf_counter() - t0)
@@ -525,12 +604,19 @@ class LiveLocalizer:
             self.last["fit_per_ray"] = (
                 round(float(al.fit_per_ray), 4) if math.isfinite(al.fit_per_ray) else None
             )
+            # a first claim: an acceptance, or while initializing a confirmation of the pose
+            # (no gain in the wide search, none better just beyond it: a right /initialpose)
+            first = al.accepted or (
+                self.state == "initializing"
+                and al.refusal in CONFIRMING
+                and math.isfinite(al.fit_per_ray)
+            )
             poor = self._poor_fit(al)
             if poor:
                 al = replace(al, accepted=False, reason=poor, refusal="poor_fit")
                 self.last.update(accepted=False, reason=poor)
             elif (
-                al.accepted
+                first
                 and self.state != "localized"
                 and self._beyond_window(step @ self.correction, odom)
             ):
@@ -539,7 +625,7 @@ class LiveLocalizer:
                 self.last.update(accepted=False, reason=beyond)
             elif math.isfinite(al.fit_per_ray) and (al.accepted or al.refusal in CONFIRMING):
                 ref = self.fit_reference
-                if al.accepted and (math.isnan(ref) or self.state != "localized"):
+                if first and (math.isnan(ref) or self.state != "localized"):
                     self.fit_reference = al.fit_per_ray  # (re)gained: the fit here
                 elif not math.isnan(ref):
                     self.fit_reference = ref + FIT_AVERAGE * (al.fit_per_ray - ref)
@@ -560,7 +646,9 @@ class LiveLocalizer:
                 return True
             if al.refusal in CONFIRMING:  # the best pose in range is no better: the current stands
                 self.consecutive_refused = 0
-                if self.state == "lost":  # localized before, and the scans agree again
+                # lost: localized before, and the scans agree again; initializing: confirmed
+                # under the checks of a first acceptance
+                if self.state == "lost" or first:
                     self.state = "localized"
                 if self.state == "localized":
                     self._vouch(stamp, odom, al.sigma)
@@ -599,8 +687,8 @@ class LiveLocalizer:
     def _poor_fit(self, al: Alignment) -> str:
         """(under the lock) Why the scan fits the map too poorly to be used, or ''."""
         drop, ref, fit = self.settings.fit_drop, self.fit_reference, al.fit_per_ray
-        if math.isnan(ref) and al.accepted:  # a first acceptance: as well as before, if any
-            ref = self._fit_before
+        if math.isnan(ref) and (al.accepted or al.refusal in CONFIRMING):
+            ref = self._fit_before  # a first claim: as well as before, if any
         if drop <= 0.0 or math.isnan(ref) or not math.isfinite(fit) or fit >= ref - drop:
             return ""
         return (

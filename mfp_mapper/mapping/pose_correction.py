@@ -4,7 +4,8 @@ Mapping (``NoCorrection``): clouds are placed in the map frame itself and integr
 walker thread while the worker places the next one. Localization (``LocalizerCorrection``,
 backed by a ``LiveLocalizer``): clouds are placed in the odometry frame, aligned against the
 map and moved by the correction ``map <- odom``, each integrated (unless the map is frozen)
-before the next is aligned.
+before the next is aligned; a wide search runs in the background while the worker keeps
+taking clouds (the newest one placed meanwhile is aligned after it).
 """
 
 from __future__ import annotations
@@ -65,8 +66,21 @@ class PoseCorrection(Protocol):
         frame into the placement frame (raises TransformUnavailable)."""
         ...
 
-    def correct(self, placed: PlacedScan, robot_pose: RobotPose) -> PlacedScan:
-        """A scan placed in the placement frame, in the map frame."""
+    def correct(
+        self, placed: PlacedScan, robot_pose: RobotPose, done: Callable[[], None] | None = None
+    ) -> PlacedScan | None:
+        """A scan placed in the placement frame, in the map frame. With ``done``, a long
+        alignment may run in the background: then None, ``done()`` is called when it ended
+        and ``finished()`` gives the scan."""
+        ...
+
+    @property
+    def searching(self) -> bool:
+        """An alignment started by ``correct`` runs in the background."""
+        ...
+
+    def finished(self) -> PlacedScan | None:
+        """The scan of the background alignment once it ended (once; None before)."""
         ...
 
     def map_grew(self, mapper: Mapper, whole_map: Any) -> None:
@@ -99,8 +113,15 @@ class NoCorrection:
     ) -> np.ndarray:
         return to_placement(points, frame)
 
-    def correct(self, placed: PlacedScan, robot_pose: RobotPose) -> PlacedScan:
+    searching = False
+
+    def correct(
+        self, placed: PlacedScan, robot_pose: RobotPose, done: Callable[[], None] | None = None
+    ) -> PlacedScan:
         return placed
+
+    def finished(self) -> PlacedScan | None:
+        return None
 
     def map_grew(self, mapper: Mapper, whole_map: Any) -> None:
         pass
@@ -145,8 +166,17 @@ class LocalizerCorrection:
         m, _, _ = self.localizer.transform()
         return np.asarray(in_odom) @ m[:3, :3].T + m[:3, 3]
 
-    def correct(self, placed: PlacedScan, robot_pose: RobotPose) -> PlacedScan:
-        return self.localizer.localize(placed, robot_pose)
+    def correct(
+        self, placed: PlacedScan, robot_pose: RobotPose, done: Callable[[], None] | None = None
+    ) -> PlacedScan | None:
+        return self.localizer.localize(placed, robot_pose, done)
+
+    @property
+    def searching(self) -> bool:
+        return self.localizer.searching
+
+    def finished(self) -> PlacedScan | None:
+        return self.localizer.finished()
 
     def map_grew(self, mapper: Mapper, whole_map: Any) -> None:
         self.localizer.build_in_background(mapper, whole_map)

@@ -3,6 +3,15 @@ for ``mfp-mapper call`` on machines without the ROS 2 command line.
 
 Every call waits for the node's service (``timeout`` seconds) and for the answer, and raises
 ``CallError`` with a sentence saying what did not answer; nothing here blocks forever.
+
+A response can be lost in transport right after discovery (Fast DDS: "failed to send
+response (timeout)": the node answered before the client's response reader was matched). A
+call that changes nothing (query, segments, GetMap, the lifecycle state) is then asked again,
+at most ``ATTEMPTS`` times, ``RESEND_AFTER`` seconds after the first request and twice as long
+after each next one, the first answer to any of them taken. A call that changes the node
+(save, reset, clear-bbox, a lifecycle transition) is asked once: a lost answer does not mean
+it was not done (a reset repeated after new scans would forget them; a save takes seconds on
+a large map), so the error says so.
 """
 
 from __future__ import annotations
@@ -33,6 +42,10 @@ from std_srvs.srv import Empty, Trigger
 
 DEFAULT_NODE = "mfp_mapper"
 DEFAULT_TIMEOUT = 10.0
+ATTEMPTS = 3
+"""Requests sent at most for a call that changes nothing, when no answer comes."""
+RESEND_AFTER = 1.0
+"""Seconds without an answer before such a call is asked again (doubled at each retry)."""
 
 
 class CallError(RuntimeError):
@@ -99,8 +112,9 @@ class NodeClient:
 
     # --- plumbing ------------------------------------------------------------------------
 
-    def _call(self, srv_type: Any, service: str, request: Any) -> Any:
-        """The response of ``service`` (relative to the node) to ``request``."""
+    def _call(self, srv_type: Any, service: str, request: Any, idempotent: bool = True) -> Any:
+        """The response of ``service`` (relative to the node) to ``request``; ``idempotent``:
+        asked again when no answer comes (module docstring), else asked once."""
         name = f"{self.target}/{service}"
         client = self._node.create_client(srv_type, name)
         try:
@@ -113,16 +127,34 @@ class NodeClient:
                         f"({os.environ.get('ROS_DOMAIN_ID', '0')})?"
                     )
                 self._executor.spin_once(timeout_sec=0.05)
-            future = client.call_async(request)
-            self._executor.spin_until_future_complete(
-                future, timeout_sec=max(deadline - time.monotonic(), 0.0) + self.timeout
-            )
-            if not future.done():
-                future.cancel()
-                raise CallError(f"{name} did not answer within {self.timeout:g} s")
-            if future.exception() is not None:
-                raise CallError(f"{name} failed: {future.exception()}")
-            return future.result()
+            end = max(deadline, time.monotonic()) + self.timeout
+            futures = [client.call_async(request)]
+            resend = time.monotonic() + RESEND_AFTER
+            while not any(f.done() for f in futures) and time.monotonic() < end:
+                if idempotent and len(futures) < ATTEMPTS and time.monotonic() >= resend:
+                    futures.append(client.call_async(request))  # the first answer is taken
+                    resend = time.monotonic() + RESEND_AFTER * 2 ** (len(futures) - 1)
+                self._executor.spin_once(timeout_sec=0.02)
+            done = next((f for f in futures if f.done()), None)
+            if done is None:
+                for future in futures:
+                    future.cancel()
+                asked = (
+                    f"asked {len(futures)} times"
+                    if idempotent
+                    else "asked once: it changes the node, so a lost answer is not asked "
+                    "again; it may have been done (see ~/status)"
+                )
+                raise CallError(
+                    f"{name} did not answer within {self.timeout:g} s ({asked}); is the node "
+                    "busy or stopping?"
+                )
+            for future in futures:
+                if future is not done:
+                    future.cancel()
+            if done.exception() is not None:
+                raise CallError(f"{name} failed: {done.exception()}")
+            return done.result()
         finally:
             self._node.destroy_client(client)
 
@@ -205,12 +237,12 @@ class NodeClient:
 
     def save(self) -> tuple[bool, str]:
         """``~/save_map`` (std_srvs/Trigger)."""
-        r = self._call(Trigger, "save_map", Trigger.Request())
+        r = self._call(Trigger, "save_map", Trigger.Request(), idempotent=False)
         return bool(r.success), str(r.message)
 
     def reset(self) -> None:
         """``~/reset`` (std_srvs/Empty): forget the whole map."""
-        self._call(Empty, "reset", Empty.Request())
+        self._call(Empty, "reset", Empty.Request(), idempotent=False)
 
     def clear_bbox(
         self, corner_a: Sequence[float], corner_b: Sequence[float]
@@ -218,7 +250,7 @@ class NodeClient:
         """``~/clear_bbox``: reset the voxels whose centres lie in the box to unknown."""
         request = ClearBbox.Request()
         request.min, request.max = _point(corner_a), _point(corner_b)
-        r = self._call(ClearBbox, "clear_bbox", request)
+        r = self._call(ClearBbox, "clear_bbox", request, idempotent=False)
         return bool(r.success), str(r.message), int(r.cleared)
 
     def lifecycle_state(self) -> str:
@@ -245,4 +277,4 @@ class NodeClient:
             )
         request = ChangeState.Request()
         request.transition = Transition(label=label)
-        return bool(self._call(ChangeState, "change_state", request).success)
+        return bool(self._call(ChangeState, "change_state", request, idempotent=False).success)

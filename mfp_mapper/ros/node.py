@@ -88,6 +88,7 @@ from mfp_mapper.ros.status import (
     startup_text,
     status_report,
 )
+from mfp_mapper.ros.tf_cdr import tf_records
 from mfp_mapper.ros.transport import transport_loss_text
 from mfp_mapper.sensing.pointcloud import CloudFormatError, pack_cloud, read_xyz, stamp_seconds
 from mfp_mapper.sensing.poses import PoseBuffer, odometry_sample
@@ -337,9 +338,14 @@ class MfpMapperNode(GuardedLifecycleNode):
             reliability=ReliabilityPolicy.RELIABLE,
             durability=DurabilityPolicy.TRANSIENT_LOCAL,
         )
-        self._active.append(self.create_subscription(TFMessage, "/tf", self._on_tf, tf_qos))
+        # raw: read from the CDR bytes (ros.tf_cdr), not as rclpy's Python objects (a flood)
         self._active.append(
-            self.create_subscription(TFMessage, "/tf_static", self._on_tf_static, tf_static_qos)
+            self.create_subscription(TFMessage, "/tf", self._on_tf, tf_qos, raw=True)
+        )
+        self._active.append(
+            self.create_subscription(
+                TFMessage, "/tf_static", self._on_tf_static, tf_static_qos, raw=True
+            )
         )
         # wall-clock timers: with use_sim_time and no /clock the ROS clock stands still,
         # and the map, ~/status and /diagnostics must still go out
@@ -483,13 +489,13 @@ class MfpMapperNode(GuardedLifecycleNode):
                 self.worker.submit(ready)
 
     @tracked
-    def _on_tf(self, msg: TFMessage) -> None:
+    def _on_tf(self, data: bytes) -> None:
         self.worker.observe_clock(self._now())
-        self.worker.add_transforms(msg, static=False)
+        self.worker.add_transforms(tf_records(data), static=False)
 
     @tracked
-    def _on_tf_static(self, msg: TFMessage) -> None:
-        self.worker.add_transforms(msg, static=True)
+    def _on_tf_static(self, data: bytes) -> None:
+        self.worker.add_transforms(tf_records(data), static=True)
 
     def _on_clouds_lost(self, info: Any) -> None:
         """The middleware reports clouds that never reached this node (transport losses,

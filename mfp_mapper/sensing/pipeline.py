@@ -45,6 +45,8 @@ FloatArray = NDArray[np.float64]
 
 DROP_REASONS: dict[str, str] = {
     "queue_full": "integration fell behind; the oldest queued cloud was dropped (live only)",
+    "superseded": "placed while the localization's wide search ran, and a newer cloud came: "
+    "the newest is aligned after the search (live localization only)",
     "clock_jump": "queued when the clock jumped back (bag loop): buffers cleared (live only)",
     "malformed": "not a parsable cloud: no x/y/z, fields beyond point_step, truncated data, "
     "unknown datatypes",

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import threading
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -32,7 +32,7 @@ from mfp_mapper.config.frames import frame_name
 from mfp_mapper.sensing.pipeline import ScanDropped
 from mfp_mapper.sensing.placement import Odometry, Placement, resolve_placement
 from mfp_mapper.sensing.poses import Extrinsic, OdometrySample, PoseBuffer, StampGuard
-from mfp_mapper.sensing.tf_tree import TfTree, TransformUnavailable, frame_list
+from mfp_mapper.sensing.tf_tree import TfTree, TransformRecord, TransformUnavailable, frame_list
 
 CLOCK_JUMP_BACK = 1.0
 """Seconds the clock must go back to count as a jump (bag loop, simulation restart)."""
@@ -158,14 +158,15 @@ class PoseInputs:
             self.robot_position = np.asarray(sample.position, dtype=np.float64)
         return True
 
-    def add_transforms(self, msg: Any, static: bool) -> int:
-        """Store a tf2_msgs/TFMessage (``/tf`` or ``/tf_static``); how many were kept."""
+    def add_transforms(self, records: Sequence[TransformRecord], static: bool) -> int:
+        """Store the transforms of one ``/tf`` or ``/tf_static`` message (``TransformRecord``
+        values: ``tf_tree.transform_records`` of a message); how many were kept."""
         with self.lock:
             before = sum(self.tree.rejected.values())
-            kept = self.tree.add_message(msg, static, now=self._clock())
+            kept = self.tree.add_records(records, static, now=self._clock())
             refused = sum(self.tree.rejected.values()) - before
             events = self.tree.take_events()
-            self.counters.tf_in += len(msg.transforms)
+            self.counters.tf_in += len(records)
             self.counters.tf_rejected = Counter(self.tree.rejected)
             if kept:
                 self.generation += 1

@@ -349,3 +349,56 @@ def test_an_initial_pose_outside_the_window_never_ends_localized_far_off(
     _, estimate = loc.pose_estimate()
     assert estimate is not None
     assert np.all(estimate[2][:3] >= 0.2 / np.sqrt(12.0) - 1e-9), estimate[2]
+
+
+@pytest.mark.parametrize("at_start", [False, True])
+def test_a_right_initial_pose_is_confirmed_without_a_gain(at_start: bool) -> None:
+    """An /initialpose at the truth (or odometry that starts where the map says): the wide
+    search finds no gain (``no_gain``), none better just beyond the window; the pose is
+    confirmed under the checks of a first acceptance: ``localized`` at the first scan,
+    ~/pose vouched for at the truth (it stayed ``initializing`` for ever)."""
+    scene, poses, mapper = _scene_map("box")
+    worker, _ = _worker(mapper)
+    loc = _correction(worker).localizer
+    loc.build(mapper, worker.whole_map)
+    truth = poses[1]
+    true_pose = pose_matrix(truth.translation, truth.rotation)
+    offset = np.eye(4) if at_start else OFFSET
+    odom = np.linalg.inv(offset) @ true_pose
+    if not at_start:
+        quat = Rotation.from_matrix(truth.rotation).as_quat()
+        loc.initial_pose(T0, truth.translation, quat, odom)
+    q = Rotation.from_matrix(odom[:3, :3]).as_quat()
+    for t in (T0 - 0.05, T0 + 0.05):
+        worker.add_odometry(OdometrySample(t, "odom", "base_link", odom[:3, 3].copy(), q))
+    pts = static_scan(scene, truth, np.random.default_rng(1)).astype(np.float32)
+    worker.submit(cloud_message_from_columns({a: pts[:, k] for k, a in enumerate("xyz")}, T0,
+                                             "base_link"))  # fmt: skip
+    worker.drain()
+    report = loc.report()
+    assert report["state"] == "localized", report
+    assert report["accepted"] == 0 and report["refused"] == {"no_gain": 1}, report
+    error, angle = _error(loc.correction, offset)
+    assert error < 0.02 and angle < 0.2, (error, angle)
+    _, estimate = loc.pose_estimate()
+    assert estimate is not None
+    assert np.linalg.norm(estimate[1][:3, 3] - truth.translation) < 0.02, estimate
+
+
+def test_a_forced_build_during_a_build_builds_again_after_it() -> None:
+    """A reset while the field is built from the map before it: the forced rebuild is not
+    skipped (the node then stayed ``initializing`` on the old field for ever); the thread
+    under way builds once more, from the empty map: ``waiting_for_map``."""
+    import time
+
+    _, _, mapper = _scene_map("box")
+    worker, _ = _worker(mapper)
+    loc = _correction(worker).localizer
+    assert loc.build_in_background(mapper, worker.whole_map, force=True)
+    time.sleep(0.05)  # the map's statistics copied; the pyramid being computed
+    with worker.whole_map:
+        mapper.reset()
+    assert not loc.build_in_background(mapper, worker.whole_map, force=True)  # one runs
+    loc.wait_built(60.0)
+    report = loc.report()
+    assert report["state"] == "waiting_for_map" and report["field_voxels"] == 0, report

@@ -367,3 +367,57 @@ def test_an_initial_pose_2_m_off_never_ends_localized_off(ros_domain: int, tmp_p
         feeder.destroy()
         code = node.stop()
     assert code == 0 and "Traceback" not in node.log()
+
+
+def test_clouds_keep_flowing_while_a_wide_search_runs(ros_domain: int, tmp_path: Path) -> None:
+    """Issue 32 item 6 over DDS: the first wide search (and its 26 probe searches) runs
+    while clouds keep coming at 10 Hz into a queue of 2. The search must not starve the
+    queue: no cloud is dropped ``queue_full``; the clouds placed during the search but the
+    newest are dropped ``superseded``, the newest is taken after it; every cloud received
+    is accounted for; the node ends localized at the truth."""
+    from ros_helpers import NodeProcess
+    from test_node_localization import PARAMS, LocFeeder, _error, _tf_matrix
+
+    scene, poses = _save_scene_map("box", tmp_path / "hall.npz")
+    params = {**PARAMS, "map_path": str(tmp_path / "hall.npz"), "cloud_queue_size": 2}
+    node = NodeProcess(ros_domain, params, tmp_path / "flow.log")
+    feeder = LocFeeder()
+    try:
+        ok = feeder.wait(
+            lambda: (
+                feeder.cloud_pub.get_subscription_count() > 0
+                and feeder.localization().get("state") == "initializing"
+                and (feeder.status or {}).get("kernels") == "ready"
+            ),
+            120.0,
+        )
+        assert ok, f"node not ready ({feeder.localization()}):\n{node.log()[-3000:]}"
+        sent, t0 = 0, time.time()
+        while time.time() - t0 < 4.0:  # the robot stands at poses[1]; 10 clouds a second
+            feeder.scan(scene, poses[1], time.time(), seed=sent)
+            sent += 1
+            feeder.spin(0.1)
+
+        def settled(s: dict[str, Any]) -> bool:
+            done = s["clouds_localized"] + sum(s["clouds_dropped"].values())
+            return s["clouds_in"] >= sent and done >= sent and s["queued"] == 0
+
+        status = feeder.wait_status(settled, 120.0)
+        assert status is not None and settled(status), f"{feeder.status}\n{node.log()[-3000:]}"
+        drops = status["clouds_dropped"]
+        assert drops.get("queue_full", 0) == 0, (drops, status["localization"])
+        assert drops.get("superseded", 0) >= 1, (drops, status["localization"])
+        assert set(drops) <= {"superseded"}, drops
+        loc = status["localization"]
+        assert loc["state"] == "localized", loc
+        feeder.spin(0.3)
+        shift, angle = _error(_tf_matrix(feeder.tf[-1]))
+        assert shift < 0.05 and angle < 0.5, (shift, angle, loc)
+        print(
+            f"{sent} clouds sent in 4 s: {status['clouds_localized']} localized, drops {drops}; "
+            f"{loc['aligned']} aligned, ms_max {loc['ms_max']}"
+        )
+    finally:
+        feeder.destroy()
+        code = node.stop()
+    assert code == 0 and "Traceback" not in node.log()
