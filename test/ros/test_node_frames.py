@@ -414,9 +414,11 @@ def test_future_stamped_cloud_does_not_block_the_queue(ros_domain: int, tmp_path
         )
         in_ = status["clouds_in"]
         assert status["clouds_integrated"] >= good - 3, f"{status}\n{node.log()[-3000:]}"
-        # the future clouds are dropped: after odom_wait, or pushed out first when full
+        # the future clouds are dropped: after odom_wait, or pushed out first when full;
+        # beside the 6 future ones, at most the 3 good clouds the bound above allows (a
+        # starved machine may overflow a queue of 5 at 10 Hz: not the fault this is about)
         drops = status["clouds_dropped"]
-        assert drops.get("too_new", 0) + drops.get("queue_full", 0) <= 6, status
+        assert drops.get("too_new", 0) + drops.get("queue_full", 0) <= 6 + 3, status
         assert drops.get("too_new", 0) >= 3, status
         print(
             f"future-stamped clouds at 1 Hz: {status['clouds_integrated']} of {good} good "
