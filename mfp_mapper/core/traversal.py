@@ -784,6 +784,7 @@ def _walk_rays(
     values = value_arrays(sa)
     block_chunks = sa.block_chunks
     block_nrec, n_recs, n_pool = sa.block_nrec, sa.n_recs, sa.n_pool
+    table_keys, table_blocks = sa.table_keys, sa.table_blocks
     # blocks opened in this call, direct-mapped by their low index bits: neighbouring rays
     # cross the same blocks, and this table (768 KiB) stays in cache where the hash does not
     cache_keys = np.full(1 << (3 * _WALK_CACHE_BITS), -1, dtype=np.int64)
@@ -881,6 +882,21 @@ def _walk_rays(
         walk_lanes(  # type: ignore[call-arg]
             lane_floats, lane_ints, steps, entered_key, lane_blocks, step_code, step_chord
         )  # fmt: skip
+        # the blocks not yet in the walk cache, looked up (read only) all at once, their
+        # chunk tables loaded: independent lookups whose memory latencies overlap
+        for lane in range(lanes):
+            for b in range(lane_blocks[lane]):
+                key = entered_key[lane, b]
+                slot = (
+                    (((key >> (2 * KEY_BITS)) & _WALK_CACHE_MASK) << (2 * _WALK_CACHE_BITS))
+                    | (((key >> KEY_BITS) & _WALK_CACHE_MASK) << _WALK_CACHE_BITS)
+                    | (key & _WALK_CACHE_MASK)
+                )
+                if cache_keys[slot] != key:
+                    bx, by, bz = block_of_key(key)
+                    found = find_block(table_keys, table_blocks, block_key(bx, by, bz))
+                    if found >= 0:
+                        prefetch_line(block_chunks, BLOCK_CHUNKS * (found + 1))
         weighted = False  # a block where the scan is late (weight < 1)
         for lane in range(lanes):
             i = group_first + lane
