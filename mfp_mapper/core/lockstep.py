@@ -287,6 +287,51 @@ def walk_lanes(  # type: ignore[no-untyped-def]
 
 
 @intrinsic
+def copy_table(typingctx, destination, at, source, start):  # type: ignore[no-untyped-def]
+    """``destination.flat[at : at + BLOCK_CHUNKS] = source[start : start + BLOCK_CHUNKS]``
+    (int32, C-contiguous, no bounds checked) as one vector load and store: a block's chunk
+    table copied into ``entered_chunks`` (``place_lanes``)."""
+    sig = types.void(destination, types.intp, source, types.intp)
+    table = ir.VectorType(_I32, BLOCK_CHUNKS)
+
+    def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
+        to = context.make_array(signature.args[0])(context, builder, args[0])
+        source_array = context.make_array(signature.args[2])(context, builder, args[2])
+        at_value = context.cast(builder, args[1], signature.args[1], types.intp)
+        start_value = context.cast(builder, args[3], signature.args[3], types.intp)
+        load_from = builder.bitcast(
+            builder.gep(source_array.data, [start_value]), table.as_pointer()
+        )
+        store_to = builder.bitcast(builder.gep(to.data, [at_value]), table.as_pointer())
+        builder.store(builder.load(load_from, align=4), store_to, align=4)
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@intrinsic
+def prefetch_line(typingctx, array, at):  # type: ignore[no-untyped-def]
+    """Asks the processor to start loading the cache line of ``array.flat[at]`` (C-contiguous;
+    any ``at`` is harmless: a prefetch does not fault)."""
+    sig = types.void(array, types.intp)
+
+    def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
+        data = context.make_array(signature.args[0])(context, builder, args[0]).data
+        at_value = context.cast(builder, args[1], signature.args[1], types.intp)
+        byte_pointer = ir.IntType(8).as_pointer()
+        prefetch = builder.module.declare_intrinsic(
+            "llvm.prefetch",
+            [byte_pointer],
+            ir.FunctionType(ir.VoidType(), [byte_pointer, _I32, _I32, _I32]),
+        )
+        pointer = builder.bitcast(builder.gep(data, [at_value]), byte_pointer)
+        builder.call(prefetch, [pointer, _I32(1), _I32(3), _I32(1)])
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@intrinsic
 def place_lanes(  # type: ignore[no-untyped-def]
     typingctx,
     codes,
