@@ -257,7 +257,6 @@ def _set_blocks(
     block_chunks, chunk_owner, pools = sa.block_chunks, sa.chunk_owner, sa.pools
     block_nrec, n_recs = sa.block_nrec, sa.n_recs
     flat_s, flat_n = sa.s_pool.reshape(-1), sa.n_pool.reshape(-1)
-    marks = flat_s.view(np.uint32)  # 0: unobserved (shard's notes)
     for b in range(start, packed_ijk.shape[0]):
         bx, by, bz = packed_ijk[b, 0], packed_ijk[b, 1], packed_ijk[b, 2]
         if shard_of(bx, by, bz, shard_mask) != shard:
@@ -278,22 +277,31 @@ def _set_blocks(
         js = s_start[b]
         row = hit_row[b]
         jn = n_start[row] if row >= 0 else 0
-        for w in range(BLOCK_VOXELS // 64):
+        for w in range(BLOCK_VOXELS // 64):  # a mask word is an s chunk (64 voxels)
             mo = observed[b, w]
-            mh = hit[row, w] if row >= 0 else np.uint64(0)
             if mo == 0:
                 continue
+            mh = hit[row, w] if row >= 0 else np.uint64(0)
+            slot = chunk_slot(block, w)
             for i in range(64):
                 bit = np.uint64(1) << np.uint64(i)
                 if not mo & bit:
                     continue
-                local = w * 64 + i
                 sj = np.float64(s[js])
                 js += 1
                 nj = 0.0
                 if mh & bit:
                     nj = np.float64(n[jn])
                     jn += 1
+                if not (sj > 0.0 or nj > 0.0):
+                    continue  # not observed after all: nothing set (as ``_set_voxels``)
+                chunk = block_chunks[slot]  # allocated by the first observed voxel
+                if chunk < 0:
+                    chunk = pools[S_USED]
+                    pools[S_USED] = chunk + 1
+                    block_chunks[slot] = chunk
+                    chunk_owner[chunk] = slot
+                value = np.float32(0.0)
                 if sj >= s_limit or nj >= n_limit:  # beyond what float32 keeps adding to
                     hi = sa.block_href[block]
                     if hi < 0:
@@ -301,23 +309,17 @@ def _set_blocks(
                         pools[HI_USED] = hi + 1
                         sa.block_href[block] = hi
                         sa.hi_pool[hi] = 0.0
-                    sa.hi_pool[hi, local, 0] = sj
-                    sa.hi_pool[hi, local, 1] = nj
+                    sa.hi_pool[hi, w * 64 + i, 0] = sj
+                    sa.hi_pool[hi, w * 64 + i, 1] = nj
                 else:
-                    if sj != 0.0:
-                        voxel = -(chunk_slot(block, local >> CHUNK_BITS) + 1) * CHUNK_VOXELS + i
-                        flat_s[s_index(block_chunks, chunk_owner, pools, voxel)] = sj
+                    value = np.float32(sj)
                     if nj != 0.0:
-                        flat_n[n_index(block_nrec, n_recs, pools, block, local, True)] = nj
+                        flat_n[n_index(block_nrec, n_recs, pools, block, w * 64 + i, True)] = nj
                 if nj > 0.0:
                     sa.block_hit[block] = True
-                if sj > 0.0 or nj > 0.0:
-                    observed_count += 1
-                    # its s chunk, -0 there while its float32 s is 0 (shard's notes)
-                    voxel = -(chunk_slot(block, local >> CHUNK_BITS) + 1) * CHUNK_VOXELS + i
-                    k = s_index(block_chunks, chunk_owner, pools, voxel)
-                    if marks[k] == 0:
-                        flat_s[k] = -0.0
+                # observed: -0 while its float32 s is 0 (shard's notes)
+                flat_s[chunk * CHUNK_VOXELS + i] = value if value != 0.0 else np.float32(-0.0)
+                observed_count += 1
     counts[0] += observed_count
     return packed_ijk.shape[0]
 
