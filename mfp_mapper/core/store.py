@@ -228,6 +228,13 @@ def _set_voxels(
     return -1
 
 
+_DE_BRUIJN = np.uint64(0x03F79D71B4CB0A89)
+"""A de Bruijn sequence: the top 6 bits of ``(1 << k) * _DE_BRUIJN`` differ for every k."""
+_LOW_BIT = np.zeros(64, dtype=np.int64)
+"""``_LOW_BIT[(1 << k) * _DE_BRUIJN >> 58] == k``: the place of a word's single set bit."""
+_LOW_BIT[[((1 << k) * int(_DE_BRUIJN) % (1 << 64)) >> 58 for k in range(64)]] = np.arange(64)
+
+
 @nb.njit(cache=True, nogil=True)
 def _set_blocks(
     packed_ijk: NDArray[np.int32],
@@ -283,10 +290,10 @@ def _set_blocks(
                 continue
             mh = hit[row, w] if row >= 0 else np.uint64(0)
             slot = chunk_slot(block, w)
-            for i in range(64):
-                bit = np.uint64(1) << np.uint64(i)
-                if not mo & bit:
-                    continue
+            while mo:  # the set bits, lowest first (a branch per voxel kept, not per bit)
+                bit = mo & (np.uint64(0) - mo)
+                mo ^= bit
+                i = _LOW_BIT[(bit * _DE_BRUIJN) >> np.uint64(58)]
                 sj = np.float64(s[js])
                 js += 1
                 nj = 0.0
