@@ -36,11 +36,14 @@ from numpy.typing import NDArray
 
 from mfp_mapper.core.blocks import (
     BLOCK_BITS,
+    BLOCK_CHUNKS,
     BLOCK_EDGE,
     BLOCK_VOXELS,
     CHUNK_BITS,
     CHUNK_VOXELS,
     MAX_VOXEL_INDEX,
+    N_BLOCK_CHUNKS,
+    SHARD_TILE_BITS,
     IndexBox,
     block_key,
     block_origin,
@@ -52,7 +55,13 @@ from mfp_mapper.core.blocks import (
     shard_of,
     voxel_inside,
 )
-from mfp_mapper.core.packed import BlockChunk, PackedBlocks, pack_chunks, voxel_arrays_of
+from mfp_mapper.core.packed import (
+    MASK_WORDS,
+    BlockChunk,
+    PackedBlocks,
+    pack_chunks,
+    voxel_starts,
+)
 from mfp_mapper.core.shard import (
     HI_USED,
     NCHUNK_USED,
@@ -217,6 +226,109 @@ def _set_voxels(
                 flat_s[k] = -0.0
     counts[0] += observed
     return -1
+
+
+_DE_BRUIJN = np.uint64(0x03F79D71B4CB0A89)
+"""A de Bruijn sequence: the top 6 bits of ``(1 << k) * _DE_BRUIJN`` differ for every k."""
+_LOW_BIT = np.zeros(64, dtype=np.int64)
+"""``_LOW_BIT[(1 << k) * _DE_BRUIJN >> 58] == k``: the place of a word's single set bit."""
+_LOW_BIT[[((1 << k) * int(_DE_BRUIJN) % (1 << 64)) >> 58 for k in range(64)]] = np.arange(64)
+
+
+@nb.njit(cache=True, nogil=True)
+def _set_blocks(
+    packed_ijk: NDArray[np.int32],
+    packed_t: NDArray[np.float64],
+    observed: NDArray[np.uint64],
+    s: NDArray[np.floating],
+    s_start: NDArray[np.int64],
+    hit_row: NDArray[np.int64],
+    hit: NDArray[np.uint64],
+    n: NDArray[np.floating],
+    n_start: NDArray[np.int64],
+    start: int,
+    shard: int,
+    shard_mask: int,
+    sa: ShardArrays,
+    counts: NDArray[np.int64],
+) -> int:
+    """Set the packed blocks of ``shard`` (``packed.PackedBlocks``: ``s_start`` and
+    ``n_start`` their first values, ``hit_row`` each block's row of ``hit`` or -1) from
+    block ``start`` on, exactly as ``_set_voxels`` sets their voxel lists (same chunks,
+    float64 parts and -0 marks, allocated in the same order) with one table probe a block
+    and no index arrays; ``counts[0]`` receives the observed voxels set. Returns the number
+    of blocks when done, else the block where the shard ran out of room (make room, call
+    again from there)."""
+    observed_count = 0
+    s_limit, n_limit = sa.limits[0], sa.limits[1]
+    block_chunks, chunk_owner, pools = sa.block_chunks, sa.chunk_owner, sa.pools
+    block_nrec, n_recs = sa.block_nrec, sa.n_recs
+    flat_s, flat_n = sa.s_pool.reshape(-1), sa.n_pool.reshape(-1)
+    for b in range(start, packed_ijk.shape[0]):
+        bx, by, bz = packed_ijk[b, 0], packed_ijk[b, 1], packed_ijk[b, 2]
+        if shard_of(bx, by, bz, shard_mask) != shard:
+            continue
+        used = sa.counters[0]
+        if (
+            used >= sa.block_t.shape[0]
+            or 2 * used >= sa.table_keys.shape[0]
+            or pools[S_USED] + BLOCK_CHUNKS > chunk_owner.shape[0]
+            or pools[NREC_USED] + 1 > n_recs.shape[0]
+            or pools[NCHUNK_USED] + N_BLOCK_CHUNKS > sa.n_pool.shape[0]
+            or pools[HI_USED] + 1 > sa.hi_pool.shape[0]
+        ):
+            counts[0] += observed_count
+            return b
+        block = open_block(bx, by, bz, sa, -1, packed_t[b], math.inf)
+        sa.block_t[block] = max(sa.block_t[block], packed_t[b])
+        js = s_start[b]
+        row = hit_row[b]
+        jn = n_start[row] if row >= 0 else 0
+        for w in range(BLOCK_VOXELS // 64):  # a mask word is an s chunk (64 voxels)
+            mo = observed[b, w]
+            if mo == 0:
+                continue
+            mh = hit[row, w] if row >= 0 else np.uint64(0)
+            slot = chunk_slot(block, w)
+            while mo:  # the set bits, lowest first (a branch per voxel kept, not per bit)
+                bit = mo & (np.uint64(0) - mo)
+                mo ^= bit
+                i = _LOW_BIT[(bit * _DE_BRUIJN) >> np.uint64(58)]
+                sj = np.float64(s[js])
+                js += 1
+                nj = 0.0
+                if mh & bit:
+                    nj = np.float64(n[jn])
+                    jn += 1
+                if not (sj > 0.0 or nj > 0.0):
+                    continue  # not observed after all: nothing set (as ``_set_voxels``)
+                chunk = block_chunks[slot]  # allocated by the first observed voxel
+                if chunk < 0:
+                    chunk = pools[S_USED]
+                    pools[S_USED] = chunk + 1
+                    block_chunks[slot] = chunk
+                    chunk_owner[chunk] = slot
+                value = np.float32(0.0)
+                if sj >= s_limit or nj >= n_limit:  # beyond what float32 keeps adding to
+                    hi = sa.block_href[block]
+                    if hi < 0:
+                        hi = pools[HI_USED]
+                        pools[HI_USED] = hi + 1
+                        sa.block_href[block] = hi
+                        sa.hi_pool[hi] = 0.0
+                    sa.hi_pool[hi, w * 64 + i, 0] = sj
+                    sa.hi_pool[hi, w * 64 + i, 1] = nj
+                else:
+                    value = np.float32(sj)
+                    if nj != 0.0:
+                        flat_n[n_index(block_nrec, n_recs, pools, block, w * 64 + i, True)] = nj
+                if nj > 0.0:
+                    sa.block_hit[block] = True
+                # observed: -0 while its float32 s is 0 (shard's notes)
+                flat_s[chunk * CHUNK_VOXELS + i] = value if value != 0.0 else np.float32(-0.0)
+                observed_count += 1
+    counts[0] += observed_count
+    return packed_ijk.shape[0]
 
 
 @nb.njit(cache=True, nogil=True)
@@ -462,13 +574,56 @@ class BlockStore:
 
     def assign_blocks(self, packed: PackedBlocks) -> None:
         """Set the voxels of packed blocks (checked by ``packed_problem``) in an empty
-        store; the inverse of ``export_blocks``. Through ``assign`` (the voxels' index
-        arrays made from the masks): the store's chunks, its float64 parts and the marks of
-        observed voxels (``shard``'s notes) are set in one place."""
+        store; the inverse of ``export_blocks``. Compiled, block by block
+        (``_set_blocks``): the same store as ``assign`` of the voxel lists
+        (``packed.voxel_arrays_of``), bit for bit, which it replaces because building and
+        probing per-voxel index arrays cost 5-10 times as long (docs/performance.md)."""
         if self.num_blocks:
             raise ValueError("assign_blocks needs an empty store")
-        ijk, s, n, t = voxel_arrays_of(packed)
-        self.assign(VoxelArrays(ijk.astype(np.int32), s, n, t), math.inf)
+        rows = packed.block_ijk.shape[0]
+        block_ijk = np.ascontiguousarray(packed.block_ijk, dtype=np.int32)
+        block_t = np.ascontiguousarray(packed.block_t, dtype=np.float64)
+        observed = np.ascontiguousarray(packed.observed, dtype=np.uint64)
+        hit = np.ascontiguousarray(packed.hit, dtype=np.uint64).reshape(-1, MASK_WORDS)
+        s, n = np.ascontiguousarray(packed.s), np.ascontiguousarray(packed.n)
+        hit_row = np.full(rows, -1, dtype=np.int64)
+        hit_row[packed.hit_block] = np.arange(packed.hit_block.shape[0])
+        s_start, n_start = voxel_starts(observed), voxel_starts(hit)
+        tiles = (block_ijk.astype(np.int64) >> SHARD_TILE_BITS).sum(axis=1) & self.shard_mask
+        counts = np.zeros(1, dtype=np.int64)
+        for sid, sh in enumerate(self.shards):
+            mine = tiles == sid
+            hits_mine = mine[packed.hit_block]
+            sh.grow(min_free=int(np.count_nonzero(mine)))
+            sh.ensure_room(  # what the blocks need (and a block's worth: the kernel's check)
+                int(np.count_nonzero(observed[mine])) + BLOCK_CHUNKS,
+                int(np.count_nonzero(hit[hits_mine].view(np.uint16))) + N_BLOCK_CHUNKS,
+                1,
+                int(np.count_nonzero(hits_mine)) + 1,
+            )
+            hi_room = 1
+            start = 0
+            while (
+                start := _set_blocks(
+                    block_ijk,
+                    block_t,
+                    observed,
+                    s,
+                    s_start,
+                    hit_row,
+                    hit,
+                    n,
+                    n_start,
+                    start,
+                    sid,
+                    self.shard_mask,
+                    sh.arrays(),
+                    counts,
+                )  # fmt: skip
+            ) < rows:  # out of float64 blocks (values at the float32 limit): more, go on
+                hi_room *= 2
+                sh.ensure_room(BLOCK_CHUNKS, N_BLOCK_CHUNKS, hi_room, 1)
+        self.num_voxels = int(counts[0])
 
     def lookup(self, ijk: NDArray[np.int64]) -> VoxelArrays:
         """Statistics of these voxels (zeros and t_last=-inf where never observed)."""

@@ -7,7 +7,15 @@ import pytest
 from box_world import anchors_scene
 
 from mfp_mapper import Mapper
-from mfp_mapper.core.packed import PackedBlocks, pack_chunks, packed_problem, voxel_starts
+from mfp_mapper.core.packed import (
+    PackedBlocks,
+    pack_chunks,
+    packed_problem,
+    voxel_arrays_of,
+    voxel_starts,
+)
+from mfp_mapper.core.shard import HI_USED, N_LIMIT, NCHUNK_USED, NREC_USED, S_USED
+from mfp_mapper.core.store import BlockStore, VoxelArrays
 
 
 def _sorted(m: Mapper) -> tuple[np.ndarray, ...]:
@@ -33,6 +41,55 @@ def test_blocks_round_trip_every_voxel_bit_for_bit(threads: int) -> None:
     assert np.array_equal(np.diff(voxel_starts(packed.observed)),
                           np.bitwise_count(packed.observed).sum(1))  # fmt: skip
     assert not np.any(packed.hit & ~packed.observed[packed.hit_block])
+
+
+def _store_arrays(store: BlockStore) -> list[np.ndarray]:
+    """Every array of the store's shards as far as it is used, as raw bits."""
+    out: list[np.ndarray] = []
+    for sh in store.shards:
+        used, pools = sh.used, sh.pools
+        out += [
+            sh.block_ijk[:used], sh.block_t[:used].view(np.uint64), sh.block_scan[:used],
+            sh.block_hit[:used], sh.block_chunks[: 8 * (used + 1)],
+            sh.s_pool[: pools[S_USED]].view(np.uint32), sh.chunk_owner[: pools[S_USED]],
+            sh.block_nrec[:used], sh.n_recs[: pools[NREC_USED]],
+            sh.n_pool[: pools[NCHUNK_USED]].view(np.uint32), sh.block_href[:used],
+            sh.hi_pool[: pools[HI_USED]].view(np.uint64), pools[:4].copy(), sh.counters[:1],
+        ]  # fmt: skip
+    return out
+
+
+@pytest.mark.parametrize("shards", [1, 2, 4])
+def test_compiled_unpack_is_the_voxel_list_path_bit_for_bit(shards: int) -> None:
+    """``BlockStore.assign_blocks`` (compiled, block by block) sets the same store as
+    ``assign`` of the voxel lists: chunks, float64 parts (values at the float32 limits, in
+    float64 in the file), -0 marks of voxels whose s is 0, in the same order."""
+    m = Mapper(0.1, decay_time=20.0, max_range=30.0)
+    for k, (points, origin) in enumerate(anchors_scene(n_scans=2, azimuths=120)):
+        m.integrate(points, origin, 10.0 + 7.5 * k)
+    p = m.stored_blocks()
+    s, n = p.s.astype(np.float64), p.n.astype(np.float64)
+    s[::97] *= 1e4 * (1 + 1e-12)  # beyond the limit below, not float32 values
+    s[5::89] = 0.0  # observed through n alone where it has a return, else dropped
+    n[::7] += 0.25 + 1e-13
+    n[3::41] = N_LIMIT * 3  # beyond float32's count limit
+    varied = PackedBlocks(p.block_ijk, p.block_t, p.observed, s, p.hit_block, p.hit, n)
+    assert packed_problem(varied) is None
+    for packed in (p, varied):
+        direct, listed = BlockStore(shards, flush_s=2.0), BlockStore(shards, flush_s=2.0)
+        direct.assign_blocks(packed)
+        ijk, vs, vn, vt = voxel_arrays_of(packed)
+        listed.assign(VoxelArrays(ijk.astype(np.int32), vs, vn, vt), np.inf)
+        assert direct.num_voxels == listed.num_voxels > 0
+        if packed is varied:
+            assert sum(int(sh.pools[HI_USED]) for sh in direct.shards) > 0
+        for a, b in zip(_store_arrays(direct), _store_arrays(listed), strict=True):
+            assert a.dtype == b.dtype and np.array_equal(a, b)
+        again = direct.export_blocks()
+        if packed is p:  # float32 values: exactly the file's blocks
+            for key in ("block_ijk", "block_t", "observed", "s", "hit_block", "hit", "n"):
+                assert np.array_equal(getattr(again, key), getattr(packed, key)), key
+    assert BlockStore(1).assign_blocks(pack_chunks([])) is None
 
 
 def test_float64_statistics_pack_to_the_same_blocks() -> None:
