@@ -75,7 +75,7 @@ class DaskExecutor:
                     n_workers=count,
                     threads_per_worker=1,
                     processes=True,
-                    dashboard_address=None,
+                    dashboard_address=":0",  # any free port: no clash with another run's
                     silence_logs=logging.CRITICAL,  # a failing task is reported by the run
                 )
             self.client = Client(self._cluster)

@@ -410,7 +410,9 @@ def test_clouds_keep_flowing_while_a_wide_search_runs(ros_domain: int, tmp_path:
         assert set(drops) <= {"superseded"}, drops
         loc = status["localization"]
         assert loc["state"] == "localized", loc
-        feeder.spin(0.3)
+        # map -> odom is another topic than ~/status: wait for it (one spin_once may take
+        # only a status message)
+        assert feeder.wait(lambda: bool(feeder.tf), 10.0), loc
         shift, angle = _error(_tf_matrix(feeder.tf[-1]))
         assert shift < 0.05 and angle < 0.5, (shift, angle, loc)
         print(
