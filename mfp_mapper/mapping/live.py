@@ -582,9 +582,9 @@ class LiveIntegrator:
         job.placed, job.placed_at = corrected, time.monotonic()
         self._integrate(job)
 
-    def _guarded(self, step: Callable[[_Placed], None], job: _Placed) -> None:
+    def _guarded(self, step: Callable[[_Placed], None], job: _Placed) -> float:
         """``step(job)`` counted as ``process`` counts a cloud: a drop or an error is
-        counted, never raised."""
+        counted, never raised. Returns the wall seconds it took."""
         cpu0, wall0 = time.thread_time(), time.perf_counter()
         try:
             step(job)
@@ -596,6 +596,7 @@ class LiveIntegrator:
             with self._cv:
                 self.counters.integration_cpu += time.thread_time() - cpu0
                 self.counters.integration_wall += time.perf_counter() - wall0
+        return time.perf_counter() - wall0
 
     # --- the walker thread: the placed scans into the map, in order --------------------------
 
@@ -622,23 +623,14 @@ class LiveIntegrator:
                 self._handoff = None
                 self._prepare_at = time.monotonic() + self._walk_s - self._prepare_s
                 self._cv.notify_all()
-            cpu0, wall0 = time.thread_time(), time.perf_counter()
-            try:
-                self._integrate(job)
-            except pipeline.ScanDropped as drop:
-                self._log_drop(drop.reason, drop.detail, self.loop.count_drop(drop))
-            except Exception as err:  # keep the node alive whatever a message holds
-                self._drop("error", f"{type(err).__name__}: {err}")
-            finally:
-                with self._cv:
-                    self.counters.integration_cpu += time.thread_time() - cpu0
-                    self.counters.integration_wall += time.perf_counter() - wall0
-                    self._walk_s = _average(self._walk_s, time.perf_counter() - wall0)
-                    self._prepare_s = _average(
-                        self._prepare_s, job.placed_at - job.placing + job.item.parse_s
-                    )
-                    self._prepare_at = 0.0
-                    self._cv.notify_all()
+            wall = self._guarded(self._integrate, job)
+            with self._cv:
+                self._walk_s = _average(self._walk_s, wall)
+                self._prepare_s = _average(
+                    self._prepare_s, job.placed_at - job.placing + job.item.parse_s
+                )
+                self._prepare_at = 0.0
+                self._cv.notify_all()
 
     def _integrate(self, job: _Placed) -> None:
         """A placed scan into the map (``ScanLoop.commit``), with its latency and timing."""
