@@ -37,7 +37,6 @@ from mfp_mapper.core.blocks import (
     local_coords,
     voxel_inside,
 )
-from mfp_mapper.core.model import hit_probability_one
 from mfp_mapper.core.shard import ShardArrays, block_values
 
 UNKNOWN = -1
@@ -48,6 +47,17 @@ _UNCERTAIN = 1
 DEFAULT_OCCUPIED_THRESHOLD = 0.25
 """Default hit probability at or above which a trinary cell is occupied (a wall seen in 3
 scans at 0.1 m reaches 0.32-0.38, in 40 scans 0.98; see docs/node.md)."""
+
+
+@nb.njit(cache=True)
+def hit_probability_one(
+    s: float, n: float, length: float, shape: float = 1.0, rate: float = 1.0
+) -> float:
+    """``model.hit_probability`` of one voxel, for compiled kernels (the same expression), with
+    the prior's ``shape`` and ``rate``."""
+    s = max(s, 0.0)
+    n = max(n, 0.0)
+    return -math.expm1(-(n + shape) * math.log1p(length / (s + rate)))
 
 
 def unobserved_hit_probability(resolution: float, shape: float = 1.0, rate: float = 1.0) -> float:
