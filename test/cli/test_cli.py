@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -116,6 +117,58 @@ def test_query(run: dict[str, Path], capsys: pytest.CaptureFixture[str]) -> None
     assert main(["query", str(run["map"]), "0", "0", "1"]) == 0
     assert "DoO" in capsys.readouterr().out
     assert main(["query", str(run["map"]), "0", "0"]) == 1
+
+
+LAUNCHER = Path(__file__).resolve().parents[2] / ".venv" / "bin" / "mfp-mapper"
+
+
+@pytest.mark.parametrize("histograms", [False, True], ids=["plain", "histograms"])
+def test_query_of_points_as_a_user_types_it(
+    run: dict[str, Path], histograms: bool, tmp_path: Path
+) -> None:
+    """``mfp-mapper query map.npz X Y Z ...`` (docs/cli.md), the console script in its own
+    process: the numbers of the map loaded whole (``Mapper.query``, compiled), for points
+    inside and outside the map, printed and ``--json``, with and without ``--stamp``. A map
+    without reflectivity histograms is answered without numba, llvmlite or scipy imported
+    (``python -X importtime``); one with them (replay's default here) is read whole."""
+    from mfp_mapper.mapio.mapfile import map_arrays, write_map_arrays
+    from mfp_mapper.outputs.report import jsonable, query_lines, query_rows
+
+    path = run["map"]
+    if not histograms:
+        path = tmp_path / "plain.npz"
+        arrays = map_arrays(load_map(run["map"]))
+        write_map_arrays(path, {k: v for k, v in arrays.items() if "reflectivity" not in k})
+    whole = load_map(path)
+    rng = np.random.default_rng(5)
+    centres = whole.voxels().centers
+    points = np.concatenate(
+        [centres[rng.choice(len(centres), 40)], rng.uniform(-6, 6, (20, 3)), [[0, 0, 500.0]]]
+    )
+    coords = [repr(float(v)) for v in points.ravel()]
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    door = [str(LAUNCHER)] if LAUNCHER.exists() else ["-m", "mfp_mapper.cli"]
+    for extra, stamp in (([], None), (["--stamp", "5.0"], 5.0)):
+        for as_json in (False, True):
+            argv = [sys.executable, "-X", "importtime", *door, "query", str(path), *coords]
+            proc = subprocess.run(
+                argv + extra + (["--json"] if as_json else []),
+                capture_output=True, text=True, env=env, timeout=120, check=False,
+            )  # fmt: skip
+            assert proc.returncode == 0, proc.stderr
+            rows = query_rows(whole, points, stamp)
+            if as_json:
+                assert json.loads(proc.stdout) == jsonable(rows)
+            else:
+                assert proc.stdout.splitlines()[1:] == query_lines(rows)
+            imported = {
+                line.split("|")[-1].strip().split(".")[0]
+                for line in proc.stderr.splitlines()
+                if line.startswith("import time:")
+            }
+            assert "numpy" in imported and "mfp_mapper" in imported
+            assert bool(imported & {"numba", "llvmlite", "scipy"}) == histograms
 
 
 def test_evaluate(run: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
