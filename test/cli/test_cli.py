@@ -52,6 +52,47 @@ def test_help_lists_subcommands_and_examples(capsys: pytest.CaptureFixture[str])
     assert "--cloud-topic" in capsys.readouterr().out
 
 
+def test_each_command_is_listed_with_its_modules_help() -> None:
+    """``cli.main.COMMANDS`` (what ``--help`` lists without importing the modules) says what
+    each module's own parser says, in the same order; a parser built for one command has
+    that command's arguments and the others' names."""
+    import argparse
+
+    from mfp_mapper.cli.main import COMMANDS
+
+    def listed(parser: argparse.ArgumentParser) -> list[tuple[str, str | None]]:
+        (sub,) = (a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        return [(a.dest, a.help) for a in sub._choices_actions]
+
+    want = [(name, summary) for name, (_, summary) in COMMANDS.items()]
+    assert listed(build_parser()) == want
+    assert listed(build_parser("query")) == want
+    args = build_parser("query").parse_args(["query", "m.npz", "1", "2", "3", "--json"])
+    assert args.coords == [1.0, 2.0, 3.0] and args.json and callable(args.run)
+
+
+@pytest.mark.parametrize(
+    "argv", [["--help"], ["query", "--help"], ["query", "missing.npz", "1", "2", "3"]]
+)
+def test_a_command_imports_only_its_module(argv: list[str]) -> None:
+    """``mfp-mapper --help`` imports no subcommand module; ``mfp-mapper query`` only its own
+    (not the settings schema the bag commands' flags come from), in a fresh interpreter."""
+    code = (
+        "import sys\nfrom mfp_mapper.cli import main\ntry:\n    main(sys.argv[1:])\n"
+        "except SystemExit:\n    pass\n"
+        "print(sorted(m for m in sys.modules if m.startswith('mfp_mapper.c')))"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code, *argv], capture_output=True, text=True, timeout=120,
+        cwd=Path(__file__).resolve().parents[2], check=True,
+    )  # fmt: skip
+    loaded = set(json.loads(proc.stdout.strip().splitlines()[-1].replace("'", '"')))
+    cli = {m for m in loaded if m.startswith("mfp_mapper.cli.")}
+    expected = {"mfp_mapper.cli.main", "mfp_mapper.cli.common"}
+    assert cli == (expected if argv == ["--help"] else expected | {"mfp_mapper.cli.query"})
+    assert "mfp_mapper.config.schema" not in loaded and "mfp_mapper.core.mapper" not in loaded
+
+
 def test_replay_writes_a_loadable_map(run: dict[str, Path]) -> None:
     m = load_map(run["map"])
     assert m.resolution == 0.2 and m.frame_id == "odom" and m.num_voxels > 1000
