@@ -142,7 +142,7 @@ def second_return_topic(reader: Any, wanted: str) -> str | None:
     if not wanted:
         return None
     topics = {c.topic: c.msgtype for c in reader.connections}
-    for name in (wanted, "/" + wanted.lstrip("/")):
+    for name in (wanted, wanted if wanted.startswith("/") else "/" + wanted):
         if topics.get(name) == CLOUD_TYPE:
             return name
     listing = ", ".join(f"{t} ({m})" for t, m in sorted(topics.items())) or "none"
