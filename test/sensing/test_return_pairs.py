@@ -91,7 +91,7 @@ def test_every_cloud_is_counted_once(seed: int) -> None:
     seconds = 0
     out: list[Any] = []
     now = 0.0
-    for k in range(200):
+    for _ in range(200):
         stamp = float(rng.integers(0, 60)) * 0.1  # repeated stamps happen
         arrivals = [("first", _cloud(stamp))]
         if rng.random() < 0.8:
