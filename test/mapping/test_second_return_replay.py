@@ -221,3 +221,23 @@ def test_mismatched_layouts_map_the_first_returns_and_say_why(tmp_path: Path) ->
     plain = replay(bag, OPTS.but(cloud_topic=FIRST), progress=False)
     for got, want in zip(_sorted(result.mapper), _sorted(plain.mapper), strict=True):
         np.testing.assert_array_equal(got, want)
+
+
+def test_the_replay_command_pairs_with_the_flag_or_the_node_yaml(
+    dual_bag: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import json
+
+    from mfp_mapper.cli import main
+
+    out, summary = tmp_path / "map.npz", tmp_path / "summary.json"
+    argv = ["replay", str(dual_bag), "-o", str(out), "--resolution", "0.25", "-q"]
+    assert main([*argv, "--second-return-topic", SECOND, "--summary-json", str(summary)]) == 0
+    assert "2nd returns  alone 1, mismatched 0, paired 3" in capsys.readouterr().out
+    assert json.loads(summary.read_text())["second_return"]["paired"] == 3
+    robot = tmp_path / "robot.yaml"  # the node's parameter file, as docs/robot.md has it
+    robot.write_text(f"/**:\n  ros__parameters:\n    second_return_topic: {SECOND}\n")
+    assert main([*argv, "--config", str(robot)]) == 0
+    assert "paired 3" in capsys.readouterr().out
+    assert main(argv) == 1  # two cloud topics and no flag: the error names the flag
+    assert "--second-return-topic /ouster/points2" in capsys.readouterr().err
