@@ -241,3 +241,21 @@ def test_the_replay_command_pairs_with_the_flag_or_the_node_yaml(
     assert "paired 3" in capsys.readouterr().out
     assert main(argv) == 1  # two cloud topics and no flag: the error names the flag
     assert "--second-return-topic /ouster/points2" in capsys.readouterr().err
+
+
+def test_score_scores_the_second_returns_as_later_echoes(dual_bag: Path, tmp_path: Path) -> None:
+    import json
+
+    from mfp_mapper.cli import main
+
+    def echoes(*flags: str) -> Any:
+        out = tmp_path / "score.json"
+        argv = ["score", str(dual_bag), "--split", "shots", "--resolution", "0.25", "-q"]
+        assert main([*argv, "--no-classic", "--json", str(out), *flags]) == 0
+        return json.loads(out.read_text()).get("echoes")
+
+    paired = echoes("--second-return-topic", SECOND)
+    # the held-out shots' second returns are scored as later echoes
+    assert paired["all"]["later_echoes"] > 0
+    assert paired["all"]["first_echoes"] == paired["first_only"]["first_echoes"] > 0
+    assert echoes("--cloud-topic", FIRST) is None  # the first returns alone: no echoes
