@@ -10,7 +10,9 @@ stamp (``sources.pose_files``), or KISS-ICP (``sources.lidar_odometry``). The li
 comes from ``/tf_static``; it is the identity when the cloud frame is the odometry child frame;
 otherwise it must be given (``--extrinsic`` or ``lidar.translation``/``lidar.rpy`` in the
 node's YAML). Errors are ``ReplayError`` with the reason, before any cloud is mapped; a bag
-damaged part way raises one naming the message reached.
+damaged part way raises one naming the message reached. With ``second_return_topic`` (ouster-ros
+``points2``) each cloud is paired with the second-return cloud of its stamp as the node pairs
+them (``paired_clouds``).
 """
 
 from __future__ import annotations
@@ -73,6 +75,8 @@ def _bag_recording(
     log: Callable[[str], None] | None,
 ) -> Recording:
     second_topic = second_return_topic(reader, opts.placement.second_return_topic)
+    if second_topic is not None and opts.replay.cloud_topic == second_topic:
+        raise ReplayError(f"{second_topic} cannot be both the cloud and the second-return topic")
     cloud_topic = pick_topic(
         reader, CLOUD_TYPE, opts.replay.cloud_topic, "PointCloud2", "--cloud-topic", second_topic
     )

@@ -176,6 +176,8 @@ def test_the_second_topic_is_not_a_cloud_topic_candidate(dual_bag: Path) -> None
         replay(dual_bag, OPTS, progress=False)
     with pytest.raises(ReplayError, match="second_return_topic '/lidar/points2' is not"):
         replay(dual_bag, OPTS.but(second_return_topic="/lidar/points2"), progress=False)
+    with pytest.raises(ReplayError, match="both the cloud and the second-return topic"):
+        replay(dual_bag, PAIRED.but(cloud_topic=SECOND), progress=False)
     # the node's relative name resolves in the root namespace
     relative = OPTS.but(second_return_topic="ouster/points2")
     assert replay(dual_bag, relative, progress=False).summary.second_return is not None
