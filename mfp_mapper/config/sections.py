@@ -385,6 +385,14 @@ class OutputsSection(Section):
         1.0e6,
         dynamic=True,
     )
+    publish_changed_blocks: bool = setting(
+        True,
+        "Rebuild the map clouds from the blocks scans changed since the last publication, "
+        "the rest from the previous clouds: the same whole clouds, holding the map for a "
+        "fraction of the time (docs/node.md 'Map outputs'). False: read the whole map each "
+        "time. Needs min_degree_of_occupancy above 0.",
+        dynamic=True,
+    )
     occupancy_min_z: float = setting(
         0.1,
         "Bottom (m, map frame) of the height band of ~/hit_probability_map.",
