@@ -359,7 +359,11 @@ def run_stream(
         params["frame_id"] = "odom"
     elif stream.frame != "base_link":
         params["lidar.translation"] = [0.0, 0.0, stream.mount_z]
-    node = NodeProcess(domain, params, workdir / f"{stream.name}.log", env=node_env, cwd=tree)
+    # another commit's node reads its own parameter file (it may lack newer settings)
+    own = {} if tree is None else {"params_file": tree / "config" / "mfp_mapper.yaml"}
+    node = NodeProcess(
+        domain, params, workdir / f"{stream.name}.log", env=node_env, cwd=tree, **own
+    )
     feeder = Feeder()
     tf = TfPoses(feeder, (0.0, 0.0, stream.mount_z)) if tf_poses else None
     # built once: the driver's own CPU stays small (it shares the cores with the node)

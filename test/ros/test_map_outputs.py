@@ -97,3 +97,70 @@ def test_radius_limited_cloud_holds_exactly_the_voxels_near_the_robot(
         f"published {len(xyz)} of the map's {len(every.centers)} voxels with DoO >= "
         f"{NODE_PARAMS['min_degree_of_occupancy']}: exactly those within {RADIUS} m of the robot"
     )
+
+
+@pytest.mark.parametrize("changed_blocks", [True, False])
+def test_clouds_rebuilt_from_changed_blocks_equal_the_saved_map(
+    ros_domain: int, tmp_path: Path, changed_blocks: bool
+) -> None:
+    """A driving robot, 12 scans, the map published at 5 Hz meanwhile (the clouds rebuilt
+    from the blocks each publication's scans changed, or from the whole map) with decay:
+    the last clouds hold exactly the saved map's voxels with at least
+    ``min_degree_of_occupancy``, their degree of occupancy and std as the map's (statistics
+    as stored, decayed to each block's last scan)."""
+    from std_srvs.srv import Trigger
+
+    scans = 12
+    map_path = tmp_path / "map.npz"
+    params = {
+        **NODE_PARAMS,
+        "publish_changed_blocks": changed_blocks,
+        "decay_time": 0.5,
+        "map_path": str(map_path),
+    }
+    node = NodeProcess(ros_domain, params, tmp_path / "node.log")
+    feeder = Feeder()
+    try:
+        assert feeder.wait_connected(30.0), f"node not discovered:\n{node.log()[-3000:]}"
+        assert feeder.wait(lambda: feeder.status is not None, 10.0)
+        sim = Sim(feeder)
+        starts = [T0 + 0.1 + 0.2 * k for k in range(scans)]
+        for start in starts:
+            sim.send_scan(start)
+            feeder.spin(0.2)  # publications go out between the scans
+        status = feeder.wait_status(lambda st: st["clouds_integrated"] >= scans, 60.0)
+        assert status["clouds_integrated"] == scans, f"{status}\n{node.log()[-3000:]}"
+        last = _stamp_seconds(stamp_msg(starts[-1]))
+
+        def latest() -> bool:
+            return all(
+                m is not None and _stamp_seconds(m.header.stamp) >= last
+                for m in (feeder.doo, feeder.std)
+            )
+
+        assert feeder.wait(latest, 20.0), node.log()[-3000:]
+        doo, std = read_cloud(feeder.doo), read_cloud(feeder.std)
+        status = feeder.wait_status(lambda st: st["published_voxels"] == len(doo["x"]), 10.0)
+        saved = feeder.call(feeder.save, Trigger.Request(), timeout=30.0)
+        assert saved.success, saved.message
+    finally:
+        feeder.destroy()
+        node.stop()
+    assert status["publish_count"] >= 3, status  # publications during the scans
+    assert (status["published_blocks_read"] >= 0) == changed_blocks, status
+
+    want = load_map(map_path).voxels(min_doo=NODE_PARAMS["min_degree_of_occupancy"])
+    assert len(want) > 100
+    xyz = np.stack([doo[a] for a in "xyz"], axis=1).astype(np.float64)
+    np.testing.assert_array_equal(xyz, np.stack([std[a] for a in "xyz"], axis=1))
+    got_ijk = np.floor(xyz / RES).astype(np.int64)
+    want_ijk = np.floor(want.centers / RES).astype(np.int64)
+    assert len(np.unique(got_ijk, axis=0)) == len(got_ijk), "a voxel published twice"
+    got_order, want_order = np.lexsort(got_ijk.T), np.lexsort(want_ijk.T)
+    np.testing.assert_array_equal(got_ijk[got_order], want_ijk[want_order])
+    np.testing.assert_array_equal(
+        doo["degree_of_occupancy"][got_order],
+        want.most_likely_doo[want_order].astype(np.float32),
+    )
+    np.testing.assert_array_equal(std["std"][got_order], want.std[want_order].astype(np.float32))
+    assert len(np.unique(want.t_last)) > 1, "decay: the blocks refer to several stamps"
