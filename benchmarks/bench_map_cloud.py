@@ -14,7 +14,8 @@ the map is "published" as ``ros.map_outputs`` does, timed without ROS:
 - changed: ``MapCloud.read`` (under the lock: the returns of the blocks the scan changed)
   and ``MapCloud.apply`` (after it: the rows of the whole cloud), checked equal to whole;
 - grid: ``Mapper.hit_probability_grid`` of ``~/projected_map`` (the whole band, under the
-  lock either way).
+  lock either way), and its ``--grid-radius`` window around the robot
+  (``hit_probability_map.radius``).
 
 Printed per scan after the first few: ms of each (best of ``--repeat`` calls, whole and
 changed interleaved), voxels and blocks read, and the lock-time ratio whole / changed.
@@ -65,6 +66,7 @@ def main() -> int:
     parser.add_argument("--step", type=float, default=0.0, help="metres along x a scan")
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--skip", type=int, default=4, help="scans before the figures")
+    parser.add_argument("--grid-radius", type=float, default=30.0, help="the grid's window (m)")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     stream = make_stream("norlab", 14, args.resolution)
@@ -98,6 +100,14 @@ def main() -> int:
             lambda: mapper.hit_probability_grid(0.1, 2.0, max_cells=25_000_000, trinary=trinary),
             args.repeat,
         )
+        robot = mapper.last_origin
+        _, window_ms = _best(
+            lambda r=robot: mapper.hit_probability_grid(
+                0.1, 2.0, center=(r[0], r[1]), radius=args.grid_radius,
+                max_cells=25_000_000, trinary=trinary,
+            ),
+            args.repeat,
+        )  # fmt: skip
         assert len(rows) == len(whole_rows), (len(rows), len(whole_rows))
         a, b = np.lexsort(rows.centers.T), np.lexsort(whole_rows.centers.T)
         assert np.array_equal(rows.degree_of_occupancy[a], whole_rows.degree_of_occupancy[b])
@@ -113,6 +123,7 @@ def main() -> int:
             "changed_lock_ms": round(read_ms, 1),
             "changed_after_ms": round(apply_ms, 1),
             "grid_ms": round(grid_ms, 1),
+            "grid_window_ms": round(window_ms, 1),
         }
         print(json.dumps(row), flush=True)
         if k >= args.skip:
@@ -125,7 +136,8 @@ def main() -> int:
         f"{med['changed_lock_ms']:.1f} ms ({med['changed_blocks']:.0f} blocks): "
         f"{med['whole_lock_ms'] / max(med['changed_lock_ms'], 1e-3):.1f}x; after the lock: "
         f"whole {med['whole_after_ms']:.1f}, changed {med['changed_after_ms']:.1f} ms; grid "
-        f"{med['grid_ms']:.1f} ms; integrate {med['integrate_ms']:.0f} ms a scan; load "
+        f"{med['grid_ms']:.1f} ms, {args.grid_radius:g} m around the robot "
+        f"{med['grid_window_ms']:.1f} ms; integrate {med['integrate_ms']:.0f} ms a scan; load "
         f"average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores"
     )
     if args.json:

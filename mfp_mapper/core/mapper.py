@@ -17,7 +17,7 @@ from mfp_mapper.config.sections import MapSection, SensorModelSection
 from mfp_mapper.core import model
 from mfp_mapper.core.changed_blocks import changed_returns
 from mfp_mapper.core.errors import CoreError, ScanTooLargeError
-from mfp_mapper.core.gridmap import HitGrid, band_grid
+from mfp_mapper.core.gridmap import BandCells, HitGrid, band_grid
 from mfp_mapper.core.memory_bound import (
     MemoryBound,
     fit_scan_budget,
@@ -769,6 +769,7 @@ class Mapper:
         radius: float = 0.0,
         max_cells: int | None = None,
         trinary: tuple[float, float] | None = None,
+        previous: BandCells | None = None,
     ) -> HitGrid:
         """The height band ``[z_min, z_max]`` projected onto a 2D grid (``gridmap``): per
         cell ``round(100 p)``, ``p`` the largest hit probability of a voxel edge in the
@@ -777,7 +778,10 @@ class Mapper:
         last update (no decay to a later stamp), read straight from the blocks.
         ``gridmap.GridTooLarge`` (nothing allocated) when the grid would exceed
         ``max_cells``. ``trinary=(occupied, free)``: cells 100 / 0 / -1 by those
-        hit-probability thresholds (Nav2)."""
+        hit-probability thresholds (Nav2). ``previous``: the ``cells`` of an earlier grid of
+        the whole band with the same settings, from which only the columns scans changed
+        since are computed again (``gridmap.band_grid``; the whole band when anything else
+        changed the map: ``epoch``)."""
         lo_m, hi_m = [-math.inf, -math.inf, z_min], [math.inf, math.inf, z_max]
         if center is not None and radius > 0.0:  # only the blocks near the window are read
             margin = radius + self.resolution
@@ -798,6 +802,9 @@ class Mapper:
             max_cells=max_cells,
             trinary=trinary,
             prior=(self.prior.shape, self.prior.rate),
+            previous=previous,
+            since=self._store.next_scan,
+            key=(id(self), self.epoch, z_min, z_max, trinary, self.prior, ox, oy, oz),
         )
         if ox == 0.0 and oy == 0.0:
             return grid

@@ -113,7 +113,11 @@ class MapCloud:
         if changes.full or old is None:
             rows, row_blocks = fresh, fresh_blocks
         else:
-            stale = np.isin(self._row_blocks, block_keys(changes.blocks))
+            changed = np.sort(block_keys(changes.blocks))
+            at = np.searchsorted(changed, self._row_blocks)  # (np.isin: 3x as long)
+            stale = changed[np.minimum(at, len(changed) - 1)] == self._row_blocks
+            if not len(changed):
+                stale[:] = False
             kept = old.select(~stale)
             rows = _concatenate(kept, fresh)
             row_blocks = np.concatenate([self._row_blocks[~stale], fresh_blocks])

@@ -22,7 +22,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from sensor_msgs.msg import PointCloud2
 
 from mfp_mapper.config.sections import OutputsSection
-from mfp_mapper.core.gridmap import GridTooLarge, unobserved_hit_probability
+from mfp_mapper.core.gridmap import BandCells, GridTooLarge, unobserved_hit_probability
 from mfp_mapper.mapping.live import LiveIntegrator
 from mfp_mapper.mapping.map_cloud import MapCloud, rows_of
 from mfp_mapper.ros.messages import cloud_msg, grid_msg, stamp_msg
@@ -96,6 +96,7 @@ class MapOutputs:
         # of one output gets it even when the other already went out for this version
         self.published: dict[str, int | None] = {"clouds": None, "grid": None}
         self._cloud = MapCloud()  # the clouds' rows, rebuilt where scans changed the map
+        self._grid_cells: BandCells | None = None  # the last ~/projected_map's, continued
         self._not_before = 0.0
 
     def invalidate(self) -> None:
@@ -225,13 +226,20 @@ class MapOutputs:
         radius = cfg.hit_probability_map_radius
         center = (float(robot[0]), float(robot[1])) if robot is not None and radius > 0 else None
         limit = cfg.hit_probability_map_max_cells
+        # ~/projected_map: continued from the last one's cells (the columns scans changed)
+        previous = self._grid_cells if projected and cfg.publish_changed_blocks else None
         with self._timed_map_lock(lock_times):
             resolution = worker.mapper.resolution
             stamp = worker.mapper.last_stamp
             band = (cfg.occupancy_min_z, cfg.occupancy_max_z)
             try:
                 grid = worker.mapper.hit_probability_grid(
-                    *band, center=center, radius=radius, max_cells=limit, trinary=trinary
+                    *band,
+                    center=center,
+                    radius=radius,
+                    max_cells=limit,
+                    trinary=trinary,
+                    previous=previous,
                 )
             except GridTooLarge as err:
                 if robot is None:
@@ -247,6 +255,8 @@ class MapOutputs:
                 grid = worker.mapper.hit_probability_grid(
                     *band, center=center, radius=radius, max_cells=limit, trinary=trinary
                 )
+        if projected:
+            self._grid_cells = grid.cells
         now = self._node.get_clock().now().to_msg()
         return grid_msg(
             grid,

@@ -19,6 +19,7 @@ import pytest
 from ros_helpers import Feeder, NodeProcess, Trajectory, read_cloud, stamp_msg
 from test_node import NODE_PARAMS, RES, T0, Sim
 
+from mfp_mapper.core.gridmap import DEFAULT_OCCUPIED_THRESHOLD, unobserved_hit_probability
 from mfp_mapper.mapio import load_map
 
 pytestmark = pytest.mark.ros
@@ -107,7 +108,8 @@ def test_clouds_rebuilt_from_changed_blocks_equal_the_saved_map(
     from the blocks each publication's scans changed, or from the whole map) with decay:
     the last clouds hold exactly the saved map's voxels with at least
     ``min_degree_of_occupancy``, their degree of occupancy and std as the map's (statistics
-    as stored, decayed to each block's last scan)."""
+    as stored, decayed to each block's last scan), and the last ``~/projected_map``
+    (continued from the previous one's cells, or computed whole) is the saved map's grid."""
     from std_srvs.srv import Trigger
 
     scans = 12
@@ -135,11 +137,11 @@ def test_clouds_rebuilt_from_changed_blocks_equal_the_saved_map(
         def latest() -> bool:
             return all(
                 m is not None and _stamp_seconds(m.header.stamp) >= last
-                for m in (feeder.doo, feeder.std)
+                for m in (feeder.doo, feeder.std, feeder.projected)
             )
 
         assert feeder.wait(latest, 20.0), node.log()[-3000:]
-        doo, std = read_cloud(feeder.doo), read_cloud(feeder.std)
+        doo, std, projected = read_cloud(feeder.doo), read_cloud(feeder.std), feeder.projected
         status = feeder.wait_status(lambda st: st["published_voxels"] == len(doo["x"]), 10.0)
         saved = feeder.call(feeder.save, Trigger.Request(), timeout=30.0)
         assert saved.success, saved.message
@@ -149,7 +151,18 @@ def test_clouds_rebuilt_from_changed_blocks_equal_the_saved_map(
     assert status["publish_count"] >= 3, status  # publications during the scans
     assert (status["published_blocks_read"] >= 0) == changed_blocks, status
 
-    want = load_map(map_path).voxels(min_doo=NODE_PARAMS["min_degree_of_occupancy"])
+    saved_map = load_map(map_path)
+    free = unobserved_hit_probability(RES, saved_map.prior.shape, saved_map.prior.rate)
+    grid = saved_map.hit_probability_grid(
+        NODE_PARAMS["occupancy_min_z"],
+        NODE_PARAMS["occupancy_max_z"],
+        trinary=(DEFAULT_OCCUPIED_THRESHOLD, min(free, DEFAULT_OCCUPIED_THRESHOLD)),
+    )
+    assert (projected.info.width, projected.info.height) == (grid.width, grid.height)
+    assert (projected.info.origin.position.x, projected.info.origin.position.y) == grid.origin
+    np.testing.assert_array_equal(np.asarray(projected.data, dtype=np.int8), grid.data.ravel())
+    assert (grid.data == 100).sum() > 10 and (grid.data == 0).sum() > 10
+    want = saved_map.voxels(min_doo=NODE_PARAMS["min_degree_of_occupancy"])
     assert len(want) > 100
     xyz = np.stack([doo[a] for a in "xyz"], axis=1).astype(np.float64)
     np.testing.assert_array_equal(xyz, np.stack([std[a] for a in "xyz"], axis=1))
