@@ -51,6 +51,13 @@ DEFAULT_OCCUPIED_THRESHOLD = 0.25
 scans at 0.1 m reaches 0.32-0.38, in 40 scans 0.98; see docs/node.md)."""
 
 
+WHOLE_BAND_SHARE = 0.5
+"""A grid continued from a previous one (``band_grid`` ``previous``) whose changed block
+columns exceed this share of the grid is computed whole: checking each block against the
+columns cost ~10% more than reading them all when nearly all changed (a parked lidar that
+reaches the whole map, benchmarks/bench_map_cloud.py)."""
+
+
 def unobserved_hit_probability(resolution: float, shape: float = 1.0, rate: float = 1.0) -> float:
     """p_hit of a never-observed voxel, ``1 - (rate / (rate + s0))^shape`` (``s0 / (1 +
     s0)`` with the uniform prior, 0.012 at 0.1 m with the default family): every voxel
@@ -237,9 +244,13 @@ def band_grid(
         dirty = np.zeros(((j1 >> BLOCK_BITS) - bj0 + 1, (i1 >> BLOCK_BITS) - bi0 + 1), np.bool_)
         for arrays, used in shards:
             _dirty_columns(arrays, used, lo, hi, changed_since, bi0, bj0, dirty)
-        over = np.repeat(np.repeat(dirty, BLOCK_EDGE, axis=0), BLOCK_EDGE, axis=1)
-        off_j, off_i = j0 - (bj0 << BLOCK_BITS), i0 - (bi0 << BLOCK_BITS)
-        cells[over[off_j : off_j + cells.shape[0], off_i : off_i + cells.shape[1]]] = UNKNOWN
+        if dirty.mean() > WHOLE_BAND_SHARE:  # most columns changed: the whole band
+            cells[:] = UNKNOWN
+            dirty = np.zeros((0, 0), dtype=np.bool_)
+        else:
+            over = np.repeat(np.repeat(dirty, BLOCK_EDGE, axis=0), BLOCK_EDGE, axis=1)
+            off_j, off_i = j0 - (bj0 << BLOCK_BITS), i0 - (bi0 << BLOCK_BITS)
+            cells[over[off_j : off_j + cells.shape[0], off_i : off_i + cells.shape[1]]] = UNKNOWN
     for arrays, used in shards:
         _band_max_percent(
             arrays,
