@@ -92,3 +92,20 @@ def test_reset_clear_box_eviction_and_filters_start_over() -> None:
     check()
     scan(9, 0.0)
     check()
+
+
+def test_a_publication_without_changed_blocks_keeps_the_rows() -> None:
+    """A map version with no block holding a return changed (a scan of free space far from
+    every return): the rows stay the whole map's."""
+    rng = np.random.default_rng(9)
+    mapper = Mapper(0.2)
+    cloud = MapCloud()
+    origin = np.array([0.0, 0.0, 1.0])
+    mapper.integrate(origin + rng.normal(0.0, 3.0, (2000, 3)), origin, 10.0)
+    first = _update(cloud, mapper, 0.1, 0.0)
+    far = np.array([300.0, 0.0, 1.0])
+    mapper.integrate(far + [[5.0, 0.0, 0.0]], far, 11.0, no_return=np.array([True]))
+    rows = _update(cloud, mapper, 0.1, 0.0)
+    assert cloud.last_changed_blocks == 0
+    _assert_same(rows, first)
+    _assert_same(rows, _whole(mapper, 0.1, 0.0))

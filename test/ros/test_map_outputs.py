@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from ros_helpers import Feeder, NodeProcess, Trajectory, read_cloud, stamp_msg
+from ros_helpers import Feeder, NodeProcess, Trajectory, clear_bbox, read_cloud, stamp_msg
 from test_node import NODE_PARAMS, RES, T0, Sim
 
 from mfp_mapper.core.gridmap import DEFAULT_OCCUPIED_THRESHOLD, unobserved_hit_probability
@@ -177,3 +177,49 @@ def test_clouds_rebuilt_from_changed_blocks_equal_the_saved_map(
     )
     np.testing.assert_array_equal(std["std"][got_order], want.std[want_order].astype(np.float32))
     assert len(np.unique(want.t_last)) > 1, "decay: the blocks refer to several stamps"
+
+
+def test_clouds_after_clear_bbox_and_reset_are_the_maps(ros_domain: int, tmp_path: Path) -> None:
+    """``~/clear_bbox`` and ``~/reset`` change voxels without a scan: the clouds published
+    after them (rebuilt from changed blocks by default) are the map's, not the kept rows."""
+    from std_srvs.srv import Empty, Trigger
+
+    map_path = tmp_path / "map.npz"
+    params = {**NODE_PARAMS, "map_path": str(map_path)}
+    node = NodeProcess(ros_domain, params, tmp_path / "node.log")
+    feeder = Feeder()
+    try:
+        assert feeder.wait_connected(30.0), f"node not discovered:\n{node.log()[-3000:]}"
+        assert feeder.wait(lambda: feeder.status is not None, 10.0)
+        sim = Sim(feeder)
+        starts = [T0 + 0.1 + 0.2 * k for k in range(4)]
+        for start in starts:
+            sim.send_scan(start)
+        status = feeder.wait_status(lambda st: st["clouds_integrated"] >= 4, 40.0)
+        assert status["clouds_integrated"] == 4, f"{status}\n{node.log()[-3000:]}"
+        last = _stamp_seconds(stamp_msg(starts[-1]))
+        assert feeder.wait(
+            lambda: feeder.doo is not None and _stamp_seconds(feeder.doo.header.stamp) >= last,
+            20.0,
+        ), node.log()[-3000:]
+        before = feeder.doo
+        cleared = clear_bbox(feeder, "mfp_mapper", (-100.0, -100.0, -5.0), (3.0, 100.0, 5.0))
+        assert cleared.success and cleared.cleared > 0, cleared
+        assert feeder.wait(lambda: feeder.doo is not before, 10.0), node.log()[-3000:]
+        after_clear = read_cloud(feeder.doo)
+        saved = feeder.call(feeder.save, Trigger.Request(), timeout=30.0)
+        assert saved.success, saved.message
+        want = load_map(map_path).voxels(min_doo=NODE_PARAMS["min_degree_of_occupancy"])
+        cleared_cloud = feeder.doo
+        feeder.call(feeder.reset, Empty.Request(), timeout=10.0)
+        assert feeder.wait(lambda: feeder.doo is not cleared_cloud, 10.0), node.log()[-3000:]
+        after_reset = read_cloud(feeder.doo)
+    finally:
+        feeder.destroy()
+        node.stop()
+    assert len(read_cloud(before)["x"]) > len(after_clear["x"]) > 50
+    got = np.floor(np.stack([after_clear[a] for a in "xyz"], axis=1) / RES).astype(np.int64)
+    wanted = np.floor(want.centers / RES).astype(np.int64)
+    assert got[:, 0].min() >= np.floor(3.0 / RES)  # nothing left of the cleared box
+    np.testing.assert_array_equal(got[np.lexsort(got.T)], wanted[np.lexsort(wanted.T)])
+    assert len(after_reset["x"]) == 0
