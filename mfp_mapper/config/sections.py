@@ -391,10 +391,11 @@ class OutputsSection(Section):
     )
     publish_changed_blocks: bool = setting(
         True,
-        "Rebuild the map clouds from the blocks scans changed since the last publication, "
-        "the rest from the previous clouds: the same whole clouds, holding the map for a "
-        "fraction of the time (docs/node.md 'Map outputs'). False: read the whole map each "
-        "time. Needs min_degree_of_occupancy above 0.",
+        "Rebuild the map clouds and ~/projected_map from the blocks scans changed since the "
+        "last publication, the rest from the previous ones: the same whole outputs, holding "
+        "the map for a fraction of the time when the robot drives (docs/node.md 'Map "
+        "outputs'). False: read the whole map each time (as with min_degree_of_occupancy 0 "
+        "for the clouds).",
         dynamic=True,
     )
     occupancy_min_z: float = setting(
