@@ -37,7 +37,17 @@ import numba as nb
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from mfp_mapper.core.blocks import BLOCK_BITS, BLOCK_EDGE, KEY_BITS, KEY_OFFSET, MAX_VOXEL_INDEX
+from mfp_mapper.core.blocks import (
+    BLOCK_BITS,
+    BLOCK_EDGE,
+    EMPTY_KEY,
+    KEY_BITS,
+    KEY_OFFSET,
+    MAX_VOXEL_INDEX,
+    block_key,
+    find_block,
+    insert_block,
+)
 
 FloatArray = NDArray[np.float64]
 
@@ -237,57 +247,161 @@ def _voxels_of(
     return out
 
 
+@nb.njit(cache=True, nogil=True)
+def _fill_hash(
+    block_keys: NDArray[np.int64], hash_keys: NDArray[np.int64], hash_blocks: NDArray[np.int32]
+) -> None:
+    """Index the blocks by key (``blocks.insert_block``; the tables start empty)."""
+    for b in range(block_keys.shape[0]):
+        insert_block(hash_keys, hash_blocks, block_keys[b], b)
+
+
 @nb.njit(inline="always", cache=True)
-def _find_sorted(keys: NDArray[np.int64], lo: int, hi: int, key: int) -> int:
-    """Index of ``key`` in the sorted ``keys[lo:hi]``, or -1."""
+def _voxel_key(x: int, y: int, z: int) -> tuple[int, int]:
+    """``_row_keys`` of one voxel: its block key (-1 beyond the map's range) and place."""
+    if max(abs(x), abs(y), abs(z)) > MAX_VOXEL_INDEX:
+        return -1, 0
+    m = BLOCK_EDGE - 1
+    place = ((x & m) << (2 * BLOCK_BITS)) | ((y & m) << BLOCK_BITS) | (z & m)
+    return block_key(x >> BLOCK_BITS, y >> BLOCK_BITS, z >> BLOCK_BITS), place
+
+
+@nb.njit(inline="always", cache=True)
+def _row_in_block(
+    block_start: NDArray[np.int32], local: NDArray[np.uint16], block: int, place: int
+) -> int:
+    """The row of ``place`` in ``block``, or -1."""
+    lo, hi = block_start[block], block_start[block + 1]
+    end = hi
     while lo < hi:
         mid = (lo + hi) >> 1
-        if keys[mid] < key:
+        if local[mid] < place:
             lo = mid + 1
         else:
             hi = mid
-    return lo if lo < keys.shape[0] and lo >= 0 and keys[lo] == key else -1
+    return lo if lo < end and local[lo] == place else -1
 
 
 @nb.njit(cache=True, nogil=True)
 def _locate(
     block_keys: NDArray[np.int64],
+    hash_keys: NDArray[np.int64],
+    hash_blocks: NDArray[np.int32],
     block_start: NDArray[np.int32],
     local: NDArray[np.uint16],
-    keys: NDArray[np.int64],
-    places: NDArray[np.int64],
+    ijk: NDArray[np.int64],
 ) -> NDArray[np.int64]:
-    """The row of each voxel (block key, place in block), -1 where there is none."""
-    out = np.full(keys.shape[0], -1, dtype=np.int64)
-    block = -1
-    for j in range(keys.shape[0]):
-        if j == 0 or keys[j] != keys[j - 1]:  # the returns of a scan come in runs
-            block = _find_sorted(block_keys, 0, block_keys.shape[0], keys[j])
-        if block < 0:
+    """The row of each voxel, -1 where there is none."""
+    out = np.full(ijk.shape[0], -1, dtype=np.int64)
+    last_key, block = -1, -1
+    for j in range(ijk.shape[0]):
+        key, place = _voxel_key(ijk[j, 0], ijk[j, 1], ijk[j, 2])
+        if key < 0:
             continue
-        lo, hi = block_start[block], block_start[block + 1]
-        while lo < hi:
-            mid = (lo + hi) >> 1
-            if local[mid] < places[j]:
-                lo = mid + 1
-            else:
-                hi = mid
-        if lo < block_start[block + 1] and local[lo] == places[j]:
-            out[j] = lo
+        if key != last_key:  # voxels often come in runs of one block
+            block = find_block(hash_keys, hash_blocks, key)
+            last_key = key
+        if block >= 0:
+            out[j] = _row_in_block(block_start, local, block, place)
     return out
 
 
 @nb.njit(cache=True, nogil=True)
-def _add_to_rows(
-    counts: NDArray[np.float32], rows: NDArray[np.int64], bins: NDArray[np.int64], w: float
-) -> None:
-    for j in range(rows.shape[0]):
-        counts[rows[j], bins[j]] += w
+def _add_found(
+    block_keys: NDArray[np.int64],
+    hash_keys: NDArray[np.int64],
+    hash_blocks: NDArray[np.int32],
+    block_start: NDArray[np.int32],
+    local: NDArray[np.uint16],
+    counts: NDArray[np.float32],
+    ijk: NDArray[np.int64],
+    bins: NDArray[np.int64],
+    w: float,
+) -> NDArray[np.int64]:
+    """Add ``w`` to the bin of each return whose voxel has a row; returns the returns
+    (indices) whose voxel has none (bin < 0 or beyond the map's range: neither)."""
+    pending = np.empty(ijk.shape[0], dtype=np.int64)
+    count = 0
+    last_key, block = -1, -1
+    for j in range(ijk.shape[0]):
+        if bins[j] < 0:
+            continue
+        key, place = _voxel_key(ijk[j, 0], ijk[j, 1], ijk[j, 2])
+        if key < 0:
+            continue
+        if key != last_key:
+            block = find_block(hash_keys, hash_blocks, key)
+            last_key = key
+        row = _row_in_block(block_start, local, block, place) if block >= 0 else -1
+        if row >= 0:
+            counts[row, bins[j]] += w
+        else:
+            pending[count] = j
+            count += 1
+    return pending[:count]
+
+
+_SPAN_BITS = 16
+"""Bits of a block's offset from the scan's lowest block, per axis, in ``_packed``."""
+
+
+@nb.njit(cache=True, nogil=True)
+def _packed(
+    ijk: NDArray[np.int64], bins: NDArray[np.int64], picked: NDArray[np.int64]
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """The picked returns as one int64 each that sorts like (block key, place, bin): the
+    block's offset from the lowest block (``_SPAN_BITS`` per axis), place (9 bits), bin
+    (6 bits); and the lowest block. Empty when the blocks span more than that."""
+    lo = np.full(3, np.iinfo(np.int64).max, dtype=np.int64)
+    hi = np.full(3, np.iinfo(np.int64).min, dtype=np.int64)
+    for j in picked:
+        for a in range(3):
+            b = ijk[j, a] >> BLOCK_BITS
+            lo[a] = min(lo[a], b)
+            hi[a] = max(hi[a], b)
+    out = np.empty(picked.shape[0], dtype=np.int64)
+    if picked.shape[0] and np.max(hi - lo) >= (1 << _SPAN_BITS):
+        return out[:0], lo
+    m = BLOCK_EDGE - 1
+    for i in range(picked.shape[0]):
+        j = picked[i]
+        x, y, z = ijk[j, 0], ijk[j, 1], ijk[j, 2]
+        place = ((x & m) << (2 * BLOCK_BITS)) | ((y & m) << BLOCK_BITS) | (z & m)
+        out[i] = (
+            (((x >> BLOCK_BITS) - lo[0]) << (2 * _SPAN_BITS + 15))
+            | (((y >> BLOCK_BITS) - lo[1]) << (_SPAN_BITS + 15))
+            | (((z >> BLOCK_BITS) - lo[2]) << 15)
+            | (place << 6)
+            | bins[j]
+        )
+    return out, lo
+
+
+@nb.njit(cache=True, nogil=True)
+def _unpacked(
+    packed: NDArray[np.int64], lo: NDArray[np.int64]
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+    """Block keys, places and bins of ``_packed`` values."""
+    n = packed.shape[0]
+    keys, places, bins = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.int64)
+    span = (1 << _SPAN_BITS) - 1
+    for i in range(n):
+        v = packed[i]
+        keys[i] = block_key(
+            lo[0] + ((v >> (2 * _SPAN_BITS + 15)) & span),
+            lo[1] + ((v >> (_SPAN_BITS + 15)) & span),
+            lo[2] + ((v >> 15) & span),
+        )
+        places[i] = (v >> 6) & 511
+        bins[i] = v & 63
+    return keys, places, bins
 
 
 @nb.njit(cache=True, nogil=True)
 def _merge_new(
     block_keys: NDArray[np.int64],
+    hash_keys: NDArray[np.int64],
+    hash_blocks: NDArray[np.int32],
     block_start: NDArray[np.int32],
     local: NDArray[np.uint16],
     counts: NDArray[np.float32],
@@ -304,7 +418,7 @@ def _merge_new(
     for j in range(keys.shape[0]):
         if j == 0 or keys[j] != keys[j - 1]:
             new_rows += 1
-            if _find_sorted(block_keys, 0, old_blocks, keys[j]) < 0:
+            if find_block(hash_keys, hash_blocks, keys[j]) < 0:
                 new_blocks += 1
         elif places[j] != places[j - 1]:
             new_rows += 1
@@ -368,10 +482,33 @@ class ReflectivityTable:
         self._decay_time: float | None = None
         self._epoch = 0.0
         self._latest = -math.inf
-        self._block_keys = np.zeros(0, dtype=np.int64)
-        self._block_start = np.zeros(1, dtype=np.int32)
-        self._local = np.zeros(0, dtype=np.uint16)
-        self._counts = np.zeros((0, bins.count), dtype=np.float32)
+        self._set_rows(
+            np.zeros(0, dtype=np.int64),
+            np.zeros(1, dtype=np.int32),
+            np.zeros(0, dtype=np.uint16),
+            np.zeros((0, bins.count), dtype=np.float32),
+        )
+
+    def _set_rows(
+        self,
+        block_keys: NDArray[np.int64],
+        block_start: NDArray[np.int32],
+        local: NDArray[np.uint16],
+        counts: NDArray[np.float32],
+    ) -> None:
+        """Hold these rows, and index their blocks by key (at most half the slots full)."""
+        self._block_keys, self._block_start = block_keys, block_start
+        self._local, self._counts = local, counts
+        slots = 1 << max(int(2 * block_keys.shape[0] - 1).bit_length(), 4)
+        self._hash_keys = np.full(slots, EMPTY_KEY, dtype=np.int64)
+        self._hash_blocks = np.zeros(slots, dtype=np.int32)
+        _fill_hash(block_keys, self._hash_keys, self._hash_blocks)
+
+    def _blocks(
+        self,
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int32], NDArray[np.int32]]:
+        """The block arrays the kernels take (keys, hash, first rows)."""
+        return self._block_keys, self._hash_keys, self._hash_blocks, self._block_start
 
     def __len__(self) -> int:
         return int(self._local.shape[0])
@@ -407,10 +544,6 @@ class ReflectivityTable:
             raise ValueError(f"bin {int(bins_.max())} beyond the {self.bins.count} bins")
         stamp = float(stamp)
         decay = self._use_decay(decay_time)
-        keys, places, inside = _row_keys(ijk)
-        use = inside & (bins_ >= 0)
-        if not use.any():
-            return
         if not len(self) or not math.isfinite(decay):
             self._epoch = stamp if not len(self) else max(self._epoch, stamp)
         elif (stamp - self._epoch) / decay > _REBASE:
@@ -418,26 +551,24 @@ class ReflectivityTable:
             self._epoch = stamp
         self._latest = max(self._latest, stamp)
         w = 1.0 / self._factor(stamp)
-        keys, places, bins_ = keys[use], places[use], bins_[use]
-        rows = _locate(self._block_keys, self._block_start, self._local, keys, places)
-        found = rows >= 0
-        _add_to_rows(self._counts, rows[found], bins_[found], w)
-        if found.all():
+        new = _add_found(*self._blocks(), self._local, self._counts, ijk, bins_, w)
+        if not new.size:
             return
-        new = ~found
-        order = np.lexsort((places[new], keys[new]))
-        self._block_keys, self._block_start, self._local, self._counts = _merge_new(
-            self._block_keys, self._block_start, self._local, self._counts,
-            keys[new][order], places[new][order], bins_[new][order], w,
-        )  # fmt: skip
+        packed, lowest = _packed(ijk, bins_, new)
+        if packed.size:
+            keys, places, new_bins = _unpacked(np.sort(packed, kind="stable"), lowest)
+        else:  # a scan spanning more blocks than a packed value holds
+            keys, places, _ = _row_keys(ijk[new])
+            order = np.lexsort((places, keys))
+            keys, places, new_bins = keys[order], places[order], bins_[new][order]
+        self._set_rows(
+            *_merge_new(*self._blocks(), self._local, self._counts, keys, places, new_bins, w)
+        )
 
     def lookup(self, ijk: NDArray[np.integer]) -> NDArray[np.int64]:
         """The row of each voxel, -1 where it holds no histogram."""
         ijk = np.ascontiguousarray(ijk, dtype=np.int64).reshape(-1, 3)
-        keys, places, inside = _row_keys(ijk)
-        rows = _locate(self._block_keys, self._block_start, self._local, keys, places)
-        rows[~inside] = -1
-        return rows
+        return _locate(*self._blocks(), self._local, ijk)
 
     def histograms(
         self, ijk: NDArray[np.integer], stamp: float | None = None, decay_time: float = math.inf
@@ -496,10 +627,12 @@ class ReflectivityTable:
         if math.isfinite(decay):
             counts = counts * np.exp((t_last - self._epoch) / decay)[:, None]
         first = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
-        self._block_keys = keys[first]
-        self._block_start = np.append(first, keys.size).astype(np.int32)
-        self._local = places.astype(np.uint16)
-        self._counts = counts.astype(np.float32)
+        self._set_rows(
+            keys[first],
+            np.append(first, keys.size).astype(np.int32),
+            places.astype(np.uint16),
+            counts.astype(np.float32),
+        )
 
     def keep(self, mask: NDArray[np.bool_]) -> int:
         """Keep the rows where ``mask`` (over ``len(self)`` rows) is True; returns how many
@@ -511,10 +644,12 @@ class ReflectivityTable:
         per_block = np.diff(self._block_start)
         block_of_row = np.repeat(np.arange(per_block.shape[0]), per_block)
         left = np.bincount(block_of_row[mask], minlength=per_block.shape[0])
-        self._block_keys = self._block_keys[left > 0]
-        self._block_start = np.append(0, np.cumsum(left[left > 0])).astype(np.int32)
-        self._local = self._local[mask]
-        self._counts = self._counts[mask]
+        self._set_rows(
+            self._block_keys[left > 0],
+            np.append(0, np.cumsum(left[left > 0])).astype(np.int32),
+            self._local[mask],
+            self._counts[mask],
+        )
         return dropped
 
     def voxel_indices(self) -> NDArray[np.int32]:
@@ -529,8 +664,8 @@ class ReflectivityTable:
 
     @property
     def nbytes(self) -> int:
-        """Memory in use: the arrays are sized to the rows."""
-        arrays = (self._block_keys, self._block_start, self._local, self._counts)
+        """Memory in use: the arrays are sized to the rows and blocks."""
+        arrays = (*self._blocks(), self._local, self._counts)
         return sum(a.nbytes for a in arrays)
 
 
