@@ -4,16 +4,17 @@ A return whose intensity falls in bin ``j`` adds one to ``n_jK`` of the voxel ``
 it (the voxel whose ``n`` it adds to); the most likely reflectivity histogram of ``K`` is
 ``n_jK / sum_i n_iK`` (Eq. B3, independent of the extinction). Only a few percent of the
 observed voxels hold returns, so the histograms live in a sparse table of their own beside
-the block store (``ReflectivityTable``): an open-addressing hash from voxel index to a row
-of ``J`` float32 counts and the time they refer to.
+the block store (``ReflectivityTable``): rows sorted by block and by the voxel's place in
+its block, each row only its ``J`` float32 counts and a 2-byte place.
 
-Decay (Eq. 28-30) scales the counts as it scales ``n``: each row keeps the time ``t`` its
-counts refer to; a return at ``stamp >= t`` first brings its row to ``stamp`` (scale by
-``exp(-(stamp - t) / T)``), a late return adds ``exp(-(t - stamp) / T)`` and leaves ``t``.
-So a row is the exact decayed sum of its returns, whatever the order of the scans, and its
-total equals the voxel's ``n`` read at the same time (up to float32 rounding) when every
-return had an intensity. Tables merge exactly (``merge_reflectivity``): every row brought to
-the latest time of its inputs, then added.
+Decay (Eq. 28-30) scales the counts as it scales ``n``. All rows refer to one time, the
+latest stamp added: a scan at a later stamp first scales every count by
+``exp(-(stamp - t) / T)`` and takes its time, a late scan's returns add
+``exp(-(t - stamp) / T)``. So a row is the exact decayed sum of its returns, whatever the
+order of the scans, and its total equals the voxel's ``n`` read at the same time (up to
+float32 rounding) when every return had an intensity. Tables are exported as they are held
+(``t_last`` that time for every row; files with a time per row load too) and merge exactly
+(``merge_reflectivity``): every row brought to the latest time of its inputs, then added.
 
 Rows follow their voxels: blocks evicted by the memory bound (``max_voxels``, ``keep_radius``)
 and voxels cleared (``clear_box``) drop their rows (``Mapper``). One case is not followed: a
@@ -59,6 +60,8 @@ ARRAY_KEYS = (
     "reflectivity_field",
 )
 """The arrays of a map holding a reflectivity field (``to_map_arrays``), beside its voxels'."""
+ROW_KEYS = ARRAY_KEYS[:3]
+"""The members with a row per voxel (the others give the bins)."""
 MAX_BINS = 64
 """Most bins a histogram may have."""
 
@@ -165,7 +168,7 @@ def select_rows(arrays: Mapping[str, np.ndarray], keep: NDArray[np.bool_]) -> di
     if "reflectivity_counts" not in arrays:
         return {}
     out = {k: arrays[k] for k in ARRAY_KEYS if k in arrays}
-    for key in ARRAY_KEYS[:3]:
+    for key in ROW_KEYS:
         out[key] = np.asarray(arrays[key])[keep]
     return out
 
@@ -176,6 +179,13 @@ def rows_within(
     """Which table rows of map-file ``arrays`` have a voxel index within [lo, hi]."""
     ijk = np.asarray(arrays.get("reflectivity_ijk", np.zeros((0, 3), np.int32)))
     return np.all((ijk >= lo) & (ijk <= hi), axis=1)
+
+
+def rows_of_blocks(ijk: ArrayLike, keys: ArrayLike) -> NDArray[np.int64]:
+    """The rows of a table's voxel indices ``ijk`` (K, 3) that lie in the blocks whose
+    keys (``packed.sort_keys`` of the block index) are among ``keys``."""
+    row_keys, _, _ = _row_keys(np.asarray(ijk, dtype=np.int64).reshape(-1, 3))
+    return np.flatnonzero(np.isin(row_keys, np.asarray(keys, dtype=np.int64)))
 
 
 def concatenate_tables(parts: Sequence[Mapping[str, np.ndarray]]) -> dict[str, np.ndarray]:
@@ -212,12 +222,6 @@ def table_problem(table: ReflectivityArrays) -> str | None:
     if not np.isfinite(table.t_last).all():
         return "reflectivity_t_last holds NaN or infinite values (seconds expected)"
     return None
-
-
-_REBASE = 30.0
-"""Decay times after the epoch at which the table's counts are brought to a new epoch: the
-weight of a return, ``exp((stamp - epoch) / T)``, then stays below e^30 (counts of up to
-2^24 returns times that remain far inside float32's range)."""
 
 
 def _row_keys(
@@ -466,22 +470,22 @@ class ReflectivityTable:
 
     Rows sorted by block (``blocks.block_key``) and, inside a block, by the voxel's place
     (0-511): per block its key (int64) and first row (int32); per row its place (uint16)
-    and ``J`` float32 counts. All rows' counts refer to one time, the epoch: a row's
-    decayed sum at time ``t`` is its counts times ``exp(-(t - epoch) / T)``, so a return
-    at ``stamp`` adds ``exp((stamp - epoch) / T)``, whatever the order of the scans, and
-    nothing is stored per row but the counts. The epoch moves forward (every count
-    scaled) when a stamp passes it by ``_REBASE`` decay times. Arrays are sized to the
-    rows (a scan's new rows are merged in, one copy). Not thread-safe (the Mapper's lock).
+    and ``J`` float32 counts. All rows' counts refer to one time, the latest stamp added
+    (a later scan scales every count once, float32 like ``n``): nothing is stored per row
+    but the counts. Blocks are found by an
+    open-addressing hash of their keys (``blocks.find_block``), a place in its block by
+    bisection. Arrays are sized to the rows: a scan's new voxels are sorted and merged in
+    (one copy of the table). Not thread-safe (the Mapper's lock).
 
-    Measured against the open-addressing hash of voxel index to a row with its time (52
-    bytes a row plus the hash) it replaced: 34 bytes a row (``bench_reflectivity.py``)."""
+    Measured against the open-addressing hash of voxel index to a row with its time that
+    it replaced (52 bytes a row plus 27 of hash): 36-37 bytes a row on ouster_street, and
+    0.8-1.4x its CPU time per scan (``bench_reflectivity.py``)."""
 
     def __init__(self, bins: ReflectivityBins, capacity: int = 0) -> None:
         """``capacity``: unused, kept for callers (arrays are sized to the rows)."""
         self.bins = bins
         self._decay_time: float | None = None
-        self._epoch = 0.0
-        self._latest = -math.inf
+        self._time = -math.inf  # the time every row's counts refer to
         self._set_rows(
             np.zeros(0, dtype=np.int64),
             np.zeros(1, dtype=np.int32),
@@ -522,12 +526,12 @@ class ReflectivityTable:
             raise ValueError(f"decay time {decay_time} s, the table's is {self._decay_time} s")
         return decay_time
 
-    def _factor(self, stamp: float) -> float:
-        """exp(-(stamp - epoch) / T): the counts at ``stamp`` are the stored ones times it."""
+    def _decayed(self, stamp: float) -> float:
+        """exp(-(stamp - t) / T): the counts at ``stamp`` are the held ones times it."""
         decay = self._decay_time
         if decay is None or not math.isfinite(decay):
             return 1.0
-        return math.exp(-(stamp - self._epoch) / decay)
+        return math.exp(-(stamp - self._time) / decay)
 
     def add(
         self, ijk: NDArray[np.integer], bins: NDArray[np.integer], stamp: float, decay_time: float
@@ -544,13 +548,13 @@ class ReflectivityTable:
             raise ValueError(f"bin {int(bins_.max())} beyond the {self.bins.count} bins")
         stamp = float(stamp)
         decay = self._use_decay(decay_time)
-        if not len(self) or not math.isfinite(decay):
-            self._epoch = stamp if not len(self) else max(self._epoch, stamp)
-        elif (stamp - self._epoch) / decay > _REBASE:
-            self._counts *= np.float32(self._factor(stamp))
-            self._epoch = stamp
-        self._latest = max(self._latest, stamp)
-        w = 1.0 / self._factor(stamp)
+        if not len(self):
+            self._time = stamp
+        elif stamp > self._time:
+            if math.isfinite(decay):
+                self._counts *= np.float32(self._decayed(stamp))
+            self._time = stamp
+        w = 1.0 / self._decayed(stamp)  # exp(-(t - stamp) / T) for a late scan, else 1
         new = _add_found(*self._blocks(), self._local, self._counts, ijk, bins_, w)
         if not new.size:
             return
@@ -578,23 +582,22 @@ class ReflectivityTable:
         the returns were added with) finite, else at the latest stamp added."""
         rows = self.lookup(ijk)
         found = rows >= 0
-        at = self._latest if stamp is None or not math.isfinite(decay_time) else float(stamp)
+        at = self._time if stamp is None or not math.isfinite(decay_time) else float(stamp)
         if found.any() and math.isfinite(decay_time):
             self._use_decay(decay_time)
         counts = np.zeros((rows.shape[0], self.bins.count))
-        counts[found] = self._counts[rows[found]] * self._factor(at)
+        counts[found] = self._counts[rows[found]] * self._decayed(at)
         t = np.where(found, at, -np.inf)
         return counts, t
 
     def export(self) -> ReflectivityArrays:
-        """Every row, its counts brought to the latest stamp added (float32, as a table
-        loading them holds them; ``t_last`` that stamp for every row)."""
-        counts = self._counts * np.float32(self._factor(self._latest))
+        """Every row as held: its counts (float32 values) and the time they refer to, the
+        latest stamp added, for every row (a copy)."""
         return ReflectivityArrays(
             self.bins,
             self.voxel_indices(),
-            counts.astype(np.float64),
-            np.full(len(self), self._latest),
+            self._counts.astype(np.float64),
+            np.full(len(self), self._time),
         )
 
     def assign(self, table: ReflectivityArrays, decay_time: float = math.inf) -> None:
@@ -622,10 +625,10 @@ class ReflectivityTable:
         t_last = np.asarray(table.t_last, dtype=np.float64)[order]
         if not t_last.size:
             return
-        self._epoch = self._latest = float(t_last.max())
+        self._time = float(t_last.max())
         counts = np.asarray(table.counts, dtype=np.float64)[order]
         if math.isfinite(decay):
-            counts = counts * np.exp((t_last - self._epoch) / decay)[:, None]
+            counts = counts * np.exp((t_last - self._time) / decay)[:, None]
         first = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
         self._set_rows(
             keys[first],

@@ -65,6 +65,10 @@ _DTYPES: dict[str, tuple[str, ...]] = {
     "hit": ("<u8",),
     "s": ("<f4", "<f8"),
     "n": ("<f4", "<f8"),
+    # the reflectivity table's rows (core.reflectivity.ROW_KEYS), read by block too
+    "reflectivity_ijk": ("<i4",),
+    "reflectivity_counts": ("<f8",),
+    "reflectivity_t_last": ("<f8",),
 }
 _LOCAL_HEADER = struct.Struct("<4s5H3L2H")
 _LOCAL_MAGIC = b"PK\x03\x04"

@@ -79,9 +79,9 @@ def test_table_is_the_decayed_sum_of_its_returns_in_any_order(decay: float) -> N
 
 
 def test_decay_over_many_decay_times_and_far_apart_voxels_keep_the_sums() -> None:
-    """Stamps 40 decay times apart move the table's epoch (every count rescaled); one add
-    with voxels farther apart than a packed sort key holds takes the other sort; voxels
-    beyond the map's range are skipped."""
+    """Stamps up to 96 decay times apart, late ones included (counts decay to float32's
+    subnormal range); one add with voxels farther apart than a packed sort key holds takes
+    the other sort; voxels beyond the map's range are skipped."""
     rng = np.random.default_rng(4)
     decay = 1.0
     far = np.array([[600_000, -3, 1], [-600_000, 2, 0], [5, 5, 5]])
