@@ -130,11 +130,14 @@ class ReflectivityArrays:
 
 
 def to_map_arrays(table: ReflectivityArrays) -> dict[str, np.ndarray]:
-    """The map-file members of a table (``ARRAY_KEYS``)."""
+    """The map-file members of a table (``ARRAY_KEYS``), rows sorted by block and place in
+    the block (as a ``ReflectivityTable`` holds them: a reader finds a block's rows on few
+    pages)."""
+    order = block_order(table.ijk)
     return {
-        "reflectivity_ijk": table.ijk.astype(np.int32, copy=False),
-        "reflectivity_counts": table.counts.astype(np.float64, copy=False),
-        "reflectivity_t_last": table.t_last.astype(np.float64, copy=False),
+        "reflectivity_ijk": table.ijk[order].astype(np.int32, copy=False),
+        "reflectivity_counts": table.counts[order].astype(np.float64, copy=False),
+        "reflectivity_t_last": table.t_last[order].astype(np.float64, copy=False),
         "reflectivity_edges": np.asarray(table.bins.edges, dtype=np.float64),
         "reflectivity_field": np.str_(table.bins.field),
     }
@@ -179,6 +182,14 @@ def rows_within(
     """Which table rows of map-file ``arrays`` have a voxel index within [lo, hi]."""
     ijk = np.asarray(arrays.get("reflectivity_ijk", np.zeros((0, 3), np.int32)))
     return np.all((ijk >= lo) & (ijk <= hi), axis=1)
+
+
+def block_order(ijk: ArrayLike) -> NDArray[np.int64] | slice:
+    """The order of voxel indices ``ijk`` (K, 3) by block (``packed.sort_keys``), then by
+    place in the block; ``slice(None)`` when they are in that order already."""
+    keys, places, _ = _row_keys(np.asarray(ijk, dtype=np.int64).reshape(-1, 3))
+    later = (keys[1:] > keys[:-1]) | ((keys[1:] == keys[:-1]) & (places[1:] > places[:-1]))
+    return slice(None) if later.all() else np.lexsort((places, keys))
 
 
 def rows_of_blocks(ijk: ArrayLike, keys: ArrayLike) -> NDArray[np.int64]:

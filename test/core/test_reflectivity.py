@@ -15,6 +15,7 @@ from mfp_mapper.core.reflectivity import (
     ReflectivityBins,
     ReflectivityTable,
     ScanReflectivity,
+    block_order,
     mean_value,
     merge_reflectivity,
     most_likely_bin,
@@ -226,6 +227,10 @@ def test_merge_of_two_maps_tables_is_the_table_of_one_map_of_both(decay: float) 
     )
     want, got = _table_dict(both), _table_dict(merged)
     assert want.keys() == got.keys()
+    # rows are written by block (a reader finds a block's rows together), merged ones too
+    for arrays in (both, merged):
+        assert block_order(arrays["reflectivity_ijk"]) == slice(None)
+    assert block_order(np.array([[8, 0, 0], [0, 0, 1], [0, 0, 0]])).tolist() == [2, 1, 0]  # type: ignore[union-attr]
     for key, (counts, t) in want.items():
         # one map's row refers to its last return's time; bring both to a common one
         other_counts, other_t = got[key]
