@@ -66,9 +66,9 @@ _DTYPES: dict[str, tuple[str, ...]] = {
     "s": ("<f4", "<f8"),
     "n": ("<f4", "<f8"),
     # the reflectivity table's rows (core.reflectivity.ROW_KEYS), read by block too
-    "reflectivity_ijk": ("<i4",),
-    "reflectivity_counts": ("<f8",),
-    "reflectivity_t_last": ("<f8",),
+    "reflectivity_ijk": ("<i4", "<i8"),
+    "reflectivity_counts": ("<f8", "<f4"),
+    "reflectivity_t_last": ("<f8", "<f4"),
 }
 _LOCAL_HEADER = struct.Struct("<4s5H3L2H")
 _LOCAL_MAGIC = b"PK\x03\x04"

@@ -142,3 +142,34 @@ def test_histograms_are_read_by_block_too(tmp_path: Path) -> None:
     with pytest.raises(MapFileError, match="reflectivity_counts holds negative"):
         MapFileQueries(path).reflectivity(centres[far][None, :])
     assert MapFileQueries(LEGACY / "legacy_v2.npz").reflectivity(centres[:3]) is None
+
+
+def test_histograms_of_other_dtypes_are_read_too(tmp_path: Path) -> None:
+    """int64 indices and float32 counts and times (a file written by other tools) read as
+    the usual int32 and float64 ones, whole or by block."""
+    from mfp_mapper.core.reflectivity import ScanReflectivity
+    from mfp_mapper.mapio.mapfile import map_arrays, write_map_arrays
+    from mfp_mapper.sensing.reflectivity import bins_for
+
+    bins = bins_for("reflectivity", 8)
+    assert bins is not None
+    rng = np.random.default_rng(3)
+    m = Mapper(0.2, decay_time=30.0, max_range=30.0)
+    points, origin = anchors_scene(n_scans=1, azimuths=100)[0]
+    m.integrate(
+        points, origin, 5.0, reflectivity=ScanReflectivity(rng.uniform(0, 255, len(points)), bins)
+    )
+    arrays = map_arrays(m)
+    other = dict(
+        arrays,
+        reflectivity_ijk=arrays["reflectivity_ijk"].astype(np.int64),
+        reflectivity_counts=arrays["reflectivity_counts"].astype(np.float32),
+        reflectivity_t_last=arrays["reflectivity_t_last"].astype(np.float32),
+    )
+    write_map_arrays(tmp_path / "other.npz", other)
+    centres = (arrays["reflectivity_ijk"] + 0.5) * m.resolution + np.asarray(m.origin)
+    want = m.reflectivity(centres)
+    for got in (load_map(tmp_path / "other.npz").reflectivity(centres),
+                MapFileQueries(tmp_path / "other.npz").reflectivity(centres)):  # fmt: skip
+        assert want is not None and got is not None
+        np.testing.assert_array_equal(want[1], got[1])
