@@ -192,13 +192,6 @@ def block_order(ijk: ArrayLike) -> NDArray[np.int64] | slice:
     return slice(None) if later.all() else np.lexsort((places, keys))
 
 
-def rows_of_blocks(ijk: ArrayLike, keys: ArrayLike) -> NDArray[np.int64]:
-    """The rows of a table's voxel indices ``ijk`` (K, 3) that lie in the blocks whose
-    keys (``packed.sort_keys`` of the block index) are among ``keys``."""
-    row_keys, _, _ = _row_keys(np.asarray(ijk, dtype=np.int64).reshape(-1, 3))
-    return np.flatnonzero(np.isin(row_keys, np.asarray(keys, dtype=np.int64)))
-
-
 def concatenate_tables(parts: Sequence[Mapping[str, np.ndarray]]) -> dict[str, np.ndarray]:
     """The table members of disjoint map-file arrays (e.g. tiles) as one; {} when none
     holds a table. ValueError when their bins differ."""

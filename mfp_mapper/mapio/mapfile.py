@@ -51,20 +51,20 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from mfp_mapper.core.blocks import BLOCK_BITS
 from mfp_mapper.core.errors import CoreError
 from mfp_mapper.core.mapper import Mapper
-from mfp_mapper.core.packed import PackedBlocks, packed_problem
+from mfp_mapper.core.packed import PackedBlocks, packed_problem, sort_keys
 from mfp_mapper.core.reflectivity import (
-    ROW_KEYS,
     ReflectivityArrays,
     from_map_arrays,
-    rows_of_blocks,
     to_map_arrays,
 )
 from mfp_mapper.core.store import MAX_VOXEL_INDEX, VoxelArrays, voxel_problem
 from mfp_mapper.mapio.atomic import atomic_output
 from mfp_mapper.mapio.blockfile import (
     BLOCK_MEMBERS,
+    TABLE_MEMBERS,
     BlockFileError,
     BlockReader,
     Member,
@@ -275,7 +275,7 @@ def read_map_file(path: str | Path, decay_time: float | None = None) -> MapConte
             if _holds_blocks(archive):
                 settings, bins, members = _open_blocks(path, f, archive, st.st_size)
                 settings.packed = packed_of(read_all(f, members))
-                rows = {k: read_member(f, members[k]) for k in ROW_KEYS if k in members}
+                rows = {k: read_member(f, members[k]) for k in TABLE_MEMBERS if k in members}
                 settings.reflectivity = _reflectivity(path, {**bins, **rows})
             else:
                 headers = check_headers(path, archive, st.st_size)
@@ -365,20 +365,21 @@ def _open_blocks(
     """The settings, the reflectivity bins' members and the block and reflectivity-row
     members of a version 3 file, checked (no voxel or row read)."""
     headers = check_headers(path, archive, file_size, SETTINGS_MEMBERS)
-    small = {k: _read(archive, k) for k in headers if k not in ROW_KEYS}
+    small = {k: _read(archive, k) for k in headers if k not in TABLE_MEMBERS}
     settings = check_settings(path, small, blocks=True)
     bins = {k: v for k, v in small.items() if k.startswith("reflectivity_")}
-    return settings, bins, locate_members(f, archive, (*BLOCK_MEMBERS, *ROW_KEYS), file_size)
+    return settings, bins, locate_members(f, archive, (*BLOCK_MEMBERS, *TABLE_MEMBERS), file_size)
 
 
 def _table_rows(reader: BlockReader, keys: NDArray[np.int64]) -> dict[str, np.ndarray]:
     """The reflectivity rows in the blocks of ``keys`` (``packed.sort_keys``): the voxel
     indices are read whole (12 bytes a row), the counts and times only where those rows
     lie (rows are written sorted by block: few pages)."""
-    present = [k for k in ROW_KEYS if k in reader.members]
+    present = [k for k in TABLE_MEMBERS if k in reader.members]
     if "reflectivity_ijk" not in present:
         return {k: reader.view(k) for k in present}  # incomplete: refused as such
-    picked = rows_of_blocks(reader.view("reflectivity_ijk"), keys)
+    blocks = reader.view("reflectivity_ijk").astype(np.int64) >> BLOCK_BITS
+    picked = np.flatnonzero(np.isin(sort_keys(blocks), keys))
     return {k: reader.view(k)[picked] for k in present}
 
 

@@ -107,9 +107,10 @@ def test_histograms_are_read_by_block_too(tmp_path: Path) -> None:
     import zipfile
 
     from mfp_mapper.core.reflectivity import ROW_KEYS, ScanReflectivity
-    from mfp_mapper.mapio.blockfile import BLOCK_MEMBERS, locate_members
+    from mfp_mapper.mapio.blockfile import BLOCK_MEMBERS, TABLE_MEMBERS, locate_members
     from mfp_mapper.sensing.reflectivity import bins_for
 
+    assert TABLE_MEMBERS == ROW_KEYS  # the file's names, kept numba-free in mapio
     bins = bins_for("reflectivity", 8)
     assert bins is not None
     rng = np.random.default_rng(2)
