@@ -868,8 +868,8 @@ class Mapper:
         mapper = cls(resolution, origin=origin, **settings)  # type: ignore[arg-type]
         mapper._store.assign(voxels, mapper.decay_time)
         if reflectivity is not None:
-            mapper._reflectivity = ReflectivityTable(reflectivity.bins, max(len(reflectivity), 16))
-            mapper._reflectivity.assign(reflectivity)
+            mapper._reflectivity = ReflectivityTable(reflectivity.bins)
+            mapper._reflectivity.assign(reflectivity, mapper.decay_time)
         finite_t = voxels.t_last[np.isfinite(voxels.t_last)]
         mapper.last_stamp = float(finite_t.max()) if finite_t.size else None
         mapper.version += 1
@@ -895,8 +895,8 @@ class Mapper:
         mapper = cls(resolution, origin=origin, **settings)  # type: ignore[arg-type]
         mapper._store.assign_blocks(packed)
         if reflectivity is not None:
-            mapper._reflectivity = ReflectivityTable(reflectivity.bins, max(len(reflectivity), 16))
-            mapper._reflectivity.assign(reflectivity)
+            mapper._reflectivity = ReflectivityTable(reflectivity.bins)
+            mapper._reflectivity.assign(reflectivity, mapper.decay_time)
         mapper.last_stamp = float(packed.block_t.max()) if packed.block_t.size else None
         mapper.version += 1
         return mapper
