@@ -1,12 +1,13 @@
-"""Queries answered from a map file reading only the blocks they need (version 3 files;
-an older file, or one with reflectivity histograms, is read whole once): what
+"""Queries answered from a map file reading only the blocks they need, and their
+reflectivity histograms (version 3 files; an older file is read whole once): what
 ``mfp-mapper query`` and a tiled map's queries use.
 
 Points in a version 3 file are answered in numpy from the blocks read (``packed_lookup``),
 the same numbers as ``Mapper.query`` of the whole map (``test_queries.py`` compares them),
 without loading numba or any compiled kernel: a process asking a few points pays for
 reading them, not for the Mapper's imports (1.2 s on this machine, 0.01-0.02 s the read).
-Segments, and older files, go through a Mapper.
+Reflectivity histograms and segments go through a Mapper of the blocks read, older files
+through the whole map.
 """
 
 from __future__ import annotations
@@ -49,8 +50,8 @@ whole instead of block by block."""
 
 class MapFileQueries:
     """A map file opened for ``query`` and ``query_segments``: each call reads only the
-    blocks it needs (version 3; an older file, or one with reflectivity histograms, is read
-    whole once). Blocks read are checked
+    blocks it needs, and the reflectivity histograms of those blocks (version 3; an older
+    file is read whole once). Blocks read are checked
     (masks, counts, values, stamps); a whole read also checks the CRCs. ``MapFileError``
     as ``load_map``."""
 
@@ -74,7 +75,7 @@ class MapFileQueries:
         self._contents: MapContents | None = None
         """The file's settings (None: it is read whole, ``_whole``)."""
         self._empty: Mapper | None = None
-        if c is None or c.reflectivity is not None:  # an older file, or histograms
+        if c is None:  # an older file
             self._whole = self._empty = self._read_whole()
             packed = self._whole.stored_blocks()
             self.block_ijk, self.num_voxels = packed.block_ijk, packed.num_voxels
@@ -84,6 +85,7 @@ class MapFileQueries:
             self.decay_time = self._whole.decay_time
             self.origin = np.asarray(self._whole.origin or (0.0, 0.0, 0.0))
             self.prior = self._whole.prior
+            self._histograms = self._whole.reflectivity_scale is not None
         else:
             self._contents = c
             self.resolution = c.resolution
@@ -92,6 +94,7 @@ class MapFileQueries:
             self.origin = np.asarray(c.origin, dtype=np.float64)
             self.prior = model.Prior(c.ranges["prior_shape"], c.ranges["prior_rate"])
             """The Mapper's (``model.resolve_prior`` of a file's prior, both > 0: as stored)."""
+            self._histograms = c.reflectivity is not None  # (its bins: no row read yet)
 
     def settings(self) -> dict[str, np.ndarray]:
         """The file's settings as map-file arrays."""
@@ -145,8 +148,13 @@ class MapFileQueries:
     def reflectivity(
         self, points: ArrayLike, stamp: float | None = None
     ) -> tuple[ReflectivityBins, NDArray[np.float64]] | None:
-        """``Mapper.reflectivity`` (a file with histograms is read whole; None without)."""
-        return None if self._whole is None else self._whole.reflectivity(points, stamp)
+        """``Mapper.reflectivity``, reading the histograms of the blocks that hold the
+        points (None for a file without histograms)."""
+        if not self._histograms:  # known without a Mapper: a point query loads no numba
+            return None
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        blocks = np.floor(self._voxel_index(pts)).astype(np.int64) >> BLOCK_BITS
+        return self._blocks(sort_keys(blocks)).reflectivity(pts, stamp)
 
     def query_segments(
         self, starts: ArrayLike, ends: ArrayLike, stamp: float | None = None

@@ -171,7 +171,8 @@ def test_query_of_points_as_a_user_types_it(
     process: the numbers of the map loaded whole (``Mapper.query``, compiled), for points
     inside and outside the map, printed and ``--json``, with and without ``--stamp``. A map
     without reflectivity histograms is answered without numba, llvmlite or scipy imported
-    (``python -X importtime``); one with them (replay's default here) is read whole."""
+    (``python -X importtime``); one with them (replay's default here) has its histograms
+    read through a Mapper of the blocks it needs."""
     from mfp_mapper.mapio.mapfile import map_arrays, write_map_arrays
     from mfp_mapper.outputs.report import jsonable, query_lines, query_rows
 
