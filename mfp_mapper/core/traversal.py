@@ -986,15 +986,23 @@ def _add_group(
     visits = 0
     lines = s_pool.reshape(-1)
     marks = lines.view(np.uint32)  # 0 exactly where a voxel is unobserved
-    s_limit, n_limit = limits[0], limits[1]
+    n_limit = limits[1]
+    # the least float32 at or above limits[0]: a float32 sum passes it exactly where it
+    # passes limits[0] (no conversion a visit)
+    s_limit = np.float32(limits[0])
+    if s_limit < limits[0]:
+        s_limit = np.nextafter(s_limit, np.float32(np.inf))
     for lane in range(lanes):
         last = steps[lane]
+        visits += last + 1  # less the steps skipped below
         for k in range(last + 1):
             voxel = voxels[k * LANES + lane]
             c = np.float32(chords[k * LANES + lane])
-            if not c > 0.0 or voxel < FOREIGN_LIMIT:
-                continue
-            if voxel < 0:  # its chunk is new (since it was placed): shard.s_index
+            if voxel < 0 or not c > 0.0:  # rare: one test on the common path
+                if not c > 0.0 or voxel < FOREIGN_LIMIT:
+                    visits -= 1
+                    continue
+                # its chunk is new (since it was placed): shard.s_index
                 slot = (-voxel - 1) >> CHUNK_BITS
                 chunk = block_chunks[slot]
                 if chunk < 0:
@@ -1004,10 +1012,10 @@ def _add_group(
                     chunk_owner[chunk] = slot
                 voxel = chunk * CHUNK_VOXELS + (voxel & (CHUNK_VOXELS - 1))
                 voxels[k * LANES + lane] = voxel
-            observed += marks[voxel] == 0  # a first visit (shard.UNOBSERVED)
-            after = lines[voxel] + c
-            lines[voxel] = after
-            visits += 1
+            at = np.uint64(voxel)  # >= 0 here: unsigned, no wraparound test
+            observed += marks[at] == 0  # a first visit (shard.UNOBSERVED)
+            after = lines[at] + c
+            lines[at] = after
             if after >= s_limit:  # rare: a flush due
                 block_flush[chunk_owner[voxel >> CHUNK_BITS] // BLOCK_CHUNKS - 1] = True
                 pools[FLUSH_PENDING] = 1
