@@ -803,6 +803,9 @@ def _walk_rays(
     row_length = entered_chunks.shape[1]
     entered_weight = np.empty((LANES, longest))
     lane_blocks = np.empty(LANES, dtype=np.int64)
+    entries = np.empty((2, (longest + 1) * LANES), dtype=np.int64)  # walk_lanes' entries
+    entry_count = np.zeros(1, dtype=np.int64)
+    entered_flat = entered_key.reshape(-1)
     lane_floats = np.empty((FLOAT_ROWS, LANES))
     lane_ints = np.empty((INT_ROWS, LANES), dtype=np.int64)
     # placed visits of two groups: the one being walked and the one waiting to be added
@@ -882,8 +885,11 @@ def _walk_rays(
             steps = max(steps, piece_steps + 1)
         step_chord = placed_chord[group]
         walk_lanes(  # type: ignore[call-arg]
-            lane_floats, lane_ints, steps, entered_key, lane_blocks, step_code, step_chord
+            lane_floats, lane_ints, steps, entered_key, lane_blocks, step_code, step_chord,
+            entries, entry_count,
         )  # fmt: skip
+        for e in range(entry_count[0]):  # the entered blocks' keys, in each ray's row
+            entered_flat[np.uint64(entries[1, e])] = entries[0, e]
         # the blocks not yet in the walk cache, looked up (read only) all at once, their
         # chunk tables loaded: independent lookups whose memory latencies overlap
         for lane in range(lanes):
