@@ -888,23 +888,22 @@ def _walk_rays(
             lane_floats, lane_ints, steps, entered_key, lane_blocks, step_code, step_chord,
             entries, entry_count,
         )  # fmt: skip
-        for e in range(entry_count[0]):  # the entered blocks' keys, in each ray's row
-            entered_flat[np.uint64(entries[1, e])] = entries[0, e]
-        # the blocks not yet in the walk cache, looked up (read only) all at once, their
-        # chunk tables loaded: independent lookups whose memory latencies overlap
-        for lane in range(lanes):
-            for b in range(lane_blocks[lane]):
-                key = entered_key[lane, b]
-                slot = (
-                    (((key >> (2 * KEY_BITS)) & _WALK_CACHE_MASK) << (2 * _WALK_CACHE_BITS))
-                    | (((key >> KEY_BITS) & _WALK_CACHE_MASK) << _WALK_CACHE_BITS)
-                    | (key & _WALK_CACHE_MASK)
-                )
-                if cache_keys[slot] != key:
-                    bx, by, bz = block_of_key(key)
-                    found = find_block(table_keys, table_blocks, block_key(bx, by, bz))
-                    if found >= 0:
-                        prefetch_line(block_chunks, BLOCK_CHUNKS * (found + 1))
+        # the entered blocks' keys put in each ray's row; those not yet in the walk cache
+        # looked up (read only) all at once, their chunk tables loaded: independent
+        # lookups whose memory latencies overlap
+        for e in range(entry_count[0]):
+            key = entries[0, e]
+            entered_flat[np.uint64(entries[1, e])] = key
+            slot = (
+                (((key >> (2 * KEY_BITS)) & _WALK_CACHE_MASK) << (2 * _WALK_CACHE_BITS))
+                | (((key >> KEY_BITS) & _WALK_CACHE_MASK) << _WALK_CACHE_BITS)
+                | (key & _WALK_CACHE_MASK)
+            )
+            if cache_keys[slot] != key:
+                bx, by, bz = block_of_key(key)
+                found = find_block(table_keys, table_blocks, block_key(bx, by, bz))
+                if found >= 0:
+                    prefetch_line(block_chunks, BLOCK_CHUNKS * (found + 1))
         weighted = False  # a block where the scan is late (weight < 1)
         for lane in range(lanes):
             i = group_first + lane
