@@ -295,7 +295,11 @@ class PlacementSection(Section):
         "",
         "Topic of a second cloud holding the second returns of the clouds on cloud_in, in the "
         "same pixel layout and with the same stamps (ouster-ros 'points2'); each pair is "
-        "integrated as one cloud, the two returns of a pixel as one shot. Empty: off.",
+        "integrated as one cloud, the two returns of a pixel as one shot. Empty: off. Offline "
+        "(replay, score, localize, fleet): the bag's topic of that name, paired with the cloud "
+        "topic as the node pairs them.",
+        applies="both",
+        flag="--second-return-topic",
     )
     cloud_queue_size: int = setting(
         5,
@@ -383,6 +387,15 @@ class OutputsSection(Section):
         "cost grows with the map's size; docs/node.md 'Map outputs').",
         0.0,
         1.0e6,
+        dynamic=True,
+    )
+    publish_changed_blocks: bool = setting(
+        True,
+        "Rebuild the map clouds and ~/projected_map from the blocks scans changed since the "
+        "last publication, the rest from the previous ones: the same whole outputs, holding "
+        "the map for a fraction of the time when the robot drives (docs/node.md 'Map "
+        "outputs'). False: read the whole map each time (as with min_degree_of_occupancy 0 "
+        "for the clouds).",
         dynamic=True,
     )
     occupancy_min_z: float = setting(
