@@ -25,6 +25,7 @@ only.
 from __future__ import annotations
 
 from llvmlite import ir
+from llvmlite.binding import llvm_version_info
 from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
@@ -131,15 +132,35 @@ def _pointers(builder: ir.IRBuilder, data: ir.Value, index: ir.Value, element: i
     return builder.inttoptr(addresses, ir.VectorType(element.as_pointer(), LANES))
 
 
+_NATIVE_COMPRESS = llvm_version_info >= (19,)
+"""LLVM has ``llvm.experimental.vector.compress`` from version 19 (llvmlite 0.45, numba
+0.62); older ones (Ubuntu 24.04's numba 0.58 has LLVM 14) get ``_compress_by_lanes``."""
+
+
 def _compress(builder: ir.IRBuilder, value: ir.Value, mask: ir.Value) -> ir.Value:
     """The lanes of ``value`` where ``mask`` is set, moved down to the first lanes in order
     (the rest undefined): one register instruction with AVX-512 (``vpcompressq``), a
-    sequence of LLVM's own elsewhere."""
+    sequence of LLVM's own elsewhere, ``_compress_by_lanes`` before LLVM 19."""
+    if not _NATIVE_COMPRESS:
+        return _compress_by_lanes(builder, value, mask)
     name = f"llvm.experimental.vector.compress.v{LANES}i64"
     function = builder.module.globals.get(name) or ir.Function(
         builder.module, ir.FunctionType(_VI, [_VI, _VB, _VI]), name=name
     )
     return builder.call(function, [value, mask, ir.Constant(_VI, ir.Undefined)])
+
+
+def _compress_by_lanes(builder: ir.IRBuilder, value: ir.Value, mask: ir.Value) -> ir.Value:
+    """``_compress`` in plain IR any LLVM takes: every lane written at the count of set
+    lanes before it, that count raised by its own bit (an unset lane's write lands past the
+    set ones, where the result is undefined, or is overwritten by the next set lane)."""
+    out = ir.Constant(_VI, ir.Undefined)
+    at = ir.Constant(_I64, 0)
+    for lane in range(LANES):
+        k = ir.Constant(ir.IntType(32), lane)
+        out = builder.insert_element(out, builder.extract_element(value, k), at)
+        at = builder.add(at, builder.zext(builder.extract_element(mask, k), _I64))
+    return out
 
 
 def _spread(builder: ir.IRBuilder, index: ir.Value) -> ir.Value:
