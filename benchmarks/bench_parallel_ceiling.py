@@ -14,7 +14,9 @@ half of the array, as the shards own their blocks):
   what two cores give without memory).
 
 Rounds are interleaved (1 thread, 2 threads, 1 thread, ...), wall time of each, with the
-load average read before each round. The ratio is one thread's wall time / two threads'.
+load average read before each round, and the cores the rest of the machine used during each
+run (``/proc/stat``). The ratio is one thread's wall time / two threads'; the quiet rounds'
+(nothing else ran) is printed apart.
 
     python benchmarks/bench_parallel_ceiling.py                  # 100 MB, 5 rounds
     python benchmarks/bench_parallel_ceiling.py --mbytes 20 150 --rounds 7
@@ -84,6 +86,9 @@ def _compute(table: np.ndarray, lo: int, hi: int, count: int, seed: int) -> floa
     return total
 
 
+QUIET_CORES = 0.25
+"""A round is quiet when the rest of the machine used less than this many cores during
+both of its runs: the ratio of the quiet rounds is the machine's own."""
 KERNELS: dict[str, Callable[[np.ndarray, int, int, int, int], float]] = {
     "gather-add": _gather_add,
     "line-add": _line_add,
@@ -100,8 +105,7 @@ def _busy_seconds() -> float:
 
 
 def _own_seconds() -> float:
-    times = os.times()
-    return times.user + times.system
+    return time.process_time()
 
 
 def run(
@@ -156,14 +160,20 @@ def main() -> None:
                 ones.append(one)
                 twos.append(two)
                 ratios.append(one / two)
-                cpus.append(cpu_two / cpu_one)
+                cpus.append(cpu_two / max(cpu_one, 1e-9))
                 others += [other_one, other_two]
+            quiet = [
+                ratio
+                for ratio, a, b in zip(ratios, others[::2], others[1::2], strict=True)
+                if max(a, b) < QUIET_CORES
+            ]
+            quiet_text = f"; quiet rounds {np.median(quiet):.2f}x ({len(quiet)})" if quiet else ""
             print(
                 f"{name} {mbytes:g} MB: {1e3 * np.median(ones):.0f} / "
                 f"{1e3 * np.median(twos):.0f} ms; {np.median(ratios):.2f}x "
                 f"({min(ratios):.2f}-{max(ratios):.2f}); CPU {np.median(cpus):.2f}; "
                 f"others {min(others):.2f}-{max(others):.2f} cores; "
-                f"load {min(loads):.2f}-{max(loads):.2f}",
+                f"load {min(loads):.2f}-{max(loads):.2f}{quiet_text}",
                 flush=True,
             )
 

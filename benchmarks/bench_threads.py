@@ -31,6 +31,7 @@ from bench_core import OUSTER, _scene  # noqa: E402
 
 from mfp_mapper import Mapper  # noqa: E402
 from mfp_mapper.core import mapper as mapper_module  # noqa: E402
+from mfp_mapper.core import traversal  # noqa: E402
 from mfp_mapper.core.store import BlockStore  # noqa: E402
 from mfp_mapper.core.traversal import integrate_rays  # noqa: E402
 
@@ -82,11 +83,11 @@ def main() -> None:
     parser.add_argument("--resolutions", type=float, nargs="+", default=[0.2, 0.1])
     parser.add_argument("--threads", type=int, nargs="+", default=[2, 4, 8])
     parser.add_argument(
-        "--shards-per-thread", type=int, default=mapper_module.SHARDS_PER_THREAD,
+        "--shards-per-thread", type=int, default=traversal.SHARDS_PER_THREAD,
         help="shards of the store per thread (1: a shard a thread, as before)",
     )  # fmt: skip
     args = parser.parse_args()
-    mapper_module.SHARDS_PER_THREAD = args.shards_per_thread
+    traversal.SHARDS_PER_THREAD = args.shards_per_thread
     scenes = ["anchors"] + (["ouster_street"] if OUSTER.is_dir() else [])
     print(
         f"scene, resolution, threads ({args.shards_per_thread} shards a thread): "

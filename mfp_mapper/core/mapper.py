@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from mfp_mapper.config.sections import MapSection, SensorModelSection
-from mfp_mapper.core import model
+from mfp_mapper.core import model, traversal
 from mfp_mapper.core.errors import CoreError, ScanTooLargeError
 from mfp_mapper.core.gridmap import HitGrid, band_grid
 from mfp_mapper.core.memory_bound import (
@@ -876,21 +876,13 @@ class Mapper:
             self._pool = None
 
 
-SHARDS_PER_THREAD = 4
-"""Shards of the store per thread (``shard_count``). A scan's steps are uneven among the
-tiles: the sensor's tile holds the most (0.51-0.58 of a scan in one of two colours of
-the checkerboard, median over sensor positions, OS1-128 at 0.2 m). With four shards a
-thread, the threads take the shards' walks largest first (``traversal.integrate_rays``),
-and no shard holds half a scan."""
-
-
 def shard_count(threads: int) -> int:
     """Shards of the store for ``threads`` threads: 1 for one thread, else the power of
-    two at least ``SHARDS_PER_THREAD`` per thread."""
+    two at least ``traversal.SHARDS_PER_THREAD`` per thread."""
     if threads <= 1:
         return 1
     shards = 1
-    while shards < SHARDS_PER_THREAD * threads:
+    while shards < traversal.SHARDS_PER_THREAD * threads:
         shards *= 2
     return shards
 

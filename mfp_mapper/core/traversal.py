@@ -23,6 +23,7 @@ ray and added only its own shard's visits, 1.33-1.39x at 0.1 m and nothing at 0.
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -87,6 +88,27 @@ index. Against 2^12 slots (as ``read_walk``'s), cycle-counted on one scan: misse
 29 k and the block lookups 13.6 -> 10.1 ms on OS1-128 at 0.2 m (86.9 k -> 69.2 k, 23.8 ->
 20.1 ms, hall at 0.1 m); a miss costs about 110 ns (the hash, and a first touch)."""
 _WALK_CACHE_MASK = (1 << _WALK_CACHE_BITS) - 1
+WalkCache = tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]
+"""The integrating walk's block cache: each slot's block key (-1: none), chunk-table slot
+(0: another shard's block) and the scan's weight there (< 1: a late scan)."""
+_walk_caches = threading.local()
+
+
+def _walk_cache() -> WalkCache:
+    """This thread's walk cache, emptied: for one shard's walks of one scan, kept from call
+    to call (a shard is walked part by part, ``_walk_part``), in memory the thread reuses.
+    A cache allocated a call cost the hall's walks at 0.2 m 12-20% more CPU time with eight
+    shards (32 calls a scan) than with two (8 calls)."""
+    cache: WalkCache | None = getattr(_walk_caches, "cache", None)
+    if cache is None:
+        keys = np.full(1 << (3 * _WALK_CACHE_BITS), -1, dtype=np.int64)
+        cache = keys, np.empty(keys.shape[0], dtype=np.int64), np.empty(keys.shape[0])
+        _walk_caches.cache = cache
+    else:
+        cache[0].fill(-1)
+    return cache
+
+
 RETURN_CHORD_FLOOR = 1e-3
 """Least chord (metres) of a return event in ``read_walk``: the range resolution of a lidar
 return. A return exactly on a voxel's edge or corner has a chord of 0 in the voxel its
@@ -257,7 +279,9 @@ def integrate_rays(
     if shards == 1:
         share = None if max_new_blocks is None else int(max_new_blocks)
         return _walk_whole(rays, store.shards[0], scan, share)
-    size = max(min(-(-len(rays) // shards), SPLIT_RAYS), 1)
+    threads = max(shards // SHARDS_PER_THREAD, 1)
+    # at least a part a thread; SPLIT_RAYS a shard a thread
+    size = max(min(-(-len(rays) // threads), SPLIT_RAYS * (shards // threads)), 1)
     bounds = [(start, min(start + size, len(rays))) for start in range(0, len(rays), size)]
     split: list[tuple[Pieces, NDArray[np.int64]]] = [None] * len(bounds)  # type: ignore[list-item]
     work = np.zeros((len(bounds), 2, shards), dtype=np.int64)  # per part: work, room
@@ -307,10 +331,20 @@ def shard_work(pieces: Pieces, offsets: NDArray[np.int64], out: NDArray[np.int64
         out[1, k] = room
 
 
+SHARDS_PER_THREAD = 4
+"""Shards of the store per thread (``mapper.shard_count``). A scan's steps are uneven among
+the tiles: the sensor's tile holds the most, and one of the two colours of a checkerboard
+held 0.51-0.58 of an OS1-128 scan at 0.2 m (median over sensor positions; 0.65 at the 90th
+percentile). With four shards a thread, the threads take the shards' walks most work first
+(``integrate_rays``), and two threads share a scan within 0.51-0.52 (0.525 at the 90th
+percentile)."""
 SPLIT_RAYS = 8192
-"""Rays split at once (``split_rays``): their pieces (about 120 bytes each) stay in cache
-and in memory the allocator reuses; parts of 53k rays (OS1-128, 2 threads) took twice as
-long a ray, faulting their fresh pages in."""
+"""Rays split at once (``split_rays``) for each shard a thread: their pieces (about 120
+bytes each) stay in cache and in memory the allocator reuses; parts of 53k rays (OS1-128,
+2 threads, 2 shards) took twice as long a ray, faulting their fresh pages in. With four
+shards a thread, parts four times as long: each shard walks a part in a call of its own
+(``_walk_rays``, whose buffers are allocated a call), and parts of 8192 rays cost the
+walks of 8 shards 9% more CPU time than those of 2 on OS1-128 at 0.2 m."""
 
 
 def block_bounds(
@@ -401,6 +435,7 @@ def _walk_part(
         return _shard_pieces(pieces, offsets, shard_id)
 
     cut, cut_done = 0, False
+    cache = _walk_cache()
     for start, stop, (split, offsets) in parts:
         pieces = _shard_pieces(split, offsets, shard_id)
         if cut_done:  # the rays were cut since they were split
@@ -411,7 +446,7 @@ def _walk_part(
         while first < len(pieces.order):
             _make_room(shard, piece_visits, left, first)
             first = _walk_rays(
-                walk, pieces, first, shard_id, shard_mask, shard.arrays(), scan, most
+                walk, pieces, first, shard_id, shard_mask, shard.arrays(), scan, most, cache
             )
             if first == len(pieces.order):
                 break
@@ -460,10 +495,11 @@ def _walk_whole(rays: Rays, shard: Shard, scan: ScanStamp, share: int | None = N
     none = np.empty(0, dtype=np.int64)
     no_pieces = Pieces(none, none.reshape(0, 4), none.reshape(0, 7), none, none.astype(bool), none)
     first, cut, cut_done = 0, 0, False
+    cache = _walk_cache()
     left = np.cumsum(visits[::-1])[::-1]  # visits of rays r.., at most as many new chunks
     while first < len(rays):
         _make_room(shard, visits, left, first)
-        first = _walk_rays(walk, no_pieces, first, 0, 0, shard.arrays(), scan, most)
+        first = _walk_rays(walk, no_pieces, first, 0, 0, shard.arrays(), scan, most, cache)
         need = int(walk.room_needed[first : first + LANES].sum())
         if first < len(rays) and _blocks_short(shard, need, most):  # the next group of
             # rays (see _walk_rays) did not fit in the blocks (else only in the chunks)
@@ -794,6 +830,7 @@ def _walk_rays(
     shard_arrays: ShardArrays,
     scan: ScanStamp,
     block_limit: int,
+    walk_cache: WalkCache,
 ) -> int:
     """Walk pieces ``first..`` of ``rays`` (voxel units; ``split_rays``: the stretches of
     the rays in ``shard``'s tiles) and add their visits to ``shard``'s blocks; with one
@@ -812,7 +849,8 @@ def _walk_rays(
     piece by piece in ray order. Before each group, checks there is room for the blocks it
     may create; returns the index of the first piece not walked (the caller grows and
     calls again), or their number; the shard holds at most ``block_limit`` blocks (the
-    caller cuts the rays beyond).
+    caller cuts the rays beyond). ``walk_cache``: the blocks of ``shard`` this scan opened
+    (``_walk_cache``), kept from call to call.
     """
     origins_vox, ends_vox, lengths = rays.origins_vox, rays.ends_vox, rays.lengths
     has_return, ray_room, ray_visits = rays.has_return, rays.room_needed, rays.visits_needed
@@ -828,11 +866,9 @@ def _walk_rays(
     block_chunks = sa.block_chunks
     block_nrec, n_recs, n_pool = sa.block_nrec, sa.n_recs, sa.n_pool
     table_keys, table_blocks = sa.table_keys, sa.table_blocks
-    # blocks opened in this call, direct-mapped by their low index bits: neighbouring rays
-    # cross the same blocks, and this table (768 KiB) stays in cache where the hash does not
-    cache_keys = np.full(1 << (3 * _WALK_CACHE_BITS), -1, dtype=np.int64)
-    cache_bases = np.empty(cache_keys.shape[0], dtype=np.int64)  # chunk-table slot, 0: foreign
-    cache_weights = np.empty(cache_keys.shape[0])  # the scan's weight there (< 1: a late scan)
+    # the shard's blocks opened in this scan, direct-mapped by their low index bits: neighbouring
+    # rays cross the same blocks, and this table (768 KiB) stays in cache where the hash does not
+    cache_keys, cache_bases, cache_weights = walk_cache
     total = lengths.shape[0] if whole else order.shape[0]
     longest = 1
     for i in range(first, total):
