@@ -280,8 +280,7 @@ def integrate_rays(
         share = None if max_new_blocks is None else int(max_new_blocks)
         return _walk_whole(rays, store.shards[0], scan, share)
     threads = max(shards // SHARDS_PER_THREAD, 1)
-    # at least a part a thread; SPLIT_RAYS a shard a thread
-    size = max(min(-(-len(rays) // threads), SPLIT_RAYS * (shards // threads)), 1)
+    size = max(min(-(-len(rays) // threads), SPLIT_RAYS), 1)  # at least a part a thread
     bounds = [(start, min(start + size, len(rays))) for start in range(0, len(rays), size)]
     split: list[tuple[Pieces, NDArray[np.int64]]] = [None] * len(bounds)  # type: ignore[list-item]
     work = np.zeros((len(bounds), 2, shards), dtype=np.int64)  # per part: work, room
@@ -311,9 +310,10 @@ def integrate_rays(
 
 
 PIECE_STEPS = 16
-"""What starting a stretch costs the walk, in steps (``shard_work``): per-stretch CPU time
-of the walks of 2 and 8 shards against one thread's walk of whole rays, about 70 ns a
-stretch against 4-5 ns a step (OS1-128 at 0.2 m, this machine)."""
+"""What starting a stretch costs the walk, in steps (``shard_work``): the walks of 2 shards'
+stretches took about 17 ms of CPU time more than one thread's walk of whole rays for 230k
+more stretches, about 70 ns a stretch against 6 ns a step (OS1-128 at 0.2 m, this 2-core
+machine)."""
 
 
 @nb.njit(cache=True, nogil=True)
@@ -339,12 +339,10 @@ percentile). With four shards a thread, the threads take the shards' walks most 
 (``integrate_rays``), and two threads share a scan within 0.51-0.52 (0.525 at the 90th
 percentile)."""
 SPLIT_RAYS = 8192
-"""Rays split at once (``split_rays``) for each shard a thread: their pieces (about 120
-bytes each) stay in cache and in memory the allocator reuses; parts of 53k rays (OS1-128,
-2 threads, 2 shards) took twice as long a ray, faulting their fresh pages in. With four
-shards a thread, parts four times as long: each shard walks a part in a call of its own
-(``_walk_rays``, whose buffers are allocated a call), and parts of 8192 rays cost the
-walks of 8 shards 9% more CPU time than those of 2 on OS1-128 at 0.2 m."""
+"""Rays split at once (``split_rays``): their pieces (about 120 bytes each) stay in cache
+and in memory the allocator reuses; parts of 53k rays (OS1-128, 2 threads) took twice as
+long a ray, faulting their fresh pages in, and parts of 32768 rays 1.6 times as long (8
+shards: 21 against 13 ms of CPU time for a scan of OS1-128 at 0.2 m)."""
 
 
 def block_bounds(
