@@ -54,6 +54,9 @@ BLOCK_MEMBERS = (
     "block_ijk", "block_start", "hit_block", "hit_start", "block_t", "observed", "hit", "s", "n",
 )  # fmt: skip
 """The block members of a version 3 map file, in the order written (the index first)."""
+TABLE_MEMBERS = ("reflectivity_ijk", "reflectivity_counts", "reflectivity_t_last")
+"""The members of a map's reflectivity table with a row per voxel (``core.reflectivity.
+ROW_KEYS``; numba-free here), located like the block members and read by block too."""
 
 _DTYPES: dict[str, tuple[str, ...]] = {
     "block_ijk": ("<i4",),
@@ -65,6 +68,10 @@ _DTYPES: dict[str, tuple[str, ...]] = {
     "hit": ("<u8",),
     "s": ("<f4", "<f8"),
     "n": ("<f4", "<f8"),
+    # TABLE_MEMBERS
+    "reflectivity_ijk": ("<i4", "<i8"),
+    "reflectivity_counts": ("<f8", "<f4"),
+    "reflectivity_t_last": ("<f8", "<f4"),
 }
 _LOCAL_HEADER = struct.Struct("<4s5H3L2H")
 _LOCAL_MAGIC = b"PK\x03\x04"
