@@ -41,7 +41,7 @@ MAX_VOXEL_INDEX = (KEY_OFFSET << BLOCK_BITS) - BLOCK_EDGE
 """Largest |voxel index| the store can hold (block indices are packed in 21 bits each)."""
 
 SHARD_TILE_BITS = 3
-"""Shards own tiles of ``2**SHARD_TILE_BITS`` blocks along each axis (32 voxels), in a 3-D
+"""Shards own tiles of ``2**SHARD_TILE_BITS`` blocks along each axis (64 voxels), in a 3-D
 checkerboard (``shard_of``): a thread walks a ray only through its own shard's tiles
 (``traversal.split_rays``), so tiles are large enough that a ray crosses few of them."""
 
