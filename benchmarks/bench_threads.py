@@ -3,17 +3,21 @@
 Wall time of two threads means little on a machine whose cores other work keeps busy.
 This benchmark runs the parts of a threaded integration one after another in one thread
 and reads each part's thread CPU time: the split of the rays into the shards' stretches
-(``traversal.split_rays``, shared among the threads) and each shard's walk. The critical
-path with T threads is split / T + the slowest shard's walk; against one thread's walk
-of whole rays that is the speed-up the threads can give (memory bandwidth aside).
+(``traversal.split_rays``, a part of the rays a task) and each shard's walk (a task), in
+the order ``integrate_rays`` hands them to the threads. The critical path with T threads
+is each phase's tasks dealt to T threads as a pool does (the next task to the first
+thread free), summed over the two phases; against one thread's walk of whole rays that
+is the speed-up the threads can give (memory bandwidth aside). The store has the shards
+a Mapper of T threads has (``mapper.shard_count``), or ``--shards-per-thread``.
 
     python benchmarks/bench_threads.py                      # hall and OS1-128, 0.2 and 0.1 m
-    python benchmarks/bench_threads.py --shards 2 4 8 16 --resolutions 0.1
+    python benchmarks/bench_threads.py --threads 2 4 8 16 --resolutions 0.1
 """
 
 from __future__ import annotations
 
 import argparse
+import heapq
 import math
 import sys
 import time
@@ -26,16 +30,27 @@ sys.path[:0] = [str(Path(__file__).resolve().parent)]
 from bench_core import OUSTER, _scene  # noqa: E402
 
 from mfp_mapper import Mapper  # noqa: E402
+from mfp_mapper.core import mapper as mapper_module  # noqa: E402
+from mfp_mapper.core import traversal  # noqa: E402
 from mfp_mapper.core.store import BlockStore  # noqa: E402
 from mfp_mapper.core.traversal import integrate_rays  # noqa: E402
 
 
-def scan_parts(scene: str, resolution: float, shards: int) -> tuple[float, float, float, float]:
+def makespan(times: Sequence[float], threads: int) -> float:
+    """When the last of ``times`` ends, dealt in order to ``threads`` threads, each task
+    to the first thread free (as a thread pool's ``map``)."""
+    free = [0.0] * threads
+    for t in times:
+        heapq.heappush(free, heapq.heappop(free) + t)
+    return max(free)
+
+
+def scan_parts(scene: str, resolution: float, threads: int) -> tuple[float, float, float, float]:
     """Medians over the later scans (ms): the split, the sum and the slowest of the
-    shards' walks, and the critical path with ``shards`` threads."""
+    shards' walks, and the critical path with ``threads`` threads."""
     scans = _scene(scene)
     placer = Mapper(resolution, max_range=100.0)  # places the rays (no origin: raw frame)
-    store = BlockStore(shards=shards)
+    store = BlockStore(shards=mapper_module.shard_count(threads))
     calls: list[list[float]] = []
 
     def one_after_another(fn: Callable[[int], None], items: Sequence[int]) -> None:
@@ -56,7 +71,8 @@ def scan_parts(scene: str, resolution: float, shards: int) -> tuple[float, float
         store.finish_scan()
         split = calls[0] if len(calls) > 1 else [0.0]
         walks = calls[-1] if calls else [whole]
-        rows.append((sum(split), sum(walks), max(walks), sum(split) / shards + max(walks)))
+        path = makespan(split, threads) + makespan(walks, threads)
+        rows.append((sum(split), sum(walks), max(walks), path))
     return tuple(1e3 * float(np.median(column)) for column in zip(*rows[1:], strict=True))  # type: ignore[return-value]
 
 
@@ -65,18 +81,26 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--resolutions", type=float, nargs="+", default=[0.2, 0.1])
-    parser.add_argument("--shards", type=int, nargs="+", default=[2, 4, 8])
+    parser.add_argument("--threads", type=int, nargs="+", default=[2, 4, 8])
+    parser.add_argument(
+        "--shards-per-thread", type=int, default=traversal.SHARDS_PER_THREAD,
+        help="shards of the store per thread (1: a shard a thread, as before)",
+    )  # fmt: skip
     args = parser.parse_args()
+    traversal.SHARDS_PER_THREAD = args.shards_per_thread
     scenes = ["anchors"] + (["ouster_street"] if OUSTER.is_dir() else [])
-    print("scene, resolution, shards: split / walks (sum; slowest) / critical path, ms")
+    print(
+        f"scene, resolution, threads ({args.shards_per_thread} shards a thread): "
+        "split / walks (sum; slowest shard) / critical path, ms"
+    )
     for scene in scenes:
         for resolution in args.resolutions:
             one = scan_parts(scene, resolution, 1)[1]
             print(f"{scene} {resolution} m, 1 thread: {one:.1f} ms")
-            for shards in args.shards:
-                split, walks, slowest, path = scan_parts(scene, resolution, shards)
+            for threads in args.threads:
+                split, walks, slowest, path = scan_parts(scene, resolution, threads)
                 print(
-                    f"{scene} {resolution} m, {shards}: {split:.1f} / {walks:.1f}; "
+                    f"{scene} {resolution} m, {threads}: {split:.1f} / {walks:.1f}; "
                     f"{slowest:.1f} / {path:.1f}  ({one / path:.2f}x)"
                 )
 

@@ -40,7 +40,7 @@ N_BLOCK_CHUNKS = BLOCK_VOXELS // N_CHUNK_VOXELS
 FOREIGN_CHUNK = -(1 << 31)
 """Chunk-table entry of another shard's block (``shard.ShardArrays.block_chunks``)."""
 SHARD_TILE_BITS = 3
-"""Shards own tiles of ``2**SHARD_TILE_BITS`` blocks along each axis (32 voxels), in a 3-D
+"""Shards own tiles of ``2**SHARD_TILE_BITS`` blocks along each axis (64 voxels), in a 3-D
 checkerboard (``shard_of``): a thread walks a ray only through its own shard's tiles
 (``traversal.split_rays``), so tiles are large enough that a ray crosses few of them."""
 

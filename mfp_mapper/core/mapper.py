@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from mfp_mapper.config.sections import MapSection, SensorModelSection
-from mfp_mapper.core import model
+from mfp_mapper.core import model, traversal
 from mfp_mapper.core.changed_blocks import changed_returns
 from mfp_mapper.core.errors import CoreError, ScanTooLargeError
 from mfp_mapper.core.gridmap import BandCells, HitGrid, band_grid
@@ -177,7 +177,7 @@ class Mapper:
         """Bumped whenever voxels change other than by scans adding to their blocks (reset,
         clear_box, blocks evicted by the memory bound): what ``changed_voxels`` said since an
         earlier scan no longer tells the whole change."""
-        self._store = BlockStore(_shard_count(self.threads), FLUSH_EDGES * self.resolution)
+        self._store = BlockStore(shard_count(self.threads), FLUSH_EDGES * self.resolution)
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
         self._worker_cpu = 0.0  # CPU seconds of the pool threads in the current integrate()
         self._spare_stage: BlockStore | None = None  # an emptied staged store, for reuse
@@ -897,9 +897,13 @@ class Mapper:
             self._pool = None
 
 
-def _shard_count(threads: int) -> int:
+def shard_count(threads: int) -> int:
+    """Shards of the store for ``threads`` threads: 1 for one thread, else the power of
+    two at least ``traversal.SHARDS_PER_THREAD`` per thread."""
+    if threads <= 1:
+        return 1
     shards = 1
-    while shards < threads:
+    while shards < traversal.SHARDS_PER_THREAD * threads:
         shards *= 2
     return shards
 

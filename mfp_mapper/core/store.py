@@ -5,8 +5,9 @@ Layout (chosen for speed and memory; docs/performance.md measures it):
 * Voxels live in blocks of ``BLOCK_EDGE**3``, in Morton order; a ray stays in one block for
   several steps, so most updates are an array index into the block the walk is already in.
 * Blocks are found through open-addressing hash tables, split into ``shards`` by tiles
-  of blocks (``blocks.shard_of``); each thread of an integration writes only to its own
-  shard, so threads need no locks (see ``traversal``).
+  of blocks (``blocks.shard_of``); one thread at a time writes to a shard (an integration
+  has four shards a thread, ``traversal.SHARDS_PER_THREAD``), so threads need no locks
+  (see ``traversal``).
 * ``s`` is float32 in chunks of 64 voxels (a 4x4x4 cube, 256 bytes: four cache lines),
   allocated when a ray first reaches the chunk; ``n`` is float32 in chunks of 16 voxels,
   allocated when a return first lands in one (``shard`` says where everything lives). Free

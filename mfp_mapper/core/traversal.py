@@ -6,14 +6,15 @@ metres of the ray inside that voxel, so a ray's chords add up to its length — 
 that ends in a return gives its end voxel ``n += 1`` (the chord from where it entered that
 voxel up to the return point is its last chord).
 
-Threads split the space: the store has one shard per thread, a shard owns tiles of
-8x8x8 blocks in a 3-D checkerboard (``blocks.shard_of``), and a thread alone writes to its
-shard. The rays are first split into their stretches in each tile (``split_rays``, a
-share of the rays a thread), then each thread walks only its own shard's stretches. A
+Threads split the space: the store has shards (four a thread: ``mapper.shard_count``), a
+shard owns tiles of 8x8x8 blocks in a 3-D checkerboard (``blocks.shard_of``), and one
+thread at a time writes to a shard. The rays are first split into their stretches in each
+tile (``split_rays``, a share of the rays a thread), then the threads walk the shards'
+stretches, a shard at a time, the shards with the most steps first. A
 walk keeps t in fixed point (``lockstep.T_ONE``), where a face's t is the same whether
 summed step by step or computed from its index, so a stretch starts in exactly the state
 the walk from the ray's origin has there: the same voxels and chords, bit for bit. A
-thread walks its stretches tile by tile, in ray order within a tile, so every voxel gets
+shard's stretches are walked tile by tile, in ray order within a tile, so every voxel gets
 its chords in ray order: the store of one thread walking whole rays, whatever the number
 of threads. (Before: every thread walked every
 ray and added only its own shard's visits, 1.33-1.39x at 0.1 m and nothing at 0.2 m.)
@@ -22,6 +23,7 @@ ray and added only its own shard's visits, 1.33-1.39x at 0.1 m and nothing at 0.
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -86,6 +88,27 @@ index. Against 2^12 slots (as ``read_walk``'s), cycle-counted on one scan: misse
 29 k and the block lookups 13.6 -> 10.1 ms on OS1-128 at 0.2 m (86.9 k -> 69.2 k, 23.8 ->
 20.1 ms, hall at 0.1 m); a miss costs about 110 ns (the hash, and a first touch)."""
 _WALK_CACHE_MASK = (1 << _WALK_CACHE_BITS) - 1
+WalkCache = tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]
+"""The integrating walk's block cache: each slot's block key (-1: none), chunk-table slot
+(0: another shard's block) and the scan's weight there (< 1: a late scan)."""
+_walk_caches = threading.local()
+
+
+def _walk_cache() -> WalkCache:
+    """This thread's walk cache, emptied: for one shard's walks of one scan, kept from call
+    to call (a shard is walked part by part, ``_walk_part``), in memory the thread reuses.
+    A cache allocated a call cost the hall's walks at 0.2 m 12-20% more CPU time with eight
+    shards (32 calls a scan) than with two (8 calls)."""
+    cache: WalkCache | None = getattr(_walk_caches, "cache", None)
+    if cache is None:
+        keys = np.full(1 << (3 * _WALK_CACHE_BITS), -1, dtype=np.int64)
+        cache = keys, np.empty(keys.shape[0], dtype=np.int64), np.empty(keys.shape[0])
+        _walk_caches.cache = cache
+    else:
+        cache[0].fill(-1)
+    return cache
+
+
 RETURN_CHORD_FLOOR = 1e-3
 """Least chord (metres) of a return event in ``read_walk``: the range resolution of a lidar
 return. A return exactly on a voxel's edge or corner has a chord of 0 in the voxel its
@@ -239,42 +262,87 @@ def integrate_rays(
     run_parallel: Callable[[Callable[[int], None], Sequence[int]], object],
     max_new_blocks: int | None = None,
 ) -> int:
-    """Add every ray's chords and returns to the store (scan ``scan_id`` at ``stamp``), one
-    thread per shard: the rays are split into their stretches in each shard's tiles
-    (``split_rays``, a share of the rays a thread), then each thread walks its shard's
-    stretches. ``run_parallel(fn, items)`` calls ``fn`` on every item, in parallel.
+    """Add every ray's chords and returns to the store (scan ``scan_id`` at ``stamp``): the
+    rays are split into their stretches in each shard's tiles (``split_rays``, a share of
+    the rays a thread), then the shards' stretches are walked, a shard a task, the shards
+    with the most work first (``shard_work``), so that the threads end together.
+    ``run_parallel(fn, items)`` calls ``fn`` on every item, in parallel, taking the items
+    in order.
 
-    ``max_new_blocks``: the blocks the scan may add (its share in each shard): a shard that
-    would grow beyond its share cuts the rays it has not walked yet (``cut_to_blocks``), so
-    a scan's memory is bounded whatever its rays. Returns the rays cut (most of any shard)."""
+    ``max_new_blocks``: the blocks the scan may add (each shard a share, in proportion to
+    the blocks its stretches can create): a shard that would grow beyond its share cuts the
+    rays it has not walked yet (``cut_to_blocks``), so a scan's memory is bounded whatever
+    its rays. Returns the rays cut (most of any shard)."""
     scan = ScanStamp(scan_id, float(stamp), float(decay_time))
     shards = len(store.shards)
-    share = None if max_new_blocks is None else -(-int(max_new_blocks) // shards)
     cut = [0] * shards
-    size = max(min(-(-len(rays) // shards), SPLIT_RAYS), 1)
+    if shards == 1:
+        share = None if max_new_blocks is None else int(max_new_blocks)
+        return _walk_whole(rays, store.shards[0], scan, share)
+    threads = max(shards // SHARDS_PER_THREAD, 1)
+    size = max(min(-(-len(rays) // threads), SPLIT_RAYS), 1)  # at least a part a thread
     bounds = [(start, min(start + size, len(rays))) for start in range(0, len(rays), size)]
     split: list[tuple[Pieces, NDArray[np.int64]]] = [None] * len(bounds)  # type: ignore[list-item]
+    work = np.zeros((len(bounds), 2, shards), dtype=np.int64)  # per part: work, room
 
     def split_part(c: int) -> None:
         split[c] = split_rays(
             rays.origins_vox, rays.ends_vox, rays.has_return, *bounds[c], store.shard_mask, True
         )
+        shard_work(*split[c], work[c])
+
+    run_parallel(split_part, range(len(bounds)))
+    shares: list[int | None] = [None] * shards
+    if max_new_blocks is not None:
+        room = work[:, 1].sum(axis=0)
+        total = max(int(room.sum()), 1)
+        shares = [int(max_new_blocks) * int(r) // total for r in room]
+
+    whole = _ray_arrays(rays)  # shared by the shards' walks
 
     def walk(k: int) -> None:
         parts = [(*bounds[c], split[c]) for c in range(len(bounds))]
-        cut[k] = _walk_part(rays, parts, store.shards[k], k, store.shard_mask, scan, share)
+        cut[k] = _walk_part(whole, parts, store.shards[k], k, store.shard_mask, scan, shares[k])
 
-    if shards == 1:
-        return _walk_whole(rays, store.shards[0], scan, share)
-    run_parallel(split_part, range(len(bounds)))
-    run_parallel(walk, range(shards))
+    largest_first = np.argsort(-work[:, 0].sum(axis=0), kind="stable")
+    run_parallel(walk, [int(k) for k in largest_first])
     return max(cut)
 
 
+PIECE_STEPS = 16
+"""What starting a stretch costs the walk, in steps (``shard_work``): the walks of 2 shards'
+stretches took about 17 ms of CPU time more than one thread's walk of whole rays for 230k
+more stretches, about 70 ns a stretch against 6 ns a step (OS1-128 at 0.2 m, this 2-core
+machine)."""
+
+
+@nb.njit(cache=True, nogil=True)
+def shard_work(pieces: Pieces, offsets: NDArray[np.int64], out: NDArray[np.int64]) -> None:
+    """Each shard's walk of ``split_rays``' pieces, estimated: ``out[0, k]`` its steps plus
+    ``PIECE_STEPS`` a stretch, ``out[1, k]`` the blocks its stretches can create."""
+    for k in range(offsets.shape[0] - 1):
+        steps = 0
+        room = 0
+        for i in range(offsets[k], offsets[k + 1]):
+            p = pieces.order[i]
+            steps += pieces.voxel[p, 3] + 1 + PIECE_STEPS
+            room += pieces.room[p]
+        out[0, k] = steps
+        out[1, k] = room
+
+
+SHARDS_PER_THREAD = 4
+"""Shards of the store per thread (``mapper.shard_count``). A scan's steps are uneven among
+the tiles: the sensor's tile holds the most, and one of the two colours of a checkerboard
+held 0.51-0.58 of an OS1-128 scan at 0.2 m (median over sensor positions; 0.65 at the 90th
+percentile). With four shards a thread, the threads take the shards' walks most work first
+(``integrate_rays``), and two threads share a scan within 0.51-0.52 (0.525 at the 90th
+percentile)."""
 SPLIT_RAYS = 8192
 """Rays split at once (``split_rays``): their pieces (about 120 bytes each) stay in cache
 and in memory the allocator reuses; parts of 53k rays (OS1-128, 2 threads) took twice as
-long a ray, faulting their fresh pages in."""
+long a ray, faulting their fresh pages in, and parts of 32768 rays 1.6 times as long (8
+shards: 21 against 13 ms of CPU time for a scan of OS1-128 at 0.2 m)."""
 
 
 def block_bounds(
@@ -334,8 +402,14 @@ class ScanStamp(NamedTuple):
     decay_time: float
 
 
+def _ray_arrays(rays: Rays) -> RayArrays:
+    """``rays`` as the walk takes them, with their bounds."""
+    room, visits = ray_bounds(rays.origins_vox, rays.ends_vox)
+    return RayArrays(rays.origins_vox, rays.ends_vox, rays.lengths, rays.has_return, room, visits)
+
+
 def _walk_part(
-    rays: Rays,
+    walk: RayArrays,
     parts: list[tuple[int, int, tuple[Pieces, NDArray[np.int64]]]],
     shard: Shard,
     shard_id: int,
@@ -348,8 +422,7 @@ def _walk_part(
     shard when it runs out of room, by at most ``share`` blocks (None: no bound): beyond,
     the rays not walked whole yet are cut (``cut_to_blocks``; their stretches walked
     already stay) and split again, by ray. Returns how many were cut."""
-    room, visits = ray_bounds(rays.origins_vox, rays.ends_vox)
-    walk = RayArrays(rays.origins_vox, rays.ends_vox, rays.lengths, rays.has_return, room, visits)
+    count = len(walk.lengths)
     limit = None if share is None else shard.used + share
     most = _NO_LIMIT if limit is None else limit
 
@@ -360,6 +433,7 @@ def _walk_part(
         return _shard_pieces(pieces, offsets, shard_id)
 
     cut, cut_done = 0, False
+    cache = _walk_cache()
     for start, stop, (split, offsets) in parts:
         pieces = _shard_pieces(split, offsets, shard_id)
         if cut_done:  # the rays were cut since they were split
@@ -370,7 +444,7 @@ def _walk_part(
         while first < len(pieces.order):
             _make_room(shard, piece_visits, left, first)
             first = _walk_rays(
-                walk, pieces, first, shard_id, shard_mask, shard.arrays(), scan, most
+                walk, pieces, first, shard_id, shard_mask, shard.arrays(), scan, most, cache
             )
             if first == len(pieces.order):
                 break
@@ -385,7 +459,7 @@ def _walk_part(
                 ray = int(pieces.ray[rest].min())
                 cut_rays = cut_to_blocks(walk, ray, limit - shard.used)
                 if cut_rays is None:  # not even a step each: the rest is not walked
-                    return len(rays) - ray
+                    return count - ray
                 (walk, cut), cut_done = cut_rays, True
                 walked = {
                     (int(pieces.ray[p]), *pieces.voxel[p, :3].tolist())
@@ -401,7 +475,7 @@ def _walk_part(
                 first = 0
                 continue
             if limit is not None and shard.used + need > limit:  # cut, and still too many
-                return max(cut, len(rays) - int(pieces.ray[pieces.order[first:]].min()))
+                return max(cut, count - int(pieces.ray[pieces.order[first:]].min()))
             shard.grow(min_free=need, at_most=limit)  # the limit is checked at each growth
     return cut
 
@@ -412,17 +486,18 @@ _NO_LIMIT = 1 << 62
 
 def _walk_whole(rays: Rays, shard: Shard, scan: ScanStamp, share: int | None = None) -> int:
     """``_walk_part`` for a store of one shard: the rays whole, in order (the same walk)."""
-    room, visits = ray_bounds(rays.origins_vox, rays.ends_vox)
-    walk = RayArrays(rays.origins_vox, rays.ends_vox, rays.lengths, rays.has_return, room, visits)
+    walk = _ray_arrays(rays)
+    visits = walk.visits_needed
     limit = None if share is None else shard.used + share
     most = _NO_LIMIT if limit is None else limit
     none = np.empty(0, dtype=np.int64)
     no_pieces = Pieces(none, none.reshape(0, 4), none.reshape(0, 7), none, none.astype(bool), none)
     first, cut, cut_done = 0, 0, False
+    cache = _walk_cache()
     left = np.cumsum(visits[::-1])[::-1]  # visits of rays r.., at most as many new chunks
     while first < len(rays):
         _make_room(shard, visits, left, first)
-        first = _walk_rays(walk, no_pieces, first, 0, 0, shard.arrays(), scan, most)
+        first = _walk_rays(walk, no_pieces, first, 0, 0, shard.arrays(), scan, most, cache)
         need = int(walk.room_needed[first : first + LANES].sum())
         if first < len(rays) and _blocks_short(shard, need, most):  # the next group of
             # rays (see _walk_rays) did not fit in the blocks (else only in the chunks)
@@ -753,6 +828,7 @@ def _walk_rays(
     shard_arrays: ShardArrays,
     scan: ScanStamp,
     block_limit: int,
+    walk_cache: WalkCache,
 ) -> int:
     """Walk pieces ``first..`` of ``rays`` (voxel units; ``split_rays``: the stretches of
     the rays in ``shard``'s tiles) and add their visits to ``shard``'s blocks; with one
@@ -771,7 +847,8 @@ def _walk_rays(
     piece by piece in ray order. Before each group, checks there is room for the blocks it
     may create; returns the index of the first piece not walked (the caller grows and
     calls again), or their number; the shard holds at most ``block_limit`` blocks (the
-    caller cuts the rays beyond).
+    caller cuts the rays beyond). ``walk_cache``: the blocks of ``shard`` this scan opened
+    (``_walk_cache``), kept from call to call.
     """
     origins_vox, ends_vox, lengths = rays.origins_vox, rays.ends_vox, rays.lengths
     has_return, ray_room, ray_visits = rays.has_return, rays.room_needed, rays.visits_needed
@@ -787,11 +864,9 @@ def _walk_rays(
     block_chunks = sa.block_chunks
     block_nrec, n_recs, n_pool = sa.block_nrec, sa.n_recs, sa.n_pool
     table_keys, table_blocks = sa.table_keys, sa.table_blocks
-    # blocks opened in this call, direct-mapped by their low index bits: neighbouring rays
-    # cross the same blocks, and this table (768 KiB) stays in cache where the hash does not
-    cache_keys = np.full(1 << (3 * _WALK_CACHE_BITS), -1, dtype=np.int64)
-    cache_bases = np.empty(cache_keys.shape[0], dtype=np.int64)  # chunk-table slot, 0: foreign
-    cache_weights = np.empty(cache_keys.shape[0])  # the scan's weight there (< 1: a late scan)
+    # the shard's blocks opened in this scan, direct-mapped by their low index bits: neighbouring
+    # rays cross the same blocks, and this table (768 KiB) stays in cache where the hash does not
+    cache_keys, cache_bases, cache_weights = walk_cache
     total = lengths.shape[0] if whole else order.shape[0]
     longest = 1
     for i in range(first, total):
@@ -803,6 +878,9 @@ def _walk_rays(
     row_length = entered_chunks.shape[1]
     entered_weight = np.empty((LANES, longest))
     lane_blocks = np.empty(LANES, dtype=np.int64)
+    entries = np.empty((2, (longest + 1) * LANES), dtype=np.int64)  # walk_lanes' entries
+    entry_count = np.zeros(1, dtype=np.int64)
+    entered_flat = entered_key.reshape(-1)
     lane_floats = np.empty((FLOAT_ROWS, LANES))
     lane_ints = np.empty((INT_ROWS, LANES), dtype=np.int64)
     # placed visits of two groups: the one being walked and the one waiting to be added
@@ -882,23 +960,25 @@ def _walk_rays(
             steps = max(steps, piece_steps + 1)
         step_chord = placed_chord[group]
         walk_lanes(  # type: ignore[call-arg]
-            lane_floats, lane_ints, steps, entered_key, lane_blocks, step_code, step_chord
+            lane_floats, lane_ints, steps, entered_key, lane_blocks, step_code, step_chord,
+            entries, entry_count,
         )  # fmt: skip
-        # the blocks not yet in the walk cache, looked up (read only) all at once, their
-        # chunk tables loaded: independent lookups whose memory latencies overlap
-        for lane in range(lanes):
-            for b in range(lane_blocks[lane]):
-                key = entered_key[lane, b]
-                slot = (
-                    (((key >> (2 * KEY_BITS)) & _WALK_CACHE_MASK) << (2 * _WALK_CACHE_BITS))
-                    | (((key >> KEY_BITS) & _WALK_CACHE_MASK) << _WALK_CACHE_BITS)
-                    | (key & _WALK_CACHE_MASK)
-                )
-                if cache_keys[slot] != key:
-                    bx, by, bz = block_of_key(key)
-                    found = find_block(table_keys, table_blocks, block_key(bx, by, bz))
-                    if found >= 0:
-                        prefetch_line(block_chunks, BLOCK_CHUNKS * (found + 1))
+        # the entered blocks' keys put in each ray's row; those not yet in the walk cache
+        # looked up (read only) all at once, their chunk tables loaded: independent
+        # lookups whose memory latencies overlap
+        for e in range(entry_count[0]):
+            key = entries[0, e]
+            entered_flat[np.uint64(entries[1, e])] = key
+            slot = (
+                (((key >> (2 * KEY_BITS)) & _WALK_CACHE_MASK) << (2 * _WALK_CACHE_BITS))
+                | (((key >> KEY_BITS) & _WALK_CACHE_MASK) << _WALK_CACHE_BITS)
+                | (key & _WALK_CACHE_MASK)
+            )
+            if cache_keys[slot] != key:
+                bx, by, bz = block_of_key(key)
+                found = find_block(table_keys, table_blocks, block_key(bx, by, bz))
+                if found >= 0:
+                    prefetch_line(block_chunks, BLOCK_CHUNKS * (found + 1))
         weighted = False  # a block where the scan is late (weight < 1)
         for lane in range(lanes):
             i = group_first + lane
@@ -986,15 +1066,23 @@ def _add_group(
     visits = 0
     lines = s_pool.reshape(-1)
     marks = lines.view(np.uint32)  # 0 exactly where a voxel is unobserved
-    s_limit, n_limit = limits[0], limits[1]
+    n_limit = limits[1]
+    # the least float32 at or above limits[0]: a float32 sum passes it exactly where it
+    # passes limits[0] (no conversion a visit)
+    s_limit = np.float32(limits[0])
+    if s_limit < limits[0]:
+        s_limit = np.nextafter(s_limit, np.float32(np.inf))
     for lane in range(lanes):
         last = steps[lane]
+        visits += last + 1  # less the steps skipped below
         for k in range(last + 1):
             voxel = voxels[k * LANES + lane]
             c = np.float32(chords[k * LANES + lane])
-            if not c > 0.0 or voxel < FOREIGN_LIMIT:
-                continue
-            if voxel < 0:  # its chunk is new (since it was placed): shard.s_index
+            if voxel < 0 or not c > 0.0:  # rare: one test on the common path
+                if not c > 0.0 or voxel < FOREIGN_LIMIT:
+                    visits -= 1
+                    continue
+                # its chunk is new (since it was placed): shard.s_index
                 slot = (-voxel - 1) >> CHUNK_BITS
                 chunk = block_chunks[slot]
                 if chunk < 0:
@@ -1004,10 +1092,10 @@ def _add_group(
                     chunk_owner[chunk] = slot
                 voxel = chunk * CHUNK_VOXELS + (voxel & (CHUNK_VOXELS - 1))
                 voxels[k * LANES + lane] = voxel
-            observed += marks[voxel] == 0  # a first visit (shard.UNOBSERVED)
-            after = lines[voxel] + c
-            lines[voxel] = after
-            visits += 1
+            at = np.uint64(voxel)  # >= 0 here: unsigned, no wraparound test
+            observed += marks[at] == 0  # a first visit (shard.UNOBSERVED)
+            after = lines[at] + c
+            lines[at] = after
             if after >= s_limit:  # rare: a flush due
                 block_flush[chunk_owner[voxel >> CHUNK_BITS] // BLOCK_CHUNKS - 1] = True
                 pools[FLUSH_PENDING] = 1

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable, Sequence
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -315,3 +318,52 @@ def test_one_two_four_and_eight_threads_give_the_same_store_bit_for_bit() -> Non
         np.testing.assert_array_equal(got.n[other], expected.n[order])
         assert mapper.num_blocks == maps[0].num_blocks
         mapper.close()
+
+
+def test_shards_are_walked_most_work_first_on_two_threads_bit_for_bit() -> None:
+    """A Mapper of T threads has four shards a thread; the shards' walks go to the threads
+    with the most work first (steps, and ``PIECE_STEPS`` a stretch, from the split): on two
+    real threads the store is one thread's bit for bit."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from mfp_mapper.core.mapper import shard_count
+    from mfp_mapper.core.store import BlockStore
+    from mfp_mapper.core.traversal import (
+        PIECE_STEPS,
+        integrate_rays,
+        shard_work,
+        split_rays,
+    )
+
+    assert [shard_count(t) for t in (1, 2, 3, 4)] == [1, 8, 16, 16]
+    origins, ends = _tile_rays(5, 3_000)
+    rays = Mapper(1.0, max_range=1e4).place_rays(ends, origins)[0]
+    stores = [BlockStore(shards=1), BlockStore(shards=8)]
+    walked: list[list[int]] = []
+    with ThreadPoolExecutor(2) as pool:
+
+        def run_parallel(fn: Callable[[int], None], items: Sequence[int]) -> None:
+            walked.append(list(items))
+            list(pool.map(fn, items))
+
+        for store in stores:
+            integrate_rays(store, rays, store.begin_scan(), 0.0, math.inf, run_parallel)
+            store.finish_scan()
+    # a ray's pieces are the same whatever part it is split in: the parts' estimates add up
+    # to those of one split of all rays
+    pieces, offsets = split_rays(
+        rays.origins_vox, rays.ends_vox, rays.has_return, 0, len(rays), 7, True
+    )
+    work = np.zeros((2, 8), dtype=np.int64)
+    shard_work(pieces, offsets, work)
+    for k in range(8):
+        mine = pieces.order[offsets[k] : offsets[k + 1]]
+        assert work[0, k] == (pieces.voxel[mine, 3] + 1 + PIECE_STEPS).sum()
+        assert work[1, k] == pieces.room[mine].sum()
+    assert walked[-1] == sorted(range(8), key=lambda k: -work[0, k])
+    assert len(set(work[0])) > 4  # uneven shards: the order means something
+    one, eight = (store.export() for store in stores)
+    order_one, order_eight = np.lexsort(one.ijk.T), np.lexsort(eight.ijk.T)
+    np.testing.assert_array_equal(eight.ijk[order_eight], one.ijk[order_one])
+    np.testing.assert_array_equal(eight.s[order_eight], one.s[order_one])
+    np.testing.assert_array_equal(eight.n[order_eight], one.n[order_one])

@@ -20,11 +20,19 @@ def _whole(mapper: Mapper, min_doo: float, min_evidence: float) -> CloudRows:
 
 
 def _assert_same(got: CloudRows, want: CloudRows) -> None:
+    """Equal bit for bit, except the reflectivity mean: with decay, a later scan rescales
+    every histogram's float32 counts (``ReflectivityTable`` keeps them at the latest stamp),
+    which leaves a block's mean unchanged up to float32 rounding, so kept rows may differ
+    from a rebuild in the last bits."""
     assert len(got) == len(want)
     a, b = np.lexsort(got.centers.T), np.lexsort(want.centers.T)
     for x, y in zip(got.arrays(), want.arrays(), strict=True):
         assert (x is None) == (y is None)
-        if x is not None:
+        if x is None:
+            continue
+        if x is got.reflectivity:
+            np.testing.assert_allclose(x[a], y[b], rtol=1e-6, atol=0.0)
+        else:
             np.testing.assert_array_equal(x[a], y[b])
 
 
