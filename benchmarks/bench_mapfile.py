@@ -13,7 +13,8 @@ written and read in the same run by
   ``load_map`` (read, CRCs and values checked, blocks set in the store);
 * ``mfp-mapper query`` as it runs (``MapFileQueries``: open the file, read the blocks of
   10 points, answer; and 100 segments of 20 m), against numpy's read of the voxel arrays;
-  and the command as a process against a Python process reading them with numpy.
+  and the command as a process (the ``mfp-mapper`` console script beside this Python, as
+  docs/cli.md has a user type it) against a Python process reading them with numpy.
 
 Reads find the file in the page cache (it was just written), as numpy's do; every timed
 write starts after ``os.sync()`` (a save's fsync would otherwise wait for the previous
@@ -132,7 +133,9 @@ def run(name: str, mapper: Mapper, repeat: int, tmp: Path) -> None:
         r["fill"].append(_timed(lambda c=contents: mapper_from_contents(c, path))[0])
         r["q_pts"].append(_timed(lambda: MapFileQueries(path).query(points))[0])
         r["q_seg"].append(_timed(lambda: MapFileQueries(path).query_segments(starts, ends))[0])
-    cli = [sys.executable, "-m", "mfp_mapper.cli", "query", str(path)]
+    launcher = Path(sys.executable).parent / "mfp-mapper"  # the console script docs/cli.md uses
+    cli = [str(launcher)] if launcher.exists() else [sys.executable, "-m", "mfp_mapper.cli"]
+    cli += ["query", str(path)]
     cli += [f"{v:.3f}" for v in points.ravel()]
     reader = f"import numpy as np; f = open({str(np_path)!r}, 'rb'); [np.load(f) for _ in range(4)]"
     env = {**os.environ, "PYTHONPATH": str(ROOT)}

@@ -37,15 +37,19 @@ def load_map_arg(
     """A Mapper (only ``bounds`` when given); with ``lazy_tiles``, a tiled map is opened as a
     ``TiledMap`` that reads its tiles when asked; with ``queries`` too, a map file is opened
     as a ``MapFileQueries`` that reads the blocks each query needs."""
-    from mfp_mapper.mapio.loading import MapFileQueries, load_map
     from mfp_mapper.mapio.mapfile import MapFileError
-    from mfp_mapper.mapio.tiles import TiledMap
 
-    try:
+    try:  # each import where needed: a query of points in a map file loads no numba
         if lazy_tiles and Path(path).is_dir():
+            from mfp_mapper.mapio.tiles import TiledMap
+
             return TiledMap(path)
         if queries:
+            from mfp_mapper.mapio.queries import MapFileQueries
+
             return MapFileQueries(path)
+        from mfp_mapper.mapio.loading import load_map
+
         return load_map(path, bounds=bounds)
     except FileNotFoundError:
         raise CliError(f"{path}: no such map file") from None

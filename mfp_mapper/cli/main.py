@@ -1,10 +1,11 @@
 """``mfp-mapper``: the offline command line (bags, the built-in example, exports, pictures).
 
-One module per subcommand (``cli.replay``, ``cli.merge``, ``cli.simulate``, ``cli.export``,
-``cli.render``, ``cli.plot_convergence``, ``cli.query``, ``cli.evaluate``, ``cli.score``,
-``cli.fit_prior``, ``cli.call``, ``cli.demo``), each
-with ``add_parser(sub)`` and ``run(args)``; the work is in mapping/, sources/ and outputs/.
-The modules import no numpy at the top, so ``mfp-mapper --help`` stays cheap.
+One module per subcommand (``COMMANDS``: ``cli.replay``, ``cli.merge``, ``cli.simulate``,
+``cli.export``, ``cli.render``, ``cli.plot_convergence``, ``cli.query``, ``cli.evaluate``,
+``cli.score``, ``cli.fit_prior``, ``cli.call``, ``cli.demo``), each with ``add_parser(sub)``
+and ``run(args)``; the work is in mapping/, sources/ and outputs/. The modules import no
+numpy at the top, and a command imports only its own module, so ``mfp-mapper --help`` and
+``mfp-mapper query`` stay cheap.
 Exit status: 0 success, 1 the job failed (bad bag, bad map file...), 2 bad usage,
 130 interrupted.
 """
@@ -12,34 +13,50 @@ Exit status: 0 success, 1 the job failed (bad bag, bad map file...), 2 bad usage
 from __future__ import annotations
 
 import argparse
+import importlib
 import signal
 import sys
 from collections.abc import Sequence
 from typing import Any
 
-from mfp_mapper.cli import (
-    call,
-    demo,
-    evaluate,
-    export,
-    fit_prior,
-    localize,
-    merge,
-    plot_convergence,
-    query,
-    render,
-    replay,
-    score,
-    simulate,
-)
 from mfp_mapper.cli.common import CliError, error
 from mfp_mapper.config.names import VERSION
 
-COMMANDS = (
-    replay, localize, merge, simulate, export, render, plot_convergence, query, evaluate, score,
-    fit_prior, call, demo,
-)  # fmt: skip
-"""The subcommand modules, in the order ``--help`` lists them."""
+COMMANDS = {
+    "replay": ("replay", "map ROS 1 .bag or ROS 2 (sqlite3/mcap) bags into one map"),
+    "localize": ("localize", "refine the poses of a recording's scans against a fixed map"),
+    "merge": ("merge", "merge maps exactly (.npz files or tiled maps) into one"),
+    "simulate": ("simulate", "write the built-in example bag with its ground truth"),
+    "export": (
+        "export",
+        "write a map as PLY (CloudCompare), a Nav2 map (PGM + YAML) or an mcap bag",
+    ),
+    "render": ("render", "draw a map: top-down DoO and std, slice, histogram"),
+    "plot-convergence": (
+        "plot_convergence",
+        "one cell probed repeatedly: DoO vs classic occupancy (Fig. 9)",
+    ),
+    "query": (
+        "query",
+        "statistics of the voxels at points X Y Z ..., clear probability of segments",
+    ),
+    "evaluate": ("evaluate", "compare a map of a simulated bag with its truth"),
+    "score": ("score", "how well a map predicts held-out lidar rays, against classic occupancy"),
+    "fit-prior": (
+        "fit_prior",
+        "empirical Bayes: the Gamma prior that best predicts held-out scans",
+    ),
+    "call": (
+        "call",
+        "call a running node's services: status, query, segment, getmap, save, reset, "
+        "clear-bbox, lifecycle",
+    ),
+    "demo": ("demo", "simulate -> replay -> render -> evaluate the built-in example"),
+}
+"""Each subcommand: its module in ``mfp_mapper.cli`` and the line ``--help`` lists (the
+module's own ``help``; ``test_cli.py`` checks they agree), in the order listed. Only the
+module of the command run is imported (``build_parser``): ``mfp-mapper query`` loads
+neither the settings schema nor the bag readers the others need."""
 
 EPILOG = """\
 examples:
@@ -65,8 +82,11 @@ examples:
 """
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The parser of every subcommand; each sets ``args.run``, its command."""
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The parser of every subcommand; each sets ``args.run``, its command. With
+    ``command``, only that subcommand's module is imported and its arguments built (with
+    "", none): the others are listed by name and help line alone (what ``--help`` shows
+    of them)."""
     parser = argparse.ArgumentParser(
         prog="mfp-mapper",
         description="Offline tools of mfp_mapper, the mean-free-path lidar mapper: replay "
@@ -76,9 +96,19 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {VERSION}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for command in COMMANDS:
-        command.add_parser(sub).set_defaults(run=command.run)
+    for name, (module_name, summary) in COMMANDS.items():
+        if command is None or name == command:
+            module = importlib.import_module(f"mfp_mapper.cli.{module_name}")
+            module.add_parser(sub).set_defaults(run=module.run)
+        else:
+            sub.add_parser(name, help=summary)
     return parser
+
+
+def command_of(argv: Sequence[str]) -> str | None:
+    """The subcommand ``argv`` names: its first word not an option (``mfp-mapper`` takes
+    no option with a value before it); None when there is none."""
+    return next((word for word in argv if not word.startswith("-")), None)
 
 
 class Terminated(BaseException):
@@ -93,8 +123,8 @@ def _terminated(signum: int, _frame: Any) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    words = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser(command_of(words) or "").parse_args(words)
     try:
         previous = signal.signal(signal.SIGTERM, _terminated)
     except ValueError:  # not the main thread: leave signals alone

@@ -12,16 +12,18 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
-BLOCK_BITS = 3
-BLOCK_EDGE = 1 << BLOCK_BITS
-BLOCK_VOXELS = BLOCK_EDGE**3
+from mfp_mapper.core.layout import (  # noqa: F401 (the geometry, numba-free, re-exported)
+    BLOCK_BITS,
+    BLOCK_EDGE,
+    BLOCK_VOXELS,
+    KEY_BITS,
+    KEY_OFFSET,
+    MAX_VOXEL_INDEX,
+)
+
 _LOCAL_MASK = BLOCK_EDGE - 1
 EMPTY_KEY = -1
 _HASH_MULT = np.uint64(0x9E3779B97F4A7C15)
-KEY_BITS = 21
-"""Bits of each block index in a key (``block_key``)."""
-KEY_OFFSET = 1 << (KEY_BITS - 1)
-"""Added to a block index before packing, so that every packed field is non-negative."""
 RESERVED_BLOCKS = 1 << 18
 """Blocks of ``s`` chunks (2 KiB a block) of address space a shard reserves up front:
 512 MiB, not resident."""
@@ -37,9 +39,6 @@ N_CHUNK_VOXELS = 1 << N_CHUNK_BITS
 N_BLOCK_CHUNKS = BLOCK_VOXELS // N_CHUNK_VOXELS
 FOREIGN_CHUNK = -(1 << 31)
 """Chunk-table entry of another shard's block (``shard.ShardArrays.block_chunks``)."""
-MAX_VOXEL_INDEX = (KEY_OFFSET << BLOCK_BITS) - BLOCK_EDGE
-"""Largest |voxel index| the store can hold (block indices are packed in 21 bits each)."""
-
 SHARD_TILE_BITS = 3
 """Shards own tiles of ``2**SHARD_TILE_BITS`` blocks along each axis (64 voxels), in a 3-D
 checkerboard (``shard_of``): a thread walks a ray only through its own shard's tiles

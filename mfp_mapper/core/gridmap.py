@@ -38,7 +38,6 @@ from mfp_mapper.core.blocks import (
     local_coords,
     voxel_inside,
 )
-from mfp_mapper.core.model import hit_probability_one
 from mfp_mapper.core.shard import ShardArrays, block_values
 
 UNKNOWN = -1
@@ -56,6 +55,17 @@ WHOLE_BAND_SHARE = 0.5
 columns exceed this share of the grid is computed whole: checking each block against the
 columns cost ~10% more than reading them all when nearly all changed (a parked lidar that
 reaches the whole map, benchmarks/bench_map_cloud.py)."""
+
+
+@nb.njit(cache=True)
+def hit_probability_one(
+    s: float, n: float, length: float, shape: float = 1.0, rate: float = 1.0
+) -> float:
+    """``model.hit_probability`` of one voxel, for compiled kernels (the same expression), with
+    the prior's ``shape`` and ``rate``."""
+    s = max(s, 0.0)
+    n = max(n, 0.0)
+    return -math.expm1(-(n + shape) * math.log1p(length / (s + rate)))
 
 
 def unobserved_hit_probability(resolution: float, shape: float = 1.0, rate: float = 1.0) -> float:

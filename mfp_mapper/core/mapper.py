@@ -52,7 +52,7 @@ from mfp_mapper.core.traversal import (
     store_view,
     visit_bounds,
 )
-from mfp_mapper.core.voxel_stats import IntegrationSummary, SegmentStats, VoxelStats
+from mfp_mapper.core.voxel_stats import IntegrationSummary, SegmentStats, VoxelStats, decayed_stats
 
 MAX_RAY_VOXELS = 1 << 15
 """Hard limit of a ray's walk, in voxels (3.3 km at 0.1 m): a ray longer than this (when
@@ -811,21 +811,10 @@ class Mapper:
         return dataclasses.replace(grid, origin=(grid.origin[0] + ox, grid.origin[1] + oy))
 
     def _stats(self, raw: VoxelArrays, stamp: float | None) -> VoxelStats:
-        s, n = raw.s, raw.n
-        if stamp is not None and math.isfinite(self.decay_time):
-            seen = np.isfinite(raw.t_last)
-            dt = np.where(seen, stamp - np.where(seen, raw.t_last, 0.0), 0.0)
-            s, n = model.decay(s, n, dt, self.decay_time)
-        return VoxelStats(
-            ijk=raw.ijk,
-            centers=(raw.ijk + 0.5).astype(np.float64) * self.resolution + self._offset,
-            s=s,
-            n=n,
-            t_last=raw.t_last,
-            observed=model.observed(s, n),
-            resolution=self.resolution,
-            prior=self.prior,
-        )
+        return decayed_stats(
+            raw.ijk, raw.s, raw.n, raw.t_last, stamp, self.decay_time, self.resolution,
+            self._offset, self.prior,
+        )  # fmt: skip
 
     @property
     def num_voxels(self) -> int:

@@ -7,6 +7,8 @@ valued after decay). With a Gamma(shape alpha, rate beta) prior on the extinctio
 posterior of u is Gamma(n + alpha, s + beta) (Eq. 25-26 generalised, docs/model.md); ``m``
 is the probability of crossing one metre unreflected and the degree of occupancy (DoO) is
 ``1 - m``. The prior is applied when statistics are read, never stored in ``s`` and ``n``.
+Numpy only (a query of map-file points loads no numba); ``gridmap.hit_probability_one`` is
+the compiled kernels' copy of ``hit_probability``.
 """
 
 from __future__ import annotations
@@ -14,7 +16,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numba as nb
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -157,17 +158,6 @@ def hit_probability(
     With ``length`` = the voxel edge this is the cell's p_hit (Eq. 31-33).
     """
     return -np.expm1(_log_moment(s, n, length, prior))
-
-
-@nb.njit(cache=True)
-def hit_probability_one(
-    s: float, n: float, length: float, shape: float = 1.0, rate: float = 1.0
-) -> float:
-    """``hit_probability`` of one voxel, for compiled kernels (the same expression), with
-    the prior's ``shape`` and ``rate``."""
-    s = max(s, 0.0)
-    n = max(n, 0.0)
-    return -math.expm1(-(n + shape) * math.log1p(length / (s + rate)))
 
 
 def path_pass_probability(

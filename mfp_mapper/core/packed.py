@@ -16,7 +16,6 @@ chunked layout in one compiled pass; ``voxel_arrays_of`` gives the voxels as lis
 from __future__ import annotations
 
 from collections.abc import Iterable
-from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
@@ -25,90 +24,18 @@ from numpy.typing import NDArray
 from mfp_mapper.core.blocks import (
     BLOCK_EDGE,
     BLOCK_VOXELS,
-    KEY_BITS,
-    KEY_OFFSET,
-    MAX_VOXEL_INDEX,
     block_key,
     local_coords,
 )
-
-MASK_WORDS = BLOCK_VOXELS // 64
-"""uint64 words of a block's voxel mask: bit ``i % 64`` of word ``i // 64`` is voxel ``i``
-(Morton place) of the block."""
-MAX_BLOCK_INDEX = MAX_VOXEL_INDEX >> 3
-"""Largest |block index| a store holds."""
-
-
-@dataclass
-class PackedBlocks:
-    """Observed voxels block by block (see the module docstring).
-
-    ``block_ijk`` int32 (B, 3) sorted, each block once; ``block_t`` float64 (B,);
-    ``observed`` uint64 (B, 8); ``s`` (M,) one per set bit of ``observed``, block by block;
-    ``hit_block`` int64 (H,) increasing rows of the blocks holding a return; ``hit`` uint64
-    (H, 8) their voxels with ``n > 0`` (a subset of ``observed``); ``n`` (K,) one per set
-    bit of ``hit``. ``s`` and ``n`` are float32 from a store, float64 where sums were
-    merged."""
-
-    block_ijk: NDArray[np.int32]
-    block_t: NDArray[np.float64]
-    observed: NDArray[np.uint64]
-    s: NDArray[np.floating]
-    hit_block: NDArray[np.int64]
-    hit: NDArray[np.uint64]
-    n: NDArray[np.floating]
-
-    @property
-    def num_voxels(self) -> int:
-        return int(self.s.shape[0])
-
-
-def sort_keys(block_ijk: NDArray[np.integer]) -> NDArray[np.int64]:
-    """One int64 per block index whose order is (x, y, z) lexicographic (``block_key``)."""
-    b = np.asarray(block_ijk, dtype=np.int64) + KEY_OFFSET
-    return (b[:, 0] << (2 * KEY_BITS)) | (b[:, 1] << KEY_BITS) | b[:, 2]
-
-
-def voxel_starts(mask: NDArray[np.uint64]) -> NDArray[np.int64]:
-    """Index of each block's first value (B + 1 entries: the last is the total)."""
-    counts = np.bitwise_count(mask).sum(axis=1, dtype=np.int64)
-    out = np.zeros(mask.shape[0] + 1, dtype=np.int64)
-    np.cumsum(counts, out=out[1:])
-    return out
-
-
-def packed_problem(p: PackedBlocks) -> str | None:
-    """What is wrong with packed blocks (shapes, order, masks, values), or None."""
-    b = p.block_ijk.shape[0]
-    if p.block_ijk.shape != (b, 3) or p.block_t.shape != (b,) or p.observed.shape != (b, 8):
-        return "blocks need block_ijk (B, 3), block_t (B,) and observed (B, 8)"
-    h = p.hit_block.shape[0]
-    if p.hit_block.shape != (h,) or p.hit.shape != (h, 8):
-        return "blocks with a return need hit_block (H,) and hit (H, 8)"
-    if b and int(np.abs(p.block_ijk).max()) > MAX_BLOCK_INDEX:
-        return f"block indices beyond +-{MAX_BLOCK_INDEX}, the map's range"
-    if b > 1 and not np.all(np.diff(sort_keys(p.block_ijk)) > 0):
-        return "blocks are not sorted by index, or a block is listed twice"
-    if not np.isfinite(p.block_t).all():
-        return "block times hold NaN or infinite values (seconds expected)"
-    if p.s.shape != (int(np.bitwise_count(p.observed).sum()),):
-        return (
-            f"s holds {p.s.shape} values, the observed masks {np.bitwise_count(p.observed).sum()}"
-        )
-    if h and (int(p.hit_block[0]) < 0 or int(p.hit_block[-1]) >= b):
-        return f"hit_block rows outside [0, {b})"
-    if h > 1 and not np.all(np.diff(p.hit_block) > 0):
-        return "hit_block is not increasing"
-    if np.any(p.hit & ~p.observed[p.hit_block]):
-        return "a voxel with a return is not marked observed"
-    if p.n.shape != (int(np.bitwise_count(p.hit).sum()),):
-        return f"n holds {p.n.shape} values, the hit masks {np.bitwise_count(p.hit).sum()}"
-    for key, arr in (("s", p.s), ("n", p.n)):
-        if arr.dtype.kind != "f" or not (np.isfinite(arr).all() and arr.min(initial=0.0) >= 0):
-            return f"{key} holds negative, NaN or infinite values"
-        if arr.max(initial=0.0) > np.finfo(np.float32).max:
-            return f"{key} holds values beyond float32's range (the store's)"
-    return None
+from mfp_mapper.core.layout import (  # noqa: F401 (numba-free, re-exported)
+    MASK_WORDS,
+    MAX_BLOCK_INDEX,
+    PackedBlocks,
+    compact,
+    packed_problem,
+    sort_keys,
+    voxel_starts,
+)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -252,15 +179,6 @@ def pack_chunks(chunks: Iterable[BlockChunk], size_hint: int = 0) -> PackedBlock
         block_ijk[order].astype(np.int32, copy=False), block_t, observed, s, hit_block,
         hit[hit_block], n,
     )  # fmt: skip
-
-
-def compact(values: NDArray[np.floating]) -> NDArray[np.floating]:
-    """float32 values as they are; float64 ones as float32 when every one survives the
-    round trip, else as they are."""
-    if values.dtype == np.float32:
-        return values
-    small = values.astype(np.float32)
-    return small if np.array_equal(small, values) else values
 
 
 def voxel_arrays_of(

@@ -48,14 +48,8 @@ from mfp_mapper.core.blocks import (
     insert_block,
     rebuild_table,
 )
+from mfp_mapper.core.layout import FLUSH_EDGES, N_LIMIT  # noqa: F401 (re-exported)
 
-FLUSH_EDGES = 1024.0
-"""A voxel's float32 ``s`` holds at most this many voxel edges of chord (plus one scan's)
-before its block is flushed into float64 (``Shard.flush``): float32 sums of about 2048
-chords of half an edge keep a relative error below 2048 * 2**-24 = 1.2e-4."""
-N_LIMIT = float(1 << 20)
-"""A voxel's float32 ``n`` holds at most this (plus one scan's returns) before its block is
-flushed: every integer count below 2**24 is exact in float32."""
 FOREIGN_LIMIT = FOREIGN_CHUNK * CHUNK_VOXELS + CHUNK_VOXELS
 """A placed visit below this is to another shard's block (``FOREIGN_CHUNK``)."""
 _CHUNK_MASK = CHUNK_VOXELS - 1

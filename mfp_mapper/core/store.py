@@ -56,6 +56,12 @@ from mfp_mapper.core.blocks import (
     shard_of,
     voxel_inside,
 )
+from mfp_mapper.core.layout import (  # noqa: F401 (numba-free, re-exported)
+    MAX_RESOLUTION,
+    MIN_RESOLUTION,
+    VoxelArrays,
+    voxel_problem,
+)
 from mfp_mapper.core.packed import (
     MASK_WORDS,
     BlockChunk,
@@ -78,22 +84,7 @@ from mfp_mapper.core.shard import (
     voxel_stats,
 )
 
-MIN_RESOLUTION = 1e-3
-"""Smallest voxel edge (metres) a map may have."""
-MAX_RESOLUTION = 1e3
-"""Largest voxel edge (metres) a map may have."""
-
 __all__ = ["BLOCK_EDGE", "MAX_VOXEL_INDEX", "BlockStats", "BlockStore", "VoxelArrays", "index_box"]
-
-
-@dataclass
-class VoxelArrays:
-    """Raw statistics of a set of voxels: index, s, n and the time they refer to."""
-
-    ijk: NDArray[np.int32]
-    s: NDArray[np.float64]
-    n: NDArray[np.float64]
-    t_last: NDArray[np.float64]
 
 
 @dataclass
@@ -740,18 +731,3 @@ class BlockStore:
     @property
     def nbytes(self) -> int:
         return sum(sh.nbytes for sh in self.shards)
-
-
-def voxel_problem(
-    ijk: NDArray[np.integer], s: NDArray[np.floating], n: NDArray[np.floating], t: NDArray
-) -> str | None:
-    """What is wrong with these voxel arrays (values only; duplicates are found when they are
-    stored), or None."""
-    for key, arr in (("s", s), ("n", n)):
-        if not (np.isfinite(arr).all() and arr.min(initial=0.0) >= 0):
-            return f"{key} holds negative, NaN or infinite values"
-    if not np.isfinite(t).all():
-        return "t_last holds NaN or infinite values (seconds expected)"
-    if ijk.shape[0] and max(-int(ijk.min()), int(ijk.max())) > MAX_VOXEL_INDEX:
-        return f"ijk holds indices beyond +-{MAX_VOXEL_INDEX}, the map's range"
-    return None

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, fields
 
 import numpy as np
@@ -99,6 +100,38 @@ class VoxelStats:
         values = {f.name: getattr(self, f.name) for f in fields(self)}
         scalars = ("resolution", "prior")
         return VoxelStats(**{k: (v if k in scalars else v[mask]) for k, v in values.items()})
+
+
+def decayed_stats(
+    ijk: NDArray[np.integer],
+    s: FloatArray,
+    n: FloatArray,
+    t_last: FloatArray,
+    stamp: float | None,
+    decay_time: float,
+    resolution: float,
+    offset: FloatArray,
+    prior: model.Prior,
+) -> VoxelStats:
+    """``VoxelStats`` of voxels ``ijk`` holding ``s``, ``n`` as of ``t_last`` (-inf: never
+    observed), decayed to ``stamp`` when given (a map with a ``decay_time``); ``offset``:
+    the map-frame position of voxel (0, 0, 0)'s corner. What ``Mapper.query`` and the
+    numba-free point queries of a map file (``mapio.queries``) return."""
+    if stamp is not None and math.isfinite(decay_time):
+        seen = np.isfinite(t_last)
+        dt = np.where(seen, stamp - np.where(seen, t_last, 0.0), 0.0)
+        s, n = model.decay(s, n, dt, decay_time)
+    ijk32 = ijk.astype(np.int32)
+    return VoxelStats(
+        ijk=ijk32,
+        centers=(ijk32 + 0.5).astype(np.float64) * resolution + offset,
+        s=s,
+        n=n,
+        t_last=t_last,
+        observed=model.observed(s, n),
+        resolution=resolution,
+        prior=prior,
+    )
 
 
 @dataclass

@@ -39,16 +39,17 @@ from typing import Any, BinaryIO
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from mfp_mapper.core.blocks import BLOCK_BITS, BLOCK_EDGE
-from mfp_mapper.core.packed import (
+from mfp_mapper.core.layout import (
+    BLOCK_BITS,
+    BLOCK_EDGE,
     MASK_WORDS,
     MAX_BLOCK_INDEX,
     PackedBlocks,
+    VoxelArrays,
     compact,
     sort_keys,
     voxel_starts,
 )
-from mfp_mapper.core.store import VoxelArrays
 
 BLOCK_MEMBERS = (
     "block_ijk", "block_start", "hit_block", "hit_start", "block_t", "observed", "hit", "s", "n",

@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from mfp_mapper.core.store import MAX_RESOLUTION, MAX_VOXEL_INDEX, MIN_RESOLUTION
+from mfp_mapper.core.layout import MAX_RESOLUTION, MAX_VOXEL_INDEX, MIN_RESOLUTION
 
 MAX_DEFLATE_RATIO = 1100
 """Deflate cannot expand data more than ~1032 times: a member claiming more is lying."""

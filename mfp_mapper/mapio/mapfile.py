@@ -46,21 +46,21 @@ import zlib
 from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-from mfp_mapper.core.blocks import BLOCK_BITS
 from mfp_mapper.core.errors import CoreError
-from mfp_mapper.core.mapper import Mapper
-from mfp_mapper.core.packed import PackedBlocks, packed_problem, sort_keys
-from mfp_mapper.core.reflectivity import (
-    ReflectivityArrays,
-    from_map_arrays,
-    to_map_arrays,
+from mfp_mapper.core.layout import (
+    BLOCK_BITS,
+    MAX_VOXEL_INDEX,
+    PackedBlocks,
+    VoxelArrays,
+    packed_problem,
+    sort_keys,
+    voxel_problem,
 )
-from mfp_mapper.core.store import MAX_VOXEL_INDEX, VoxelArrays, voxel_problem
 from mfp_mapper.mapio.atomic import atomic_output
 from mfp_mapper.mapio.blockfile import (
     BLOCK_MEMBERS,
@@ -89,6 +89,10 @@ from mfp_mapper.mapio.checks import (
     prior_problem,
     settings_problem,
 )
+
+if TYPE_CHECKING:  # imported where used: reading a file loads no numba (``mapio.queries``)
+    from mfp_mapper.core.mapper import Mapper
+    from mfp_mapper.core.reflectivity import ReflectivityArrays
 
 FORMAT_NAME = "mfp_mapper.map"
 FORMAT_VERSION = 3
@@ -205,7 +209,11 @@ def settings_arrays(mapper: MapSource) -> dict[str, np.ndarray]:
 
 def reflectivity_members(table: ReflectivityArrays | None) -> dict[str, np.ndarray]:
     """The ``reflectivity_*`` members of a map file holding ``table`` ({} for None)."""
-    return {} if table is None else to_map_arrays(table)
+    if table is None:
+        return {}
+    from mfp_mapper.core.reflectivity import to_map_arrays
+
+    return to_map_arrays(table)
 
 
 def map_blocks(mapper: MapSource) -> dict[str, np.ndarray]:
@@ -385,6 +393,10 @@ def _table_rows(reader: BlockReader, keys: NDArray[np.int64]) -> dict[str, np.nd
 
 def _reflectivity(path: Path, small: dict[str, np.ndarray]) -> ReflectivityArrays | None:
     """The reflectivity histograms of a map file's small members (None: it has none)."""
+    if not any(k.startswith("reflectivity_") for k in small):
+        return None
+    from mfp_mapper.core.reflectivity import from_map_arrays
+
     try:
         return from_map_arrays(small)
     except ValueError as err:
@@ -527,6 +539,9 @@ def mapper_from_arrays(
     """A new Mapper holding map-file ``arrays`` (as ``read_map_arrays`` or ``map_arrays``
     give them); ``path`` names them in errors; ``overrides`` replace stored settings (not
     ``resolution`` or ``origin``), as ``load_map`` does."""
+    from mfp_mapper.core.mapper import Mapper
+    from mfp_mapper.core.reflectivity import from_map_arrays
+
     resolution = float(arrays["resolution"])
     origin = np.asarray(arrays.get("origin", np.zeros(3)), dtype=np.float64).reshape(3)
     settings = mapper_settings(arrays, path, dict(overrides))
@@ -547,6 +562,8 @@ def mapper_from_contents(c: MapContents, path: str | Path, **overrides: object) 
         voxels = {k: getattr(c.voxels, k) for k in VOXEL_MEMBERS}
         arrays = {**contents_settings(c), **voxels, **reflectivity_members(c.reflectivity)}
         return mapper_from_arrays(arrays, path, **overrides)
+    from mfp_mapper.core.mapper import Mapper
+
     settings = mapper_settings(contents_settings(c), path, overrides)
     try:
         return Mapper.from_blocks(

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from mfp_mapper.core.mapper import Mapper
-from mfp_mapper.core.reflectivity import mean_value, most_likely_bin
+if TYPE_CHECKING:  # a query of map-file points loads no numba (``mapio.queries``)
+    from mfp_mapper.core.mapper import Mapper
 
 
 def jsonable(value: Any) -> Any:
@@ -87,6 +87,8 @@ def reflectivity_rows(
     found = mapper.reflectivity(points, stamp)
     if found is None:
         return []
+    from mfp_mapper.core.reflectivity import mean_value, most_likely_bin
+
     bins, counts = found
     means = mean_value(counts, bins)
     fullest = most_likely_bin(counts)

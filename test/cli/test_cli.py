@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -49,6 +50,47 @@ def test_help_lists_subcommands_and_examples(capsys: pytest.CaptureFixture[str])
             build_parser().parse_args([cmd, "--help"])
         assert info.value.code == 0
     assert "--cloud-topic" in capsys.readouterr().out
+
+
+def test_each_command_is_listed_with_its_modules_help() -> None:
+    """``cli.main.COMMANDS`` (what ``--help`` lists without importing the modules) says what
+    each module's own parser says, in the same order; a parser built for one command has
+    that command's arguments and the others' names."""
+    import argparse
+
+    from mfp_mapper.cli.main import COMMANDS
+
+    def listed(parser: argparse.ArgumentParser) -> list[tuple[str, str | None]]:
+        (sub,) = (a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        return [(a.dest, a.help) for a in sub._choices_actions]
+
+    want = [(name, summary) for name, (_, summary) in COMMANDS.items()]
+    assert listed(build_parser()) == want
+    assert listed(build_parser("query")) == want
+    args = build_parser("query").parse_args(["query", "m.npz", "1", "2", "3", "--json"])
+    assert args.coords == [1.0, 2.0, 3.0] and args.json and callable(args.run)
+
+
+@pytest.mark.parametrize(
+    "argv", [["--help"], ["query", "--help"], ["query", "missing.npz", "1", "2", "3"]]
+)
+def test_a_command_imports_only_its_module(argv: list[str]) -> None:
+    """``mfp-mapper --help`` imports no subcommand module; ``mfp-mapper query`` only its own
+    (not the settings schema the bag commands' flags come from), in a fresh interpreter."""
+    code = (
+        "import sys\nfrom mfp_mapper.cli import main\ntry:\n    main(sys.argv[1:])\n"
+        "except SystemExit:\n    pass\n"
+        "print(sorted(m for m in sys.modules if m.startswith('mfp_mapper.c')))"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code, *argv], capture_output=True, text=True, timeout=120,
+        cwd=Path(__file__).resolve().parents[2], check=True,
+    )  # fmt: skip
+    loaded = set(json.loads(proc.stdout.strip().splitlines()[-1].replace("'", '"')))
+    cli = {m for m in loaded if m.startswith("mfp_mapper.cli.")}
+    expected = {"mfp_mapper.cli.main", "mfp_mapper.cli.common"}
+    assert cli == (expected if argv == ["--help"] else expected | {"mfp_mapper.cli.query"})
+    assert "mfp_mapper.config.schema" not in loaded and "mfp_mapper.core.mapper" not in loaded
 
 
 def test_replay_writes_a_loadable_map(run: dict[str, Path]) -> None:
@@ -116,6 +158,59 @@ def test_query(run: dict[str, Path], capsys: pytest.CaptureFixture[str]) -> None
     assert main(["query", str(run["map"]), "0", "0", "1"]) == 0
     assert "DoO" in capsys.readouterr().out
     assert main(["query", str(run["map"]), "0", "0"]) == 1
+
+
+LAUNCHER = Path(__file__).resolve().parents[2] / ".venv" / "bin" / "mfp-mapper"
+
+
+@pytest.mark.parametrize("histograms", [False, True], ids=["plain", "histograms"])
+def test_query_of_points_as_a_user_types_it(
+    run: dict[str, Path], histograms: bool, tmp_path: Path
+) -> None:
+    """``mfp-mapper query map.npz X Y Z ...`` (docs/cli.md), the console script in its own
+    process: the numbers of the map loaded whole (``Mapper.query``, compiled), for points
+    inside and outside the map, printed and ``--json``, with and without ``--stamp``. A map
+    without reflectivity histograms is answered without numba, llvmlite or scipy imported
+    (``python -X importtime``); one with them (replay's default here) has its histograms
+    read through a Mapper of the blocks it needs."""
+    from mfp_mapper.mapio.mapfile import map_arrays, write_map_arrays
+    from mfp_mapper.outputs.report import jsonable, query_lines, query_rows
+
+    path = run["map"]
+    if not histograms:
+        path = tmp_path / "plain.npz"
+        arrays = map_arrays(load_map(run["map"]))
+        write_map_arrays(path, {k: v for k, v in arrays.items() if "reflectivity" not in k})
+    whole = load_map(path)
+    rng = np.random.default_rng(5)
+    centres = whole.voxels().centers
+    points = np.concatenate(
+        [centres[rng.choice(len(centres), 40)], rng.uniform(-6, 6, (20, 3)), [[0, 0, 500.0]]]
+    )
+    coords = [repr(float(v)) for v in points.ravel()]
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    door = [str(LAUNCHER)] if LAUNCHER.exists() else ["-m", "mfp_mapper.cli"]
+    for extra, stamp in (([], None), (["--stamp", "5.0"], 5.0)):
+        for as_json in (False, True):
+            argv = [sys.executable, "-X", "importtime", *door, "query", str(path), *coords]
+            proc = subprocess.run(
+                argv + extra + (["--json"] if as_json else []),
+                capture_output=True, text=True, env=env, timeout=120, check=False,
+            )  # fmt: skip
+            assert proc.returncode == 0, proc.stderr
+            rows = query_rows(whole, points, stamp)
+            if as_json:
+                assert json.loads(proc.stdout) == jsonable(rows)
+            else:
+                assert proc.stdout.splitlines()[1:] == query_lines(rows)
+            imported = {
+                line.split("|")[-1].strip().split(".")[0]
+                for line in proc.stderr.splitlines()
+                if line.startswith("import time:")
+            }
+            assert "numpy" in imported and "mfp_mapper" in imported
+            assert bool(imported & {"numba", "llvmlite", "scipy"}) == histograms
 
 
 def test_evaluate(run: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

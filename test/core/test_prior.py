@@ -12,7 +12,7 @@ from scipy import integrate, stats
 
 from mfp_mapper.config.replay_options import add_replay_flags, options_from_args
 from mfp_mapper.core import model
-from mfp_mapper.core.gridmap import unobserved_hit_probability
+from mfp_mapper.core.gridmap import hit_probability_one, unobserved_hit_probability
 from mfp_mapper.core.likelihood import scan_log_likelihood
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.mapio.loading import load_map, save_map
@@ -41,7 +41,7 @@ def test_moments_are_those_of_the_gamma_posterior(s: float, n: float) -> None:
     assert model.hit_probability(s, n, 0.1, PRIOR) == pytest.approx(
         1 - model.moment_m(s, n, 0.1, PRIOR), rel=1e-12
     )
-    assert model.hit_probability_one(s, n, 0.1, PRIOR.shape, PRIOR.rate) == pytest.approx(
+    assert hit_probability_one(s, n, 0.1, PRIOR.shape, PRIOR.rate) == pytest.approx(
         float(model.hit_probability(s, n, 0.1, PRIOR)), rel=1e-12
     )
 

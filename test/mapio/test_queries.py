@@ -10,7 +10,10 @@ import pytest
 from box_world import anchors_scene
 
 from mfp_mapper import MapFileError, Mapper
+from mfp_mapper.core.layout import FLUSH_EDGES, N_LIMIT
+from mfp_mapper.core.voxel_stats import VoxelStats
 from mfp_mapper.mapio.loading import load_map, save_map
+from mfp_mapper.mapio.mapfile import map_arrays, write_map_arrays
 from mfp_mapper.mapio.queries import MapFileQueries, segment_block_keys
 
 LEGACY = Path(__file__).parent / "data"
@@ -42,13 +45,82 @@ def test_answers_equal_the_whole_map(mapper: Mapper, tiled: bool, tmp_path: Path
 
     q = load_map_arg(str(path), lazy_tiles=True, queries=True)
     for stamp in (None, 130.0):
-        a, b = mapper.query(points, stamp), q.query(points, stamp)
-        for key in ("ijk", "s", "n", "t_last", "observed"):
-            assert np.array_equal(getattr(a, key), getattr(b, key)), key
+        _assert_same_stats(mapper.query(points, stamp), q.query(points, stamp))
     if not tiled:
         a, b = mapper.query_segments(starts, ends), q.query_segments(starts, ends)
         assert np.array_equal(a.clear_probability, b.clear_probability)
         assert np.array_equal(a.unknown_length, b.unknown_length)
+
+
+ESTIMATES = ("most_likely_doo", "mean_doo", "std", "hit_probability", "mean_free_path")
+
+
+def _assert_same_stats(a: VoxelStats, b: VoxelStats) -> None:
+    """Every field and estimate equal, bit for bit (-0 and +0 apart)."""
+    for key in ("ijk", "centers", "s", "n", "t_last", "observed", *ESTIMATES):
+        x, y = getattr(a, key), getattr(b, key)
+        assert x.dtype == y.dtype, key
+        np.testing.assert_array_equal(x, y, err_msg=key, strict=True)
+        assert np.array_equal(np.signbit(x), np.signbit(y)), key
+    for x, y in zip(a.doo_interval(0.9), b.doo_interval(0.9), strict=True):
+        np.testing.assert_array_equal(x, y, strict=True)
+    assert (a.resolution, a.prior) == (b.resolution, b.prior)
+
+
+def _hard_points(m: Mapper, rng: np.random.Generator) -> np.ndarray:
+    """Observed voxels, their neighbours (unobserved voxels of stored blocks, block edges),
+    random points in and around the map, far and non-finite ones, points beyond the index
+    range."""
+    centres = m.voxels().centers
+    picks = centres[rng.choice(len(centres), 400)]
+    edge = m.resolution * 8
+    lo, hi = centres.min(axis=0) - edge, centres.max(axis=0) + edge
+    origin = np.asarray(m.origin or (0.0, 0.0, 0.0))
+    odd = [[np.nan, 0, 0], [np.inf, 1, 1], [0, -np.inf, 0], [1e30, 0, 0], [-1e12, 5, 5]]
+    return np.concatenate([
+        picks, picks + rng.integers(-2, 3, picks.shape) * m.resolution,
+        rng.uniform(lo, hi, (600, 3)), rng.normal(0, 1e3, (50, 3)),
+        origin + (np.floor(rng.uniform(lo, hi, (100, 3)) / edge) * edge - origin),
+        np.asarray(odd) + origin,
+    ])  # fmt: skip
+
+
+@pytest.mark.parametrize("kind", ["decaying", "merged_float64", "prior_and_origin"])
+def test_the_numpy_point_path_equals_the_compiled_one(
+    mapper: Mapper, kind: str, tmp_path: Path
+) -> None:
+    """``MapFileQueries.query`` (numpy, the blocks read) against ``Mapper.query`` of the
+    whole map (the compiled store), on random points: every statistic and estimate equal.
+    Maps: a decaying one of real integrations (float32 sums), one of float64 sums (merged
+    files keep them) and one with a prior and an origin of its own."""
+    rng = np.random.default_rng(7)
+    path = tmp_path / "map.npz"
+    if kind == "merged_float64":  # sums no float32 holds, as a merge of files writes them
+        arrays = map_arrays(mapper)
+        s, n = arrays["s"], arrays["n"]
+        s *= 1.0 + rng.uniform(1e-9, 2e-9, s.shape)
+        far = rng.random(s.shape) < 0.02  # at and beyond the store's float32 limits
+        s[far] = FLUSH_EDGES * 0.1 * rng.choice([0.999, 1.0, 1.5], int(far.sum()))
+        n[rng.random(n.shape) < 0.01] = N_LIMIT * rng.choice([0.5, 1.0, 1.25])
+        write_map_arrays(path, arrays)
+        with np.load(path) as f:
+            assert f["s"].dtype == np.float64
+    else:
+        m = mapper
+        if kind == "prior_and_origin":
+            v = mapper.stored_voxels()
+            m = Mapper.from_arrays(
+                v, resolution=0.1, decay_time=30.0, prior_shape=0.3, prior_rate=0.15,
+                origin=(0.37, -12.5, 1.0e4),
+            )  # fmt: skip
+        save_map(m, path)
+    whole = load_map(path)
+    q = MapFileQueries(path)
+    points = _hard_points(whole, rng)
+    for stamp in (None, 99.0, 101.5, 400.0):
+        _assert_same_stats(whole.query(points, stamp), q.query(points, stamp))
+    _assert_same_stats(whole.query(points[:0]), q.query(points[:0]))
+    assert q._whole is None  # answered by block, in numpy
 
 
 def test_a_query_reads_only_its_blocks(mapper: Mapper, tmp_path: Path) -> None:
