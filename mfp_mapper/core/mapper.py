@@ -23,7 +23,7 @@ from mfp_mapper.core.memory_bound import (
     scan_block_budget,
     scan_new_blocks,
 )
-from mfp_mapper.core.packed import PackedBlocks, packed_problem
+from mfp_mapper.core.packed import PackedBlocks, as_parts, packed_problem
 from mfp_mapper.core.reflectivity import (
     ReflectivityArrays,
     ReflectivityBins,
@@ -861,7 +861,7 @@ class Mapper:
         if problem:
             raise ValueError(problem)
         mapper = cls(resolution, origin=origin, **settings)  # type: ignore[arg-type]
-        mapper._store.assign_blocks(packed)
+        mapper._store.assign_blocks(as_parts(packed))  # values kept exactly (float64 too)
         if reflectivity is not None:
             mapper._reflectivity = ReflectivityTable(reflectivity.bins, max(len(reflectivity), 16))
             mapper._reflectivity.assign(reflectivity)

@@ -43,6 +43,7 @@ from mfp_mapper.core.blocks import (
     CHUNK_VOXELS,
     MAX_VOXEL_INDEX,
     N_BLOCK_CHUNKS,
+    N_CHUNK_VOXELS,
     SHARD_TILE_BITS,
     IndexBox,
     block_key,
@@ -59,6 +60,8 @@ from mfp_mapper.core.packed import (
     MASK_WORDS,
     BlockChunk,
     PackedBlocks,
+    hi_starts,
+    hit_row_of,
     pack_chunks,
     voxel_starts,
 )
@@ -332,6 +335,142 @@ def _set_blocks(
 
 
 @nb.njit(cache=True, nogil=True)
+def _set_parts(
+    packed_ijk: NDArray[np.int32],
+    packed_t: NDArray[np.float64],
+    observed: NDArray[np.uint64],
+    s: NDArray[np.float32],
+    s_start: NDArray[np.int64],
+    hit_row: NDArray[np.int64],
+    hit: NDArray[np.uint64],
+    n: NDArray[np.float32],
+    n_start: NDArray[np.int64],
+    hi_row: NDArray[np.int64],
+    hi_s: NDArray[np.float64],
+    hi_n: NDArray[np.float64],
+    hi_s_start: NDArray[np.int64],
+    hi_n_start: NDArray[np.int64],
+    start: int,
+    shard: int,
+    shard_mask: int,
+    sa: ShardArrays,
+    counts: NDArray[np.int64],
+) -> int:
+    """Set packed blocks held as parts (``packed.PackedBlocks.parts``) of ``shard`` from
+    block ``start`` on: the float32 parts into the chunks (-0 for an observed voxel whose
+    part is 0, shard's notes), the float64 parts of the blocks with ``hi_row[b] >= 0``
+    into float64 blocks, as the store held them; one table probe a block, no check per
+    voxel (the parts are placed as they are, whatever the limits). ``counts[0]`` receives
+    the observed voxels set. Returns the number of blocks when done, else the block where
+    the shard ran out of room (make room, call again from there)."""
+    observed_count = 0
+    block_chunks, chunk_owner, pools = sa.block_chunks, sa.chunk_owner, sa.pools
+    block_nrec, n_recs = sa.block_nrec, sa.n_recs
+    flat_n = sa.n_pool.reshape(-1)
+    marks = sa.s_pool.reshape(-1).view(np.uint32)
+    s_bits = s.view(np.uint32)
+    sign = np.uint32(0x80000000)
+    for b in range(start, packed_ijk.shape[0]):
+        bx, by, bz = packed_ijk[b, 0], packed_ijk[b, 1], packed_ijk[b, 2]
+        if shard_of(bx, by, bz, shard_mask) != shard:
+            continue
+        used = sa.counters[0]
+        if (
+            used >= sa.block_t.shape[0]
+            or 2 * used >= sa.table_keys.shape[0]
+            or pools[S_USED] + BLOCK_CHUNKS > chunk_owner.shape[0]
+            or pools[NREC_USED] + 1 > n_recs.shape[0]
+            or pools[NCHUNK_USED] + N_BLOCK_CHUNKS > sa.n_pool.shape[0]
+            or pools[HI_USED] + 1 > sa.hi_pool.shape[0]
+        ):
+            counts[0] += observed_count
+            return b
+        block = open_block(bx, by, bz, sa, -1, packed_t[b], math.inf)
+        sa.block_t[block] = max(sa.block_t[block], packed_t[b])
+        js = s_start[b]
+        row = hit_row[b]
+        jn = n_start[row] if row >= 0 else 0
+        f = hi_row[b]
+        href = -1
+        ks = 0
+        kn = 0
+        if f >= 0:
+            href = sa.block_href[block]
+            if href < 0:
+                href = pools[HI_USED]
+                pools[HI_USED] = href + 1
+                sa.block_href[block] = href
+                sa.hi_pool[href] = 0.0
+            ks = hi_s_start[f]
+            kn = hi_n_start[f]
+        for w in range(BLOCK_VOXELS // 64):  # a mask word is an s chunk (64 voxels)
+            mo = observed[b, w]
+            if mo == 0:
+                continue
+            slot = chunk_slot(block, w)
+            chunk = block_chunks[slot]
+            if chunk < 0:
+                chunk = pools[S_USED]
+                pools[S_USED] = chunk + 1
+                block_chunks[slot] = chunk
+                chunk_owner[chunk] = slot
+            base = chunk * CHUNK_VOXELS
+            m = mo
+            while m:  # the set bits, lowest first
+                bit = m & (np.uint64(0) - m)
+                m ^= bit
+                i = _LOW_BIT[(bit * _DE_BRUIJN) >> np.uint64(58)]
+                v = s_bits[js]
+                js += 1
+                marks[base + i] = v if v & ~sign else sign  # observed: -0 for a 0 part
+                observed_count += 1
+                if f >= 0:
+                    sa.hi_pool[href, w * 64 + i, 0] = hi_s[ks]
+                    ks += 1
+            mh = hit[row, w] if row >= 0 else np.uint64(0)
+            if mh:
+                sa.block_hit[block] = True
+            while mh:
+                bit = mh & (np.uint64(0) - mh)
+                mh ^= bit
+                i = w * 64 + _LOW_BIT[(bit * _DE_BRUIJN) >> np.uint64(58)]
+                flat_n[n_index(block_nrec, n_recs, pools, block, i, True)] = n[jn]
+                jn += 1
+                if f >= 0:
+                    sa.hi_pool[href, i, 1] = hi_n[kn]
+                    kn += 1
+    counts[0] += observed_count
+    return packed_ijk.shape[0]
+
+
+@nb.njit(cache=True, nogil=True)
+def _block_parts(
+    sa: ShardArrays, start: int, s: NDArray[np.float32], n: NDArray[np.float32]
+) -> None:
+    """The float32 parts of ``s`` and ``n`` (blocks x 512, as stored: -0 marks kept) of
+    blocks ``start..start + len(s)``."""
+    for k in range(s.shape[0]):
+        b = start + k
+        for c in range(BLOCK_CHUNKS):
+            chunk = sa.block_chunks[chunk_slot(b, c)]
+            if chunk >= 0:
+                for i in range(CHUNK_VOXELS):
+                    s[k, c * CHUNK_VOXELS + i] = sa.s_pool[chunk, i]
+            else:
+                for i in range(CHUNK_VOXELS):
+                    s[k, c * CHUNK_VOXELS + i] = 0.0
+        row = sa.block_nrec[b]
+        for c in range(N_BLOCK_CHUNKS):
+            chunk = sa.n_recs[row, c] if row >= 0 else -1
+            if chunk >= 0:
+                for i in range(N_CHUNK_VOXELS):
+                    n[k, c * N_CHUNK_VOXELS + i] = sa.n_pool[chunk, i]
+            else:
+                for i in range(N_CHUNK_VOXELS):
+                    n[k, c * N_CHUNK_VOXELS + i] = 0.0
+
+
+@nb.njit(cache=True, nogil=True)
 def _lookup(
     ijk: NDArray[np.int64],
     shard_mask: int,
@@ -560,13 +699,30 @@ class BlockStore:
                 raise ValueError(f"ijk lists voxel {ijk[done].tolist()} more than once")
         self.num_voxels = int(counts[0])
 
-    def block_chunks(self) -> Iterator[BlockChunk]:
-        """Every block's index, time and the ``s``, ``n`` of its 512 voxels ((k, 512, 2),
-        Morton order, float64: the float32 parts plus the float64 ones), runs of blocks shard
-        by shard (copies, ``blocks``): a block-level export without per-voxel index arrays
-        (``packed.BlockChunk``)."""
-        for run in self.blocks():
-            yield run.ijk, run.t, np.stack([run.s, run.n], axis=-1)
+    def block_chunks(self, max_blocks: int = 4096) -> Iterator[BlockChunk]:
+        """Every block's index, time, the float32 parts of ``s`` and ``n`` of its 512 voxels
+        ((k, 512) each, Morton order) and its float64 part where it was flushed, runs of
+        at most ``max_blocks`` blocks shard by shard (copies): a block-level export without
+        per-voxel index arrays (``packed.BlockChunk``)."""
+        for sh in self.shards:
+            for start in range(0, sh.used, max_blocks):
+                stop = min(start + max_blocks, sh.used)
+                s = np.empty((stop - start, BLOCK_VOXELS), dtype=np.float32)
+                n = np.empty((stop - start, BLOCK_VOXELS), dtype=np.float32)
+                _block_parts(sh.arrays(), start, s, n)
+                href = sh.block_href[start:stop]
+                flushed = href >= 0
+                hi_row = np.full(stop - start, -1, dtype=np.int64)
+                hi_row[flushed] = np.arange(np.count_nonzero(flushed))
+                hi = sh.hi_pool[href[flushed]]
+                yield (
+                    sh.block_ijk[start:stop].copy(),
+                    sh.block_t[start:stop].copy(),
+                    s,
+                    n,
+                    hi_row,
+                    hi,
+                )
 
     def export_blocks(self) -> PackedBlocks:
         """Every observed voxel, packed block by block (``packed``; a copy)."""
@@ -574,10 +730,12 @@ class BlockStore:
 
     def assign_blocks(self, packed: PackedBlocks) -> None:
         """Set the voxels of packed blocks (checked by ``packed_problem``) in an empty
-        store; the inverse of ``export_blocks``. Compiled, block by block
-        (``_set_blocks``): the same store as ``assign`` of the voxel lists
-        (``packed.voxel_arrays_of``), bit for bit, which it replaces because building and
-        probing per-voxel index arrays cost 5-10 times as long (docs/performance.md)."""
+        store; the inverse of ``export_blocks``. Compiled, block by block: blocks held as
+        parts (``PackedBlocks.parts``, what ``export_blocks`` gives) get their float32 and
+        float64 parts back as they were (``_set_parts``); blocks holding values are set as
+        ``assign`` sets their voxel lists (``packed.voxel_arrays_of``), bit for bit
+        (``_set_blocks``), which it replaces because building and probing per-voxel index
+        arrays cost 5-10 times as long (docs/performance.md)."""
         if self.num_blocks:
             raise ValueError("assign_blocks needs an empty store")
         rows = packed.block_ijk.shape[0]
@@ -586,41 +744,52 @@ class BlockStore:
         observed = np.ascontiguousarray(packed.observed, dtype=np.uint64)
         hit = np.ascontiguousarray(packed.hit, dtype=np.uint64).reshape(-1, MASK_WORDS)
         s, n = np.ascontiguousarray(packed.s), np.ascontiguousarray(packed.n)
-        hit_row = np.full(rows, -1, dtype=np.int64)
-        hit_row[packed.hit_block] = np.arange(packed.hit_block.shape[0])
+        hit_row = hit_row_of(packed)
         s_start, n_start = voxel_starts(observed), voxel_starts(hit)
-        tiles = (block_ijk.astype(np.int64) >> SHARD_TILE_BITS).sum(axis=1) & self.shard_mask
+        if packed.parts:
+            hi_row = np.full(rows, -1, dtype=np.int64)
+            hi_row[packed.hi_block] = np.arange(packed.hi_block.shape[0])
+            hi_s_start, hi_n_start = hi_starts(packed)
+            hi_s = np.ascontiguousarray(packed.hi_s, dtype=np.float64)
+            hi_n = np.ascontiguousarray(packed.hi_n, dtype=np.float64)
+            s, n = s.astype(np.float32, copy=False), n.astype(np.float32, copy=False)
+        if self.shard_mask:
+            tiles = (block_ijk.astype(np.int64) >> SHARD_TILE_BITS).sum(axis=1) & self.shard_mask
         counts = np.zeros(1, dtype=np.int64)
         for sid, sh in enumerate(self.shards):
-            mine = tiles == sid
-            hits_mine = mine[packed.hit_block]
-            sh.grow(min_free=int(np.count_nonzero(mine)))
+            if self.shard_mask:
+                mine = tiles == sid
+                hits_mine = mine[packed.hit_block]
+                blocks, hit_blocks = int(np.count_nonzero(mine)), int(np.count_nonzero(hits_mine))
+                chunks = int(np.count_nonzero(observed[mine]))
+                n_chunks = int(np.count_nonzero(hit[hits_mine].view(np.uint16)))
+                hi_blocks = int(np.count_nonzero(mine[packed.hi_block])) if packed.parts else 0
+            else:
+                blocks, hit_blocks = rows, packed.hit_block.shape[0]
+                chunks = int(np.count_nonzero(observed))
+                n_chunks = int(np.count_nonzero(hit.view(np.uint16)))
+                hi_blocks = packed.hi_block.shape[0] if packed.parts else 0
+            sh.grow(min_free=blocks)
             sh.ensure_room(  # what the blocks need (and a block's worth: the kernel's check)
-                int(np.count_nonzero(observed[mine])) + BLOCK_CHUNKS,
-                int(np.count_nonzero(hit[hits_mine].view(np.uint16))) + N_BLOCK_CHUNKS,
-                1,
-                int(np.count_nonzero(hits_mine)) + 1,
+                chunks + BLOCK_CHUNKS, n_chunks + N_BLOCK_CHUNKS, hi_blocks + 1, hit_blocks + 1
             )
             hi_room = 1
             start = 0
-            while (
-                start := _set_blocks(
-                    block_ijk,
-                    block_t,
-                    observed,
-                    s,
-                    s_start,
-                    hit_row,
-                    hit,
-                    n,
-                    n_start,
-                    start,
-                    sid,
-                    self.shard_mask,
-                    sh.arrays(),
-                    counts,
-                )  # fmt: skip
-            ) < rows:  # out of float64 blocks (values at the float32 limit): more, go on
+            while True:
+                if packed.parts:
+                    start = _set_parts(
+                        block_ijk, block_t, observed, s, s_start, hit_row, hit, n, n_start,
+                        hi_row, hi_s, hi_n, hi_s_start, hi_n_start, start, sid,
+                        self.shard_mask, sh.arrays(), counts,
+                    )  # fmt: skip
+                else:
+                    start = _set_blocks(
+                        block_ijk, block_t, observed, s, s_start, hit_row, hit, n, n_start,
+                        start, sid, self.shard_mask, sh.arrays(), counts,
+                    )  # fmt: skip
+                if start >= rows:
+                    break
+                # out of float64 blocks (values at the float32 limit): more, go on
                 hi_room *= 2
                 sh.ensure_room(BLOCK_CHUNKS, N_BLOCK_CHUNKS, hi_room, 1)
         self.num_voxels = int(counts[0])

@@ -63,6 +63,7 @@ from mfp_mapper.core.store import MAX_VOXEL_INDEX, VoxelArrays, voxel_problem
 from mfp_mapper.mapio.atomic import atomic_output
 from mfp_mapper.mapio.blockfile import (
     BLOCK_MEMBERS,
+    HI_MEMBERS,
     BlockFileError,
     BlockReader,
     Member,
@@ -88,7 +89,7 @@ from mfp_mapper.mapio.checks import (
 )
 
 FORMAT_NAME = "mfp_mapper.map"
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 REQUIRED_KEYS = ("ijk", "s", "n", "t_last", "resolution", "decay_time", "frame_id")
 """Members of a version 1 or 2 file."""
 SETTING_KEYS = ("resolution", "decay_time", "frame_id")
@@ -359,7 +360,8 @@ def _open_blocks(
     small = {k: _read(archive, k) for k in headers}
     settings = check_settings(path, small, blocks=True)
     settings.reflectivity = _reflectivity(path, small)
-    return settings, locate_members(f, archive, BLOCK_MEMBERS, file_size)
+    names = BLOCK_MEMBERS if int(small["version"]) >= 4 else V3_MEMBERS
+    return settings, locate_members(f, archive, names, file_size)
 
 
 def _reflectivity(path: Path, small: dict[str, np.ndarray]) -> ReflectivityArrays | None:
@@ -382,6 +384,8 @@ def reflectivity_problem(
 
 
 VOXEL_MEMBERS = ("ijk", "s", "n", "t_last")
+V3_MEMBERS = tuple(k for k in BLOCK_MEMBERS if k not in HI_MEMBERS)
+"""The block members of a version 3 file (values in ``s`` and ``n``, no float64 parts)."""
 SETTINGS_MEMBERS = tuple(k for k in MEMBER_KINDS if k not in VOXEL_MEMBERS)
 _READ_ERRORS = (
     zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, OSError, ValueError, KeyError,
