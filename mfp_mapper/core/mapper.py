@@ -851,13 +851,15 @@ class Mapper:
         resolution: float,
         origin: ArrayLike = (0.0, 0.0, 0.0),
         reflectivity: ReflectivityArrays | None = None,
+        checked: bool = False,
         **settings: object,
     ) -> Mapper:
         """A Mapper holding packed blocks (``stored_blocks``; indices relative to
         ``origin``), and the reflectivity histograms when given (as ``from_arrays``);
-        ``settings`` are the constructor's keyword arguments. Raises ``ValueError`` on bad
-        settings, blocks or histograms."""
-        problem = packed_problem(packed)
+        ``settings`` are the constructor's keyword arguments; ``checked``: the caller found
+        no ``packed_problem`` (a map file's reader: not checked twice). Raises
+        ``ValueError`` on bad settings, blocks or histograms."""
+        problem = None if checked else packed_problem(packed)
         if problem:
             raise ValueError(problem)
         mapper = cls(resolution, origin=origin, **settings)  # type: ignore[arg-type]

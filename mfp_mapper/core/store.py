@@ -27,7 +27,9 @@ Every ray's contribution is summed into the store: sums, never deduplication.
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numba as nb
@@ -80,6 +82,8 @@ from mfp_mapper.core.shard import (
     voxel_stats,
 )
 
+_THREADED_WRITE_VOXELS = 1_000_000
+"""Voxels from which ``BlockStore.assign_blocks`` writes the ``s`` parts in two threads."""
 MIN_RESOLUTION = 1e-3
 """Smallest voxel edge (metres) a map may have."""
 MAX_RESOLUTION = 1e3
@@ -335,12 +339,10 @@ def _set_blocks(
 
 
 @nb.njit(cache=True, nogil=True)
-def _set_parts(
+def _open_parts(
     packed_ijk: NDArray[np.int32],
     packed_t: NDArray[np.float64],
     observed: NDArray[np.uint64],
-    s: NDArray[np.float32],
-    s_start: NDArray[np.int64],
     hit_row: NDArray[np.int64],
     hit: NDArray[np.uint64],
     n: NDArray[np.float32],
@@ -354,22 +356,18 @@ def _set_parts(
     shard: int,
     shard_mask: int,
     sa: ShardArrays,
-    counts: NDArray[np.int64],
+    block_of: NDArray[np.int64],
 ) -> int:
-    """Set packed blocks held as parts (``packed.PackedBlocks.parts``) of ``shard`` from
-    block ``start`` on: the float32 parts into the chunks (-0 for an observed voxel whose
-    part is 0, shard's notes), the float64 parts of the blocks with ``hi_row[b] >= 0``
-    into float64 blocks, as the store held them; one table probe a block, no check per
-    voxel (the parts are placed as they are, whatever the limits). ``counts[0]`` receives
-    the observed voxels set. Returns the number of blocks when done, else the block where
-    the shard ran out of room (make room, call again from there)."""
-    observed_count = 0
+    """Open the packed blocks (held as parts, ``packed.PackedBlocks.parts``) of ``shard``
+    from block ``start`` on, in order: each block (``block_of[b]`` receives its number),
+    the ``s`` chunks of its observed voxels (numbered in block order), its ``n`` (float32
+    parts, voxels with a return) and its float64 part where it has one, as the store held
+    them; the ``s`` values are left to ``_write_parts`` (the bulk: it can run in threads,
+    every chunk being known). Returns the number of blocks when done, else the block
+    where the shard ran out of room (make room, call again from there)."""
     block_chunks, chunk_owner, pools = sa.block_chunks, sa.chunk_owner, sa.pools
     block_nrec, n_recs = sa.block_nrec, sa.n_recs
     flat_n = sa.n_pool.reshape(-1)
-    marks = sa.s_pool.reshape(-1).view(np.uint32)
-    s_bits = s.view(np.uint32)
-    sign = np.uint32(0x80000000)
     for b in range(start, packed_ijk.shape[0]):
         bx, by, bz = packed_ijk[b, 0], packed_ijk[b, 1], packed_ijk[b, 2]
         if shard_of(bx, by, bz, shard_mask) != shard:
@@ -383,17 +381,21 @@ def _set_parts(
             or pools[NCHUNK_USED] + N_BLOCK_CHUNKS > sa.n_pool.shape[0]
             or pools[HI_USED] + 1 > sa.hi_pool.shape[0]
         ):
-            counts[0] += observed_count
             return b
         block = open_block(bx, by, bz, sa, -1, packed_t[b], math.inf)
+        block_of[b] = block
         sa.block_t[block] = max(sa.block_t[block], packed_t[b])
-        js = s_start[b]
+        for w in range(BLOCK_VOXELS // 64):  # a mask word is an s chunk (64 voxels)
+            if observed[b, w] != 0:
+                slot = chunk_slot(block, w)
+                if block_chunks[slot] < 0:
+                    chunk = pools[S_USED]
+                    pools[S_USED] = chunk + 1
+                    block_chunks[slot] = chunk
+                    chunk_owner[chunk] = slot
         row = hit_row[b]
-        jn = n_start[row] if row >= 0 else 0
         f = hi_row[b]
         href = -1
-        ks = 0
-        kn = 0
         if f >= 0:
             href = sa.block_href[block]
             if href < 0:
@@ -402,32 +404,20 @@ def _set_parts(
                 sa.block_href[block] = href
                 sa.hi_pool[href] = 0.0
             ks = hi_s_start[f]
-            kn = hi_n_start[f]
-        for w in range(BLOCK_VOXELS // 64):  # a mask word is an s chunk (64 voxels)
-            mo = observed[b, w]
-            if mo == 0:
-                continue
-            slot = chunk_slot(block, w)
-            chunk = block_chunks[slot]
-            if chunk < 0:
-                chunk = pools[S_USED]
-                pools[S_USED] = chunk + 1
-                block_chunks[slot] = chunk
-                chunk_owner[chunk] = slot
-            base = chunk * CHUNK_VOXELS
-            m = mo
-            while m:  # the set bits, lowest first
-                bit = m & (np.uint64(0) - m)
-                m ^= bit
-                i = _LOW_BIT[(bit * _DE_BRUIJN) >> np.uint64(58)]
-                v = s_bits[js]
-                js += 1
-                marks[base + i] = v if v & ~sign else sign  # observed: -0 for a 0 part
-                observed_count += 1
-                if f >= 0:
-                    sa.hi_pool[href, w * 64 + i, 0] = hi_s[ks]
+            for w in range(BLOCK_VOXELS // 64):
+                m = observed[b, w]
+                while m:  # the set bits, lowest first
+                    bit = m & (np.uint64(0) - m)
+                    m ^= bit
+                    i = w * 64 + _LOW_BIT[(bit * _DE_BRUIJN) >> np.uint64(58)]
+                    sa.hi_pool[href, i, 0] = hi_s[ks]
                     ks += 1
-            mh = hit[row, w] if row >= 0 else np.uint64(0)
+        if row < 0:
+            continue
+        jn = n_start[row]
+        kn = hi_n_start[f] if f >= 0 else 0
+        for w in range(BLOCK_VOXELS // 64):
+            mh = hit[row, w]
             if mh:
                 sa.block_hit[block] = True
             while mh:
@@ -439,8 +429,44 @@ def _set_parts(
                 if f >= 0:
                     sa.hi_pool[href, i, 1] = hi_n[kn]
                     kn += 1
-    counts[0] += observed_count
     return packed_ijk.shape[0]
+
+
+@nb.njit(cache=True, nogil=True)
+def _write_parts(
+    observed: NDArray[np.uint64],
+    s: NDArray[np.float32],
+    s_start: NDArray[np.int64],
+    block_of: NDArray[np.int64],
+    lo: int,
+    hi: int,
+    block_chunks: NDArray[np.int32],
+    s_pool: NDArray[np.float32],
+) -> None:
+    """The float32 parts of ``s`` of the packed blocks ``lo..hi`` opened by ``_open_parts``
+    (``block_of[b] < 0``: another shard's) into their chunks: -0 for an observed voxel
+    whose part is 0 (shard's notes). Blocks apart touch no common memory: ranges of them
+    run in threads."""
+    marks = s_pool.reshape(-1).view(np.uint32)
+    s_bits = s.view(np.uint32)
+    sign = np.uint32(0x80000000)
+    for b in range(lo, hi):
+        block = block_of[b]
+        if block < 0:
+            continue
+        js = s_start[b]
+        for w in range(BLOCK_VOXELS // 64):
+            m = observed[b, w]
+            if m == 0:
+                continue
+            base = block_chunks[chunk_slot(block, w)] * CHUNK_VOXELS
+            while m:  # the set bits, lowest first
+                bit = m & (np.uint64(0) - m)
+                m ^= bit
+                i = _LOW_BIT[(bit * _DE_BRUIJN) >> np.uint64(58)]
+                v = s_bits[js]
+                js += 1
+                marks[base + i] = v if v & ~sign else sign
 
 
 @nb.njit(cache=True, nogil=True)
@@ -753,6 +779,7 @@ class BlockStore:
             hi_s = np.ascontiguousarray(packed.hi_s, dtype=np.float64)
             hi_n = np.ascontiguousarray(packed.hi_n, dtype=np.float64)
             s, n = s.astype(np.float32, copy=False), n.astype(np.float32, copy=False)
+            block_of = np.full(rows, -1, dtype=np.int64)
         if self.shard_mask:
             tiles = (block_ijk.astype(np.int64) >> SHARD_TILE_BITS).sum(axis=1) & self.shard_mask
         counts = np.zeros(1, dtype=np.int64)
@@ -777,10 +804,10 @@ class BlockStore:
             start = 0
             while True:
                 if packed.parts:
-                    start = _set_parts(
-                        block_ijk, block_t, observed, s, s_start, hit_row, hit, n, n_start,
-                        hi_row, hi_s, hi_n, hi_s_start, hi_n_start, start, sid,
-                        self.shard_mask, sh.arrays(), counts,
+                    start = _open_parts(
+                        block_ijk, block_t, observed, hit_row, hit, n, n_start, hi_row, hi_s,
+                        hi_n, hi_s_start, hi_n_start, start, sid, self.shard_mask, sh.arrays(),
+                        block_of,
                     )  # fmt: skip
                 else:
                     start = _set_blocks(
@@ -792,7 +819,41 @@ class BlockStore:
                 # out of float64 blocks (values at the float32 limit): more, go on
                 hi_room *= 2
                 sh.ensure_room(BLOCK_CHUNKS, N_BLOCK_CHUNKS, hi_room, 1)
+        if packed.parts:
+            self._write_parts(observed, s, s_start, block_of, tiles if self.shard_mask else None)
+            counts[0] = s.shape[0]
         self.num_voxels = int(counts[0])
+
+    def _write_parts(
+        self,
+        observed: NDArray[np.uint64],
+        s: NDArray[np.float32],
+        s_start: NDArray[np.int64],
+        block_of: NDArray[np.int64],
+        tiles: NDArray[np.int64] | None,
+    ) -> None:
+        """``_write_parts`` of every shard's blocks (opened by ``_open_parts``): in two
+        threads on a map of a million voxels or more where two cores are there (the blocks
+        split at half the voxels; chunks apart, so the store is the same), else in one."""
+        rows = observed.shape[0]
+        for sid, sh in enumerate(self.shards):
+            mine = block_of.copy()
+            if tiles is not None:
+                mine[tiles != sid] = -1
+            cut = int(np.searchsorted(s_start, s_start[-1] // 2)) if rows else 0
+            ranges = [(0, cut), (cut, rows)]
+            if s.shape[0] < _THREADED_WRITE_VOXELS or (os.cpu_count() or 1) < 2:
+                ranges = [(0, rows)]
+            args = (observed, s, s_start, mine)
+            arrays = (sh.block_chunks, sh.s_pool)
+            if len(ranges) == 1:
+                _write_parts(*args, 0, rows, *arrays)
+                continue
+            with ThreadPoolExecutor(len(ranges)) as pool:
+                for done in [
+                    pool.submit(_write_parts, *args, lo, hi, *arrays) for lo, hi in ranges
+                ]:
+                    done.result()
 
     def lookup(self, ijk: NDArray[np.int64]) -> VoxelArrays:
         """Statistics of these voxels (zeros and t_last=-inf where never observed)."""

@@ -534,7 +534,7 @@ def mapper_from_contents(c: MapContents, path: str | Path, **overrides: object) 
     try:
         return Mapper.from_blocks(
             c.packed, resolution=c.resolution, origin=np.array(c.origin),
-            reflectivity=c.reflectivity, **settings,
+            reflectivity=c.reflectivity, checked=True, **settings,
         )  # fmt: skip
     except ValueError as err:
         raise MapFileError(path, str(err)) from err
