@@ -286,11 +286,25 @@ them at memory speed), each block's row of the float64 parts or -1 (k,), and tho
 parts (h, 512, 2: ``s``, ``n``)."""
 
 
-def _pack_chunk(chunk: BlockChunk, size_hint: int) -> tuple[
-    NDArray[np.uint64], NDArray[np.uint64], NDArray[np.int64], NDArray[np.float32],
-    NDArray[np.float32],
-]:  # fmt: skip
-    """Masks, counts and float32 parts (chunk order) of one chunk of blocks
+class _Outputs:
+    """The packed values of all chunks, one after the other (grown when short)."""
+
+    def __init__(self, size_hint: int) -> None:
+        self.s = np.empty(max(size_hint, BLOCK_VOXELS) + BLOCK_VOXELS + 1, dtype=np.float32)
+        self.n = np.empty(max(size_hint // 16, BLOCK_VOXELS) + BLOCK_VOXELS + 1, np.float32)
+        self.places = np.zeros(2, dtype=np.int64)
+
+    def grow(self) -> None:
+        if self.places[0] + BLOCK_VOXELS >= self.s.shape[0]:
+            self.s = np.concatenate([self.s, np.empty_like(self.s)])
+        if self.places[1] + BLOCK_VOXELS >= self.n.shape[0]:
+            self.n = np.concatenate([self.n, np.empty_like(self.n)])
+
+
+def _pack_chunk(
+    chunk: BlockChunk, out: _Outputs
+) -> tuple[NDArray[np.uint64], NDArray[np.uint64], NDArray[np.int64]]:
+    """Masks and counts of one chunk of blocks, its float32 parts appended to ``out``
     (``_pack_blocks``)."""
     block_s = np.ascontiguousarray(chunk[2], dtype=np.float32)
     block_n = np.ascontiguousarray(chunk[3], dtype=np.float32)
@@ -300,10 +314,6 @@ def _pack_chunk(chunk: BlockChunk, size_hint: int) -> tuple[
     observed = np.empty((used, MASK_WORDS), dtype=np.uint64)
     hit = np.empty((used, MASK_WORDS), dtype=np.uint64)
     counts = np.empty((used, 2), dtype=np.int64)
-    size = max(min(size_hint, used * BLOCK_VOXELS), BLOCK_VOXELS) + BLOCK_VOXELS + 1
-    s_out = np.empty(size, dtype=np.float32)
-    n_out = np.empty(max(size // 16, BLOCK_VOXELS) + BLOCK_VOXELS + 1, dtype=np.float32)
-    places = np.zeros(2, dtype=np.int64)
     start = 0
     while (
         start := _pack_blocks(
@@ -316,16 +326,13 @@ def _pack_chunk(chunk: BlockChunk, size_hint: int) -> tuple[
             observed,
             hit,
             counts,
-            s_out,
-            n_out,
-            places,
+            out.s,
+            out.n,
+            out.places,
         )  # fmt: skip
     ) < used:
-        if places[0] + BLOCK_VOXELS >= s_out.shape[0]:
-            s_out = np.concatenate([s_out, np.empty_like(s_out)])
-        if places[1] + BLOCK_VOXELS >= n_out.shape[0]:
-            n_out = np.concatenate([n_out, np.empty_like(n_out)])
-    return observed, hit, counts, s_out, n_out
+        out.grow()
+    return observed, hit, counts
 
 
 def _mask_bits(masks: NDArray[np.uint64]) -> NDArray[np.bool_]:
@@ -335,53 +342,54 @@ def _mask_bits(masks: NDArray[np.uint64]) -> NDArray[np.bool_]:
 
 
 def pack_chunks(chunks: Iterable[BlockChunk], size_hint: int = 0) -> PackedBlocks:
-    """The observed voxels of runs of a store's blocks (``BlockChunk``), packed and sorted
-    (a copy: the store may change afterwards): one read of the blocks' float32 parts,
+    """The observed voxels of runs of a store's blocks (``BlockChunk``, taken one at a
+    time), packed and sorted (a copy: the store may change afterwards): one read of the
+    blocks' float32 parts,
     then the values copied in sorted block order; the float64 parts of the flushed blocks
     follow (``PackedBlocks.parts``). Blocks without an observed voxel are left out.
     ``size_hint``: about how many voxels the chunks hold (the outputs grow when it is
     short)."""
-    chunks = list(chunks)
-    parts = [_pack_chunk(c, size_hint + 1) for c in chunks]
+    out = _Outputs(size_hint + 1)
+    parts, runs = [], []
+    for c in chunks:  # one at a time: a chunk's statistics may be reused by the next
+        parts.append(_pack_chunk(c, out))
+        runs.append((c[0], c[1], c[4], c[5]))  # index, time, float64 rows and parts
     keep = [np.flatnonzero(p[2][:, 0] > 0) for p in parts]
     block_ijk = np.concatenate(
-        [np.zeros((0, 3), np.int32)] + [c[0][r] for c, r in zip(chunks, keep, strict=True)]
+        [np.zeros((0, 3), np.int32)] + [c[0][r] for c, r in zip(runs, keep, strict=True)]
     )
     order = np.argsort(sort_keys(block_ijk), kind="stable")
+    in_order = bool(np.all(order[1:] > order[:-1]))  # chunks already sorted: no copy
     pairs = list(zip(parts, keep, strict=True))
     no_mask = np.zeros((0, MASK_WORDS), np.uint64)
     observed = np.concatenate([no_mask] + [p[0][r] for p, r in pairs])[order]
     hit = np.concatenate([no_mask] + [p[1][r] for p, r in pairs])[order]
-    block_t = np.concatenate([np.zeros(0)] + [c[1][r] for c, r in zip(chunks, keep, strict=True)])
+    block_t = np.concatenate([np.zeros(0)] + [c[1][r] for c, r in zip(runs, keep, strict=True)])
     block_t = block_t[order]
     values = []
-    for col in (0, 1):  # s, then n: each block's run in its chunk's output, in sorted order
-        outputs = [p[3] if col == 0 else p[4] for p in parts]
-        starts, lengths, offset = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)], 0
-        for k, p in enumerate(parts):
-            count = p[2][:, col]
-            first = np.cumsum(count) - count
-            starts.append(first[keep[k]] + offset)
-            lengths.append(count[keep[k]])
-            offset += len(outputs[k])
-        src = (
-            np.concatenate([np.zeros(0, np.float32), *outputs]) if len(outputs) != 1 else outputs[0]
-        )
-        run_length = np.concatenate(lengths)[order]
-        out = np.empty(int(run_length.sum()), dtype=np.float32)
-        _copy_runs(src, np.concatenate(starts)[order], run_length, out)
-        values.append((out, run_length))
+    for col in (0, 1):  # s, then n: each block's run in the outputs, in sorted order
+        src = (out.s if col == 0 else out.n)[: out.places[col]]
+        count = np.concatenate([np.zeros(0, np.int64)] + [p[2][:, col] for p in parts])
+        first = np.cumsum(count) - count
+        kept = np.concatenate([np.zeros(0, np.int64)] + [p[2][:, 0] for p in parts]) > 0
+        run_length = count[kept][order]
+        if in_order:  # the outputs hold the kept blocks' runs one after the other
+            values.append((src, run_length))
+            continue
+        moved = np.empty(int(run_length.sum()), dtype=np.float32)
+        _copy_runs(src, first[kept][order], run_length, moved)
+        values.append((moved, run_length))
     (s, _), (n, hits) = values
     hit_block = np.flatnonzero(hits > 0).astype(np.int64)
     # the float64 parts: few blocks, gathered in sorted order
     hi_rows = np.concatenate(
-        [np.zeros(0, np.int64)] + [c[4][r] for c, r in zip(chunks, keep, strict=True)]
+        [np.zeros(0, np.int64)] + [c[2][r] for c, r in zip(runs, keep, strict=True)]
     )
     hi_all = np.concatenate(
         [np.zeros((0, BLOCK_VOXELS, 2))]
         + [
-            c[5].reshape(-1, BLOCK_VOXELS, 2)[c[4][r][c[4][r] >= 0]]
-            for c, r in zip(chunks, keep, strict=True)
+            c[3].reshape(-1, BLOCK_VOXELS, 2)[c[2][r][c[2][r] >= 0]]
+            for c, r in zip(runs, keep, strict=True)
         ]
     )
     has_hi = hi_rows[order] >= 0

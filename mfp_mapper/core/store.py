@@ -65,6 +65,7 @@ from mfp_mapper.core.packed import (
     hi_starts,
     hit_row_of,
     pack_chunks,
+    sort_keys,
     voxel_starts,
 )
 from mfp_mapper.core.shard import (
@@ -471,12 +472,12 @@ def _write_parts(
 
 @nb.njit(cache=True, nogil=True)
 def _block_parts(
-    sa: ShardArrays, start: int, s: NDArray[np.float32], n: NDArray[np.float32]
+    sa: ShardArrays, blocks: NDArray[np.int64], s: NDArray[np.float32], n: NDArray[np.float32]
 ) -> None:
-    """The float32 parts of ``s`` and ``n`` (blocks x 512, as stored: -0 marks kept) of
-    blocks ``start..start + len(s)``."""
-    for k in range(s.shape[0]):
-        b = start + k
+    """The float32 parts of ``s`` and ``n`` (len(blocks) x 512, as stored: -0 marks kept)
+    of ``blocks``."""
+    for k in range(blocks.shape[0]):
+        b = blocks[k]
         for c in range(BLOCK_CHUNKS):
             chunk = sa.block_chunks[chunk_slot(b, c)]
             if chunk >= 0:
@@ -728,27 +729,25 @@ class BlockStore:
     def block_chunks(self, max_blocks: int = 4096) -> Iterator[BlockChunk]:
         """Every block's index, time, the float32 parts of ``s`` and ``n`` of its 512 voxels
         ((k, 512) each, Morton order) and its float64 part where it was flushed, runs of
-        at most ``max_blocks`` blocks shard by shard (copies): a block-level export without
-        per-voxel index arrays (``packed.BlockChunk``)."""
+        at most ``max_blocks`` blocks shard by shard, each shard's in sorted order
+        (``packed.sort_keys``: a store of one shard packs without moving its values): a
+        block-level export without per-voxel index arrays (``packed.BlockChunk``). The
+        float32 parts of a run are overwritten by the next (one buffer, not a fresh one
+        the system must fault in each time): use each run before taking the next."""
+        s_buffer = np.empty((max_blocks, BLOCK_VOXELS), dtype=np.float32)
+        n_buffer = np.empty((max_blocks, BLOCK_VOXELS), dtype=np.float32)
         for sh in self.shards:
+            order = np.argsort(sort_keys(sh.block_ijk[: sh.used]), kind="stable")
             for start in range(0, sh.used, max_blocks):
-                stop = min(start + max_blocks, sh.used)
-                s = np.empty((stop - start, BLOCK_VOXELS), dtype=np.float32)
-                n = np.empty((stop - start, BLOCK_VOXELS), dtype=np.float32)
-                _block_parts(sh.arrays(), start, s, n)
-                href = sh.block_href[start:stop]
+                blocks = order[start : start + max_blocks]
+                s, n = s_buffer[: blocks.shape[0]], n_buffer[: blocks.shape[0]]
+                _block_parts(sh.arrays(), blocks, s, n)
+                href = sh.block_href[blocks]
                 flushed = href >= 0
-                hi_row = np.full(stop - start, -1, dtype=np.int64)
+                hi_row = np.full(blocks.shape[0], -1, dtype=np.int64)
                 hi_row[flushed] = np.arange(np.count_nonzero(flushed))
                 hi = sh.hi_pool[href[flushed]]
-                yield (
-                    sh.block_ijk[start:stop].copy(),
-                    sh.block_t[start:stop].copy(),
-                    s,
-                    n,
-                    hi_row,
-                    hi,
-                )
+                yield sh.block_ijk[blocks], sh.block_t[blocks], s, n, hi_row, hi
 
     def export_blocks(self) -> PackedBlocks:
         """Every observed voxel, packed block by block (``packed``; a copy)."""
