@@ -295,7 +295,11 @@ class PlacementSection(Section):
         "",
         "Topic of a second cloud holding the second returns of the clouds on cloud_in, in the "
         "same pixel layout and with the same stamps (ouster-ros 'points2'); each pair is "
-        "integrated as one cloud, the two returns of a pixel as one shot. Empty: off.",
+        "integrated as one cloud, the two returns of a pixel as one shot. Empty: off. Offline "
+        "(replay, score, localize, fleet): the bag's topic of that name, paired with the cloud "
+        "topic as the node pairs them.",
+        applies="both",
+        flag="--second-return-topic",
     )
     cloud_queue_size: int = setting(
         5,

@@ -83,6 +83,11 @@ class ReplaySummary:
     seconds_poses: float = 0.0
     first_stamp: float | None = None
     last_stamp: float | None = None
+    second_return: dict[str, int] | None = None
+    """With a second-return topic paired (``second_return_topic``): the pairer's counts
+    (``paired``, ``alone``, ``unpaired_second``, ``mismatched``, as ``~/status``)."""
+    second_return_note: str = ""
+    """Why a second cloud was not paired with its first (grids that differ), the first time."""
 
     @property
     def rays_per_second(self) -> float:
@@ -126,6 +131,8 @@ class ReplaySummary:
             f"rays         {self.rays_used:,} used of {self.points_in:,} points"
             + (f"; {self.rays_truncated:,} cut at max range" if self.rays_truncated else "")
             + (f"; {self.rays_no_return:,} with no return" if self.rays_no_return else ""),
+            *([f"2nd returns  {_counts(self.second_return)}"] if self.second_return else []),
+            *([f"2nd returns  {self.second_return_note}"] if self.second_return_note else []),
             f"points lost  {_counts(dropped) if dropped else 'none'}",
             *([f"no-return    {self.no_return_note}"] if self.no_return_note else []),
             f"voxels       {self.voxels:,} ({self.memory_bytes / 2**20:.1f} MiB)",
@@ -311,6 +318,13 @@ def map_scans(
     finally:
         bar.close()
     _fill(summary, counts, mapper)
+    pairer = recording.second_returns()
+    if pairer is not None:
+        summary.second_return = pairer.counts()
+        summary.second_return_note = pairer.mismatch_note
+        if pairer.mismatch_note and log is not None:
+            log(f"warning: {pairer.mismatched} second-return cloud(s) not paired: "
+                f"{pairer.mismatch_note}")  # fmt: skip
     summary.scans_selected = counts.clouds_in
     summary.seconds = time.perf_counter() - t_loop
     examples = "".join(

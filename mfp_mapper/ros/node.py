@@ -70,7 +70,6 @@ from mfp_mapper.config.param_file import ParamFileError, read_sections
 from mfp_mapper.config.schema import SPECS, NodeConfig
 from mfp_mapper.core.mapper import Mapper, compile_kernels, mapper_kwargs
 from mfp_mapper.mapping.live import LiveIntegrator, LiveSettings
-from mfp_mapper.mapping.return_pairs import PAIR_TIMEOUT, ReturnPairer
 from mfp_mapper.ros.guarded_node import GuardedLifecycleNode, tracked
 from mfp_mapper.ros.localization import Localization
 from mfp_mapper.ros.map_files import MapFiles
@@ -92,6 +91,7 @@ from mfp_mapper.ros.tf_cdr import tf_records
 from mfp_mapper.ros.transport import transport_loss_text
 from mfp_mapper.sensing.pointcloud import CloudFormatError, pack_cloud, read_xyz, stamp_seconds
 from mfp_mapper.sensing.poses import PoseBuffer, odometry_sample
+from mfp_mapper.sensing.return_pairs import PAIR_TIMEOUT, ReturnPairer
 from mfp_mapper.sensing.tf_tree import TfTree, TransformUnavailable
 
 NODE_NAME = "mfp_mapper"
@@ -663,11 +663,7 @@ class MfpMapperNode(GuardedLifecycleNode):
             extra["localization"] = self.localization.report()
         pairer = self._pairer
         if pairer is not None:
-            extra["second_return"] = {
-                "paired": pairer.paired,
-                "alone": pairer.alone,
-                "unpaired_second": pairer.unpaired_second,
-            }
+            extra["second_return"] = pairer.counts()
         report = status_report(
             c, queued, self._map_figures, self.outputs.counters, self._status_window, extra
         )

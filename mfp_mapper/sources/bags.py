@@ -10,7 +10,9 @@ stamp (``sources.pose_files``), or KISS-ICP (``sources.lidar_odometry``). The li
 comes from ``/tf_static``; it is the identity when the cloud frame is the odometry child frame;
 otherwise it must be given (``--extrinsic`` or ``lidar.translation``/``lidar.rpy`` in the
 node's YAML). Errors are ``ReplayError`` with the reason, before any cloud is mapped; a bag
-damaged part way raises one naming the message reached.
+damaged part way raises one naming the message reached. With ``second_return_topic`` (ouster-ros
+``points2``) each cloud is paired with the second-return cloud of its stamp as the node pairs
+them (``paired_clouds``).
 """
 
 from __future__ import annotations
@@ -29,7 +31,9 @@ from numpy.typing import NDArray
 from mfp_mapper.config.frames import frame_name
 from mfp_mapper.config.replay_options import ReplayError as ReplayError  # defined with the options
 from mfp_mapper.config.replay_options import ReplayOptions
+from mfp_mapper.sensing.pipeline import ReturnPair
 from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer, odometry_sample
+from mfp_mapper.sensing.return_pairs import ReturnPairer
 from mfp_mapper.sensing.tf_tree import TfTree, TransformUnavailable, frame_list
 from mfp_mapper.sources import lidar_odometry
 from mfp_mapper.sources.pose_files import read_poses
@@ -70,8 +74,11 @@ def _bag_recording(
     poses: str | Path | None,
     log: Callable[[str], None] | None,
 ) -> Recording:
+    second_topic = second_return_topic(reader, opts.placement.second_return_topic)
+    if second_topic is not None and opts.replay.cloud_topic == second_topic:
+        raise ReplayError(f"{second_topic} cannot be both the cloud and the second-return topic")
     cloud_topic = pick_topic(
-        reader, CLOUD_TYPE, opts.replay.cloud_topic, "PointCloud2", "--cloud-topic"
+        reader, CLOUD_TYPE, opts.replay.cloud_topic, "PointCloud2", "--cloud-topic", second_topic
     )
     if cloud_topic is None:
         listing = ", ".join(sorted({f"{c.topic} ({c.msgtype})" for c in reader.connections}))
@@ -100,7 +107,14 @@ def _bag_recording(
     extrinsics: dict[str, Extrinsic] = {}
     extrinsics[cloud_frame], extrinsic_source = extrinsic_for(cloud_frame, found.body, tfs, opts)
 
+    pairers: list[ReturnPairer] = []
+
     def clouds() -> Iterator[RecordedCloud]:
+        if second_topic is not None:
+            pairers[:] = [ReturnPairer()]
+            second_conns = [c for c in reader.connections if c.topic == second_topic]
+            yield from paired_clouds(reader, cloud_conns, second_conns, path, pairers[0])
+            return
         for index, (conn, _, raw) in enumerate(read_messages(reader, cloud_conns, path)):
             yield RecordedCloud(index, partial(reader.deserialize, raw, conn.msgtype))
 
@@ -111,7 +125,7 @@ def _bag_recording(
 
     return Recording(
         name=str(path),
-        cloud_source=cloud_topic,
+        cloud_source=cloud_topic if second_topic is None else f"{cloud_topic} + {second_topic}",
         cloud_frame=cloud_frame,
         cloud_count=count,
         poses=found,
@@ -120,7 +134,78 @@ def _bag_recording(
         extrinsic_of=extrinsic_of,
         release=reader.close,
         seconds_poses=seconds_poses,
+        second_returns=lambda: pairers[0] if pairers else None,
+        second_return_topic=second_topic or "",
     )
+
+
+def second_return_topic(reader: Any, wanted: str) -> str | None:
+    """The bag's topic of second-return clouds named by ``second_return_topic`` (as given,
+    or with a leading ``/``: the node's name resolved in the root namespace); None when the
+    setting is empty. ReplayError when the bag has no such PointCloud2 topic."""
+    if not wanted:
+        return None
+    topics = {c.topic: c.msgtype for c in reader.connections}
+    for name in (wanted, wanted if wanted.startswith("/") else "/" + wanted):
+        if topics.get(name) == CLOUD_TYPE:
+            return name
+    listing = ", ".join(f"{t} ({m})" for t, m in sorted(topics.items())) or "none"
+    raise ReplayError(
+        f"second_return_topic {wanted!r} is not a PointCloud2 topic of the bag; topics: "
+        f"{listing} (--second-return-topic '' maps the clouds without their second returns)"
+    )
+
+
+def paired_clouds(
+    reader: Any, first_conns: list[Any], second_conns: list[Any], path: Path, pairer: ReturnPairer
+) -> Iterator[RecordedCloud]:
+    """The bag's first-return clouds, each with its second-return cloud (a ``ReturnPair``)
+    or alone, as the live node pairs them (``sensing.return_pairs``), its clock the bag's
+    receive times: in the order the pairer gives them out, each at the position of its
+    first cloud among the first clouds. Both topics are read (and deserialized) in receive
+    order; a damaged first cloud is given out where it lies, its ``load`` raising."""
+    first_topics = {c.topic for c in first_conns}
+    positions: dict[int, int] = {}
+    count = 0
+
+    def given_out(ready: list[Any]) -> Iterator[RecordedCloud]:
+        for item in ready:
+            first = item.first if isinstance(item, ReturnPair) else item
+            yield RecordedCloud(positions.pop(id(first)), partial(_itself, item))
+
+    for conn, receive_ns, raw in read_messages(reader, first_conns + second_conns, path):
+        now = receive_ns * 1e-9
+        yield from given_out(pairer.expired(now))
+        try:
+            msg = reader.deserialize(raw, conn.msgtype)
+            _stamp_of(msg)
+        except Exception as err:  # a damaged message
+            if conn.topic in first_topics:
+                yield RecordedCloud(count, partial(_raise, err))
+                count += 1
+            else:
+                pairer.unreadable_second()
+            continue
+        if conn.topic in first_topics:
+            positions[id(msg)] = count
+            count += 1
+            yield from given_out(pairer.first(msg, now))
+        else:
+            yield from given_out(pairer.second(msg, now))
+    yield from given_out(pairer.flush())
+
+
+def _itself(item: Any) -> Any:
+    return item
+
+
+def _raise(err: Exception) -> Any:
+    raise err
+
+
+def _stamp_of(msg: Any) -> tuple[int, int, int, int]:
+    """The fields the pairer reads (AttributeError when the message lacks one)."""
+    return msg.header.stamp.sec, msg.header.stamp.nanosec, msg.height, msg.width
 
 
 def _first_cloud_frame(reader: Any, path: Path, cloud_conns: list[Any]) -> str:
@@ -253,8 +338,12 @@ def read_messages(reader: Any, connections: list[Any], path: Path | str) -> Iter
         yield item
 
 
-def pick_topic(reader: Any, msgtype: str, wanted: str | None, what: str, flag: str) -> str | None:
-    topics = {c.topic: c.msgtype for c in reader.connections}
+def pick_topic(
+    reader: Any, msgtype: str, wanted: str | None, what: str, flag: str, other: str | None = None
+) -> str | None:
+    """The topic ``wanted``, or the bag's one topic of ``msgtype`` (``other``, a topic
+    taken for something else, left out); ReplayError when it is not there or not one."""
+    topics = {c.topic: c.msgtype for c in reader.connections if c.topic != other}
     listing = ", ".join(f"{t} ({m})" for t, m in sorted(topics.items())) or "none"
     if wanted is not None:
         if wanted not in topics:
@@ -264,8 +353,11 @@ def pick_topic(reader: Any, msgtype: str, wanted: str | None, what: str, flag: s
         return wanted
     candidates = sorted(t for t, m in topics.items() if m == msgtype)
     if len(candidates) > 1:
+        dual = [t for t in candidates if t.endswith("points2")]
+        hint = f" (ouster-ros dual returns: --second-return-topic {dual[0]})" if dual else ""
         raise ReplayError(
-            f"the bag has several {what} topics ({', '.join(candidates)}): choose one with {flag}"
+            f"the bag has several {what} topics ({', '.join(candidates)}): choose one with "
+            f"{flag}{hint}"
         )
     return candidates[0] if candidates else None
 

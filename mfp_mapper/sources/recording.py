@@ -11,6 +11,10 @@ Kinds, each opened by ``sources.opener.open_recording``:
 - the simulator (``sources.simulate.open_simulation``): clouds made on the fly, poses from
   its ground truth.
 
+With ``second_return_topic`` set, a bag's clouds are paired with the clouds of that topic
+(ouster-ros ``points`` + ``points2``) as the node pairs them: ``load()`` then gives a
+``sensing.pipeline.ReturnPair`` (or a first cloud alone), and ``second_returns()`` the counts.
+
 The clouds are read lazily: ``clouds()`` gives ``(position, load)`` pairs in recording order,
 ``load()`` returning the PointCloud2(-like) message stamped in its header, so that a
 selection by position reads nothing it skips and a damaged message is met (and counted) where
@@ -25,6 +29,7 @@ from typing import Any, NamedTuple
 
 from mfp_mapper.sensing.deskew import PoseSource
 from mfp_mapper.sensing.poses import Extrinsic
+from mfp_mapper.sensing.return_pairs import ReturnPairer
 
 
 @dataclass
@@ -47,6 +52,10 @@ class RecordedCloud(NamedTuple):
 
 
 def _nothing() -> None:
+    return None
+
+
+def _no_pairer() -> ReturnPairer | None:
     return None
 
 
@@ -73,6 +82,13 @@ class Recording:
     """What ``close()`` does (closes the bag reader)."""
     seconds_poses: float = 0.0
     """Time spent reading (or estimating) the poses when it was opened."""
+    second_return_topic: str = ""
+    """The bag topic of second-return clouds paired with the clouds (setting
+    ``second_return_topic``), or ""."""
+    second_returns: Callable[[], ReturnPairer | None] = field(default=_no_pairer)
+    """The pairer of the latest pass over ``clouds()`` when second returns are paired: its
+    ``counts()`` (paired, alone, unpaired_second, mismatched), as the node's ``~/status``
+    reports them; else None."""
 
     @property
     def map_frame(self) -> str:

@@ -185,4 +185,6 @@ def test_nebula_dual_return_clouds_and_ouster_points2(
     # the Nebula cloud had no second and was mapped alone; the Ouster pair was paired
     status = f.wait_status(lambda st: st.get("second_return", {}).get("paired") == 1, 10.0)
     assert status is not None
-    assert status["second_return"] == {"paired": 1, "alone": 1, "unpaired_second": 0}
+    assert status["second_return"] == {
+        "paired": 1, "alone": 1, "unpaired_second": 0, "mismatched": 0,
+    }  # fmt: skip
