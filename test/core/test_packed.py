@@ -7,6 +7,7 @@ import pytest
 from box_world import anchors_scene
 
 from mfp_mapper import Mapper
+from mfp_mapper.core import store as store_module
 from mfp_mapper.core.packed import (
     PackedBlocks,
     as_parts,
@@ -106,11 +107,17 @@ def _parts_by_block(store: BlockStore) -> dict[tuple[int, int, int], tuple[bytes
     return out
 
 
-@pytest.mark.parametrize("shards", [1, 2])
-def test_parts_round_trip_with_the_float64_blocks_bit_for_bit(shards: int) -> None:
+@pytest.mark.parametrize(("shards", "threaded"), [(1, False), (2, False), (1, True), (2, True)])
+def test_parts_round_trip_with_the_float64_blocks_bit_for_bit(
+    shards: int, threaded: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Blocks flushed into float64 (``shard.flush``) pack as float32 parts plus float64
     parts of those blocks only, and are set back as the store held them: every block's
-    parts, bit for bit; values as in ``totals``; ``as_parts`` of the values is exact."""
+    parts, bit for bit (``s`` written in two threads, as for maps of a million voxels, or
+    in one); values as in ``totals``; ``as_parts`` of the values is exact."""
+    if threaded:
+        monkeypatch.setattr(store_module, "_THREADED_WRITE_VOXELS", 0)
+        monkeypatch.setattr(store_module.os, "cpu_count", lambda: 2)
     m = Mapper(0.1, max_range=30.0, threads=shards)
     scans = anchors_scene(n_scans=2, azimuths=120)
     for k, (points, origin) in enumerate(scans):
