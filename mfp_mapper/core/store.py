@@ -31,6 +31,7 @@ import os
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Any
 
 import numba as nb
 import numpy as np
@@ -84,7 +85,8 @@ from mfp_mapper.core.shard import (
 )
 
 _THREADED_WRITE_VOXELS = 1_000_000
-"""Voxels from which ``BlockStore.assign_blocks`` writes the ``s`` parts in two threads."""
+"""Voxels from which ``BlockStore.assign_blocks`` writes the ``s`` parts in a thread of
+their own while it opens the blocks (``BlockStore._fill_parts``)."""
 MIN_RESOLUTION = 1e-3
 """Smallest voxel edge (metres) a map may have."""
 MAX_RESOLUTION = 1e3
@@ -357,14 +359,13 @@ def _open_parts(
     shard: int,
     shard_mask: int,
     sa: ShardArrays,
-    block_of: NDArray[np.int64],
 ) -> int:
     """Open the packed blocks (held as parts, ``packed.PackedBlocks.parts``) of ``shard``
-    from block ``start`` on, in order: each block (``block_of[b]`` receives its number),
-    the ``s`` chunks of its observed voxels (numbered in block order), its ``n`` (float32
-    parts, voxels with a return) and its float64 part where it has one, as the store held
-    them; the ``s`` values are left to ``_write_parts`` (the bulk: it can run in threads,
-    every chunk being known). Returns the number of blocks when done, else the block
+    from block ``start`` on, in order: each block, the ``s`` chunks of its observed voxels
+    (numbered in block order: from the masks alone, ``_write_parts`` knows them), its ``n``
+    (float32 parts, voxels with a return) and its float64 part where it has one, as the
+    store held them; the ``s`` values are left to ``_write_parts`` (the bulk, in another
+    thread meanwhile). Returns the number of blocks when done, else the block
     where the shard ran out of room (make room, call again from there)."""
     block_chunks, chunk_owner, pools = sa.block_chunks, sa.chunk_owner, sa.pools
     block_nrec, n_recs = sa.block_nrec, sa.n_recs
@@ -384,7 +385,6 @@ def _open_parts(
         ):
             return b
         block = open_block(bx, by, bz, sa, -1, packed_t[b], math.inf)
-        block_of[b] = block
         sa.block_t[block] = max(sa.block_t[block], packed_t[b])
         for w in range(BLOCK_VOXELS // 64):  # a mask word is an s chunk (64 voxels)
             if observed[b, w] != 0:
@@ -438,29 +438,28 @@ def _write_parts(
     observed: NDArray[np.uint64],
     s: NDArray[np.float32],
     s_start: NDArray[np.int64],
-    block_of: NDArray[np.int64],
-    lo: int,
-    hi: int,
-    block_chunks: NDArray[np.int32],
+    chunk_first: NDArray[np.int64],
     s_pool: NDArray[np.float32],
 ) -> None:
-    """The float32 parts of ``s`` of the packed blocks ``lo..hi`` opened by ``_open_parts``
-    (``block_of[b] < 0``: another shard's) into their chunks: -0 for an observed voxel
-    whose part is 0 (shard's notes). Blocks apart touch no common memory: ranges of them
-    run in threads."""
+    """The float32 parts of ``s`` of the packed blocks into their chunks: block b's
+    observed mask words take the chunks ``chunk_first[b]``, ``chunk_first[b] + 1``, ... in
+    order (as ``_open_parts`` numbers them; -1: another shard's block); -0 for an observed
+    voxel whose part is 0 (shard's notes). Touches ``s_pool`` alone: it runs beside
+    ``_open_parts``."""
     marks = s_pool.reshape(-1).view(np.uint32)
     s_bits = s.view(np.uint32)
     sign = np.uint32(0x80000000)
-    for b in range(lo, hi):
-        block = block_of[b]
-        if block < 0:
+    for b in range(observed.shape[0]):
+        c = chunk_first[b]
+        if c < 0:
             continue
         js = s_start[b]
         for w in range(BLOCK_VOXELS // 64):
             m = observed[b, w]
             if m == 0:
                 continue
-            base = block_chunks[chunk_slot(block, w)] * CHUNK_VOXELS
+            base = c * CHUNK_VOXELS
+            c += 1
             while m:  # the set bits, lowest first
                 bit = m & (np.uint64(0) - m)
                 m ^= bit
@@ -757,7 +756,7 @@ class BlockStore:
         """Set the voxels of packed blocks (checked by ``packed_problem``) in an empty
         store; the inverse of ``export_blocks``. Compiled, block by block: blocks held as
         parts (``PackedBlocks.parts``, what ``export_blocks`` gives) get their float32 and
-        float64 parts back as they were (``_set_parts``); blocks holding values are set as
+        float64 parts back as they were (``_fill_parts``); blocks holding values are set as
         ``assign`` sets their voxel lists (``packed.voxel_arrays_of``), bit for bit
         (``_set_blocks``), which it replaces because building and probing per-voxel index
         arrays cost 5-10 times as long (docs/performance.md)."""
@@ -778,7 +777,7 @@ class BlockStore:
             hi_s = np.ascontiguousarray(packed.hi_s, dtype=np.float64)
             hi_n = np.ascontiguousarray(packed.hi_n, dtype=np.float64)
             s, n = s.astype(np.float32, copy=False), n.astype(np.float32, copy=False)
-            block_of = np.full(rows, -1, dtype=np.int64)
+            words = np.count_nonzero(observed, axis=1).astype(np.int64)
         if self.shard_mask:
             tiles = (block_ijk.astype(np.int64) >> SHARD_TILE_BITS).sum(axis=1) & self.shard_mask
         counts = np.zeros(1, dtype=np.int64)
@@ -799,60 +798,99 @@ class BlockStore:
             sh.ensure_room(  # what the blocks need (and a block's worth: the kernel's check)
                 chunks + BLOCK_CHUNKS, n_chunks + N_BLOCK_CHUNKS, hi_blocks + 1, hit_blocks + 1
             )
+            if packed.parts:
+                self._fill_parts(
+                    sh, sid, mine if self.shard_mask else None, words,
+                    (block_ijk, block_t, observed, hit_row, hit, n, n_start, hi_row, hi_s, hi_n,
+                     hi_s_start, hi_n_start),
+                    s, s_start,
+                )  # fmt: skip
+                mine_voxels = np.diff(s_start)[mine].sum() if self.shard_mask else s.shape[0]
+                counts[0] += int(mine_voxels)
+                continue
             hi_room = 1
             start = 0
-            while True:
-                if packed.parts:
-                    start = _open_parts(
-                        block_ijk, block_t, observed, hit_row, hit, n, n_start, hi_row, hi_s,
-                        hi_n, hi_s_start, hi_n_start, start, sid, self.shard_mask, sh.arrays(),
-                        block_of,
-                    )  # fmt: skip
-                else:
-                    start = _set_blocks(
-                        block_ijk, block_t, observed, s, s_start, hit_row, hit, n, n_start,
-                        start, sid, self.shard_mask, sh.arrays(), counts,
-                    )  # fmt: skip
-                if start >= rows:
-                    break
-                # out of float64 blocks (values at the float32 limit): more, go on
+            while (
+                start := _set_blocks(
+                    block_ijk,
+                    block_t,
+                    observed,
+                    s,
+                    s_start,
+                    hit_row,
+                    hit,
+                    n,
+                    n_start,
+                    start,
+                    sid,
+                    self.shard_mask,
+                    sh.arrays(),
+                    counts,
+                )  # fmt: skip
+            ) < rows:  # out of float64 blocks (values at the float32 limit): more, go on
                 hi_room *= 2
                 sh.ensure_room(BLOCK_CHUNKS, N_BLOCK_CHUNKS, hi_room, 1)
-        if packed.parts:
-            self._write_parts(observed, s, s_start, block_of, tiles if self.shard_mask else None)
-            counts[0] = s.shape[0]
         self.num_voxels = int(counts[0])
 
-    def _write_parts(
+    def _fill_parts(
         self,
-        observed: NDArray[np.uint64],
+        sh: Shard,
+        sid: int,
+        mine: NDArray[np.bool_] | None,
+        words: NDArray[np.int64],
+        opening: tuple[Any, ...],
         s: NDArray[np.float32],
         s_start: NDArray[np.int64],
-        block_of: NDArray[np.int64],
-        tiles: NDArray[np.int64] | None,
     ) -> None:
-        """``_write_parts`` of every shard's blocks (opened by ``_open_parts``): in two
-        threads on a map of a million voxels or more where two cores are there (the blocks
-        split at half the voxels; chunks apart, so the store is the same), else in one."""
-        rows = observed.shape[0]
-        for sid, sh in enumerate(self.shards):
-            mine = block_of.copy()
-            if tiles is not None:
-                mine[tiles != sid] = -1
-            cut = int(np.searchsorted(s_start, s_start[-1] // 2)) if rows else 0
-            ranges = [(0, cut), (cut, rows)]
-            if s.shape[0] < _THREADED_WRITE_VOXELS or (os.cpu_count() or 1) < 2:
-                ranges = [(0, rows)]
-            args = (observed, s, s_start, mine)
-            arrays = (sh.block_chunks, sh.s_pool)
-            if len(ranges) == 1:
-                _write_parts(*args, 0, rows, *arrays)
-                continue
-            with ThreadPoolExecutor(len(ranges)) as pool:
-                for done in [
-                    pool.submit(_write_parts, *args, lo, hi, *arrays) for lo, hi in ranges
-                ]:
-                    done.result()
+        """Set the packed blocks (parts) of shard ``sid`` (``mine``: its rows; None: all):
+        ``_open_parts`` in this thread while ``_write_parts`` writes the ``s`` parts in
+        another, on maps of a million voxels or more where two cores are there (their
+        chunks numbered from the masks, ``words`` nonzero mask words a block: the same
+        store as one after the other)."""
+        counted = words if mine is None else np.where(mine, words, 0)
+        first = np.cumsum(counted) - counted + int(sh.pools[S_USED])
+        chunk_first = first if mine is None else np.where(mine, first, -1)
+        writer = None
+        pool = None
+        if s.shape[0] >= _THREADED_WRITE_VOXELS and (os.cpu_count() or 1) >= 2:
+            pool = ThreadPoolExecutor(1)
+            writer = pool.submit(_write_parts, opening[2], s, s_start, chunk_first, sh.s_pool)
+        grown = False
+        try:
+            hi_room, start = 1, 0
+            ijk, t, observed, hit_row, hit, n, n_start, hi_row, hi_s, hi_n, fs, fn = opening
+            while (
+                start := _open_parts(
+                    ijk,
+                    t,
+                    observed,
+                    hit_row,
+                    hit,
+                    n,
+                    n_start,
+                    hi_row,
+                    hi_s,
+                    hi_n,
+                    fs,
+                    fn,
+                    start,
+                    sid,
+                    self.shard_mask,
+                    sh.arrays(),
+                )  # fmt: skip
+            ) < s_start.shape[0] - 1:  # out of room (not expected: sized above): grow
+                if writer is not None:
+                    writer.result()  # before the pools move
+                    writer = None
+                grown, hi_room = True, 2 * hi_room
+                sh.ensure_room(BLOCK_CHUNKS, N_BLOCK_CHUNKS, hi_room, 1)
+        finally:
+            if writer is not None:
+                writer.result()
+            if pool is not None:
+                pool.shutdown()
+        if pool is None or grown:
+            _write_parts(opening[2], s, s_start, chunk_first, sh.s_pool)
 
     def lookup(self, ijk: NDArray[np.int64]) -> VoxelArrays:
         """Statistics of these voxels (zeros and t_last=-inf where never observed)."""

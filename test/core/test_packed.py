@@ -113,8 +113,9 @@ def test_parts_round_trip_with_the_float64_blocks_bit_for_bit(
 ) -> None:
     """Blocks flushed into float64 (``shard.flush``) pack as float32 parts plus float64
     parts of those blocks only, and are set back as the store held them: every block's
-    parts, bit for bit (``s`` written in two threads, as for maps of a million voxels, or
-    in one); values as in ``totals``; ``as_parts`` of the values is exact."""
+    parts, bit for bit (``s`` written in a thread beside the opening, as for maps of a
+    million voxels, or after it); values as in ``totals``; ``as_parts`` of the values is
+    exact."""
     if threaded:
         monkeypatch.setattr(store_module, "_THREADED_WRITE_VOXELS", 0)
         monkeypatch.setattr(store_module.os, "cpu_count", lambda: 2)
