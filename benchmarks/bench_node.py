@@ -20,7 +20,10 @@ total CPU:
 - rate: clouds integrated a second in a window of ``--duration`` s between two status
   messages, after ``WARMUP_S`` s of streaming; rays per second;
 - integration CPU: CPU time of the integration thread (parse, place, integrate) over
-  wall time, as a share of one core; node CPU: the whole node process.
+  wall time, as a share of one core; node CPU: the whole node process;
+- CPU ms per integrated cloud by thread, from ``~/status`` ``cpu_s`` (a node that has it):
+  executor (ROS callbacks), worker (parse, place), walker (integrate), publisher (map
+  outputs; also per publication), other (DDS and the rest of the process).
 
 Streams: VLP-16 (16 x 1800 = 28.8k points, 0.1 m) and an OS1-128-like lidar
 (128 x 1024 = 131k points, 0.2 m, elevations -22.5..22.5 deg), both simulated; ``--stream
@@ -359,7 +362,11 @@ def run_stream(
         params["frame_id"] = "odom"
     elif stream.frame != "base_link":
         params["lidar.translation"] = [0.0, 0.0, stream.mount_z]
-    node = NodeProcess(domain, params, workdir / f"{stream.name}.log", env=node_env, cwd=tree)
+    # another commit's node reads its own parameter file (it may lack newer settings)
+    own = {} if tree is None else {"params_file": tree / "config" / "mfp_mapper.yaml"}
+    node = NodeProcess(
+        domain, params, workdir / f"{stream.name}.log", env=node_env, cwd=tree, **own
+    )
     feeder = Feeder()
     tf = TfPoses(feeder, (0.0, 0.0, stream.mount_z)) if tf_poses else None
     # built once: the driver's own CPU stays small (it shares the cores with the node)
@@ -459,6 +466,10 @@ def _report(
         for k, v in after.get("stage_s", {}).items()
     }
     received = _mean_since(before, after, "received_latency_mean_s")
+    cpu0, cpu1 = before.get("cpu_s", {}), after.get("cpu_s", {})  # (older nodes: none)
+    threads = {k: v - cpu0[k] for k, v in cpu1.items() if k in cpu0}
+    if "process" in threads:  # DDS, rclpy and the rest: the process less the named threads
+        threads["other"] = threads["process"] - sum(v for k, v in threads.items() if k != "process")
     lost = after["clouds_lost_transport"] - before["clouds_lost_transport"]
     result = {
         "stream": stream.name,
@@ -479,6 +490,12 @@ def _report(
         "stage_ms_per_scan": stages,
         "integration_cpu_share_of_one_core": round(cpu_int / duration, 3),
         "integration_cpu_per_scan_ms": round(1000 * cpu_int / max(integrated, 1), 1),
+        "cpu_ms_per_integrated_cloud": {k: round(1000 * v / n, 1) for k, v in threads.items()},
+        "publisher_cpu_ms_per_publication": (
+            round(1000 * threads["publisher"] / pub_n, 1)
+            if pub_n and "publisher" in threads
+            else None
+        ),
         "node_cpu_share_of_one_core": round(cpu_node / wall, 3),
         "driver_cpu_share_of_one_core": after["driver_cpu_share"],
         "load_average_start_end": after["load_average"],
@@ -880,6 +897,15 @@ def _print_split(r: dict[str, Any]) -> None:
         f" -> {r['load_average_start_end'][1]} on {os.cpu_count()} cores, the driver (this "
         f"process) {100 * r['driver_cpu_share_of_one_core']:.0f}% of a core"
     )
+    cpu = r.get("cpu_ms_per_integrated_cloud")
+    if cpu:
+        total = cpu.get("process", 0.0)
+        print(
+            "  CPU ms per integrated cloud by thread: "
+            + ", ".join(f"{k} {v:.1f}" for k, v in cpu.items())
+            + f"; publisher {r['publisher_cpu_ms_per_publication']} ms a publication; one idle "
+            f"core would take {1000 / max(total, 1e-9):.1f} clouds a second at this CPU"
+        )
     core = r.get("core_ms_per_scan")
     if core:
         print(

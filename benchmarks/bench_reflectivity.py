@@ -3,8 +3,9 @@
 Integrates the three ouster_street scans (Ouster OS-1-128, ``x y z reflectivity``, with their
 poses) per resolution, with and without intensities, in the same process, and prints
 ``Mapper.memory_bytes`` of both and the ratio: the sparse histogram table's cost; then the
-seconds of ``integrate`` for the three scans, with and without, interleaved over ``--rounds``
-(median and the ratio, measured in the same run).
+CPU seconds (``time.process_time``: the machine is shared) of ``integrate`` for the three
+scans, with and without, interleaved over ``--rounds`` (which goes first alternates; medians
+and the median of the per-round ratios, measured in the same run).
 
     python benchmarks/bench_reflectivity.py [--data ../shared/data] [--resolutions 0.2 0.1]
 """
@@ -48,29 +49,33 @@ def main() -> None:
     )
     for resolution in args.resolutions:
         seconds: dict[bool, list[float]] = {False: [], True: []}
-        for _ in range(args.rounds):
-            sizes = []
-            for with_intensity in (False, True):
+        sizes = {}
+        table, voxels = None, 0
+        for round_ in range(args.rounds):
+            for with_intensity in (False, True) if round_ % 2 == 0 else (True, False):
                 mapper = Mapper(resolution)
-                t0 = time.perf_counter()
+                t0 = time.process_time()
                 for stamp, (points, origin, values) in enumerate(scans):
                     refl = ScanReflectivity(values, bins) if with_intensity else None
                     mapper.integrate(points, origin, float(stamp), reflectivity=refl)
-                seconds[with_intensity].append(time.perf_counter() - t0)
-                sizes.append(mapper.memory_bytes)
-        table = mapper.stored_reflectivity()
+                seconds[with_intensity].append(time.process_time() - t0)
+                sizes[with_intensity] = mapper.memory_bytes
+                if with_intensity:
+                    table = mapper.stored_reflectivity()
+                    voxels = mapper.num_voxels
         rows = 0 if table is None else len(table)
-        share = 100 * rows / max(mapper.num_voxels, 1)
-        extra = 100 * (sizes[1] / sizes[0] - 1)
+        share = 100 * rows / max(voxels, 1)
+        extra = 100 * (sizes[True] / sizes[False] - 1)
         print(
-            f"{resolution:g} m: {mapper.num_voxels:,} voxels, {rows:,} with returns "
-            f"({share:.1f}%); memory {sizes[0] / 2**20:.1f} MiB without, "
-            f"{sizes[1] / 2**20:.1f} MiB with histograms (+{extra:.1f}%)"
+            f"{resolution:g} m: {voxels:,} voxels, {rows:,} with returns "
+            f"({share:.1f}%); memory {sizes[False] / 2**20:.2f} MiB without, "
+            f"{sizes[True] / 2**20:.2f} MiB with histograms (+{extra:.1f}%)"
         )
         plain, with_hist = (statistics.median(seconds[k]) for k in (False, True))
+        ratio = statistics.median(a / b for a, b in zip(seconds[True], seconds[False], strict=True))
         print(
-            f"  integrate, 3 scans: {plain:.3f} s without, {with_hist:.3f} s with histograms "
-            f"(x{with_hist / plain:.3f}, median of {args.rounds} interleaved rounds)"
+            f"  integrate, 3 scans: {plain:.3f} CPU s without, {with_hist:.3f} CPU s with "
+            f"histograms (x{ratio:.3f}, median of {args.rounds} interleaved rounds)"
         )
 
 

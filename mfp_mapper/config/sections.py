@@ -389,6 +389,15 @@ class OutputsSection(Section):
         1.0e6,
         dynamic=True,
     )
+    publish_changed_blocks: bool = setting(
+        True,
+        "Rebuild the map clouds and ~/projected_map from the blocks scans changed since the "
+        "last publication, the rest from the previous ones: the same whole outputs, holding "
+        "the map for a fraction of the time when the robot drives (docs/node.md 'Map "
+        "outputs'). False: read the whole map each time (as with min_degree_of_occupancy 0 "
+        "for the clouds).",
+        dynamic=True,
+    )
     occupancy_min_z: float = setting(
         0.1,
         "Bottom (m, map frame) of the height band of ~/hit_probability_map.",

@@ -29,6 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mfp_mapper.core.blocks import (
+    BLOCK_BITS,
     BLOCK_EDGE,
     BLOCK_VOXELS,
     IndexBox,
@@ -48,6 +49,13 @@ _UNCERTAIN = 1
 DEFAULT_OCCUPIED_THRESHOLD = 0.25
 """Default hit probability at or above which a trinary cell is occupied (a wall seen in 3
 scans at 0.1 m reaches 0.32-0.38, in 40 scans 0.98; see docs/node.md)."""
+
+
+WHOLE_BAND_SHARE = 0.5
+"""A grid continued from a previous one (``band_grid`` ``previous``) whose changed block
+columns exceed this share of the grid is computed whole: checking each block against the
+columns cost ~10% more than reading them all when nearly all changed (a parked lidar that
+reaches the whole map, benchmarks/bench_map_cloud.py)."""
 
 
 def unobserved_hit_probability(resolution: float, shape: float = 1.0, rate: float = 1.0) -> float:
@@ -87,6 +95,19 @@ class GridTooLarge(ValueError):
 
 
 @dataclass(frozen=True)
+class BandCells:
+    """A whole-band grid's cells before ``finish_trinary`` (a copy), the cell index (i0, j0)
+    of cell (0, 0), the first scan it does not hold (``since``) and ``key``: what it was
+    computed with (the caller's: another key, another grid)."""
+
+    cells: NDArray[np.int8]
+    i0: int
+    j0: int
+    since: int
+    key: tuple[object, ...]
+
+
+@dataclass(frozen=True)
 class HitGrid:
     """A 2D grid of hit probabilities in percent (int8, -1 unknown)."""
 
@@ -95,6 +116,8 @@ class HitGrid:
     resolution: float
     origin: tuple[float, float]
     """Map-frame (x, y) of the corner of cell (0, 0)."""
+    cells: BandCells | None = None
+    """What a later ``band_grid`` continues from (``previous``); None for a window."""
 
     @property
     def width(self) -> int:
@@ -160,9 +183,18 @@ def band_grid(
     max_cells: int | None = None,
     trinary: tuple[float, float] | None = None,
     prior: tuple[float, float] = (1.0, 1.0),
+    previous: BandCells | None = None,
+    since: int = -1,
+    key: tuple[object, ...] = (),
 ) -> HitGrid:
     """The hit-probability grid of the observed voxels with index in ``[lo, hi]``, computed
     in one compiled pass over the store's blocks (no per-voxel arrays of the map).
+
+    ``previous`` (the ``cells`` of an earlier whole-band grid with the same ``key``): only
+    the columns of blocks that scans numbered ``previous.since`` or later opened are
+    computed again, the grid grown where they widened the extent; the same grid as from
+    scratch, since a cell only depends on the voxels of its column. ``since``: the next
+    scan's number, kept in the result's ``cells`` for the next call.
 
     The grid spans the window around ``center`` (``radius > 0``), else the (x, y) extent of
     the observed voxels in ``[lo, hi]``; cells take the voxels whose centre is in the band.
@@ -172,14 +204,27 @@ def band_grid(
     """
     _check_band(resolution, z_min, z_max)
     use_trinary, occupied, free = check_trinary(trinary)
+    windowed = center is not None and radius > 0.0
+    if previous is not None and (windowed or previous.key != key or since < 0):
+        previous = None
+    changed_since = -1 if previous is None else previous.since
     if center is not None and radius > 0.0:
         i0, j0, i1, j1 = _window_cells(center, radius, resolution)
     else:
         extent = np.array([np.iinfo(np.int64).max] * 2 + [np.iinfo(np.int64).min] * 2)
+        if previous is not None and previous.cells.size:
+            height, width = previous.cells.shape
+            extent[:] = [
+                previous.i0,
+                previous.j0,
+                previous.i0 + width - 1,
+                previous.j0 + height - 1,
+            ]
         for arrays, used in shards:
-            _observed_extent(arrays, used, lo, hi, extent)
+            _observed_extent(arrays, used, lo, hi, extent, changed_since)
         if extent[0] > extent[2]:
-            return HitGrid(np.zeros((0, 0), np.int8), resolution, (0.0, 0.0))
+            empty = BandCells(np.zeros((0, 0), np.int8), 0, 0, since, key)
+            return HitGrid(np.zeros((0, 0), np.int8), resolution, (0.0, 0.0), empty)
         i0, j0, i1, j1 = (int(v) for v in extent)
     size = (j1 - j0 + 1) * (i1 - i0 + 1)
     if max_cells is not None and size > max_cells:
@@ -190,6 +235,22 @@ def band_grid(
             size,
         )
     cells = np.full((j1 - j0 + 1, i1 - i0 + 1), UNKNOWN, dtype=np.int8)
+    bi0, bj0 = i0 >> BLOCK_BITS, j0 >> BLOCK_BITS
+    dirty = np.zeros((0, 0), dtype=np.bool_)  # block columns to compute (none given: all)
+    if previous is not None and previous.cells.size:
+        height, width = previous.cells.shape
+        at_j, at_i = previous.j0 - j0, previous.i0 - i0
+        cells[at_j : at_j + height, at_i : at_i + width] = previous.cells
+        dirty = np.zeros(((j1 >> BLOCK_BITS) - bj0 + 1, (i1 >> BLOCK_BITS) - bi0 + 1), np.bool_)
+        for arrays, used in shards:
+            _dirty_columns(arrays, used, lo, hi, changed_since, bi0, bj0, dirty)
+        if dirty.mean() > WHOLE_BAND_SHARE:  # most columns changed: the whole band
+            cells[:] = UNKNOWN
+            dirty = np.zeros((0, 0), dtype=np.bool_)
+        else:
+            over = np.repeat(np.repeat(dirty, BLOCK_EDGE, axis=0), BLOCK_EDGE, axis=1)
+            off_j, off_i = j0 - (bj0 << BLOCK_BITS), i0 - (bi0 << BLOCK_BITS)
+            cells[over[off_j : off_j + cells.shape[0], off_i : off_i + cells.shape[1]]] = UNKNOWN
     for arrays, used in shards:
         _band_max_percent(
             arrays,
@@ -208,10 +269,14 @@ def band_grid(
             prior[0],
             prior[1],
             _free_evidence(free, resolution, prior[0], prior[1]) if use_trinary else math.inf,
+            dirty,
+            bi0,
+            bj0,
         )
+    raw = None if windowed else BandCells(cells.copy(), i0, j0, since, key)
     if use_trinary:
         cells = finish_trinary(cells)
-    return HitGrid(cells, resolution, (i0 * resolution, j0 * resolution))
+    return HitGrid(cells, resolution, (i0 * resolution, j0 * resolution), raw)
 
 
 def _free_evidence(free: float, resolution: float, shape: float, rate: float) -> float:
@@ -234,11 +299,15 @@ def _observed_extent(
     lo: IndexBox,
     hi: IndexBox,
     extent: NDArray[np.int64],
+    since: int,
 ) -> None:
-    """Widen ``extent`` [i_min, j_min, i_max, j_max] to the observed voxels in [lo, hi]."""
+    """Widen ``extent`` [i_min, j_min, i_max, j_max] to the observed voxels in [lo, hi] of
+    the blocks scans numbered ``since`` or later opened (-1: every block)."""
     s_block = np.empty(BLOCK_VOXELS)
     n_block = np.empty(BLOCK_VOXELS)
     for b in range(used):
+        if sa.block_scan[b] < since:
+            continue
         bx, by, bz = block_origin(sa.block_ijk, b)
         if block_outside(bx, by, bz, lo, hi):
             continue
@@ -263,6 +332,30 @@ def _observed_extent(
 
 
 @nb.njit(cache=True, nogil=True)
+def _dirty_columns(
+    sa: ShardArrays,
+    used: int,
+    lo: IndexBox,
+    hi: IndexBox,
+    since: int,
+    bi0: int,
+    bj0: int,
+    dirty: NDArray[np.bool_],
+) -> None:
+    """Mark ``dirty[by - bj0, bx - bi0]`` for each block (bx, by, bz) in [lo, hi] that a scan
+    numbered ``since`` or later opened."""
+    for b in range(used):
+        if sa.block_scan[b] < since:
+            continue
+        x0, y0, z0 = block_origin(sa.block_ijk, b)
+        if block_outside(x0, y0, z0, lo, hi):
+            continue
+        r, c = sa.block_ijk[b, 1] - bj0, sa.block_ijk[b, 0] - bi0
+        if 0 <= r < dirty.shape[0] and 0 <= c < dirty.shape[1]:
+            dirty[r, c] = True
+
+
+@nb.njit(cache=True, nogil=True)
 def _band_max_percent(
     sa: ShardArrays,
     used: int,
@@ -280,6 +373,9 @@ def _band_max_percent(
     shape: float,
     rate: float,
     free_s: float,
+    dirty: NDArray[np.bool_],
+    bi0: int,
+    bj0: int,
 ) -> None:
     """Raise each cell of ``cells`` (row j - j0, column i - i0) to round(100 p_hit) of the
     observed voxels in [lo, hi] whose centre height lies in [z_min, z_max]; with
@@ -288,11 +384,17 @@ def _band_max_percent(
     Shortcuts that leave the cells as the full computation would: a cell at 100 (the
     largest value) is not raised further, and with ``trinary`` a voxel without a return
     whose ``s`` is at least ``free_s`` is FREE without computing its probability
-    (``_free_evidence``): 0.24 s -> 0.06 s for a 16.9 M-voxel map at 0.1 m (VLP-32C)."""
+    (``_free_evidence``): 0.24 s -> 0.06 s for a 16.9 M-voxel map at 0.1 m (VLP-32C).
+    A non-empty ``dirty`` (block columns from (bi0, bj0)): only the blocks of its marked
+    columns are read."""
     height, width = cells.shape
     s_block = np.empty(BLOCK_VOXELS)
     n_block = np.empty(BLOCK_VOXELS)
     for b in range(used):
+        if dirty.shape[0] > 0:
+            r, c = sa.block_ijk[b, 1] - bj0, sa.block_ijk[b, 0] - bi0
+            if not (0 <= r < dirty.shape[0] and 0 <= c < dirty.shape[1] and dirty[r, c]):
+                continue
         bx, by, bz = block_origin(sa.block_ijk, b)
         if (
             block_outside(bx, by, bz, lo, hi)

@@ -131,16 +131,15 @@ def _pointers(builder: ir.IRBuilder, data: ir.Value, index: ir.Value, element: i
     return builder.inttoptr(addresses, ir.VectorType(element.as_pointer(), LANES))
 
 
-def _scatter(
-    builder: ir.IRBuilder, data: ir.Value, index: ir.Value, value: ir.Value, mask: ir.Value
-) -> None:
-    """``data[index[lane]] = value[lane]`` for the lanes where ``mask`` is set (int64)."""
-    pointers = _pointers(builder, data, index, _I64)
-    name = f"llvm.masked.scatter.v{LANES}i64.v{LANES}p0"
+def _compress(builder: ir.IRBuilder, value: ir.Value, mask: ir.Value) -> ir.Value:
+    """The lanes of ``value`` where ``mask`` is set, moved down to the first lanes in order
+    (the rest undefined): one register instruction with AVX-512 (``vpcompressq``), a
+    sequence of LLVM's own elsewhere."""
+    name = f"llvm.experimental.vector.compress.v{LANES}i64"
     function = builder.module.globals.get(name) or ir.Function(
-        builder.module, ir.FunctionType(ir.VoidType(), [_VI, pointers.type, _I32, _VB]), name=name
+        builder.module, ir.FunctionType(_VI, [_VI, _VB, _VI]), name=name
     )
-    builder.call(function, [value, pointers, _I32(8), mask])
+    return builder.call(function, [value, mask, ir.Constant(_VI, ir.Undefined)])
 
 
 def _spread(builder: ir.IRBuilder, index: ir.Value) -> ir.Value:
@@ -152,7 +151,16 @@ def _spread(builder: ir.IRBuilder, index: ir.Value) -> ir.Value:
 
 @intrinsic
 def walk_lanes(  # type: ignore[no-untyped-def]
-    typingctx, float_state, int_state, steps, entered_key, lane_blocks, out_code, out_chord
+    typingctx,
+    float_state,
+    int_state,
+    steps,
+    entered_key,
+    lane_blocks,
+    out_code,
+    out_chord,
+    entries,
+    entry_count,
 ):
     """Take ``steps`` steps of ``LANES`` rays at once, from the lane state (C-contiguous
     ``float_state`` (FLOAT_ROWS, LANES) float64, ``int_state`` (INT_ROWS, LANES) int64, as
@@ -167,15 +175,30 @@ def walk_lanes(  # type: ignore[no-untyped-def]
     ``(min(t_next, 1) - t_prev) * length``. A ray of n steps is in its end voxel at step
     n, where every t_max is infinite, so that step's chord is the one up to the end
     point, ``(1 - t_prev) * length``; later steps of that lane are garbage and enter no
-    block. The keys (``blocks.block_key``) of the blocks each ray enters go, in order, to
-    its row of ``entered_key`` (C-contiguous (LANES, at least n + 1)), and their number
-    to ``lane_blocks``.
+    block. The keys (``blocks.block_key``) of the blocks each ray enters, in step order,
+    go to ``entries[0]`` and the flat index in ``entered_key`` (C-contiguous (LANES, at
+    least n + 1)) where each belongs (the ray's row, in order) to ``entries[1]`` (int64,
+    C-contiguous (2, at least (steps + 1) * LANES)); their number to ``entry_count[0]``
+    (``traversal._walk_rays`` puts them in place); the number each ray enters to
+    ``lane_blocks``. The entries of a step are the lanes that enter a block, compressed
+    to the front of a vector (``vpcompressq``) and stored whole: a masked scatter into
+    ``entered_key`` there (microcoded on AMD Zen 4) cost more.
     """
-    arguments = (float_state, int_state, steps, entered_key, lane_blocks, out_code, out_chord)
+    arguments = (
+        float_state,
+        int_state,
+        steps,
+        entered_key,
+        lane_blocks,
+        out_code,
+        out_chord,
+        entries,
+        entry_count,
+    )
     sig = types.void(*arguments)
 
     def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
-        floats, ints, count, keys, blocks, codes, chords = (
+        floats, ints, count, keys, blocks, codes, chords, entry, entry_total = (
             context.make_array(t)(context, builder, a) if isinstance(t, types.Array) else a
             for t, a in zip(signature.args, args, strict=True)
         )
@@ -219,6 +242,14 @@ def walk_lanes(  # type: ignore[no-untyped-def]
         entering_slot = cgutils.alloca_once_value(builder, every)  # step 0 enters a block
         entered_slot = cgutils.alloca_once_value(builder, builder.sub(row_start, _splat(_VI, 1)))
         never, one = _splat(_VI, T_NEVER), _splat(_VI, T_ONE)
+        entry_keys = entry.data
+        entry_places = builder.gep(
+            entry.data, [cgutils.unpack_tuple(builder, entry.shape)[1]]
+        )  # row 1
+        entries_slot = cgutils.alloca_once_value(builder, _I64(0))
+        popcount = builder.module.globals.get("llvm.ctpop.i8") or ir.Function(
+            builder.module, ir.FunctionType(ir.IntType(8), [ir.IntType(8)]), name="llvm.ctpop.i8"
+        )
         with cgutils.for_range(builder, count) as loop:
             t = [builder.load(s) for s in t_slots]
             v = [builder.load(s) for s in v_slots]
@@ -230,7 +261,17 @@ def walk_lanes(  # type: ignore[no-untyped-def]
             entered = builder.and_(builder.load(entering_slot), walking)
             entered_index = builder.add(builder.load(entered_slot), builder.zext(entered, _VI))
             builder.store(entered_index, entered_slot)
-            _scatter(builder, keys.data, entered_index, key, entered)
+            at = builder.load(entries_slot)
+            builder.store(
+                _compress(builder, key, entered), _at(builder, entry_keys, at, _VI), align=8
+            )
+            builder.store(
+                _compress(builder, entered_index, entered),
+                _at(builder, entry_places, at, _VI),
+                align=8,
+            )
+            many = builder.call(popcount, [builder.bitcast(entered, ir.IntType(8))])
+            builder.store(builder.add(at, builder.zext(many, _I64)), entries_slot)
             code = builder.or_(
                 local, builder.shl(builder.zext(entered, _VI), _splat(_VI, ENTERED_SHIFT))
             )
@@ -281,6 +322,7 @@ def walk_lanes(  # type: ignore[no-untyped-def]
         entered_count = builder.sub(builder.load(entered_slot), row_start)
         blocks_pointer = _at(builder, blocks.data, _I64(0), _VI)
         builder.store(builder.add(entered_count, _splat(_VI, 1)), blocks_pointer, align=8)
+        builder.store(builder.load(entries_slot), entry_total.data)
         return context.get_dummy_value()
 
     return sig, codegen

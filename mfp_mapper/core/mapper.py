@@ -15,8 +15,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from mfp_mapper.config.sections import MapSection, SensorModelSection
 from mfp_mapper.core import model
+from mfp_mapper.core.changed_blocks import changed_returns
 from mfp_mapper.core.errors import CoreError, ScanTooLargeError
-from mfp_mapper.core.gridmap import HitGrid, band_grid
+from mfp_mapper.core.gridmap import BandCells, HitGrid, band_grid
 from mfp_mapper.core.memory_bound import (
     MemoryBound,
     fit_scan_budget,
@@ -172,6 +173,10 @@ class Mapper:
         self.last_stamp: float | None = None
         self.last_origin: FloatArray | None = None
         self.version = 0
+        self.epoch = 0
+        """Bumped whenever voxels change other than by scans adding to their blocks (reset,
+        clear_box, blocks evicted by the memory bound): what ``changed_voxels`` said since an
+        earlier scan no longer tells the whole change."""
         self._store = BlockStore(_shard_count(self.threads), FLUSH_EDGES * self.resolution)
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
         self._worker_cpu = 0.0  # CPU seconds of the pool threads in the current integrate()
@@ -445,8 +450,10 @@ class Mapper:
     def _prune_if_evicted(self, blocks_before: int) -> None:
         """After the memory bound evicted blocks: drop the histograms of voxels that no
         longer hold a return."""
-        if self._reflectivity is not None and self._store.num_blocks < blocks_before:
-            self._drop_lost_histograms()
+        if self._store.num_blocks < blocks_before:
+            self.epoch += 1
+            if self._reflectivity is not None:
+                self._drop_lost_histograms()
 
     def _drop_lost_histograms(self) -> None:
         assert self._reflectivity is not None
@@ -575,6 +582,7 @@ class Mapper:
         if not self._origin_given:
             self._origin = None
         self.version += 1
+        self.epoch += 1
 
     def clear_box(self, corner_a: ArrayLike, corner_b: ArrayLike) -> int:
         """Reset to unknown (never observed) every voxel whose centre lies in the axis-aligned
@@ -590,6 +598,7 @@ class Mapper:
             self._reflectivity.clear_box(lo, hi)
         if cleared:
             self.version += 1
+            self.epoch += 1
         return cleared
 
     # --- reading ----------------------------------------------------------------------
@@ -722,6 +731,22 @@ class Mapper:
             stats = stats.select(stats.s >= min_evidence)
         return stats
 
+    def changed_voxels(
+        self, since: int, min_doo: float
+    ) -> tuple[VoxelStats, NDArray[np.int32], int]:
+        """The voxels of most likely degree of occupancy >= ``min_doo`` (> 0) in the blocks
+        scans changed since scan ``since`` (every block: -1), statistics as stored (as
+        ``voxels`` without ``stamp``); the index (voxel index >> 3, (B, 3)) of every such
+        block holding a return; and the ``since`` that asks for the changes after this
+        call. A cache of ``voxels`` per block stays exact while ``epoch`` stays the same
+        (``core.changed_blocks``; ``mapping.map_cloud``)."""
+        if not 0.0 < min_doo <= 1.0:
+            raise ValueError(f"min_doo must lie in (0, 1], got {min_doo}")
+        min_extinction = math.inf if min_doo >= 1.0 else -math.log1p(-min_doo)
+        shards = [(sh.arrays(), sh.used) for sh in self._store.shards]
+        blocks, ijk, s, n, t = changed_returns(shards, since, min_extinction)
+        return self._stats(VoxelArrays(ijk, s, n, t), None), blocks, self._store.next_scan
+
     def _index_bounds(
         self, bounds: tuple[ArrayLike, ArrayLike]
     ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
@@ -744,6 +769,7 @@ class Mapper:
         radius: float = 0.0,
         max_cells: int | None = None,
         trinary: tuple[float, float] | None = None,
+        previous: BandCells | None = None,
     ) -> HitGrid:
         """The height band ``[z_min, z_max]`` projected onto a 2D grid (``gridmap``): per
         cell ``round(100 p)``, ``p`` the largest hit probability of a voxel edge in the
@@ -752,7 +778,10 @@ class Mapper:
         last update (no decay to a later stamp), read straight from the blocks.
         ``gridmap.GridTooLarge`` (nothing allocated) when the grid would exceed
         ``max_cells``. ``trinary=(occupied, free)``: cells 100 / 0 / -1 by those
-        hit-probability thresholds (Nav2)."""
+        hit-probability thresholds (Nav2). ``previous``: the ``cells`` of an earlier grid of
+        the whole band with the same settings, from which only the columns scans changed
+        since are computed again (``gridmap.band_grid``; the whole band when anything else
+        changed the map: ``epoch``)."""
         lo_m, hi_m = [-math.inf, -math.inf, z_min], [math.inf, math.inf, z_max]
         if center is not None and radius > 0.0:  # only the blocks near the window are read
             margin = radius + self.resolution
@@ -773,6 +802,9 @@ class Mapper:
             max_cells=max_cells,
             trinary=trinary,
             prior=(self.prior.shape, self.prior.rate),
+            previous=previous,
+            since=self._store.next_scan,
+            key=(id(self), self.epoch, z_min, z_max, trinary, self.prior, ox, oy, oz),
         )
         if ox == 0.0 and oy == 0.0:
             return grid
@@ -836,8 +868,8 @@ class Mapper:
         mapper = cls(resolution, origin=origin, **settings)  # type: ignore[arg-type]
         mapper._store.assign(voxels, mapper.decay_time)
         if reflectivity is not None:
-            mapper._reflectivity = ReflectivityTable(reflectivity.bins, max(len(reflectivity), 16))
-            mapper._reflectivity.assign(reflectivity)
+            mapper._reflectivity = ReflectivityTable(reflectivity.bins)
+            mapper._reflectivity.assign(reflectivity, mapper.decay_time)
         finite_t = voxels.t_last[np.isfinite(voxels.t_last)]
         mapper.last_stamp = float(finite_t.max()) if finite_t.size else None
         mapper.version += 1
@@ -865,8 +897,8 @@ class Mapper:
         mapper = cls(resolution, origin=origin, **settings)  # type: ignore[arg-type]
         mapper._store.assign_blocks(as_parts(packed))  # values kept exactly (float64 too)
         if reflectivity is not None:
-            mapper._reflectivity = ReflectivityTable(reflectivity.bins, max(len(reflectivity), 16))
-            mapper._reflectivity.assign(reflectivity)
+            mapper._reflectivity = ReflectivityTable(reflectivity.bins)
+            mapper._reflectivity.assign(reflectivity, mapper.decay_time)
         mapper.last_stamp = float(packed.block_t.max()) if packed.block_t.size else None
         mapper.version += 1
         return mapper

@@ -672,6 +672,11 @@ class BlockStore:
             shard.forget_blocks()
         self.num_voxels = 0
 
+    @property
+    def next_scan(self) -> int:
+        """The id the next scan will take (``begin_scan``): blocks it opens get it."""
+        return self._scan_id
+
     def begin_scan(self) -> int:
         """Start a scan: clears the per-scan counters; returns the scan's id."""
         for sh in self.shards:

@@ -803,6 +803,9 @@ def _walk_rays(
     row_length = entered_chunks.shape[1]
     entered_weight = np.empty((LANES, longest))
     lane_blocks = np.empty(LANES, dtype=np.int64)
+    entries = np.empty((2, (longest + 1) * LANES), dtype=np.int64)  # walk_lanes' entries
+    entry_count = np.zeros(1, dtype=np.int64)
+    entered_flat = entered_key.reshape(-1)
     lane_floats = np.empty((FLOAT_ROWS, LANES))
     lane_ints = np.empty((INT_ROWS, LANES), dtype=np.int64)
     # placed visits of two groups: the one being walked and the one waiting to be added
@@ -882,23 +885,25 @@ def _walk_rays(
             steps = max(steps, piece_steps + 1)
         step_chord = placed_chord[group]
         walk_lanes(  # type: ignore[call-arg]
-            lane_floats, lane_ints, steps, entered_key, lane_blocks, step_code, step_chord
+            lane_floats, lane_ints, steps, entered_key, lane_blocks, step_code, step_chord,
+            entries, entry_count,
         )  # fmt: skip
-        # the blocks not yet in the walk cache, looked up (read only) all at once, their
-        # chunk tables loaded: independent lookups whose memory latencies overlap
-        for lane in range(lanes):
-            for b in range(lane_blocks[lane]):
-                key = entered_key[lane, b]
-                slot = (
-                    (((key >> (2 * KEY_BITS)) & _WALK_CACHE_MASK) << (2 * _WALK_CACHE_BITS))
-                    | (((key >> KEY_BITS) & _WALK_CACHE_MASK) << _WALK_CACHE_BITS)
-                    | (key & _WALK_CACHE_MASK)
-                )
-                if cache_keys[slot] != key:
-                    bx, by, bz = block_of_key(key)
-                    found = find_block(table_keys, table_blocks, block_key(bx, by, bz))
-                    if found >= 0:
-                        prefetch_line(block_chunks, BLOCK_CHUNKS * (found + 1))
+        # the entered blocks' keys put in each ray's row; those not yet in the walk cache
+        # looked up (read only) all at once, their chunk tables loaded: independent
+        # lookups whose memory latencies overlap
+        for e in range(entry_count[0]):
+            key = entries[0, e]
+            entered_flat[np.uint64(entries[1, e])] = key
+            slot = (
+                (((key >> (2 * KEY_BITS)) & _WALK_CACHE_MASK) << (2 * _WALK_CACHE_BITS))
+                | (((key >> KEY_BITS) & _WALK_CACHE_MASK) << _WALK_CACHE_BITS)
+                | (key & _WALK_CACHE_MASK)
+            )
+            if cache_keys[slot] != key:
+                bx, by, bz = block_of_key(key)
+                found = find_block(table_keys, table_blocks, block_key(bx, by, bz))
+                if found >= 0:
+                    prefetch_line(block_chunks, BLOCK_CHUNKS * (found + 1))
         weighted = False  # a block where the scan is late (weight < 1)
         for lane in range(lanes):
             i = group_first + lane
@@ -986,15 +991,23 @@ def _add_group(
     visits = 0
     lines = s_pool.reshape(-1)
     marks = lines.view(np.uint32)  # 0 exactly where a voxel is unobserved
-    s_limit, n_limit = limits[0], limits[1]
+    n_limit = limits[1]
+    # the least float32 at or above limits[0]: a float32 sum passes it exactly where it
+    # passes limits[0] (no conversion a visit)
+    s_limit = np.float32(limits[0])
+    if s_limit < limits[0]:
+        s_limit = np.nextafter(s_limit, np.float32(np.inf))
     for lane in range(lanes):
         last = steps[lane]
+        visits += last + 1  # less the steps skipped below
         for k in range(last + 1):
             voxel = voxels[k * LANES + lane]
             c = np.float32(chords[k * LANES + lane])
-            if not c > 0.0 or voxel < FOREIGN_LIMIT:
-                continue
-            if voxel < 0:  # its chunk is new (since it was placed): shard.s_index
+            if voxel < 0 or not c > 0.0:  # rare: one test on the common path
+                if not c > 0.0 or voxel < FOREIGN_LIMIT:
+                    visits -= 1
+                    continue
+                # its chunk is new (since it was placed): shard.s_index
                 slot = (-voxel - 1) >> CHUNK_BITS
                 chunk = block_chunks[slot]
                 if chunk < 0:
@@ -1004,10 +1017,10 @@ def _add_group(
                     chunk_owner[chunk] = slot
                 voxel = chunk * CHUNK_VOXELS + (voxel & (CHUNK_VOXELS - 1))
                 voxels[k * LANES + lane] = voxel
-            observed += marks[voxel] == 0  # a first visit (shard.UNOBSERVED)
-            after = lines[voxel] + c
-            lines[voxel] = after
-            visits += 1
+            at = np.uint64(voxel)  # >= 0 here: unsigned, no wraparound test
+            observed += marks[at] == 0  # a first visit (shard.UNOBSERVED)
+            after = lines[at] + c
+            lines[at] = after
             if after >= s_limit:  # rare: a flush due
                 block_flush[chunk_owner[voxel >> CHUNK_BITS] // BLOCK_CHUNKS - 1] = True
                 pools[FLUSH_PENDING] = 1

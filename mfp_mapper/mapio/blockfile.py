@@ -71,6 +71,9 @@ BLOCK_MEMBERS = (
 """The block members of a version 4 map file, in the order written (the index first)."""
 HI_MEMBERS = ("hi_block", "hi_s", "hi_n")
 """The members a version 3 file lacks (it holds values, not parts)."""
+TABLE_MEMBERS = ("reflectivity_ijk", "reflectivity_counts", "reflectivity_t_last")
+"""The members of a map's reflectivity table with a row per voxel (``core.reflectivity.
+ROW_KEYS``; numba-free here), located like the block members and read by block too."""
 
 _DTYPES: dict[str, tuple[str, ...]] = {
     "block_ijk": ("<i4",),
@@ -85,6 +88,10 @@ _DTYPES: dict[str, tuple[str, ...]] = {
     "hi_block": ("<i8",),
     "hi_s": ("<f8",),
     "hi_n": ("<f8",),
+    # TABLE_MEMBERS
+    "reflectivity_ijk": ("<i4", "<i8"),
+    "reflectivity_counts": ("<f8", "<f4"),
+    "reflectivity_t_last": ("<f8", "<f4"),
 }
 _LOCAL_HEADER = struct.Struct("<4s5H3L2H")
 _LOCAL_MAGIC = b"PK\x03\x04"
@@ -165,9 +172,11 @@ def locate_members(
     f: BinaryIO, archive: zipfile.ZipFile, names: Iterable[str], file_size: int
 ) -> dict[str, Member]:
     """The block members ``names`` of a version 3 or 4 file (``BLOCK_MEMBERS``, less
-    ``HI_MEMBERS`` for version 3): stored, headers and sizes checked."""
+    ``HI_MEMBERS`` for version 3) and the ``TABLE_MEMBERS`` it has: stored, headers and
+    sizes checked."""
     out: dict[str, Member] = {}
-    wanted = set(names)
+    required = set(names)
+    wanted = required | set(TABLE_MEMBERS)
     for info in archive.infolist():
         name = info.filename[: -len(".npy")]
         if not info.filename.endswith(".npy") or name not in wanted:
@@ -205,7 +214,7 @@ def locate_members(
         f.seek(data)
         header = f.read(start - data)
         out[name] = Member(name, start, tuple(shape), dtype, header, info.CRC)
-    missing = [k for k in wanted if k not in out]
+    missing = [k for k in required if k not in out]
     if missing:
         raise BlockFileError(f"block map without {', '.join(sorted(missing))}")
     if "hi_block" in out and (out["s"].dtype.str != "<f4" or out["n"].dtype.str != "<f4"):
@@ -248,7 +257,7 @@ def read_member(f: io.BufferedReader, m: Member) -> np.ndarray:
 
 def read_all(f: io.BufferedReader, members: dict[str, Member]) -> dict[str, np.ndarray]:
     """Every block member, checked: CRCs, the index against the masks."""
-    arrays = {k: read_member(f, m) for k, m in members.items()}
+    arrays = {k: read_member(f, m) for k, m in members.items() if k not in TABLE_MEMBERS}
     problem = index_problem(arrays)
     if problem:
         raise BlockFileError(problem)

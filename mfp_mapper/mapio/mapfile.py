@@ -51,9 +51,10 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from mfp_mapper.core.blocks import BLOCK_BITS
 from mfp_mapper.core.errors import CoreError
 from mfp_mapper.core.mapper import Mapper
-from mfp_mapper.core.packed import PackedBlocks, packed_problem
+from mfp_mapper.core.packed import PackedBlocks, packed_problem, sort_keys
 from mfp_mapper.core.reflectivity import (
     ReflectivityArrays,
     from_map_arrays,
@@ -64,6 +65,7 @@ from mfp_mapper.mapio.atomic import atomic_output
 from mfp_mapper.mapio.blockfile import (
     BLOCK_MEMBERS,
     HI_MEMBERS,
+    TABLE_MEMBERS,
     BlockFileError,
     BlockReader,
     Member,
@@ -72,6 +74,7 @@ from mfp_mapper.mapio.blockfile import (
     packed_of,
     packed_to_voxels,
     read_all,
+    read_member,
     voxels_to_packed,
     write_npz_stored,
 )
@@ -271,8 +274,10 @@ def read_map_file(path: str | Path, decay_time: float | None = None) -> MapConte
         st = path.stat()
         with open(path, "rb") as f, zipfile.ZipFile(f) as archive:
             if _holds_blocks(archive):
-                settings, members = _open_blocks(path, f, archive, st.st_size)
+                settings, bins, members = _open_blocks(path, f, archive, st.st_size)
                 settings.packed = packed_of(read_all(f, members))
+                rows = {k: read_member(f, members[k]) for k in TABLE_MEMBERS if k in members}
+                settings.reflectivity = _reflectivity(path, {**bins, **rows})
             else:
                 headers = check_headers(path, archive, st.st_size)
                 small = {k: _read(archive, k) for k in headers if k not in VOXEL_MEMBERS}
@@ -323,9 +328,12 @@ def read_map_blocks(
         with open(path, "rb") as f, zipfile.ZipFile(f) as archive:
             if not _holds_blocks(archive):
                 return None
-            settings, members = _open_blocks(path, f, archive, st.st_size)
+            settings, bins, members = _open_blocks(path, f, archive, st.st_size)
         with BlockReader(path, members) as reader:
-            settings.packed = reader.packed(np.unique(pick(reader)))
+            picked = np.unique(pick(reader))
+            settings.packed = reader.packed(picked)
+            rows = _table_rows(reader, reader.keys[picked])
+            settings.reflectivity = _reflectivity(path, {**bins, **rows})
             t_max = float(reader.view("block_t").max(initial=-math.inf))  # of every block
     except MapFileError:
         raise
@@ -354,14 +362,27 @@ def _holds_blocks(archive: zipfile.ZipFile) -> bool:
 
 def _open_blocks(
     path: Path, f: io.BufferedReader, archive: zipfile.ZipFile, file_size: int
-) -> tuple[MapContents, dict[str, Member]]:
-    """The settings and block members of a version 3 file, checked (no voxel read)."""
+) -> tuple[MapContents, dict[str, np.ndarray], dict[str, Member]]:
+    """The settings, the reflectivity bins' members and the block and reflectivity-row
+    members of a version 3 file, checked (no voxel or row read)."""
     headers = check_headers(path, archive, file_size, SETTINGS_MEMBERS)
-    small = {k: _read(archive, k) for k in headers}
+    small = {k: _read(archive, k) for k in headers if k not in TABLE_MEMBERS}
     settings = check_settings(path, small, blocks=True)
-    settings.reflectivity = _reflectivity(path, small)
     names = BLOCK_MEMBERS if int(small["version"]) >= 4 else V3_MEMBERS
-    return settings, locate_members(f, archive, names, file_size)
+    bins = {k: v for k, v in small.items() if k.startswith("reflectivity_")}
+    return settings, bins, locate_members(f, archive, names, file_size)
+
+
+def _table_rows(reader: BlockReader, keys: NDArray[np.int64]) -> dict[str, np.ndarray]:
+    """The reflectivity rows in the blocks of ``keys`` (``packed.sort_keys``): the voxel
+    indices are read whole (12 bytes a row), the counts and times only where those rows
+    lie (rows are written sorted by block: few pages)."""
+    present = [k for k in TABLE_MEMBERS if k in reader.members]
+    if "reflectivity_ijk" not in present:
+        return {k: reader.view(k) for k in present}  # incomplete: refused as such
+    blocks = reader.view("reflectivity_ijk").astype(np.int64) >> BLOCK_BITS
+    picked = np.flatnonzero(np.isin(sort_keys(blocks), keys))
+    return {k: reader.view(k)[picked] for k in present}
 
 
 def _reflectivity(path: Path, small: dict[str, np.ndarray]) -> ReflectivityArrays | None:

@@ -1,6 +1,6 @@
-"""Queries answered from a map file reading only the blocks they need (version 3 files;
-an older file is read whole once): what ``mfp-mapper query`` and a tiled map's queries
-use."""
+"""Queries answered from a map file reading only the blocks they need, and their
+reflectivity histograms (version 3 files; an older file is read whole once): what
+``mfp-mapper query`` and a tiled map's queries use."""
 
 from __future__ import annotations
 
@@ -31,8 +31,8 @@ whole instead of block by block."""
 
 class MapFileQueries:
     """A map file opened for ``query`` and ``query_segments``: each call reads only the
-    blocks it needs (version 3; an older file, or one with reflectivity histograms, is read
-    whole once). Blocks read are checked
+    blocks it needs, and the reflectivity histograms of those blocks (version 3; an older
+    file is read whole once). Blocks read are checked
     (masks, counts, values, stamps); a whole read also checks the CRCs. ``MapFileError``
     as ``load_map``."""
 
@@ -53,7 +53,7 @@ class MapFileQueries:
             return np.zeros(0, dtype=np.int64)
 
         c = read_map_blocks(self.path, index_only, decay_time)
-        if c is None or c.reflectivity is not None:  # an older file, or histograms
+        if c is None:  # an older file
             self._whole = self._empty = self._read_whole()
             packed = self._whole.stored_blocks()
             self.block_ijk, self.num_voxels = packed.block_ijk, packed.num_voxels
@@ -96,8 +96,13 @@ class MapFileQueries:
     def reflectivity(
         self, points: ArrayLike, stamp: float | None = None
     ) -> tuple[ReflectivityBins, NDArray[np.float64]] | None:
-        """``Mapper.reflectivity`` (a file with histograms is read whole; None without)."""
-        return None if self._whole is None else self._whole.reflectivity(points, stamp)
+        """``Mapper.reflectivity``, reading the histograms of the blocks that hold the
+        points (None for a file without histograms)."""
+        if self._empty.reflectivity_scale is None:
+            return None
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        blocks = np.floor(self._voxel_index(pts)).astype(np.int64) >> BLOCK_BITS
+        return self._blocks(sort_keys(blocks)).reflectivity(pts, stamp)
 
     def query_segments(
         self, starts: ArrayLike, ends: ArrayLike, stamp: float | None = None

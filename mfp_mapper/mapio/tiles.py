@@ -407,15 +407,15 @@ class TiledMap:
     def reflectivity(
         self, points: ArrayLike, stamp: float | None = None
     ) -> tuple[ReflectivityBins, NDArray[np.float64]] | None:
-        """``Mapper.reflectivity`` over the tiles: each tile holding a point is read once;
-        None when no tile read holds histograms."""
+        """``Mapper.reflectivity`` over the tiles: of each tile holding a point, the blocks
+        holding them (``MapFileQueries``); None when no tile read holds histograms."""
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         keys = tile_keys(self._empty_mapper().query(pts).ijk, self.tile_blocks)
         bins, counts = None, None
         for key in {(int(a), int(b), int(c)) for a, b, c in keys}:
             if key not in self.tiles:
                 continue
-            part = self.tile_mapper(key).reflectivity(pts[np.all(keys == key, axis=1)], stamp)
+            part = self.tile_queries(key).reflectivity(pts[np.all(keys == key, axis=1)], stamp)
             if part is None:
                 continue
             if counts is None:

@@ -22,9 +22,9 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from sensor_msgs.msg import PointCloud2
 
 from mfp_mapper.config.sections import OutputsSection
-from mfp_mapper.core.gridmap import GridTooLarge, unobserved_hit_probability
-from mfp_mapper.core.reflectivity import mean_value, most_likely_bin
+from mfp_mapper.core.gridmap import BandCells, GridTooLarge, unobserved_hit_probability
 from mfp_mapper.mapping.live import LiveIntegrator
+from mfp_mapper.mapping.map_cloud import MapCloud, rows_of
 from mfp_mapper.ros.messages import cloud_msg, grid_msg, stamp_msg
 from mfp_mapper.sensing.pointcloud import pack_cloud
 
@@ -59,6 +59,7 @@ class PublishCounters:
     count: int = 0
     last_seconds: float = 0.0
     voxels: int = 0
+    blocks_read: int = 0  # by the last publication (-1: the whole map, not by blocks)
 
 
 class MapOutputs:
@@ -94,6 +95,8 @@ class MapOutputs:
         # the map version each output last went out with: a late transient-local subscriber
         # of one output gets it even when the other already went out for this version
         self.published: dict[str, int | None] = {"clouds": None, "grid": None}
+        self._cloud = MapCloud()  # the clouds' rows, rebuilt where scans changed the map
+        self._grid_cells: BandCells | None = None  # the last ~/projected_map's, continued
         self._not_before = 0.0
 
     def invalidate(self) -> None:
@@ -156,44 +159,55 @@ class MapOutputs:
     def _publish_clouds(self, lock_times: list[float]) -> None:
         """Publish the degree-of-occupancy and std clouds of the filtered voxels, and the
         reflectivity cloud of those holding returns (when the map keeps histograms): per
-        voxel the mean intensity of its returns and its fullest intensity bin."""
+        voxel the mean intensity of its returns and its fullest intensity bin. With
+        ``publish_changed_blocks`` (and a ``min_degree_of_occupancy`` above 0) only the
+        blocks scans changed since the last publication are read under the map lock
+        (``mapping.map_cloud``); the clouds are the whole map's all the same."""
         cfg, worker = self._settings(), self._worker
+        incremental = cfg.publish_changed_blocks and cfg.min_degree_of_occupancy > 0.0
+        radius = cfg.publish_radius
         with self._timed_map_lock(lock_times):
-            robot = worker.robot_position
-            radius = cfg.publish_radius
-            window = None
-            if radius > 0.0 and robot is not None:
-                window = (np.asarray(robot) - radius, np.asarray(robot) + radius)
-            vox = worker.mapper.voxels(
-                min_doo=cfg.min_degree_of_occupancy,
-                min_evidence=cfg.min_evidence,
-                bounds=window,
-            )
+            position = worker.robot_position
+            robot = None if position is None else np.asarray(position, dtype=np.float64)
+            near = radius > 0.0 and robot is not None
             stamp = worker.mapper.last_stamp
-            histograms = worker.mapper.reflectivity(vox.centers)
-        sel = vox
-        if window is not None and robot is not None:
-            near = np.sum((vox.centers - robot) ** 2, axis=1) <= radius**2
-            sel = vox.select(near)
-            if histograms is not None:
-                histograms = (histograms[0], histograms[1][near])
-        xyz = {a: sel.centers[:, k] for k, a in enumerate("xyz")}
+            if incremental:
+                changes = self._cloud.read(
+                    worker.mapper, cfg.min_degree_of_occupancy, cfg.min_evidence
+                )
+            else:
+                window = (robot - radius, robot + radius) if near and robot is not None else None
+                vox = worker.mapper.voxels(
+                    min_doo=cfg.min_degree_of_occupancy,
+                    min_evidence=cfg.min_evidence,
+                    bounds=window,
+                )
+                histograms = worker.mapper.reflectivity(vox.centers)
+        if incremental:
+            rows = self._cloud.apply(changes, cfg.min_evidence)
+            self.counters.blocks_read = self._cloud.last_changed_blocks
+        else:
+            self._cloud.clear()
+            rows = rows_of(vox, histograms)
+            self.counters.blocks_read = -1
+        if near and robot is not None:
+            rows = rows.select(np.sum((rows.centers - robot) ** 2, axis=1) <= radius**2)
+        xyz = {a: rows.centers[:, k] for k, a in enumerate("xyz")}
         header_stamp = self._header_stamp(stamp)
         frame = worker.map_frame
-        doo = pack_cloud({**xyz, "degree_of_occupancy": sel.most_likely_doo})
-        std = pack_cloud({**xyz, "std": sel.std})
+        doo = pack_cloud({**xyz, "degree_of_occupancy": rows.degree_of_occupancy})
+        std = pack_cloud({**xyz, "std": rows.std})
         self._doo_pub.publish(cloud_msg(doo, frame, header_stamp))
         self._std_pub.publish(cloud_msg(std, frame, header_stamp))
-        if histograms is not None:
-            bins, counts = histograms
-            held = counts.sum(axis=1) > 0
+        if rows.reflectivity is not None and rows.reflectivity_bin is not None:
+            held = ~np.isnan(rows.reflectivity)
             cloud = pack_cloud({
                 **{a: v[held] for a, v in xyz.items()},
-                "reflectivity": mean_value(counts[held], bins).astype(np.float32),
-                "reflectivity_bin": most_likely_bin(counts[held]).astype(np.float32),
+                "reflectivity": rows.reflectivity[held],
+                "reflectivity_bin": rows.reflectivity_bin[held],
             })  # fmt: skip
             self._reflectivity_pub.publish(cloud_msg(cloud, frame, header_stamp))
-        self.counters.voxels = len(sel)
+        self.counters.voxels = len(rows)
 
     def grid(self, lock_times: list[float] | None = None, projected: bool = False) -> OccupancyGrid:
         """The 2D grid of the height band: hit-probability percent (``~/hit_probability_map``)
@@ -212,13 +226,20 @@ class MapOutputs:
         radius = cfg.hit_probability_map_radius
         center = (float(robot[0]), float(robot[1])) if robot is not None and radius > 0 else None
         limit = cfg.hit_probability_map_max_cells
+        # ~/projected_map: continued from the last one's cells (the columns scans changed)
+        previous = self._grid_cells if projected and cfg.publish_changed_blocks else None
         with self._timed_map_lock(lock_times):
             resolution = worker.mapper.resolution
             stamp = worker.mapper.last_stamp
             band = (cfg.occupancy_min_z, cfg.occupancy_max_z)
             try:
                 grid = worker.mapper.hit_probability_grid(
-                    *band, center=center, radius=radius, max_cells=limit, trinary=trinary
+                    *band,
+                    center=center,
+                    radius=radius,
+                    max_cells=limit,
+                    trinary=trinary,
+                    previous=previous,
                 )
             except GridTooLarge as err:
                 if robot is None:
@@ -234,6 +255,8 @@ class MapOutputs:
                 grid = worker.mapper.hit_probability_grid(
                     *band, center=center, radius=radius, max_cells=limit, trinary=trinary
                 )
+        if projected:
+            self._grid_cells = grid.cells
         now = self._node.get_clock().now().to_msg()
         return grid_msg(
             grid,

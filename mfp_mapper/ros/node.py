@@ -658,6 +658,12 @@ class MfpMapperNode(GuardedLifecycleNode):
                 "refused": self.query_service.refused,
             },
             "maps_served": self._maps_served,
+            # CPU seconds so far: the process, this (executor) thread, the worker's threads
+            "cpu_s": {
+                "process": round(time.process_time(), 4),
+                "executor": round(time.thread_time(), 4),
+                **{k: round(v, 4) for k, v in self.worker.thread_cpu().items()},
+            },
         }
         if self.localization is not None:
             extra["localization"] = self.localization.report()

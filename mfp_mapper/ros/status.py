@@ -80,6 +80,7 @@ def status_report(
         "publish_total_s": round(publish.seconds, 4),
         "publish_locked_total_s": round(publish.locked_seconds, 4),
         "published_voxels": publish.voxels,
+        "published_blocks_read": publish.blocks_read,
     }
 
 

@@ -8,7 +8,7 @@ from box_world import BoxWorld
 from grid_reference import hit_probability_grid
 
 from mfp_mapper import Mapper
-from mfp_mapper.core import model
+from mfp_mapper.core import gridmap, model
 from mfp_mapper.core.gridmap import (
     DEFAULT_OCCUPIED_THRESHOLD,
     UNKNOWN,
@@ -177,3 +177,49 @@ def test_mapper_trinary_grid_marks_the_wall_and_matches_the_reference(
     assert set(np.unique(grid.data)) == {-1, 0, 100}
     raw = mapper.hit_probability_grid(z_min, z_max)
     assert np.all(grid.data[raw.data == UNKNOWN] == UNKNOWN)
+
+
+@pytest.mark.parametrize("trinary", [None, (0.25, 0.01)])
+def test_grid_continued_from_the_last_equals_one_from_scratch(
+    trinary: tuple[float, float] | None, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A robot driving out of the first grid (the extent grows, on both sides), with decay
+    and a late scan: each grid continued from the previous one's cells (only the columns
+    of blocks the scans since opened) equals the grid computed from the whole band; after
+    clear_box and reset too."""
+    continued = []  # grids computed from the changed columns only
+    dirty_columns = gridmap._dirty_columns
+    monkeypatch.setattr(
+        gridmap, "_dirty_columns", lambda *a: (continued.append(1), dirty_columns(*a))[1]
+    )
+    rng = np.random.default_rng(11)
+    mapper = Mapper(0.2, decay_time=1.0)
+    band = (0.1, 2.0)
+    previous = None
+    changed_columns = []
+    stamps = [10.0 + 0.1 * k for k in range(24)]
+    stamps[6], stamps[8] = stamps[8], stamps[6]
+    for k, stamp in enumerate(stamps):
+        origin = np.array([2.5 * k * (-1) ** k, 0.7 * k, 1.0])
+        points = origin + rng.normal(0.0, 3.0, (1200, 3))
+        mapper.integrate(points, origin, stamp)
+        if k == 15:
+            mapper.clear_box([-5.0, -5.0, 0.0], [5.0, 5.0, 3.0])
+        if k == 20:
+            mapper.reset()
+        got = mapper.hit_probability_grid(*band, trinary=trinary, previous=previous)
+        want = mapper.hit_probability_grid(*band, trinary=trinary)
+        assert got.origin == want.origin
+        np.testing.assert_array_equal(got.data, want.data)
+        previous = got.cells
+        changed_columns.append(got.cells is not None)
+    assert all(changed_columns)
+    assert len(continued) >= 15  # all but the first, and those after clear_box and reset
+    # a scan in a corner: the continued grid reads a few columns, same cells as from scratch
+    mapper.integrate(np.array([[0.0, 0.0, 1.0]]), np.array([0.5, 0.5, 1.0]), 20.0)
+    got = mapper.hit_probability_grid(*band, trinary=trinary, previous=previous)
+    want = mapper.hit_probability_grid(*band, trinary=trinary)
+    np.testing.assert_array_equal(got.data, want.data)
+    # a window is never continued
+    window = mapper.hit_probability_grid(*band, center=(0.0, 0.0), radius=3.0, previous=previous)
+    assert window.cells is None

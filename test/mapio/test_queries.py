@@ -98,3 +98,79 @@ def test_segment_blocks_cover_every_voxel_the_walk_visits() -> None:
     for a, b in zip(va, vb, strict=True):
         dense = np.floor(a + (b - a) * t).astype(np.int64) >> 3
         assert np.isin(sort_keys(dense), keys).all()
+
+
+def test_histograms_are_read_by_block_too(tmp_path: Path) -> None:
+    """A map with reflectivity histograms is queried by block: the same histograms as the
+    map loaded whole; a damaged histogram far from the query is never read (loading the
+    whole file refuses it), the query that reads it refuses it."""
+    import zipfile
+
+    from mfp_mapper.core.reflectivity import ROW_KEYS, ScanReflectivity
+    from mfp_mapper.mapio.blockfile import BLOCK_MEMBERS, TABLE_MEMBERS, locate_members
+    from mfp_mapper.sensing.reflectivity import bins_for
+
+    assert TABLE_MEMBERS == ROW_KEYS  # the file's names, kept numba-free in mapio
+    bins = bins_for("reflectivity", 8)
+    assert bins is not None
+    rng = np.random.default_rng(2)
+    m = Mapper(0.1, decay_time=30.0, max_range=30.0)
+    for k, (points, origin) in enumerate(anchors_scene(n_scans=2, azimuths=200)):
+        values = ScanReflectivity(rng.uniform(0, 255, len(points)), bins)
+        m.integrate(points, origin, 100.0 + k, reflectivity=values)
+    path = tmp_path / "map.npz"
+    save_map(m, path)
+    table = m.stored_reflectivity()
+    assert table is not None and len(table) > 100
+    centres = (table.ijk + 0.5) * m.resolution + np.asarray(m.origin)
+    q = MapFileQueries(path)
+    for stamp in (None, 130.0):
+        a, b = m.reflectivity(centres, stamp), q.reflectivity(centres, stamp)
+        assert a is not None and b is not None and a[0] == b[0]
+        np.testing.assert_array_equal(a[1], b[1])
+    far, near = int(np.argmax(table.ijk[:, 0])), int(np.argmin(table.ijk[:, 0]))
+    with open(path, "rb") as f, zipfile.ZipFile(f) as archive:
+        member = locate_members(f, archive, (*BLOCK_MEMBERS, *ROW_KEYS), path.stat().st_size)
+    raw = bytearray(path.read_bytes())
+    at = member["reflectivity_counts"].offset + 8 * bins.count * far
+    raw[at : at + 8] = np.float64(-1.0).tobytes()
+    path.write_bytes(bytes(raw))
+    got = MapFileQueries(path).reflectivity(centres[near][None, :])
+    assert got is not None
+    np.testing.assert_array_equal(got[1], m.reflectivity(centres[near][None, :])[1])  # type: ignore[index]
+    with pytest.raises(MapFileError, match="CRC-32"):
+        load_map(path)
+    with pytest.raises(MapFileError, match="reflectivity_counts holds negative"):
+        MapFileQueries(path).reflectivity(centres[far][None, :])
+    assert MapFileQueries(LEGACY / "legacy_v2.npz").reflectivity(centres[:3]) is None
+
+
+def test_histograms_of_other_dtypes_are_read_too(tmp_path: Path) -> None:
+    """int64 indices and float32 counts and times (a file written by other tools) read as
+    the usual int32 and float64 ones, whole or by block."""
+    from mfp_mapper.core.reflectivity import ScanReflectivity
+    from mfp_mapper.mapio.mapfile import map_arrays, write_map_arrays
+    from mfp_mapper.sensing.reflectivity import bins_for
+
+    bins = bins_for("reflectivity", 8)
+    assert bins is not None
+    rng = np.random.default_rng(3)
+    m = Mapper(0.2, decay_time=30.0, max_range=30.0)
+    points, origin = anchors_scene(n_scans=1, azimuths=100)[0]
+    m.integrate(
+        points, origin, 5.0, reflectivity=ScanReflectivity(rng.uniform(0, 255, len(points)), bins)
+    )
+    arrays = map_arrays(m)
+    other = dict(
+        arrays,
+        reflectivity_ijk=arrays["reflectivity_ijk"].astype(np.int64),
+        reflectivity_counts=arrays["reflectivity_counts"].astype(np.float32),
+        reflectivity_t_last=arrays["reflectivity_t_last"].astype(np.float32),
+    )
+    write_map_arrays(tmp_path / "other.npz", other)
+    centres = (arrays["reflectivity_ijk"] + 0.5) * m.resolution + np.asarray(m.origin)
+    want = m.reflectivity(centres)
+    for got in (load_map(tmp_path / "other.npz").reflectivity(centres),
+                MapFileQueries(tmp_path / "other.npz").reflectivity(centres)):  # fmt: skip
+        assert want is not None and got is not None
+        np.testing.assert_array_equal(want[1], got[1])

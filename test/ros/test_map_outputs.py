@@ -16,9 +16,10 @@ from typing import Any
 
 import numpy as np
 import pytest
-from ros_helpers import Feeder, NodeProcess, Trajectory, read_cloud, stamp_msg
+from ros_helpers import Feeder, NodeProcess, Trajectory, clear_bbox, read_cloud, stamp_msg
 from test_node import NODE_PARAMS, RES, T0, Sim
 
+from mfp_mapper.core.gridmap import DEFAULT_OCCUPIED_THRESHOLD, unobserved_hit_probability
 from mfp_mapper.mapio import load_map
 
 pytestmark = pytest.mark.ros
@@ -97,3 +98,128 @@ def test_radius_limited_cloud_holds_exactly_the_voxels_near_the_robot(
         f"published {len(xyz)} of the map's {len(every.centers)} voxels with DoO >= "
         f"{NODE_PARAMS['min_degree_of_occupancy']}: exactly those within {RADIUS} m of the robot"
     )
+
+
+@pytest.mark.parametrize("changed_blocks", [True, False])
+def test_clouds_rebuilt_from_changed_blocks_equal_the_saved_map(
+    ros_domain: int, tmp_path: Path, changed_blocks: bool
+) -> None:
+    """A driving robot, 12 scans, the map published at 5 Hz meanwhile (the clouds rebuilt
+    from the blocks each publication's scans changed, or from the whole map) with decay:
+    the last clouds hold exactly the saved map's voxels with at least
+    ``min_degree_of_occupancy``, their degree of occupancy and std as the map's (statistics
+    as stored, decayed to each block's last scan), and the last ``~/projected_map``
+    (continued from the previous one's cells, or computed whole) is the saved map's grid."""
+    from std_srvs.srv import Trigger
+
+    scans = 12
+    map_path = tmp_path / "map.npz"
+    params = {
+        **NODE_PARAMS,
+        "publish_changed_blocks": changed_blocks,
+        "decay_time": 0.5,
+        "map_path": str(map_path),
+    }
+    node = NodeProcess(ros_domain, params, tmp_path / "node.log")
+    feeder = Feeder()
+    try:
+        assert feeder.wait_connected(30.0), f"node not discovered:\n{node.log()[-3000:]}"
+        assert feeder.wait(lambda: feeder.status is not None, 10.0)
+        sim = Sim(feeder)
+        starts = [T0 + 0.1 + 0.2 * k for k in range(scans)]
+        for start in starts:
+            sim.send_scan(start)
+            feeder.spin(0.2)  # publications go out between the scans
+        status = feeder.wait_status(lambda st: st["clouds_integrated"] >= scans, 60.0)
+        assert status["clouds_integrated"] == scans, f"{status}\n{node.log()[-3000:]}"
+        last = _stamp_seconds(stamp_msg(starts[-1]))
+
+        def latest() -> bool:
+            return all(
+                m is not None and _stamp_seconds(m.header.stamp) >= last
+                for m in (feeder.doo, feeder.std, feeder.projected)
+            )
+
+        assert feeder.wait(latest, 20.0), node.log()[-3000:]
+        doo, std, projected = read_cloud(feeder.doo), read_cloud(feeder.std), feeder.projected
+        status = feeder.wait_status(lambda st: st["published_voxels"] == len(doo["x"]), 10.0)
+        saved = feeder.call(feeder.save, Trigger.Request(), timeout=30.0)
+        assert saved.success, saved.message
+    finally:
+        feeder.destroy()
+        node.stop()
+    assert status["publish_count"] >= 3, status  # publications during the scans
+    assert (status["published_blocks_read"] >= 0) == changed_blocks, status
+
+    saved_map = load_map(map_path)
+    free = unobserved_hit_probability(RES, saved_map.prior.shape, saved_map.prior.rate)
+    grid = saved_map.hit_probability_grid(
+        NODE_PARAMS["occupancy_min_z"],
+        NODE_PARAMS["occupancy_max_z"],
+        trinary=(DEFAULT_OCCUPIED_THRESHOLD, min(free, DEFAULT_OCCUPIED_THRESHOLD)),
+    )
+    assert (projected.info.width, projected.info.height) == (grid.width, grid.height)
+    assert (projected.info.origin.position.x, projected.info.origin.position.y) == grid.origin
+    np.testing.assert_array_equal(np.asarray(projected.data, dtype=np.int8), grid.data.ravel())
+    assert (grid.data == 100).sum() > 10 and (grid.data == 0).sum() > 10
+    want = saved_map.voxels(min_doo=NODE_PARAMS["min_degree_of_occupancy"])
+    assert len(want) > 100
+    xyz = np.stack([doo[a] for a in "xyz"], axis=1).astype(np.float64)
+    np.testing.assert_array_equal(xyz, np.stack([std[a] for a in "xyz"], axis=1))
+    got_ijk = np.floor(xyz / RES).astype(np.int64)
+    want_ijk = np.floor(want.centers / RES).astype(np.int64)
+    assert len(np.unique(got_ijk, axis=0)) == len(got_ijk), "a voxel published twice"
+    got_order, want_order = np.lexsort(got_ijk.T), np.lexsort(want_ijk.T)
+    np.testing.assert_array_equal(got_ijk[got_order], want_ijk[want_order])
+    np.testing.assert_array_equal(
+        doo["degree_of_occupancy"][got_order],
+        want.most_likely_doo[want_order].astype(np.float32),
+    )
+    np.testing.assert_array_equal(std["std"][got_order], want.std[want_order].astype(np.float32))
+    assert len(np.unique(want.t_last)) > 1, "decay: the blocks refer to several stamps"
+
+
+def test_clouds_after_clear_bbox_and_reset_are_the_maps(ros_domain: int, tmp_path: Path) -> None:
+    """``~/clear_bbox`` and ``~/reset`` change voxels without a scan: the clouds published
+    after them (rebuilt from changed blocks by default) are the map's, not the kept rows."""
+    from std_srvs.srv import Empty, Trigger
+
+    map_path = tmp_path / "map.npz"
+    params = {**NODE_PARAMS, "map_path": str(map_path)}
+    node = NodeProcess(ros_domain, params, tmp_path / "node.log")
+    feeder = Feeder()
+    try:
+        assert feeder.wait_connected(30.0), f"node not discovered:\n{node.log()[-3000:]}"
+        assert feeder.wait(lambda: feeder.status is not None, 10.0)
+        sim = Sim(feeder)
+        starts = [T0 + 0.1 + 0.2 * k for k in range(4)]
+        for start in starts:
+            sim.send_scan(start)
+        status = feeder.wait_status(lambda st: st["clouds_integrated"] >= 4, 40.0)
+        assert status["clouds_integrated"] == 4, f"{status}\n{node.log()[-3000:]}"
+        last = _stamp_seconds(stamp_msg(starts[-1]))
+        assert feeder.wait(
+            lambda: feeder.doo is not None and _stamp_seconds(feeder.doo.header.stamp) >= last,
+            20.0,
+        ), node.log()[-3000:]
+        before = feeder.doo
+        cleared = clear_bbox(feeder, "mfp_mapper", (-100.0, -100.0, -5.0), (3.0, 100.0, 5.0))
+        assert cleared.success and cleared.cleared > 0, cleared
+        assert feeder.wait(lambda: feeder.doo is not before, 10.0), node.log()[-3000:]
+        after_clear = read_cloud(feeder.doo)
+        saved = feeder.call(feeder.save, Trigger.Request(), timeout=30.0)
+        assert saved.success, saved.message
+        want = load_map(map_path).voxels(min_doo=NODE_PARAMS["min_degree_of_occupancy"])
+        cleared_cloud = feeder.doo
+        feeder.call(feeder.reset, Empty.Request(), timeout=10.0)
+        assert feeder.wait(lambda: feeder.doo is not cleared_cloud, 10.0), node.log()[-3000:]
+        after_reset = read_cloud(feeder.doo)
+    finally:
+        feeder.destroy()
+        node.stop()
+    assert len(read_cloud(before)["x"]) > len(after_clear["x"]) > 50
+    got = np.floor(np.stack([after_clear[a] for a in "xyz"], axis=1) / RES).astype(np.int64)
+    wanted = np.floor(want.centers / RES).astype(np.int64)
+    assert got[:, 0].min() >= np.floor(3.0 / RES)  # nothing left of the cleared box
+    np.testing.assert_array_equal(got[np.lexsort(got.T)], wanted[np.lexsort(wanted.T)])
+    assert len(after_reset["x"]) == 0

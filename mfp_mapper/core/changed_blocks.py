@@ -1,0 +1,146 @@
+"""The voxels holding a return in the blocks scans changed since a given scan.
+
+What the node's map clouds are rebuilt from (``Mapper.changed_voxels``, used by
+``mapping.map_cloud``): a block's ``block_scan`` is the last scan that opened it, so the
+blocks with ``block_scan >= since`` are exactly those whose statistics changed since scan
+``since`` began (a block no scan opened keeps its statistics and time: the map clouds show
+statistics at their last update, not decayed to a later stamp). Only the ``n`` chunks of a
+block are read (a return is needed for any degree of occupancy above 0): 1-3% of the
+voxels of a street or indoor map, where ``store._select_voxels`` decodes all 512 voxels of
+every block holding a return.
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+from numpy.typing import NDArray
+
+from mfp_mapper.core.blocks import (
+    BLOCK_VOXELS,
+    CHUNK_BITS,
+    CHUNK_VOXELS,
+    N_BLOCK_CHUNKS,
+    N_CHUNK_VOXELS,
+    block_origin,
+    local_coords,
+)
+from mfp_mapper.core.shard import ShardArrays, block_values, chunk_slot
+
+ChangedArrays = tuple[
+    NDArray[np.int32],  # (B, 3) changed blocks holding a return
+    NDArray[np.int32],  # (V, 3) voxel index
+    NDArray[np.float64],  # s
+    NDArray[np.float64],  # n
+    NDArray[np.float64],  # t_last
+]
+
+
+@nb.njit(cache=True, nogil=True)
+def _changed_bound(sa: ShardArrays, used: int, since: int) -> tuple[int, int]:
+    """How many changed blocks hold a return, and at most how many voxels they select."""
+    blocks = 0
+    bound = 0
+    for b in range(used):
+        if sa.block_scan[b] < since or not sa.block_hit[b]:
+            continue
+        blocks += 1
+        if sa.block_href[b] >= 0:
+            bound += BLOCK_VOXELS
+            continue
+        row = sa.block_nrec[b]
+        if row >= 0:
+            for k in range(N_BLOCK_CHUNKS):
+                if sa.n_recs[row, k] >= 0:
+                    bound += N_CHUNK_VOXELS
+    return blocks, bound
+
+
+@nb.njit(cache=True, nogil=True)
+def _keep(s: float, n: float, min_extinction: float) -> bool:
+    """``store._select_voxels``' test for ``min_extinction`` > 0 (n > 0 needed)."""
+    return (s > 0.0 and n >= min_extinction * s) or (s == 0.0 and n > 0.0)
+
+
+@nb.njit(cache=True, nogil=True)
+def _changed_returns(
+    sa: ShardArrays,
+    used: int,
+    since: int,
+    min_extinction: float,
+    blocks_out: NDArray[np.int32],
+    ijk: NDArray[np.int32],
+    s_out: NDArray[np.float64],
+    n_out: NDArray[np.float64],
+    t_out: NDArray[np.float64],
+) -> int:
+    """Fill the outputs (sized by ``_changed_bound``) with the changed blocks holding a
+    return and their voxels with ``n >= min_extinction * s``; returns the voxel count."""
+    j = 0
+    m = 0
+    s_block = np.empty(BLOCK_VOXELS)
+    n_block = np.empty(BLOCK_VOXELS)
+    for b in range(used):
+        if sa.block_scan[b] < since or not sa.block_hit[b]:
+            continue
+        x0, y0, z0 = block_origin(sa.block_ijk, b)
+        blocks_out[m, 0] = sa.block_ijk[b, 0]
+        blocks_out[m, 1] = sa.block_ijk[b, 1]
+        blocks_out[m, 2] = sa.block_ijk[b, 2]
+        m += 1
+        t = sa.block_t[b]
+        if sa.block_href[b] >= 0:  # flushed: float64 parts too, read the whole block
+            block_values(sa, b, s_block, n_block)
+            for i in range(BLOCK_VOXELS):
+                if _keep(s_block[i], n_block[i], min_extinction):
+                    dx, dy, dz = local_coords(i)
+                    ijk[j, 0], ijk[j, 1], ijk[j, 2] = x0 + dx, y0 + dy, z0 + dz
+                    s_out[j], n_out[j], t_out[j] = s_block[i], n_block[i], t
+                    j += 1
+            continue
+        row = sa.block_nrec[b]
+        if row < 0:
+            continue
+        for k in range(N_BLOCK_CHUNKS):
+            chunk = sa.n_recs[row, k]
+            if chunk < 0:
+                continue
+            for q in range(N_CHUNK_VOXELS):
+                n = np.float64(sa.n_pool[chunk, q])
+                if n <= 0.0:
+                    continue
+                i = k * N_CHUNK_VOXELS + q
+                s = 0.0
+                s_chunk = sa.block_chunks[chunk_slot(b, i >> CHUNK_BITS)]
+                if s_chunk >= 0:
+                    s = np.float64(sa.s_pool[s_chunk, i & (CHUNK_VOXELS - 1)]) + 0.0  # not -0
+                if _keep(s, n, min_extinction):
+                    dx, dy, dz = local_coords(i)
+                    ijk[j, 0], ijk[j, 1], ijk[j, 2] = x0 + dx, y0 + dy, z0 + dz
+                    s_out[j], n_out[j], t_out[j] = s, n, t
+                    j += 1
+    return j
+
+
+def changed_returns(
+    shards: list[tuple[ShardArrays, int]], since: int, min_extinction: float
+) -> ChangedArrays:
+    """Over ``(arrays, used blocks)`` of each shard: the blocks holding a return that a scan
+    numbered ``since`` or later opened (all of them: ``since`` -1), and their voxels with
+    ``n >= min_extinction * s`` (``min_extinction`` > 0), statistics as stored."""
+    if not min_extinction > 0.0:
+        raise ValueError(f"min_extinction must be > 0, got {min_extinction}")
+    parts = []
+    for sa, used in shards:
+        blocks, bound = _changed_bound(sa, used, since)
+        out = (
+            np.empty((blocks, 3), np.int32),
+            np.empty((bound, 3), np.int32),
+            np.empty(bound),
+            np.empty(bound),
+            np.empty(bound),
+        )
+        count = _changed_returns(sa, used, since, min_extinction, *out)
+        parts.append((out[0], *(a[:count] for a in out[1:])))
+    blocks_out, ijk, s, n, t = (np.concatenate([p[k] for p in parts]) for k in range(5))
+    return blocks_out, ijk, s, n, t
