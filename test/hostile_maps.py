@@ -705,7 +705,7 @@ KINDS: dict[str, tuple[Builder, str]] = {
     "v3_mask_shape": (v3_mask_shape, "observed must have shape (2, 8)"),
     "v3_int_s": (v3_int_s, "s has dtype <i4"),
     "v3_as_version_2": (v3_as_version_2, "version 2 cannot hold blocks"),
-    "v3_missing_hit": (v3_missing_hit, "version 3 map without hit"),
+    "v3_missing_hit": (v3_missing_hit, "map without hit"),
     "truncated": (truncated, "unreadable or truncated"),
     "empty_file": (empty_file, "unreadable or truncated"),
     "wrong_magic": (wrong_magic, "unreadable or truncated"),

@@ -24,7 +24,7 @@ from mfp_mapper.core.memory_bound import (
     scan_block_budget,
     scan_new_blocks,
 )
-from mfp_mapper.core.packed import PackedBlocks, packed_problem
+from mfp_mapper.core.packed import PackedBlocks, as_parts, packed_problem
 from mfp_mapper.core.reflectivity import (
     ReflectivityArrays,
     ReflectivityBins,
@@ -872,17 +872,19 @@ class Mapper:
         resolution: float,
         origin: ArrayLike = (0.0, 0.0, 0.0),
         reflectivity: ReflectivityArrays | None = None,
+        checked: bool = False,
         **settings: object,
     ) -> Mapper:
         """A Mapper holding packed blocks (``stored_blocks``; indices relative to
         ``origin``), and the reflectivity histograms when given (as ``from_arrays``);
-        ``settings`` are the constructor's keyword arguments. Raises ``ValueError`` on bad
-        settings, blocks or histograms."""
-        problem = packed_problem(packed)
+        ``settings`` are the constructor's keyword arguments; ``checked``: the caller found
+        no ``packed_problem`` (a map file's reader: not checked twice). Raises
+        ``ValueError`` on bad settings, blocks or histograms."""
+        problem = None if checked else packed_problem(packed)
         if problem:
             raise ValueError(problem)
         mapper = cls(resolution, origin=origin, **settings)  # type: ignore[arg-type]
-        mapper._store.assign_blocks(packed)
+        mapper._store.assign_blocks(as_parts(packed))  # values kept exactly (float64 too)
         if reflectivity is not None:
             mapper._reflectivity = ReflectivityTable(reflectivity.bins)
             mapper._reflectivity.assign(reflectivity, mapper.decay_time)

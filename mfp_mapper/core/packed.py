@@ -31,33 +31,46 @@ from mfp_mapper.core.layout import (  # noqa: F401 (numba-free, re-exported)
     MASK_WORDS,
     MAX_BLOCK_INDEX,
     PackedBlocks,
+    as_parts,
+    as_values,
     compact,
+    hi_starts,
+    hit_row_of,
     packed_problem,
+    ranges,
+    select_blocks,
     sort_keys,
+    totals,
     voxel_starts,
 )
 
 
 @nb.njit(cache=True, nogil=True)
 def _pack_blocks(
-    block_sn: NDArray[np.floating],
+    block_s: NDArray[np.float32],
+    block_n: NDArray[np.float32],
+    hi_row: NDArray[np.int64],
+    hi: NDArray[np.float64],
     start: int,
     used: int,
     observed: NDArray[np.uint64],
     hit: NDArray[np.uint64],
     counts: NDArray[np.int64],
-    s_out: NDArray[np.floating],
-    n_out: NDArray[np.floating],
+    s_out: NDArray[np.float32],
+    n_out: NDArray[np.float32],
     places: NDArray[np.int64],
 ) -> int:
-    """Masks, counts (observed, hits) and values of blocks ``start`` to ``used``, in one
-    read of their memory: ``s`` of the observed voxels and ``n > 0`` appended to ``s_out``
-    and ``n_out`` from ``places`` (updated). Returns ``used``, or the block where an output
-    ran out of room (grow it and call again). Branch-free (observed voxels are scattered: a
-    branch per voxel mispredicts): every voxel is written and the place advances only past
-    kept ones."""
+    """Masks, counts (observed, hits) and float32 parts of blocks ``start`` to ``used``, in
+    one read of their memory: ``s`` of the observed voxels and ``n`` of those with a return
+    appended to ``s_out`` and ``n_out`` from ``places`` (updated; -0 written as +0). A
+    voxel is observed when its value (the float32 part plus the float64 one of a block
+    with ``hi_row[b] >= 0``, row of ``hi``) is > 0. Returns ``used``, or the block where an
+    output ran out of room (grow it and call again). Branch-free (observed voxels are
+    scattered: a branch per voxel mispredicts): every voxel is written and the place
+    advances only past kept ones."""
     js = places[0]
     jn = places[1]
+    zero = np.float32(0.0)
     for b in range(start, used):
         if js + BLOCK_VOXELS >= s_out.shape[0] or jn + BLOCK_VOXELS >= n_out.shape[0]:
             places[0] = js
@@ -65,23 +78,31 @@ def _pack_blocks(
             return b
         js0 = js
         jn0 = jn
+        r = hi_row[b]
         for w in range(MASK_WORDS):
             mo = np.uint64(0)
             mh = np.uint64(0)
-            for j in range(64):  # the masks first: no store, no dependency between voxels
-                s = block_sn[b, w * 64 + j, 0]
-                n = block_sn[b, w * 64 + j, 1]
-                mh |= np.uint64(n > 0.0) << np.uint64(j)
-                mo |= np.uint64((s > 0.0) | (n > 0.0)) << np.uint64(j)
+            if r < 0:
+                for j in range(64):  # the masks first: no store, no dependency between voxels
+                    s = block_s[b, w * 64 + j]
+                    n = block_n[b, w * 64 + j]
+                    mh |= np.uint64(n > 0.0) << np.uint64(j)
+                    mo |= np.uint64((s > 0.0) | (n > 0.0)) << np.uint64(j)
+            else:  # a flushed block (rare): its values are the sums of both parts
+                for j in range(64):
+                    s64 = np.float64(block_s[b, w * 64 + j]) + hi[r, w * 64 + j, 0]
+                    n64 = np.float64(block_n[b, w * 64 + j]) + hi[r, w * 64 + j, 1]
+                    mh |= np.uint64(n64 > 0.0) << np.uint64(j)
+                    mo |= np.uint64((s64 > 0.0) | (n64 > 0.0)) << np.uint64(j)
             observed[b, w] = mo
             hit[b, w] = mh
             if mo != 0:  # then the values of the words that hold some
                 for j in range(64):
-                    s_out[js] = block_sn[b, w * 64 + j, 0]
+                    s_out[js] = block_s[b, w * 64 + j] + zero
                     js += (mo >> np.uint64(j)) & np.uint64(1)
             if mh != 0:
                 for j in range(64):
-                    n_out[jn] = block_sn[b, w * 64 + j, 1]
+                    n_out[jn] = block_n[b, w * 64 + j]
                     jn += (mh >> np.uint64(j)) & np.uint64(1)
         counts[b, 0] = js - js0
         counts[b, 1] = jn - jn0
@@ -105,94 +126,147 @@ def _copy_runs(
             j += 1
 
 
-BlockChunk = tuple[NDArray[np.int32], NDArray[np.float64], NDArray[np.floating]]
-"""A run of a store's blocks: their index (k, 3), time (k,), and ``s``, ``n`` of their 512
-voxels each (k, 512, 2; Morton order; float32 or float64, C order: the packing reads it at
-memory speed, a strided view 10 times slower)."""
+BlockChunk = tuple[
+    NDArray[np.int32], NDArray[np.float64], NDArray[np.float32], NDArray[np.float32],
+    NDArray[np.int64], NDArray[np.float64],
+]  # fmt: skip
+"""A run of a store's blocks: their index (k, 3), time (k,), the float32 parts of ``s`` and
+``n`` of their 512 voxels each (k, 512) each, Morton order, C order: the packing reads
+them at memory speed), each block's row of the float64 parts or -1 (k,), and those
+parts (h, 512, 2: ``s``, ``n``)."""
 
 
-def _pack_chunk(chunk: BlockChunk, size_hint: int) -> tuple[
-    NDArray[np.uint64], NDArray[np.uint64], NDArray[np.int64], NDArray[np.floating],
-    NDArray[np.floating],
-]:  # fmt: skip
-    """Masks, counts and values (chunk order) of one chunk of blocks (``_pack_blocks``)."""
-    block_sn = np.ascontiguousarray(chunk[2])
-    used = block_sn.shape[0]
+class _Outputs:
+    """The packed values of all chunks, one after the other (grown when short)."""
+
+    def __init__(self, size_hint: int) -> None:
+        self.s = np.empty(max(size_hint, BLOCK_VOXELS) + BLOCK_VOXELS + 1, dtype=np.float32)
+        self.n = np.empty(max(size_hint // 16, BLOCK_VOXELS) + BLOCK_VOXELS + 1, np.float32)
+        self.places = np.zeros(2, dtype=np.int64)
+
+    def grow(self) -> None:
+        if self.places[0] + BLOCK_VOXELS >= self.s.shape[0]:
+            self.s = np.concatenate([self.s, np.empty_like(self.s)])
+        if self.places[1] + BLOCK_VOXELS >= self.n.shape[0]:
+            self.n = np.concatenate([self.n, np.empty_like(self.n)])
+
+
+def _pack_chunk(
+    chunk: BlockChunk, out: _Outputs
+) -> tuple[NDArray[np.uint64], NDArray[np.uint64], NDArray[np.int64]]:
+    """Masks and counts of one chunk of blocks, its float32 parts appended to ``out``
+    (``_pack_blocks``)."""
+    block_s = np.ascontiguousarray(chunk[2], dtype=np.float32)
+    block_n = np.ascontiguousarray(chunk[3], dtype=np.float32)
+    hi_row = np.ascontiguousarray(chunk[4], dtype=np.int64)
+    hi = np.ascontiguousarray(chunk[5], dtype=np.float64).reshape(-1, BLOCK_VOXELS, 2)
+    used = block_s.shape[0]
     observed = np.empty((used, MASK_WORDS), dtype=np.uint64)
     hit = np.empty((used, MASK_WORDS), dtype=np.uint64)
     counts = np.empty((used, 2), dtype=np.int64)
-    size = max(min(size_hint, used * BLOCK_VOXELS), BLOCK_VOXELS) + BLOCK_VOXELS + 1
-    s_out = np.empty(size, dtype=block_sn.dtype)
-    n_out = np.empty(max(size // 16, BLOCK_VOXELS) + BLOCK_VOXELS + 1, dtype=block_sn.dtype)
-    places = np.zeros(2, dtype=np.int64)
     start = 0
     while (
-        start := _pack_blocks(block_sn, start, used, observed, hit, counts, s_out, n_out, places)
+        start := _pack_blocks(
+            block_s,
+            block_n,
+            hi_row,
+            hi,
+            start,
+            used,
+            observed,
+            hit,
+            counts,
+            out.s,
+            out.n,
+            out.places,
+        )  # fmt: skip
     ) < used:
-        if places[0] + BLOCK_VOXELS >= s_out.shape[0]:
-            s_out = np.concatenate([s_out, np.empty_like(s_out)])
-        if places[1] + BLOCK_VOXELS >= n_out.shape[0]:
-            n_out = np.concatenate([n_out, np.empty_like(n_out)])
-    return observed, hit, counts, s_out, n_out
+        out.grow()
+    return observed, hit, counts
+
+
+def _mask_bits(masks: NDArray[np.uint64]) -> NDArray[np.bool_]:
+    """(k, 512) bools of (k, 8) masks: voxel i of a block is bit i."""
+    flat = np.ascontiguousarray(masks, dtype=np.uint64).view(np.uint8)
+    return np.unpackbits(flat, axis=1, bitorder="little").reshape(-1, BLOCK_VOXELS).astype(bool)
 
 
 def pack_chunks(chunks: Iterable[BlockChunk], size_hint: int = 0) -> PackedBlocks:
-    """The observed voxels of runs of a store's blocks (``BlockChunk``), packed and sorted
-    (a copy: the store may change afterwards): one read of the blocks' statistics, then the
-    values copied in sorted block order. Blocks without an observed voxel are left out.
+    """The observed voxels of runs of a store's blocks (``BlockChunk``, taken one at a
+    time), packed and sorted (a copy: the store may change afterwards): one read of the
+    blocks' float32 parts,
+    then the values copied in sorted block order; the float64 parts of the flushed blocks
+    follow (``PackedBlocks.parts``). Blocks without an observed voxel are left out.
     ``size_hint``: about how many voxels the chunks hold (the outputs grow when it is
-    short). Values keep their dtype; float64 values are stored as float32 where every one
-    survives the round trip (``compact``)."""
-    chunks = list(chunks)
-    parts = [_pack_chunk(c, size_hint + 1) for c in chunks]
+    short)."""
+    out = _Outputs(size_hint + 1)
+    parts, runs = [], []
+    for c in chunks:  # one at a time: a chunk's statistics may be reused by the next
+        parts.append(_pack_chunk(c, out))
+        runs.append((c[0], c[1], c[4], c[5]))  # index, time, float64 rows and parts
     keep = [np.flatnonzero(p[2][:, 0] > 0) for p in parts]
     block_ijk = np.concatenate(
-        [np.zeros((0, 3), np.int32)] + [c[0][r] for c, r in zip(chunks, keep, strict=True)]
+        [np.zeros((0, 3), np.int32)] + [c[0][r] for c, r in zip(runs, keep, strict=True)]
     )
     order = np.argsort(sort_keys(block_ijk), kind="stable")
+    in_order = bool(np.all(order[1:] > order[:-1]))  # chunks already sorted: no copy
     pairs = list(zip(parts, keep, strict=True))
     no_mask = np.zeros((0, MASK_WORDS), np.uint64)
     observed = np.concatenate([no_mask] + [p[0][r] for p, r in pairs])[order]
     hit = np.concatenate([no_mask] + [p[1][r] for p, r in pairs])[order]
-    block_t = np.concatenate([np.zeros(0)] + [c[1][r] for c, r in zip(chunks, keep, strict=True)])
+    block_t = np.concatenate([np.zeros(0)] + [c[1][r] for c, r in zip(runs, keep, strict=True)])
     block_t = block_t[order]
     values = []
-    for col in (0, 1):  # s, then n: each block's run in its chunk's output, in sorted order
-        outputs = [p[3] if col == 0 else p[4] for p in parts]
-        starts, lengths, offset = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)], 0
-        for k, p in enumerate(parts):
-            count = p[2][:, col]
-            first = np.cumsum(count) - count
-            starts.append(first[keep[k]] + offset)
-            lengths.append(count[keep[k]])
-            offset += len(outputs[k])
-        src = (
-            np.concatenate([np.zeros(0, np.float32), *outputs]) if len(outputs) != 1 else outputs[0]
-        )
-        run_length = np.concatenate(lengths)[order]
-        out = np.empty(int(run_length.sum()), dtype=src.dtype)
-        _copy_runs(src, np.concatenate(starts)[order], run_length, out)
-        values.append((compact(out), run_length))
+    for col in (0, 1):  # s, then n: each block's run in the outputs, in sorted order
+        src = (out.s if col == 0 else out.n)[: out.places[col]]
+        count = np.concatenate([np.zeros(0, np.int64)] + [p[2][:, col] for p in parts])
+        first = np.cumsum(count) - count
+        kept = np.concatenate([np.zeros(0, np.int64)] + [p[2][:, 0] for p in parts]) > 0
+        run_length = count[kept][order]
+        if in_order:  # the outputs hold the kept blocks' runs one after the other
+            values.append((src, run_length))
+            continue
+        moved = np.empty(int(run_length.sum()), dtype=np.float32)
+        _copy_runs(src, first[kept][order], run_length, moved)
+        values.append((moved, run_length))
     (s, _), (n, hits) = values
     hit_block = np.flatnonzero(hits > 0).astype(np.int64)
+    # the float64 parts: few blocks, gathered in sorted order
+    hi_rows = np.concatenate(
+        [np.zeros(0, np.int64)] + [c[2][r] for c, r in zip(runs, keep, strict=True)]
+    )
+    hi_all = np.concatenate(
+        [np.zeros((0, BLOCK_VOXELS, 2))]
+        + [
+            c[3].reshape(-1, BLOCK_VOXELS, 2)[c[2][r][c[2][r] >= 0]]
+            for c, r in zip(runs, keep, strict=True)
+        ]
+    )
+    has_hi = hi_rows[order] >= 0
+    hi_block = np.flatnonzero(has_hi).astype(np.int64)
+    hi_sorted = hi_all[np.flatnonzero(hi_rows >= 0).searchsorted(order[has_hi])]
+    hi_s = hi_sorted[..., 0][_mask_bits(observed[hi_block])]
+    hi_n = hi_sorted[..., 1][_mask_bits(hit[hi_block])]
     return PackedBlocks(
         block_ijk[order].astype(np.int32, copy=False), block_t, observed, s, hit_block,
-        hit[hit_block], n,
+        hit[hit_block], n, True, hi_block, hi_s, hi_n,
     )  # fmt: skip
 
 
 def voxel_arrays_of(
     packed: PackedBlocks,
 ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """Index (M, 3), ``s``, ``n`` and time (the block's) of every voxel of ``packed``
-    (checked by ``packed_problem``), block by block: what ``store.BlockStore.assign``
-    takes (``assign_blocks`` sets the same store from the blocks, 5-10 times faster)."""
+    """Index (M, 3), ``s``, ``n`` (``totals``) and time (the block's) of every voxel of
+    ``packed`` (checked by ``packed_problem``), block by block: what
+    ``store.BlockStore.assign`` takes (``assign_blocks`` sets the same store from the
+    blocks, 5-10 times faster)."""
     rows = packed.block_ijk.shape[0]
     bits = np.unpackbits(
         np.ascontiguousarray(packed.observed).view(np.uint8), bitorder="little"
     ).reshape(rows, BLOCK_VOXELS)
     row, place = np.nonzero(bits)
     keys = row * BLOCK_VOXELS + place  # increasing: the order of ``s``
+    s_all, n_all = totals(packed)
     n = np.zeros(keys.shape[0])
     if packed.hit_block.shape[0]:
         hit_bits = np.unpackbits(
@@ -200,19 +274,22 @@ def voxel_arrays_of(
         ).reshape(-1, BLOCK_VOXELS)
         hit_row, hit_place = np.nonzero(hit_bits)
         hit_keys = packed.hit_block[hit_row] * BLOCK_VOXELS + hit_place
-        n[np.searchsorted(keys, hit_keys)] = packed.n
+        n[np.searchsorted(keys, hit_keys)] = n_all
     coords = np.array([local_coords(i) for i in range(BLOCK_VOXELS)], dtype=np.int64)
     ijk = packed.block_ijk.astype(np.int64)[row] * BLOCK_EDGE + coords[place]
-    s = np.asarray(packed.s, dtype=np.float64)
-    return ijk, s, n, packed.block_t[row]
+    return ijk, s_all, n, packed.block_t[row]
 
 
 __all__ = [
     "MASK_WORDS",
     "BlockChunk",
     "PackedBlocks",
+    "as_parts",
+    "as_values",
     "block_key",
     "pack_chunks",
     "packed_problem",
+    "select_blocks",
+    "totals",
     "voxel_arrays_of",
 ]

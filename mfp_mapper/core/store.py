@@ -28,8 +28,11 @@ Every ray's contribution is summed into the store: sums, never deduplication.
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Any
 
 import numba as nb
 import numpy as np
@@ -44,6 +47,7 @@ from mfp_mapper.core.blocks import (
     CHUNK_VOXELS,
     MAX_VOXEL_INDEX,
     N_BLOCK_CHUNKS,
+    N_CHUNK_VOXELS,
     SHARD_TILE_BITS,
     IndexBox,
     block_key,
@@ -66,7 +70,10 @@ from mfp_mapper.core.packed import (
     MASK_WORDS,
     BlockChunk,
     PackedBlocks,
+    hi_starts,
+    hit_row_of,
     pack_chunks,
+    sort_keys,
     voxel_starts,
 )
 from mfp_mapper.core.shard import (
@@ -83,6 +90,10 @@ from mfp_mapper.core.shard import (
     s_index,
     voxel_stats,
 )
+
+_THREADED_WRITE_VOXELS = 1_000_000
+"""Voxels from which ``BlockStore.assign_blocks`` writes the ``s`` parts in a thread of
+their own while it opens the blocks (``BlockStore._fill_parts``)."""
 
 __all__ = ["BLOCK_EDGE", "MAX_VOXEL_INDEX", "BlockStats", "BlockStore", "VoxelArrays", "index_box"]
 
@@ -324,6 +335,161 @@ def _set_blocks(
 
 
 @nb.njit(cache=True, nogil=True)
+def _open_parts(
+    packed_ijk: NDArray[np.int32],
+    packed_t: NDArray[np.float64],
+    observed: NDArray[np.uint64],
+    hit_row: NDArray[np.int64],
+    hit: NDArray[np.uint64],
+    n: NDArray[np.float32],
+    n_start: NDArray[np.int64],
+    hi_row: NDArray[np.int64],
+    hi_s: NDArray[np.float64],
+    hi_n: NDArray[np.float64],
+    hi_s_start: NDArray[np.int64],
+    hi_n_start: NDArray[np.int64],
+    start: int,
+    shard: int,
+    shard_mask: int,
+    sa: ShardArrays,
+) -> int:
+    """Open the packed blocks (held as parts, ``packed.PackedBlocks.parts``) of ``shard``
+    from block ``start`` on, in order: each block, the ``s`` chunks of its observed voxels
+    (numbered in block order: from the masks alone, ``_write_parts`` knows them), its ``n``
+    (float32 parts, voxels with a return) and its float64 part where it has one, as the
+    store held them; the ``s`` values are left to ``_write_parts`` (the bulk, in another
+    thread meanwhile). Returns the number of blocks when done, else the block
+    where the shard ran out of room (make room, call again from there)."""
+    block_chunks, chunk_owner, pools = sa.block_chunks, sa.chunk_owner, sa.pools
+    block_nrec, n_recs = sa.block_nrec, sa.n_recs
+    flat_n = sa.n_pool.reshape(-1)
+    for b in range(start, packed_ijk.shape[0]):
+        bx, by, bz = packed_ijk[b, 0], packed_ijk[b, 1], packed_ijk[b, 2]
+        if shard_of(bx, by, bz, shard_mask) != shard:
+            continue
+        used = sa.counters[0]
+        if (
+            used >= sa.block_t.shape[0]
+            or 2 * used >= sa.table_keys.shape[0]
+            or pools[S_USED] + BLOCK_CHUNKS > chunk_owner.shape[0]
+            or pools[NREC_USED] + 1 > n_recs.shape[0]
+            or pools[NCHUNK_USED] + N_BLOCK_CHUNKS > sa.n_pool.shape[0]
+            or pools[HI_USED] + 1 > sa.hi_pool.shape[0]
+        ):
+            return b
+        block = open_block(bx, by, bz, sa, -1, packed_t[b], math.inf)
+        sa.block_t[block] = max(sa.block_t[block], packed_t[b])
+        for w in range(BLOCK_VOXELS // 64):  # a mask word is an s chunk (64 voxels)
+            if observed[b, w] != 0:
+                slot = chunk_slot(block, w)
+                if block_chunks[slot] < 0:
+                    chunk = pools[S_USED]
+                    pools[S_USED] = chunk + 1
+                    block_chunks[slot] = chunk
+                    chunk_owner[chunk] = slot
+        row = hit_row[b]
+        f = hi_row[b]
+        href = -1
+        if f >= 0:
+            href = sa.block_href[block]
+            if href < 0:
+                href = pools[HI_USED]
+                pools[HI_USED] = href + 1
+                sa.block_href[block] = href
+                sa.hi_pool[href] = 0.0
+            ks = hi_s_start[f]
+            for w in range(BLOCK_VOXELS // 64):
+                m = observed[b, w]
+                while m:  # the set bits, lowest first
+                    bit = m & (np.uint64(0) - m)
+                    m ^= bit
+                    i = w * 64 + _LOW_BIT[(bit * _DE_BRUIJN) >> np.uint64(58)]
+                    sa.hi_pool[href, i, 0] = hi_s[ks]
+                    ks += 1
+        if row < 0:
+            continue
+        jn = n_start[row]
+        kn = hi_n_start[f] if f >= 0 else 0
+        for w in range(BLOCK_VOXELS // 64):
+            mh = hit[row, w]
+            if mh:
+                sa.block_hit[block] = True
+            while mh:
+                bit = mh & (np.uint64(0) - mh)
+                mh ^= bit
+                i = w * 64 + _LOW_BIT[(bit * _DE_BRUIJN) >> np.uint64(58)]
+                flat_n[n_index(block_nrec, n_recs, pools, block, i, True)] = n[jn]
+                jn += 1
+                if f >= 0:
+                    sa.hi_pool[href, i, 1] = hi_n[kn]
+                    kn += 1
+    return packed_ijk.shape[0]
+
+
+@nb.njit(cache=True, nogil=True)
+def _write_parts(
+    observed: NDArray[np.uint64],
+    s: NDArray[np.float32],
+    s_start: NDArray[np.int64],
+    chunk_first: NDArray[np.int64],
+    s_pool: NDArray[np.float32],
+) -> None:
+    """The float32 parts of ``s`` of the packed blocks into their chunks: block b's
+    observed mask words take the chunks ``chunk_first[b]``, ``chunk_first[b] + 1``, ... in
+    order (as ``_open_parts`` numbers them; -1: another shard's block); -0 for an observed
+    voxel whose part is 0 (shard's notes). Touches ``s_pool`` alone: it runs beside
+    ``_open_parts``."""
+    marks = s_pool.reshape(-1).view(np.uint32)
+    s_bits = s.view(np.uint32)
+    sign = np.uint32(0x80000000)
+    for b in range(observed.shape[0]):
+        c = chunk_first[b]
+        if c < 0:
+            continue
+        js = s_start[b]
+        for w in range(BLOCK_VOXELS // 64):
+            m = observed[b, w]
+            if m == 0:
+                continue
+            base = c * CHUNK_VOXELS
+            c += 1
+            while m:  # the set bits, lowest first
+                bit = m & (np.uint64(0) - m)
+                m ^= bit
+                i = _LOW_BIT[(bit * _DE_BRUIJN) >> np.uint64(58)]
+                v = s_bits[js]
+                js += 1
+                marks[base + i] = v if v & ~sign else sign
+
+
+@nb.njit(cache=True, nogil=True)
+def _block_parts(
+    sa: ShardArrays, blocks: NDArray[np.int64], s: NDArray[np.float32], n: NDArray[np.float32]
+) -> None:
+    """The float32 parts of ``s`` and ``n`` (len(blocks) x 512, as stored: -0 marks kept)
+    of ``blocks``."""
+    for k in range(blocks.shape[0]):
+        b = blocks[k]
+        for c in range(BLOCK_CHUNKS):
+            chunk = sa.block_chunks[chunk_slot(b, c)]
+            if chunk >= 0:
+                for i in range(CHUNK_VOXELS):
+                    s[k, c * CHUNK_VOXELS + i] = sa.s_pool[chunk, i]
+            else:
+                for i in range(CHUNK_VOXELS):
+                    s[k, c * CHUNK_VOXELS + i] = 0.0
+        row = sa.block_nrec[b]
+        for c in range(N_BLOCK_CHUNKS):
+            chunk = sa.n_recs[row, c] if row >= 0 else -1
+            if chunk >= 0:
+                for i in range(N_CHUNK_VOXELS):
+                    n[k, c * N_CHUNK_VOXELS + i] = sa.n_pool[chunk, i]
+            else:
+                for i in range(N_CHUNK_VOXELS):
+                    n[k, c * N_CHUNK_VOXELS + i] = 0.0
+
+
+@nb.njit(cache=True, nogil=True)
 def _lookup(
     ijk: NDArray[np.int64],
     shard_mask: int,
@@ -557,13 +723,28 @@ class BlockStore:
                 raise ValueError(f"ijk lists voxel {ijk[done].tolist()} more than once")
         self.num_voxels = int(counts[0])
 
-    def block_chunks(self) -> Iterator[BlockChunk]:
-        """Every block's index, time and the ``s``, ``n`` of its 512 voxels ((k, 512, 2),
-        Morton order, float64: the float32 parts plus the float64 ones), runs of blocks shard
-        by shard (copies, ``blocks``): a block-level export without per-voxel index arrays
-        (``packed.BlockChunk``)."""
-        for run in self.blocks():
-            yield run.ijk, run.t, np.stack([run.s, run.n], axis=-1)
+    def block_chunks(self, max_blocks: int = 4096) -> Iterator[BlockChunk]:
+        """Every block's index, time, the float32 parts of ``s`` and ``n`` of its 512 voxels
+        ((k, 512) each, Morton order) and its float64 part where it was flushed, runs of
+        at most ``max_blocks`` blocks shard by shard, each shard's in sorted order
+        (``packed.sort_keys``: a store of one shard packs without moving its values): a
+        block-level export without per-voxel index arrays (``packed.BlockChunk``). The
+        float32 parts of a run are overwritten by the next (one buffer, not a fresh one
+        the system must fault in each time): use each run before taking the next."""
+        s_buffer = np.empty((max_blocks, BLOCK_VOXELS), dtype=np.float32)
+        n_buffer = np.empty((max_blocks, BLOCK_VOXELS), dtype=np.float32)
+        for sh in self.shards:
+            order = np.argsort(sort_keys(sh.block_ijk[: sh.used]), kind="stable")
+            for start in range(0, sh.used, max_blocks):
+                blocks = order[start : start + max_blocks]
+                s, n = s_buffer[: blocks.shape[0]], n_buffer[: blocks.shape[0]]
+                _block_parts(sh.arrays(), blocks, s, n)
+                href = sh.block_href[blocks]
+                flushed = href >= 0
+                hi_row = np.full(blocks.shape[0], -1, dtype=np.int64)
+                hi_row[flushed] = np.arange(np.count_nonzero(flushed))
+                hi = sh.hi_pool[href[flushed]]
+                yield sh.block_ijk[blocks], sh.block_t[blocks], s, n, hi_row, hi
 
     def export_blocks(self) -> PackedBlocks:
         """Every observed voxel, packed block by block (``packed``; a copy)."""
@@ -571,10 +752,12 @@ class BlockStore:
 
     def assign_blocks(self, packed: PackedBlocks) -> None:
         """Set the voxels of packed blocks (checked by ``packed_problem``) in an empty
-        store; the inverse of ``export_blocks``. Compiled, block by block
-        (``_set_blocks``): the same store as ``assign`` of the voxel lists
-        (``packed.voxel_arrays_of``), bit for bit, which it replaces because building and
-        probing per-voxel index arrays cost 5-10 times as long (docs/performance.md)."""
+        store; the inverse of ``export_blocks``. Compiled, block by block: blocks held as
+        parts (``PackedBlocks.parts``, what ``export_blocks`` gives) get their float32 and
+        float64 parts back as they were (``_fill_parts``); blocks holding values are set as
+        ``assign`` sets their voxel lists (``packed.voxel_arrays_of``), bit for bit
+        (``_set_blocks``), which it replaces because building and probing per-voxel index
+        arrays cost 5-10 times as long (docs/performance.md)."""
         if self.num_blocks:
             raise ValueError("assign_blocks needs an empty store")
         rows = packed.block_ijk.shape[0]
@@ -583,21 +766,46 @@ class BlockStore:
         observed = np.ascontiguousarray(packed.observed, dtype=np.uint64)
         hit = np.ascontiguousarray(packed.hit, dtype=np.uint64).reshape(-1, MASK_WORDS)
         s, n = np.ascontiguousarray(packed.s), np.ascontiguousarray(packed.n)
-        hit_row = np.full(rows, -1, dtype=np.int64)
-        hit_row[packed.hit_block] = np.arange(packed.hit_block.shape[0])
+        hit_row = hit_row_of(packed)
         s_start, n_start = voxel_starts(observed), voxel_starts(hit)
-        tiles = (block_ijk.astype(np.int64) >> SHARD_TILE_BITS).sum(axis=1) & self.shard_mask
+        if packed.parts:
+            hi_row = np.full(rows, -1, dtype=np.int64)
+            hi_row[packed.hi_block] = np.arange(packed.hi_block.shape[0])
+            hi_s_start, hi_n_start = hi_starts(packed)
+            hi_s = np.ascontiguousarray(packed.hi_s, dtype=np.float64)
+            hi_n = np.ascontiguousarray(packed.hi_n, dtype=np.float64)
+            s, n = s.astype(np.float32, copy=False), n.astype(np.float32, copy=False)
+            words = np.count_nonzero(observed, axis=1).astype(np.int64)
+        if self.shard_mask:
+            tiles = (block_ijk.astype(np.int64) >> SHARD_TILE_BITS).sum(axis=1) & self.shard_mask
         counts = np.zeros(1, dtype=np.int64)
         for sid, sh in enumerate(self.shards):
-            mine = tiles == sid
-            hits_mine = mine[packed.hit_block]
-            sh.grow(min_free=int(np.count_nonzero(mine)))
+            if self.shard_mask:
+                mine = tiles == sid
+                hits_mine = mine[packed.hit_block]
+                blocks, hit_blocks = int(np.count_nonzero(mine)), int(np.count_nonzero(hits_mine))
+                chunks = int(np.count_nonzero(observed[mine]))
+                n_chunks = int(np.count_nonzero(hit[hits_mine].view(np.uint16)))
+                hi_blocks = int(np.count_nonzero(mine[packed.hi_block])) if packed.parts else 0
+            else:
+                blocks, hit_blocks = rows, packed.hit_block.shape[0]
+                chunks = int(np.count_nonzero(observed))
+                n_chunks = int(np.count_nonzero(hit.view(np.uint16)))
+                hi_blocks = packed.hi_block.shape[0] if packed.parts else 0
+            sh.grow(min_free=blocks)
             sh.ensure_room(  # what the blocks need (and a block's worth: the kernel's check)
-                int(np.count_nonzero(observed[mine])) + BLOCK_CHUNKS,
-                int(np.count_nonzero(hit[hits_mine].view(np.uint16))) + N_BLOCK_CHUNKS,
-                1,
-                int(np.count_nonzero(hits_mine)) + 1,
+                chunks + BLOCK_CHUNKS, n_chunks + N_BLOCK_CHUNKS, hi_blocks + 1, hit_blocks + 1
             )
+            if packed.parts:
+                self._fill_parts(
+                    sh, sid, mine if self.shard_mask else None, words,
+                    (block_ijk, block_t, observed, hit_row, hit, n, n_start, hi_row, hi_s, hi_n,
+                     hi_s_start, hi_n_start),
+                    s, s_start,
+                )  # fmt: skip
+                mine_voxels = np.diff(s_start)[mine].sum() if self.shard_mask else s.shape[0]
+                counts[0] += int(mine_voxels)
+                continue
             hi_room = 1
             start = 0
             while (
@@ -621,6 +829,66 @@ class BlockStore:
                 hi_room *= 2
                 sh.ensure_room(BLOCK_CHUNKS, N_BLOCK_CHUNKS, hi_room, 1)
         self.num_voxels = int(counts[0])
+
+    def _fill_parts(
+        self,
+        sh: Shard,
+        sid: int,
+        mine: NDArray[np.bool_] | None,
+        words: NDArray[np.int64],
+        opening: tuple[Any, ...],
+        s: NDArray[np.float32],
+        s_start: NDArray[np.int64],
+    ) -> None:
+        """Set the packed blocks (parts) of shard ``sid`` (``mine``: its rows; None: all):
+        ``_open_parts`` in this thread while ``_write_parts`` writes the ``s`` parts in
+        another, on maps of a million voxels or more where two cores are there (their
+        chunks numbered from the masks, ``words`` nonzero mask words a block: the same
+        store as one after the other)."""
+        counted = words if mine is None else np.where(mine, words, 0)
+        first = np.cumsum(counted) - counted + int(sh.pools[S_USED])
+        chunk_first = first if mine is None else np.where(mine, first, -1)
+        writer = None
+        pool = None
+        if s.shape[0] >= _THREADED_WRITE_VOXELS and (os.cpu_count() or 1) >= 2:
+            pool = ThreadPoolExecutor(1)
+            writer = pool.submit(_write_parts, opening[2], s, s_start, chunk_first, sh.s_pool)
+        grown = False
+        try:
+            hi_room, start = 1, 0
+            ijk, t, observed, hit_row, hit, n, n_start, hi_row, hi_s, hi_n, fs, fn = opening
+            while (
+                start := _open_parts(
+                    ijk,
+                    t,
+                    observed,
+                    hit_row,
+                    hit,
+                    n,
+                    n_start,
+                    hi_row,
+                    hi_s,
+                    hi_n,
+                    fs,
+                    fn,
+                    start,
+                    sid,
+                    self.shard_mask,
+                    sh.arrays(),
+                )  # fmt: skip
+            ) < s_start.shape[0] - 1:  # out of room (not expected: sized above): grow
+                if writer is not None:
+                    writer.result()  # before the pools move
+                    writer = None
+                grown, hi_room = True, 2 * hi_room
+                sh.ensure_room(BLOCK_CHUNKS, N_BLOCK_CHUNKS, hi_room, 1)
+        finally:
+            if writer is not None:
+                writer.result()
+            if pool is not None:
+                pool.shutdown()
+        if pool is None or grown:
+            _write_parts(opening[2], s, s_start, chunk_first, sh.s_pool)
 
     def lookup(self, ijk: NDArray[np.int64]) -> VoxelArrays:
         """Statistics of these voxels (zeros and t_last=-inf where never observed)."""

@@ -1,8 +1,8 @@
-"""Map files of version 3: the store's blocks as they are in memory, read by block.
+"""Map files of versions 3 and 4: the store's blocks as they are in memory, read by block.
 
-A version 3 map file is an ``.npz`` (a zip of ``.npy`` arrays, every member stored, none
+A version 4 map file is an ``.npz`` (a zip of ``.npy`` arrays, every member stored, none
 deflated) holding the settings of every version (``mapfile``) and the packed blocks of
-``core.packed``:
+``core.packed``, as parts (``PackedBlocks.parts``):
 
 ===============  ==============  =====================================================
 ``block_ijk``    int32 (B, 3)    block index (voxel index >> 3), sorted by x, y, z; once
@@ -13,16 +13,25 @@ deflated) holding the settings of every version (``mapfile``) and the packed blo
 ``observed``     uint64 (B, 8)   bit ``i % 64`` of word ``i // 64``: the voxel of Morton
                                  place ``i`` in the block is observed (s > 0 or n > 0)
 ``hit``          uint64 (H, 8)   the same for the voxels with a return (n > 0)
-``s``            float32 (M,)    metres of rays in each observed voxel, block by block
-                                 (float64 in a file of merged sums)
-``n``            float32 (K,)    returns in each voxel with a return (float64 likewise)
+``s``            float32 (M,)    metres of rays in each observed voxel, block by block:
+                                 the float32 part of the sum
+``n``            float32 (K,)    returns in each voxel with a return (float32 part)
+``hi_block``     int64 (F,)      rows of the blocks with a float64 part, increasing
+``hi_s``         float64 (F_s,)  the float64 part of ``s``: one per observed voxel of
+                                 those blocks, block by block
+``hi_n``         float64 (F_n,)  the float64 part of ``n``: one per voxel with a return
+                                 of those blocks
 ===============  ==============  =====================================================
+
+A voxel's ``s`` is ``float64(s) + hi_s`` where its block has a float64 part, else
+``s`` (likewise ``n``): what the store holds, so that a map loads back bit for bit. Version
+3 files (still read) have no ``hi_*`` members and hold the values in ``s`` and ``n``
+(float32, or float64 in a file of merged or flushed sums).
 
 The block index (``block_ijk``, ``block_start``, ``hit_block``, ``hit_start``) comes first,
 so a reader that needs a few blocks reads the index, finds its blocks by binary search and
-reads their masks and values where they lie (``BlockFile.packed``); a full read checks each
-member's CRC-32. Arrays are little-endian. Writes go through ``mapio.atomic``.
-"""
+reads their masks and values where they lie (``BlockReader.packed``); a full read checks
+each member's CRC-32. Arrays are little-endian. Writes go through ``mapio.atomic``."""
 
 from __future__ import annotations
 
@@ -46,15 +55,23 @@ from mfp_mapper.core.layout import (
     MAX_BLOCK_INDEX,
     PackedBlocks,
     VoxelArrays,
+    as_parts,
+    as_values,
     compact,
+    hi_starts,
+    select_blocks,
     sort_keys,
+    totals,
     voxel_starts,
 )
 
 BLOCK_MEMBERS = (
     "block_ijk", "block_start", "hit_block", "hit_start", "block_t", "observed", "hit", "s", "n",
+    "hi_block", "hi_s", "hi_n",
 )  # fmt: skip
-"""The block members of a version 3 map file, in the order written (the index first)."""
+"""The block members of a version 4 map file, in the order written (the index first)."""
+HI_MEMBERS = ("hi_block", "hi_s", "hi_n")
+"""The members a version 3 file lacks (it holds values, not parts)."""
 TABLE_MEMBERS = ("reflectivity_ijk", "reflectivity_counts", "reflectivity_t_last")
 """The members of a map's reflectivity table with a row per voxel (``core.reflectivity.
 ROW_KEYS``; numba-free here), located like the block members and read by block too."""
@@ -69,6 +86,9 @@ _DTYPES: dict[str, tuple[str, ...]] = {
     "hit": ("<u8",),
     "s": ("<f4", "<f8"),
     "n": ("<f4", "<f8"),
+    "hi_block": ("<i8",),
+    "hi_s": ("<f8",),
+    "hi_n": ("<f8",),
     # TABLE_MEMBERS
     "reflectivity_ijk": ("<i4", "<i8"),
     "reflectivity_counts": ("<f8", "<f4"),
@@ -79,26 +99,35 @@ _LOCAL_MAGIC = b"PK\x03\x04"
 
 
 def block_arrays(packed: PackedBlocks) -> dict[str, np.ndarray]:
-    """The block members of a map file for ``packed`` (index arrays added)."""
+    """The block members of a version 4 map file for ``packed`` (as parts: ``as_parts``;
+    index arrays added)."""
+    p = as_parts(packed)
     return {
-        "block_ijk": np.ascontiguousarray(packed.block_ijk, dtype="<i4"),
-        "block_start": voxel_starts(packed.observed),
-        "hit_block": np.ascontiguousarray(packed.hit_block, dtype="<i8"),
-        "hit_start": voxel_starts(packed.hit),
-        "block_t": np.ascontiguousarray(packed.block_t, dtype="<f8"),
-        "observed": np.ascontiguousarray(packed.observed, dtype="<u8"),
-        "hit": np.ascontiguousarray(packed.hit, dtype="<u8"),
-        "s": np.ascontiguousarray(packed.s),
-        "n": np.ascontiguousarray(packed.n),
+        "block_ijk": np.ascontiguousarray(p.block_ijk, dtype="<i4"),
+        "block_start": voxel_starts(p.observed),
+        "hit_block": np.ascontiguousarray(p.hit_block, dtype="<i8"),
+        "hit_start": voxel_starts(p.hit),
+        "block_t": np.ascontiguousarray(p.block_t, dtype="<f8"),
+        "observed": np.ascontiguousarray(p.observed, dtype="<u8"),
+        "hit": np.ascontiguousarray(p.hit, dtype="<u8"),
+        "s": np.ascontiguousarray(p.s, dtype="<f4"),
+        "n": np.ascontiguousarray(p.n, dtype="<f4"),
+        "hi_block": np.ascontiguousarray(p.hi_block, dtype="<i8"),
+        "hi_s": np.ascontiguousarray(p.hi_s, dtype="<f8"),
+        "hi_n": np.ascontiguousarray(p.hi_n, dtype="<f8"),
     }
 
 
 def packed_of(arrays: dict[str, Any]) -> PackedBlocks:
-    """The packed blocks of map-file block members (``block_arrays``)."""
-    return PackedBlocks(
+    """The packed blocks of map-file block members (``block_arrays``; of a version 3 file:
+    values, no ``hi_*``)."""
+    p = PackedBlocks(
         arrays["block_ijk"], arrays["block_t"], arrays["observed"], arrays["s"],
         arrays["hit_block"], arrays["hit"], arrays["n"],
     )  # fmt: skip
+    if "hi_block" in arrays:
+        p.parts, p.hi_block, p.hi_s, p.hi_n = True, *(arrays[k] for k in HI_MEMBERS)
+    return p
 
 
 def write_npz_stored(out: BinaryIO, arrays: dict[str, Any]) -> None:
@@ -143,9 +172,12 @@ class BlockFileError(ValueError):
 def locate_members(
     f: BinaryIO, archive: zipfile.ZipFile, names: Iterable[str], file_size: int
 ) -> dict[str, Member]:
-    """The block members of a version 3 file: stored, headers and sizes checked."""
+    """The block members ``names`` of a version 3 or 4 file (``BLOCK_MEMBERS``, less
+    ``HI_MEMBERS`` for version 3) and the ``TABLE_MEMBERS`` it has: stored, headers and
+    sizes checked."""
     out: dict[str, Member] = {}
-    wanted = set(names)
+    required = set(names)
+    wanted = required | set(TABLE_MEMBERS)
     for info in archive.infolist():
         name = info.filename[: -len(".npy")]
         if not info.filename.endswith(".npy") or name not in wanted:
@@ -183,9 +215,11 @@ def locate_members(
         f.seek(data)
         header = f.read(start - data)
         out[name] = Member(name, start, tuple(shape), dtype, header, info.CRC)
-    missing = [k for k in BLOCK_MEMBERS if k not in out]
+    missing = [k for k in required if k not in out]
     if missing:
-        raise BlockFileError(f"version 3 map without {', '.join(missing)}")
+        raise BlockFileError(f"block map without {', '.join(sorted(missing))}")
+    if "hi_block" in out and (out["s"].dtype.str != "<f4" or out["n"].dtype.str != "<f4"):
+        raise BlockFileError("s and n of a version 4 file hold float32 parts (<f4)")
     problem = shape_problem({k: m.shape for k, m in out.items()})
     if problem:
         raise BlockFileError(problem)
@@ -203,7 +237,7 @@ def shape_problem(shapes: dict[str, tuple[int, ...]]) -> str | None:
     for name, shape in want.items():
         if shapes[name] != shape:
             return f"{name} must have shape {shape} (B = {b} blocks, H = {h}), got {shapes[name]}"
-    for name in ("s", "n"):
+    for name in ("s", "n", *(k for k in HI_MEMBERS if k in shapes)):
         if len(shapes[name]) != 1:
             return f"{name} must be one-dimensional, got shape {shapes[name]}"
     return None
@@ -224,7 +258,7 @@ def read_member(f: io.BufferedReader, m: Member) -> np.ndarray:
 
 def read_all(f: io.BufferedReader, members: dict[str, Member]) -> dict[str, np.ndarray]:
     """Every block member, checked: CRCs, the index against the masks."""
-    arrays = {k: read_member(f, members[k]) for k in BLOCK_MEMBERS}
+    arrays = {k: read_member(f, m) for k, m in members.items() if k not in TABLE_MEMBERS}
     problem = index_problem(arrays)
     if problem:
         raise BlockFileError(problem)
@@ -294,21 +328,29 @@ class BlockReader:
         """The blocks of ``rows`` (sorted, unique), read where they lie; their counts are
         checked against their masks."""
         rows = np.asarray(rows, dtype=np.int64)
-        observed = self.view("observed")[rows]
-        start = self.view("block_start")
-        s_lo, s_hi = start[rows], start[rows + 1]
+        start, hstart = self.view("block_start"), self.view("hit_start")
         hit_rows = self.view("hit_block").copy()
         if hit_rows.shape[0] > 1 and not np.all(np.diff(hit_rows) > 0):
             raise BlockFileError("hit_block is not increasing")
+        if hit_rows.shape[0] and (hit_rows[0] < 0 or hit_rows[-1] >= self.block_ijk.shape[0]):
+            raise BlockFileError("hit_block rows outside the blocks")
+        whole = PackedBlocks(
+            self.block_ijk, self.view("block_t"), self.view("observed"), self.view("s"),
+            hit_rows, self.view("hit"), self.view("n"),
+        )  # fmt: skip
+        if "hi_block" in self.members:
+            whole.parts = True
+            whole.hi_block, whole.hi_s, whole.hi_n = (self.view(k).copy() for k in HI_MEMBERS)
+            problem = hi_index_problem(whole)
+            if problem:
+                raise BlockFileError(problem)
         pos = np.searchsorted(hit_rows, rows)
         has = pos < hit_rows.shape[0]
         has[has] = hit_rows[pos[has]] == rows[has]
         hpos = pos[has]
-        hit = self.view("hit")[hpos]
-        hstart = self.view("hit_start")
-        n_lo, n_hi = hstart[hpos], hstart[hpos + 1]
-        counts = np.bitwise_count(observed).sum(axis=1)
-        hit_counts = np.bitwise_count(hit).sum(axis=1)
+        s_lo, s_hi, n_lo, n_hi = start[rows], start[rows + 1], hstart[hpos], hstart[hpos + 1]
+        counts = np.bitwise_count(whole.observed[rows]).sum(axis=1)
+        hit_counts = np.bitwise_count(whole.hit[hpos]).sum(axis=1)
         if not (np.array_equal(s_hi - s_lo, counts) and np.array_equal(n_hi - n_lo, hit_counts)):
             raise BlockFileError("block_start or hit_start does not count the masks")
         s_total, n_total = self.members["s"].shape[0], self.members["n"].shape[0]
@@ -316,69 +358,56 @@ class BlockReader:
             n_lo.size and (n_lo.min() < 0 or n_hi.max() > n_total)
         ):
             raise BlockFileError("block_start or hit_start points outside s or n")
-        return PackedBlocks(
-            self.block_ijk[rows], self.view("block_t")[rows], observed,
-            self.view("s")[_ranges(s_lo, s_hi)], np.flatnonzero(has).astype(np.int64), hit,
-            self.view("n")[_ranges(n_lo, n_hi)],
-        )  # fmt: skip
+        return select_blocks(whole, rows, start, hstart)
 
 
-def _ranges(lo: NDArray[np.int64], hi: NDArray[np.int64]) -> NDArray[np.int64]:
-    """The indices lo[0]..hi[0]-1, lo[1]..hi[1]-1, ... in one array."""
-    lengths = hi - lo
-    heads = np.cumsum(lengths) - lengths
-    return np.arange(int(lengths.sum()), dtype=np.int64) + np.repeat(lo - heads, lengths)
+def hi_index_problem(p: PackedBlocks) -> str | None:
+    """The float64 parts' rows and sizes against the blocks (before any is read)."""
+    f, b = p.hi_block.shape[0], p.block_ijk.shape[0]
+    if f and (int(p.hi_block[0]) < 0 or int(p.hi_block[-1]) >= b):
+        return f"hi_block rows outside [0, {b})"
+    if f > 1 and not np.all(np.diff(p.hi_block) > 0):
+        return "hi_block is not increasing"
+    fs, fn = hi_starts(p)
+    if p.hi_s.shape != (int(fs[-1]),) or p.hi_n.shape != (int(fn[-1]),):
+        return "hi_s and hi_n do not hold one value per bit of the masks of hi_block"
+    return None
 
 
 def take_blocks(arrays: dict[str, Any], rows: NDArray[np.int64]) -> dict[str, np.ndarray]:
     """The block members (``block_arrays``) of the blocks ``rows`` (increasing) of
     ``arrays``."""
-    start, hit_rows = arrays["block_start"], arrays["hit_block"]
-    pos = np.searchsorted(hit_rows, rows)
-    has = pos < hit_rows.shape[0]
-    has[has] = hit_rows[pos[has]] == rows[has]
-    hpos = pos[has]
-    hstart = arrays["hit_start"]
     return block_arrays(
-        PackedBlocks(
-            arrays["block_ijk"][rows],
-            arrays["block_t"][rows],
-            arrays["observed"][rows],
-            arrays["s"][_ranges(start[rows], start[rows + 1])],
-            np.flatnonzero(has).astype(np.int64),
-            arrays["hit"][hpos],
-            arrays["n"][_ranges(hstart[hpos], hstart[hpos + 1])],
-        )  # fmt: skip
+        select_blocks(packed_of(arrays), rows, arrays["block_start"], arrays["hit_start"])
     )
 
 
 def concat_packed(parts: list[PackedBlocks]) -> PackedBlocks:
     """Packed blocks of disjoint block sets (e.g. tiles) as one, sorted (a block in two
-    parts is refused by ``packed_problem`` later)."""
+    parts is refused by ``packed_problem`` later): as parts where all are, else values."""
     if len(parts) == 1:
         return parts[0]
+    if not all(p.parts for p in parts):
+        parts = [as_values(p) for p in parts]
     rows = np.cumsum([0] + [p.block_ijk.shape[0] for p in parts])
-    block_ijk = np.concatenate([np.zeros((0, 3), np.int32)] + [p.block_ijk for p in parts])
-    observed = np.concatenate([np.zeros((0, MASK_WORDS), np.uint64)] + [p.observed for p in parts])
-    hit_all = np.concatenate([np.zeros((0, MASK_WORDS), np.uint64)] + [p.hit for p in parts])
-    hit_rows = np.concatenate(
-        [np.zeros(0, np.int64)] + [p.hit_block + r for p, r in zip(parts, rows, strict=False)]
-    )
-    s_all = np.concatenate([np.zeros(0, np.float32)] + [p.s for p in parts])
-    n_all = np.concatenate([np.zeros(0, np.float32)] + [p.n for p in parts])
-    order = np.argsort(sort_keys(block_ijk), kind="stable")
-    start = voxel_starts(observed)
-    hit_of_block = np.full(block_ijk.shape[0], -1, dtype=np.int64)
-    hit_of_block[hit_rows] = np.arange(hit_rows.shape[0])
-    sorted_hits = hit_of_block[order]
-    hit_block = np.flatnonzero(sorted_hits >= 0).astype(np.int64)
-    hidx = sorted_hits[hit_block]
-    nstart = voxel_starts(hit_all)
-    return PackedBlocks(
-        block_ijk[order], np.concatenate([np.zeros(0)] + [p.block_t for p in parts])[order],
-        observed[order], compact(s_all[_ranges(start[order], start[order + 1])]), hit_block,
-        hit_all[hidx], compact(n_all[_ranges(nstart[hidx], nstart[hidx + 1])]),
+
+    def joined(key: str, empty: np.ndarray, offset: bool = False) -> np.ndarray:
+        arrays = [getattr(p, key) + (r if offset else 0) for p, r in zip(parts, rows, strict=False)]
+        return np.concatenate([empty, *arrays])
+
+    no_mask = np.zeros((0, MASK_WORDS), np.uint64)
+    whole = PackedBlocks(
+        joined("block_ijk", np.zeros((0, 3), np.int32)), joined("block_t", np.zeros(0)),
+        joined("observed", no_mask), joined("s", np.zeros(0, np.float32)),
+        joined("hit_block", np.zeros(0, np.int64), True), joined("hit", no_mask),
+        joined("n", np.zeros(0, np.float32)), bool(parts) and parts[0].parts,
+        joined("hi_block", np.zeros(0, np.int64), True), joined("hi_s", np.zeros(0)),
+        joined("hi_n", np.zeros(0)),
     )  # fmt: skip
+    out = select_blocks(whole, np.argsort(sort_keys(whole.block_ijk), kind="stable"))
+    if not out.parts:
+        out.s, out.n = compact(out.s), compact(out.n)
+    return out
 
 
 # --- voxel lists <-> packed blocks ------------------------------------------------------
@@ -394,18 +423,18 @@ _PLACE[_MORTON[:, 0], _MORTON[:, 1], _MORTON[:, 2]] = np.arange(BLOCK_EDGE**3)
 
 
 def packed_to_voxels(p: PackedBlocks) -> VoxelArrays:
-    """The voxel list of packed blocks (float64 values; ``t_last`` is the block's time),
+    """The voxel list of packed blocks (float64 values, ``packed.totals``; ``t_last`` is the
+    block's time),
     voxels in block order."""
     obs = np.unpackbits(p.observed.view(np.uint8), axis=1, bitorder="little").astype(bool)
     rows, place = np.nonzero(obs)
     ijk = (p.block_ijk[rows].astype(np.int64) << BLOCK_BITS) + _MORTON[place]
     hits = np.zeros_like(obs)
     hits[p.hit_block] = np.unpackbits(p.hit.view(np.uint8), axis=1, bitorder="little")
+    s_all, n_all = totals(p)
     n = np.zeros(rows.shape[0])
-    n[hits[obs]] = p.n
-    return VoxelArrays(
-        ijk.astype(np.int32), p.s.astype(np.float64), n, p.block_t[rows].astype(np.float64)
-    )
+    n[hits[obs]] = n_all
+    return VoxelArrays(ijk.astype(np.int32), s_all, n, p.block_t[rows].astype(np.float64))
 
 
 def voxels_to_packed(v: VoxelArrays, decay_time: float) -> PackedBlocks:

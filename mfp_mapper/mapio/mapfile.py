@@ -64,6 +64,7 @@ from mfp_mapper.core.layout import (
 from mfp_mapper.mapio.atomic import atomic_output
 from mfp_mapper.mapio.blockfile import (
     BLOCK_MEMBERS,
+    HI_MEMBERS,
     TABLE_MEMBERS,
     BlockFileError,
     BlockReader,
@@ -95,7 +96,7 @@ if TYPE_CHECKING:  # imported where used: reading a file loads no numba (``mapio
     from mfp_mapper.core.reflectivity import ReflectivityArrays
 
 FORMAT_NAME = "mfp_mapper.map"
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 REQUIRED_KEYS = ("ijk", "s", "n", "t_last", "resolution", "decay_time", "frame_id")
 """Members of a version 1 or 2 file."""
 SETTING_KEYS = ("resolution", "decay_time", "frame_id")
@@ -375,8 +376,9 @@ def _open_blocks(
     headers = check_headers(path, archive, file_size, SETTINGS_MEMBERS)
     small = {k: _read(archive, k) for k in headers if k not in TABLE_MEMBERS}
     settings = check_settings(path, small, blocks=True)
+    names = BLOCK_MEMBERS if int(small["version"]) >= 4 else V3_MEMBERS
     bins = {k: v for k, v in small.items() if k.startswith("reflectivity_")}
-    return settings, bins, locate_members(f, archive, (*BLOCK_MEMBERS, *TABLE_MEMBERS), file_size)
+    return settings, bins, locate_members(f, archive, names, file_size)
 
 
 def _table_rows(reader: BlockReader, keys: NDArray[np.int64]) -> dict[str, np.ndarray]:
@@ -415,6 +417,8 @@ def reflectivity_problem(
 
 
 VOXEL_MEMBERS = ("ijk", "s", "n", "t_last")
+V3_MEMBERS = tuple(k for k in BLOCK_MEMBERS if k not in HI_MEMBERS)
+"""The block members of a version 3 file (values in ``s`` and ``n``, no float64 parts)."""
 SETTINGS_MEMBERS = tuple(k for k in MEMBER_KINDS if k not in VOXEL_MEMBERS)
 _READ_ERRORS = (
     zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, OSError, ValueError, KeyError,
@@ -568,7 +572,7 @@ def mapper_from_contents(c: MapContents, path: str | Path, **overrides: object) 
     try:
         return Mapper.from_blocks(
             c.packed, resolution=c.resolution, origin=np.array(c.origin),
-            reflectivity=c.reflectivity, **settings,
+            reflectivity=c.reflectivity, checked=True, **settings,
         )  # fmt: skip
     except ValueError as err:
         raise MapFileError(path, str(err)) from err

@@ -1,8 +1,8 @@
 """Queries answered from a map file reading only the blocks they need, and their
-reflectivity histograms (version 3 files; an older file is read whole once): what
+reflectivity histograms (version 3 and 4 files; an older file is read whole once): what
 ``mfp-mapper query`` and a tiled map's queries use.
 
-Points in a version 3 file are answered in numpy from the blocks read (``packed_lookup``),
+Points in a version 3 or 4 file are answered in numpy from the blocks read (``packed_lookup``),
 the same numbers as ``Mapper.query`` of the whole map (``test_queries.py`` compares them),
 without loading numba or any compiled kernel: a process asking a few points pays for
 reading them, not for the Mapper's imports (1.2 s on this machine, 0.01-0.02 s the read).
@@ -26,7 +26,7 @@ from mfp_mapper.core.layout import (
     MAX_VOXEL_INDEX,
     PackedBlocks,
     sort_keys,
-    stored_sums,
+    totals,
     voxel_starts,
 )
 from mfp_mapper.core.voxel_stats import SegmentStats, VoxelStats, decayed_stats
@@ -50,7 +50,7 @@ whole instead of block by block."""
 
 class MapFileQueries:
     """A map file opened for ``query`` and ``query_segments``: each call reads only the
-    blocks it needs, and the reflectivity histograms of those blocks (version 3; an older
+    blocks it needs, and the reflectivity histograms of those blocks (version 3 and 4; an older
     file is read whole once). Blocks read are checked
     (masks, counts, values, stamps); a whole read also checks the CRCs. ``MapFileError``
     as ``load_map``."""
@@ -128,7 +128,7 @@ class MapFileQueries:
 
     def query(self, points: ArrayLike, stamp: float | None = None) -> VoxelStats:
         """``Mapper.query``, reading the blocks that hold the points (in numpy: no Mapper
-        made, no numba loaded, for a version 3 file)."""
+        made, no numba loaded, for a version 3 or 4 file)."""
         if self._whole is not None:
             return self._whole.query(points, stamp)
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -139,7 +139,7 @@ class MapFileQueries:
         keys = sort_keys(ijk[valid] >> BLOCK_BITS)
         c = read_map_blocks(self.path, lambda r: r.rows_of_keys(keys), self._decay_time)
         assert c is not None and c.packed is not None
-        s, n, t_last = packed_lookup(c.packed, ijk, self.resolution)
+        s, n, t_last = packed_lookup(c.packed, ijk)
         s[~valid], n[~valid], t_last[~valid] = 0.0, 0.0, -np.inf
         return decayed_stats(
             ijk, s, n, t_last, stamp, self.decay_time, self.resolution, self.origin, self.prior
@@ -199,14 +199,15 @@ def segment_block_keys(
 
 
 def packed_lookup(
-    packed: PackedBlocks, ijk: NDArray[np.int64], resolution: float
+    packed: PackedBlocks, ijk: NDArray[np.int64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """``s``, ``n`` (float64) and time of the voxels ``ijk`` in ``packed``, as
-    ``BlockStore.lookup`` answers after ``Mapper.from_blocks`` (values as the store keeps
-    them: ``layout.stored_sums``): a voxel of a block present has its block's time (``s``
-    and ``n`` 0 when it was never observed), one of an absent block 0, 0 and -inf. Numpy,
-    for a few points: a binary search a point, then its bit in the block's masks and the
-    count of the bits before it."""
+    ``BlockStore.lookup`` answers after ``Mapper.from_blocks``: the file's values exactly
+    (``layout.totals``: the float32 part plus the float64 part of a flushed block, or a
+    version 3 file's values), -0 read as +0; a voxel of a block present has its block's
+    time (``s`` and ``n`` 0 when it was never observed), one of an absent block 0, 0 and
+    -inf. Numpy, for a few points: a binary search a point, then its bit in the block's
+    masks and the count of the bits before it."""
     count = ijk.shape[0]
     s, n, t_last = np.zeros(count), np.zeros(count), np.full(count, -np.inf)
     block_keys, want = sort_keys(packed.block_ijk), sort_keys(ijk >> BLOCK_BITS)
@@ -221,10 +222,11 @@ def packed_lookup(
     has = hit_row < packed.hit_block.shape[0]
     has[has] = packed.hit_block[hit_row[has]] == row[has]
     n_index, hit = _bit_rank(packed.hit, hit_row[has], place[has])
+    s_all, n_all = totals(packed)
     s_file, n_file = np.zeros(at.shape[0]), np.zeros(at.shape[0])
-    s_file[seen] = packed.s[s_index[seen]]
-    n_file[np.flatnonzero(has)[hit]] = packed.n[n_index[hit]]
-    s[at], n[at] = stored_sums(s_file, n_file, resolution)
+    s_file[seen] = s_all[s_index[seen]]
+    n_file[np.flatnonzero(has)[hit]] = n_all[n_index[hit]]
+    s[at], n[at] = s_file + 0.0, n_file + 0.0
     return s, n, t_last
 
 

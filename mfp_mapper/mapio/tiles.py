@@ -331,7 +331,7 @@ class TiledMap:
     ) -> Mapper:
         """A Mapper with the voxels whose centres lie in ``bounds`` (metres, inclusive;
         None: the whole map), read from the tiles that reach into them (the whole map of
-        version 3 tiles: block by block, as a map file loads)."""
+        block tiles, version 3 or 4: block by block, as a map file loads)."""
         if bounds is None:
             blocks = [self.read_tile_blocks(k) for k in self.keys_in()]
             if all(b is not None for b in blocks):
@@ -342,6 +342,7 @@ class TiledMap:
                         resolution=self.resolution,
                         origin=np.asarray(self.origin or (0.0, 0.0, 0.0)),
                         reflectivity=None,
+                        checked=False,  # tiles are checked one by one: not together
                         **settings,
                     )
                 except ValueError as err:

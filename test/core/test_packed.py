@@ -7,14 +7,18 @@ import pytest
 from box_world import anchors_scene
 
 from mfp_mapper import Mapper
+from mfp_mapper.core import store as store_module
 from mfp_mapper.core.packed import (
     PackedBlocks,
+    as_parts,
+    as_values,
     pack_chunks,
     packed_problem,
+    totals,
     voxel_arrays_of,
     voxel_starts,
 )
-from mfp_mapper.core.shard import HI_USED, N_LIMIT, NCHUNK_USED, NREC_USED, S_USED
+from mfp_mapper.core.shard import FLUSH_EDGES, HI_USED, N_LIMIT, NCHUNK_USED, NREC_USED, S_USED
 from mfp_mapper.core.store import BlockStore, VoxelArrays
 
 
@@ -67,7 +71,8 @@ def test_compiled_unpack_is_the_voxel_list_path_bit_for_bit(shards: int) -> None
     m = Mapper(0.1, decay_time=20.0, max_range=30.0)
     for k, (points, origin) in enumerate(anchors_scene(n_scans=2, azimuths=120)):
         m.integrate(points, origin, 10.0 + 7.5 * k)
-    p = m.stored_blocks()
+    p = as_values(m.stored_blocks())  # values, no float64 parts: ``assign``'s semantics
+    assert not p.parts and p.s.dtype == np.float32
     s, n = p.s.astype(np.float64), p.n.astype(np.float64)
     s[::97] *= 1e4 * (1 + 1e-12)  # beyond the limit below, not float32 values
     s[5::89] = 0.0  # observed through n alone where it has a return, else dropped
@@ -85,27 +90,61 @@ def test_compiled_unpack_is_the_voxel_list_path_bit_for_bit(shards: int) -> None
             assert sum(int(sh.pools[HI_USED]) for sh in direct.shards) > 0
         for a, b in zip(_store_arrays(direct), _store_arrays(listed), strict=True):
             assert a.dtype == b.dtype and np.array_equal(a, b)
-        again = direct.export_blocks()
+        again = as_values(direct.export_blocks())
         if packed is p:  # float32 values: exactly the file's blocks
             for key in ("block_ijk", "block_t", "observed", "s", "hit_block", "hit", "n"):
                 assert np.array_equal(getattr(again, key), getattr(packed, key)), key
     assert BlockStore(1).assign_blocks(pack_chunks([])) is None
 
 
-def test_float64_statistics_pack_to_the_same_blocks() -> None:
-    """A store exporting float64 statistics packs to the same file when they are float32
-    values, and keeps float64 where they are not."""
-    m = Mapper(0.2, max_range=20.0)
-    points, origin = anchors_scene(n_scans=1, azimuths=100)[0]
-    m.integrate(points, origin, 1.0)
-    chunks = list(m._store.block_chunks())
-    as_64 = pack_chunks([(a, t, sn.astype(np.float64)) for a, t, sn in chunks])
-    packed = m.stored_blocks()
-    for key in ("block_ijk", "block_t", "observed", "s", "hit_block", "hit", "n"):
-        assert np.array_equal(getattr(as_64, key), getattr(packed, key)), key
-    assert as_64.s.dtype == np.float32
-    finer = [(a, t, sn.astype(np.float64) * (1 + 1e-12)) for a, t, sn in chunks]
-    assert pack_chunks(finer).s.dtype == np.float64
+def _parts_by_block(store: BlockStore) -> dict[tuple[int, int, int], tuple[bytes, ...]]:
+    """Every block's time, float32 parts (raw bits: -0 marks too) and float64 part."""
+    out = {}
+    for ijk, t, s, n, hi_row, hi in store.block_chunks():
+        for k in range(ijk.shape[0]):
+            f = hi[hi_row[k]].tobytes() if hi_row[k] >= 0 else b""
+            out[tuple(ijk[k].tolist())] = (t[k].tobytes(), s[k].tobytes(), n[k].tobytes(), f)
+    return out
+
+
+@pytest.mark.parametrize(("shards", "threaded"), [(1, False), (2, False), (1, True), (2, True)])
+def test_parts_round_trip_with_the_float64_blocks_bit_for_bit(
+    shards: int, threaded: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Blocks flushed into float64 (``shard.flush``) pack as float32 parts plus float64
+    parts of those blocks only, and are set back as the store held them: every block's
+    parts, bit for bit (``s`` written in a thread beside the opening, as for maps of a
+    million voxels, or after it); values as in ``totals``; ``as_parts`` of the values is
+    exact."""
+    if threaded:
+        monkeypatch.setattr(store_module, "_THREADED_WRITE_VOXELS", 0)
+        monkeypatch.setattr(store_module.os, "cpu_count", lambda: 2)
+    m = Mapper(0.1, max_range=30.0, threads=shards)
+    scans = anchors_scene(n_scans=2, azimuths=120)
+    for k, (points, origin) in enumerate(scans):
+        m.integrate(points, origin, 10.0 + k)
+    store = m._store
+    for sh in store.shards:  # flush a third of the blocks, as a long run does
+        sh.block_flush[: sh.used : 3] = True
+        sh.pools[4] = 1  # FLUSH_PENDING
+        sh.flush()
+    p = m.stored_blocks()
+    assert packed_problem(p) is None and p.parts and p.s.dtype == np.float32
+    assert 0 < p.hi_block.shape[0] < p.block_ijk.shape[0]
+    assert p.hi_s.shape[0] < p.s.shape[0] // 2  # the float64 part of the flushed blocks only
+    back = BlockStore(shards, flush_s=FLUSH_EDGES * 0.1)
+    back.assign_blocks(p)
+    assert back.num_voxels == p.num_voxels
+    packed_blocks = set(map(tuple, p.block_ijk.tolist()))
+    expected = {k: v for k, v in _parts_by_block(store).items() if k in packed_blocks}
+    assert _parts_by_block(back) == expected
+    ijk, s, n, t = voxel_arrays_of(p)
+    v = m.stored_voxels()
+    order, mine = np.lexsort(v.ijk.T), np.lexsort(ijk.T)
+    assert np.array_equal(v.s[order], s[mine]) and np.array_equal(v.n[order], n[mine])
+    s_tot, n_tot = totals(p)
+    again = as_parts(as_values(p))
+    assert [a.tobytes() for a in totals(again)] == [s_tot.tobytes(), n_tot.tobytes()]
     assert pack_chunks([]).num_voxels == 0
 
 

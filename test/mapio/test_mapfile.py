@@ -51,7 +51,8 @@ def test_file_holds_the_documented_arrays(mapper: Mapper, tmp_path: Path) -> Non
     path = tmp_path / "map.npz"
     save_map(mapper, path)
     with np.load(path, allow_pickle=False) as f:
-        assert int(f["version"]) == 3 and str(f["format"]) == "mfp_mapper.map"
+        assert int(f["version"]) == 4 and str(f["format"]) == "mfp_mapper.map"
+        assert f["hi_block"].shape == (0,) and f["hi_s"].shape == f["hi_n"].shape == (0,)
         block_ijk, observed, hit = f["block_ijk"], f["observed"], f["hit"]
         assert block_ijk.dtype == np.int32 and observed.dtype == np.uint64
         assert f["s"].dtype == np.float32 and f["n"].dtype == np.float32  # as in memory
@@ -94,6 +95,68 @@ def test_files_of_the_version_2_writer_still_load(name: str, tmp_path: Path) -> 
     order_a, order_b = np.lexsort(v.ijk.T), np.lexsort(again.ijk.T)
     for key in ("ijk", "s", "n", "t_last"):
         assert np.array_equal(getattr(v, key)[order_a], getattr(again, key)[order_b]), key
+
+
+@pytest.mark.parametrize("name", ["legacy_v3.npz", "legacy_v3_tiled"])
+def test_files_of_the_version_3_writer_still_load(name: str, tmp_path: Path) -> None:
+    """Written by the version 3 writer (commit 3218d3c) from ``legacy_v2.npz`` with a third
+    of its blocks flushed into float64 and one more scan (``anchors_scene(n_scans=1,
+    azimuths=6)`` at 200 s): ``s`` and ``n`` in float64, the sums as they were."""
+    loaded = load_map(LEGACY / name)
+    v = loaded.stored_voxels()
+    assert (loaded.num_voxels, loaded.last_stamp) == (2899, 200.0)
+    assert v.s.sum() == pytest.approx(1380.5398396084365, rel=1e-12)
+    assert v.n.sum() == pytest.approx(37.28252745567036, rel=1e-12)
+    assert np.count_nonzero(v.n) == 58
+    if name.endswith(".npz"):
+        with np.load(LEGACY / name) as f:
+            assert int(f["version"]) == 3 and f["s"].dtype == np.float64
+            s_file = np.sort(f["s"])
+        assert np.array_equal(np.sort(v.s), s_file)  # float64 values kept (none < limit cast)
+    save_map(loaded, tmp_path / "again.npz")  # version 4: the same voxels
+    again = load_map(tmp_path / "again.npz").stored_voxels()
+    order_a, order_b = np.lexsort(v.ijk.T), np.lexsort(again.ijk.T)
+    for key in ("ijk", "s", "n", "t_last"):
+        assert np.array_equal(getattr(v, key)[order_a], getattr(again, key)[order_b]), key
+
+
+def _parked_scan() -> tuple[np.ndarray, np.ndarray]:
+    """4000 returns on the walls of a small box around a parked sensor."""
+    rng = np.random.default_rng(7)
+    origin = np.array([0.0123, 0.0271, 0.0347])
+    directions = rng.normal(size=(4000, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    reach = np.min(np.abs(np.array([0.5, 0.4, 0.3]) / directions), axis=1)
+    return origin + directions * reach[:, None] * 0.999, origin
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_flushed_blocks_load_back_bit_for_bit(tmp_path: Path, threads: int) -> None:
+    """A parked sensor: the voxels around it pass the float32 limits and their blocks are
+    flushed into float64 (``shard.flush``). The file keeps the float32 and float64 parts
+    apart (``hi_*``: only those blocks in float64) and loads back the same store: every
+    voxel's sums bit for bit, and the same sums after more scans added to both."""
+    points, origin = _parked_scan()
+    m = Mapper(0.1, max_range=10.0, min_range=0.0, decay_time=600.0, threads=threads)
+    for k in range(150):
+        m.integrate(points, origin, 0.1 * k)
+    wide, wide_origin = anchors_scene(n_scans=1, azimuths=60)[0]
+    m.integrate(wide, wide_origin, 15.0)  # blocks that were never flushed, too
+    path = tmp_path / "parked.npz"
+    save_map(m, path)
+    with np.load(path) as f:
+        assert f["s"].dtype == np.float32 and f["hi_block"].shape[0] > 0
+        assert f["hi_s"].shape[0] < f["s"].shape[0]
+    loaded = load_map(path, threads=threads)
+    for step in range(2):
+        a, b = m.stored_voxels(), loaded.stored_voxels()
+        order_a, order_b = np.lexsort(a.ijk.T), np.lexsort(b.ijk.T)
+        for key in ("ijk", "s", "n", "t_last"):
+            assert np.array_equal(getattr(a, key)[order_a], getattr(b, key)[order_b]), key
+        assert loaded.num_voxels == m.num_voxels
+        for mapper in (m, loaded) if step == 0 else ():
+            for k in range(3):
+                mapper.integrate(points, origin, 15.1 + 0.1 * k)
 
 
 def test_static_map_round_trips_infinite_decay_time(tmp_path: Path) -> None:
@@ -235,7 +298,7 @@ def test_geo_referenced_map_round_trips_its_origin(tmp_path: Path) -> None:
     assert m.origin is not None and np.abs(np.array(m.origin) - utm).max() < 6553.6 / 2
     save_map(m, tmp_path / "geo.npz")
     with np.load(tmp_path / "geo.npz") as f:
-        assert int(f["version"]) == 3 and np.array_equal(f["origin"], np.array(m.origin))
+        assert int(f["version"]) == 4 and np.array_equal(f["origin"], np.array(m.origin))
         ijk = m.stored_voxels().ijk
         centers = np.asarray(f["origin"]) + (ijk + 0.5) * float(f["resolution"])
     loaded = load_map(tmp_path / "geo.npz")

@@ -103,8 +103,8 @@ def test_the_numpy_point_path_equals_the_compiled_one(
         s[far] = FLUSH_EDGES * 0.1 * rng.choice([0.999, 1.0, 1.5], int(far.sum()))
         n[rng.random(n.shape) < 0.01] = N_LIMIT * rng.choice([0.5, 1.0, 1.25])
         write_map_arrays(path, arrays)
-        with np.load(path) as f:
-            assert f["s"].dtype == np.float64
+        with np.load(path) as f:  # the blocks holding them kept in float64 parts
+            assert f["hi_s"].size > 0 and f["hi_n"].size > 0
     else:
         m = mapper
         if kind == "prior_and_origin":
