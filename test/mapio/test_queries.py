@@ -273,7 +273,8 @@ def test_the_numpy_histograms_equal_the_compiled_ones(
     and without a stamp, on the voxels holding histograms, their neighbours and the hard
     points: a decaying map, a static one, one whose rows refer to other times (as merges
     write them: float64 counts, each brought to the latest time of the whole file, held
-    as float32, then decayed to the stamp) and a tiled map (each tile read by block)."""
+    as float32, then decayed to the stamp, also when one block is read) and a tiled map
+    (each tile read by block)."""
     from mfp_mapper.mapio import queries
 
     rng = np.random.default_rng(12)
@@ -309,6 +310,10 @@ def test_the_numpy_histograms_equal_the_compiled_ones(
         assert a is not None and b is not None and a[0] == b[0]
         np.testing.assert_array_equal(a[1], b[1], strict=True)
         assert (a[1][: len(centres)].sum(axis=1) > 0).all()  # every row found
+        for one in centres[:: len(centres) // 6]:  # one block read: the file's latest time
+            a, b = whole.reflectivity(one[None, :], stamp), q.reflectivity(one[None, :], stamp)
+            assert a is not None and b is not None
+            np.testing.assert_array_equal(a[1], b[1], strict=True)
     if kind != "tiled":  # (a tiled map reads no tile for no point: None)
         a, b = whole.reflectivity(points[:0]), q.reflectivity(points[:0])
         assert a is not None and b is not None
