@@ -59,6 +59,7 @@ from mfp_mapper.core.layout import (
     VoxelArrays,
     as_parts,
     as_values,
+    bit_count,
     compact,
     hi_starts,
     select_blocks,
@@ -384,8 +385,8 @@ class BlockReader:
         has[has] = hit_rows[pos[has]] == rows[has]
         hpos = pos[has]
         s_lo, s_hi, n_lo, n_hi = start[rows], start[rows + 1], hstart[hpos], hstart[hpos + 1]
-        counts = np.bitwise_count(whole.observed[rows]).sum(axis=1)
-        hit_counts = np.bitwise_count(whole.hit[hpos]).sum(axis=1)
+        counts = bit_count(whole.observed[rows]).sum(axis=1)
+        hit_counts = bit_count(whole.hit[hpos]).sum(axis=1)
         if not (np.array_equal(s_hi - s_lo, counts) and np.array_equal(n_hi - n_lo, hit_counts)):
             raise BlockFileError("block_start or hit_start does not count the masks")
         s_total, n_total = self.members["s"].shape[0], self.members["n"].shape[0]
