@@ -287,7 +287,8 @@ def read_all(f: io.BufferedReader, members: dict[str, Member]) -> dict[str, np.n
     another thread meanwhile on large maps: ``THREADED_READ_BYTES``)."""
     names = [k for k in members if k not in TABLE_MEMBERS]
     big = "s"
-    if members[big].nbytes < THREADED_READ_BYTES or (os.cpu_count() or 1) < 2:
+    alone = (os.cpu_count() or 1) < 2 or not hasattr(os, "preadv")  # preadv: not Windows
+    if members[big].nbytes < THREADED_READ_BYTES or alone:
         arrays = {k: read_member(f, members[k]) for k in names}
         problem = index_problem(arrays)
     else:
