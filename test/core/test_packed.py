@@ -149,6 +149,29 @@ def test_parts_round_trip_with_the_float64_blocks_bit_for_bit(
     assert pack_chunks([]).num_voxels == 0
 
 
+@pytest.mark.parametrize("shards", [1, 2])
+def test_export_in_two_threads_packs_as_one(shards: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``export_blocks`` packing half the blocks in a thread of its own (large maps) gives
+    the packing of ``block_chunks`` in one thread, bit for bit, flushed blocks included."""
+    m = Mapper(0.1, max_range=30.0, threads=shards)
+    for k, (points, origin) in enumerate(anchors_scene(n_scans=2, azimuths=120)):
+        m.integrate(points, origin, 10.0 + k)
+    store = m._store
+    for sh in store.shards:  # flush some blocks: their float64 parts go with them
+        sh.block_flush[: sh.used : 5] = True
+        sh.pools[4] = 1  # FLUSH_PENDING
+        sh.flush()
+    one = pack_chunks(store.block_chunks(), store.num_voxels)
+    monkeypatch.setattr(store_module, "_THREADED_PACK_BLOCKS", 0)
+    monkeypatch.setattr(store_module.os, "cpu_count", lambda: 2)
+    two = store.export_blocks()
+    assert packed_problem(two) is None and two.hi_block.shape[0] > 0
+    for key, value in one.__dict__.items():
+        got = getattr(two, key)
+        assert isinstance(got, bool) or got.dtype == value.dtype, key
+        assert np.array_equal(np.asarray(got).view(np.uint8), np.asarray(value).view(np.uint8)), key
+
+
 def test_bad_blocks_are_named() -> None:
     m = Mapper(0.2, max_range=20.0)
     points, origin = anchors_scene(n_scans=1, azimuths=50)[0]
