@@ -90,6 +90,20 @@ class PackedBlocks:
         return int(self.s.shape[0])
 
 
+def _bit_count_swar(words: NDArray[np.unsignedinteger]) -> NDArray[np.uint8]:
+    """Set bits of each uint64 word, by the classic SWAR sums (numpy before 2.0)."""
+    x = np.asarray(words, dtype=np.uint64)
+    x = x - ((x >> np.uint64(1)) & np.uint64(0x5555555555555555))
+    x = (x & np.uint64(0x3333333333333333)) + ((x >> np.uint64(2)) & np.uint64(0x3333333333333333))
+    x = (x + (x >> np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
+    return ((x * np.uint64(0x0101010101010101)) >> np.uint64(56)).astype(np.uint8)
+
+
+bit_count = getattr(np, "bitwise_count", _bit_count_swar)
+"""Set bits of each word: ``np.bitwise_count`` (numpy 2.0), ``_bit_count_swar`` before
+(Ubuntu 24.04's numpy 1.26, what a Jazzy workspace runs)."""
+
+
 def sort_keys(block_ijk: NDArray[np.integer]) -> NDArray[np.int64]:
     """One int64 per block index whose order is (x, y, z) lexicographic (``block_key``)."""
     b = np.asarray(block_ijk, dtype=np.int64) + KEY_OFFSET
@@ -98,7 +112,7 @@ def sort_keys(block_ijk: NDArray[np.integer]) -> NDArray[np.int64]:
 
 def voxel_starts(mask: NDArray[np.uint64]) -> NDArray[np.int64]:
     """Index of each block's first value (B + 1 entries: the last is the total)."""
-    counts = np.bitwise_count(mask).sum(axis=1, dtype=np.int64)
+    counts = bit_count(mask).sum(axis=1, dtype=np.int64)
     out = np.zeros(mask.shape[0] + 1, dtype=np.int64)
     np.cumsum(counts, out=out[1:])
     return out
@@ -118,7 +132,7 @@ def packed_problem(p: PackedBlocks) -> str | None:
         return "blocks are not sorted by index, or a block is listed twice"
     if not np.isfinite(p.block_t).all():
         return "block times hold NaN or infinite values (seconds expected)"
-    counts = np.bitwise_count(p.observed).sum(axis=1, dtype=np.int64)
+    counts = bit_count(p.observed).sum(axis=1, dtype=np.int64)
     if p.s.shape != (int(counts.sum()),):
         return f"s holds {p.s.shape} values, the observed masks {int(counts.sum())}"
     if h and (int(p.hit_block[0]) < 0 or int(p.hit_block[-1]) >= b):
@@ -127,7 +141,7 @@ def packed_problem(p: PackedBlocks) -> str | None:
         return "hit_block is not increasing"
     if np.any(p.hit & ~p.observed[p.hit_block]):
         return "a voxel with a return is not marked observed"
-    hit_counts = np.bitwise_count(p.hit).sum(axis=1, dtype=np.int64)
+    hit_counts = bit_count(p.hit).sum(axis=1, dtype=np.int64)
     if p.n.shape != (int(hit_counts.sum()),):
         return f"n holds {p.n.shape} values, the hit masks {int(hit_counts.sum())}"
     problem = _hi_problem(p, counts, hit_counts)
@@ -213,11 +227,11 @@ def ranges(lo: NDArray[np.int64], hi: NDArray[np.int64]) -> NDArray[np.int64]:
 
 def hi_starts(p: PackedBlocks) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """Where each block of ``hi_block`` begins in ``hi_s`` and in ``hi_n`` (F + 1 each)."""
-    counts = np.bitwise_count(p.observed[p.hi_block]).sum(axis=1, dtype=np.int64)
+    counts = bit_count(p.observed[p.hi_block]).sum(axis=1, dtype=np.int64)
     rows = hit_row_of(p)[p.hi_block]
     hit_counts = np.zeros(p.hi_block.shape[0], dtype=np.int64)
     if rows.size:
-        hit_counts[rows >= 0] = np.bitwise_count(p.hit[rows[rows >= 0]]).sum(1, dtype=np.int64)
+        hit_counts[rows >= 0] = bit_count(p.hit[rows[rows >= 0]]).sum(1, dtype=np.int64)
     return (
         np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
         np.concatenate([[0], np.cumsum(hit_counts)]).astype(np.int64),
@@ -263,8 +277,8 @@ def as_parts(p: PackedBlocks) -> PackedBlocks:
     bad_s, bad_n = s32 != s, n32 != n
     if not (bad_s.any() or bad_n.any()):
         return PackedBlocks(p.block_ijk, p.block_t, p.observed, s32, p.hit_block, p.hit, n32, True)
-    counts = np.bitwise_count(p.observed).sum(axis=1, dtype=np.int64)
-    hit_counts = np.bitwise_count(p.hit).sum(axis=1, dtype=np.int64)
+    counts = bit_count(p.observed).sum(axis=1, dtype=np.int64)
+    hit_counts = bit_count(p.hit).sum(axis=1, dtype=np.int64)
     rows_s = np.repeat(np.arange(p.block_ijk.shape[0]), counts)
     rows_n = np.repeat(p.hit_block, hit_counts)
     flushed = np.zeros(p.block_ijk.shape[0], dtype=bool)

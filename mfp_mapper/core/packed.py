@@ -136,8 +136,10 @@ them at memory speed), each block's row of the float64 parts or -1 (k,), and tho
 parts (h, 512, 2: ``s``, ``n``)."""
 
 
-class _Outputs:
-    """The packed values of all chunks, one after the other (grown when short)."""
+class PackOutputs:
+    """The packed values of all runs of blocks, one after the other (grown when short):
+    ``s``, ``n`` and ``places`` (how many of each are filled), as the packing kernels
+    (``_pack_blocks``, ``store._pack_store_blocks``) take them."""
 
     def __init__(self, size_hint: int) -> None:
         self.s = np.empty(max(size_hint, BLOCK_VOXELS) + BLOCK_VOXELS + 1, dtype=np.float32)
@@ -151,11 +153,19 @@ class _Outputs:
             self.n = np.concatenate([self.n, np.empty_like(self.n)])
 
 
-def _pack_chunk(
-    chunk: BlockChunk, out: _Outputs
-) -> tuple[NDArray[np.uint64], NDArray[np.uint64], NDArray[np.int64]]:
-    """Masks and counts of one chunk of blocks, its float32 parts appended to ``out``
-    (``_pack_blocks``)."""
+PackedRun = tuple[
+    NDArray[np.int32], NDArray[np.float64], NDArray[np.int64], NDArray[np.float64],
+    NDArray[np.uint64], NDArray[np.uint64], NDArray[np.int64],
+]  # fmt: skip
+"""A run of a store's blocks once packed into ``PackOutputs``: their index (k, 3), time
+(k,), row of the float64 parts or -1 (k,), those parts (h, 512, 2), then the observed and
+hit masks (k, 8) each and the counts of observed voxels and of voxels with a return
+(k, 2) that the kernel found (their values lie in the outputs, run after run)."""
+
+
+def pack_chunk(chunk: BlockChunk, out: PackOutputs) -> PackedRun:
+    """One chunk of dense blocks packed (``_pack_blocks``), its float32 parts appended to
+    ``out``."""
     block_s = np.ascontiguousarray(chunk[2], dtype=np.float32)
     block_n = np.ascontiguousarray(chunk[3], dtype=np.float32)
     hi_row = np.ascontiguousarray(chunk[4], dtype=np.int64)
@@ -182,7 +192,7 @@ def _pack_chunk(
         )  # fmt: skip
     ) < used:
         out.grow()
-    return observed, hit, counts
+    return chunk[0], chunk[1], chunk[4], chunk[5], observed, hit, counts
 
 
 def _mask_bits(masks: NDArray[np.uint64]) -> NDArray[np.bool_]:
@@ -194,61 +204,59 @@ def _mask_bits(masks: NDArray[np.uint64]) -> NDArray[np.bool_]:
 def pack_chunks(chunks: Iterable[BlockChunk], size_hint: int = 0) -> PackedBlocks:
     """The observed voxels of runs of a store's blocks (``BlockChunk``, taken one at a
     time), packed and sorted (a copy: the store may change afterwards): one read of the
-    blocks' float32 parts,
-    then the values copied in sorted block order; the float64 parts of the flushed blocks
-    follow (``PackedBlocks.parts``). Blocks without an observed voxel are left out.
-    ``size_hint``: about how many voxels the chunks hold (the outputs grow when it is
-    short)."""
-    out = _Outputs(size_hint + 1)
-    parts, runs = [], []
-    for c in chunks:  # one at a time: a chunk's statistics may be reused by the next
-        parts.append(_pack_chunk(c, out))
-        runs.append((c[0], c[1], c[4], c[5]))  # index, time, float64 rows and parts
-    keep = [np.flatnonzero(p[2][:, 0] > 0) for p in parts]
-    block_ijk = np.concatenate(
-        [np.zeros((0, 3), np.int32)] + [c[0][r] for c, r in zip(runs, keep, strict=True)]
-    )
+    blocks' float32 parts, then the values copied in sorted block order
+    (``packed_runs``). ``size_hint``: about how many voxels the chunks hold (the outputs
+    grow when it is short)."""
+    out = PackOutputs(size_hint + 1)
+    runs = [pack_chunk(c, out) for c in chunks]  # one at a time: a chunk's buffer is reused
+    return packed_runs(runs, out)
+
+
+def packed_runs(runs: list[PackedRun], out: PackOutputs) -> PackedBlocks:
+    """Packed blocks of runs packed into ``out`` (``PackedRun``): blocks without an observed
+    voxel left out, sorted (the values copied in sorted block order unless the runs are
+    already sorted); the float64 parts of the flushed blocks follow
+    (``PackedBlocks.parts``)."""
+    keep = [np.flatnonzero(r[6][:, 0] > 0) for r in runs]
+    pairs = list(zip(runs, keep, strict=True))
+    block_ijk = np.concatenate([np.zeros((0, 3), np.int32)] + [c[0][k] for c, k in pairs])
     order = np.argsort(sort_keys(block_ijk), kind="stable")
-    in_order = bool(np.all(order[1:] > order[:-1]))  # chunks already sorted: no copy
-    pairs = list(zip(parts, keep, strict=True))
+    in_order = bool(np.all(order[1:] > order[:-1]))  # runs already sorted: no copy
     no_mask = np.zeros((0, MASK_WORDS), np.uint64)
-    observed = np.concatenate([no_mask] + [p[0][r] for p, r in pairs])[order]
-    hit = np.concatenate([no_mask] + [p[1][r] for p, r in pairs])[order]
-    block_t = np.concatenate([np.zeros(0)] + [c[1][r] for c, r in zip(runs, keep, strict=True)])
-    block_t = block_t[order]
+    observed = np.concatenate([no_mask] + [c[4][k] for c, k in pairs])
+    hit = np.concatenate([no_mask] + [c[5][k] for c, k in pairs])
+    block_t = np.concatenate([np.zeros(0)] + [c[1][k] for c, k in pairs])
+    if not in_order:
+        observed, hit, block_t = observed[order], hit[order], block_t[order]
     values = []
     for col in (0, 1):  # s, then n: each block's run in the outputs, in sorted order
         src = (out.s if col == 0 else out.n)[: out.places[col]]
-        count = np.concatenate([np.zeros(0, np.int64)] + [p[2][:, col] for p in parts])
-        first = np.cumsum(count) - count
-        kept = np.concatenate([np.zeros(0, np.int64)] + [p[2][:, 0] for p in parts]) > 0
-        run_length = count[kept][order]
+        count = np.concatenate([np.zeros(0, np.int64)] + [c[6][:, col] for c in runs])
+        kept = np.concatenate([np.zeros(0, np.int64)] + [c[6][:, 0] for c in runs]) > 0
         if in_order:  # the outputs hold the kept blocks' runs one after the other
-            values.append((src, run_length))
+            values.append((src, count[kept]))
             continue
+        first = np.cumsum(count) - count
+        run_length = count[kept][order]
         moved = np.empty(int(run_length.sum()), dtype=np.float32)
         _copy_runs(src, first[kept][order], run_length, moved)
         values.append((moved, run_length))
     (s, _), (n, hits) = values
     hit_block = np.flatnonzero(hits > 0).astype(np.int64)
     # the float64 parts: few blocks, gathered in sorted order
-    hi_rows = np.concatenate(
-        [np.zeros(0, np.int64)] + [c[2][r] for c, r in zip(runs, keep, strict=True)]
-    )
+    hi_rows = np.concatenate([np.zeros(0, np.int64)] + [c[2][k] for c, k in pairs])
     hi_all = np.concatenate(
         [np.zeros((0, BLOCK_VOXELS, 2))]
-        + [
-            c[3].reshape(-1, BLOCK_VOXELS, 2)[c[2][r][c[2][r] >= 0]]
-            for c, r in zip(runs, keep, strict=True)
-        ]
+        + [c[3].reshape(-1, BLOCK_VOXELS, 2)[c[2][k][c[2][k] >= 0]] for c, k in pairs]
     )
     has_hi = hi_rows[order] >= 0
     hi_block = np.flatnonzero(has_hi).astype(np.int64)
     hi_sorted = hi_all[np.flatnonzero(hi_rows >= 0).searchsorted(order[has_hi])]
     hi_s = hi_sorted[..., 0][_mask_bits(observed[hi_block])]
     hi_n = hi_sorted[..., 1][_mask_bits(hit[hi_block])]
+    block_ijk = block_ijk if in_order else block_ijk[order]
     return PackedBlocks(
-        block_ijk[order].astype(np.int32, copy=False), block_t, observed, s, hit_block,
+        block_ijk.astype(np.int32, copy=False), block_t, observed, s, hit_block,
         hit[hit_block], n, True, hi_block, hi_s, hi_n,
     )  # fmt: skip
 
@@ -283,12 +291,16 @@ def voxel_arrays_of(
 __all__ = [
     "MASK_WORDS",
     "BlockChunk",
+    "PackOutputs",
     "PackedBlocks",
+    "PackedRun",
     "as_parts",
     "as_values",
     "block_key",
+    "pack_chunk",
     "pack_chunks",
     "packed_problem",
+    "packed_runs",
     "select_blocks",
     "totals",
     "voxel_arrays_of",

@@ -70,9 +70,13 @@ from mfp_mapper.core.packed import (
     MASK_WORDS,
     BlockChunk,
     PackedBlocks,
+    PackedRun,
+    PackOutputs,
     hi_starts,
     hit_row_of,
+    pack_chunk,
     pack_chunks,
+    packed_runs,
     sort_keys,
     voxel_starts,
 )
@@ -91,6 +95,9 @@ from mfp_mapper.core.shard import (
     voxel_stats,
 )
 
+_THREADED_PACK_BLOCKS = 16_384
+"""Blocks from which ``BlockStore.export_blocks`` packs half of them in a thread of their
+own."""
 _THREADED_WRITE_VOXELS = 1_000_000
 """Voxels from which ``BlockStore.assign_blocks`` writes the ``s`` parts in a thread of
 their own while it opens the blocks (``BlockStore._fill_parts``)."""
@@ -489,6 +496,30 @@ def _block_parts(
                     n[k, c * N_CHUNK_VOXELS + i] = 0.0
 
 
+def _sorted_blocks(sh: Shard) -> NDArray[np.int64]:
+    """The shard's blocks in sorted order (``packed.sort_keys``)."""
+    return np.argsort(sort_keys(sh.block_ijk[: sh.used]), kind="stable")
+
+
+def _shard_chunks(
+    sh: Shard, blocks: NDArray[np.int64], max_blocks: int = 4096
+) -> Iterator[BlockChunk]:
+    """``BlockStore.block_chunks`` of the blocks ``blocks`` of one shard, in that order
+    (runs of at most ``max_blocks``, through one buffer)."""
+    s_buffer = np.empty((min(max_blocks, blocks.shape[0]), BLOCK_VOXELS), dtype=np.float32)
+    n_buffer = np.empty_like(s_buffer)
+    for start in range(0, blocks.shape[0], max_blocks):
+        run = blocks[start : start + max_blocks]
+        s, n = s_buffer[: run.shape[0]], n_buffer[: run.shape[0]]
+        _block_parts(sh.arrays(), run, s, n)
+        href = sh.block_href[run]
+        flushed = href >= 0
+        hi_row = np.full(run.shape[0], -1, dtype=np.int64)
+        hi_row[flushed] = np.arange(np.count_nonzero(flushed))
+        hi = sh.hi_pool[href[flushed]]
+        yield sh.block_ijk[run], sh.block_t[run], s, n, hi_row, hi
+
+
 @nb.njit(cache=True, nogil=True)
 def _lookup(
     ijk: NDArray[np.int64],
@@ -731,24 +762,37 @@ class BlockStore:
         block-level export without per-voxel index arrays (``packed.BlockChunk``). The
         float32 parts of a run are overwritten by the next (one buffer, not a fresh one
         the system must fault in each time): use each run before taking the next."""
-        s_buffer = np.empty((max_blocks, BLOCK_VOXELS), dtype=np.float32)
-        n_buffer = np.empty((max_blocks, BLOCK_VOXELS), dtype=np.float32)
         for sh in self.shards:
-            order = np.argsort(sort_keys(sh.block_ijk[: sh.used]), kind="stable")
-            for start in range(0, sh.used, max_blocks):
-                blocks = order[start : start + max_blocks]
-                s, n = s_buffer[: blocks.shape[0]], n_buffer[: blocks.shape[0]]
-                _block_parts(sh.arrays(), blocks, s, n)
-                href = sh.block_href[blocks]
-                flushed = href >= 0
-                hi_row = np.full(blocks.shape[0], -1, dtype=np.int64)
-                hi_row[flushed] = np.arange(np.count_nonzero(flushed))
-                hi = sh.hi_pool[href[flushed]]
-                yield sh.block_ijk[blocks], sh.block_t[blocks], s, n, hi_row, hi
+            yield from _shard_chunks(sh, _sorted_blocks(sh), max_blocks)
 
     def export_blocks(self) -> PackedBlocks:
-        """Every observed voxel, packed block by block (``packed``; a copy)."""
-        return pack_chunks(self.block_chunks(), self.num_voxels)
+        """Every observed voxel, packed block by block (``packed``; a copy):
+        ``packed.pack_chunks`` of ``block_chunks``; on maps of ``_THREADED_PACK_BLOCKS``
+        blocks or more where two cores are there, the second half of each shard's blocks
+        is packed in a thread of its own meanwhile (the same blocks, bit for bit)."""
+        orders = [(sh, _sorted_blocks(sh)) for sh in self.shards]
+        if self.num_blocks < _THREADED_PACK_BLOCKS or (os.cpu_count() or 1) < 2:
+            return pack_chunks(self.block_chunks(), self.num_voxels)
+        halves = [(sh, order[: order.shape[0] // 2]) for sh, order in orders]
+        halves += [(sh, order[order.shape[0] // 2 :]) for sh, order in orders]
+        share = self.num_voxels // 2 + BLOCK_VOXELS
+
+        def pack(
+            part: list[tuple[Shard, NDArray[np.int64]]],
+        ) -> tuple[list[PackedRun], PackOutputs]:
+            out = PackOutputs(share)
+            chunks = (c for sh, blocks in part for c in _shard_chunks(sh, blocks))
+            return [pack_chunk(c, out) for c in chunks], out
+
+        with ThreadPoolExecutor(1) as pool:
+            second = pool.submit(pack, halves[len(orders) :])
+            runs, out = pack(halves[: len(orders)])
+            more, out2 = second.result()
+        joined = PackOutputs(0)
+        joined.s = np.concatenate([out.s[: out.places[0]], out2.s[: out2.places[0]]])
+        joined.n = np.concatenate([out.n[: out.places[1]], out2.n[: out2.places[1]]])
+        joined.places[:] = joined.s.shape[0], joined.n.shape[0]
+        return packed_runs(runs + more, joined)
 
     def assign_blocks(self, packed: PackedBlocks) -> None:
         """Set the voxels of packed blocks (checked by ``packed_problem``) in an empty

@@ -37,10 +37,12 @@ from __future__ import annotations
 
 import io
 import math
+import os
 import struct
 import zipfile
 import zlib
 from collections.abc import Iterable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -57,6 +59,7 @@ from mfp_mapper.core.layout import (
     VoxelArrays,
     as_parts,
     as_values,
+    bit_count,
     compact,
     hi_starts,
     select_blocks,
@@ -256,10 +259,44 @@ def read_member(f: io.BufferedReader, m: Member) -> np.ndarray:
     return out
 
 
+def read_member_at(fd: int, m: Member) -> np.ndarray:
+    """``read_member`` through ``os.preadv`` (no file position: a thread of its own may
+    read while another reads the same file)."""
+    out = np.empty(m.shape, dtype=m.dtype)
+    view = out.reshape(-1).view(np.uint8).data
+    got = 0
+    while got < m.nbytes:
+        step = os.preadv(fd, [view[got:]], m.offset + got)
+        if step <= 0:
+            break
+        got += step
+    if got != m.nbytes:
+        raise BlockFileError(f"{m.name} is truncated ({got} of {m.nbytes} bytes)")
+    if zlib.crc32(view, zlib.crc32(m.header)) != m.crc:
+        raise BlockFileError(f"{m.name} fails its CRC-32 check: the file is damaged")
+    return out
+
+
+THREADED_READ_BYTES = 4 << 20
+"""``s`` from this size on is read and its CRC checked in a thread of its own while the
+other members are read and checked (``read_all``), where two cores are there."""
+
+
 def read_all(f: io.BufferedReader, members: dict[str, Member]) -> dict[str, np.ndarray]:
-    """Every block member, checked: CRCs, the index against the masks."""
-    arrays = {k: read_member(f, m) for k, m in members.items() if k not in TABLE_MEMBERS}
-    problem = index_problem(arrays)
+    """Every block member, checked: CRCs, the index against the masks (``s`` read in
+    another thread meanwhile on large maps: ``THREADED_READ_BYTES``)."""
+    names = [k for k in members if k not in TABLE_MEMBERS]
+    big = "s"
+    alone = (os.cpu_count() or 1) < 2 or not hasattr(os, "preadv")  # preadv: not Windows
+    if members[big].nbytes < THREADED_READ_BYTES or alone:
+        arrays = {k: read_member(f, members[k]) for k in names}
+        problem = index_problem(arrays)
+    else:
+        with ThreadPoolExecutor(1) as pool:
+            reading = pool.submit(read_member_at, f.fileno(), members[big])
+            rest = {k: read_member(f, members[k]) for k in names if k != big}
+            problem = index_problem({**rest, big: np.empty(members[big].shape, np.uint8)})
+            arrays = {k: rest[k] if k != big else reading.result() for k in names}
     if problem:
         raise BlockFileError(problem)
     return arrays
@@ -349,8 +386,8 @@ class BlockReader:
         has[has] = hit_rows[pos[has]] == rows[has]
         hpos = pos[has]
         s_lo, s_hi, n_lo, n_hi = start[rows], start[rows + 1], hstart[hpos], hstart[hpos + 1]
-        counts = np.bitwise_count(whole.observed[rows]).sum(axis=1)
-        hit_counts = np.bitwise_count(whole.hit[hpos]).sum(axis=1)
+        counts = bit_count(whole.observed[rows]).sum(axis=1)
+        hit_counts = bit_count(whole.hit[hpos]).sum(axis=1)
         if not (np.array_equal(s_hi - s_lo, counts) and np.array_equal(n_hi - n_lo, hit_counts)):
             raise BlockFileError("block_start or hit_start does not count the masks")
         s_total, n_total = self.members["s"].shape[0], self.members["n"].shape[0]

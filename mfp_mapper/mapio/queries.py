@@ -25,6 +25,7 @@ from mfp_mapper.core.layout import (
     BLOCK_EDGE,
     MAX_VOXEL_INDEX,
     PackedBlocks,
+    bit_count,
     sort_keys,
     totals,
     voxel_starts,
@@ -321,11 +322,11 @@ def _bit_rank(
     the masks before it) and whether it is set."""
     starts = voxel_starts(masks)
     m = masks[rows]
-    counts = np.bitwise_count(m).astype(np.int64)
+    counts = bit_count(m).astype(np.int64)
     before_word = np.cumsum(counts, axis=1) - counts
     k = np.arange(rows.shape[0])
     word, bit = place >> 6, (place & 63).astype(np.uint64)
     w = m[k, word]
-    below = np.bitwise_count(w & ((np.uint64(1) << bit) - np.uint64(1))).astype(np.int64)
+    below = bit_count(w & ((np.uint64(1) << bit) - np.uint64(1))).astype(np.int64)
     is_set = ((w >> bit) & np.uint64(1)).astype(bool)
     return starts[rows] + before_word[k, word] + below, is_set

@@ -8,6 +8,7 @@ from box_world import anchors_scene
 
 from mfp_mapper import Mapper
 from mfp_mapper.core import store as store_module
+from mfp_mapper.core.layout import bit_count
 from mfp_mapper.core.packed import (
     PackedBlocks,
     as_parts,
@@ -43,7 +44,7 @@ def test_blocks_round_trip_every_voxel_bit_for_bit(threads: int) -> None:
         assert np.array_equal(a, b)
     # the masks count the values; each voxel with a return is observed
     assert np.array_equal(np.diff(voxel_starts(packed.observed)),
-                          np.bitwise_count(packed.observed).sum(1))  # fmt: skip
+                          bit_count(packed.observed).sum(1))  # fmt: skip
     assert not np.any(packed.hit & ~packed.observed[packed.hit_block])
 
 
@@ -146,6 +147,29 @@ def test_parts_round_trip_with_the_float64_blocks_bit_for_bit(
     again = as_parts(as_values(p))
     assert [a.tobytes() for a in totals(again)] == [s_tot.tobytes(), n_tot.tobytes()]
     assert pack_chunks([]).num_voxels == 0
+
+
+@pytest.mark.parametrize("shards", [1, 2])
+def test_export_in_two_threads_packs_as_one(shards: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``export_blocks`` packing half the blocks in a thread of its own (large maps) gives
+    the packing of ``block_chunks`` in one thread, bit for bit, flushed blocks included."""
+    m = Mapper(0.1, max_range=30.0, threads=shards)
+    for k, (points, origin) in enumerate(anchors_scene(n_scans=2, azimuths=120)):
+        m.integrate(points, origin, 10.0 + k)
+    store = m._store
+    for sh in store.shards:  # flush some blocks: their float64 parts go with them
+        sh.block_flush[: sh.used : 5] = True
+        sh.pools[4] = 1  # FLUSH_PENDING
+        sh.flush()
+    one = pack_chunks(store.block_chunks(), store.num_voxels)
+    monkeypatch.setattr(store_module, "_THREADED_PACK_BLOCKS", 0)
+    monkeypatch.setattr(store_module.os, "cpu_count", lambda: 2)
+    two = store.export_blocks()
+    assert packed_problem(two) is None and two.hi_block.shape[0] > 0
+    for key, value in one.__dict__.items():
+        got = getattr(two, key)
+        assert isinstance(got, bool) or got.dtype == value.dtype, key
+        assert np.array_equal(np.asarray(got).view(np.uint8), np.asarray(value).view(np.uint8)), key
 
 
 def test_bad_blocks_are_named() -> None:

@@ -13,6 +13,7 @@ import pytest
 from box_world import anchors_scene
 
 from mfp_mapper import MapFileError, Mapper
+from mfp_mapper.core.layout import bit_count
 from mfp_mapper.mapio.loading import load_map, save_map
 
 
@@ -57,8 +58,8 @@ def test_file_holds_the_documented_arrays(mapper: Mapper, tmp_path: Path) -> Non
         assert block_ijk.dtype == np.int32 and observed.dtype == np.uint64
         assert f["s"].dtype == np.float32 and f["n"].dtype == np.float32  # as in memory
         assert f["s"].shape == (mapper.num_voxels,)
-        assert np.bitwise_count(observed).sum() == mapper.num_voxels
-        assert np.array_equal(np.diff(f["block_start"]), np.bitwise_count(observed).sum(1))
+        assert bit_count(observed).sum() == mapper.num_voxels
+        assert np.array_equal(np.diff(f["block_start"]), bit_count(observed).sum(1))
         assert np.all(hit & ~observed[f["hit_block"]] == 0)
         assert f["n"].shape == (np.count_nonzero(mapper.voxels().n),)
         assert float(f["resolution"]) == 0.2 and str(f["frame_id"]) == "odom"
@@ -369,3 +370,28 @@ def test_from_arrays_builds_a_map_without_a_file() -> None:
     q = m.query(np.array([[10.0 + 0.75, 1.25, 1.75]]))
     assert q.s[0] == 2.0 and q.n[0] == 1.0 and m.last_stamp == 4.0
     assert q.centers[0] == pytest.approx([10.75, 1.25, 1.75])
+
+
+@pytest.mark.parametrize("threaded", [False, True])
+def test_s_read_in_a_thread_of_its_own_loads_the_same_and_is_checked(
+    threaded: bool, mapper: Mapper, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``s`` read beside the other members (``blockfile.read_all`` on large maps, forced
+    here) loads the same blocks as one read after the other, and a damaged ``s`` is still
+    refused by its CRC."""
+    from mfp_mapper.mapio import blockfile
+
+    if threaded:
+        monkeypatch.setattr(blockfile, "THREADED_READ_BYTES", 0)
+        monkeypatch.setattr(blockfile.os, "cpu_count", lambda: 2)
+    path = tmp_path / "map.npz"
+    save_map(mapper, path)
+    a, b = load_map(path).stored_blocks(), mapper.stored_blocks()
+    for key in ("block_ijk", "block_t", "observed", "s", "hit_block", "hit", "n"):
+        assert getattr(a, key).tobytes() == getattr(b, key).tobytes(), key
+    raw = bytearray(path.read_bytes())
+    s_data = raw.find(b"\n", raw.find(b"'descr': '<f4'")) + 1
+    raw[s_data + 4] ^= 0x01  # the second value of s, one bit
+    path.write_bytes(bytes(raw))
+    with pytest.raises(MapFileError, match="s fails its CRC-32"):
+        load_map(path)
