@@ -12,7 +12,9 @@ written and read in the same run by
   renamed) and the node's save (``map_blocks`` under the lock, then ``write_map_path``);
   ``load_map`` (read, CRCs and values checked, blocks set in the store);
 * ``mfp-mapper query`` as it runs (``MapFileQueries``: open the file, read the blocks of
-  10 points, answer; and 100 segments of 20 m), against numpy's read of the voxel arrays;
+  10 points, answer; and 100 segments of 20 m), against numpy's read of the voxel arrays
+  (with ``--histograms``, the synthetic map's voxels with returns hold reflectivity
+  histograms of 8 bins, as replay's default keeps for clouds with an intensity field);
   and the command as a process (the ``mfp-mapper`` console script beside this Python, as
   docs/cli.md has a user type it) against a Python process reading them with numpy.
 
@@ -23,6 +25,7 @@ writes' dirty pages). Times are the best of ``--repeat`` interleaved rounds.
     python benchmarks/bench_mapfile.py                       # norlab + 30 M synthetic voxels
     python benchmarks/bench_mapfile.py --voxels 1e6 --scene none
     python benchmarks/bench_mapfile.py --map street.npz --voxels 0
+    python benchmarks/bench_mapfile.py --voxels 9.6e6 --scene none --histograms
 """
 
 from __future__ import annotations
@@ -59,8 +62,9 @@ def _timed(fn):  # type: ignore[no-untyped-def]
     return time.perf_counter() - t0, out
 
 
-def synthetic(count: int, seed: int = 0) -> Mapper:
-    """A box filled at 70% with ``count`` voxels, 2% with returns, times 90-100 s."""
+def synthetic(count: int, seed: int = 0, histograms: bool = False) -> Mapper:
+    """A box filled at 70% with ``count`` voxels, 2% with returns, times 90-100 s; with
+    ``histograms``, each voxel with returns holds a reflectivity histogram of 8 bins."""
     rng = np.random.default_rng(seed)
     side = round((count / 0.7) ** (1 / 3))
     axis = np.arange(side, dtype=np.int32) - side // 2
@@ -69,7 +73,17 @@ def synthetic(count: int, seed: int = 0) -> Mapper:
     k = ijk.shape[0]
     n = np.where(rng.random(k) < 0.02, rng.integers(1, 5, k), 0).astype(np.float64)
     voxels = VoxelArrays(ijk, rng.uniform(0.01, 5.0, k), n, rng.uniform(90.0, 100.0, k))
-    return Mapper.from_arrays(voxels, resolution=0.1, decay_time=600.0)
+    table = None
+    if histograms:
+        from mfp_mapper.core.reflectivity import ReflectivityArrays
+        from mfp_mapper.sensing.reflectivity import bins_for
+
+        bins = bins_for("reflectivity", 8)
+        assert bins is not None
+        hit = n > 0
+        counts = rng.multinomial(n[hit].astype(np.int64), np.full(8, 1 / 8)).astype(np.float64)
+        table = ReflectivityArrays(bins, ijk[hit], counts, np.full(int(hit.sum()), 100.0))
+    return Mapper.from_arrays(voxels, resolution=0.1, decay_time=600.0, reflectivity=table)
 
 
 def real(scene: str, resolution: float) -> Mapper:
@@ -151,12 +165,18 @@ def run(name: str, mapper: Mapper, repeat: int, tmp: Path) -> None:
     expect = mapper.query(points)
     got = MapFileQueries(path).query(points)
     assert np.array_equal(expect.s, got.s) and np.array_equal(expect.n, got.n)
+    histograms = mapper.reflectivity(points), MapFileQueries(path).reflectivity(points)
+    assert (histograms[0] is None) == (histograms[1] is None)
+    if histograms[0] is not None and histograms[1] is not None:
+        assert np.array_equal(histograms[0][1], histograms[1][1])
     b = {k: min(v) for k, v in {**t, **r}.items()}
     base_w = min(b["np_save"], b["np_savez"])
     base_r = min(b["np_read"], b["np_npz"])
     count = mapper.num_voxels
     size = path.stat().st_size
-    print(f"{name}: {count / 1e6:.2f} M voxels, {mapper.num_blocks} blocks")
+    table = mapper.stored_reflectivity()
+    held = "" if table is None else f", {len(table)} reflectivity histograms"
+    print(f"{name}: {count / 1e6:.2f} M voxels, {mapper.num_blocks} blocks{held}")
     print(f"  file {size / 1e6:8.1f} MB  {size / count:6.2f} bytes/voxel (numpy's arrays: 36)")
     print(f"  np.save (4 arrays)    {b['np_save']:7.3f} s")
     print(f"  np.savez (stored)     {b['np_savez']:7.3f} s")
@@ -185,6 +205,9 @@ def main() -> None:
     parser.add_argument("--resolution", type=float, default=0.1)
     parser.add_argument("--map", type=Path, help="a map file to measure instead of the scene")
     parser.add_argument("--repeat", type=int, default=2, help="best of this many (interleaved)")
+    parser.add_argument(
+        "--histograms", action="store_true", help="synthetic map: reflectivity histograms"
+    )
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         if args.map is not None:
@@ -197,7 +220,8 @@ def main() -> None:
             else:
                 print(f"{args.scene}: skipped ({data} is absent)")
         if args.voxels > 0:
-            run("synthetic", synthetic(int(args.voxels)), args.repeat, Path(tmp))
+            run("synthetic", synthetic(int(args.voxels), histograms=args.histograms),
+                args.repeat, Path(tmp))  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -1,6 +1,7 @@
-"""Heavy imports stay lazy: ``import mfp_mapper``, ``import mfp_mapper.cli`` and
-``mfp-mapper --help`` load no numba (its import compiles a probe kernel), no ROS, no bag
-reader and no plotting (checked in a fresh interpreter)."""
+"""Heavy imports stay lazy: ``import mfp_mapper``, ``import mfp_mapper.cli``,
+``mfp-mapper --help`` and the map-file queries (``mapio.queries``) load no numba (its import
+compiles a probe kernel), no ROS, no bag reader and no plotting (checked in a fresh
+interpreter)."""
 
 from __future__ import annotations
 
@@ -37,6 +38,7 @@ def _heavy_modules_after(code: str) -> list[str]:
         "import mfp_mapper",
         "import mfp_mapper.cli",
         "import mfp_mapper.config.schema",
+        "import mfp_mapper.mapio.queries, mfp_mapper.core.reflectivity_arrays",
         HELP.format(argv=["--help"]),
         HELP.format(argv=["replay", "--help"]),
     ],

@@ -24,14 +24,14 @@ ray whose return a shard's walk cut to keep one scan within its block budget
 The core knows nothing of sensors: it takes intensity values and bin edges
 (``ReflectivityBins``: a label naming the field they came from, and the edges). The
 sensing layer chooses the edges per field (``sensing.reflectivity``); maps merge only when
-label and edges are equal.
+label and edges are equal. The bins and the table as arrays (what map files hold and a query
+of a map file reads) live in ``core.reflectivity_arrays``, numba-free, re-exported here.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import numba as nb
@@ -49,63 +49,25 @@ from mfp_mapper.core.blocks import (
     find_block,
     insert_block,
 )
-
-FloatArray = NDArray[np.float64]
-
-ARRAY_KEYS = (
-    "reflectivity_ijk",
-    "reflectivity_counts",
-    "reflectivity_t_last",
-    "reflectivity_edges",
-    "reflectivity_field",
+from mfp_mapper.core.reflectivity_arrays import (  # noqa: F401 (numba-free, re-exported)
+    ARRAY_KEYS,
+    MAX_BINS,
+    ROW_KEYS,
+    FloatArray,
+    ReflectivityArrays,
+    ReflectivityBins,
+    block_order,
+    concatenate_tables,
+    from_map_arrays,
+    mean_value,
+    most_likely_bin,
+    row_keys,
+    rows_within,
+    select_rows,
+    smoothed,
+    table_problem,
+    to_map_arrays,
 )
-"""The arrays of a map holding a reflectivity field (``to_map_arrays``), beside its voxels'."""
-ROW_KEYS = ARRAY_KEYS[:3]
-"""The members with a row per voxel (the others give the bins)."""
-MAX_BINS = 64
-"""Most bins a histogram may have."""
-
-
-@dataclass(frozen=True)
-class ReflectivityBins:
-    """How intensities are binned: ``field`` names where they came from (a label the map
-    keeps), ``edges`` are the ``J - 1`` increasing inner edges: bin 0 holds values below
-    ``edges[0]``, bin ``j`` holds ``edges[j-1] <= v < edges[j]``, bin ``J-1`` the rest."""
-
-    field: str
-    edges: tuple[float, ...]
-
-    def __post_init__(self) -> None:
-        e = np.asarray(self.edges, dtype=np.float64)
-        if e.ndim != 1 or not 1 <= e.size + 1 <= MAX_BINS:
-            raise ValueError(f"need 0 to {MAX_BINS - 1} inner bin edges, got {e.size}")
-        if not (np.isfinite(e).all() and np.all(np.diff(e) > 0)):
-            raise ValueError(f"bin edges must be finite and increasing, got {list(self.edges)}")
-
-    @property
-    def count(self) -> int:
-        """J, the number of bins."""
-        return len(self.edges) + 1
-
-    def bin_of(self, values: ArrayLike) -> NDArray[np.int64]:
-        """The bin of each value; -1 for NaN (not counted)."""
-        v = np.asarray(values, dtype=np.float64).reshape(-1)
-        out = np.searchsorted(np.asarray(self.edges, dtype=np.float64), v, side="right")
-        out[np.isnan(v)] = -1
-        return out.astype(np.int64)
-
-    def centers(self) -> FloatArray:
-        """A representative value of each bin (for a mean): the geometric mean of its edges
-        when both are positive, else the middle; the outer bins take their inner edge
-        scaled by the neighbouring bin's ratio (or its edge when there is none)."""
-        e = np.asarray(self.edges, dtype=np.float64)
-        if e.size == 0:
-            return np.zeros(1)
-        lo = np.concatenate([[e[0] * e[0] / e[1] if e.size > 1 and e[1] > 0 else e[0]], e])
-        hi = np.concatenate([e, [e[-1] * e[-1] / e[-2] if e.size > 1 and e[-2] > 0 else e[-1]]])
-        with np.errstate(invalid="ignore"):
-            geo = np.sqrt(lo * hi)
-        return np.where((lo > 0) & (hi > 0), geo, 0.5 * (lo + hi))
 
 
 class ScanReflectivity(NamedTuple):
@@ -115,136 +77,10 @@ class ScanReflectivity(NamedTuple):
     bins: ReflectivityBins
 
 
-@dataclass
-class ReflectivityArrays:
-    """A reflectivity table as arrays: its bins, voxel indices (K, 3) relative to the map's
-    origin, counts (K, J) and the time (s) each row refers to (K,)."""
-
-    bins: ReflectivityBins
-    ijk: NDArray[np.int32]
-    counts: FloatArray
-    t_last: FloatArray
-
-    def __len__(self) -> int:
-        return int(self.ijk.shape[0])
-
-
-def to_map_arrays(table: ReflectivityArrays) -> dict[str, np.ndarray]:
-    """The map-file members of a table (``ARRAY_KEYS``), rows sorted by block and place in
-    the block (as a ``ReflectivityTable`` holds them: a reader finds a block's rows on few
-    pages)."""
-    order = block_order(table.ijk)
-    return {
-        "reflectivity_ijk": table.ijk[order].astype(np.int32, copy=False),
-        "reflectivity_counts": table.counts[order].astype(np.float64, copy=False),
-        "reflectivity_t_last": table.t_last[order].astype(np.float64, copy=False),
-        "reflectivity_edges": np.asarray(table.bins.edges, dtype=np.float64),
-        "reflectivity_field": np.str_(table.bins.field),
-    }
-
-
-def from_map_arrays(arrays: Mapping[str, np.ndarray]) -> ReflectivityArrays | None:
-    """The table held by map-file arrays, None when they hold none; ValueError naming what
-    is wrong (shapes, values: ``table_problem``)."""
-    if "reflectivity_counts" not in arrays:
-        return None
-    missing = [k for k in ARRAY_KEYS if k not in arrays]
-    if missing:
-        raise ValueError(f"reflectivity field incomplete: missing {', '.join(missing)}")
-    edges = np.asarray(arrays["reflectivity_edges"], dtype=np.float64).reshape(-1)
-    bins = ReflectivityBins(str(arrays["reflectivity_field"]), tuple(float(e) for e in edges))
-    table = ReflectivityArrays(
-        bins,
-        np.asarray(arrays["reflectivity_ijk"]),
-        np.asarray(arrays["reflectivity_counts"], dtype=np.float64),
-        np.asarray(arrays["reflectivity_t_last"], dtype=np.float64),
-    )
-    problem = table_problem(table)
-    if problem:
-        raise ValueError(problem)
-    return table
-
-
-def select_rows(arrays: Mapping[str, np.ndarray], keep: NDArray[np.bool_]) -> dict[str, np.ndarray]:
-    """The table members of map-file ``arrays`` with only the rows where ``keep`` (over its
-    rows) is True; {} when they hold no table."""
-    if "reflectivity_counts" not in arrays:
-        return {}
-    out = {k: arrays[k] for k in ARRAY_KEYS if k in arrays}
-    for key in ROW_KEYS:
-        out[key] = np.asarray(arrays[key])[keep]
-    return out
-
-
-def rows_within(
-    arrays: Mapping[str, np.ndarray], lo: NDArray[np.int64], hi: NDArray[np.int64]
-) -> NDArray[np.bool_]:
-    """Which table rows of map-file ``arrays`` have a voxel index within [lo, hi]."""
-    ijk = np.asarray(arrays.get("reflectivity_ijk", np.zeros((0, 3), np.int32)))
-    return np.all((ijk >= lo) & (ijk <= hi), axis=1)
-
-
-def block_order(ijk: ArrayLike) -> NDArray[np.int64] | slice:
-    """The order of voxel indices ``ijk`` (K, 3) by block (``packed.sort_keys``), then by
-    place in the block; ``slice(None)`` when they are in that order already."""
-    keys, places, _ = _row_keys(np.asarray(ijk, dtype=np.int64).reshape(-1, 3))
-    later = (keys[1:] > keys[:-1]) | ((keys[1:] == keys[:-1]) & (places[1:] > places[:-1]))
-    return slice(None) if later.all() else np.lexsort((places, keys))
-
-
-def concatenate_tables(parts: Sequence[Mapping[str, np.ndarray]]) -> dict[str, np.ndarray]:
-    """The table members of disjoint map-file arrays (e.g. tiles) as one; {} when none
-    holds a table. ValueError when their bins differ."""
-    tables = [t for t in (from_map_arrays(p) for p in parts) if t is not None]
-    if not tables:
-        return {}
-    for other in tables[1:]:
-        if other.bins != tables[0].bins:
-            raise ValueError(f"reflectivity bins differ: {tables[0].bins} and {other.bins}")
-    return to_map_arrays(
-        ReflectivityArrays(
-            tables[0].bins,
-            np.concatenate([t.ijk for t in tables]).astype(np.int32),
-            np.concatenate([t.counts for t in tables]),
-            np.concatenate([t.t_last for t in tables]),
-        )
-    )
-
-
-def table_problem(table: ReflectivityArrays) -> str | None:
-    """What is wrong with a table's arrays (duplicates are found when stored), or None."""
-    rows = len(table)
-    if table.ijk.ndim != 2 or table.ijk.shape[1] != 3:
-        return f"reflectivity_ijk must have shape (K, 3), got {table.ijk.shape}"
-    if table.counts.shape != (rows, table.bins.count) or table.t_last.shape != (rows,):
-        return (
-            f"reflectivity arrays disagree: {rows} voxels, counts {table.counts.shape} for "
-            f"{table.bins.count} bins, t_last {table.t_last.shape}"
-        )
-    if not (np.isfinite(table.counts).all() and table.counts.min(initial=0.0) >= 0):
-        return "reflectivity_counts holds negative, NaN or infinite values"
-    if not np.isfinite(table.t_last).all():
-        return "reflectivity_t_last holds NaN or infinite values (seconds expected)"
-    return None
-
-
-def _row_keys(
-    ijk: NDArray[np.int64],
-) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.bool_]]:
-    """The block key (``blocks.block_key``), the voxel's place in its block (0-511) and
-    whether the index is within the map's range (``MAX_VOXEL_INDEX``) of each voxel."""
-    inside = np.all(np.abs(ijk) <= MAX_VOXEL_INDEX, axis=1)
-    b = (ijk >> BLOCK_BITS) + KEY_OFFSET
-    keys = (b[:, 0] << (2 * KEY_BITS)) | (b[:, 1] << KEY_BITS) | b[:, 2]
-    low = ijk & (BLOCK_EDGE - 1)
-    local = (low[:, 0] << (2 * BLOCK_BITS)) | (low[:, 1] << BLOCK_BITS) | low[:, 2]
-    return keys, local, inside
-
-
 def _voxels_of(
     block_keys: NDArray[np.int64], block_start: NDArray[np.int32], local: NDArray[np.uint16]
 ) -> NDArray[np.int32]:
-    """The voxel index (K, 3) of every row (``_row_keys`` inverted)."""
+    """The voxel index (K, 3) of every row (``row_keys`` inverted)."""
     keys = np.repeat(block_keys, np.diff(block_start))
     loc = local.astype(np.int64)
     field, m = (1 << KEY_BITS) - 1, BLOCK_EDGE - 1
@@ -266,7 +102,7 @@ def _fill_hash(
 
 @nb.njit(inline="always", cache=True)
 def _voxel_key(x: int, y: int, z: int) -> tuple[int, int]:
-    """``_row_keys`` of one voxel: its block key (-1 beyond the map's range) and place."""
+    """``row_keys`` of one voxel: its block key (-1 beyond the map's range) and place."""
     if max(abs(x), abs(y), abs(z)) > MAX_VOXEL_INDEX:
         return -1, 0
     m = BLOCK_EDGE - 1
@@ -566,7 +402,7 @@ class ReflectivityTable:
         if packed.size:
             keys, places, new_bins = _unpacked(np.sort(packed, kind="stable"), lowest)
         else:  # a scan spanning more blocks than a packed value holds
-            keys, places, _ = _row_keys(ijk[new])
+            keys, places, _ = row_keys(ijk[new])
             order = np.lexsort((places, keys))
             keys, places, new_bins = keys[order], places[order], bins_[new][order]
         self._set_rows(
@@ -616,7 +452,7 @@ class ReflectivityTable:
         if problem:
             raise ValueError(problem)
         ijk = np.ascontiguousarray(table.ijk, dtype=np.int64).reshape(-1, 3)
-        keys, places, inside = _row_keys(ijk)
+        keys, places, inside = row_keys(ijk)
         if not inside.all():
             raise ValueError(f"reflectivity_ijk holds indices beyond +-{MAX_VOXEL_INDEX}")
         order = np.lexsort((places, keys))
@@ -705,25 +541,3 @@ def merge_reflectivity(
     summed = np.zeros((unique.shape[0], bins.count))
     np.add.at(summed, inverse, counts)
     return ReflectivityArrays(bins, unique.astype(np.int32), summed, t_common)
-
-
-def most_likely_bin(counts: FloatArray) -> NDArray[np.int64]:
-    """The fullest bin of each histogram (M, J); -1 for an empty one."""
-    out = np.argmax(counts, axis=1).astype(np.int64) if counts.shape[1] else np.zeros(0, np.int64)
-    out[counts.sum(axis=1) <= 0] = -1
-    return out
-
-
-def mean_value(counts: FloatArray, bins: ReflectivityBins) -> FloatArray:
-    """The mean intensity of each histogram (M, J) with the bins' ``centers``; NaN for an
-    empty one."""
-    total = counts.sum(axis=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(total > 0, counts @ bins.centers() / total, np.nan)
-
-
-def smoothed(counts: FloatArray, background: FloatArray, concentration: float) -> FloatArray:
-    """Posterior predictive histograms (M, J) under a Dirichlet prior of total weight
-    ``concentration`` centred on ``background`` (J, sums to 1): (n_j + c g_j) / (n + c)."""
-    total = counts.sum(axis=1, keepdims=True)
-    return (counts + concentration * background) / (total + concentration)

@@ -93,7 +93,7 @@ from mfp_mapper.mapio.checks import (
 
 if TYPE_CHECKING:  # imported where used: reading a file loads no numba (``mapio.queries``)
     from mfp_mapper.core.mapper import Mapper
-    from mfp_mapper.core.reflectivity import ReflectivityArrays
+    from mfp_mapper.core.reflectivity_arrays import ReflectivityArrays
 
 FORMAT_NAME = "mfp_mapper.map"
 FORMAT_VERSION = 4
@@ -212,7 +212,7 @@ def reflectivity_members(table: ReflectivityArrays | None) -> dict[str, np.ndarr
     """The ``reflectivity_*`` members of a map file holding ``table`` ({} for None)."""
     if table is None:
         return {}
-    from mfp_mapper.core.reflectivity import to_map_arrays
+    from mfp_mapper.core.reflectivity_arrays import to_map_arrays
 
     return to_map_arrays(table)
 
@@ -388,6 +388,8 @@ def _table_rows(reader: BlockReader, keys: NDArray[np.int64]) -> dict[str, np.nd
     present = [k for k in TABLE_MEMBERS if k in reader.members]
     if "reflectivity_ijk" not in present:
         return {k: reader.view(k) for k in present}  # incomplete: refused as such
+    if not keys.size:
+        return {k: reader.view(k)[:0] for k in present}
     blocks = reader.view("reflectivity_ijk").astype(np.int64) >> BLOCK_BITS
     picked = np.flatnonzero(np.isin(sort_keys(blocks), keys))
     return {k: reader.view(k)[picked] for k in present}
@@ -397,7 +399,7 @@ def _reflectivity(path: Path, small: dict[str, np.ndarray]) -> ReflectivityArray
     """The reflectivity histograms of a map file's small members (None: it has none)."""
     if not any(k.startswith("reflectivity_") for k in small):
         return None
-    from mfp_mapper.core.reflectivity import from_map_arrays
+    from mfp_mapper.core.reflectivity_arrays import from_map_arrays
 
     try:
         return from_map_arrays(small)

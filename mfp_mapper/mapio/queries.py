@@ -3,11 +3,11 @@ reflectivity histograms (version 3 and 4 files; an older file is read whole once
 ``mfp-mapper query`` and a tiled map's queries use.
 
 Points in a version 3 or 4 file are answered in numpy from the blocks read (``packed_lookup``),
-the same numbers as ``Mapper.query`` of the whole map (``test_queries.py`` compares them),
-without loading numba or any compiled kernel: a process asking a few points pays for
-reading them, not for the Mapper's imports (1.2 s on this machine, 0.01-0.02 s the read).
-Reflectivity histograms and segments go through a Mapper of the blocks read, older files
-through the whole map.
+their reflectivity histograms from the rows read (``reflectivity_lookup``), the same numbers
+as ``Mapper.query`` and ``Mapper.reflectivity`` of the whole map (``test_queries.py``
+compares them), without loading numba or any compiled kernel: a process asking a few points
+pays for reading them, not for the Mapper's imports (1.2 s on this machine, 0.01-0.02 s the
+read). Segments go through a Mapper of the blocks read, older files through the whole map.
 """
 
 from __future__ import annotations
@@ -30,10 +30,12 @@ from mfp_mapper.core.layout import (
     totals,
     voxel_starts,
 )
+from mfp_mapper.core.reflectivity_arrays import ReflectivityArrays, ReflectivityBins, row_keys
 from mfp_mapper.core.voxel_stats import SegmentStats, VoxelStats, decayed_stats
 from mfp_mapper.mapio.blockfile import BlockReader
 from mfp_mapper.mapio.mapfile import (
     MapContents,
+    MapFileError,
     mapper_from_contents,
     read_map_blocks,
     read_map_file,
@@ -42,7 +44,6 @@ from mfp_mapper.mapio.mapfile import (
 
 if TYPE_CHECKING:
     from mfp_mapper.core.mapper import Mapper
-    from mfp_mapper.core.reflectivity import ReflectivityBins
 
 MAX_SEGMENT_SAMPLES = 4_000_000
 """Samples along the segments of one query (one a voxel) beyond which a map file is read
@@ -132,11 +133,7 @@ class MapFileQueries:
         made, no numba loaded, for a version 3 or 4 file)."""
         if self._whole is not None:
             return self._whole.query(points, stamp)
-        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        with np.errstate(invalid="ignore"):  # as Mapper.query: NaN and far points are unknown
-            valid = np.all(np.abs((pts - self.origin) / self.resolution) < MAX_VOXEL_INDEX, axis=1)
-        rel = np.where(valid[:, None], pts, self.origin) - self.origin
-        ijk = np.floor(rel / self.resolution).astype(np.int64)
+        valid, ijk = self._point_voxels(points)
         keys = sort_keys(ijk[valid] >> BLOCK_BITS)
         c = read_map_blocks(self.path, lambda r: r.rows_of_keys(keys), self._decay_time)
         assert c is not None and c.packed is not None
@@ -149,13 +146,43 @@ class MapFileQueries:
     def reflectivity(
         self, points: ArrayLike, stamp: float | None = None
     ) -> tuple[ReflectivityBins, NDArray[np.float64]] | None:
-        """``Mapper.reflectivity``, reading the histograms of the blocks that hold the
-        points (None for a file without histograms)."""
-        if not self._histograms:  # known without a Mapper: a point query loads no numba
+        """``Mapper.reflectivity`` of the whole map, reading the histograms of the blocks
+        that hold the points (in numpy, ``reflectivity_lookup``: no Mapper made, no numba
+        loaded, for a version 3 or 4 file); None for a file without histograms."""
+        if not self._histograms:  # known without a Mapper
             return None
+        if self._whole is not None:
+            return self._whole.reflectivity(points, stamp)
+        valid, ijk = self._point_voxels(points)
+        keys = sort_keys(ijk[valid] >> BLOCK_BITS)
+        latest = [-math.inf]
+
+        def pick(reader: BlockReader) -> NDArray[np.int64]:
+            if math.isfinite(self.decay_time) and "reflectivity_t_last" in reader.members:
+                latest[0] = float(np.max(reader.view("reflectivity_t_last"), initial=-math.inf))
+            return reader.rows_of_keys(keys)
+
+        c = read_map_blocks(self.path, pick, self._decay_time)
+        assert c is not None and c.reflectivity is not None
+        if math.isnan(latest[0]) or latest[0] == math.inf:  # in a row not read: as a load
+            raise MapFileError(
+                self.path, "reflectivity_t_last holds NaN or infinite values (seconds expected)"
+            )
+        try:
+            counts = reflectivity_lookup(c.reflectivity, ijk, stamp, self.decay_time, latest[0])
+        except ValueError as err:  # as Mapper.from_blocks refuses it
+            raise MapFileError(self.path, str(err)) from None
+        counts[~valid] = 0.0
+        return c.reflectivity.bins, counts
+
+    def _point_voxels(self, points: ArrayLike) -> tuple[NDArray[np.bool_], NDArray[np.int64]]:
+        """Which points lie within the map's index range (not NaN, not far) and the voxel
+        of each (that of ``origin`` for the others), as the Mapper finds them."""
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        blocks = np.floor(self._voxel_index(pts)).astype(np.int64) >> BLOCK_BITS
-        return self._blocks(sort_keys(blocks)).reflectivity(pts, stamp)
+        with np.errstate(invalid="ignore"):  # as Mapper.query: NaN and far points are unknown
+            valid = np.all(np.abs((pts - self.origin) / self.resolution) < MAX_VOXEL_INDEX, axis=1)
+        rel = np.where(valid[:, None], pts, self.origin) - self.origin
+        return valid, np.floor(rel / self.resolution).astype(np.int64)
 
     def query_segments(
         self, starts: ArrayLike, ends: ArrayLike, stamp: float | None = None
@@ -229,6 +256,53 @@ def packed_lookup(
     n_file[np.flatnonzero(has)[hit]] = n_all[n_index[hit]]
     s[at], n[at] = s_file + 0.0, n_file + 0.0
     return s, n, t_last
+
+
+def reflectivity_lookup(
+    table: ReflectivityArrays,
+    ijk: NDArray[np.int64],
+    stamp: float | None,
+    decay_time: float,
+    latest: float,
+) -> NDArray[np.float64]:
+    """The histograms (M, J) of the voxels ``ijk`` among the rows of ``table`` (a map
+    file's, or some of its rows: ``latest`` is the latest ``t_last`` of all its rows), as
+    ``Mapper.reflectivity`` answers after ``Mapper.from_blocks`` of the whole file
+    (``ReflectivityTable.assign``, then ``histograms``): each row brought to ``latest``
+    and held as float32, then scaled to ``stamp`` (or held at ``latest`` without a stamp or
+    without decay); zeros for a voxel without a row or beyond the index range. ValueError
+    for a voxel listed twice. Numpy, for a few points: a sort of the rows read, a binary
+    search a point."""
+    rows_ijk = np.asarray(table.ijk, dtype=np.int64).reshape(-1, 3)
+    keys, places, _ = row_keys(rows_ijk)
+    blocks, block_of = np.unique(keys, return_inverse=True)
+    row_id = block_of.reshape(-1) * BLOCK_EDGE**3 + places  # sorts like (key, place)
+    order = np.argsort(row_id, kind="stable")
+    sorted_id = row_id[order]
+    twice = np.flatnonzero(sorted_id[1:] == sorted_id[:-1])
+    if twice.size:
+        voxel = rows_ijk[order[twice[0]]].tolist()
+        raise ValueError(f"reflectivity_ijk lists voxel {voxel} more than once")
+    counts = np.asarray(table.counts, dtype=np.float64)
+    decays = math.isfinite(decay_time)
+    if decays:
+        t_last = np.asarray(table.t_last, dtype=np.float64)
+        counts = counts * np.exp((t_last - latest) / decay_time)[:, None]
+    held = counts.astype(np.float32)
+    want, want_place, inside = row_keys(np.asarray(ijk, dtype=np.int64).reshape(-1, 3))
+    block = np.searchsorted(blocks, want)
+    found = inside & (block < blocks.shape[0])
+    found[found] = blocks[block[found]] == want[found]
+    at = np.flatnonzero(found)
+    want_id = block[at] * BLOCK_EDGE**3 + want_place[at]
+    pos = np.searchsorted(sorted_id, want_id)
+    hit = pos < sorted_id.shape[0]
+    hit[hit] = sorted_id[pos[hit]] == want_id[hit]
+    when = latest if stamp is None or not decays else float(stamp)
+    scale = math.exp(-(when - latest) / decay_time) if decays else 1.0
+    out = np.zeros((want.shape[0], table.bins.count))
+    out[at[hit]] = held[order[pos[hit]]] * scale
+    return out
 
 
 def morton_place(local: NDArray[np.int64]) -> NDArray[np.int64]:

@@ -87,7 +87,7 @@ def reflectivity_rows(
     found = mapper.reflectivity(points, stamp)
     if found is None:
         return []
-    from mfp_mapper.core.reflectivity import mean_value, most_likely_bin
+    from mfp_mapper.core.reflectivity_arrays import mean_value, most_likely_bin
 
     bins, counts = found
     means = mean_value(counts, bins)

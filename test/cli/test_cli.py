@@ -163,35 +163,48 @@ def test_query(run: dict[str, Path], capsys: pytest.CaptureFixture[str]) -> None
 LAUNCHER = Path(__file__).resolve().parents[2] / ".venv" / "bin" / "mfp-mapper"
 
 
-@pytest.mark.parametrize("histograms", [False, True], ids=["plain", "histograms"])
+@pytest.mark.parametrize("kind", ["plain", "histograms", "decaying_histograms"])
 def test_query_of_points_as_a_user_types_it(
-    run: dict[str, Path], histograms: bool, tmp_path: Path
+    run: dict[str, Path], kind: str, tmp_path: Path
 ) -> None:
     """``mfp-mapper query map.npz X Y Z ...`` (docs/cli.md), the console script in its own
-    process: the numbers of the map loaded whole (``Mapper.query``, compiled), for points
-    inside and outside the map, printed and ``--json``, with and without ``--stamp``. A map
-    without reflectivity histograms is answered without numba, llvmlite or scipy imported
-    (``python -X importtime``); one with them (replay's default here) has its histograms
-    read through a Mapper of the blocks it needs."""
+    process: the numbers of the map loaded whole (``Mapper.query`` and ``reflectivity``,
+    compiled), for points inside and outside the map, printed and ``--json``, with and
+    without ``--stamp``, answered without numba, llvmlite or scipy imported (``python -X
+    importtime``): a map without reflectivity histograms, one with them (replay's default
+    here), and one with them under decay whose rows refer to other times (as merges write
+    them)."""
     from mfp_mapper.mapio.mapfile import map_arrays, write_map_arrays
     from mfp_mapper.outputs.report import jsonable, query_lines, query_rows
 
     path = run["map"]
-    if not histograms:
+    arrays = map_arrays(load_map(run["map"]))
+    if kind == "plain":
         path = tmp_path / "plain.npz"
-        arrays = map_arrays(load_map(run["map"]))
         write_map_arrays(path, {k: v for k, v in arrays.items() if "reflectivity" not in k})
+    elif kind == "decaying_histograms":
+        path = tmp_path / "decaying.npz"
+        t_rows = arrays["reflectivity_t_last"]
+        shift = np.random.default_rng(6).uniform(0.0, 3.0, t_rows.shape)
+        write_map_arrays(
+            path, {**arrays, "decay_time": np.float64(2.0), "reflectivity_t_last": t_rows - shift}
+        )
     whole = load_map(path)
+    table = whole.stored_reflectivity()
+    assert (table is None) == (kind == "plain")
     rng = np.random.default_rng(5)
     centres = whole.voxels().centers
-    points = np.concatenate(
-        [centres[rng.choice(len(centres), 40)], rng.uniform(-6, 6, (20, 3)), [[0, 0, 500.0]]]
-    )
+    returns = np.zeros((0, 3)) if table is None else (table.ijk[::50] + 0.5) * whole.resolution
+    points = np.concatenate([
+        centres[rng.choice(len(centres), 40)], returns + np.asarray(whole.origin),
+        rng.uniform(-6, 6, (20, 3)), [[0, 0, 500.0]],
+    ])  # fmt: skip
+    later = float(whole.stored_voxels().t_last.max()) + 1.5  # a stamp the decay can reach
     coords = [repr(float(v)) for v in points.ravel()]
     root = Path(__file__).resolve().parents[2]
     env = {**os.environ, "PYTHONPATH": str(root)}
     door = [str(LAUNCHER)] if LAUNCHER.exists() else ["-m", "mfp_mapper.cli"]
-    for extra, stamp in (([], None), (["--stamp", "5.0"], 5.0)):
+    for extra, stamp in (([], None), (["--stamp", repr(later)], later)):
         for as_json in (False, True):
             argv = [sys.executable, "-X", "importtime", *door, "query", str(path), *coords]
             proc = subprocess.run(
@@ -210,7 +223,7 @@ def test_query_of_points_as_a_user_types_it(
                 if line.startswith("import time:")
             }
             assert "numpy" in imported and "mfp_mapper" in imported
-            assert bool(imported & {"numba", "llvmlite", "scipy"}) == histograms
+            assert not imported & {"numba", "llvmlite", "scipy"}
 
 
 def test_evaluate(run: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

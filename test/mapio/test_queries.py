@@ -246,3 +246,95 @@ def test_histograms_of_other_dtypes_are_read_too(tmp_path: Path) -> None:
                 MapFileQueries(tmp_path / "other.npz").reflectivity(centres)):  # fmt: skip
         assert want is not None and got is not None
         np.testing.assert_array_equal(want[1], got[1])
+
+
+@pytest.fixture(scope="module")
+def histogram_map() -> Mapper:
+    """A decaying map of two scans with a reflectivity histogram per return voxel."""
+    from mfp_mapper.core.reflectivity import ScanReflectivity
+    from mfp_mapper.sensing.reflectivity import bins_for
+
+    bins = bins_for("reflectivity", 8)
+    assert bins is not None
+    rng = np.random.default_rng(11)
+    m = Mapper(0.1, decay_time=30.0, max_range=30.0)
+    for k, (points, origin) in enumerate(anchors_scene(n_scans=2, azimuths=200)):
+        values = ScanReflectivity(rng.uniform(0, 255, len(points)), bins)
+        m.integrate(points, origin, 100.0 + k, reflectivity=values)
+    return m
+
+
+@pytest.mark.parametrize("kind", ["decaying", "static", "rows_of_other_times", "tiled"])
+def test_the_numpy_histograms_equal_the_compiled_ones(
+    histogram_map: Mapper, kind: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``MapFileQueries.reflectivity`` (numpy, the rows of the blocks read) against
+    ``Mapper.reflectivity`` of the whole map loaded (the compiled table), bit for bit, with
+    and without a stamp, on the voxels holding histograms, their neighbours and the hard
+    points: a decaying map, a static one, one whose rows refer to other times (as merges
+    write them: float64 counts, each brought to the latest time of the whole file, held
+    as float32, then decayed to the stamp, also when one block is read) and a tiled map
+    (each tile read by block)."""
+    from mfp_mapper.mapio import queries
+
+    rng = np.random.default_rng(12)
+    path = tmp_path / ("tiled" if kind == "tiled" else "map.npz")
+    arrays = map_arrays(histogram_map)
+    if kind == "static":
+        arrays["decay_time"] = np.float64(np.inf)
+    if kind == "rows_of_other_times":
+        rows = arrays["reflectivity_t_last"].shape[0]
+        arrays["reflectivity_t_last"] = arrays["reflectivity_t_last"] - rng.uniform(0, 40, rows)
+        arrays["reflectivity_counts"] = arrays["reflectivity_counts"] * rng.uniform(
+            0.3, 1.7, arrays["reflectivity_counts"].shape
+        )
+    if kind == "tiled":
+        save_map(histogram_map, path, tile_blocks=2)
+    else:
+        write_map_arrays(path, arrays)
+    whole = load_map(path)
+    table = whole.stored_reflectivity()
+    assert table is not None and len(table) > 100
+    centres = (table.ijk + 0.5) * whole.resolution + np.asarray(whole.origin)
+    points = np.concatenate([
+        centres, centres + rng.integers(-1, 2, centres.shape) * whole.resolution,
+        _hard_points(whole, rng),
+    ])  # fmt: skip
+    from mfp_mapper.cli.common import load_map_arg
+
+    q = load_map_arg(str(path), lazy_tiles=True, queries=True)
+    if kind != "tiled":  # answered without a Mapper
+        monkeypatch.setattr(queries, "mapper_from_contents", None)
+    for stamp in (None, 99.0, 101.5, 400.0):
+        a, b = whole.reflectivity(points, stamp), q.reflectivity(points, stamp)
+        assert a is not None and b is not None and a[0] == b[0]
+        np.testing.assert_array_equal(a[1], b[1], strict=True)
+        assert (a[1][: len(centres)].sum(axis=1) > 0).all()  # every row found
+        for one in centres[:: len(centres) // 6]:  # one block read: the file's latest time
+            a, b = whole.reflectivity(one[None, :], stamp), q.reflectivity(one[None, :], stamp)
+            assert a is not None and b is not None
+            np.testing.assert_array_equal(a[1], b[1], strict=True)
+    if kind != "tiled":  # (a tiled map reads no tile for no point: None)
+        a, b = whole.reflectivity(points[:0]), q.reflectivity(points[:0])
+        assert a is not None and b is not None
+        np.testing.assert_array_equal(a[1], b[1], strict=True)
+
+
+def test_a_voxel_whose_histogram_is_listed_twice_is_refused(
+    histogram_map: Mapper, tmp_path: Path
+) -> None:
+    """A file listing one voxel's histogram twice: loading it whole refuses it, and so does
+    a query of its block, with the same words."""
+    arrays = map_arrays(histogram_map)
+    for key in ("reflectivity_ijk", "reflectivity_counts", "reflectivity_t_last"):
+        arrays[key] = np.concatenate([arrays[key], arrays[key][:1]])
+    path = tmp_path / "twice.npz"
+    write_map_arrays(path, arrays)
+    voxel = arrays["reflectivity_ijk"][0]
+    point = (voxel + 0.5) * histogram_map.resolution + np.asarray(histogram_map.origin)
+    with pytest.raises(MapFileError, match="more than once") as whole:
+        load_map(path)
+    with pytest.raises(MapFileError, match="more than once") as by_block:
+        MapFileQueries(path).reflectivity(point[None, :])
+    assert str(whole.value) == str(by_block.value)
+    assert f"lists voxel {voxel.tolist()} more than once" in str(whole.value)
