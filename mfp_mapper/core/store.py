@@ -245,6 +245,21 @@ _LOW_BIT = np.zeros(64, dtype=np.int64)
 _LOW_BIT[[((1 << k) * int(_DE_BRUIJN) % (1 << 64)) >> 58 for k in range(64)]] = np.arange(64)
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _no_room_for_block(sa: ShardArrays) -> bool:
+    """Whether opening one more whole block (its table entry, every chunk, an ``n``
+    record, a float64 part) could overrun the shard's arrays: the loaders make room then."""
+    used, pools = sa.counters[0], sa.pools
+    return (
+        used >= sa.block_t.shape[0]
+        or 2 * used >= sa.table_keys.shape[0]
+        or pools[S_USED] + BLOCK_CHUNKS > sa.chunk_owner.shape[0]
+        or pools[NREC_USED] + 1 > sa.n_recs.shape[0]
+        or pools[NCHUNK_USED] + N_BLOCK_CHUNKS > sa.n_pool.shape[0]
+        or pools[HI_USED] + 1 > sa.hi_pool.shape[0]
+    )
+
+
 @nb.njit(cache=True, nogil=True)
 def _set_blocks(
     packed_ijk: NDArray[np.int32],
@@ -278,15 +293,7 @@ def _set_blocks(
         bx, by, bz = packed_ijk[b, 0], packed_ijk[b, 1], packed_ijk[b, 2]
         if shard_of(bx, by, bz, shard_mask) != shard:
             continue
-        used = sa.counters[0]
-        if (
-            used >= sa.block_t.shape[0]
-            or 2 * used >= sa.table_keys.shape[0]
-            or pools[S_USED] + BLOCK_CHUNKS > chunk_owner.shape[0]
-            or pools[NREC_USED] + 1 > n_recs.shape[0]
-            or pools[NCHUNK_USED] + N_BLOCK_CHUNKS > sa.n_pool.shape[0]
-            or pools[HI_USED] + 1 > sa.hi_pool.shape[0]
-        ):
+        if _no_room_for_block(sa):
             counts[0] += observed_count
             return b
         block = open_block(bx, by, bz, sa, -1, packed_t[b], math.inf)
@@ -374,15 +381,7 @@ def _open_parts(
         bx, by, bz = packed_ijk[b, 0], packed_ijk[b, 1], packed_ijk[b, 2]
         if shard_of(bx, by, bz, shard_mask) != shard:
             continue
-        used = sa.counters[0]
-        if (
-            used >= sa.block_t.shape[0]
-            or 2 * used >= sa.table_keys.shape[0]
-            or pools[S_USED] + BLOCK_CHUNKS > chunk_owner.shape[0]
-            or pools[NREC_USED] + 1 > n_recs.shape[0]
-            or pools[NCHUNK_USED] + N_BLOCK_CHUNKS > sa.n_pool.shape[0]
-            or pools[HI_USED] + 1 > sa.hi_pool.shape[0]
-        ):
+        if _no_room_for_block(sa):
             return b
         block = open_block(bx, by, bz, sa, -1, packed_t[b], math.inf)
         sa.block_t[block] = max(sa.block_t[block], packed_t[b])
