@@ -818,6 +818,17 @@ def split_rays(
     return Pieces(ray[:k], voxel[:k], t_state[:k], room[:k], returns[:k], order), offsets
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _walk_cache_slot(key: int) -> int:
+    """The walk cache's slot of a block key: the low bits of each block index
+    (``KEY_OFFSET`` is a multiple of the cache, so they are the index's own)."""
+    return (
+        (((key >> (2 * KEY_BITS)) & _WALK_CACHE_MASK) << (2 * _WALK_CACHE_BITS))
+        | (((key >> KEY_BITS) & _WALK_CACHE_MASK) << _WALK_CACHE_BITS)
+        | (key & _WALK_CACHE_MASK)
+    )
+
+
 @nb.njit(cache=True, nogil=True)
 def _walk_rays(
     rays: RayArrays,
@@ -969,11 +980,7 @@ def _walk_rays(
         for e in range(entry_count[0]):
             key = entries[0, e]
             entered_flat[np.uint64(entries[1, e])] = key
-            slot = (
-                (((key >> (2 * KEY_BITS)) & _WALK_CACHE_MASK) << (2 * _WALK_CACHE_BITS))
-                | (((key >> KEY_BITS) & _WALK_CACHE_MASK) << _WALK_CACHE_BITS)
-                | (key & _WALK_CACHE_MASK)
-            )
+            slot = _walk_cache_slot(key)
             if cache_keys[slot] != key:
                 bx, by, bz = block_of_key(key)
                 found = find_block(table_keys, table_blocks, block_key(bx, by, bz))
@@ -987,12 +994,7 @@ def _walk_rays(
             # the blocks the ray enters
             for b in range(blocks):
                 key = entered_key[lane, b]
-                # the low index bits of the block (KEY_OFFSET is a multiple of the cache)
-                slot = (
-                    (((key >> (2 * KEY_BITS)) & _WALK_CACHE_MASK) << (2 * _WALK_CACHE_BITS))
-                    | (((key >> KEY_BITS) & _WALK_CACHE_MASK) << _WALK_CACHE_BITS)
-                    | (key & _WALK_CACHE_MASK)
-                )
+                slot = _walk_cache_slot(key)
                 if cache_keys[slot] != key:
                     bx, by, bz = block_of_key(key)
                     block = -1
