@@ -491,7 +491,10 @@ def _walk_whole(rays: Rays, shard: Shard, scan: ScanStamp, share: int | None = N
     limit = None if share is None else shard.used + share
     most = _NO_LIMIT if limit is None else limit
     none = np.empty(0, dtype=np.int64)
-    no_pieces = Pieces(none, none.reshape(0, 4), none.reshape(0, 7), none, none.astype(bool), none)
+    none32 = none.astype(np.int32)
+    no_pieces = Pieces(
+        none32, none32.reshape(0, 4), none.reshape(0, 4), none32, none.astype(bool), none
+    )
     first, cut, cut_done = 0, 0, False
     cache = _walk_cache()
     left = np.cumsum(visits[::-1])[::-1]  # visits of rays r.., at most as many new chunks
@@ -623,16 +626,18 @@ class Pieces(NamedTuple):
     """The stretches of rays one shard walks (``split_rays``): each is walked from exactly
     the state the walk from the ray's origin has where it starts."""
 
-    ray: NDArray[np.int64]
+    ray: NDArray[np.int32]
     """The ray each piece is a stretch of."""
-    voxel: NDArray[np.int64]
+    voxel: NDArray[np.int32]
     """(P, 4): the piece's first voxel, and its steps (it ends in the voxel that many
     steps further)."""
     t_state: NDArray[np.int64]
-    """(P, 7): where the walk crosses each axis' next face there (``T_NEVER`` for an axis
-    at its end voxel), t where it entered the first voxel, and the ray's t between faces
-    per axis (fixed point, ``lockstep.T_ONE``)."""
-    room: NDArray[np.int64]
+    """(P, 4): where the walk crosses each axis' next face there (``T_NEVER`` for an axis
+    at its end voxel), and t where it entered the first voxel (fixed point,
+    ``lockstep.T_ONE``); the t between faces is the ray's (``_ray_start``). 57 bytes a
+    piece: with 105 (int64 everywhere, the t between faces kept) the split and the walks
+    of OS1-128 moved twice the memory."""
+    room: NDArray[np.int32]
     """Upper bound of the blocks the piece can create."""
     has_return: NDArray[np.bool_]
     """The piece ends the ray, and the ray has a return."""
@@ -724,8 +729,8 @@ def split_rays(
 def _new_pieces(count: int) -> Pieces:
     """Room for ``count`` pieces (``order`` empty)."""
     return Pieces(
-        np.empty(count, dtype=np.int64), np.empty((count, 4), dtype=np.int64),
-        np.empty((count, 7), dtype=np.int64), np.empty(count, dtype=np.int64),
+        np.empty(count, dtype=np.int32), np.empty((count, 4), dtype=np.int32),
+        np.empty((count, 4), dtype=np.int64), np.empty(count, dtype=np.int32),
         np.empty(count, dtype=np.bool_), np.empty(0, dtype=np.int64),
     )  # fmt: skip
 
@@ -757,8 +762,8 @@ def _flat_pieces(store: BlockStore, count: int) -> Pieces:
         size = max(count, count + count // 4)
         none = np.empty(0, dtype=np.int64)
         room = Pieces(
-            np.empty(size, dtype=np.int64), np.empty((size, 4), dtype=np.int64),
-            np.empty((size, 7), dtype=np.int64), np.empty(size, dtype=np.int64),
+            np.empty(size, dtype=np.int32), np.empty((size, 4), dtype=np.int32),
+            np.empty((size, 4), dtype=np.int64), np.empty(size, dtype=np.int32),
             np.empty(size, dtype=np.bool_), none,
         )  # fmt: skip
         _split_room[store] = room
@@ -853,7 +858,7 @@ def split_into(
         ray[q] = scratch.ray[p]
         for c in range(4):
             voxel[q, c] = scratch.voxel[p, c]
-        for c in range(7):
+        for c in range(4):
             t_state[q, c] = scratch.t_state[p, c]
         room[q] = scratch.room[p]
         returns[q] = scratch.has_return[p]
@@ -880,7 +885,7 @@ def shard_order(segments: NDArray[np.int64], shard: int) -> NDArray[np.int64]:
 
 @nb.njit(cache=True, nogil=True)
 def piece_room(
-    voxel: NDArray[np.int64], order: NDArray[np.int64]
+    voxel: NDArray[np.int32], order: NDArray[np.int64]
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """The visits of each piece in ``order``, and of the pieces from each on (at most as
     many new chunks: ``_make_room``)."""
@@ -978,9 +983,6 @@ def _split_write(origins_vox, ends_vox, has_return, first, stop, shard_mask, out
                 t_state[k, 1] = t_max[1]
                 t_state[k, 2] = t_max[2]
                 t_state[k, 3] = t_prev
-                t_state[k, 4] = t_delta[0]
-                t_state[k, 5] = t_delta[1]
-                t_state[k, 6] = t_delta[2]
                 blocks = 2
                 for b in range(3):
                     last = end[b] if a < 0 else v0[b] + step[b] * (count[b] - (b == a))
@@ -1123,13 +1125,23 @@ def _walk_rays(
                 ex = int(np.floor(ends_vox[r, 0]))
                 ey = int(np.floor(ends_vox[r, 1]))
                 ez = int(np.floor(ends_vox[r, 2]))
-                step_x = 1 if ex > int(np.floor(origins_vox[r, 0])) else -1
-                step_y = 1 if ey > int(np.floor(origins_vox[r, 1])) else -1
-                step_z = 1 if ez > int(np.floor(origins_vox[r, 2])) else -1
+                ox, oy, oz = origins_vox[r, 0], origins_vox[r, 1], origins_vox[r, 2]
+                step_x = 1 if ex > int(np.floor(ox)) else -1
+                step_y = 1 if ey > int(np.floor(oy)) else -1
+                step_z = 1 if ez > int(np.floor(oz)) else -1
+                # the ray's t between faces, as _ray_start computes it
+                t_delta_x = (
+                    _fixed(abs(1.0 / (ends_vox[r, 0] - ox))) if ex != int(np.floor(ox)) else 0
+                )
+                t_delta_y = (
+                    _fixed(abs(1.0 / (ends_vox[r, 1] - oy))) if ey != int(np.floor(oy)) else 0
+                )
+                t_delta_z = (
+                    _fixed(abs(1.0 / (ends_vox[r, 2] - oz))) if ez != int(np.floor(oz)) else 0
+                )
                 vx, vy, vz = piece_voxel[p, 0], piece_voxel[p, 1], piece_voxel[p, 2]
                 t_max_x, t_max_y, t_max_z = piece_t[p, 0], piece_t[p, 1], piece_t[p, 2]
                 t_prev = piece_t[p, 3]
-                t_delta_x, t_delta_y, t_delta_z = piece_t[p, 4], piece_t[p, 5], piece_t[p, 6]
                 piece_steps = piece_voxel[p, 3]
             lane_floats[0, lane] = lengths[r] / T_ONE
             lane_ints[0, lane] = vx
