@@ -9,7 +9,7 @@ voxel up to the return point is its last chord).
 Threads split the space: the store has shards (four a thread: ``mapper.shard_count``), a
 shard owns tiles of 8x8x8 blocks in a 3-D checkerboard (``blocks.shard_of``), and one
 thread at a time writes to a shard. The rays are first split into their stretches in each
-tile (``split_rays``, a share of the rays a thread), then the threads walk the shards'
+tile (``split_into``, parts of the rays a task), then the threads walk the shards'
 stretches, a shard at a time, the shards with the most steps first. A
 walk keeps t in fixed point (``lockstep.T_ONE``), where a face's t is the same whether
 summed step by step or computed from its index, so a stretch starts in exactly the state
@@ -264,9 +264,11 @@ def integrate_rays(
     max_new_blocks: int | None = None,
 ) -> int:
     """Add every ray's chords and returns to the store (scan ``scan_id`` at ``stamp``): the
-    rays are split into their stretches in each shard's tiles (``split_rays``, a share of
-    the rays a thread), then the shards' stretches are walked, a shard a task, the shards
-    with the most work first (``shard_work``), so that the threads end together.
+    rays are split into their stretches in each shard's tiles (``split_into``, parts of
+    ``SPLIT_RAYS`` rays a task, into one buffer of the scan's stretches kept from scan to
+    scan, each shard's in the order it walks them), then the shards' stretches are walked,
+    a shard a task (one compiled call each), the shards with the most work first, so that
+    the threads end together.
     ``run_parallel(fn, items)`` calls ``fn`` on every item, in parallel, taking the items
     in order.
 
@@ -346,10 +348,11 @@ percentile). With four shards a thread, the threads take the shards' walks most 
 (``integrate_rays``), and two threads share a scan within 0.51-0.52 (0.525 at the 90th
 percentile)."""
 SPLIT_RAYS = 8192
-"""Rays split at once (``split_rays``): their pieces (about 120 bytes each) stay in cache
-and in memory the allocator reuses; parts of 53k rays (OS1-128, 2 threads) took twice as
-long a ray, faulting their fresh pages in, and parts of 32768 rays 1.6 times as long (8
-shards: 21 against 13 ms of CPU time for a scan of OS1-128 at 0.2 m)."""
+"""Rays split in one task (``split_into``): a part's stretches (57 bytes each) are written
+to a scratch the thread keeps, then put in walk order. When each part allocated its
+pieces, parts of 53k rays (OS1-128, 2 threads) took twice as long a ray, faulting their
+fresh pages in, and parts of 32768 rays 1.6 times as long; with the scratch kept, parts
+of 2048 to 16384 rays gave the same split and walks within the noise of this machine."""
 
 
 def block_bounds(
