@@ -49,6 +49,7 @@ from mfp_mapper.core.blocks import (
     N_BLOCK_CHUNKS,
     N_CHUNK_VOXELS,
     SHARD_TILE_BITS,
+    SHARD_TILE_Z_OFFSET,
     IndexBox,
     block_key,
     block_origin,
@@ -820,7 +821,8 @@ class BlockStore:
             s, n = s.astype(np.float32, copy=False), n.astype(np.float32, copy=False)
             words = np.count_nonzero(observed, axis=1).astype(np.int64)
         if self.shard_mask:
-            tiles = (block_ijk.astype(np.int64) >> SHARD_TILE_BITS).sum(axis=1) & self.shard_mask
+            tile_ijk = block_ijk.astype(np.int64) + np.array([0, 0, SHARD_TILE_Z_OFFSET])
+            tiles = (tile_ijk >> SHARD_TILE_BITS).sum(axis=1) & self.shard_mask  # shard_of
         counts = np.zeros(1, dtype=np.int64)
         for sid, sh in enumerate(self.shards):
             if self.shard_mask:

@@ -44,6 +44,7 @@ from mfp_mapper.core.blocks import (
     N_CHUNK_BITS,
     N_CHUNK_VOXELS,
     SHARD_TILE_BITS,
+    SHARD_TILE_Z_OFFSET,
     block_key,
     block_of_key,
     find_block,
@@ -661,6 +662,8 @@ def _faces_before(faces, t_first, t_delta, t, strict):  # type: ignore[no-untype
 
 
 _TILE_BUCKET_BITS = 4
+_TILE_Z_OFFSET = SHARD_TILE_Z_OFFSET << BLOCK_BITS
+"""The tiles' z faces are this many voxels below multiples of a tile (``blocks``)."""
 """``split_rays`` orders a shard's pieces by tile, by the low 4 bits of each tile index."""
 
 
@@ -672,8 +675,9 @@ def _piece_bound(origins_vox, ends_vox, r, shard_mask):  # type: ignore[no-untyp
     if shard_mask:
         tile_shift = BLOCK_BITS + SHARD_TILE_BITS
         for axis in range(3):
-            lo = int(np.floor(origins_vox[r, axis])) >> tile_shift
-            hi = int(np.floor(ends_vox[r, axis])) >> tile_shift
+            off = _TILE_Z_OFFSET if axis == 2 else 0
+            lo = (int(np.floor(origins_vox[r, axis])) + off) >> tile_shift
+            hi = (int(np.floor(ends_vox[r, axis])) + off) >> tile_shift
             bound += abs(hi - lo)
     return bound
 
@@ -784,7 +788,8 @@ def _bucket_starts(owner, voxel, k, shard_mask, bits, bucket):  # type: ignore[n
     for p in range(k):
         key = owner[p]
         for b in range(3):
-            key = (key << bits) | ((voxel[p, b] >> tile_shift) & mask)
+            off = _TILE_Z_OFFSET if b == 2 else 0
+            key = (key << bits) | (((voxel[p, b] + off) >> tile_shift) & mask)
         bucket[p] = key
         starts[key + 1] += 1
     for key in range(1, starts.shape[0]):
@@ -814,7 +819,8 @@ def split_bounds(
             hi = int(np.floor(ends_vox[r, axis]))
             steps += abs(hi - lo)
             block_steps += abs((hi >> BLOCK_BITS) - (lo >> BLOCK_BITS))
-            tiles += abs((hi >> tile_shift) - (lo >> tile_shift))
+            off = _TILE_Z_OFFSET if axis == 2 else 0
+            tiles += abs(((hi + off) >> tile_shift) - ((lo + off) >> tile_shift))
         blocks[r] = block_steps + 2
         visits[r] = steps + 1
         part_at[r // size + 1] += tiles if shard_mask else 1
@@ -928,11 +934,14 @@ def _split_write(origins_vox, ends_vox, has_return, first, stop, shard_mask, out
         for axis in range(3):
             v[axis] = v0[axis]
             t_max[axis] = t_first[axis]
-            tile[axis] = v0[axis] >> tile_shift
-            crossings[axis] = abs((end[axis] >> tile_shift) - tile[axis]) if shard_mask else 0
+            off = _TILE_Z_OFFSET if axis == 2 else 0
+            tile[axis] = (v0[axis] + off) >> tile_shift
+            crossings[axis] = (
+                abs(((end[axis] + off) >> tile_shift) - tile[axis]) if shard_mask else 0
+            )
             t_cross[axis] = T_NEVER  # the t of the axis' next tile face (none left)
             if crossings[axis] > 0:
-                face = (tile[axis] + (step[axis] > 0)) << tile_shift
+                face = ((tile[axis] + (step[axis] > 0)) << tile_shift) - off
                 j = (face - v0[axis] - (step[axis] > 0)) * step[axis]
                 t_cross[axis] = t_first[axis] + j * t_delta[axis]
         here = (tile[0] + tile[1] + tile[2]) & shard_mask
@@ -957,16 +966,25 @@ def _split_write(origins_vox, ends_vox, has_return, first, stop, shard_mask, out
                 crossings[a] -= 1
                 t_cross[a] = T_NEVER
                 if crossings[a] > 0:
-                    face = (tile[a] + (step[a] > 0)) << tile_shift
+                    face = ((tile[a] + (step[a] > 0)) << tile_shift) - (
+                        _TILE_Z_OFFSET if a == 2 else 0
+                    )
                     j = (face - v0[a] - (step[a] > 0)) * step[a]
                     t_cross[a] = t_first[a] + j * t_delta[a]
                 there = (tile[0] + tile[1] + tile[2]) & shard_mask
                 if there != here:
                     # the voxel the walk enters there, after how many steps
                     if step[a] > 0:
-                        count[a] = (tile[a] << tile_shift) - v0[a]
+                        count[a] = (
+                            (tile[a] << tile_shift) - (_TILE_Z_OFFSET if a == 2 else 0) - v0[a]
+                        )
                     else:
-                        count[a] = v0[a] - ((tile[a] + 1) << tile_shift) + 1
+                        count[a] = (
+                            v0[a]
+                            - ((tile[a] + 1) << tile_shift)
+                            + (_TILE_Z_OFFSET if a == 2 else 0)
+                            + 1
+                        )
                     for b in range(3):
                         if b != a:
                             count[b] = _faces_before(
