@@ -861,6 +861,8 @@ def split_into(
         segments[s, 0] = at + starts[s * per_shard]
         segments[s, 1] = at + starts[(s + 1) * per_shard]
     ray, voxel, t_state, room, returns = out.ray, out.voxel, out.t_state, out.room, out.has_return
+    steps = np.zeros(shards, dtype=np.int64)
+    blocks = np.zeros(shards, dtype=np.int64)
     for p in range(k):
         q = at + starts[bucket[p]]
         starts[bucket[p]] += 1
@@ -872,8 +874,11 @@ def split_into(
         room[q] = scratch.room[p]
         returns[q] = scratch.has_return[p]
         s = owner[p]
-        work[0, s] += scratch.voxel[p, 3] + 1 + PIECE_STEPS
-        work[1, s] += scratch.room[p]
+        steps[s] += scratch.voxel[p, 3] + 1 + PIECE_STEPS
+        blocks[s] += scratch.room[p]
+    # summed apart and written once: the threads write neighbouring rows of ``work``
+    work[0] = steps
+    work[1] = blocks
     return k
 
 
