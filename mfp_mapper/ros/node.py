@@ -13,14 +13,15 @@ default) it configures and activates itself; else a lifecycle manager drives it
 Threads: the input thread (``ros.input_thread``) takes clouds, odometry and TF and their
 events (its callbacks only queue clouds and store poses); one executor thread runs every
 other ROS callback (services, timers, queries; rclpy's multi-threaded executor cost about
-70% of a core in overhead). The worker threads parse, place and integrate (``mapping.live``); the map outputs
-are built and sent on a publishing thread of their own; ``~/save_map`` and the autosave
-write in a thread of their own. ``worker.map_lock`` guards the Mapper: the walker holds it
-through a quick scan (``Mapper.integrate``, at most ``live.DIRECT_MAX_S`` expected) or only
-to merge a long one it walked without it (``Mapper.stage``/``commit``), letting queries in
-between chunks; GetMap, saving and reset take ``worker.whole_map`` (no scan half merged).
-So services answer during a long scan. SIGINT / SIGTERM stop it
-as ``ros.shutdown`` says: the executor stops between callbacks, then the final save.
+70% of a core in overhead). The worker threads parse, place and integrate
+(``mapping.live``); the map outputs are built and sent on a publishing thread of their own;
+``~/save_map`` and the autosave write in a thread of their own. ``worker.map_lock`` guards
+the Mapper: the walker holds it through a quick scan (``Mapper.integrate``, at most
+``live.DIRECT_MAX_S`` expected) or only to merge a long one it walked without it
+(``Mapper.stage``/``commit``), letting queries in between chunks; GetMap, saving and reset
+take ``worker.whole_map`` (no scan half merged). So services answer during a long scan.
+SIGINT / SIGTERM stop it as ``ros.shutdown`` says: the executor stops between callbacks,
+then the final save.
 """
 
 from __future__ import annotations
