@@ -87,11 +87,11 @@ class InputThread:
     ) -> None:
         """Start taking the messages of ``subscriptions`` (stopping a previous run first)."""
         self.stop()
-        self._stop.clear()
+        self._stop = threading.Event()  # its own: a thread that outlived stop() still ends
         self._guard = GuardCondition(None, None, context=self._context)
         self._thread = threading.Thread(
             target=self._run,
-            args=(list(subscriptions), self._guard, tick, tick_period),
+            args=(list(subscriptions), self._guard, self._stop, tick, tick_period),
             name=self._name,
             daemon=True,
         )
@@ -118,6 +118,7 @@ class InputThread:
         self,
         subs: list[Subscription],
         guard: GuardCondition,
+        stop: threading.Event,
         tick: Callable[[], None] | None,
         tick_period: float,
     ) -> None:
@@ -134,7 +135,7 @@ class InputThread:
             self._log(f"the input thread could not start: {err!r}")
             return
         try:
-            while not self._stop.is_set():
+            while not stop.is_set():
                 with ExitStack() as held:  # nothing destroyed while waited on
                     for sub in subs:
                         held.enter_context(sub.handle)
@@ -151,7 +152,7 @@ class InputThread:
                     wait_set.wait(wait_ns)
                     ready = wait_set.get_ready_entities("subscription")
                     happened = [handler for handler in events if handler.is_ready(wait_set)]
-                if self._stop.is_set():
+                if stop.is_set():
                     return
                 for handler in happened:
                     self._call(handler.callback, handler.take_data(), "event")
@@ -160,9 +161,9 @@ class InputThread:
                         self._take(sub)
                 if tick is not None and time.monotonic() >= next_tick:
                     next_tick = time.monotonic() + tick_period
-                    tick()
+                    self._call(lambda _: tick(), True, "tick")
         except Exception as err:  # a handle destroyed or the context shut down meanwhile
-            if not self._stop.is_set() and self._context.ok():
+            if not stop.is_set() and self._context.ok():
                 self._log(f"the input thread stopped: {type(err).__name__}: {err}")
         finally:
             wait_set.destroy_when_not_in_use()
