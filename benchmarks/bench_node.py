@@ -22,8 +22,10 @@ total CPU:
 - integration CPU: CPU time of the integration thread (parse, place, integrate) over
   wall time, as a share of one core; node CPU: the whole node process;
 - CPU ms per integrated cloud by thread, from ``~/status`` ``cpu_s`` (a node that has it):
-  executor (ROS callbacks), worker (parse, place), walker (integrate), publisher (map
-  outputs; also per publication), other (DDS and the rest of the process).
+  inputs (taking clouds, odometry, TF; a node that has the input thread), executor (the other
+  ROS callbacks), worker (parse, place), walker (integrate), publisher (map outputs; also per
+  publication), other (DDS and the rest of the process: with ``threads`` above 1, the core's
+  own threads, which then walk the scan while the walker waits).
 
 Streams: VLP-16 (16 x 1800 = 28.8k points, 0.1 m) and an OS1-128-like lidar
 (128 x 1024 = 131k points, 0.2 m, elevations -22.5..22.5 deg), both simulated; ``--stream
