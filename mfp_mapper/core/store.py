@@ -55,6 +55,7 @@ from mfp_mapper.core.blocks import (
     block_outside,
     find_block,
     index_box,
+    insert_block,
     local_coords,
     local_index,
     shard_of,
@@ -362,47 +363,54 @@ def _open_parts(
     hi_n: NDArray[np.float64],
     hi_s_start: NDArray[np.int64],
     hi_n_start: NDArray[np.int64],
-    start: int,
-    shard: int,
-    shard_mask: int,
+    rows: NDArray[np.int64],
     sa: ShardArrays,
-) -> int:
-    """Open the packed blocks (held as parts, ``packed.PackedBlocks.parts``) of ``shard``
-    from block ``start`` on, in order: each block, the ``s`` chunks of its observed voxels
-    (numbered in block order: from the masks alone, ``_write_parts`` knows them), its ``n``
-    (float32 parts, voxels with a return) and its float64 part where it has one, as the
-    store held them; the ``s`` values are left to ``_write_parts`` (the bulk, in another
-    thread meanwhile). Returns the number of blocks when done, else the block
-    where the shard ran out of room (make room, call again from there)."""
+) -> None:
+    """Open the packed blocks (held as parts, ``packed.PackedBlocks.parts``) of ``rows``
+    (increasing; ``rows[0] < 0``: every block) in an empty shard sized for them
+    (``Shard.grow``, ``Shard.ensure_room``), in order: each block, the ``s`` chunks of its
+    observed voxels (numbered in block order: from the masks alone, ``_write_parts``
+    knows them), its ``n`` (float32 parts, voxels with a return) and its float64 part
+    where it has one, as the store held them; the ``s`` values are left to
+    ``_write_parts`` (the bulk, in another thread meanwhile). The blocks are new and
+    distinct (sorted, checked): each takes the next row and its key goes into the table
+    without a search (``open_block``'s probe for an existing block cost 3.5 times as
+    long on the norlab map, docs/performance.md)."""
     block_chunks, chunk_owner, pools = sa.block_chunks, sa.chunk_owner, sa.pools
     block_nrec, n_recs = sa.block_nrec, sa.n_recs
     flat_n = sa.n_pool.reshape(-1)
-    for b in range(start, packed_ijk.shape[0]):
+    every = rows.shape[0] > 0 and rows[0] < 0
+    count = packed_ijk.shape[0] if every else rows.shape[0]
+    chunk = pools[S_USED]
+    for k in range(count):
+        b = k if every else rows[k]
         bx, by, bz = packed_ijk[b, 0], packed_ijk[b, 1], packed_ijk[b, 2]
-        if shard_of(bx, by, bz, shard_mask) != shard:
-            continue
-        if _no_room_for_block(sa):
-            return b
-        block = open_block(bx, by, bz, sa, -1, packed_t[b], math.inf)
-        sa.block_t[block] = max(sa.block_t[block], packed_t[b])
+        insert_block(sa.table_keys, sa.table_blocks, block_key(bx, by, bz), k)
+        sa.block_ijk[k, 0] = bx
+        sa.block_ijk[k, 1] = by
+        sa.block_ijk[k, 2] = bz
+        sa.block_t[k] = packed_t[b]
+        sa.block_scan[k] = -1
+        sa.block_scale[k] = 1.0
+        sa.block_nrec[k] = -1
+        sa.block_href[k] = -1
+        sa.block_hit[k] = False
+        sa.block_flush[k] = False
         for w in range(BLOCK_VOXELS // 64):  # a mask word is an s chunk (64 voxels)
+            slot = chunk_slot(k, w)
             if observed[b, w] != 0:
-                slot = chunk_slot(block, w)
-                if block_chunks[slot] < 0:
-                    chunk = pools[S_USED]
-                    pools[S_USED] = chunk + 1
-                    block_chunks[slot] = chunk
-                    chunk_owner[chunk] = slot
-        row = hit_row[b]
+                block_chunks[slot] = chunk
+                chunk_owner[chunk] = slot
+                chunk += 1
+            else:
+                block_chunks[slot] = -(slot + 1)
         f = hi_row[b]
         href = -1
         if f >= 0:
-            href = sa.block_href[block]
-            if href < 0:
-                href = pools[HI_USED]
-                pools[HI_USED] = href + 1
-                sa.block_href[block] = href
-                sa.hi_pool[href] = 0.0
+            href = pools[HI_USED]
+            pools[HI_USED] = href + 1
+            sa.block_href[k] = href
+            sa.hi_pool[href] = 0.0
             ks = hi_s_start[f]
             for w in range(BLOCK_VOXELS // 64):
                 m = observed[b, w]
@@ -412,6 +420,7 @@ def _open_parts(
                     i = w * 64 + _LOW_BIT[(bit * _DE_BRUIJN) >> np.uint64(58)]
                     sa.hi_pool[href, i, 0] = hi_s[ks]
                     ks += 1
+        row = hit_row[b]
         if row < 0:
             continue
         jn = n_start[row]
@@ -419,17 +428,19 @@ def _open_parts(
         for w in range(BLOCK_VOXELS // 64):
             mh = hit[row, w]
             if mh:
-                sa.block_hit[block] = True
+                sa.block_hit[k] = True
             while mh:
                 bit = mh & (np.uint64(0) - mh)
                 mh ^= bit
                 i = w * 64 + _LOW_BIT[(bit * _DE_BRUIJN) >> np.uint64(58)]
-                flat_n[n_index(block_nrec, n_recs, pools, block, i, True)] = n[jn]
+                flat_n[n_index(block_nrec, n_recs, pools, k, i, True)] = n[jn]
                 jn += 1
                 if f >= 0:
                     sa.hi_pool[href, i, 1] = hi_n[kn]
                     kn += 1
-    return packed_ijk.shape[0]
+    pools[S_USED] = chunk
+    sa.counters[0] = count
+    sa.counters[2] += count
 
 
 @nb.njit(cache=True, nogil=True)
@@ -841,7 +852,7 @@ class BlockStore:
             )
             if packed.parts:
                 self._fill_parts(
-                    sh, sid, mine if self.shard_mask else None, words,
+                    sh, mine if self.shard_mask else None, words,
                     (block_ijk, block_t, observed, hit_row, hit, n, n_start, hi_row, hi_s, hi_n,
                      hi_s_start, hi_n_start),
                     s, s_start,
@@ -876,62 +887,32 @@ class BlockStore:
     def _fill_parts(
         self,
         sh: Shard,
-        sid: int,
         mine: NDArray[np.bool_] | None,
         words: NDArray[np.int64],
         opening: tuple[Any, ...],
         s: NDArray[np.float32],
         s_start: NDArray[np.int64],
     ) -> None:
-        """Set the packed blocks (parts) of shard ``sid`` (``mine``: its rows; None: all):
-        ``_open_parts`` in this thread while ``_write_parts`` writes the ``s`` parts in
-        another, on maps of a million voxels or more where two cores are there (their
-        chunks numbered from the masks, ``words`` nonzero mask words a block: the same
-        store as one after the other)."""
+        """Set the packed blocks (parts) of an empty shard sized for them (``mine``: its
+        rows; None: all): ``_open_parts`` in this thread while ``_write_parts``
+        writes the ``s`` parts in another, on maps of a million voxels or more where two
+        cores are there (their chunks numbered from the masks, ``words`` nonzero mask
+        words a block: the same store as one after the other)."""
         counted = words if mine is None else np.where(mine, words, 0)
         first = np.cumsum(counted) - counted + int(sh.pools[S_USED])
         chunk_first = first if mine is None else np.where(mine, first, -1)
-        writer = None
-        pool = None
-        if s.shape[0] >= _THREADED_WRITE_VOXELS and (os.cpu_count() or 1) >= 2:
-            pool = ThreadPoolExecutor(1)
-            writer = pool.submit(_write_parts, opening[2], s, s_start, chunk_first, sh.s_pool)
-        grown = False
-        try:
-            hi_room, start = 1, 0
-            ijk, t, observed, hit_row, hit, n, n_start, hi_row, hi_s, hi_n, fs, fn = opening
-            while (
-                start := _open_parts(
-                    ijk,
-                    t,
-                    observed,
-                    hit_row,
-                    hit,
-                    n,
-                    n_start,
-                    hi_row,
-                    hi_s,
-                    hi_n,
-                    fs,
-                    fn,
-                    start,
-                    sid,
-                    self.shard_mask,
-                    sh.arrays(),
-                )  # fmt: skip
-            ) < s_start.shape[0] - 1:  # out of room (not expected: sized above): grow
-                if writer is not None:
-                    writer.result()  # before the pools move
-                    writer = None
-                grown, hi_room = True, 2 * hi_room
-                sh.ensure_room(BLOCK_CHUNKS, N_BLOCK_CHUNKS, hi_room, 1)
-        finally:
-            if writer is not None:
+        rows = np.full(1, -1, dtype=np.int64) if mine is None else np.flatnonzero(mine)
+        observed = opening[2]
+        if s.shape[0] < _THREADED_WRITE_VOXELS or (os.cpu_count() or 1) < 2:
+            _open_parts(*opening, rows, sh.arrays())
+            _write_parts(observed, s, s_start, chunk_first, sh.s_pool)
+            return
+        with ThreadPoolExecutor(1) as pool:
+            writer = pool.submit(_write_parts, observed, s, s_start, chunk_first, sh.s_pool)
+            try:
+                _open_parts(*opening, rows, sh.arrays())
+            finally:
                 writer.result()
-            if pool is not None:
-                pool.shutdown()
-        if pool is None or grown:
-            _write_parts(opening[2], s, s_start, chunk_first, sh.s_pool)
 
     def lookup(self, ijk: NDArray[np.int64]) -> VoxelArrays:
         """Statistics of these voxels (zeros and t_last=-inf where never observed)."""
