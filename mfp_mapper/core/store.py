@@ -27,6 +27,7 @@ Every ray's contribution is summed into the store: sums, never deduplication.
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 from collections.abc import Iterator
@@ -65,6 +66,7 @@ from mfp_mapper.core.layout import (  # noqa: F401 (numba-free, re-exported)
     MAX_RESOLUTION,
     MIN_RESOLUTION,
     VoxelArrays,
+    mask_words,
     voxel_problem,
 )
 from mfp_mapper.core.packed import (
@@ -100,8 +102,10 @@ _THREADED_PACK_BLOCKS = 16_384
 """Blocks from which ``BlockStore.export_blocks`` packs half of them in a thread of their
 own."""
 _THREADED_WRITE_VOXELS = 1_000_000
-"""Voxels from which ``BlockStore.assign_blocks`` writes the ``s`` parts in a thread of
-their own while it opens the blocks (``BlockStore._fill_parts``)."""
+"""Voxels from which ``BlockStore.assign_blocks`` writes the ``s`` parts in a second
+thread while it opens the blocks, then in both (``BlockStore._fill_parts``)."""
+_WRITE_PIECE_VOXELS = 1 << 18
+"""Voxels of ``s`` a thread writes at a time when two write (1 MiB of values)."""
 
 __all__ = ["BLOCK_EDGE", "MAX_VOXEL_INDEX", "BlockStats", "BlockStore", "VoxelArrays", "index_box"]
 
@@ -450,16 +454,18 @@ def _write_parts(
     s_start: NDArray[np.int64],
     chunk_first: NDArray[np.int64],
     s_pool: NDArray[np.float32],
+    lo: int,
+    hi: int,
 ) -> None:
-    """The float32 parts of ``s`` of the packed blocks into their chunks: block b's
-    observed mask words take the chunks ``chunk_first[b]``, ``chunk_first[b] + 1``, ... in
-    order (as ``_open_parts`` numbers them; -1: another shard's block); -0 for an observed
-    voxel whose part is 0 (shard's notes). Touches ``s_pool`` alone: it runs beside
-    ``_open_parts``."""
+    """The float32 parts of ``s`` of the packed blocks ``lo`` to ``hi`` into their chunks:
+    block b's observed mask words take the chunks ``chunk_first[b]``, ``chunk_first[b] +
+    1``, ... in order (as ``_open_parts`` numbers them; -1: another shard's block); -0 for
+    an observed voxel whose part is 0 (shard's notes). Touches ``s_pool`` alone, and only
+    those blocks' chunks: it runs beside ``_open_parts`` and another ``_write_parts``."""
     marks = s_pool.reshape(-1).view(np.uint32)
     s_bits = s.view(np.uint32)
     sign = np.uint32(0x80000000)
-    for b in range(observed.shape[0]):
+    for b in range(lo, hi):
         c = chunk_first[b]
         if c < 0:
             continue
@@ -829,7 +835,7 @@ class BlockStore:
             hi_s = np.ascontiguousarray(packed.hi_s, dtype=np.float64)
             hi_n = np.ascontiguousarray(packed.hi_n, dtype=np.float64)
             s, n = s.astype(np.float32, copy=False), n.astype(np.float32, copy=False)
-            words = np.count_nonzero(observed, axis=1).astype(np.int64)
+            words = mask_words(observed)
         if self.shard_mask:
             tiles = (block_ijk.astype(np.int64) >> SHARD_TILE_BITS).sum(axis=1) & self.shard_mask
         counts = np.zeros(1, dtype=np.int64)
@@ -894,23 +900,37 @@ class BlockStore:
         s_start: NDArray[np.int64],
     ) -> None:
         """Set the packed blocks (parts) of an empty shard sized for them (``mine``: its
-        rows; None: all): ``_open_parts`` in this thread while ``_write_parts``
-        writes the ``s`` parts in another, on maps of a million voxels or more where two
-        cores are there (their chunks numbered from the masks, ``words`` nonzero mask
-        words a block: the same store as one after the other)."""
+        rows; None: all): ``_open_parts``, and ``_write_parts`` of the ``s`` parts (their
+        chunks numbered from the masks, ``words`` nonzero mask words a block). On maps of
+        a million voxels or more where two cores are there, a second thread writes while
+        this one opens the blocks, then both write: pieces of ``_WRITE_PIECE_VOXELS``
+        taken in turn (the same store as one after the other)."""
         counted = words if mine is None else np.where(mine, words, 0)
         first = np.cumsum(counted) - counted + int(sh.pools[S_USED])
         chunk_first = first if mine is None else np.where(mine, first, -1)
         rows = np.full(1, -1, dtype=np.int64) if mine is None else np.flatnonzero(mine)
         observed = opening[2]
+        blocks = observed.shape[0]
         if s.shape[0] < _THREADED_WRITE_VOXELS or (os.cpu_count() or 1) < 2:
-            _open_parts(*opening, rows, sh.arrays())
-            _write_parts(observed, s, s_start, chunk_first, sh.s_pool)
+            _open_parts(*opening, rows, sh.arrays())  # type: ignore[call-arg]
+            _write_parts(observed, s, s_start, chunk_first, sh.s_pool, 0, blocks)
             return
+        heads = np.searchsorted(s_start, np.arange(0, s.shape[0], _WRITE_PIECE_VOXELS))
+        ends = np.append(heads[1:], blocks)
+        taken = itertools.count()  # its next() is atomic: each piece goes to one thread
+
+        def write() -> None:
+            for k in iter(taken.__next__, None):
+                if k >= heads.shape[0]:
+                    return
+                lo, hi = int(heads[k]), int(ends[k])
+                _write_parts(observed, s, s_start, chunk_first, sh.s_pool, lo, hi)
+
         with ThreadPoolExecutor(1) as pool:
-            writer = pool.submit(_write_parts, observed, s, s_start, chunk_first, sh.s_pool)
+            writer = pool.submit(write)
             try:
-                _open_parts(*opening, rows, sh.arrays())
+                _open_parts(*opening, rows, sh.arrays())  # type: ignore[call-arg]
+                write()
             finally:
                 writer.result()
 
