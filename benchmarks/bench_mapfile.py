@@ -8,7 +8,7 @@ written and read in the same run by
 * numpy, the baseline: ``np.save`` of ``ijk`` int32 and ``s``, ``n``, ``t_last`` float64
   (36 bytes a voxel) one after the other into one file, and ``np.savez`` (uncompressed) of
   the same arrays; read back with ``np.load``;
-* ``save_map`` (a version 3 file: the blocks packed from the store, written, fsynced,
+* ``save_map`` (a version 4 file: the blocks packed from the store, written, fsynced,
   renamed) and the node's save (``map_blocks`` under the lock, then ``write_map_path``);
   ``load_map`` (read, CRCs and values checked, blocks set in the store);
 * ``mfp-mapper query`` as it runs (``MapFileQueries``: open the file, read the blocks of
@@ -18,9 +18,13 @@ written and read in the same run by
   and the command as a process (the ``mfp-mapper`` console script beside this Python, as
   docs/cli.md has a user type it) against a Python process reading them with numpy.
 
-Reads find the file in the page cache (it was just written), as numpy's do; every timed
+Reads find the file in the page cache (it was just written), as numpy's do. Every timed
 write starts after ``os.sync()`` (a save's fsync would otherwise wait for the previous
-writes' dirty pages). Times are the best of ``--repeat`` interleaved rounds.
+writes' dirty pages), with its previous output removed (truncating numpy's 600 MB file or
+unlinking an old map is not the write), and the writes take turns at coming first: each
+round starts one later (in a fixed order the node's save, timed right after ``np.savez``
+had written 600 MB, measured 2-3x ``save_map``, the same code). Times are the best of
+``--repeat`` interleaved rounds.
 
     python benchmarks/bench_mapfile.py                       # norlab + 30 M synthetic voxels
     python benchmarks/bench_mapfile.py --voxels 1e6 --scene none
@@ -123,12 +127,20 @@ def run(name: str, mapper: Mapper, repeat: int, tmp: Path) -> None:
     def node_save() -> None:  # the node: snapshot under its lock, write outside it
         write_map_path(node_path, map_blocks(mapper))
 
-    t: dict[str, list[float]] = {k: [] for k in ("np_save", "np_savez", "save", "node", "snap")}
-    for _ in range(repeat):  # interleaved
-        t["np_save"].append(_timed(lambda: numpy_save(np_path, v64))[0])
-        t["save"].append(_timed(lambda: save_map(mapper, path))[0])
-        t["np_savez"].append(_timed(lambda: np.savez(npz_path, **arrays))[0])
-        t["node"].append(_timed(node_save)[0])
+    writes = {
+        "np_save": (np_path, lambda: numpy_save(np_path, v64)),
+        "save": (path, lambda: save_map(mapper, path)),
+        "np_savez": (npz_path, lambda: np.savez(npz_path, **arrays)),
+        "node": (node_path, node_save),
+    }
+    t: dict[str, list[float]] = {k: [] for k in (*writes, "snap")}
+    for round_ in range(repeat):  # interleaved, each round in another order
+        order = list(writes)
+        order = order[round_ % len(order) :] + order[: round_ % len(order)]
+        for key in order:
+            target, write = writes[key]
+            target.unlink(missing_ok=True)  # no old file to truncate or unlink in the time
+            t[key].append(_timed(write)[0])
         t["snap"].append(_timed(lambda: map_blocks(mapper))[0])
     keys = ("np_read", "np_npz", "load", "read", "fill", "q_pts", "q_seg")
     r: dict[str, list[float]] = {k: [] for k in keys}
