@@ -21,10 +21,10 @@ written and read in the same run by
 Reads find the file in the page cache (it was just written), as numpy's do. Every timed
 write starts after ``os.sync()`` (a save's fsync would otherwise wait for the previous
 writes' dirty pages), with its previous output removed (truncating numpy's 600 MB file or
-unlinking an old map is not the write), and the writes take turns at coming first: each
-round starts one later (in a fixed order the node's save, timed right after ``np.savez``
-had written 600 MB, measured 2-3x ``save_map``, the same code). Times are the best of
-``--repeat`` interleaved rounds.
+unlinking an old map is not the write), in another order each round: over four rounds
+each write comes right after each other one once (``balanced_order``; in a fixed order
+the node's save, timed right after ``np.savez`` had written 600 MB, measured 2-3x
+``save_map``, the same code). Times are the best of ``--repeat`` interleaved rounds.
 
     python benchmarks/bench_mapfile.py                       # norlab + 30 M synthetic voxels
     python benchmarks/bench_mapfile.py --voxels 1e6 --scene none
@@ -64,6 +64,14 @@ def _timed(fn):  # type: ignore[no-untyped-def]
     t0 = time.perf_counter()
     out = fn()
     return time.perf_counter() - t0, out
+
+
+def balanced_order(names: list[str], round_: int) -> list[str]:
+    """``names`` in the order of row ``round_`` of a Williams square (an even count of
+    names): over as many rounds as names, each comes right after each other one once."""
+    count = len(names)
+    first = [0] + [(k + 1) // 2 if k % 2 else count - k // 2 for k in range(1, count)]
+    return [names[(i + round_) % count] for i in first]
 
 
 def synthetic(count: int, seed: int = 0, histograms: bool = False) -> Mapper:
@@ -135,9 +143,7 @@ def run(name: str, mapper: Mapper, repeat: int, tmp: Path) -> None:
     }
     t: dict[str, list[float]] = {k: [] for k in (*writes, "snap")}
     for round_ in range(repeat):  # interleaved, each round in another order
-        order = list(writes)
-        order = order[round_ % len(order) :] + order[: round_ % len(order)]
-        for key in order:
+        for key in balanced_order(list(writes), round_):
             target, write = writes[key]
             target.unlink(missing_ok=True)  # no old file to truncate or unlink in the time
             t[key].append(_timed(write)[0])

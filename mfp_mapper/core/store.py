@@ -69,6 +69,7 @@ from mfp_mapper.core.layout import (  # noqa: F401 (numba-free, re-exported)
     mask_words,
     voxel_problem,
 )
+from mfp_mapper.core.lockstep import prefetch_line
 from mfp_mapper.core.packed import (
     MASK_WORDS,
     BlockChunk,
@@ -104,6 +105,8 @@ own."""
 _THREADED_WRITE_VOXELS = 1_000_000
 """Voxels from which ``BlockStore.assign_blocks`` writes the ``s`` parts in a second
 thread while it opens the blocks, then in both (``BlockStore._fill_parts``)."""
+_PARTS_AHEAD = 8
+"""Blocks ahead whose chunks ``_block_parts`` prefetches."""
 _WRITE_PIECE_VOXELS = 1 << 18
 """Voxels of ``s`` a thread writes at a time when two write (1 MiB of values)."""
 
@@ -490,8 +493,21 @@ def _block_parts(
     sa: ShardArrays, blocks: NDArray[np.int64], s: NDArray[np.float32], n: NDArray[np.float32]
 ) -> None:
     """The float32 parts of ``s`` and ``n`` (len(blocks) x 512, as stored: -0 marks kept)
-    of ``blocks``."""
-    for k in range(blocks.shape[0]):
+    of ``blocks``. The chunks of the block ``_PARTS_AHEAD`` on are prefetched (and its
+    chunk-table row twice as far ahead): on a map built by integration the chunks of
+    blocks in sorted order lie far apart, and waiting for each in turn took twice as long
+    (norlab, 0.148 against 0.075 s CPU; docs/performance.md)."""
+    count = blocks.shape[0]
+    for k in range(count):
+        if k + 2 * _PARTS_AHEAD < count:
+            prefetch_line(sa.block_chunks, chunk_slot(blocks[k + 2 * _PARTS_AHEAD], 0))  # type: ignore[call-arg]
+        if k + _PARTS_AHEAD < count:
+            ahead = blocks[k + _PARTS_AHEAD]
+            for c in range(BLOCK_CHUNKS):
+                chunk = sa.block_chunks[chunk_slot(ahead, c)]
+                if chunk >= 0:
+                    for line in range(0, CHUNK_VOXELS, 16):  # 64-byte lines
+                        prefetch_line(sa.s_pool, chunk * CHUNK_VOXELS + line)  # type: ignore[call-arg]
         b = blocks[k]
         for c in range(BLOCK_CHUNKS):
             chunk = sa.block_chunks[chunk_slot(b, c)]
