@@ -492,9 +492,11 @@ def take_blocks(arrays: dict[str, Any], rows: NDArray[np.int64]) -> dict[str, np
     )
 
 
-def concat_packed(parts: list[PackedBlocks]) -> PackedBlocks:
+def concat_packed(parts: list[PackedBlocks], sort: bool = True) -> PackedBlocks:
     """Packed blocks of disjoint block sets (e.g. tiles) as one, sorted (a block in two
-    parts is refused by ``packed_problem`` later): as parts where all are, else values."""
+    parts is refused by ``packed_problem`` later; ``sort=False``: in the parts' order, for
+    a caller that knows the sets disjoint, as a store takes them): as parts where all
+    are, else values."""
     if len(parts) == 1:
         return parts[0]
     if not all(p.parts for p in parts):
@@ -514,7 +516,9 @@ def concat_packed(parts: list[PackedBlocks]) -> PackedBlocks:
         joined("hi_block", np.zeros(0, np.int64), True), joined("hi_s", np.zeros(0)),
         joined("hi_n", np.zeros(0)),
     )  # fmt: skip
-    out = select_blocks(whole, np.argsort(sort_keys(whole.block_ijk), kind="stable"))
+    out = whole
+    if sort:
+        out = select_blocks(whole, np.argsort(sort_keys(whole.block_ijk), kind="stable"))
     if not out.parts:
         out.s, out.n = compact(out.s), compact(out.n)
     return out
