@@ -20,11 +20,12 @@ written and read in the same run by
 
 Reads find the file in the page cache (it was just written), as numpy's do. Every timed
 write starts after ``os.sync()`` (a save's fsync would otherwise wait for the previous
-writes' dirty pages), with its previous output removed (truncating numpy's 600 MB file or
-unlinking an old map is not the write), in another order each round: over four rounds
-each write comes right after each other one once (``balanced_order``; in a fixed order
-the node's save, timed right after ``np.savez`` had written 600 MB, measured 2-3x
-``save_map``, the same code). Times are the best of ``--repeat`` interleaved rounds.
+writes' dirty pages) and replaces the file its previous round wrote (as a node saving
+over its map does; numpy's ``open(..., "wb")`` truncates it), in another order each
+round: over four rounds each write comes right after each other one once
+(``balanced_order``; in a fixed order the node's save, timed right after ``np.savez``
+had written 600 MB, measured 2-3x ``save_map``, the same code). Times are the best of
+``--repeat`` interleaved rounds.
 
     python benchmarks/bench_mapfile.py                       # norlab + 30 M synthetic voxels
     python benchmarks/bench_mapfile.py --voxels 1e6 --scene none
@@ -136,17 +137,15 @@ def run(name: str, mapper: Mapper, repeat: int, tmp: Path) -> None:
         write_map_path(node_path, map_blocks(mapper))
 
     writes = {
-        "np_save": (np_path, lambda: numpy_save(np_path, v64)),
-        "save": (path, lambda: save_map(mapper, path)),
-        "np_savez": (npz_path, lambda: np.savez(npz_path, **arrays)),
-        "node": (node_path, node_save),
+        "np_save": lambda: numpy_save(np_path, v64),
+        "save": lambda: save_map(mapper, path),
+        "np_savez": lambda: np.savez(npz_path, **arrays),
+        "node": node_save,
     }
     t: dict[str, list[float]] = {k: [] for k in (*writes, "snap")}
     for round_ in range(repeat):  # interleaved, each round in another order
         for key in balanced_order(list(writes), round_):
-            target, write = writes[key]
-            target.unlink(missing_ok=True)  # no old file to truncate or unlink in the time
-            t[key].append(_timed(write)[0])
+            t[key].append(_timed(writes[key])[0])
         t["snap"].append(_timed(lambda: map_blocks(mapper))[0])
     keys = ("np_read", "np_npz", "load", "read", "fill", "q_pts", "q_seg")
     r: dict[str, list[float]] = {k: [] for k in keys}
