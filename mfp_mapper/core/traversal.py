@@ -320,10 +320,10 @@ def integrate_rays(
 
 
 PIECE_STEPS = 16
-"""What starting a stretch costs the walk, in steps (``shard_work``): the walks of 2 shards'
-stretches took about 17 ms of CPU time more than one thread's walk of whole rays for 230k
-more stretches, about 70 ns a stretch against 6 ns a step (OS1-128 at 0.2 m, this 2-core
-machine)."""
+"""What starting a stretch costs the walk, in steps (``shard_work``): about 40 ns of walk a
+stretch (lane set-up and a group's fixed costs) against about 6 ns a step (OS1-128 at 0.2 m,
+this 2-core machine; docs/performance.md "Two threads"). It weighs the shards' work only, to
+deal the heaviest first: no map depends on it."""
 
 
 @nb.njit(cache=True, nogil=True)
