@@ -217,6 +217,14 @@ def _prepare_rays(
     per_point = origins.shape[0] > 1
     flagged = no_return.shape[0] > 0
     any_continued = continued.shape[0] > 0
+    # one origin: divided once (the same quotient as per ray; three divisions a ray fewer)
+    first_origin = (0.0, 0.0, 0.0)
+    if origins.shape[0] == 1:
+        first_origin = (
+            origins[0, 0] / resolution,
+            origins[0, 1] / resolution,
+            origins[0, 2] / resolution,
+        )
     for i in range(points.shape[0]):
         o = i if per_point else 0
         dx = points[i, 0] - origins[o, 0]
@@ -233,7 +241,7 @@ def _prepare_rays(
         scale = reach / length if length > 0.0 else 1.0
         inside = True
         for axis, d in ((0, dx), (1, dy), (2, dz)):
-            o_vox = origins[o, axis] / resolution
+            o_vox = origins[o, axis] / resolution if per_point else first_origin[axis]
             # the end, divided exactly as Mapper.voxel_index does: a return lands in floor(p/res)
             e_vox = (points[i, axis] if scale == 1.0 else origins[o, axis] + d * scale) / resolution
             inside = inside and abs(o_vox) < max_index and abs(e_vox) < max_index
