@@ -901,11 +901,11 @@ def _walk_rays(
     weight_flat = entered_weight.reshape(-1)
     base_flat = np.empty(LANES * longest, dtype=np.int64)  # their chunk tables' start
     missed = np.empty((LANES, longest), dtype=np.int64)  # entries not in the walk cache
+    missed_key = np.empty((LANES, longest), dtype=np.int64)
     missed_count = np.zeros(LANES, dtype=np.int64)
     lane_blocks = np.empty(LANES, dtype=np.int64)
     entries = np.empty((2, (longest + 1) * LANES), dtype=np.int64)  # walk_lanes' entries
     entry_count = np.zeros(1, dtype=np.int64)
-    entered_flat = entered_key.reshape(-1)
     lane_floats = np.empty((FLOAT_ROWS, LANES))
     lane_ints = np.empty((INT_ROWS, LANES), dtype=np.int64)
     # placed visits of two groups: the one being walked and the one waiting to be added
@@ -994,13 +994,12 @@ def _walk_rays(
         # block); the others are looked up (read only) all at once, their chunk tables
         # loaded (independent lookups whose memory latencies overlap), and opened after,
         # ray by ray in order, as the one-ray walk opens them
-        weighted = False  # a block where the scan is late (weight < 1)
+        least_weight = 1.0  # below 1 where the scan is late in a block
         missed_count[:] = 0
         repeats_from = lanes * longest  # entries of the lanes repeating the first ray
         for e in range(entry_count[0]):
             key = entries[0, e]
             at = entries[1, e]
-            entered_flat[np.uint64(at)] = key
             slot = _walk_cache_slot(key)
             if at >= repeats_from:
                 base = 0
@@ -1011,6 +1010,7 @@ def _walk_rays(
             else:
                 lane = at // longest
                 missed[lane, missed_count[lane]] = at
+                missed_key[lane, missed_count[lane]] = key
                 missed_count[lane] += 1
                 bx, by, bz = block_of_key(key)
                 found = find_block(table_keys, table_blocks, block_key(bx, by, bz))
@@ -1020,11 +1020,11 @@ def _walk_rays(
             copy_table(entered_chunks, at * BLOCK_CHUNKS, block_chunks, base)
             weight_flat[at] = weight
             base_flat[at] = base
-            weighted |= weight != 1.0
+            least_weight = min(least_weight, weight)
         for lane in range(lanes):
             for m in range(missed_count[lane]):
                 at = missed[lane, m]
-                key = entered_flat[np.uint64(at)]
+                key = missed_key[lane, m]
                 slot = _walk_cache_slot(key)
                 if cache_keys[slot] != key:
                     bx, by, bz = block_of_key(key)
@@ -1038,7 +1038,8 @@ def _walk_rays(
                 copy_table(entered_chunks, at * BLOCK_CHUNKS, block_chunks, base)
                 weight_flat[at] = cache_weights[slot]
                 base_flat[at] = base
-                weighted |= cache_weights[slot] != 1.0
+                least_weight = min(least_weight, cache_weights[slot])
+        weighted = least_weight < 1.0  # (a block's weight is 1, or below where it is late)
         for lane in range(lanes):
             i = group_first + lane
             blocks = lane_blocks[lane]
