@@ -88,9 +88,15 @@ index. Against 2^12 slots (as ``read_walk``'s), cycle-counted on one scan: misse
 29 k and the block lookups 13.6 -> 10.1 ms on OS1-128 at 0.2 m (86.9 k -> 69.2 k, 23.8 ->
 20.1 ms, hall at 0.1 m); a miss costs about 110 ns (the hash, and a first touch)."""
 _WALK_CACHE_MASK = (1 << _WALK_CACHE_BITS) - 1
-WalkCache = tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]
-"""The integrating walk's block cache: each slot's block key (-1: none), chunk-table slot
-(0: another shard's block) and the scan's weight there (< 1: a late scan)."""
+WalkCache = tuple[NDArray[np.int64], NDArray[np.int64]]
+"""The integrating walk's block cache: each slot's block key (-1: none) and chunk-table slot
+(0: another shard's block), with ``_LATE`` set where the scan is late (the block's weight,
+``ShardArrays.block_scale``, below 1). The weight was a third array: a third line loaded
+an entered block, where a scan is late in almost none."""
+_LATE = 1 << 40
+"""Set in a walk cache slot's chunk-table slot (at most ``BLOCK_CHUNKS`` * 2^31) where the
+scan is late in its block."""
+_BASE_MASK = _LATE - 1
 _walk_caches = threading.local()
 
 
@@ -102,7 +108,7 @@ def _walk_cache() -> WalkCache:
     cache: WalkCache | None = getattr(_walk_caches, "cache", None)
     if cache is None:
         keys = np.full(1 << (3 * _WALK_CACHE_BITS), -1, dtype=np.int64)
-        cache = keys, np.empty(keys.shape[0], dtype=np.int64), np.empty(keys.shape[0])
+        cache = keys, np.empty(keys.shape[0], dtype=np.int64)
         _walk_caches.cache = cache
     else:
         cache[0].fill(-1)
@@ -888,7 +894,7 @@ def _walk_rays(
     table_keys, table_blocks = sa.table_keys, sa.table_blocks
     # the shard's blocks opened in this scan, direct-mapped by their low index bits: neighbouring
     # rays cross the same blocks, and this table (768 KiB) stays in cache where the hash does not
-    cache_keys, cache_bases, cache_weights = walk_cache
+    cache_keys, cache_bases = walk_cache
     total = lengths.shape[0] if whole else order.shape[0]
     longest = 1
     for i in range(first, total):
@@ -990,11 +996,11 @@ def _walk_rays(
             entries, entry_count,
         )  # fmt: skip
         # the entered blocks' keys put in each ray's row; a block in the walk cache gives
-        # its chunk table and weight there and then (a lane repeating the first ray: no
-        # block); the others are looked up (read only) all at once, their chunk tables
-        # loaded (independent lookups whose memory latencies overlap), and opened after,
-        # ray by ray in order, as the one-ray walk opens them
-        least_weight = 1.0  # below 1 where the scan is late in a block
+        # its chunk table there and then (a lane repeating the first ray: no block); the
+        # others are looked up (read only) all at once, their chunk tables loaded
+        # (independent lookups whose memory latencies overlap), and opened after, ray by
+        # ray in order, as the one-ray walk opens them
+        late = 0  # _LATE set where the scan is late in a block
         missed_count[:] = 0
         repeats_from = lanes * longest  # entries of the lanes repeating the first ray
         for e in range(entry_count[0]):
@@ -1003,10 +1009,8 @@ def _walk_rays(
             slot = _walk_cache_slot(key)
             if at >= repeats_from:
                 base = 0
-                weight = 1.0
             elif cache_keys[slot] == key:
                 base = cache_bases[slot]
-                weight = cache_weights[slot]
             else:
                 lane = at // longest
                 missed[lane, missed_count[lane]] = at
@@ -1017,10 +1021,9 @@ def _walk_rays(
                 if found >= 0:
                     prefetch_line(block_chunks, BLOCK_CHUNKS * (found + 1))
                 continue
-            copy_table(entered_chunks, at * BLOCK_CHUNKS, block_chunks, base)
-            weight_flat[at] = weight
+            copy_table(entered_chunks, at * BLOCK_CHUNKS, block_chunks, base & _BASE_MASK)
             base_flat[at] = base
-            least_weight = min(least_weight, weight)
+            late |= base
         for lane in range(lanes):
             for m in range(missed_count[lane]):
                 at = missed[lane, m]
@@ -1032,23 +1035,32 @@ def _walk_rays(
                     if shard_of(bx, by, bz, shard_mask) == shard:
                         block = open_block(bx, by, bz, shard_arrays, scan_id, stamp, decay_time)
                     cache_keys[slot] = key
-                    cache_bases[slot] = BLOCK_CHUNKS * (block + 1) if block >= 0 else 0
-                    cache_weights[slot] = block_scale[block] if block >= 0 else 1.0
+                    cache_bases[slot] = 0
+                    if block >= 0:
+                        cache_bases[slot] = BLOCK_CHUNKS * (block + 1)
+                        if block_scale[block] != 1.0:
+                            cache_bases[slot] |= _LATE
                 base = cache_bases[slot]
-                copy_table(entered_chunks, at * BLOCK_CHUNKS, block_chunks, base)
-                weight_flat[at] = cache_weights[slot]
+                copy_table(entered_chunks, at * BLOCK_CHUNKS, block_chunks, base & _BASE_MASK)
                 base_flat[at] = base
-                least_weight = min(least_weight, cache_weights[slot])
-        weighted = least_weight < 1.0  # (a block's weight is 1, or below where it is late)
+                late |= base
+        weighted = (late & _LATE) != 0
+        if weighted:  # rare: the weight of every entered block, for placing
+            for e in range(entry_count[0]):
+                at = entries[1, e]
+                base = base_flat[at]
+                late_block = (base & _BASE_MASK) // BLOCK_CHUNKS - 1
+                weight_flat[at] = block_scale[late_block] if base & _LATE else 1.0
         for lane in range(lanes):
             i = group_first + lane
             blocks = lane_blocks[lane]
             base = base_flat[lane * longest + blocks - 1]  # the end voxel's block
             ends = has_return[i] if whole else piece_return[order[i]]
             ends_here = ends and base > 0
-            return_weight[group, lane] = entered_weight[lane, blocks - 1] if ends_here else 0.0
+            return_weight[group, lane] = 0.0
             if ends_here:  # its n chunk's line, loaded while the group before is added
-                block = base // BLOCK_CHUNKS - 1
+                block = (base & _BASE_MASK) // BLOCK_CHUNKS - 1
+                return_weight[group, lane] = block_scale[block]
                 place = step_code[placed_steps[group, lane] * LANES + lane] & LOCAL_MASK
                 return_block[group, lane] = block
                 return_place[group, lane] = place
