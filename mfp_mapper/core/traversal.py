@@ -92,7 +92,8 @@ WalkCache = tuple[NDArray[np.int64], NDArray[np.int64]]
 """The integrating walk's block cache: each slot's block key (-1: none) and chunk-table slot
 (0: another shard's block), with ``_LATE`` set where the scan is late (the block's weight,
 ``ShardArrays.block_scale``, below 1). The weight was a third array: a third line loaded
-an entered block, where a scan is late in almost none."""
+an entered block, where a scan is late in almost none (perf samples of the walk, hall at
+0.2 m: 4,127-4,321 with the flag against 4,367-4,532 with the third array)."""
 _LATE = 1 << 40
 """Set in a walk cache slot's chunk-table slot (at most ``BLOCK_CHUNKS`` * 2^31) where the
 scan is late in its block."""
