@@ -88,12 +88,13 @@ index. Against 2^12 slots (as ``read_walk``'s), cycle-counted on one scan: misse
 29 k and the block lookups 13.6 -> 10.1 ms on OS1-128 at 0.2 m (86.9 k -> 69.2 k, 23.8 ->
 20.1 ms, hall at 0.1 m); a miss costs about 110 ns (the hash, and a first touch)."""
 _WALK_CACHE_MASK = (1 << _WALK_CACHE_BITS) - 1
-WalkCache = tuple[NDArray[np.int64], NDArray[np.int64]]
-"""The integrating walk's block cache: each slot's block key (-1: none) and chunk-table slot
-(0: another shard's block), with ``_LATE`` set where the scan is late (the block's weight,
-``ShardArrays.block_scale``, below 1). The weight was a third array: a third line loaded
-an entered block, where a scan is late in almost none (perf samples of the walk, hall at
-0.2 m: 4,127-4,321 with the flag against 4,367-4,532 with the third array)."""
+WalkCache = NDArray[np.int64]
+"""The integrating walk's block cache: each slot's block key (-1: none) at ``2 * slot`` and
+its chunk-table slot (0: another shard's block) at ``2 * slot + 1``, with ``_LATE`` set
+where the scan is late (the block's weight, ``ShardArrays.block_scale``, below 1). The
+weight was a third array: a third line loaded an entered block, where a scan is late in
+almost none (perf samples of the walk, hall at 0.2 m: 4,127-4,321 with the flag against
+4,367-4,532 with the third array)."""
 _LATE = 1 << 40
 """Set in a walk cache slot's chunk-table slot (at most ``BLOCK_CHUNKS`` * 2^31) where the
 scan is late in its block."""
@@ -108,11 +109,10 @@ def _walk_cache() -> WalkCache:
     shards (32 calls a scan) than with two (8 calls)."""
     cache: WalkCache | None = getattr(_walk_caches, "cache", None)
     if cache is None:
-        keys = np.full(1 << (3 * _WALK_CACHE_BITS), -1, dtype=np.int64)
-        cache = keys, np.empty(keys.shape[0], dtype=np.int64)
+        cache = np.full(2 << (3 * _WALK_CACHE_BITS), -1, dtype=np.int64)
         _walk_caches.cache = cache
     else:
-        cache[0].fill(-1)
+        cache.fill(-1)
     return cache
 
 
@@ -895,7 +895,7 @@ def _walk_rays(
     table_keys, table_blocks = sa.table_keys, sa.table_blocks
     # the shard's blocks opened in this scan, direct-mapped by their low index bits: neighbouring
     # rays cross the same blocks, and this table (768 KiB) stays in cache where the hash does not
-    cache_keys, cache_bases = walk_cache
+    cache = walk_cache
     total = lengths.shape[0] if whole else order.shape[0]
     longest = 1
     for i in range(first, total):
@@ -1010,8 +1010,8 @@ def _walk_rays(
             slot = _walk_cache_slot(key)
             if at >= repeats_from:
                 base = 0
-            elif cache_keys[slot] == key:
-                base = cache_bases[slot]
+            elif cache[2 * slot] == key:
+                base = cache[2 * slot + 1]
             else:
                 lane = at // longest
                 missed[lane, missed_count[lane]] = at
@@ -1030,18 +1030,18 @@ def _walk_rays(
                 at = missed[lane, m]
                 key = missed_key[lane, m]
                 slot = _walk_cache_slot(key)
-                if cache_keys[slot] != key:
+                if cache[2 * slot] != key:
                     bx, by, bz = block_of_key(key)
                     block = -1
                     if shard_of(bx, by, bz, shard_mask) == shard:
                         block = open_block(bx, by, bz, shard_arrays, scan_id, stamp, decay_time)
-                    cache_keys[slot] = key
-                    cache_bases[slot] = 0
+                    cache[2 * slot] = key
+                    cache[2 * slot + 1] = 0
                     if block >= 0:
-                        cache_bases[slot] = BLOCK_CHUNKS * (block + 1)
+                        cache[2 * slot + 1] = BLOCK_CHUNKS * (block + 1)
                         if block_scale[block] != 1.0:
-                            cache_bases[slot] |= _LATE
-                base = cache_bases[slot]
+                            cache[2 * slot + 1] |= _LATE
+                base = cache[2 * slot + 1]
                 copy_table(entered_chunks, at * BLOCK_CHUNKS, block_chunks, base & _BASE_MASK)
                 base_flat[at] = base
                 late |= base
