@@ -338,6 +338,18 @@ def _insertion_rows(
                 f"{1e6 * peak / max(rs[0]['voxels'], 1):.1f}",
             )
         )  # fmt: skip
+    one = "mfp_mapper (1 thr)"
+    for name in runs:
+        if name.startswith("mfp_mapper") and name != one and one in runs:
+            per_round = [
+                [o[key] / m[key] for o, m in zip(runs[one], runs[name], strict=True)]
+                for key in ("later_scan_ms", "later_scan_cpu_ms")
+            ]
+            print(
+                f"{res:.2f}   1 thread / {name}, later scans, per round: wall "
+                f"{_spread(per_round[0])} (> 1: the threads faster), CPU time "
+                f"{_spread(per_round[1])} (< 1: the threads' extra work)"
+            )
     if bonxai:
         for name in runs:
             if name.startswith("mfp_mapper"):

@@ -8,7 +8,7 @@ written and read in the same run by
 * numpy, the baseline: ``np.save`` of ``ijk`` int32 and ``s``, ``n``, ``t_last`` float64
   (36 bytes a voxel) one after the other into one file, and ``np.savez`` (uncompressed) of
   the same arrays; read back with ``np.load``;
-* ``save_map`` (a version 3 file: the blocks packed from the store, written, fsynced,
+* ``save_map`` (a version 4 file: the blocks packed from the store, written, fsynced,
   renamed) and the node's save (``map_blocks`` under the lock, then ``write_map_path``);
   ``load_map`` (read, CRCs and values checked, blocks set in the store);
 * ``mfp-mapper query`` as it runs (``MapFileQueries``: open the file, read the blocks of
@@ -18,9 +18,14 @@ written and read in the same run by
   and the command as a process (the ``mfp-mapper`` console script beside this Python, as
   docs/cli.md has a user type it) against a Python process reading them with numpy.
 
-Reads find the file in the page cache (it was just written), as numpy's do; every timed
+Reads find the file in the page cache (it was just written), as numpy's do. Every timed
 write starts after ``os.sync()`` (a save's fsync would otherwise wait for the previous
-writes' dirty pages). Times are the best of ``--repeat`` interleaved rounds.
+writes' dirty pages) and replaces the file its previous round wrote (as a node saving
+over its map does; numpy's ``open(..., "wb")`` truncates it), in another order each
+round: over four rounds each write comes right after each other one once
+(``balanced_order``; in a fixed order the node's save, timed right after ``np.savez``
+had written 600 MB, measured 2-3x ``save_map``, the same code). Times are the best of
+``--repeat`` interleaved rounds.
 
     python benchmarks/bench_mapfile.py                       # norlab + 30 M synthetic voxels
     python benchmarks/bench_mapfile.py --voxels 1e6 --scene none
@@ -60,6 +65,14 @@ def _timed(fn):  # type: ignore[no-untyped-def]
     t0 = time.perf_counter()
     out = fn()
     return time.perf_counter() - t0, out
+
+
+def balanced_order(names: list[str], round_: int) -> list[str]:
+    """``names`` in the order of row ``round_`` of a Williams square (an even count of
+    names): over as many rounds as names, each comes right after each other one once."""
+    count = len(names)
+    first = [0] + [(k + 1) // 2 if k % 2 else count - k // 2 for k in range(1, count)]
+    return [names[(i + round_) % count] for i in first]
 
 
 def synthetic(count: int, seed: int = 0, histograms: bool = False) -> Mapper:
@@ -123,12 +136,16 @@ def run(name: str, mapper: Mapper, repeat: int, tmp: Path) -> None:
     def node_save() -> None:  # the node: snapshot under its lock, write outside it
         write_map_path(node_path, map_blocks(mapper))
 
-    t: dict[str, list[float]] = {k: [] for k in ("np_save", "np_savez", "save", "node", "snap")}
-    for _ in range(repeat):  # interleaved
-        t["np_save"].append(_timed(lambda: numpy_save(np_path, v64))[0])
-        t["save"].append(_timed(lambda: save_map(mapper, path))[0])
-        t["np_savez"].append(_timed(lambda: np.savez(npz_path, **arrays))[0])
-        t["node"].append(_timed(node_save)[0])
+    writes = {
+        "np_save": lambda: numpy_save(np_path, v64),
+        "save": lambda: save_map(mapper, path),
+        "np_savez": lambda: np.savez(npz_path, **arrays),
+        "node": node_save,
+    }
+    t: dict[str, list[float]] = {k: [] for k in (*writes, "snap")}
+    for round_ in range(repeat):  # interleaved, each round in another order
+        for key in balanced_order(list(writes), round_):
+            t[key].append(_timed(writes[key])[0])
         t["snap"].append(_timed(lambda: map_blocks(mapper))[0])
     keys = ("np_read", "np_npz", "load", "read", "fill", "q_pts", "q_seg")
     r: dict[str, list[float]] = {k: [] for k in keys}

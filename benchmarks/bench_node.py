@@ -22,8 +22,10 @@ total CPU:
 - integration CPU: CPU time of the integration thread (parse, place, integrate) over
   wall time, as a share of one core; node CPU: the whole node process;
 - CPU ms per integrated cloud by thread, from ``~/status`` ``cpu_s`` (a node that has it):
-  executor (ROS callbacks), worker (parse, place), walker (integrate), publisher (map
-  outputs; also per publication), other (DDS and the rest of the process).
+  inputs (taking clouds, odometry, TF; a node that has the input thread), executor (the other
+  ROS callbacks), worker (parse, place), walker (integrate), publisher (map outputs; also per
+  publication), other (DDS and the rest of the process: with ``threads`` above 1, the core's
+  own threads, which then walk the scan while the walker waits).
 
 Streams: VLP-16 (16 x 1800 = 28.8k points, 0.1 m) and an OS1-128-like lidar
 (128 x 1024 = 131k points, 0.2 m, elevations -22.5..22.5 deg), both simulated; ``--stream
@@ -335,7 +337,7 @@ def run_stream(
     stream: Stream,
     duration: float,
     workdir: Path,
-    threads: int,
+    threads: int | None,
     tf_poses: bool = False,
     node_env: dict[str, str] | None = None,
     queue_size: int = 0,
@@ -353,8 +355,9 @@ def run_stream(
         "publish_rate": 1.0,
         "status_period": 1.0,
         "odom_wait": 1.0,
-        "threads": threads,
     }
+    if threads is not None:  # else the node's own default
+        params["threads"] = threads
     if queue_size:
         params["cloud_queue_size"] = queue_size
     params.update(extra or {})
@@ -518,11 +521,12 @@ def core_times(
     alone), one by ``stage`` + ``commit`` (what the node does); median ms of the scans
     after the first, per stage."""
     from mfp_mapper import Mapper
-    from mfp_mapper.config.sections import PlacementSection, SensorModelSection
+    from mfp_mapper.config.sections import MapSection, PlacementSection, SensorModelSection
     from mfp_mapper.mapping.loop import ScanLoop
     from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer
     from mfp_mapper.sources.scan_files import CloudMessage, Header, Time
 
+    threads = threads or MapSection().core("threads")  # 0: the node's default, automatic
     stream = make_stream(name, n_scans, resolution)
     t0 = 1_000.0
     poses = PoseBuffer(max_age=1e9)
@@ -566,7 +570,7 @@ def core_times(
 
 
 def _core_child(
-    name: str, n_scans: int, threads: int, resolution: float | None = None
+    name: str, n_scans: int, threads: int | None, resolution: float | None = None
 ) -> dict[str, Any]:
     """``core_times`` in a fresh process (its own memory, as the node's)."""
     import subprocess
@@ -578,7 +582,7 @@ def _core_child(
             "--core-child",
             name,
             str(n_scans),
-            str(threads),
+            str(threads or 0),
             str(resolution or 0.0),
         ],  # fmt: skip
         check=True,
@@ -735,7 +739,9 @@ def main() -> int:
     parser.add_argument("--duration", type=float, default=15.0, help="seconds per stream")
     parser.add_argument("--scans", type=int, default=20, help="distinct sweeps in the loop")
     parser.add_argument("--logs", type=Path, help="keep the node logs in this directory")
-    parser.add_argument("--threads", type=int, default=1, help="the node's core threads")
+    parser.add_argument(
+        "--threads", type=int, help="the node's core threads (default: the node's default)"
+    )
     parser.add_argument(
         "--queue-size", type=int, default=0, help="the node's cloud_queue_size (0: its default)"
     )
@@ -784,7 +790,7 @@ def main() -> int:
         "none": "Fast DDS defaults",
     }[args.dds]
     source = "/tf + /tf_static" if args.tf_poses else "odometry + lidar.* parameters"
-    print(f"node threads: {args.threads}; DDS profile: {dds}; poses: {source}")
+    print(f"node threads: {args.threads or 'the default'}; DDS profile: {dds}; poses: {source}")
     rclpy.init(domain_id=domain)
     results = []
     try:

@@ -60,12 +60,17 @@ class MapSection(Section):
         unlimited="inf",
     )
     threads: int = setting(
-        1,
-        "Threads the core uses to walk the rays of one scan.",
-        1,
+        0,
+        "Threads the core uses to walk the rays of one scan. 0: automatic, one a core this "
+        "process may run on (its CPU affinity), at most 4 (docs/performance.md: two cores "
+        "keep up with a VLP-32C at 10 Hz where one thread falls behind at 0.1 m). The map is "
+        "the same bit for bit whatever the count. 1 leaves the other cores to the rest of the"
+        " robot's software.",
+        0,
         64,
         applies="both",
         flag="--threads",
+        unlimited="cores",
     )
     max_voxels: int = setting(
         0,

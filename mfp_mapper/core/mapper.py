@@ -101,7 +101,7 @@ def mapper_kwargs(map_section: MapSection, sensor_model: SensorModelSection) -> 
         "max_range": sensor_model.core("max_range"),
         "min_range": sensor_model.min_range,
         "decay_time": map_section.core("decay_time"),
-        "threads": map_section.threads,
+        "threads": map_section.core("threads"),
         "max_voxels": map_section.core("max_voxels"),
         "keep_radius": map_section.core("keep_radius"),
         "prior_shape": map_section.prior_shape,
@@ -111,8 +111,10 @@ def mapper_kwargs(map_section: MapSection, sensor_model: SensorModelSection) -> 
     }
 
 
-_DEFAULTS = mapper_kwargs(MapSection(), SensorModelSection())
-"""The defaults of ``Mapper``'s settings: the sections' defaults, in the core's units."""
+_DEFAULTS = mapper_kwargs(MapSection(threads=1), SensorModelSection())
+"""The defaults of ``Mapper``'s settings: the sections' defaults, in the core's units; one
+thread (a library call starts no thread it was not asked for; the node and the replay's
+``threads`` default to automatic)."""
 
 
 class Mapper:

@@ -27,6 +27,7 @@ Every ray's contribution is summed into the store: sums, never deduplication.
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 from collections.abc import Iterator
@@ -49,12 +50,14 @@ from mfp_mapper.core.blocks import (
     N_BLOCK_CHUNKS,
     N_CHUNK_VOXELS,
     SHARD_TILE_BITS,
+    SHARD_TILE_Z_OFFSET,
     IndexBox,
     block_key,
     block_origin,
     block_outside,
     find_block,
     index_box,
+    insert_block,
     local_coords,
     local_index,
     shard_of,
@@ -64,8 +67,10 @@ from mfp_mapper.core.layout import (  # noqa: F401 (numba-free, re-exported)
     MAX_RESOLUTION,
     MIN_RESOLUTION,
     VoxelArrays,
+    mask_words,
     voxel_problem,
 )
+from mfp_mapper.core.lockstep import prefetch_line
 from mfp_mapper.core.packed import (
     MASK_WORDS,
     BlockChunk,
@@ -99,8 +104,12 @@ _THREADED_PACK_BLOCKS = 16_384
 """Blocks from which ``BlockStore.export_blocks`` packs half of them in a thread of their
 own."""
 _THREADED_WRITE_VOXELS = 1_000_000
-"""Voxels from which ``BlockStore.assign_blocks`` writes the ``s`` parts in a thread of
-their own while it opens the blocks (``BlockStore._fill_parts``)."""
+"""Voxels from which ``BlockStore.assign_blocks`` writes the ``s`` parts in a second
+thread while it opens the blocks, then in both (``BlockStore._fill_parts``)."""
+_PARTS_AHEAD = 8
+"""Blocks ahead whose chunks ``_block_parts`` prefetches."""
+_WRITE_PIECE_VOXELS = 1 << 18
+"""Voxels of ``s`` a thread writes at a time when two write (1 MiB of values)."""
 
 __all__ = ["BLOCK_EDGE", "MAX_VOXEL_INDEX", "BlockStats", "BlockStore", "VoxelArrays", "index_box"]
 
@@ -362,47 +371,54 @@ def _open_parts(
     hi_n: NDArray[np.float64],
     hi_s_start: NDArray[np.int64],
     hi_n_start: NDArray[np.int64],
-    start: int,
-    shard: int,
-    shard_mask: int,
+    rows: NDArray[np.int64],
     sa: ShardArrays,
-) -> int:
-    """Open the packed blocks (held as parts, ``packed.PackedBlocks.parts``) of ``shard``
-    from block ``start`` on, in order: each block, the ``s`` chunks of its observed voxels
-    (numbered in block order: from the masks alone, ``_write_parts`` knows them), its ``n``
-    (float32 parts, voxels with a return) and its float64 part where it has one, as the
-    store held them; the ``s`` values are left to ``_write_parts`` (the bulk, in another
-    thread meanwhile). Returns the number of blocks when done, else the block
-    where the shard ran out of room (make room, call again from there)."""
+) -> None:
+    """Open the packed blocks (held as parts, ``packed.PackedBlocks.parts``) of ``rows``
+    (increasing; ``rows[0] < 0``: every block) in an empty shard sized for them
+    (``Shard.grow``, ``Shard.ensure_room``), in order: each block, the ``s`` chunks of its
+    observed voxels (numbered in block order: from the masks alone, ``_write_parts``
+    knows them), its ``n`` (float32 parts, voxels with a return) and its float64 part
+    where it has one, as the store held them; the ``s`` values are left to
+    ``_write_parts`` (the bulk, in another thread meanwhile). The blocks are new and
+    distinct (sorted, checked): each takes the next row and its key goes into the table
+    without a search (``open_block``'s probe for an existing block cost 3.5 times as
+    long on the norlab map, docs/performance.md)."""
     block_chunks, chunk_owner, pools = sa.block_chunks, sa.chunk_owner, sa.pools
     block_nrec, n_recs = sa.block_nrec, sa.n_recs
     flat_n = sa.n_pool.reshape(-1)
-    for b in range(start, packed_ijk.shape[0]):
+    every = rows.shape[0] > 0 and rows[0] < 0
+    count = packed_ijk.shape[0] if every else rows.shape[0]
+    chunk = pools[S_USED]
+    for k in range(count):
+        b = k if every else rows[k]
         bx, by, bz = packed_ijk[b, 0], packed_ijk[b, 1], packed_ijk[b, 2]
-        if shard_of(bx, by, bz, shard_mask) != shard:
-            continue
-        if _no_room_for_block(sa):
-            return b
-        block = open_block(bx, by, bz, sa, -1, packed_t[b], math.inf)
-        sa.block_t[block] = max(sa.block_t[block], packed_t[b])
+        insert_block(sa.table_keys, sa.table_blocks, block_key(bx, by, bz), k)
+        sa.block_ijk[k, 0] = bx
+        sa.block_ijk[k, 1] = by
+        sa.block_ijk[k, 2] = bz
+        sa.block_t[k] = packed_t[b]
+        sa.block_scan[k] = -1
+        sa.block_scale[k] = 1.0
+        sa.block_nrec[k] = -1
+        sa.block_href[k] = -1
+        sa.block_hit[k] = False
+        sa.block_flush[k] = False
         for w in range(BLOCK_VOXELS // 64):  # a mask word is an s chunk (64 voxels)
+            slot = chunk_slot(k, w)
             if observed[b, w] != 0:
-                slot = chunk_slot(block, w)
-                if block_chunks[slot] < 0:
-                    chunk = pools[S_USED]
-                    pools[S_USED] = chunk + 1
-                    block_chunks[slot] = chunk
-                    chunk_owner[chunk] = slot
-        row = hit_row[b]
+                block_chunks[slot] = chunk
+                chunk_owner[chunk] = slot
+                chunk += 1
+            else:
+                block_chunks[slot] = -(slot + 1)
         f = hi_row[b]
         href = -1
         if f >= 0:
-            href = sa.block_href[block]
-            if href < 0:
-                href = pools[HI_USED]
-                pools[HI_USED] = href + 1
-                sa.block_href[block] = href
-                sa.hi_pool[href] = 0.0
+            href = pools[HI_USED]
+            pools[HI_USED] = href + 1
+            sa.block_href[k] = href
+            sa.hi_pool[href] = 0.0
             ks = hi_s_start[f]
             for w in range(BLOCK_VOXELS // 64):
                 m = observed[b, w]
@@ -412,6 +428,7 @@ def _open_parts(
                     i = w * 64 + _LOW_BIT[(bit * _DE_BRUIJN) >> np.uint64(58)]
                     sa.hi_pool[href, i, 0] = hi_s[ks]
                     ks += 1
+        row = hit_row[b]
         if row < 0:
             continue
         jn = n_start[row]
@@ -419,17 +436,19 @@ def _open_parts(
         for w in range(BLOCK_VOXELS // 64):
             mh = hit[row, w]
             if mh:
-                sa.block_hit[block] = True
+                sa.block_hit[k] = True
             while mh:
                 bit = mh & (np.uint64(0) - mh)
                 mh ^= bit
                 i = w * 64 + _LOW_BIT[(bit * _DE_BRUIJN) >> np.uint64(58)]
-                flat_n[n_index(block_nrec, n_recs, pools, block, i, True)] = n[jn]
+                flat_n[n_index(block_nrec, n_recs, pools, k, i, True)] = n[jn]
                 jn += 1
                 if f >= 0:
                     sa.hi_pool[href, i, 1] = hi_n[kn]
                     kn += 1
-    return packed_ijk.shape[0]
+    pools[S_USED] = chunk
+    sa.counters[0] = count
+    sa.counters[2] += count
 
 
 @nb.njit(cache=True, nogil=True)
@@ -439,16 +458,18 @@ def _write_parts(
     s_start: NDArray[np.int64],
     chunk_first: NDArray[np.int64],
     s_pool: NDArray[np.float32],
+    lo: int,
+    hi: int,
 ) -> None:
-    """The float32 parts of ``s`` of the packed blocks into their chunks: block b's
-    observed mask words take the chunks ``chunk_first[b]``, ``chunk_first[b] + 1``, ... in
-    order (as ``_open_parts`` numbers them; -1: another shard's block); -0 for an observed
-    voxel whose part is 0 (shard's notes). Touches ``s_pool`` alone: it runs beside
-    ``_open_parts``."""
+    """The float32 parts of ``s`` of the packed blocks ``lo`` to ``hi`` into their chunks:
+    block b's observed mask words take the chunks ``chunk_first[b]``, ``chunk_first[b] +
+    1``, ... in order (as ``_open_parts`` numbers them; -1: another shard's block); -0 for
+    an observed voxel whose part is 0 (shard's notes). Touches ``s_pool`` alone, and only
+    those blocks' chunks: it runs beside ``_open_parts`` and another ``_write_parts``."""
     marks = s_pool.reshape(-1).view(np.uint32)
     s_bits = s.view(np.uint32)
     sign = np.uint32(0x80000000)
-    for b in range(observed.shape[0]):
+    for b in range(lo, hi):
         c = chunk_first[b]
         if c < 0:
             continue
@@ -473,8 +494,21 @@ def _block_parts(
     sa: ShardArrays, blocks: NDArray[np.int64], s: NDArray[np.float32], n: NDArray[np.float32]
 ) -> None:
     """The float32 parts of ``s`` and ``n`` (len(blocks) x 512, as stored: -0 marks kept)
-    of ``blocks``."""
-    for k in range(blocks.shape[0]):
+    of ``blocks``. The chunks of the block ``_PARTS_AHEAD`` on are prefetched (and its
+    chunk-table row twice as far ahead): on a map built by integration the chunks of
+    blocks in sorted order lie far apart, and waiting for each in turn took twice as long
+    (norlab, 0.148 against 0.075 s CPU; docs/performance.md)."""
+    count = blocks.shape[0]
+    for k in range(count):
+        if k + 2 * _PARTS_AHEAD < count:
+            prefetch_line(sa.block_chunks, chunk_slot(blocks[k + 2 * _PARTS_AHEAD], 0))  # type: ignore[call-arg]
+        if k + _PARTS_AHEAD < count:
+            ahead = blocks[k + _PARTS_AHEAD]
+            for c in range(BLOCK_CHUNKS):
+                chunk = sa.block_chunks[chunk_slot(ahead, c)]
+                if chunk >= 0:
+                    for line in range(0, CHUNK_VOXELS, 16):  # 64-byte lines
+                        prefetch_line(sa.s_pool, chunk * CHUNK_VOXELS + line)  # type: ignore[call-arg]
         b = blocks[k]
         for c in range(BLOCK_CHUNKS):
             chunk = sa.block_chunks[chunk_slot(b, c)]
@@ -818,9 +852,10 @@ class BlockStore:
             hi_s = np.ascontiguousarray(packed.hi_s, dtype=np.float64)
             hi_n = np.ascontiguousarray(packed.hi_n, dtype=np.float64)
             s, n = s.astype(np.float32, copy=False), n.astype(np.float32, copy=False)
-            words = np.count_nonzero(observed, axis=1).astype(np.int64)
+            words = mask_words(observed)
         if self.shard_mask:
-            tiles = (block_ijk.astype(np.int64) >> SHARD_TILE_BITS).sum(axis=1) & self.shard_mask
+            tile_ijk = block_ijk.astype(np.int64) + np.array([0, 0, SHARD_TILE_Z_OFFSET])
+            tiles = (tile_ijk >> SHARD_TILE_BITS).sum(axis=1) & self.shard_mask  # shard_of
         counts = np.zeros(1, dtype=np.int64)
         for sid, sh in enumerate(self.shards):
             if self.shard_mask:
@@ -841,7 +876,7 @@ class BlockStore:
             )
             if packed.parts:
                 self._fill_parts(
-                    sh, sid, mine if self.shard_mask else None, words,
+                    sh, mine if self.shard_mask else None, words,
                     (block_ijk, block_t, observed, hit_row, hit, n, n_start, hi_row, hi_s, hi_n,
                      hi_s_start, hi_n_start),
                     s, s_start,
@@ -876,62 +911,46 @@ class BlockStore:
     def _fill_parts(
         self,
         sh: Shard,
-        sid: int,
         mine: NDArray[np.bool_] | None,
         words: NDArray[np.int64],
         opening: tuple[Any, ...],
         s: NDArray[np.float32],
         s_start: NDArray[np.int64],
     ) -> None:
-        """Set the packed blocks (parts) of shard ``sid`` (``mine``: its rows; None: all):
-        ``_open_parts`` in this thread while ``_write_parts`` writes the ``s`` parts in
-        another, on maps of a million voxels or more where two cores are there (their
-        chunks numbered from the masks, ``words`` nonzero mask words a block: the same
-        store as one after the other)."""
+        """Set the packed blocks (parts) of an empty shard sized for them (``mine``: its
+        rows; None: all): ``_open_parts``, and ``_write_parts`` of the ``s`` parts (their
+        chunks numbered from the masks, ``words`` nonzero mask words a block). On maps of
+        a million voxels or more where two cores are there, a second thread writes while
+        this one opens the blocks, then both write: pieces of ``_WRITE_PIECE_VOXELS``
+        taken in turn (the same store as one after the other)."""
         counted = words if mine is None else np.where(mine, words, 0)
         first = np.cumsum(counted) - counted + int(sh.pools[S_USED])
         chunk_first = first if mine is None else np.where(mine, first, -1)
-        writer = None
-        pool = None
-        if s.shape[0] >= _THREADED_WRITE_VOXELS and (os.cpu_count() or 1) >= 2:
-            pool = ThreadPoolExecutor(1)
-            writer = pool.submit(_write_parts, opening[2], s, s_start, chunk_first, sh.s_pool)
-        grown = False
-        try:
-            hi_room, start = 1, 0
-            ijk, t, observed, hit_row, hit, n, n_start, hi_row, hi_s, hi_n, fs, fn = opening
-            while (
-                start := _open_parts(
-                    ijk,
-                    t,
-                    observed,
-                    hit_row,
-                    hit,
-                    n,
-                    n_start,
-                    hi_row,
-                    hi_s,
-                    hi_n,
-                    fs,
-                    fn,
-                    start,
-                    sid,
-                    self.shard_mask,
-                    sh.arrays(),
-                )  # fmt: skip
-            ) < s_start.shape[0] - 1:  # out of room (not expected: sized above): grow
-                if writer is not None:
-                    writer.result()  # before the pools move
-                    writer = None
-                grown, hi_room = True, 2 * hi_room
-                sh.ensure_room(BLOCK_CHUNKS, N_BLOCK_CHUNKS, hi_room, 1)
-        finally:
-            if writer is not None:
+        rows = np.full(1, -1, dtype=np.int64) if mine is None else np.flatnonzero(mine)
+        observed = opening[2]
+        blocks = observed.shape[0]
+        if s.shape[0] < _THREADED_WRITE_VOXELS or (os.cpu_count() or 1) < 2:
+            _open_parts(*opening, rows, sh.arrays())  # type: ignore[call-arg]
+            _write_parts(observed, s, s_start, chunk_first, sh.s_pool, 0, blocks)
+            return
+        heads = np.searchsorted(s_start, np.arange(0, s.shape[0], _WRITE_PIECE_VOXELS))
+        ends = np.append(heads[1:], blocks)
+        taken = itertools.count()  # its next() is atomic: each piece goes to one thread
+
+        def write() -> None:
+            for k in iter(taken.__next__, None):
+                if k >= heads.shape[0]:
+                    return
+                lo, hi = int(heads[k]), int(ends[k])
+                _write_parts(observed, s, s_start, chunk_first, sh.s_pool, lo, hi)
+
+        with ThreadPoolExecutor(1) as pool:
+            writer = pool.submit(write)
+            try:
+                _open_parts(*opening, rows, sh.arrays())  # type: ignore[call-arg]
+                write()
+            finally:
                 writer.result()
-            if pool is not None:
-                pool.shutdown()
-        if pool is None or grown:
-            _write_parts(opening[2], s, s_start, chunk_first, sh.s_pool)
 
     def lookup(self, ijk: NDArray[np.int64]) -> VoxelArrays:
         """Statistics of these voxels (zeros and t_last=-inf where never observed)."""

@@ -9,7 +9,7 @@ voxel up to the return point is its last chord).
 Threads split the space: the store has shards (four a thread: ``mapper.shard_count``), a
 shard owns tiles of 8x8x8 blocks in a 3-D checkerboard (``blocks.shard_of``), and one
 thread at a time writes to a shard. The rays are first split into their stretches in each
-tile (``split_rays``, a share of the rays a thread), then the threads walk the shards'
+tile (``split_into``, parts of the rays a task), then the threads walk the shards'
 stretches, a shard at a time, the shards with the most steps first. A
 walk keeps t in fixed point (``lockstep.T_ONE``), where a face's t is the same whether
 summed step by step or computed from its index, so a stretch starts in exactly the state
@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 import threading
+import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -43,6 +44,7 @@ from mfp_mapper.core.blocks import (
     N_CHUNK_BITS,
     N_CHUNK_VOXELS,
     SHARD_TILE_BITS,
+    SHARD_TILE_Z_OFFSET,
     block_key,
     block_of_key,
     find_block,
@@ -278,9 +280,11 @@ def integrate_rays(
     max_new_blocks: int | None = None,
 ) -> int:
     """Add every ray's chords and returns to the store (scan ``scan_id`` at ``stamp``): the
-    rays are split into their stretches in each shard's tiles (``split_rays``, a share of
-    the rays a thread), then the shards' stretches are walked, a shard a task, the shards
-    with the most work first (``shard_work``), so that the threads end together.
+    rays are split into their stretches in each shard's tiles (``split_into``, parts of
+    ``SPLIT_RAYS`` rays a task, into one buffer of the scan's stretches kept from scan to
+    scan, each shard's in the order it walks them), then the shards' stretches are walked,
+    a shard a task (one compiled call each), the shards with the most work first, so that
+    the threads end together.
     ``run_parallel(fn, items)`` calls ``fn`` on every item, in parallel, taking the items
     in order.
 
@@ -296,28 +300,34 @@ def integrate_rays(
         return _walk_whole(rays, store.shards[0], scan, share)
     threads = max(shards // SHARDS_PER_THREAD, 1)
     size = max(min(-(-len(rays) // threads), SPLIT_RAYS), 1)  # at least a part a thread
-    bounds = [(start, min(start + size, len(rays))) for start in range(0, len(rays), size)]
-    split: list[tuple[Pieces, NDArray[np.int64]]] = [None] * len(bounds)  # type: ignore[list-item]
-    work = np.zeros((len(bounds), 2, shards), dtype=np.int64)  # per part: work, room
+    room, visits, part_at = split_bounds(rays.origins_vox, rays.ends_vox, size, store.shard_mask)
+    whole = RayArrays(rays.origins_vox, rays.ends_vox, rays.lengths, rays.has_return, room, visits)
+    pieces = _flat_pieces(store, int(part_at[-1]))
+    parts = len(part_at) - 1
+    segments = np.zeros((parts, shards, 2), dtype=np.int64)  # each part's pieces per shard
+    work = np.zeros((parts, 2, shards), dtype=np.int64)  # per part: work, room
 
     def split_part(c: int) -> None:
-        split[c] = split_rays(
-            rays.origins_vox, rays.ends_vox, rays.has_return, *bounds[c], store.shard_mask, True
-        )
-        shard_work(*split[c], work[c])
+        start = c * size
+        split_into(
+            rays.origins_vox, rays.ends_vox, rays.has_return, start, min(start + size, len(rays)),
+            store.shard_mask, pieces, int(part_at[c]),
+            *_split_scratch(int(part_at[c + 1] - part_at[c])), segments[c], work[c],
+        )  # fmt: skip
 
-    run_parallel(split_part, range(len(bounds)))
+    run_parallel(split_part, range(parts))
     shares: list[int | None] = [None] * shards
     if max_new_blocks is not None:
-        room = work[:, 1].sum(axis=0)
-        total = max(int(room.sum()), 1)
-        shares = [int(max_new_blocks) * int(r) // total for r in room]
-
-    whole = _ray_arrays(rays)  # shared by the shards' walks
+        blocks = work[:, 1].sum(axis=0)
+        total = max(int(blocks.sum()), 1)
+        shares = [int(max_new_blocks) * int(r) // total for r in blocks]
 
     def walk(k: int) -> None:
-        parts = [(*bounds[c], split[c]) for c in range(len(bounds))]
-        cut[k] = _walk_part(whole, parts, store.shards[k], k, store.shard_mask, scan, shares[k])
+        order = shard_order(segments, k)
+        cut[k] = _walk_part(
+            whole, pieces._replace(order=order), store.shards[k], k, store.shard_mask, scan,
+            shares[k],
+        )  # fmt: skip
 
     largest_first = np.argsort(-work[:, 0].sum(axis=0), kind="stable")
     run_parallel(walk, [int(k) for k in largest_first])
@@ -354,10 +364,11 @@ percentile). With four shards a thread, the threads take the shards' walks most 
 (``integrate_rays``), and two threads share a scan within 0.51-0.52 (0.525 at the 90th
 percentile)."""
 SPLIT_RAYS = 8192
-"""Rays split at once (``split_rays``): their pieces (about 120 bytes each) stay in cache
-and in memory the allocator reuses; parts of 53k rays (OS1-128, 2 threads) took twice as
-long a ray, faulting their fresh pages in, and parts of 32768 rays 1.6 times as long (8
-shards: 21 against 13 ms of CPU time for a scan of OS1-128 at 0.2 m)."""
+"""Rays split in one task (``split_into``): a part's stretches (57 bytes each) are written
+to a scratch the thread keeps, then put in walk order. When each part allocated its
+pieces, parts of 53k rays (OS1-128, 2 threads) took twice as long a ray, faulting their
+fresh pages in, and parts of 32768 rays 1.6 times as long; with the scratch kept, parts
+of 2048 to 16384 rays gave the same split and walks within the noise of this machine."""
 
 
 def block_bounds(
@@ -425,73 +436,66 @@ def _ray_arrays(rays: Rays) -> RayArrays:
 
 def _walk_part(
     walk: RayArrays,
-    parts: list[tuple[int, int, tuple[Pieces, NDArray[np.int64]]]],
+    pieces: Pieces,
     shard: Shard,
     shard_id: int,
     shard_mask: int,
     scan: ScanStamp,
     share: int | None = None,
 ) -> int:
-    """Walk the stretches of ``rays`` in ``shard``'s tiles into ``shard``: ``parts`` are
-    the rays ``start:stop`` split by ``split_rays`` (by tile), in ray order. Grows the
-    shard when it runs out of room, by at most ``share`` blocks (None: no bound): beyond,
-    the rays not walked whole yet are cut (``cut_to_blocks``; their stretches walked
-    already stay) and split again, by ray. Returns how many were cut."""
+    """Walk ``pieces`` (``split_into``: the stretches of the rays in ``shard``'s tiles, by
+    tile, in ray order within a tile) into ``shard``, in one compiled call unless the
+    shard needs room. Grows the shard when it runs out of room, by at most ``share``
+    blocks (None: no bound): beyond, the rays not walked whole yet are cut
+    (``cut_to_blocks``; their stretches walked already stay) and split again, by ray.
+    Returns how many were cut."""
     count = len(walk.lengths)
     limit = None if share is None else shard.used + share
     most = _NO_LIMIT if limit is None else limit
-
-    def own(start: int, stop: int, by_tile: bool) -> Pieces:
-        pieces, offsets = split_rays(
-            walk.origins_vox, walk.ends_vox, walk.has_return, start, stop, shard_mask, by_tile
-        )
-        return _shard_pieces(pieces, offsets, shard_id)
-
     cut, cut_done = 0, False
     cache = _walk_cache()
-    for start, stop, (split, offsets) in parts:
-        pieces = _shard_pieces(split, offsets, shard_id)
-        if cut_done:  # the rays were cut since they were split
-            pieces = own(start, stop, True)
-        first = 0
-        piece_visits = pieces.voxel[pieces.order, 3] + 1
-        left = np.cumsum(piece_visits[::-1])[::-1]  # at most as many new chunks
-        while first < len(pieces.order):
-            _make_room(shard, piece_visits, left, first)
-            first = _walk_rays(
-                walk, pieces, first, shard_id, shard_mask, shard.arrays(), scan, most, cache
+    first = 0
+    piece_visits, left = piece_room(pieces.voxel, pieces.order)
+    while first < len(pieces.order):
+        _make_room(shard, piece_visits, left, first)
+        first = _walk_rays(
+            walk, pieces, first, shard_id, shard_mask, shard.arrays(), scan, most, cache
+        )
+        if first == len(pieces.order):
+            break
+        # the next group of pieces (see _walk_rays) did not fit in the blocks (else
+        # only in the chunks: room is made again)
+        need = int(pieces.room[pieces.order[first : first + LANES]].sum())
+        if not _blocks_short(shard, need, most):
+            continue
+        if limit is not None and shard.used + need > limit and not cut_done:
+            # the rays not walked whole are cut; their stretches walked stay
+            rest = pieces.order[first:]
+            ray = int(pieces.ray[rest].min())
+            cut_rays = cut_to_blocks(walk, ray, limit - shard.used)
+            if cut_rays is None:  # not even a step each: the rest is not walked
+                return count - ray
+            (walk, cut), cut_done = cut_rays, True
+            walked = {
+                (int(pieces.ray[p]), *pieces.voxel[p, :3].tolist())
+                for p in pieces.order[:first]
+                if pieces.ray[p] >= ray
+            }
+            split, offsets = split_rays(
+                walk.origins_vox, walk.ends_vox, walk.has_return, ray, count, shard_mask, False
             )
-            if first == len(pieces.order):
-                break
-            # the next group of pieces (see _walk_rays) did not fit in the blocks (else
-            # only in the chunks: room is made again)
-            need = int(pieces.room[pieces.order[first : first + LANES]].sum())
-            if not _blocks_short(shard, need, most):
-                continue
-            if limit is not None and shard.used + need > limit and not cut_done:
-                # the rays not walked whole are cut; their stretches walked stay
-                rest = pieces.order[first:]
-                ray = int(pieces.ray[rest].min())
-                cut_rays = cut_to_blocks(walk, ray, limit - shard.used)
-                if cut_rays is None:  # not even a step each: the rest is not walked
-                    return count - ray
-                (walk, cut), cut_done = cut_rays, True
-                walked = {
-                    (int(pieces.ray[p]), *pieces.voxel[p, :3].tolist())
-                    for p in pieces.order[:first]
-                    if pieces.ray[p] >= ray
-                }
-                pieces = own(ray, stop, False)
-                keep = [
-                    (int(pieces.ray[p]), *pieces.voxel[p, :3].tolist()) not in walked
-                    for p in pieces.order
-                ]
-                pieces = pieces._replace(order=pieces.order[np.array(keep, dtype=bool)])
-                first = 0
-                continue
-            if limit is not None and shard.used + need > limit:  # cut, and still too many
-                return max(cut, count - int(pieces.ray[pieces.order[first:]].min()))
-            shard.grow(min_free=need, at_most=limit)  # the limit is checked at each growth
+            pieces = _shard_pieces(split, offsets, shard_id)
+            keep = [
+                (int(pieces.ray[p]), *pieces.voxel[p, :3].tolist()) not in walked
+                for p in pieces.order
+            ]
+            pieces = pieces._replace(order=pieces.order[np.array(keep, dtype=bool)])
+            piece_visits, left = piece_room(pieces.voxel, pieces.order)
+            first = 0
+            continue
+        if limit is not None and shard.used + need > limit:  # cut, and still too many
+            return max(cut, count - int(pieces.ray[pieces.order[first:]].min()))
+        shard.grow(min_free=need, at_most=limit)  # the limit is checked at each growth
     return cut
 
 
@@ -506,7 +510,10 @@ def _walk_whole(rays: Rays, shard: Shard, scan: ScanStamp, share: int | None = N
     limit = None if share is None else shard.used + share
     most = _NO_LIMIT if limit is None else limit
     none = np.empty(0, dtype=np.int64)
-    no_pieces = Pieces(none, none.reshape(0, 4), none.reshape(0, 7), none, none.astype(bool), none)
+    none32 = none.astype(np.int32)
+    no_pieces = Pieces(
+        none32, none32.reshape(0, 4), none.reshape(0, 4), none32, none.astype(bool), none
+    )
     first, cut, cut_done = 0, 0, False
     cache = _walk_cache()
     left = np.cumsum(visits[::-1])[::-1]  # visits of rays r.., at most as many new chunks
@@ -638,16 +645,18 @@ class Pieces(NamedTuple):
     """The stretches of rays one shard walks (``split_rays``): each is walked from exactly
     the state the walk from the ray's origin has where it starts."""
 
-    ray: NDArray[np.int64]
+    ray: NDArray[np.int32]
     """The ray each piece is a stretch of."""
-    voxel: NDArray[np.int64]
+    voxel: NDArray[np.int32]
     """(P, 4): the piece's first voxel, and its steps (it ends in the voxel that many
     steps further)."""
     t_state: NDArray[np.int64]
-    """(P, 7): where the walk crosses each axis' next face there (``T_NEVER`` for an axis
-    at its end voxel), t where it entered the first voxel, and the ray's t between faces
-    per axis (fixed point, ``lockstep.T_ONE``)."""
-    room: NDArray[np.int64]
+    """(P, 4): where the walk crosses each axis' next face there (``T_NEVER`` for an axis
+    at its end voxel), and t where it entered the first voxel (fixed point,
+    ``lockstep.T_ONE``); the t between faces is the ray's (``_ray_start``). 57 bytes a
+    piece: with 105 (int64 everywhere, the t between faces kept) the split and the walks
+    of OS1-128 moved twice the memory."""
+    room: NDArray[np.int32]
     """Upper bound of the blocks the piece can create."""
     has_return: NDArray[np.bool_]
     """The piece ends the ray, and the ray has a return."""
@@ -668,7 +677,24 @@ def _faces_before(faces, t_first, t_delta, t, strict):  # type: ignore[no-untype
 
 
 _TILE_BUCKET_BITS = 4
+_TILE_Z_OFFSET = SHARD_TILE_Z_OFFSET << BLOCK_BITS
+"""The tiles' z faces are this many voxels below multiples of a tile (``blocks``)."""
 """``split_rays`` orders a shard's pieces by tile, by the low 4 bits of each tile index."""
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _piece_bound(origins_vox, ends_vox, r, shard_mask):  # type: ignore[no-untyped-def]
+    """At most how many pieces ray ``r`` is split into (``split_rays``): one, and one a
+    tile face it crosses."""
+    bound = 1
+    if shard_mask:
+        tile_shift = BLOCK_BITS + SHARD_TILE_BITS
+        for axis in range(3):
+            off = _TILE_Z_OFFSET if axis == 2 else 0
+            lo = (int(np.floor(origins_vox[r, axis])) + off) >> tile_shift
+            hi = (int(np.floor(ends_vox[r, axis])) + off) >> tile_shift
+            bound += abs(hi - lo)
+    return bound
 
 
 @nb.njit(cache=True, nogil=True)
@@ -697,21 +723,219 @@ def split_rays(
     pieces that can share a voxel are in one tile, so every voxel still gets its chords
     in ray order, as from one thread walking whole rays, while neighbouring lanes
     (``LANES``) walk alike stretches of one tile."""
-    tile_shift = BLOCK_BITS + SHARD_TILE_BITS
     bound = 0
     for r in range(first, stop):
-        bound += 1
-        if shard_mask:
-            for axis in range(3):
-                lo = int(np.floor(origins_vox[r, axis])) >> tile_shift
-                hi = int(np.floor(ends_vox[r, axis])) >> tile_shift
-                bound += abs(hi - lo)
-    ray = np.empty(bound, dtype=np.int64)
-    voxel = np.empty((bound, 4), dtype=np.int64)
-    t_state = np.empty((bound, 7), dtype=np.int64)
-    room = np.empty(bound, dtype=np.int64)
-    returns = np.empty(bound, dtype=np.bool_)
+        bound += _piece_bound(origins_vox, ends_vox, r, shard_mask)
+    pieces = _new_pieces(bound)
     owner = np.empty(bound, dtype=np.int64)
+    k = _split_write(origins_vox, ends_vox, has_return, first, stop, shard_mask, pieces, owner, 0)
+    pieces = Pieces(
+        pieces.ray[:k], pieces.voxel[:k], pieces.t_state[:k], pieces.room[:k],
+        pieces.has_return[:k], np.arange(k),
+    )  # fmt: skip
+    if shard_mask == 0:
+        return pieces, np.array([0, k], dtype=np.int64)
+    bits = _TILE_BUCKET_BITS if by_tile else 0
+    bucket, starts = _bucket_starts(owner, pieces.voxel, k, shard_mask, bits, np.empty(k, np.int64))
+    offsets = starts[:: 1 << (3 * bits)].copy()
+    order = np.empty(k, dtype=np.int64)
+    for p in range(k):
+        order[starts[bucket[p]]] = p
+        starts[bucket[p]] += 1
+    return Pieces(
+        pieces.ray, pieces.voxel, pieces.t_state, pieces.room, pieces.has_return, order
+    ), offsets
+
+
+@nb.njit(cache=True, nogil=True)
+def _new_pieces(count: int) -> Pieces:
+    """Room for ``count`` pieces (``order`` empty)."""
+    return Pieces(
+        np.empty(count, dtype=np.int32), np.empty((count, 4), dtype=np.int32),
+        np.empty((count, 4), dtype=np.int64), np.empty(count, dtype=np.int32),
+        np.empty(count, dtype=np.bool_), np.empty(0, dtype=np.int64),
+    )  # fmt: skip
+
+
+_split_room: weakref.WeakKeyDictionary[BlockStore, Pieces] = weakref.WeakKeyDictionary()
+"""Each store's room for a scan's pieces, kept from scan to scan."""
+
+
+_split_scratches = threading.local()
+
+
+def _split_scratch(count: int) -> tuple[Pieces, NDArray[np.int64]]:
+    """This thread's room for the pieces of one part (``split_into``), kept from call to
+    call: allocated a call, pages faulted in each time, it cost the split of OS1-128 at
+    0.1 m 11 of 37 ms."""
+    scratch: tuple[Pieces, NDArray[np.int64]] | None = getattr(_split_scratches, "room", None)
+    if scratch is None or scratch[0].ray.shape[0] < count:
+        scratch = _new_pieces(max(count, 1024)), np.empty((2, max(count, 1024)), np.int64)
+        _split_scratches.room = scratch
+    return scratch
+
+
+def _flat_pieces(store: BlockStore, count: int) -> Pieces:
+    """Room for a whole scan's pieces (``split_into``; ``order`` empty), in memory kept
+    from scan to scan (fresh memory each scan: its pages faulted in by the split, 20-40%
+    more CPU time in the split of OS1-128 at 0.2 m)."""
+    room = _split_room.get(store)
+    if room is None or room.ray.shape[0] < count:
+        size = max(count, count + count // 4)
+        none = np.empty(0, dtype=np.int64)
+        room = Pieces(
+            np.empty(size, dtype=np.int32), np.empty((size, 4), dtype=np.int32),
+            np.empty((size, 4), dtype=np.int64), np.empty(size, dtype=np.int32),
+            np.empty(size, dtype=np.bool_), none,
+        )  # fmt: skip
+        _split_room[store] = room
+    return room
+
+
+@nb.njit(cache=True, nogil=True)
+def _bucket_starts(owner, voxel, k, shard_mask, bits, bucket):  # type: ignore[no-untyped-def]
+    """A stable counting sort's keys of pieces ``:k``: by shard, then by tile bucket (the
+    low ``bits`` of each tile index), written to ``bucket``; where each key's pieces
+    start."""
+    tile_shift = BLOCK_BITS + SHARD_TILE_BITS
+    mask = (1 << bits) - 1
+    starts = np.zeros(((shard_mask + 1) << (3 * bits)) + 1, dtype=np.int64)
+    for p in range(k):
+        key = owner[p]
+        for b in range(3):
+            off = _TILE_Z_OFFSET if b == 2 else 0
+            key = (key << bits) | (((voxel[p, b] + off) >> tile_shift) & mask)
+        bucket[p] = key
+        starts[key + 1] += 1
+    for key in range(1, starts.shape[0]):
+        starts[key] += starts[key - 1]
+    return bucket, starts
+
+
+@nb.njit(cache=True, nogil=True)
+def split_bounds(
+    origins_vox: NDArray[np.float64], ends_vox: NDArray[np.float64], size: int, shard_mask: int
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+    """``ray_bounds`` (the blocks each ray can create, the voxels it visits) and where the
+    pieces of each part of ``size`` rays start in a scan's split (``split_into``; the last
+    entry: their total), in one pass."""
+    count = origins_vox.shape[0]
+    blocks = np.empty(count, dtype=np.int64)
+    visits = np.empty(count, dtype=np.int64)
+    parts = -(-count // size)
+    part_at = np.zeros(parts + 1, dtype=np.int64)
+    tile_shift = BLOCK_BITS + SHARD_TILE_BITS
+    for r in range(count):
+        block_steps = 0
+        steps = 0
+        tiles = 1
+        for axis in range(3):
+            lo = int(np.floor(origins_vox[r, axis]))
+            hi = int(np.floor(ends_vox[r, axis]))
+            steps += abs(hi - lo)
+            block_steps += abs((hi >> BLOCK_BITS) - (lo >> BLOCK_BITS))
+            off = _TILE_Z_OFFSET if axis == 2 else 0
+            tiles += abs(((hi + off) >> tile_shift) - ((lo + off) >> tile_shift))
+        blocks[r] = block_steps + 2
+        visits[r] = steps + 1
+        part_at[r // size + 1] += tiles if shard_mask else 1
+    for c in range(parts):
+        part_at[c + 1] += part_at[c]
+    return blocks, visits, part_at
+
+
+@nb.njit(cache=True, nogil=True)
+def split_into(
+    origins_vox: NDArray[np.float64],
+    ends_vox: NDArray[np.float64],
+    has_return: NDArray[np.bool_],
+    first: int,
+    stop: int,
+    shard_mask: int,
+    out: Pieces,
+    at: int,
+    scratch: Pieces,
+    keys: NDArray[np.int64],
+    segments: NDArray[np.int64],
+    work: NDArray[np.int64],
+) -> int:
+    """``split_rays`` of rays ``first:stop`` (by tile), written into ``out`` from piece
+    ``at`` on through ``scratch`` and ``keys`` (2, n) (room for the part's pieces at least,
+    ``split_bounds``; ``_split_scratch``), in the order to walk
+    them: shard k's are pieces ``segments[k, 0]:segments[k, 1]``, so that its walk reads
+    them one after another (read through a shuffled ``order`` as ``split_rays`` gives
+    them, the walks of OS1-128 at 0.2 m took 5-8% more CPU time, more than the copy
+    costs the split); ``work[0, k]`` their steps plus ``PIECE_STEPS`` a stretch,
+    ``work[1, k]`` the blocks they can create (``shard_work``). Returns how many pieces."""
+    owner = keys[0]
+    k = _split_write(origins_vox, ends_vox, has_return, first, stop, shard_mask, scratch, owner, 0)
+    bucket, starts = _bucket_starts(owner, scratch.voxel, k, shard_mask, _TILE_BUCKET_BITS, keys[1])
+    shards = shard_mask + 1
+    per_shard = starts.shape[0] // shards
+    for s in range(shards):
+        segments[s, 0] = at + starts[s * per_shard]
+        segments[s, 1] = at + starts[(s + 1) * per_shard]
+    ray, voxel, t_state, room, returns = out.ray, out.voxel, out.t_state, out.room, out.has_return
+    steps = np.zeros(shards, dtype=np.int64)
+    blocks = np.zeros(shards, dtype=np.int64)
+    for p in range(k):
+        q = at + starts[bucket[p]]
+        starts[bucket[p]] += 1
+        ray[q] = scratch.ray[p]
+        for c in range(4):
+            voxel[q, c] = scratch.voxel[p, c]
+        for c in range(4):
+            t_state[q, c] = scratch.t_state[p, c]
+        room[q] = scratch.room[p]
+        returns[q] = scratch.has_return[p]
+        s = owner[p]
+        steps[s] += scratch.voxel[p, 3] + 1 + PIECE_STEPS
+        blocks[s] += scratch.room[p]
+    # summed apart and written once: the threads write neighbouring rows of ``work``
+    work[0] = steps
+    work[1] = blocks
+    return k
+
+
+@nb.njit(cache=True, nogil=True)
+def shard_order(segments: NDArray[np.int64], shard: int) -> NDArray[np.int64]:
+    """Shard ``shard``'s pieces of a scan's split (``split_into``), part after part."""
+    total = 0
+    for c in range(segments.shape[0]):
+        total += segments[c, shard, 1] - segments[c, shard, 0]
+    order = np.empty(total, dtype=np.int64)
+    i = 0
+    for c in range(segments.shape[0]):
+        for p in range(segments[c, shard, 0], segments[c, shard, 1]):
+            order[i] = p
+            i += 1
+    return order
+
+
+@nb.njit(cache=True, nogil=True)
+def piece_room(
+    voxel: NDArray[np.int32], order: NDArray[np.int64]
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """The visits of each piece in ``order``, and of the pieces from each on (at most as
+    many new chunks: ``_make_room``)."""
+    visits = np.empty(order.shape[0], dtype=np.int64)
+    left = np.empty(order.shape[0], dtype=np.int64)
+    total = 0
+    for i in range(order.shape[0] - 1, -1, -1):
+        visits[i] = voxel[order[i], 3] + 1
+        total += visits[i]
+        left[i] = total
+    return visits, left
+
+
+@nb.njit(cache=True, nogil=True)
+def _split_write(origins_vox, ends_vox, has_return, first, stop, shard_mask, out, owner, k):  # type: ignore[no-untyped-def]
+    """The pieces of rays ``first:stop`` (``split_rays``), in ray order, written to ``out``
+    from piece ``k`` on, and their shards to ``owner`` (from 0); returns the piece after the
+    last."""
+    tile_shift = BLOCK_BITS + SHARD_TILE_BITS
+    k_first = k
+    ray, voxel, t_state, room, returns = out.ray, out.voxel, out.t_state, out.room, out.has_return
     v = np.empty(3, dtype=np.int64)
     v0 = np.empty(3, dtype=np.int64)
     end = np.empty(3, dtype=np.int64)
@@ -723,7 +947,6 @@ def split_rays(
     crossings = np.empty(3, dtype=np.int64)
     t_cross = np.empty(3, dtype=np.int64)
     count = np.empty(3, dtype=np.int64)
-    k = 0
     for r in range(first, stop):
         (v0[0], v0[1], v0[2], end[0], end[1], end[2], step[0], step[1], step[2],
          t_first[0], t_first[1], t_first[2], t_delta[0], t_delta[1], t_delta[2],
@@ -731,11 +954,14 @@ def split_rays(
         for axis in range(3):
             v[axis] = v0[axis]
             t_max[axis] = t_first[axis]
-            tile[axis] = v0[axis] >> tile_shift
-            crossings[axis] = abs((end[axis] >> tile_shift) - tile[axis]) if shard_mask else 0
+            off = _TILE_Z_OFFSET if axis == 2 else 0
+            tile[axis] = (v0[axis] + off) >> tile_shift
+            crossings[axis] = (
+                abs(((end[axis] + off) >> tile_shift) - tile[axis]) if shard_mask else 0
+            )
             t_cross[axis] = T_NEVER  # the t of the axis' next tile face (none left)
             if crossings[axis] > 0:
-                face = (tile[axis] + (step[axis] > 0)) << tile_shift
+                face = ((tile[axis] + (step[axis] > 0)) << tile_shift) - off
                 j = (face - v0[axis] - (step[axis] > 0)) * step[axis]
                 t_cross[axis] = t_first[axis] + j * t_delta[axis]
         here = (tile[0] + tile[1] + tile[2]) & shard_mask
@@ -760,16 +986,25 @@ def split_rays(
                 crossings[a] -= 1
                 t_cross[a] = T_NEVER
                 if crossings[a] > 0:
-                    face = (tile[a] + (step[a] > 0)) << tile_shift
+                    face = ((tile[a] + (step[a] > 0)) << tile_shift) - (
+                        _TILE_Z_OFFSET if a == 2 else 0
+                    )
                     j = (face - v0[a] - (step[a] > 0)) * step[a]
                     t_cross[a] = t_first[a] + j * t_delta[a]
                 there = (tile[0] + tile[1] + tile[2]) & shard_mask
                 if there != here:
                     # the voxel the walk enters there, after how many steps
                     if step[a] > 0:
-                        count[a] = (tile[a] << tile_shift) - v0[a]
+                        count[a] = (
+                            (tile[a] << tile_shift) - (_TILE_Z_OFFSET if a == 2 else 0) - v0[a]
+                        )
                     else:
-                        count[a] = v0[a] - ((tile[a] + 1) << tile_shift) + 1
+                        count[a] = (
+                            v0[a]
+                            - ((tile[a] + 1) << tile_shift)
+                            + (_TILE_Z_OFFSET if a == 2 else 0)
+                            + 1
+                        )
                     for b in range(3):
                         if b != a:
                             count[b] = _faces_before(
@@ -779,7 +1014,7 @@ def split_rays(
                 else:
                     at = 0
             if there != here:  # the piece up to here
-                owner[k] = here
+                owner[k - k_first] = here
                 ray[k] = r
                 voxel[k, 0] = v[0]
                 voxel[k, 1] = v[1]
@@ -789,9 +1024,6 @@ def split_rays(
                 t_state[k, 1] = t_max[1]
                 t_state[k, 2] = t_max[2]
                 t_state[k, 3] = t_prev
-                t_state[k, 4] = t_delta[0]
-                t_state[k, 5] = t_delta[1]
-                t_state[k, 6] = t_delta[2]
                 blocks = 2
                 for b in range(3):
                     last = end[b] if a < 0 else v0[b] + step[b] * (count[b] - (b == a))
@@ -808,29 +1040,7 @@ def split_rays(
                 t_prev = min(t_enter, T_ONE)
                 start_steps = at
             here = there
-    if shard_mask == 0:
-        offsets = np.array([0, k], dtype=np.int64)
-        pieces = Pieces(ray[:k], voxel[:k], t_state[:k], room[:k], returns[:k], np.arange(k))
-        return pieces, offsets
-    # a stable counting sort by shard, then tile bucket
-    bits = _TILE_BUCKET_BITS if by_tile else 0
-    mask = (1 << bits) - 1
-    bucket = np.empty(k, dtype=np.int64)
-    starts = np.zeros(((shard_mask + 1) << (3 * bits)) + 1, dtype=np.int64)
-    for p in range(k):
-        key = owner[p]
-        for b in range(3):
-            key = (key << bits) | ((voxel[p, b] >> tile_shift) & mask)
-        bucket[p] = key
-        starts[key + 1] += 1
-    for key in range(1, starts.shape[0]):
-        starts[key] += starts[key - 1]
-    offsets = starts[:: 1 << (3 * bits)].copy()
-    order = np.empty(k, dtype=np.int64)
-    for p in range(k):
-        order[starts[bucket[p]]] = p
-        starts[bucket[p]] += 1
-    return Pieces(ray[:k], voxel[:k], t_state[:k], room[:k], returns[:k], order), offsets
+    return k
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -963,13 +1173,23 @@ def _walk_rays(
                 ex = int(np.floor(ends_vox[r, 0]))
                 ey = int(np.floor(ends_vox[r, 1]))
                 ez = int(np.floor(ends_vox[r, 2]))
-                step_x = 1 if ex > int(np.floor(origins_vox[r, 0])) else -1
-                step_y = 1 if ey > int(np.floor(origins_vox[r, 1])) else -1
-                step_z = 1 if ez > int(np.floor(origins_vox[r, 2])) else -1
+                ox, oy, oz = origins_vox[r, 0], origins_vox[r, 1], origins_vox[r, 2]
+                step_x = 1 if ex > int(np.floor(ox)) else -1
+                step_y = 1 if ey > int(np.floor(oy)) else -1
+                step_z = 1 if ez > int(np.floor(oz)) else -1
+                # the ray's t between faces, as _ray_start computes it
+                t_delta_x = (
+                    _fixed(abs(1.0 / (ends_vox[r, 0] - ox))) if ex != int(np.floor(ox)) else 0
+                )
+                t_delta_y = (
+                    _fixed(abs(1.0 / (ends_vox[r, 1] - oy))) if ey != int(np.floor(oy)) else 0
+                )
+                t_delta_z = (
+                    _fixed(abs(1.0 / (ends_vox[r, 2] - oz))) if ez != int(np.floor(oz)) else 0
+                )
                 vx, vy, vz = piece_voxel[p, 0], piece_voxel[p, 1], piece_voxel[p, 2]
                 t_max_x, t_max_y, t_max_z = piece_t[p, 0], piece_t[p, 1], piece_t[p, 2]
                 t_prev = piece_t[p, 3]
-                t_delta_x, t_delta_y, t_delta_z = piece_t[p, 4], piece_t[p, 5], piece_t[p, 6]
                 piece_steps = piece_voxel[p, 3]
             lane_floats[0, lane] = lengths[r] / T_ONE
             lane_ints[0, lane] = vx

@@ -59,7 +59,7 @@ from mfp_mapper.core.layout import (
     VoxelArrays,
     as_parts,
     as_values,
-    bit_count,
+    block_counts,
     compact,
     hi_starts,
     select_blocks,
@@ -259,47 +259,120 @@ def read_member(f: io.BufferedReader, m: Member) -> np.ndarray:
     return out
 
 
-def read_member_at(fd: int, m: Member) -> np.ndarray:
-    """``read_member`` through ``os.preadv`` (no file position: a thread of its own may
-    read while another reads the same file)."""
-    out = np.empty(m.shape, dtype=m.dtype)
-    view = out.reshape(-1).view(np.uint8).data
-    got = 0
-    while got < m.nbytes:
-        step = os.preadv(fd, [view[got:]], m.offset + got)
+def _pread_into(fd: int, raw: np.ndarray, offset: int) -> int:
+    """Bytes of the file from ``offset`` into the bytes ``raw`` through ``os.preadv`` (no
+    file position: another thread may read the same file); returns how many were there."""
+    view, got = raw.data, 0
+    while got < raw.shape[0]:
+        step = os.preadv(fd, [view[got:]], offset + got)
         if step <= 0:
             break
         got += step
-    if got != m.nbytes:
-        raise BlockFileError(f"{m.name} is truncated ({got} of {m.nbytes} bytes)")
-    if zlib.crc32(view, zlib.crc32(m.header)) != m.crc:
-        raise BlockFileError(f"{m.name} fails its CRC-32 check: the file is damaged")
-    return out
+    return got
+
+
+def _read_span(fd: int, m: Member, out: np.ndarray, lo: int, hi: int, crc: int) -> tuple[int, int]:
+    """Bytes ``lo`` to ``hi`` of member ``m`` into its array ``out``, ``_PIECE`` at a time,
+    each piece CRC'd (``crc`` continued) and, for float32 values, the largest of their bit
+    patterns taken while it is in cache. Returns the CRC and that pattern (0 for other
+    dtypes; below +inf's, 0x7F800000: every value finite and >= +0)."""
+    raw = out.reshape(-1).view(np.uint8)
+    float32 = m.dtype.str == "<f4"
+    top = 0
+    for at in range(lo, hi, _PIECE):
+        piece = raw[at : min(hi, at + _PIECE)]
+        got = _pread_into(fd, piece, m.offset + at)
+        if got != piece.shape[0]:
+            raise BlockFileError(f"{m.name} is truncated ({at + got} of {m.nbytes} bytes)")
+        crc = zlib.crc32(piece.data, crc)
+        if float32:
+            top = max(top, int(piece.view(np.uint32).max()))
+    return crc, top
+
+
+_POLY = 0xEDB88320
+"""CRC-32's polynomial (reflected), as zlib's."""
+
+
+def _mult_mod_p(a: int, b: int) -> int:
+    """``a * b`` modulo CRC-32's polynomial (reflected; zlib's ``multmodp``)."""
+    m, p = 1 << 31, 0
+    while True:
+        if a & m:
+            p ^= b
+            if not a & (m - 1):
+                return p
+        m >>= 1
+        b = (b >> 1) ^ _POLY if b & 1 else b >> 1
+
+
+_X2N = [1 << 30]  # x^(2^k) modulo the polynomial, k = 0..31 (zlib's x2n_table)
+for _ in range(31):
+    _X2N.append(_mult_mod_p(_X2N[-1], _X2N[-1]))
+
+
+def crc32_combine(crc1: int, crc2: int, len2: int) -> int:
+    """The CRC-32 of A + B from ``crc1`` (of A) and ``crc2`` (of B, from 0) and B's
+    length in bytes (zlib's ``crc32_combine``, which Python's zlib does not expose):
+    ``crc1`` times x^(8 len2), plus ``crc2``. 0.1 ms."""
+    p, k = 1 << 31, 3  # x^0; x^(8 len2) = the product of x^(2^k) over len2's bits, k >= 3
+    while len2:
+        if len2 & 1:
+            p = _mult_mod_p(_X2N[k & 31], p)
+        len2 >>= 1
+        k += 1
+    return _mult_mod_p(p, crc1) ^ crc2
 
 
 THREADED_READ_BYTES = 4 << 20
-"""``s`` from this size on is read and its CRC checked in a thread of its own while the
-other members are read and checked (``read_all``), where two cores are there."""
+"""``s`` from this size on is read by two threads where two cores are there (``read_all``)."""
+_PIECE = 4 << 20
+"""Bytes of ``s`` read, CRC'd and value-checked at a time (``_read_span``)."""
+_SPLIT_ALIGN = 1 << 16
+"""Where the second thread's share of ``s`` begins is a multiple of this."""
+F32_FINITE_BITS = 0x7F800000
+"""Bit patterns of float32 values below this one (+inf's) are finite and >= +0."""
 
 
-def read_all(f: io.BufferedReader, members: dict[str, Member]) -> dict[str, np.ndarray]:
-    """Every block member, checked: CRCs, the index against the masks (``s`` read in
-    another thread meanwhile on large maps: ``THREADED_READ_BYTES``)."""
+def read_all(
+    f: io.BufferedReader, members: dict[str, Member]
+) -> tuple[dict[str, np.ndarray], bool]:
+    """Every block member, checked: CRCs, the index against the masks; and whether the
+    values of ``s`` are finite and >= +0 (float32 ``s``: found on the way, in cache; False
+    leaves the check to ``packed_problem``). On large maps (``THREADED_READ_BYTES``) with
+    two cores, a second thread reads the end of ``s`` while this one reads the other
+    members and the start of ``s``, as many bytes each; the two CRCs are combined
+    (``crc32_combine``)."""
     names = [k for k in members if k not in TABLE_MEMBERS]
-    big = "s"
-    alone = (os.cpu_count() or 1) < 2 or not hasattr(os, "preadv")  # preadv: not Windows
-    if members[big].nbytes < THREADED_READ_BYTES or alone:
+    m = members["s"]
+    others = [k for k in names if k != "s"]
+    if not hasattr(os, "preadv"):  # not on Windows: one after the other, values later
         arrays = {k: read_member(f, members[k]) for k in names}
         problem = index_problem(arrays)
-    else:
-        with ThreadPoolExecutor(1) as pool:
-            reading = pool.submit(read_member_at, f.fileno(), members[big])
-            rest = {k: read_member(f, members[k]) for k in names if k != big}
-            problem = index_problem({**rest, big: np.empty(members[big].shape, np.uint8)})
-            arrays = {k: rest[k] if k != big else reading.result() for k in names}
+        if problem:
+            raise BlockFileError(problem)
+        return arrays, False
+    s = np.empty(m.shape, dtype=m.dtype)
+    cut = m.nbytes
+    if m.nbytes >= THREADED_READ_BYTES and (os.cpu_count() or 1) >= 2:
+        rest = sum(members[k].nbytes for k in others)
+        cut = max(0, (m.nbytes - rest) // 2) // _SPLIT_ALIGN * _SPLIT_ALIGN
+    with ThreadPoolExecutor(1) as pool:
+        end = (
+            pool.submit(_read_span, f.fileno(), m, s, cut, m.nbytes, 0) if cut < m.nbytes else None
+        )
+        arrays = {k: read_member(f, members[k]) for k in others}
+        crc, top = _read_span(f.fileno(), m, s, 0, cut, zlib.crc32(m.header))
+        arrays["s"] = s
+        problem = index_problem(arrays)
+        if end is not None:
+            crc_end, top_end = end.result()
+            crc, top = crc32_combine(crc, crc_end, m.nbytes - cut), max(top, top_end)
+    if crc != m.crc:
+        raise BlockFileError("s fails its CRC-32 check: the file is damaged")
     if problem:
         raise BlockFileError(problem)
-    return arrays
+    return {k: arrays[k] for k in names}, m.dtype.str == "<f4" and top < F32_FINITE_BITS
 
 
 def index_problem(a: dict[str, np.ndarray]) -> str | None:
@@ -386,8 +459,8 @@ class BlockReader:
         has[has] = hit_rows[pos[has]] == rows[has]
         hpos = pos[has]
         s_lo, s_hi, n_lo, n_hi = start[rows], start[rows + 1], hstart[hpos], hstart[hpos + 1]
-        counts = bit_count(whole.observed[rows]).sum(axis=1)
-        hit_counts = bit_count(whole.hit[hpos]).sum(axis=1)
+        counts = block_counts(whole.observed[rows])
+        hit_counts = block_counts(whole.hit[hpos])
         if not (np.array_equal(s_hi - s_lo, counts) and np.array_equal(n_hi - n_lo, hit_counts)):
             raise BlockFileError("block_start or hit_start does not count the masks")
         s_total, n_total = self.members["s"].shape[0], self.members["n"].shape[0]
@@ -419,9 +492,11 @@ def take_blocks(arrays: dict[str, Any], rows: NDArray[np.int64]) -> dict[str, np
     )
 
 
-def concat_packed(parts: list[PackedBlocks]) -> PackedBlocks:
+def concat_packed(parts: list[PackedBlocks], sort: bool = True) -> PackedBlocks:
     """Packed blocks of disjoint block sets (e.g. tiles) as one, sorted (a block in two
-    parts is refused by ``packed_problem`` later): as parts where all are, else values."""
+    parts is refused by ``packed_problem`` later; ``sort=False``: in the parts' order, for
+    a caller that knows the sets disjoint, as a store takes them): as parts where all
+    are, else values."""
     if len(parts) == 1:
         return parts[0]
     if not all(p.parts for p in parts):
@@ -441,7 +516,9 @@ def concat_packed(parts: list[PackedBlocks]) -> PackedBlocks:
         joined("hi_block", np.zeros(0, np.int64), True), joined("hi_s", np.zeros(0)),
         joined("hi_n", np.zeros(0)),
     )  # fmt: skip
-    out = select_blocks(whole, np.argsort(sort_keys(whole.block_ijk), kind="stable"))
+    out = whole
+    if sort:
+        out = select_blocks(whole, np.argsort(sort_keys(whole.block_ijk), kind="stable"))
     if not out.parts:
         out.s, out.n = compact(out.s), compact(out.n)
     return out

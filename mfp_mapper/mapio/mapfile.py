@@ -278,12 +278,14 @@ def read_map_file(path: str | Path, decay_time: float | None = None) -> MapConte
     problem = file_problem(path)
     if problem:
         raise MapFileError(path, problem)
+    s_checked = False
     try:
         st = path.stat()
         with open(path, "rb") as f, zipfile.ZipFile(f) as archive:
             if _holds_blocks(archive):
                 settings, bins, members = _open_blocks(path, f, archive, st.st_size)
-                settings.packed = packed_of(read_all(f, members))
+                arrays, s_checked = read_all(f, members)
+                settings.packed = packed_of(arrays)
                 rows = {k: read_member(f, members[k]) for k in TABLE_MEMBERS if k in members}
                 settings.reflectivity = _reflectivity(path, {**bins, **rows})
             else:
@@ -304,7 +306,7 @@ def read_map_file(path: str | Path, decay_time: float | None = None) -> MapConte
         ) from None
     decay = settings.decay_time if decay_time is None else decay_time
     if settings.packed is not None:
-        problem = packed_problem(settings.packed)
+        problem = packed_problem(settings.packed, s_checked)
         t = settings.packed.block_t
     else:
         v = settings.voxels

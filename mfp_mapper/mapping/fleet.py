@@ -38,7 +38,7 @@ import tempfile
 import time
 from collections import Counter
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from mfp_mapper.core.mapper import Mapper
@@ -343,6 +343,9 @@ def map_fleet(
         if log is not None:
             log(f"--workers {workers}: using {len(tasks)}, one per task")
         workers = len(tasks)
+    parallel = workers is not None or fleet.scheduler is not None
+    if parallel and opts.map.threads <= 0:  # automatic: the worker processes take the cores
+        opts = replace(opts, map=replace(opts.map, threads=1))
     evicting = [k for k in ("max_voxels", "keep_radius") if opts.map.core(k) is not None]
     if evicting and len(tasks) > 1:
         raise FleetError(

@@ -344,19 +344,11 @@ class LiveIntegrator:
 
     def thread_cpu(self) -> dict[str, float]:
         """CPU seconds so far of the worker (parse, place), walker (integrate) and publishing
-        threads, those running (``~/status`` ``cpu_s``); empty where the system has no
-        per-thread CPU clock."""
+        threads, those running (``~/status`` ``cpu_s``; ``thread_cpu``)."""
         threads = {"worker": self._thread, "walker": self._walker, "publisher": self._publisher}
-        out = {}
-        for name, thread in threads.items():
-            ident = None if thread is None else thread.ident
-            if ident is None or not thread.is_alive():  # type: ignore[union-attr]
-                continue
-            try:
-                out[name] = time.clock_gettime(time.pthread_getcpuclockid(ident))
-            except (AttributeError, OSError):  # not Linux, or the thread just ended
-                continue
-        return out
+        return thread_cpu(
+            {k: t.ident if t is not None and t.is_alive() else None for k, t in threads.items()}
+        )
 
     def request_publish(self) -> None:
         """Ask the publishing thread to publish (at once unless it is still publishing)."""
@@ -762,6 +754,20 @@ class LiveIntegrator:
         """A copy of the counters and the queue length, taken together."""
         with self._cv:
             return copy.deepcopy(self.counters), self._queued_locked()
+
+
+def thread_cpu(idents: dict[str, int | None]) -> dict[str, float]:
+    """CPU seconds so far of the named running threads (``threading`` idents; None: not
+    running, left out); empty where the system has no per-thread CPU clock."""
+    out = {}
+    for name, ident in idents.items():
+        if ident is None:
+            continue
+        try:
+            out[name] = time.clock_gettime(time.pthread_getcpuclockid(ident))
+        except (AttributeError, OSError):  # not Linux, or the thread just ended
+            continue
+    return out
 
 
 def _average(mean: float, value: float) -> float:

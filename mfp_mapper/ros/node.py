@@ -10,16 +10,18 @@ parameters are in ``mfp_mapper.config.schema``. A lifecycle node: with ``autosta
 default) it configures and activates itself; else a lifecycle manager drives it
 (``on_configure``... below).
 
-Threads: one executor thread runs every ROS callback (rclpy's multi-threaded executor
-cost about 70% of a core in overhead); subscription callbacks only queue clouds and store
-poses. The worker threads parse, place and integrate (``mapping.live``); the map outputs
-are built and sent on a publishing thread of their own; ``~/save_map`` and the autosave
-write in a thread of their own. ``worker.map_lock`` guards the Mapper: the walker holds it
-through a quick scan (``Mapper.integrate``, at most ``live.DIRECT_MAX_S`` expected) or only
-to merge a long one it walked without it (``Mapper.stage``/``commit``), letting queries in
-between chunks; GetMap, saving and reset take ``worker.whole_map`` (no scan half merged).
-So services answer during a long scan. SIGINT / SIGTERM stop it
-as ``ros.shutdown`` says: the executor stops between callbacks, then the final save.
+Threads: the input thread (``ros.input_thread``) takes clouds, odometry and TF and their
+events (its callbacks only queue clouds and store poses); one executor thread runs every
+other ROS callback (services, timers, queries; rclpy's multi-threaded executor cost about
+70% of a core in overhead). The worker threads parse, place and integrate
+(``mapping.live``); the map outputs are built and sent on a publishing thread of their own;
+``~/save_map`` and the autosave write in a thread of their own. ``worker.map_lock`` guards
+the Mapper: the walker holds it through a quick scan (``Mapper.integrate``, at most
+``live.DIRECT_MAX_S`` expected) or only to merge a long one it walked without it
+(``Mapper.stage``/``commit``), letting queries in between chunks; GetMap, saving and reset
+take ``worker.whole_map`` (no scan half merged). So services answer during a long scan.
+SIGINT / SIGTERM stop it as ``ros.shutdown`` says: the executor stops between callbacks,
+then the final save.
 """
 
 from __future__ import annotations
@@ -69,8 +71,9 @@ from mfp_mapper.config.frames import frame_name
 from mfp_mapper.config.param_file import ParamFileError, read_sections
 from mfp_mapper.config.schema import SPECS, NodeConfig
 from mfp_mapper.core.mapper import Mapper, compile_kernels, mapper_kwargs
-from mfp_mapper.mapping.live import LiveIntegrator, LiveSettings
+from mfp_mapper.mapping.live import LiveIntegrator, LiveSettings, thread_cpu
 from mfp_mapper.ros.guarded_node import GuardedLifecycleNode, tracked
+from mfp_mapper.ros.input_thread import InputThread
 from mfp_mapper.ros.localization import Localization
 from mfp_mapper.ros.map_files import MapFiles
 from mfp_mapper.ros.map_outputs import MapOutputs
@@ -87,10 +90,10 @@ from mfp_mapper.ros.status import (
     startup_text,
     status_report,
 )
-from mfp_mapper.ros.tf_cdr import tf_records
+from mfp_mapper.ros.tf_cdr import odometry_from_cdr, tf_records
 from mfp_mapper.ros.transport import transport_loss_text
 from mfp_mapper.sensing.pointcloud import CloudFormatError, pack_cloud, read_xyz, stamp_seconds
-from mfp_mapper.sensing.poses import PoseBuffer, odometry_sample
+from mfp_mapper.sensing.poses import PoseBuffer
 from mfp_mapper.sensing.return_pairs import PAIR_TIMEOUT, ReturnPairer
 from mfp_mapper.sensing.tf_tree import TfTree, TransformUnavailable
 
@@ -142,6 +145,10 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._pairer: ReturnPairer | None = None
         """Pairs the clouds of ``cloud_in`` and ``second_return_topic`` (when set)."""
         self._clock_warned = False
+        self._inputs = InputThread(
+            self.context, lambda text: self.warn_throttled("inputs", text, error=True)
+        )
+        """Takes clouds, odometry and TF (``ros.input_thread``), from activate to deactivate."""
         self.worker: LiveIntegrator  # set by configure
         self.localization: Localization | None = None  # localization.enabled
         self.outputs: MapOutputs
@@ -218,6 +225,7 @@ class MfpMapperNode(GuardedLifecycleNode):
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Stop taking clouds (the map, its services and queries stay)."""
+        self._inputs.stop()
         self._destroy(self._active)
         self.worker.stop()
         self.get_logger().info("inactive: not mapping (services answer)")
@@ -240,6 +248,7 @@ class MfpMapperNode(GuardedLifecycleNode):
 
     def _release(self, save: bool) -> None:
         """Undo configure (and activate): stop, wait for jobs, save when asked, release."""
+        self._inputs.stop()
         self._destroy(self._active)
         if self._configured:
             # a scan being walked is not waited for: it is not in the map yet, and the map
@@ -299,36 +308,40 @@ class MfpMapperNode(GuardedLifecycleNode):
         ]
 
     def _create_interfaces(self) -> None:
-        """What activate creates: the inputs and the timers."""
-        self._active += [
+        """What activate creates: the inputs (taken on the input thread) and the timers."""
+        group = self._inputs.group  # the executor never runs these: the input thread does
+        streams = [
             self.create_subscription(
                 PointCloud2,
                 "cloud_in",
                 self._on_cloud,
                 qos_profile_sensor_data,
+                callback_group=group,
                 event_callbacks=SubscriptionEventCallbacks(message_lost=self._on_clouds_lost),
             )
         ]
         second_topic = self.cfg.placement.second_return_topic
         self._pairer = ReturnPairer() if second_topic else None
         if second_topic:
-            self._active.append(
+            streams.append(
                 self.create_subscription(
                     PointCloud2,
                     second_topic,
                     self._on_second_return,
                     qos_profile_sensor_data,
+                    callback_group=group,
                     event_callbacks=SubscriptionEventCallbacks(message_lost=self._on_clouds_lost),
                 )
-            )
-            wall = Clock(clock_type=ClockType.STEADY_TIME)
-            self._active.append(
-                self.create_timer(PAIR_TIMEOUT / 4.0, self._on_pair_timer, clock=wall)
             )
         odom_qos = QoSProfile(
             history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.BEST_EFFORT
         )
-        self._active.append(self.create_subscription(Odometry, "odom", self._on_odom, odom_qos))
+        # raw: read from the CDR bytes (ros.tf_cdr), not as rclpy's Python objects
+        streams.append(
+            self.create_subscription(
+                Odometry, "odom", self._on_odom, odom_qos, raw=True, callback_group=group
+            )
+        )
         tf_qos = QoSProfile(
             history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE
         )
@@ -339,14 +352,23 @@ class MfpMapperNode(GuardedLifecycleNode):
             durability=DurabilityPolicy.TRANSIENT_LOCAL,
         )
         # raw: read from the CDR bytes (ros.tf_cdr), not as rclpy's Python objects (a flood)
-        self._active.append(
-            self.create_subscription(TFMessage, "/tf", self._on_tf, tf_qos, raw=True)
-        )
-        self._active.append(
+        streams += [
             self.create_subscription(
-                TFMessage, "/tf_static", self._on_tf_static, tf_static_qos, raw=True
-            )
-        )
+                TFMessage, "/tf", self._on_tf, tf_qos, raw=True, callback_group=group
+            ),
+            self.create_subscription(
+                TFMessage,
+                "/tf_static",
+                self._on_tf_static,
+                tf_static_qos,
+                raw=True,
+                callback_group=group,
+            ),
+        ]
+        self._active += streams
+        # the pairer is used on the input thread only: its timeout is ticked there
+        pair_tick = (self._on_pair_timer, PAIR_TIMEOUT / 4.0) if second_topic else None
+        self._inputs.start(streams, *(pair_tick or ()))
         # wall-clock timers: with use_sim_time and no /clock the ROS clock stands still,
         # and the map, ~/status and /diagnostics must still go out
         wall = Clock(clock_type=ClockType.STEADY_TIME)
@@ -513,9 +535,9 @@ class MfpMapperNode(GuardedLifecycleNode):
         )
 
     @tracked
-    def _on_odom(self, msg: Odometry) -> None:
+    def _on_odom(self, data: bytes) -> None:
         self.worker.observe_clock(self._now())
-        self.worker.add_odometry(odometry_sample(msg))
+        self.worker.add_odometry(odometry_from_cdr(data))
 
     @tracked
     def _on_publish_timer(self) -> None:
@@ -658,11 +680,17 @@ class MfpMapperNode(GuardedLifecycleNode):
                 "refused": self.query_service.refused,
             },
             "maps_served": self._maps_served,
-            # CPU seconds so far: the process, this (executor) thread, the worker's threads
+            # CPU seconds so far: the process, this (executor) thread, the input thread, the
+            # worker's threads
             "cpu_s": {
                 "process": round(time.process_time(), 4),
                 "executor": round(time.thread_time(), 4),
-                **{k: round(v, 4) for k, v in self.worker.thread_cpu().items()},
+                **{
+                    k: round(v, 4)
+                    for k, v in (
+                        thread_cpu({"inputs": self._inputs.ident}) | self.worker.thread_cpu()
+                    ).items()
+                },
             },
         }
         if self.localization is not None:

@@ -55,7 +55,7 @@ def _kiss(opts: Any, deskew: bool) -> Any:
     config.mapping.voxel_size = (
         float(opts.sensor_model.core("max_range")) / 100.0
     )  # KISS-ICP's own default rule
-    config.registration.max_num_threads = max(int(opts.map.threads), 0)
+    config.registration.max_num_threads = int(opts.map.core("threads"))
     return KissICP(config)
 
 

@@ -58,7 +58,7 @@ def test_flags_map_to_their_fields() -> None:
 
 @pytest.mark.parametrize(
     "argv",
-    [["--resolution", "0"], ["--resolution", "nan"], ["--threads", "1.5"], ["--threads", "0"],
+    [["--resolution", "0"], ["--resolution", "nan"], ["--threads", "1.5"], ["--threads", "-1"],
      ["--max-range", "-5"], ["--max-scans", "-1"], ["--keep-radius", "-1"]],
 )  # fmt: skip
 def test_out_of_range_flags_are_usage_errors(argv: list[str]) -> None:

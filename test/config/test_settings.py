@@ -4,6 +4,9 @@ the node's type and range checks as the CLI applies them, the former use_tf. No 
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
 from dataclasses import fields
 from pathlib import Path
 
@@ -127,7 +130,7 @@ def test_the_replay_and_the_node_build_the_same_map() -> None:
         ("lidar.rpy", [0, 0, 0], "of type 'INTEGER_ARRAY', expecting type 'DOUBLE_ARRAY'"),
         ("resolution", 0.001, "Invalid parameter value (0.001) for parameter. Reason: Parameter "
          "resolution out of range Min: 0.01, Max: 10.0, value: 0.001: resolution"),
-        ("threads", 0, "Reason: Parameter threads out of range. Min: 1, Max: 64, value: 0"),
+        ("threads", -1, "Reason: Parameter threads out of range. Min: 0, Max: 64, value: -1"),
     ],
 )  # fmt: skip
 def test_values_are_checked_with_rclpys_rules_and_words(
@@ -202,3 +205,37 @@ def test_the_former_use_tf_parameter_is_accepted_and_ignored() -> None:
     assert unknown_parameters(["use_tf"]) == [] and retired_parameters(["use_tf", "x"]) == [
         "use_tf"
     ]
+
+
+def test_threads_zero_is_one_a_core_of_the_process_at_most_four() -> None:
+    """``threads`` 0 (the default): one thread a core this process may run on, at most
+    ``AUTOMATIC_THREADS_MAX``; a child pinned to one core gets one; a count set is kept;
+    the core's ``Mapper`` itself defaults to one thread."""
+    from mfp_mapper.config.sections import MapSection, SensorModelSection
+    from mfp_mapper.config.setting import AUTOMATIC_THREADS_MAX, automatic_threads
+    from mfp_mapper.core.mapper import Mapper, mapper_kwargs
+
+    cores = len(os.sched_getaffinity(0))
+    assert MapSection().threads == 0
+    assert automatic_threads() == min(cores, AUTOMATIC_THREADS_MAX)
+    assert MapSection().core("threads") == automatic_threads()
+    assert MapSection(threads=3).core("threads") == 3
+    assert mapper_kwargs(MapSection(), SensorModelSection())["threads"] == automatic_threads()
+    assert Mapper(0.5).threads == 1
+    pinned = subprocess.run(
+        [sys.executable, "-c", PINNED_CHILD],
+        capture_output=True,
+        text=True,
+        check=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+    assert pinned.stdout.split() == ["1", "1"]
+
+
+PINNED_CHILD = """
+import os
+os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
+from mfp_mapper.config.sections import MapSection
+from mfp_mapper.config.setting import automatic_threads
+print(automatic_threads(), MapSection().core("threads"))
+"""

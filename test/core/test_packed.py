@@ -98,6 +98,35 @@ def test_compiled_unpack_is_the_voxel_list_path_bit_for_bit(shards: int) -> None
     assert BlockStore(1).assign_blocks(pack_chunks([])) is None
 
 
+@pytest.mark.parametrize(("shards", "threaded"), [(1, False), (4, False), (1, True), (4, True)])
+def test_parts_open_the_store_the_values_open(
+    shards: int, threaded: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Blocks set from parts (``_open_parts``: no table search, chunks numbered from the
+    masks, ``s`` written beside or after) and from values (``_set_blocks``: a probe and
+    ``open_block`` a block) give the same store: every used array, the hash table too."""
+    if threaded:
+        monkeypatch.setattr(store_module, "_THREADED_WRITE_VOXELS", 0)
+        monkeypatch.setattr(store_module.os, "cpu_count", lambda: 2)
+    m = Mapper(0.1, decay_time=20.0, max_range=30.0)
+    for k, (points, origin) in enumerate(anchors_scene(n_scans=2, azimuths=120)):
+        m.integrate(points, origin, 10.0 + 7.5 * k)
+    values = as_values(m.stored_blocks())
+    assert values.s.dtype == np.float32 and not values.parts
+    by_values, by_parts = BlockStore(shards), BlockStore(shards)
+    by_values.assign_blocks(values)
+    by_parts.assign_blocks(as_parts(values))
+    assert by_parts.num_voxels == by_values.num_voxels == values.num_voxels
+    for a, b in zip(_store_arrays(by_parts), _store_arrays(by_values), strict=True):
+        assert a.dtype == b.dtype and np.array_equal(a, b)
+    for a_sh, b_sh in zip(by_parts.shards, by_values.shards, strict=True):
+        assert np.array_equal(a_sh.table_keys, b_sh.table_keys)
+        assert np.array_equal(a_sh.table_blocks, b_sh.table_blocks)
+        assert np.array_equal(a_sh.counters, b_sh.counters)
+        for key in ("block_scale", "block_flush"):
+            assert np.array_equal(getattr(a_sh, key)[: a_sh.used], getattr(b_sh, key)[: b_sh.used])
+
+
 def _parts_by_block(store: BlockStore) -> dict[tuple[int, int, int], tuple[bytes, ...]]:
     """Every block's time, float32 parts (raw bits: -0 marks too) and float64 part."""
     out = {}

@@ -259,14 +259,16 @@ def _fixed(t: float) -> int:
 def _tile_rays(seed: int, count: int) -> tuple[np.ndarray, np.ndarray]:
     """Rays in voxel units across many shard tiles, some along tile faces, edges and
     through tile corners exactly."""
-    from mfp_mapper.core.blocks import BLOCK_BITS, SHARD_TILE_BITS
+    from mfp_mapper.core.blocks import BLOCK_BITS, SHARD_TILE_BITS, SHARD_TILE_Z_OFFSET
 
     tile = float(1 << (BLOCK_BITS + SHARD_TILE_BITS))
+    face = np.array([0.0, 0.0, -float(SHARD_TILE_Z_OFFSET << BLOCK_BITS)])  # a tile corner
     rng = np.random.default_rng(seed)
     origins = rng.uniform(-1.5 * tile, 1.5 * tile, (count, 3))
     ends = origins + rng.normal(0.0, 1.5 * tile, (count, 3))
-    origins[::7] = np.round(origins[::7] / tile) * tile  # on tile faces, edges, corners
-    ends[::5] = np.round(ends[::5] / tile) * tile
+    # on tile faces, edges, corners
+    origins[::7] = np.round((origins[::7] - face) / tile) * tile + face
+    ends[::5] = np.round((ends[::5] - face) / tile) * tile + face
     ends[3::11] = 2.0 * ends[3::11] - origins[3::11]  # through a tile corner
     ends[1::13, 1] = origins[1::13, 1]  # in a plane
     ends[2::17, :2] = origins[2::17, :2]  # along an axis

@@ -372,26 +372,56 @@ def test_from_arrays_builds_a_map_without_a_file() -> None:
     assert q.centers[0] == pytest.approx([10.75, 1.25, 1.75])
 
 
-@pytest.mark.parametrize("threaded", [False, True])
-def test_s_read_in_a_thread_of_its_own_loads_the_same_and_is_checked(
-    threaded: bool, mapper: Mapper, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+@pytest.mark.parametrize("threads", [1, 2])
+def test_s_read_by_two_threads_loads_the_same_and_is_checked(
+    threads: int, mapper: Mapper, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """``s`` read beside the other members (``blockfile.read_all`` on large maps, forced
-    here) loads the same blocks as one read after the other, and a damaged ``s`` is still
-    refused by its CRC."""
+    """``s`` read by two threads (``blockfile.read_all`` on large maps, forced here: the
+    second reads from a point in the middle, the two CRCs combined) loads the same blocks
+    as one read after the other, and one flipped bit anywhere in ``s`` (its first value,
+    about where the second thread begins, its last) is still refused by its CRC."""
     from mfp_mapper.mapio import blockfile
 
-    if threaded:
+    if threads == 2:
         monkeypatch.setattr(blockfile, "THREADED_READ_BYTES", 0)
+        monkeypatch.setattr(blockfile, "_SPLIT_ALIGN", 4)
+        monkeypatch.setattr(blockfile, "_PIECE", 4096)  # several pieces a thread
         monkeypatch.setattr(blockfile.os, "cpu_count", lambda: 2)
     path = tmp_path / "map.npz"
     save_map(mapper, path)
     a, b = load_map(path).stored_blocks(), mapper.stored_blocks()
     for key in ("block_ijk", "block_t", "observed", "s", "hit_block", "hit", "n"):
         assert getattr(a, key).tobytes() == getattr(b, key).tobytes(), key
-    raw = bytearray(path.read_bytes())
-    s_data = raw.find(b"\n", raw.find(b"'descr': '<f4'")) + 1
-    raw[s_data + 4] ^= 0x01  # the second value of s, one bit
-    path.write_bytes(bytes(raw))
-    with pytest.raises(MapFileError, match="s fails its CRC-32"):
-        load_map(path)
+    good = path.read_bytes()
+    s_data = good.find(b"\n", good.find(b"'descr': '<f4'")) + 1
+    size = 4 * b.s.shape[0]
+    assert size > 3 * 4096
+    for at in (0, size // 2 - 4, size // 2, size // 3, size - 1):
+        raw = bytearray(good)
+        raw[s_data + at] ^= 0x01
+        path.write_bytes(bytes(raw))
+        with pytest.raises(MapFileError, match="s fails its CRC-32"):
+            load_map(path)
+
+
+def test_crc32_combine_is_zlibs() -> None:
+    """The CRC-32 of two pieces combined is zlib's of the whole, for empty, short and long
+    pieces and any starting CRC."""
+    import zlib
+
+    from mfp_mapper.mapio.blockfile import crc32_combine
+
+    rng = np.random.default_rng(5)
+    for len_a, len_b in [
+        (0, 0),
+        (0, 5),
+        (5, 0),
+        (1, 1),
+        (3, 4096),
+        (70_000, 1 << 17),
+        (9, 1_000_003),
+    ]:
+        a, b = rng.bytes(len_a), rng.bytes(len_b)
+        start = int(rng.integers(0, 2**32))
+        whole = zlib.crc32(a + b, start)
+        assert crc32_combine(zlib.crc32(a, start), zlib.crc32(b), len_b) == whole

@@ -88,7 +88,7 @@ NODE_CASES = {
     "string for bool": "/**:\n  ros__parameters:\n    deskew: 'no'\n",
     "yes for bool": "/**:\n  ros__parameters:\n    deskew: no\n    latch: On\n",
     "out of range": "/**:\n  ros__parameters:\n    resolution: 0.001\n",
-    "int out of range": "/**:\n  ros__parameters:\n    threads: 0\n",
+    "int out of range": "/**:\n  ros__parameters:\n    threads: -1\n",
     "relation": "/**:\n  ros__parameters:\n    occupancy_min_z: 3.0\n",
     "short vector": "/**:\n  ros__parameters:\n    lidar.rpy: [0.0, 1.0]\n",
     "empty vector": "/**:\n  ros__parameters:\n    lidar.rpy: []\n",
