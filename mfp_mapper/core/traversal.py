@@ -90,9 +90,17 @@ index. Against 2^12 slots (as ``read_walk``'s), cycle-counted on one scan: misse
 29 k and the block lookups 13.6 -> 10.1 ms on OS1-128 at 0.2 m (86.9 k -> 69.2 k, 23.8 ->
 20.1 ms, hall at 0.1 m); a miss costs about 110 ns (the hash, and a first touch)."""
 _WALK_CACHE_MASK = (1 << _WALK_CACHE_BITS) - 1
-WalkCache = tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]
-"""The integrating walk's block cache: each slot's block key (-1: none), chunk-table slot
-(0: another shard's block) and the scan's weight there (< 1: a late scan)."""
+WalkCache = NDArray[np.int64]
+"""The integrating walk's block cache: each slot's block key (-1: none) at ``2 * slot`` and
+its chunk-table slot (0: another shard's block) at ``2 * slot + 1``, with ``_LATE`` set
+where the scan is late (the block's weight, ``ShardArrays.block_scale``, below 1). The
+weight was a third array: a third line loaded an entered block, where a scan is late in
+almost none (perf samples of the walk, hall at 0.2 m: 4,127-4,321 with the flag against
+4,367-4,532 with the third array)."""
+_LATE = 1 << 40
+"""Set in a walk cache slot's chunk-table slot (at most ``BLOCK_CHUNKS`` * 2^31) where the
+scan is late in its block."""
+_BASE_MASK = _LATE - 1
 _walk_caches = threading.local()
 
 
@@ -103,11 +111,10 @@ def _walk_cache() -> WalkCache:
     shards (32 calls a scan) than with two (8 calls)."""
     cache: WalkCache | None = getattr(_walk_caches, "cache", None)
     if cache is None:
-        keys = np.full(1 << (3 * _WALK_CACHE_BITS), -1, dtype=np.int64)
-        cache = keys, np.empty(keys.shape[0], dtype=np.int64), np.empty(keys.shape[0])
+        cache = np.full(2 << (3 * _WALK_CACHE_BITS), -1, dtype=np.int64)
         _walk_caches.cache = cache
     else:
-        cache[0].fill(-1)
+        cache.fill(-1)
     return cache
 
 
@@ -219,6 +226,14 @@ def _prepare_rays(
     per_point = origins.shape[0] > 1
     flagged = no_return.shape[0] > 0
     any_continued = continued.shape[0] > 0
+    # one origin: divided once (the same quotient as per ray; three divisions a ray fewer)
+    first_origin = (0.0, 0.0, 0.0)
+    if origins.shape[0] == 1:
+        first_origin = (
+            origins[0, 0] / resolution,
+            origins[0, 1] / resolution,
+            origins[0, 2] / resolution,
+        )
     for i in range(points.shape[0]):
         o = i if per_point else 0
         dx = points[i, 0] - origins[o, 0]
@@ -235,7 +250,7 @@ def _prepare_rays(
         scale = reach / length if length > 0.0 else 1.0
         inside = True
         for axis, d in ((0, dx), (1, dy), (2, dz)):
-            o_vox = origins[o, axis] / resolution
+            o_vox = origins[o, axis] / resolution if per_point else first_origin[axis]
             # the end, divided exactly as Mapper.voxel_index does: a return lands in floor(p/res)
             e_vox = (points[i, axis] if scale == 1.0 else origins[o, axis] + d * scale) / resolution
             inside = inside and abs(o_vox) < max_index and abs(e_vox) < max_index
@@ -1057,8 +1072,11 @@ def _walk_rays(
     rays into one piece each cost 5-8% of a scan of OS1-128 at 0.2 m).
 
     The pieces go ``LANES`` at a time, a group. ``lockstep.walk_lanes`` steps them all at
-    once and writes every step out; for each ray the blocks it enters are gathered and
-    looked up (lookups independent of each other, so their memory latencies overlap);
+    once and writes every step out, and the keys of the blocks the rays enter; those in
+    the walk cache give their chunk tables there and then, in one pass over the entries
+    (a second pass, ray by ray, took about 10% of the walk's samples), the others are
+    looked up (lookups independent of each other, so their memory latencies overlap) and
+    opened ray by ray, in the order of the one-ray walk;
     ``lockstep.place_lanes`` turns the steps into store indices and weighted chords and
     starts loading their cache lines; a ray's return starts loading its ``n`` line (its
     block's ``n`` row read a group ahead, where the add read chunk owner, row and ``n``
@@ -1087,7 +1105,7 @@ def _walk_rays(
     table_keys, table_blocks = sa.table_keys, sa.table_blocks
     # the shard's blocks opened in this scan, direct-mapped by their low index bits: neighbouring
     # rays cross the same blocks, and this table (768 KiB) stays in cache where the hash does not
-    cache_keys, cache_bases, cache_weights = walk_cache
+    cache = walk_cache
     total = lengths.shape[0] if whole else order.shape[0]
     longest = 1
     for i in range(first, total):
@@ -1096,17 +1114,21 @@ def _walk_rays(
     step_code = np.empty(longest * LANES, dtype=np.int16)
     entered_key = np.empty((LANES, longest), dtype=np.int64)
     entered_chunks = np.empty((LANES, longest * BLOCK_CHUNKS), dtype=np.int32)  # their tables
-    row_length = entered_chunks.shape[1]
     entered_weight = np.empty((LANES, longest))
+    weight_flat = entered_weight.reshape(-1)
+    base_flat = np.empty(LANES * longest, dtype=np.int64)  # their chunk tables' start
+    missed = np.empty((LANES, longest), dtype=np.int64)  # entries not in the walk cache
+    missed_key = np.empty((LANES, longest), dtype=np.int64)
+    missed_count = np.zeros(LANES, dtype=np.int64)
     lane_blocks = np.empty(LANES, dtype=np.int64)
     entries = np.empty((2, (longest + 1) * LANES), dtype=np.int64)  # walk_lanes' entries
     entry_count = np.zeros(1, dtype=np.int64)
-    entered_flat = entered_key.reshape(-1)
     lane_floats = np.empty((FLOAT_ROWS, LANES))
     lane_ints = np.empty((INT_ROWS, LANES), dtype=np.int64)
     # placed visits of two groups: the one being walked and the one waiting to be added
     placed_voxel = np.empty((2, longest * LANES), dtype=np.int64)
     placed_chord = np.empty((2, longest * LANES))  # the steps' chords, then weighted
+    placed_added = np.empty((2, longest * LANES), dtype=np.float32)  # as the store adds them
     placed_steps = np.zeros((2, LANES), dtype=np.int64)
     return_weight = np.zeros((2, LANES))  # 0: no return (or another shard's end voxel)
     return_block = np.zeros((2, LANES), dtype=np.int64)  # the end voxel's block
@@ -1131,9 +1153,9 @@ def _walk_rays(
             or pools[NCHUNK_USED] - n_start + 2 * LANES > n_room
         ):
             _add_group(
-                values, placed_voxel[1 - group], placed_chord[1 - group],
-                placed_steps[1 - group], return_weight[1 - group], return_block[1 - group],
-                return_place[1 - group], waiting,
+                values, placed_voxel[1 - group], placed_added[1 - group],
+                placed_chord[1 - group], placed_steps[1 - group], return_weight[1 - group],
+                return_block[1 - group], return_place[1 - group], waiting,
             )  # fmt: skip
             return group_first
         steps = 0
@@ -1194,44 +1216,72 @@ def _walk_rays(
             lane_floats, lane_ints, steps, entered_key, lane_blocks, step_code, step_chord,
             entries, entry_count,
         )  # fmt: skip
-        # the entered blocks' keys put in each ray's row; those not yet in the walk cache
-        # looked up (read only) all at once, their chunk tables loaded: independent
-        # lookups whose memory latencies overlap
+        # the entered blocks' keys put in each ray's row; a block in the walk cache gives
+        # its chunk table there and then (a lane repeating the first ray: no block); the
+        # others are looked up (read only) all at once, their chunk tables loaded
+        # (independent lookups whose memory latencies overlap), and opened after, ray by
+        # ray in order, as the one-ray walk opens them
+        late = 0  # _LATE set where the scan is late in a block
+        missed_count[:] = 0
+        repeats_from = lanes * longest  # entries of the lanes repeating the first ray
         for e in range(entry_count[0]):
             key = entries[0, e]
-            entered_flat[np.uint64(entries[1, e])] = key
+            at = entries[1, e]
             slot = _walk_cache_slot(key)
-            if cache_keys[slot] != key:
+            if at >= repeats_from:
+                base = 0
+            elif cache[2 * slot] == key:
+                base = cache[2 * slot + 1]
+            else:
+                lane = at // longest
+                missed[lane, missed_count[lane]] = at
+                missed_key[lane, missed_count[lane]] = key
+                missed_count[lane] += 1
                 bx, by, bz = block_of_key(key)
                 found = find_block(table_keys, table_blocks, block_key(bx, by, bz))
                 if found >= 0:
                     prefetch_line(block_chunks, BLOCK_CHUNKS * (found + 1))
-        weighted = False  # a block where the scan is late (weight < 1)
+                continue
+            copy_table(entered_chunks, at * BLOCK_CHUNKS, block_chunks, base & _BASE_MASK)
+            base_flat[at] = base
+            late |= base
         for lane in range(lanes):
-            i = group_first + lane
-            blocks = lane_blocks[lane]
-            base = 0
-            # the blocks the ray enters
-            for b in range(blocks):
-                key = entered_key[lane, b]
+            for m in range(missed_count[lane]):
+                at = missed[lane, m]
+                key = missed_key[lane, m]
                 slot = _walk_cache_slot(key)
-                if cache_keys[slot] != key:
+                if cache[2 * slot] != key:
                     bx, by, bz = block_of_key(key)
                     block = -1
                     if shard_of(bx, by, bz, shard_mask) == shard:
                         block = open_block(bx, by, bz, shard_arrays, scan_id, stamp, decay_time)
-                    cache_keys[slot] = key
-                    cache_bases[slot] = BLOCK_CHUNKS * (block + 1) if block >= 0 else 0
-                    cache_weights[slot] = block_scale[block] if block >= 0 else 1.0
-                base = cache_bases[slot]
-                copy_table(entered_chunks, lane * row_length + b * BLOCK_CHUNKS, block_chunks, base)
-                entered_weight[lane, b] = cache_weights[slot]
-                weighted |= cache_weights[slot] != 1.0
+                    cache[2 * slot] = key
+                    cache[2 * slot + 1] = 0
+                    if block >= 0:
+                        cache[2 * slot + 1] = BLOCK_CHUNKS * (block + 1)
+                        if block_scale[block] != 1.0:
+                            cache[2 * slot + 1] |= _LATE
+                base = cache[2 * slot + 1]
+                copy_table(entered_chunks, at * BLOCK_CHUNKS, block_chunks, base & _BASE_MASK)
+                base_flat[at] = base
+                late |= base
+        weighted = (late & _LATE) != 0
+        if weighted:  # rare: the weight of every entered block, for placing
+            for e in range(entry_count[0]):
+                at = entries[1, e]
+                base = base_flat[at]
+                late_block = (base & _BASE_MASK) // BLOCK_CHUNKS - 1
+                weight_flat[at] = block_scale[late_block] if base & _LATE else 1.0
+        for lane in range(lanes):
+            i = group_first + lane
+            blocks = lane_blocks[lane]
+            base = base_flat[lane * longest + blocks - 1]  # the end voxel's block
             ends = has_return[i] if whole else piece_return[order[i]]
             ends_here = ends and base > 0
-            return_weight[group, lane] = entered_weight[lane, blocks - 1] if ends_here else 0.0
+            return_weight[group, lane] = 0.0
             if ends_here:  # its n chunk's line, loaded while the group before is added
-                block = base // BLOCK_CHUNKS - 1
+                block = (base & _BASE_MASK) // BLOCK_CHUNKS - 1
+                return_weight[group, lane] = block_scale[block]
                 place = step_code[placed_steps[group, lane] * LANES + lane] & LOCAL_MASK
                 return_block[group, lane] = block
                 return_place[group, lane] = place
@@ -1240,17 +1290,14 @@ def _walk_rays(
                     chunk = n_recs[row, place >> N_CHUNK_BITS]
                     if chunk >= 0:
                         prefetch_line(n_pool, chunk * N_CHUNK_VOXELS + (place & _N_MASK))
-        for lane in range(lanes, LANES):  # repeats of the first ray: placed in no block
-            for b in range(lane_blocks[lane]):
-                copy_table(entered_chunks, lane * row_length + b * BLOCK_CHUNKS, block_chunks, 0)
-                entered_weight[lane, b] = 1.0
         place_lanes(
             step_code, step_chord, entered_chunks, entered_weight, weighted, steps, sa.s_pool,
-            placed_voxel[group],
+            placed_voxel[group], placed_added[group],
         )  # fmt: skip
         _add_group(
-            values, placed_voxel[1 - group], placed_chord[1 - group], placed_steps[1 - group],
-            return_weight[1 - group], return_block[1 - group], return_place[1 - group], waiting,
+            values, placed_voxel[1 - group], placed_added[1 - group], placed_chord[1 - group],
+            placed_steps[1 - group], return_weight[1 - group], return_block[1 - group],
+            return_place[1 - group], waiting,
         )  # fmt: skip
         waiting = lanes
         waiting_visits = visits
@@ -1262,6 +1309,7 @@ def _walk_rays(
 def _add_group(
     values: ValueArrays,
     voxels: NDArray[np.int64],
+    added: NDArray[np.float32],
     chords: NDArray[np.float64],
     steps: NDArray[np.int64],
     return_weight: NDArray[np.float64],
@@ -1270,14 +1318,16 @@ def _add_group(
     lanes: int,
 ) -> None:
     """Add a group's placed visits (``lockstep.place_lanes``: an index in the ``s`` chunks,
-    or negative: a chunk not allocated when placed, or another shard's) to the blocks, ray
-    by ray in order: ``s += float32(chord)`` for every chord above 0 in float32 in this
-    shard, then the ray's return, ``n += float32(return_weight)`` in its end voxel (none
-    where the weight is 0; ``return_block``, ``return_place``: its block and its index
-    there, known from the walk, so the add reads no chunk owner), whose block is marked.
-    Counts the voxels that became observed (``counters[1]``; a voxel's ``s`` is +0 exactly
-    while unobserved: ``shard``'s module notes) and the visits (``counters[3]``); marks
-    for a flush into float64 the blocks where a float32 part reached its limit (``limits``).
+    or negative: a chunk not allocated when placed, another shard's, or a visit skipped:
+    its float32 chord is not above 0) to the blocks, ray by ray in order: ``s +=
+    added`` (the float32 chord) for every visit in this shard, then the ray's return,
+    ``n += float32(return_weight)`` in its end voxel (none where the weight is 0;
+    ``return_block``, ``return_place``: its block and its index there, known from the
+    walk, so the add reads no chunk owner), whose block is marked; ``chords``: the
+    float64 chords, a return's visit counted where its chord is not above 0. Counts the
+    voxels that became observed (``counters[1]``; a voxel's ``s`` is +0 exactly while
+    unobserved: ``shard``'s module notes) and the visits (``counters[3]``); marks for a
+    flush into float64 the blocks where a float32 part reached its limit (``limits``).
 
     The arrays are taken out of their tuple once: numba counts references of every array
     a helper takes, on every call, even inlined (about 40 cycles an array), so the paths
@@ -1299,9 +1349,8 @@ def _add_group(
         visits += last + 1  # less the steps skipped below
         for k in range(last + 1):
             voxel = voxels[k * LANES + lane]
-            c = np.float32(chords[k * LANES + lane])
-            if voxel < 0 or not c > 0.0:  # rare: one test on the common path
-                if not c > 0.0 or voxel < FOREIGN_LIMIT:
+            if voxel < 0:  # rare: one test on the common path
+                if voxel < FOREIGN_LIMIT:  # another shard's, or skipped
                     visits -= 1
                     continue
                 # its chunk is new (since it was placed): shard.s_index
@@ -1316,7 +1365,7 @@ def _add_group(
                 voxels[k * LANES + lane] = voxel
             at = np.uint64(voxel)  # >= 0 here: unsigned, no wraparound test
             observed += marks[at] == 0  # a first visit (shard.UNOBSERVED)
-            after = lines[at] + c
+            after = lines[at] + added[k * LANES + lane]
             lines[at] = after
             if after >= s_limit:  # rare: a flush due
                 block_flush[chunk_owner[voxel >> CHUNK_BITS] // BLOCK_CHUNKS - 1] = True
@@ -1324,19 +1373,18 @@ def _add_group(
         if return_weight[lane] <= 0.0:
             continue
         # the end voxel takes the return; an end point exactly on a face gives a zero
-        # chord there, still with its return (shard.s_index, shard.n_index)
-        voxel = voxels[last * LANES + lane]
-        if voxel < 0:
-            slot = (-voxel - 1) >> CHUNK_BITS
-            chunk = block_chunks[slot]
-            if chunk < 0:
-                chunk = pools[S_USED]
-                pools[S_USED] = chunk + 1
-                block_chunks[slot] = chunk
-                chunk_owner[chunk] = slot
-            voxel = chunk * CHUNK_VOXELS + (voxel & (CHUNK_VOXELS - 1))
+        # chord there (a skipped visit), still with its return (shard.s_index,
+        # shard.n_index)
         block = return_block[lane]
         place = return_place[lane]
+        slot = BLOCK_CHUNKS * (block + 1) + (place >> CHUNK_BITS)
+        chunk = block_chunks[slot]
+        if chunk < 0:
+            chunk = pools[S_USED]
+            pools[S_USED] = chunk + 1
+            block_chunks[slot] = chunk
+            chunk_owner[chunk] = slot
+        voxel = chunk * CHUNK_VOXELS + (place & (CHUNK_VOXELS - 1))
         row = block_nrec[block]
         if row < 0:
             row = pools[NREC_USED]
