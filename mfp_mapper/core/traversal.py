@@ -390,20 +390,8 @@ def ray_bounds(
     origins_vox: NDArray[np.float64], ends_vox: NDArray[np.float64]
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """``block_bounds`` and ``visit_bounds`` in one pass (ten numpy passes took 2 ms of a
-    50 ms scan at 0.2 m)."""
-    count = origins_vox.shape[0]
-    blocks = np.empty(count, dtype=np.int64)
-    visits = np.empty(count, dtype=np.int64)
-    for r in range(count):
-        block_steps = 0
-        steps = 0
-        for axis in range(3):
-            lo = int(np.floor(origins_vox[r, axis]))
-            hi = int(np.floor(ends_vox[r, axis]))
-            steps += abs(hi - lo)
-            block_steps += abs((hi >> BLOCK_BITS) - (lo >> BLOCK_BITS))
-        blocks[r] = block_steps + 2
-        visits[r] = steps + 1
+    50 ms scan at 0.2 m): ``split_bounds`` of the rays as one part."""
+    blocks, visits, _ = split_bounds(origins_vox, ends_vox, max(origins_vox.shape[0], 1), 0)
     return blocks, visits
 
 
