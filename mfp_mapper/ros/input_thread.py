@@ -38,6 +38,9 @@ WAIT_S = 0.1
 """Longest wait for a message (the thread then checks whether it must stop and ticks)."""
 MAX_TAKEN = 64
 """Messages taken from one subscription before the others' are looked at again."""
+RESTART_S = 1.0
+"""Pause before waiting again after the wait failed (``InputThread._run``)."""
+"""Messages taken from one subscription before the others' are looked at again."""
 
 
 class OwnThreadGroup(CallbackGroup):
@@ -72,6 +75,8 @@ class InputThread:
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._guard: GuardCondition | None = None
+        self.restarts = 0
+        """Times the wait failed and was started again (``_run``)."""
 
     @property
     def ident(self) -> int | None:
@@ -122,18 +127,41 @@ class InputThread:
         tick: Callable[[], None] | None,
         tick_period: float,
     ) -> None:
+        """``_serve`` until stopped: after a failure while the context is up (a wait that
+        raised), the error is logged and the subscriptions are waited on again after
+        ``RESTART_S``, so that one fault does not leave the node deaf."""
+        while not stop.is_set():
+            try:
+                self._serve(subs, guard, stop, tick, tick_period)
+                return
+            except Exception as err:
+                if stop.is_set() or not self._context.ok():
+                    return  # a handle destroyed or the context shut down meanwhile
+                self.restarts += 1
+                self._log(
+                    f"the input thread failed ({type(err).__name__}: {err}): clouds, odometry"
+                    f" and TF are waited on again in {RESTART_S:g} s"
+                )
+                stop.wait(RESTART_S)
+
+    def _serve(
+        self,
+        subs: list[Subscription],
+        guard: GuardCondition,
+        stop: threading.Event,
+        tick: Callable[[], None] | None,
+        tick_period: float,
+    ) -> None:
+        """Wait on ``subs``, their events and ``guard`` in a wait set of their own and call
+        the callbacks of what is ready, until ``stop`` (raises what the wait raises)."""
         wait_ns = int(min(WAIT_S, tick_period) * 1e9)
         next_tick = time.monotonic() + tick_period
         context = self._context.handle
+        if context is None:
+            return  # the context is shut down: nothing to wait on
         # (rclpy annotates ``event_handlers`` as one handler: it is their list)
         events = [h for sub in subs for h in cast("list[EventHandler]", sub.event_handlers)]
-        try:
-            if context is None:
-                raise RuntimeError("the context is shut down")
-            wait_set = _rclpy.WaitSet(len(subs), 1, 0, 0, 0, len(events), context)
-        except Exception as err:  # the context is shutting down
-            self._log(f"the input thread could not start: {err!r}")
-            return
+        wait_set = _rclpy.WaitSet(len(subs), 1, 0, 0, 0, len(events), context)
         try:
             while not stop.is_set():
                 with ExitStack() as held:  # nothing destroyed while waited on
@@ -162,9 +190,6 @@ class InputThread:
                 if tick is not None and time.monotonic() >= next_tick:
                     next_tick = time.monotonic() + tick_period
                     self._call(lambda _: tick(), True, "tick")
-        except Exception as err:  # a handle destroyed or the context shut down meanwhile
-            if not stop.is_set() and self._context.ok():
-                self._log(f"the input thread stopped: {type(err).__name__}: {err}")
         finally:
             wait_set.destroy_when_not_in_use()
 
