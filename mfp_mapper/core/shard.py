@@ -250,6 +250,28 @@ def voxel_stats(
 
 
 @nb.njit(inline="always", cache=True)
+def init_block(
+    sa: ShardArrays, block: int, bx: int, by: int, bz: int, scan_id: int, stamp: float
+) -> None:
+    """The fields of row ``block``, just taken for the block (bx, by, bz) (its key in the
+    table already): its index, time ``stamp`` and scan ``scan_id``, weight 1, no chunks,
+    no ``n`` record, no float64 part, no return, not flushed."""
+    sa.block_ijk[block, 0] = bx
+    sa.block_ijk[block, 1] = by
+    sa.block_ijk[block, 2] = bz
+    sa.block_t[block] = stamp
+    sa.block_scan[block] = scan_id
+    sa.block_scale[block] = 1.0
+    for k in range(BLOCK_CHUNKS):
+        slot = chunk_slot(block, k)
+        sa.block_chunks[slot] = -(slot + 1)
+    sa.block_nrec[block] = -1
+    sa.block_href[block] = -1
+    sa.block_hit[block] = False
+    sa.block_flush[block] = False
+
+
+@nb.njit(inline="always", cache=True)
 def open_block(
     bx: int,
     by: int,
@@ -278,19 +300,7 @@ def open_block(
         block = used
         counters[0] = used + 1
         insert_block(sa.table_keys, sa.table_blocks, bkey, block)
-        sa.block_ijk[block, 0] = bx
-        sa.block_ijk[block, 1] = by
-        sa.block_ijk[block, 2] = bz
-        sa.block_t[block] = stamp
-        sa.block_scan[block] = scan_id
-        sa.block_scale[block] = 1.0
-        for k in range(BLOCK_CHUNKS):
-            slot = chunk_slot(block, k)
-            sa.block_chunks[slot] = -(slot + 1)
-        sa.block_nrec[block] = -1
-        sa.block_href[block] = -1
-        sa.block_hit[block] = False
-        sa.block_flush[block] = False
+        init_block(sa, block, bx, by, bz, scan_id, stamp)
         counters[2] += 1
     elif sa.block_scan[block] != scan_id:
         age = stamp - sa.block_t[block]

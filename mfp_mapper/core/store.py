@@ -94,6 +94,7 @@ from mfp_mapper.core.shard import (
     ShardArrays,
     block_values,
     chunk_slot,
+    init_block,
     n_index,
     open_block,
     s_index,
@@ -394,24 +395,13 @@ def _open_parts(
         b = k if every else rows[k]
         bx, by, bz = packed_ijk[b, 0], packed_ijk[b, 1], packed_ijk[b, 2]
         insert_block(sa.table_keys, sa.table_blocks, block_key(bx, by, bz), k)
-        sa.block_ijk[k, 0] = bx
-        sa.block_ijk[k, 1] = by
-        sa.block_ijk[k, 2] = bz
-        sa.block_t[k] = packed_t[b]
-        sa.block_scan[k] = -1
-        sa.block_scale[k] = 1.0
-        sa.block_nrec[k] = -1
-        sa.block_href[k] = -1
-        sa.block_hit[k] = False
-        sa.block_flush[k] = False
+        init_block(sa, k, bx, by, bz, -1, packed_t[b])
         for w in range(BLOCK_VOXELS // 64):  # a mask word is an s chunk (64 voxels)
-            slot = chunk_slot(k, w)
             if observed[b, w] != 0:
+                slot = chunk_slot(k, w)
                 block_chunks[slot] = chunk
                 chunk_owner[chunk] = slot
                 chunk += 1
-            else:
-                block_chunks[slot] = -(slot + 1)
         f = hi_row[b]
         href = -1
         if f >= 0:
