@@ -665,9 +665,9 @@ def _faces_before(faces, t_first, t_delta, t, strict):  # type: ignore[no-untype
 
 
 _TILE_BUCKET_BITS = 4
+"""``split_rays`` orders a shard's pieces by tile, by the low 4 bits of each tile index."""
 _TILE_Z_OFFSET = SHARD_TILE_Z_OFFSET << BLOCK_BITS
 """The tiles' z faces are this many voxels below multiples of a tile (``blocks``)."""
-"""``split_rays`` orders a shard's pieces by tile, by the low 4 bits of each tile index."""
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -769,13 +769,7 @@ def _flat_pieces(store: BlockStore, count: int) -> Pieces:
     more CPU time in the split of OS1-128 at 0.2 m)."""
     room = _split_room.get(store)
     if room is None or room.ray.shape[0] < count:
-        size = max(count, count + count // 4)
-        none = np.empty(0, dtype=np.int64)
-        room = Pieces(
-            np.empty(size, dtype=np.int32), np.empty((size, 4), dtype=np.int32),
-            np.empty((size, 4), dtype=np.int64), np.empty(size, dtype=np.int32),
-            np.empty(size, dtype=np.bool_), none,
-        )  # fmt: skip
+        room = _new_pieces(max(count, count + count // 4))
         _split_room[store] = room
     return room
 
@@ -812,21 +806,17 @@ def split_bounds(
     visits = np.empty(count, dtype=np.int64)
     parts = -(-count // size)
     part_at = np.zeros(parts + 1, dtype=np.int64)
-    tile_shift = BLOCK_BITS + SHARD_TILE_BITS
     for r in range(count):
         block_steps = 0
         steps = 0
-        tiles = 1
         for axis in range(3):
             lo = int(np.floor(origins_vox[r, axis]))
             hi = int(np.floor(ends_vox[r, axis]))
             steps += abs(hi - lo)
             block_steps += abs((hi >> BLOCK_BITS) - (lo >> BLOCK_BITS))
-            off = _TILE_Z_OFFSET if axis == 2 else 0
-            tiles += abs(((hi + off) >> tile_shift) - ((lo + off) >> tile_shift))
         blocks[r] = block_steps + 2
         visits[r] = steps + 1
-        part_at[r // size + 1] += tiles if shard_mask else 1
+        part_at[r // size + 1] += _piece_bound(origins_vox, ends_vox, r, shard_mask)
     for c in range(parts):
         part_at[c + 1] += part_at[c]
     return blocks, visits, part_at
