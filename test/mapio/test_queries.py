@@ -172,24 +172,17 @@ def test_segment_blocks_cover_every_voxel_the_walk_visits() -> None:
         assert np.isin(sort_keys(dense), keys).all()
 
 
-def test_histograms_are_read_by_block_too(tmp_path: Path) -> None:
+def test_histograms_are_read_by_block_too(tmp_path: Path, histogram_map: Mapper) -> None:
     """A map with reflectivity histograms is queried by block: the same histograms as the
     map loaded whole; a damaged histogram far from the query is never read (loading the
     whole file refuses it), the query that reads it refuses it."""
     import zipfile
 
-    from mfp_mapper.core.reflectivity import ROW_KEYS, ScanReflectivity
+    from mfp_mapper.core.reflectivity import ROW_KEYS
     from mfp_mapper.mapio.blockfile import BLOCK_MEMBERS, TABLE_MEMBERS, locate_members
-    from mfp_mapper.sensing.reflectivity import bins_for
 
     assert TABLE_MEMBERS == ROW_KEYS  # the file's names, kept numba-free in mapio
-    bins = bins_for("reflectivity", 8)
-    assert bins is not None
-    rng = np.random.default_rng(2)
-    m = Mapper(0.1, decay_time=30.0, max_range=30.0)
-    for k, (points, origin) in enumerate(anchors_scene(n_scans=2, azimuths=200)):
-        values = ScanReflectivity(rng.uniform(0, 255, len(points)), bins)
-        m.integrate(points, origin, 100.0 + k, reflectivity=values)
+    m = histogram_map
     path = tmp_path / "map.npz"
     save_map(m, path)
     table = m.stored_reflectivity()
@@ -204,7 +197,7 @@ def test_histograms_are_read_by_block_too(tmp_path: Path) -> None:
     with open(path, "rb") as f, zipfile.ZipFile(f) as archive:
         member = locate_members(f, archive, (*BLOCK_MEMBERS, *ROW_KEYS), path.stat().st_size)
     raw = bytearray(path.read_bytes())
-    at = member["reflectivity_counts"].offset + 8 * bins.count * far
+    at = member["reflectivity_counts"].offset + 8 * table.counts.shape[1] * far
     raw[at : at + 8] = np.float64(-1.0).tobytes()
     path.write_bytes(bytes(raw))
     got = MapFileQueries(path).reflectivity(centres[near][None, :])
