@@ -7,7 +7,8 @@ that ends in a return gives its end voxel ``n += 1`` (the chord from where it en
 voxel up to the return point is its last chord).
 
 Threads split the space: the store has shards (four a thread: ``mapper.shard_count``), a
-shard owns tiles of 8x8x8 blocks in a 3-D checkerboard (``blocks.shard_of``), and one
+shard owns tiles of blocks (16 a side for two threads, 8 for more: ``blocks.tile_bits``) in a
+3-D checkerboard (``blocks.shard_of``), and one
 thread at a time writes to a shard. The rays are first split into their stretches in each
 tile (``split_into``, parts of the rays a task), then the threads walk the shards'
 stretches, a shard at a time, the shards with the most steps first. A
@@ -43,13 +44,13 @@ from mfp_mapper.core.blocks import (
     N_BLOCK_CHUNKS,
     N_CHUNK_BITS,
     N_CHUNK_VOXELS,
-    SHARD_TILE_BITS,
-    SHARD_TILE_Z_OFFSET,
     block_key,
     block_of_key,
     find_block,
     local_index,
     shard_of,
+    tile_bits,
+    tile_z_offset,
 )
 from mfp_mapper.core.lockstep import (
     FLOAT_ROWS,
@@ -666,8 +667,13 @@ def _faces_before(faces, t_first, t_delta, t, strict):  # type: ignore[no-untype
 
 _TILE_BUCKET_BITS = 4
 """``split_rays`` orders a shard's pieces by tile, by the low 4 bits of each tile index."""
-_TILE_Z_OFFSET = SHARD_TILE_Z_OFFSET << BLOCK_BITS
-"""The tiles' z faces are this many voxels below multiples of a tile (``blocks``)."""
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _tile_geometry(shard_mask: int) -> tuple[int, int]:
+    """The voxel index bits of a tile side of a store of ``shard_mask + 1`` shards, and how
+    many voxels its z faces sit below multiples of a tile (``blocks.tile_bits``)."""
+    return BLOCK_BITS + tile_bits(shard_mask), tile_z_offset(shard_mask) << BLOCK_BITS
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -676,9 +682,9 @@ def _piece_bound(origins_vox, ends_vox, r, shard_mask):  # type: ignore[no-untyp
     tile face it crosses."""
     bound = 1
     if shard_mask:
-        tile_shift = BLOCK_BITS + SHARD_TILE_BITS
+        tile_shift, z_offset = _tile_geometry(shard_mask)
         for axis in range(3):
-            off = _TILE_Z_OFFSET if axis == 2 else 0
+            off = z_offset if axis == 2 else 0
             lo = (int(np.floor(origins_vox[r, axis])) + off) >> tile_shift
             hi = (int(np.floor(ends_vox[r, axis])) + off) >> tile_shift
             bound += abs(hi - lo)
@@ -779,13 +785,13 @@ def _bucket_starts(owner, voxel, k, shard_mask, bits, bucket):  # type: ignore[n
     """A stable counting sort's keys of pieces ``:k``: by shard, then by tile bucket (the
     low ``bits`` of each tile index), written to ``bucket``; where each key's pieces
     start."""
-    tile_shift = BLOCK_BITS + SHARD_TILE_BITS
+    tile_shift, z_offset = _tile_geometry(shard_mask)
     mask = (1 << bits) - 1
     starts = np.zeros(((shard_mask + 1) << (3 * bits)) + 1, dtype=np.int64)
     for p in range(k):
         key = owner[p]
         for b in range(3):
-            off = _TILE_Z_OFFSET if b == 2 else 0
+            off = z_offset if b == 2 else 0
             key = (key << bits) | (((voxel[p, b] + off) >> tile_shift) & mask)
         bucket[p] = key
         starts[key + 1] += 1
@@ -911,7 +917,7 @@ def _split_write(origins_vox, ends_vox, has_return, first, stop, shard_mask, out
     """The pieces of rays ``first:stop`` (``split_rays``), in ray order, written to ``out``
     from piece ``k`` on, and their shards to ``owner`` (from 0); returns the piece after the
     last."""
-    tile_shift = BLOCK_BITS + SHARD_TILE_BITS
+    tile_shift, z_offset = _tile_geometry(shard_mask)
     k_first = k
     ray, voxel, t_state, room, returns = out.ray, out.voxel, out.t_state, out.room, out.has_return
     v = np.empty(3, dtype=np.int64)
@@ -932,7 +938,7 @@ def _split_write(origins_vox, ends_vox, has_return, first, stop, shard_mask, out
         for axis in range(3):
             v[axis] = v0[axis]
             t_max[axis] = t_first[axis]
-            off = _TILE_Z_OFFSET if axis == 2 else 0
+            off = z_offset if axis == 2 else 0
             tile[axis] = (v0[axis] + off) >> tile_shift
             crossings[axis] = (
                 abs(((end[axis] + off) >> tile_shift) - tile[axis]) if shard_mask else 0
@@ -964,24 +970,17 @@ def _split_write(origins_vox, ends_vox, has_return, first, stop, shard_mask, out
                 crossings[a] -= 1
                 t_cross[a] = T_NEVER
                 if crossings[a] > 0:
-                    face = ((tile[a] + (step[a] > 0)) << tile_shift) - (
-                        _TILE_Z_OFFSET if a == 2 else 0
-                    )
+                    face = ((tile[a] + (step[a] > 0)) << tile_shift) - (z_offset if a == 2 else 0)
                     j = (face - v0[a] - (step[a] > 0)) * step[a]
                     t_cross[a] = t_first[a] + j * t_delta[a]
                 there = (tile[0] + tile[1] + tile[2]) & shard_mask
                 if there != here:
                     # the voxel the walk enters there, after how many steps
                     if step[a] > 0:
-                        count[a] = (
-                            (tile[a] << tile_shift) - (_TILE_Z_OFFSET if a == 2 else 0) - v0[a]
-                        )
+                        count[a] = (tile[a] << tile_shift) - (z_offset if a == 2 else 0) - v0[a]
                     else:
                         count[a] = (
-                            v0[a]
-                            - ((tile[a] + 1) << tile_shift)
-                            + (_TILE_Z_OFFSET if a == 2 else 0)
-                            + 1
+                            v0[a] - ((tile[a] + 1) << tile_shift) + (z_offset if a == 2 else 0) + 1
                         )
                     for b in range(3):
                         if b != a:
