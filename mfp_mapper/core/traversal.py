@@ -303,7 +303,7 @@ def integrate_rays(
     size = max(min(-(-len(rays) // threads), SPLIT_RAYS), 1)  # at least a part a thread
     room, visits, part_at = split_bounds(rays.origins_vox, rays.ends_vox, size, store.shard_mask)
     whole = RayArrays(rays.origins_vox, rays.ends_vox, rays.lengths, rays.has_return, room, visits)
-    pieces = _flat_pieces(store, int(part_at[-1]))
+    pieces = _flat_pieces(store, int(part_at[-1]), len(rays))
     parts = len(part_at) - 1
     segments = np.zeros((parts, shards, 2), dtype=np.int64)  # each part's pieces per shard
     work = np.zeros((parts, 2, shards), dtype=np.int64)  # per part: work, room
@@ -365,7 +365,7 @@ percentile). With four shards a thread, the threads take the shards' walks most 
 (``integrate_rays``), and two threads share a scan within 0.51-0.52 (0.525 at the 90th
 percentile)."""
 SPLIT_RAYS = 8192
-"""Rays split in one task (``split_into``): a part's stretches (57 bytes each) are written
+"""Rays split in one task (``split_into``): a part's stretches (25 bytes each) are written
 to a scratch the thread keeps, then put in walk order. When each part allocated its
 pieces, parts of 53k rays (OS1-128, 2 threads) took twice as long a ray, faulting their
 fresh pages in, and parts of 32768 rays 1.6 times as long; with the scratch kept, parts
@@ -501,7 +501,7 @@ def _walk_whole(rays: Rays, shard: Shard, scan: ScanStamp, share: int | None = N
     none = np.empty(0, dtype=np.int64)
     none32 = none.astype(np.int32)
     no_pieces = Pieces(
-        none32, none32.reshape(0, 4), none.reshape(0, 4), none32, none.astype(bool), none
+        none32, none32.reshape(0, 4), none32, none.astype(bool), none.reshape(0, 6), none
     )
     first, cut, cut_done = 0, 0, False
     cache = _walk_cache()
@@ -630,6 +630,44 @@ def _ray_start(origins_vox, ends_vox, r):  # type: ignore[no-untyped-def]
             t_delta_x, t_delta_y, t_delta_z, steps)  # fmt: skip
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _piece_start(origins_vox, ends_vox, faces, r, vx, vy, vz):  # type: ignore[no-untyped-def]
+    """Ray ``r``'s walk (``_ray_start``; ``faces``: its first faces and the t between
+    faces, ``Pieces.faces``) from voxel ``(vx, vy, vz)`` of it on: that voxel, the end
+    voxel, the steps, each axis' next face there and the t between its faces, and the t
+    where the walk entered the voxel. An axis has crossed ``|v - v0|`` faces there, the
+    j-th at ``t_first + j * t_delta`` exactly, so its next face is the one after, and the
+    walk entered at the last face it crossed, the latest of each axis' last: the state the
+    walk from the origin has there, bit for bit. (A piece once stored that state: 57 bytes
+    a piece, not 25 and 48 a ray; with the faces computed here, three divisions more a
+    piece, the walks took as much more time as the split saved.)"""
+    ex = int(np.floor(ends_vox[r, 0]))
+    ey = int(np.floor(ends_vox[r, 1]))
+    ez = int(np.floor(ends_vox[r, 2]))
+    v0x = int(np.floor(origins_vox[r, 0]))
+    v0y = int(np.floor(origins_vox[r, 1]))
+    v0z = int(np.floor(origins_vox[r, 2]))
+    step_x = 1 if ex > v0x else -1
+    step_y = 1 if ey > v0y else -1
+    step_z = 1 if ez > v0z else -1
+    crossed_x = (vx - v0x) * step_x
+    crossed_y = (vy - v0y) * step_y
+    crossed_z = (vz - v0z) * step_z
+    t_delta_x, t_delta_y, t_delta_z = faces[r, 3], faces[r, 4], faces[r, 5]
+    t_max_x = faces[r, 0] + crossed_x * t_delta_x if vx != ex else T_NEVER
+    t_max_y = faces[r, 1] + crossed_y * t_delta_y if vy != ey else T_NEVER
+    t_max_z = faces[r, 2] + crossed_z * t_delta_z if vz != ez else T_NEVER
+    t_entered = 0
+    if crossed_x > 0:
+        t_entered = max(t_entered, faces[r, 0] + (crossed_x - 1) * t_delta_x)
+    if crossed_y > 0:
+        t_entered = max(t_entered, faces[r, 1] + (crossed_y - 1) * t_delta_y)
+    if crossed_z > 0:
+        t_entered = max(t_entered, faces[r, 2] + (crossed_z - 1) * t_delta_z)
+    return (vx, vy, vz, ex, ey, ez, step_x, step_y, step_z, t_max_x, t_max_y, t_max_z,
+            t_delta_x, t_delta_y, t_delta_z, min(t_entered, T_ONE))  # fmt: skip
+
+
 class Pieces(NamedTuple):
     """The stretches of rays one shard walks (``split_rays``): each is walked from exactly
     the state the walk from the ray's origin has where it starts."""
@@ -638,17 +676,17 @@ class Pieces(NamedTuple):
     """The ray each piece is a stretch of."""
     voxel: NDArray[np.int32]
     """(P, 4): the piece's first voxel, and its steps (it ends in the voxel that many
-    steps further)."""
-    t_state: NDArray[np.int64]
-    """(P, 4): where the walk crosses each axis' next face there (``T_NEVER`` for an axis
-    at its end voxel), and t where it entered the first voxel (fixed point,
-    ``lockstep.T_ONE``); the t between faces is the ray's (``_ray_start``). 57 bytes a
-    piece: with 105 (int64 everywhere, the t between faces kept) the split and the walks
-    of OS1-128 moved twice the memory."""
+    steps further). The walk's state there follows from the ray (``_piece_start``): 25
+    bytes a piece (with the state, 57: the split wrote, copied and the walks read 2.3
+    times the bytes)."""
     room: NDArray[np.int32]
     """Upper bound of the blocks the piece can create."""
     has_return: NDArray[np.bool_]
     """The piece ends the ray, and the ray has a return."""
+    faces: NDArray[np.int64]
+    """(R, 6), by ray: where each axis' first face is crossed and the t between its faces
+    (``_ray_start``), written once a ray by the split, so that a piece's walk starts
+    without a division (``_piece_start``)."""
     order: NDArray[np.int64]
     """The pieces to walk, in the order to walk them (indices)."""
 
@@ -720,12 +758,15 @@ def split_rays(
     bound = 0
     for r in range(first, stop):
         bound += _piece_bound(origins_vox, ends_vox, r, shard_mask)
-    pieces = _new_pieces(bound)
+    pieces = _new_pieces(bound, stop)
     owner = np.empty(bound, dtype=np.int64)
-    k = _split_write(origins_vox, ends_vox, has_return, first, stop, shard_mask, pieces, owner, 0)
+    k = _split_write(
+        origins_vox, ends_vox, has_return, first, stop, shard_mask, pieces, owner, 0,
+        pieces.faces,
+    )  # fmt: skip
     pieces = Pieces(
-        pieces.ray[:k], pieces.voxel[:k], pieces.t_state[:k], pieces.room[:k],
-        pieces.has_return[:k], np.arange(k),
+        pieces.ray[:k], pieces.voxel[:k], pieces.room[:k], pieces.has_return[:k],
+        pieces.faces, np.arange(k),
     )  # fmt: skip
     if shard_mask == 0:
         return pieces, np.array([0, k], dtype=np.int64)
@@ -737,17 +778,17 @@ def split_rays(
         order[starts[bucket[p]]] = p
         starts[bucket[p]] += 1
     return Pieces(
-        pieces.ray, pieces.voxel, pieces.t_state, pieces.room, pieces.has_return, order
+        pieces.ray, pieces.voxel, pieces.room, pieces.has_return, pieces.faces, order
     ), offsets
 
 
 @nb.njit(cache=True, nogil=True)
-def _new_pieces(count: int) -> Pieces:
-    """Room for ``count`` pieces (``order`` empty)."""
+def _new_pieces(count: int, rays: int) -> Pieces:
+    """Room for ``count`` pieces of ``rays`` rays (``order`` empty)."""
     return Pieces(
         np.empty(count, dtype=np.int32), np.empty((count, 4), dtype=np.int32),
-        np.empty((count, 4), dtype=np.int64), np.empty(count, dtype=np.int32),
-        np.empty(count, dtype=np.bool_), np.empty(0, dtype=np.int64),
+        np.empty(count, dtype=np.int32), np.empty(count, dtype=np.bool_),
+        np.empty((rays, 6), dtype=np.int64), np.empty(0, dtype=np.int64),
     )  # fmt: skip
 
 
@@ -764,18 +805,18 @@ def _split_scratch(count: int) -> tuple[Pieces, NDArray[np.int64]]:
     0.1 m 11 of 37 ms."""
     scratch: tuple[Pieces, NDArray[np.int64]] | None = getattr(_split_scratches, "room", None)
     if scratch is None or scratch[0].ray.shape[0] < count:
-        scratch = _new_pieces(max(count, 1024)), np.empty((2, max(count, 1024)), np.int64)
+        scratch = _new_pieces(max(count, 1024), 0), np.empty((2, max(count, 1024)), np.int64)
         _split_scratches.room = scratch
     return scratch
 
 
-def _flat_pieces(store: BlockStore, count: int) -> Pieces:
-    """Room for a whole scan's pieces (``split_into``; ``order`` empty), in memory kept
-    from scan to scan (fresh memory each scan: its pages faulted in by the split, 20-40%
-    more CPU time in the split of OS1-128 at 0.2 m)."""
+def _flat_pieces(store: BlockStore, count: int, rays: int) -> Pieces:
+    """Room for a whole scan's pieces, of ``rays`` rays (``split_into``; ``order`` empty),
+    in memory kept from scan to scan (fresh memory each scan: its pages faulted in by the
+    split, 20-40% more CPU time in the split of OS1-128 at 0.2 m)."""
     room = _split_room.get(store)
-    if room is None or room.ray.shape[0] < count:
-        room = _new_pieces(max(count, count + count // 4))
+    if room is None or room.ray.shape[0] < count or room.faces.shape[0] < rays:
+        room = _new_pieces(max(count, count + count // 4), max(rays, rays + rays // 4))
         _split_room[store] = room
     return room
 
@@ -852,14 +893,16 @@ def split_into(
     costs the split); ``work[0, k]`` their steps plus ``PIECE_STEPS`` a stretch,
     ``work[1, k]`` the blocks they can create (``shard_work``). Returns how many pieces."""
     owner = keys[0]
-    k = _split_write(origins_vox, ends_vox, has_return, first, stop, shard_mask, scratch, owner, 0)
+    k = _split_write(
+        origins_vox, ends_vox, has_return, first, stop, shard_mask, scratch, owner, 0, out.faces
+    )
     bucket, starts = _bucket_starts(owner, scratch.voxel, k, shard_mask, _TILE_BUCKET_BITS, keys[1])
     shards = shard_mask + 1
     per_shard = starts.shape[0] // shards
     for s in range(shards):
         segments[s, 0] = at + starts[s * per_shard]
         segments[s, 1] = at + starts[(s + 1) * per_shard]
-    ray, voxel, t_state, room, returns = out.ray, out.voxel, out.t_state, out.room, out.has_return
+    ray, voxel, room, returns = out.ray, out.voxel, out.room, out.has_return
     steps = np.zeros(shards, dtype=np.int64)
     blocks = np.zeros(shards, dtype=np.int64)
     for p in range(k):
@@ -868,8 +911,6 @@ def split_into(
         ray[q] = scratch.ray[p]
         for c in range(4):
             voxel[q, c] = scratch.voxel[p, c]
-        for c in range(4):
-            t_state[q, c] = scratch.t_state[p, c]
         room[q] = scratch.room[p]
         returns[q] = scratch.has_return[p]
         s = owner[p]
@@ -913,20 +954,19 @@ def piece_room(
 
 
 @nb.njit(cache=True, nogil=True)
-def _split_write(origins_vox, ends_vox, has_return, first, stop, shard_mask, out, owner, k):  # type: ignore[no-untyped-def]
+def _split_write(origins_vox, ends_vox, has_return, first, stop, shard_mask, out, owner, k, faces):  # type: ignore[no-untyped-def]
     """The pieces of rays ``first:stop`` (``split_rays``), in ray order, written to ``out``
-    from piece ``k`` on, and their shards to ``owner`` (from 0); returns the piece after the
-    last."""
+    from piece ``k`` on, their shards to ``owner`` (from 0), and the rays' faces to their
+    rows of ``faces`` (``Pieces.faces``); returns the piece after the last."""
     tile_shift, z_offset = _tile_geometry(shard_mask)
     k_first = k
-    ray, voxel, t_state, room, returns = out.ray, out.voxel, out.t_state, out.room, out.has_return
+    ray, voxel, room, returns = out.ray, out.voxel, out.room, out.has_return
     v = np.empty(3, dtype=np.int64)
     v0 = np.empty(3, dtype=np.int64)
     end = np.empty(3, dtype=np.int64)
     step = np.empty(3, dtype=np.int64)
     t_first = np.empty(3, dtype=np.int64)
     t_delta = np.empty(3, dtype=np.int64)
-    t_max = np.empty(3, dtype=np.int64)
     tile = np.empty(3, dtype=np.int64)
     crossings = np.empty(3, dtype=np.int64)
     t_cross = np.empty(3, dtype=np.int64)
@@ -936,8 +976,9 @@ def _split_write(origins_vox, ends_vox, has_return, first, stop, shard_mask, out
          t_first[0], t_first[1], t_first[2], t_delta[0], t_delta[1], t_delta[2],
          steps) = _ray_start(origins_vox, ends_vox, r)  # fmt: skip
         for axis in range(3):
+            faces[r, axis] = t_first[axis]
+            faces[r, 3 + axis] = t_delta[axis]
             v[axis] = v0[axis]
-            t_max[axis] = t_first[axis]
             off = z_offset if axis == 2 else 0
             tile[axis] = (v0[axis] + off) >> tile_shift
             crossings[axis] = (
@@ -949,7 +990,6 @@ def _split_write(origins_vox, ends_vox, has_return, first, stop, shard_mask, out
                 j = (face - v0[axis] - (step[axis] > 0)) * step[axis]
                 t_cross[axis] = t_first[axis] + j * t_delta[axis]
         here = (tile[0] + tile[1] + tile[2]) & shard_mask
-        t_prev = 0
         start_steps = 0
         while True:
             # the next tile face the walk crosses: least t, x before y before z
@@ -997,10 +1037,6 @@ def _split_write(origins_vox, ends_vox, has_return, first, stop, shard_mask, out
                 voxel[k, 1] = v[1]
                 voxel[k, 2] = v[2]
                 voxel[k, 3] = at - 1 - start_steps
-                t_state[k, 0] = t_max[0]
-                t_state[k, 1] = t_max[1]
-                t_state[k, 2] = t_max[2]
-                t_state[k, 3] = t_prev
                 blocks = 2
                 for b in range(3):
                     last = end[b] if a < 0 else v0[b] + step[b] * (count[b] - (b == a))
@@ -1010,11 +1046,9 @@ def _split_write(origins_vox, ends_vox, has_return, first, stop, shard_mask, out
                 k += 1
             if a < 0:
                 break
-            if there != here:  # the walk's state where it enters the next tile
+            if there != here:  # where the walk enters the next tile
                 for b in range(3):
                     v[b] = v0[b] + step[b] * count[b]
-                    t_max[b] = t_first[b] + count[b] * t_delta[b] if v[b] != end[b] else T_NEVER
-                t_prev = min(t_enter, T_ONE)
                 start_steps = at
             here = there
     return k
@@ -1068,7 +1102,7 @@ def _walk_rays(
     """
     origins_vox, ends_vox, lengths = rays.origins_vox, rays.ends_vox, rays.lengths
     has_return, ray_room, ray_visits = rays.has_return, rays.room_needed, rays.visits_needed
-    piece_ray, piece_voxel, piece_t, room_needed, piece_return, order = pieces
+    piece_ray, piece_voxel, room_needed, piece_return, ray_faces, order = pieces
     whole = shard_mask == 0
     scan_id, stamp, decay_time = scan
     sa = shard_arrays
@@ -1144,29 +1178,13 @@ def _walk_rays(
                  t_delta_x, t_delta_y, t_delta_z, piece_steps) = _ray_start(
                     origins_vox, ends_vox, r)  # fmt: skip
                 t_prev = 0
-            else:  # a piece: the ray's end and steps, the piece's state
+            else:  # a piece: the ray's walk from the piece's first voxel on
                 p = order[i]
                 r = piece_ray[p]
-                ex = int(np.floor(ends_vox[r, 0]))
-                ey = int(np.floor(ends_vox[r, 1]))
-                ez = int(np.floor(ends_vox[r, 2]))
-                ox, oy, oz = origins_vox[r, 0], origins_vox[r, 1], origins_vox[r, 2]
-                step_x = 1 if ex > int(np.floor(ox)) else -1
-                step_y = 1 if ey > int(np.floor(oy)) else -1
-                step_z = 1 if ez > int(np.floor(oz)) else -1
-                # the ray's t between faces, as _ray_start computes it
-                t_delta_x = (
-                    _fixed(abs(1.0 / (ends_vox[r, 0] - ox))) if ex != int(np.floor(ox)) else 0
-                )
-                t_delta_y = (
-                    _fixed(abs(1.0 / (ends_vox[r, 1] - oy))) if ey != int(np.floor(oy)) else 0
-                )
-                t_delta_z = (
-                    _fixed(abs(1.0 / (ends_vox[r, 2] - oz))) if ez != int(np.floor(oz)) else 0
-                )
-                vx, vy, vz = piece_voxel[p, 0], piece_voxel[p, 1], piece_voxel[p, 2]
-                t_max_x, t_max_y, t_max_z = piece_t[p, 0], piece_t[p, 1], piece_t[p, 2]
-                t_prev = piece_t[p, 3]
+                (vx, vy, vz, ex, ey, ez, step_x, step_y, step_z, t_max_x, t_max_y, t_max_z,
+                 t_delta_x, t_delta_y, t_delta_z, t_prev) = _piece_start(
+                    origins_vox, ends_vox, ray_faces, r, piece_voxel[p, 0], piece_voxel[p, 1],
+                    piece_voxel[p, 2])  # fmt: skip
                 piece_steps = piece_voxel[p, 3]
             lane_floats[0, lane] = lengths[r] / T_ONE
             lane_ints[0, lane] = vx

@@ -280,7 +280,7 @@ def test_stretches_start_in_the_state_of_the_whole_walk(shards: int) -> None:
     """A thread walks only the stretches of rays in its shard's tiles (``split_rays``):
     each starts in exactly the state the walk from the ray's origin has there (voxel, every
     axis' next face, t at entry), and the stretches of a ray cover its walk once."""
-    from mfp_mapper.core.traversal import split_rays
+    from mfp_mapper.core.traversal import _piece_start, split_rays
 
     origins, ends = _tile_rays(3, 300, shards)
     has_return = np.ones(len(origins), dtype=np.bool_)
@@ -295,11 +295,29 @@ def test_stretches_start_in_the_state_of_the_whole_walk(shards: int) -> None:
         at = [k for k, (v, _) in enumerate(states) if v == voxel]
         assert len(at) == 1, (r, voxel)
         expected = states[at[0]][1]
-        assert tuple(pieces.t_state[p, :4].tolist()) == expected, (r, p)  # bit for bit
+        start = _piece_start(origins, ends, pieces.faces, r, *voxel)  # the state there
+        assert tuple(int(start[k]) for k in (9, 10, 11, 15)) == expected, (r, p)  # bit for bit
         covered.setdefault(r, []).extend(range(at[0], at[0] + steps + 1))
         assert pieces.has_return[p] == (at[0] + steps == len(states) - 1)
     for r in range(len(origins)):
         assert sorted(covered[r]) == list(range(len(_walk_states(origins[r], ends[r])))), r
+
+
+def test_the_walk_state_at_any_voxel_follows_from_the_ray() -> None:
+    """A stretch stores only its first voxel: the walk's state there (each axis' next face,
+    t at entry) is derived from the ray's faces the split wrote (``_piece_start``), and
+    equals the state the walk from the ray's origin has there at every voxel it visits,
+    bit for bit."""
+    from mfp_mapper.core.traversal import _piece_start, split_rays
+
+    origins, ends = _tile_rays(6, 200, 8)
+    has_return = np.ones(len(origins), dtype=np.bool_)
+    faces = split_rays(origins, ends, has_return, 0, len(origins), 7, True)[0].faces
+    for r in range(len(origins)):
+        for voxel, expected in _walk_states(origins[r], ends[r]):
+            start = _piece_start(origins, ends, faces, r, *voxel)
+            assert tuple(int(v) for v in start[:3]) == voxel
+            assert tuple(int(start[k]) for k in (9, 10, 11, 15)) == expected, (r, voxel)
 
 
 def test_one_two_four_and_eight_threads_give_the_same_store_bit_for_bit() -> None:
