@@ -301,10 +301,25 @@ def integrate_rays(
         return _walk_whole(rays, store.shards[0], scan, share)
     threads = max(shards // SHARDS_PER_THREAD, 1)
     size = max(min(-(-len(rays) // threads), SPLIT_RAYS), 1)  # at least a part a thread
-    room, visits, part_at = split_bounds(rays.origins_vox, rays.ends_vox, size, store.shard_mask)
-    whole = RayArrays(rays.origins_vox, rays.ends_vox, rays.lengths, rays.has_return, room, visits)
+    parts = -(-len(rays) // size)
+    part_at = np.zeros(parts + 1, dtype=np.int64)
+    # two tasks, each counting the parts of its half of the rays
+    halves = (0, min((parts + 1) // 2 * size, len(rays)), len(rays))
+
+    def count_half(h: int) -> None:
+        piece_counts(
+            rays.origins_vox, rays.ends_vox, halves[h], halves[h + 1], size, store.shard_mask,
+            part_at,
+        )  # fmt: skip
+
+    run_parallel(count_half, range(2))
+    np.cumsum(part_at, out=part_at)
+    # the rays' bounds: only a cut (cut_to_blocks) reads them, and computes its own
+    unbounded = np.zeros(len(rays), dtype=np.int64)
+    whole = RayArrays(
+        rays.origins_vox, rays.ends_vox, rays.lengths, rays.has_return, unbounded, unbounded
+    )
     pieces = _flat_pieces(store, int(part_at[-1]), len(rays))
-    parts = len(part_at) - 1
     segments = np.zeros((parts, shards, 2), dtype=np.int64)  # each part's pieces per shard
     work = np.zeros((parts, 2, shards), dtype=np.int64)  # per part: work, room
 
@@ -391,8 +406,20 @@ def ray_bounds(
     origins_vox: NDArray[np.float64], ends_vox: NDArray[np.float64]
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """``block_bounds`` and ``visit_bounds`` in one pass (ten numpy passes took 2 ms of a
-    50 ms scan at 0.2 m): ``split_bounds`` of the rays as one part."""
-    blocks, visits, _ = split_bounds(origins_vox, ends_vox, max(origins_vox.shape[0], 1), 0)
+    50 ms scan at 0.2 m)."""
+    count = origins_vox.shape[0]
+    blocks = np.empty(count, dtype=np.int64)
+    visits = np.empty(count, dtype=np.int64)
+    for r in range(count):
+        block_steps = 0
+        steps = 0
+        for axis in range(3):
+            lo = int(np.floor(origins_vox[r, axis]))
+            hi = int(np.floor(ends_vox[r, axis]))
+            steps += abs(hi - lo)
+            block_steps += abs((hi >> BLOCK_BITS) - (lo >> BLOCK_BITS))
+        blocks[r] = block_steps + 2
+        visits[r] = steps + 1
     return blocks, visits
 
 
@@ -842,31 +869,20 @@ def _bucket_starts(owner, voxel, k, shard_mask, bits, bucket):  # type: ignore[n
 
 
 @nb.njit(cache=True, nogil=True)
-def split_bounds(
-    origins_vox: NDArray[np.float64], ends_vox: NDArray[np.float64], size: int, shard_mask: int
-) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
-    """``ray_bounds`` (the blocks each ray can create, the voxels it visits) and where the
-    pieces of each part of ``size`` rays start in a scan's split (``split_into``; the last
-    entry: their total), in one pass."""
-    count = origins_vox.shape[0]
-    blocks = np.empty(count, dtype=np.int64)
-    visits = np.empty(count, dtype=np.int64)
-    parts = -(-count // size)
-    part_at = np.zeros(parts + 1, dtype=np.int64)
-    for r in range(count):
-        block_steps = 0
-        steps = 0
-        for axis in range(3):
-            lo = int(np.floor(origins_vox[r, axis]))
-            hi = int(np.floor(ends_vox[r, axis]))
-            steps += abs(hi - lo)
-            block_steps += abs((hi >> BLOCK_BITS) - (lo >> BLOCK_BITS))
-        blocks[r] = block_steps + 2
-        visits[r] = steps + 1
+def piece_counts(
+    origins_vox: NDArray[np.float64],
+    ends_vox: NDArray[np.float64],
+    first: int,
+    stop: int,
+    size: int,
+    shard_mask: int,
+    part_at: NDArray[np.int64],
+) -> None:
+    """Adds to ``part_at[c + 1]`` how many pieces the rays of part ``c`` (rays ``c * size``
+    on) among rays ``first:stop`` can have (``_piece_bound``): where each part's start in a
+    scan's split (``split_into``), once summed."""
+    for r in range(first, stop):
         part_at[r // size + 1] += _piece_bound(origins_vox, ends_vox, r, shard_mask)
-    for c in range(parts):
-        part_at[c + 1] += part_at[c]
-    return blocks, visits, part_at
 
 
 @nb.njit(cache=True, nogil=True)
@@ -886,7 +902,7 @@ def split_into(
 ) -> int:
     """``split_rays`` of rays ``first:stop`` (by tile), written into ``out`` from piece
     ``at`` on through ``scratch`` and ``keys`` (2, n) (room for the part's pieces at least,
-    ``split_bounds``; ``_split_scratch``), in the order to walk
+    ``piece_counts``; ``_split_scratch``), in the order to walk
     them: shard k's are pieces ``segments[k, 0]:segments[k, 1]``, so that its walk reads
     them one after another (read through a shuffled ``order`` as ``split_rays`` gives
     them, the walks of OS1-128 at 0.2 m took 5-8% more CPU time, more than the copy
