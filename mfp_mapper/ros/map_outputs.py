@@ -83,6 +83,7 @@ counterpart."""
 class PublishCounters:
     seconds: float = 0.0  # building and sending, without waiting for the map lock
     locked_seconds: float = 0.0  # of which the map lock was held (integration waits)
+    locked_max_seconds: float = 0.0  # the longest single hold of the map lock
     count: int = 0
     last_seconds: float = 0.0
     voxels: int = 0
@@ -169,16 +170,19 @@ class MapOutputs:
 
     @contextlib.contextmanager
     def _timed_map_lock(self, times: list[float] | None) -> Iterator[None]:
-        """The map lock; adds the seconds waited for it and held to ``times`` (if given)."""
+        """The map lock; adds the seconds waited for it and held to ``times`` (if given) and
+        keeps the longest hold (``PublishCounters.locked_max_seconds``)."""
         t0 = time.perf_counter()
         with self._worker.whole_map:
             t1 = time.perf_counter()
             try:
                 yield
             finally:
+                held = time.perf_counter() - t1
+                self.counters.locked_max_seconds = max(self.counters.locked_max_seconds, held)
                 if times is not None:
                     times[0] += t1 - t0
-                    times[1] += time.perf_counter() - t1
+                    times[1] += held
 
     def _header_stamp(self, stamp: float | None) -> Any:
         return stamp_msg(stamp) if stamp is not None else self._node.get_clock().now().to_msg()
