@@ -509,6 +509,7 @@ def _report(
         # since the node started (the first publication of a loaded map included)
         "publish_map_locked_max_ms": _ms(after.get("publish_locked_max_s")),
         "map_wait_max_ms": _ms(after.get("map_wait_max_s")),
+        "last_publication_slices": after.get("publish_slices"),
         "dropped_before_window": before["clouds_dropped"],
         "integrated_before_window": before["clouds_integrated"],
         "voxels": after["voxels"],
@@ -923,7 +924,8 @@ def main() -> int:
         )
         print(
             f"{'':<10} since start: longest map-lock hold by a publication "
-            f"{r['publish_map_locked_max_ms']} ms, longest wait of a scan for the map "
+            f"{r['publish_map_locked_max_ms']} ms (the last read in {r['last_publication_slices']} "
+            "slices), longest wait of a scan for the map "
             f"{r['map_wait_max_ms']} ms; before the window {r['integrated_before_window']} "
             f"integrated, dropped {r['dropped_before_window']}"
         )

@@ -37,11 +37,12 @@ ChangedArrays = tuple[
 
 
 @nb.njit(cache=True, nogil=True)
-def _changed_bound(sa: ShardArrays, used: int, since: int) -> tuple[int, int]:
-    """How many changed blocks hold a return, and at most how many voxels they select."""
+def _changed_bound(sa: ShardArrays, start: int, stop: int, since: int) -> tuple[int, int]:
+    """How many changed blocks of ``start..stop`` hold a return, and at most how many
+    voxels they select."""
     blocks = 0
     bound = 0
-    for b in range(used):
+    for b in range(start, stop):
         if sa.block_scan[b] < since or not sa.block_hit[b]:
             continue
         blocks += 1
@@ -65,7 +66,8 @@ def _keep(s: float, n: float, min_extinction: float) -> bool:
 @nb.njit(cache=True, nogil=True)
 def _changed_returns(
     sa: ShardArrays,
-    used: int,
+    start: int,
+    stop: int,
     since: int,
     min_extinction: float,
     blocks_out: NDArray[np.int32],
@@ -74,13 +76,14 @@ def _changed_returns(
     n_out: NDArray[np.float64],
     t_out: NDArray[np.float64],
 ) -> int:
-    """Fill the outputs (sized by ``_changed_bound``) with the changed blocks holding a
-    return and their voxels with ``n >= min_extinction * s``; returns the voxel count."""
+    """Fill the outputs (sized by ``_changed_bound``) with the changed blocks of
+    ``start..stop`` holding a return and their voxels with ``n >= min_extinction * s``;
+    returns the voxel count."""
     j = 0
     m = 0
     s_block = np.empty(BLOCK_VOXELS)
     n_block = np.empty(BLOCK_VOXELS)
-    for b in range(used):
+    for b in range(start, stop):
         if sa.block_scan[b] < since or not sa.block_hit[b]:
             continue
         x0, y0, z0 = block_origin(sa.block_ijk, b)
@@ -123,24 +126,48 @@ def _changed_returns(
 
 
 def changed_returns(
-    shards: list[tuple[ShardArrays, int]], since: int, min_extinction: float
-) -> ChangedArrays:
+    shards: list[tuple[ShardArrays, int]],
+    since: int,
+    min_extinction: float,
+    start: tuple[int, int] = (0, 0),
+    max_blocks: int | None = None,
+) -> tuple[ChangedArrays, tuple[int, int] | None]:
     """Over ``(arrays, used blocks)`` of each shard: the blocks holding a return that a scan
     numbered ``since`` or later opened (all of them: ``since`` -1), and their voxels with
-    ``n >= min_extinction * s`` (``min_extinction`` > 0), statistics as stored."""
+    ``n >= min_extinction * s`` (``min_extinction`` > 0), statistics as stored.
+
+    From block ``start`` = (shard, block) on, at most ``max_blocks`` blocks (of the store,
+    whether changed or not: a bound on the time taken); also returns where the next call
+    goes on, None when every shard was read to its end. Blocks keep their place while the
+    map's ``epoch`` stays the same, so calls with the map changed by scans in between read
+    each block once (as it was at the call that read it)."""
     if not min_extinction > 0.0:
         raise ValueError(f"min_extinction must be > 0, got {min_extinction}")
+    left = max_blocks if max_blocks is not None else sum(used for _, used in shards)
     parts = []
-    for sa, used in shards:
-        blocks, bound = _changed_bound(sa, used, since)
-        out = (
-            np.empty((blocks, 3), np.int32),
-            np.empty((bound, 3), np.int32),
-            np.empty(bound),
-            np.empty(bound),
-            np.empty(bound),
-        )
-        count = _changed_returns(sa, used, since, min_extinction, *out)
-        parts.append((out[0], *(a[:count] for a in out[1:])))
+    shard, block = start
+    while shard < len(shards):
+        sa, used = shards[shard]
+        stop = min(used, block + max(left, 0))
+        if stop > block:
+            blocks, bound = _changed_bound(sa, block, stop, since)
+            out = (
+                np.empty((blocks, 3), np.int32),
+                np.empty((bound, 3), np.int32),
+                np.empty(bound),
+                np.empty(bound),
+                np.empty(bound),
+            )
+            count = _changed_returns(sa, block, stop, since, min_extinction, *out)
+            parts.append((out[0], *(a[:count] for a in out[1:])))
+            left -= stop - block
+        if stop < used:
+            block = stop
+            break
+        shard, block = shard + 1, 0
+    cursor = None if shard >= len(shards) else (shard, block)
+    if not parts:
+        empty = (np.empty((0, 3), np.int32), np.empty((0, 3), np.int32))
+        return (*empty, np.empty(0), np.empty(0), np.empty(0)), cursor
     blocks_out, ijk, s, n, t = (np.concatenate([p[k] for p in parts]) for k in range(5))
-    return blocks_out, ijk, s, n, t
+    return (blocks_out, ijk, s, n, t), cursor

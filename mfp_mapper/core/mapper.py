@@ -17,7 +17,14 @@ from mfp_mapper.config.sections import MapSection, SensorModelSection
 from mfp_mapper.core import model, traversal
 from mfp_mapper.core.changed_blocks import changed_returns
 from mfp_mapper.core.errors import CoreError, ScanTooLargeError
-from mfp_mapper.core.gridmap import BandCells, HitGrid, band_grid
+from mfp_mapper.core.gridmap import (
+    BandCells,
+    GridReading,
+    HitGrid,
+    band_grid_result,
+    band_grid_step,
+    start_band_grid,
+)
 from mfp_mapper.core.memory_bound import (
     MemoryBound,
     fit_scan_budget,
@@ -742,12 +749,30 @@ class Mapper:
         block holding a return; and the ``since`` that asks for the changes after this
         call. A cache of ``voxels`` per block stays exact while ``epoch`` stays the same
         (``core.changed_blocks``; ``mapping.map_cloud``)."""
+        voxels, blocks, next_since, _ = self.changed_voxels_from(since, min_doo)
+        return voxels, blocks, next_since
+
+    def changed_voxels_from(
+        self,
+        since: int,
+        min_doo: float,
+        start: tuple[int, int] = (0, 0),
+        max_blocks: int | None = None,
+    ) -> tuple[VoxelStats, NDArray[np.int32], int, tuple[int, int] | None]:
+        """``changed_voxels`` of the store's blocks from ``start`` (a place this method
+        returned, (0, 0) first), at most ``max_blocks`` of them, changed or not; also
+        where the next call goes on (None: the last block was read). Reading a map in such
+        slices, the map lock let go in between, reads every block once while ``epoch``
+        stays the same (``core.changed_blocks``)."""
         if not 0.0 < min_doo <= 1.0:
             raise ValueError(f"min_doo must lie in (0, 1], got {min_doo}")
         min_extinction = math.inf if min_doo >= 1.0 else -math.log1p(-min_doo)
         shards = [(sh.arrays(), sh.used) for sh in self._store.shards]
-        blocks, ijk, s, n, t = changed_returns(shards, since, min_extinction)
-        return self._stats(VoxelArrays(ijk, s, n, t), None), blocks, self._store.next_scan
+        (blocks, ijk, s, n, t), cursor = changed_returns(
+            shards, since, min_extinction, start, max_blocks
+        )
+        voxels = self._stats(VoxelArrays(ijk, s, n, t), None)
+        return voxels, blocks, self._store.next_scan, cursor
 
     def _index_bounds(
         self, bounds: tuple[ArrayLike, ArrayLike]
@@ -784,6 +809,27 @@ class Mapper:
         the whole band with the same settings, from which only the columns scans changed
         since are computed again (``gridmap.band_grid``; the whole band when anything else
         changed the map: ``epoch``)."""
+        reading = self.start_grid(
+            z_min, z_max, center=center, radius=radius, max_cells=max_cells,
+            trinary=trinary, previous=previous,
+        )  # fmt: skip
+        grid = self.read_grid(reading)
+        assert grid is not None
+        return grid
+
+    def start_grid(
+        self,
+        z_min: float,
+        z_max: float,
+        *,
+        center: tuple[float, float] | None = None,
+        radius: float = 0.0,
+        max_cells: int | None = None,
+        trinary: tuple[float, float] | None = None,
+        previous: BandCells | None = None,
+    ) -> GridReading:
+        """``hit_probability_grid`` to be read in slices of blocks (``read_grid``): its
+        extent and the columns to compute, no block's values read yet."""
         lo_m, hi_m = [-math.inf, -math.inf, z_min], [math.inf, math.inf, z_max]
         if center is not None and radius > 0.0:  # only the blocks near the window are read
             margin = radius + self.resolution
@@ -792,7 +838,7 @@ class Mapper:
         lo, hi = self._index_bounds((lo_m, hi_m))
         shards = [(sh.arrays(), sh.used) for sh in self._store.shards]
         ox, oy, oz = (float(v) for v in self._offset)
-        grid = band_grid(
+        return start_band_grid(
             shards,
             self.resolution,
             z_min - oz,
@@ -808,6 +854,25 @@ class Mapper:
             since=self._store.next_scan,
             key=(id(self), self.epoch, z_min, z_max, trinary, self.prior, ox, oy, oz),
         )
+
+    def grid_still_valid(self, reading: GridReading) -> bool:
+        """Whether ``reading`` (``start_grid``) may go on: same map, same epoch (no block
+        moved: reset, clear_box and eviction move them), same prior."""
+        return reading.key[:2] == (id(self), self.epoch) and reading.key[5] == self.prior
+
+    def read_grid(self, reading: GridReading, max_blocks: int | None = None) -> HitGrid | None:
+        """Read ``reading``'s next blocks, at most ``max_blocks`` of the store's (all:
+        None); the grid once every block was read, else None (call again, the map lock
+        may be let go in between: ``gridmap.GridReading``). ``ValueError`` when
+        ``grid_still_valid`` is not."""
+        if not self.grid_still_valid(reading):
+            raise ValueError("read_grid: the map changed under the grid (start again)")
+        shards = [(sh.arrays(), sh.used) for sh in self._store.shards]
+        band_grid_step(reading, shards, max_blocks)
+        if reading.cursor is not None:
+            return None
+        grid = band_grid_result(reading, self.resolution)
+        ox, oy = float(reading.key[6]), float(reading.key[7])  # type: ignore[arg-type]
         if ox == 0.0 and oy == 0.0:
             return grid
         return dataclasses.replace(grid, origin=(grid.origin[0] + ox, grid.origin[1] + oy))
