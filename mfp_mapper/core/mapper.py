@@ -1017,20 +1017,46 @@ def _mean_origin(rays: Rays) -> FloatArray:
     return total / len(rays)
 
 
-def compile_kernels(decay_time: float = math.inf) -> float:
-    """Run the compiled kernels of a live scan once on a few rays (``integrate``, ``stage``
-    and ``commit``, with reflectivity histograms, ``query``, ``voxels``, the projected
-    grids), so that numba compiles them, or loads them from its cache, before the first real
-    scan or publication (which would hold the map meanwhile); returns the seconds it took."""
+def compile_kernels(resolution: float = 0.5, **settings: Any) -> float:
+    """Run the compiled kernels of a live node once, on a throwaway ``Mapper(resolution,
+    **settings)`` (the node's settings: its ``threads`` walk other kernels than one
+    thread): a synthetic scan integrated directly and staged + committed, without and with
+    reflectivity histograms, then ``query``, ``query_segments``, ``reflectivity``, ``voxels``, the
+    clouds' changed blocks (``changed_voxels_from``) and the projected grids (whole,
+    continued, windowed), so that numba compiles them, or loads them from its cache, before
+    the first real scan or publication; returns the seconds it took. The scan's 256 rays
+    reach three tiles of shards (``traversal``) whatever the resolution: every shard of the
+    threaded walk gets some."""
     t0 = time.perf_counter()
-    points = np.array([[2.0, 0.5, 0.3], [-1.0, 3.0, 0.8], [0.5, -2.5, -0.4]])
-    mapper = Mapper(0.5, decay_time=decay_time)
-    values = ScanReflectivity(np.ones(len(points)), ReflectivityBins("warm-up", (2.0,)))
-    mapper.integrate(points, np.zeros(3), 1.0, reflectivity=values)
-    mapper.commit(mapper.stage(points, np.zeros(3), 2.0, None, values))
-    mapper.query(points)
-    mapper.reflectivity(points, 2.0)
-    mapper.voxels(min_doo=0.1, bounds=(np.full(3, -5.0), np.full(3, 5.0)))
-    mapper.hit_probability_grid(-1.0, 1.0, trinary=(0.25, 0.01))
-    mapper.hit_probability_grid(-1.0, 1.0, center=(0.0, 0.0), radius=2.0)
+    mapper = Mapper(resolution, origin=np.zeros(3), **settings)
+    try:
+        at = np.arange(256) + 0.5  # a Fibonacci sphere of directions
+        z = 1.0 - 2.0 * at / 256
+        azimuth = np.pi * (1.0 + 5.0**0.5) * at
+        ring = np.sqrt(1.0 - z * z)
+        directions = np.stack([ring * np.cos(azimuth), ring * np.sin(azimuth), z], axis=1)
+        origin = np.full(3, 0.5 * mapper.resolution)  # a voxel's centre
+        points = origin + directions * (3 * 64 * mapper.resolution)
+        bins = ReflectivityBins("warm-up", (2.0,))
+        values = ScanReflectivity(np.ones(len(points)), bins)
+        for reflectivity in (None, values):  # clouds without and with an intensity
+            mapper.integrate(points, origin, 1.0, reflectivity=reflectivity)
+            mapper.commit(mapper.stage(points, origin, 1.1, None, reflectivity))
+        nearer = origin + 0.5 * (points - origin)  # returns in new voxels: the table grows
+        mapper.integrate(nearer, origin, 1.15, reflectivity=values)
+        # every ray crosses half of the sensor's voxel: within these scans its block is
+        # flushed to float64 (``FLUSH_EDGES``), as a live node's is in its first second
+        for scan in range(8):
+            mapper.integrate(points, origin, 1.2 + 0.1 * scan)
+        mapper.query(points[:8])
+        mapper.query_segments(points[:4], points[4:8])
+        mapper.reflectivity(points[:8], 2.0)
+        mapper.voxels(min_doo=0.1, bounds=(np.full(3, -5.0), np.full(3, 5.0)))
+        mapper.changed_voxels_from(-1, 0.1, (0, 0), 64)
+        grid = mapper.hit_probability_grid(-1.0, 1.0, trinary=(0.25, 0.01))
+        mapper.integrate(points[:8], origin, 3.0)
+        mapper.hit_probability_grid(-1.0, 1.0, trinary=(0.25, 0.01), previous=grid.cells)
+        mapper.hit_probability_grid(-1.0, 1.0, center=(0.0, 0.0), radius=2.0)
+    finally:
+        mapper.close()
     return time.perf_counter() - t0
