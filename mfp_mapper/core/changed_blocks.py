@@ -12,6 +12,9 @@ every block holding a return.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from dataclasses import dataclass
+
 import numba as nb
 import numpy as np
 from numpy.typing import NDArray
@@ -125,49 +128,75 @@ def _changed_returns(
     return j
 
 
+@dataclass(frozen=True)
+class BlockCursor:
+    """Where a read of the store in slices of blocks goes on: block ``block`` of shard
+    ``shard``; ``ends``: each shard's block count when the read began. Blocks keep their
+    place while the map's epoch stays the same and new ones come after the others, so a
+    read that stops at ``ends`` reads each block of the map it began on once, and ends
+    however fast scans add blocks (those are the next read's: they changed after it began)."""
+
+    shard: int
+    block: int
+    ends: tuple[int, ...]
+
+
+def block_ranges(
+    shards: Sequence[tuple[object, int]], cursor: BlockCursor | None, max_blocks: int | None
+) -> tuple[list[tuple[int, int, int]], BlockCursor | None]:
+    """The (shard, start, stop) block ranges of the next slice of at most ``max_blocks``
+    blocks (None: to the end) from ``cursor`` (None: a new read, from the first block of
+    ``shards``, ``(arrays, used)`` each), and the cursor after them (None: read to the end)."""
+    if cursor is None:
+        cursor = BlockCursor(0, 0, tuple(used for _, used in shards))
+    ends = cursor.ends
+    left = sum(ends) if max_blocks is None else max(int(max_blocks), 1)
+    ranges = []
+    shard, block = cursor.shard, cursor.block
+    while shard < len(ends):
+        end = min(ends[shard], shards[shard][1])
+        stop = min(end, block + left)
+        if stop > block:
+            ranges.append((shard, block, stop))
+            left -= stop - block
+        if stop < end:
+            return ranges, BlockCursor(shard, stop, ends)
+        shard, block = shard + 1, 0
+    return ranges, None
+
+
 def changed_returns(
     shards: list[tuple[ShardArrays, int]],
     since: int,
     min_extinction: float,
-    start: tuple[int, int] = (0, 0),
+    cursor: BlockCursor | None = None,
     max_blocks: int | None = None,
-) -> tuple[ChangedArrays, tuple[int, int] | None]:
+) -> tuple[ChangedArrays, BlockCursor | None]:
     """Over ``(arrays, used blocks)`` of each shard: the blocks holding a return that a scan
     numbered ``since`` or later opened (all of them: ``since`` -1), and their voxels with
     ``n >= min_extinction * s`` (``min_extinction`` > 0), statistics as stored.
 
-    From block ``start`` = (shard, block) on, at most ``max_blocks`` blocks (of the store,
-    whether changed or not: a bound on the time taken); also returns where the next call
-    goes on, None when every shard was read to its end. Blocks keep their place while the
-    map's ``epoch`` stays the same, so calls with the map changed by scans in between read
-    each block once (as it was at the call that read it)."""
+    In slices: from ``cursor`` (None: a new read), at most ``max_blocks`` blocks of the
+    store, changed or not (a bound on the time taken); also returns the cursor of the next
+    slice, None when the read is complete (``BlockCursor``)."""
     if not min_extinction > 0.0:
         raise ValueError(f"min_extinction must be > 0, got {min_extinction}")
-    left = max_blocks if max_blocks is not None else sum(used for _, used in shards)
+    ranges, after = block_ranges(shards, cursor, max_blocks)
     parts = []
-    shard, block = start
-    while shard < len(shards):
-        sa, used = shards[shard]
-        stop = min(used, block + max(left, 0))
-        if stop > block:
-            blocks, bound = _changed_bound(sa, block, stop, since)
-            out = (
-                np.empty((blocks, 3), np.int32),
-                np.empty((bound, 3), np.int32),
-                np.empty(bound),
-                np.empty(bound),
-                np.empty(bound),
-            )
-            count = _changed_returns(sa, block, stop, since, min_extinction, *out)
-            parts.append((out[0], *(a[:count] for a in out[1:])))
-            left -= stop - block
-        if stop < used:
-            block = stop
-            break
-        shard, block = shard + 1, 0
-    cursor = None if shard >= len(shards) else (shard, block)
+    for shard, start, stop in ranges:
+        sa = shards[shard][0]
+        blocks, bound = _changed_bound(sa, start, stop, since)
+        out = (
+            np.empty((blocks, 3), np.int32),
+            np.empty((bound, 3), np.int32),
+            np.empty(bound),
+            np.empty(bound),
+            np.empty(bound),
+        )
+        count = _changed_returns(sa, start, stop, since, min_extinction, *out)
+        parts.append((out[0], *(a[:count] for a in out[1:])))
     if not parts:
         empty = (np.empty((0, 3), np.int32), np.empty((0, 3), np.int32))
-        return (*empty, np.empty(0), np.empty(0), np.empty(0)), cursor
+        return (*empty, np.empty(0), np.empty(0), np.empty(0)), after
     blocks_out, ijk, s, n, t = (np.concatenate([p[k] for p in parts]) for k in range(5))
-    return (blocks_out, ijk, s, n, t), cursor
+    return (blocks_out, ijk, s, n, t), after

@@ -39,6 +39,7 @@ from mfp_mapper.core.blocks import (
     local_coords,
     voxel_inside,
 )
+from mfp_mapper.core.changed_blocks import BlockCursor, block_ranges
 from mfp_mapper.core.shard import ShardArrays, block_values
 
 UNKNOWN = -1
@@ -199,8 +200,9 @@ class GridReading:
     trinary: bool
     args: tuple[Any, ...]
     """``_band_max_percent``'s arguments after the block range (bounds, band, thresholds)."""
-    cursor: tuple[int, int] | None = (0, 0)
-    """(shard, block) where the next range starts; None: every block read."""
+    cursor: BlockCursor | None = None
+    """Where the next range starts (None: every block read, once ``started``)."""
+    started: bool = False
 
 
 def band_grid(
@@ -285,7 +287,7 @@ def start_band_grid(
             _observed_extent(arrays, used, lo, hi, extent, changed_since)
         if extent[0] > extent[2]:
             empty = np.zeros((0, 0), np.int8)
-            return GridReading(empty, 0, 0, since, key, False, use_trinary, (), None)
+            return GridReading(empty, 0, 0, since, key, False, use_trinary, (), None, True)
         i0, j0, i1, j1 = (int(v) for v in extent)
     size = (j1 - j0 + 1) * (i1 - i0 + 1)
     if max_cells is not None and size > max_cells:
@@ -327,26 +329,17 @@ def band_grid_step(
     ``max_blocks`` of them (all: None), and move the cursor past them (None: done).
     ``shards`` as the store has them now; blocks keep their place while the map's epoch
     stays the same (new blocks come after the others)."""
-    if reading.cursor is None:
+    if reading.started and reading.cursor is None:
         return
-    left = max_blocks if max_blocks is not None else sum(used for _, used in shards)
-    shard, block = reading.cursor
-    while shard < len(shards):
-        arrays, used = shards[shard]
-        stop = min(used, block + max(left, 0))
-        if stop > block:
-            _band_max_percent(arrays, block, stop, *reading.args)
-            left -= stop - block
-        if stop < used:
-            reading.cursor = (shard, stop)
-            return
-        shard, block = shard + 1, 0
-    reading.cursor = None
+    ranges, reading.cursor = block_ranges(shards, reading.cursor, max_blocks)
+    reading.started = True
+    for shard, start, stop in ranges:
+        _band_max_percent(shards[shard][0], start, stop, *reading.args)
 
 
 def band_grid_result(reading: GridReading, resolution: float) -> HitGrid:
     """The grid of a reading whose every block was read (``band_grid_step``)."""
-    if reading.cursor is not None:
+    if not reading.started or reading.cursor is not None:
         raise ValueError("band_grid_result: blocks are left to read")
     cells = reading.cells
     if not cells.size:

@@ -15,7 +15,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from mfp_mapper.config.sections import MapSection, SensorModelSection
 from mfp_mapper.core import model, traversal
-from mfp_mapper.core.changed_blocks import changed_returns
+from mfp_mapper.core.changed_blocks import BlockCursor, changed_returns
 from mfp_mapper.core.errors import CoreError, ScanTooLargeError
 from mfp_mapper.core.gridmap import (
     BandCells,
@@ -756,23 +756,23 @@ class Mapper:
         self,
         since: int,
         min_doo: float,
-        start: tuple[int, int] = (0, 0),
+        cursor: BlockCursor | None = None,
         max_blocks: int | None = None,
-    ) -> tuple[VoxelStats, NDArray[np.int32], int, tuple[int, int] | None]:
-        """``changed_voxels`` of the store's blocks from ``start`` (a place this method
-        returned, (0, 0) first), at most ``max_blocks`` of them, changed or not; also
-        where the next call goes on (None: the last block was read). Reading a map in such
-        slices, the map lock let go in between, reads every block once while ``epoch``
-        stays the same (``core.changed_blocks``)."""
+    ) -> tuple[VoxelStats, NDArray[np.int32], int, BlockCursor | None]:
+        """``changed_voxels`` in slices: the blocks from ``cursor`` (None: a new read), at
+        most ``max_blocks`` of the store's, changed or not; also the cursor of the next
+        slice (None: the read is complete). Read with the map lock let go between slices,
+        every block the map had when the read began is read once, as it was at its slice,
+        while ``epoch`` stays the same (``core.changed_blocks.BlockCursor``)."""
         if not 0.0 < min_doo <= 1.0:
             raise ValueError(f"min_doo must lie in (0, 1], got {min_doo}")
         min_extinction = math.inf if min_doo >= 1.0 else -math.log1p(-min_doo)
         shards = [(sh.arrays(), sh.used) for sh in self._store.shards]
-        (blocks, ijk, s, n, t), cursor = changed_returns(
-            shards, since, min_extinction, start, max_blocks
+        (blocks, ijk, s, n, t), after = changed_returns(
+            shards, since, min_extinction, cursor, max_blocks
         )
         voxels = self._stats(VoxelArrays(ijk, s, n, t), None)
-        return voxels, blocks, self._store.next_scan, cursor
+        return voxels, blocks, self._store.next_scan, after
 
     def _index_bounds(
         self, bounds: tuple[ArrayLike, ArrayLike]
@@ -1052,7 +1052,7 @@ def compile_kernels(resolution: float = 0.5, **settings: Any) -> float:
         mapper.query_segments(points[:4], points[4:8])
         mapper.reflectivity(points[:8], 2.0)
         mapper.voxels(min_doo=0.1, bounds=(np.full(3, -5.0), np.full(3, 5.0)))
-        mapper.changed_voxels_from(-1, 0.1, (0, 0), 64)
+        mapper.changed_voxels_from(-1, 0.1, None, 64)
         grid = mapper.hit_probability_grid(-1.0, 1.0, trinary=(0.25, 0.01))
         mapper.integrate(points[:8], origin, 3.0)
         mapper.hit_probability_grid(-1.0, 1.0, trinary=(0.25, 0.01), previous=grid.cells)

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from mfp_mapper.core.changed_blocks import BlockCursor
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.core.reflectivity import mean_value, most_likely_bin
 from mfp_mapper.core.voxel_stats import VoxelStats
@@ -73,12 +74,13 @@ class CloudChanges:
     blocks: list[NDArray[np.int32]]
     bins: Any  # the histograms' bins (None: the map keeps none)
     counts: list[NDArray[np.float64]]
-    cursor: tuple[int, int] | None = None
+    cursor: BlockCursor | None = None
     restarts: int = 0
+    started: bool = False
 
     @property
     def complete(self) -> bool:
-        return self.cursor is None
+        return self.started and self.cursor is None
 
 
 def block_keys(block_ijk: NDArray[np.integer]) -> NDArray[np.int64]:
@@ -118,24 +120,21 @@ class MapCloud:
             id(mapper), mapper.epoch, min_doo, min_evidence, mapper.prior,
             mapper.reflectivity_scale, mapper.resolution,
         )  # fmt: skip
-        if partial is not None and partial.key == key and partial.cursor is not None:
+        if partial is not None and partial.key == key and not partial.complete:
             changes = partial
         else:  # a new read, or the map changed under the last slice: from the start
             restarts = 0 if partial is None else partial.restarts + 1
             full = key != self._key or self._rows is None
             read_since = -1 if full else self._since
-            changes = CloudChanges(
-                key, full, read_since, -1, [], [], None, [], (0, 0), restarts
-            )  # fmt: skip
+            changes = CloudChanges(key, full, read_since, -1, [], [], None, [], None, restarts)
         if changes.restarts > MAX_RESTARTS:
             max_blocks = None
-        assert changes.cursor is not None
         voxels, blocks, since, cursor = mapper.changed_voxels_from(
             changes.read_since, min_doo, changes.cursor, max_blocks
         )
         if changes.since < 0:
             changes.since = since
-        changes.cursor = cursor
+        changes.cursor, changes.started = cursor, True
         changes.voxels.append(voxels)
         changes.blocks.append(blocks)
         histograms = mapper.reflectivity(voxels.centers)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -116,4 +117,55 @@ def test_a_publication_without_changed_blocks_keeps_the_rows() -> None:
     rows = _update(cloud, mapper, 0.1, 0.0)
     assert cloud.last_changed_blocks == 0
     _assert_same(rows, first)
+    _assert_same(rows, _whole(mapper, 0.1, 0.0))
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_a_read_in_slices_with_scans_between_then_the_next_equals_the_whole_map(
+    threads: int,
+) -> None:
+    """``MapCloud.read`` a few blocks at a time (the node lets go of the map lock between
+    slices): without scans in between, the rows of one read; with scans integrated between
+    the slices, the rows hold every voxel once and the next publication equals the whole
+    map (it reads again the blocks those scans changed); a clear_box between two slices
+    starts the read again."""
+    rng = np.random.default_rng(13)
+    mapper = Mapper(0.2, threads=threads, reflectivity_bins=8)
+    bins = bins_for("intensity", 8)
+
+    def scan(k: int) -> None:
+        origin = np.array([2.0 * k, 0.3 * k, 1.0])
+        points = origin + rng.normal(0.0, 3.0, (1500, 3))
+        values = ScanReflectivity(rng.uniform(0.0, 100.0, len(points)), bins)
+        mapper.integrate(points, origin, 10.0 + k, reflectivity=values)
+
+    def sliced(cloud: MapCloud, between: Callable[[], None] | None = None) -> CloudRows:
+        changes = cloud.read(mapper, 0.1, 0.0, 30)
+        count = 1
+        while not changes.complete:
+            if between is not None:
+                between()
+            changes = cloud.read(mapper, 0.1, 0.0, 30, changes)
+            count += 1
+        assert count > 3
+        return cloud.apply(changes, 0.0)
+
+    for k in range(4):
+        scan(k)
+    cloud = MapCloud()
+    _assert_same(sliced(cloud), _whole(mapper, 0.1, 0.0))
+    later = iter(range(4, 100))
+    rows = sliced(cloud, lambda: scan(next(later)))
+    assert next(later) > 6
+    assert len(np.unique(rows.centers, axis=0)) == len(rows), "a voxel twice"
+    _assert_same(_update(cloud, mapper, 0.1, 0.0), _whole(mapper, 0.1, 0.0))
+    cleared = []
+    rows = sliced(
+        cloud,
+        lambda: (
+            cleared.append(mapper.clear_box([-1.0, -1.0, 0.0], [1.0, 1.0, 2.0]))
+            if not cleared
+            else None
+        ),
+    )
     _assert_same(rows, _whole(mapper, 0.1, 0.0))
