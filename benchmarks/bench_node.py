@@ -383,7 +383,8 @@ def run_stream(
             feeder.odom_pub.publish(_odom(stamp, position, quaternion))
 
     try:
-        if not feeder.wait_connected(30.0):
+        # a node compiling its kernels into a cold cache (--cold-cache) subscribes after it
+        if not feeder.wait_connected(300.0):
             raise RuntimeError(f"node not discovered:\n{node.log()[-2000:]}")
         feeder.wait(lambda: feeder.status is not None, 10.0)
         if os.environ.get("BENCH_DEBUG"):
