@@ -40,16 +40,18 @@ ChangedArrays = tuple[
 
 
 @nb.njit(cache=True, nogil=True)
-def _changed_bound(sa: ShardArrays, start: int, stop: int, since: int) -> tuple[int, int]:
-    """How many changed blocks of ``start..stop`` hold a return, and at most how many
-    voxels they select."""
+def _changed_bound(
+    sa: ShardArrays, start: int, stop: int, since: int, every_voxel: bool
+) -> tuple[int, int]:
+    """How many changed blocks of ``start..stop`` hold a return (``every_voxel``: how many
+    changed blocks), and at most how many voxels they select."""
     blocks = 0
     bound = 0
     for b in range(start, stop):
-        if sa.block_scan[b] < since or not sa.block_hit[b]:
+        if sa.block_scan[b] < since or not (every_voxel or sa.block_hit[b]):
             continue
         blocks += 1
-        if sa.block_href[b] >= 0:
+        if every_voxel or sa.block_href[b] >= 0:
             bound += BLOCK_VOXELS
             continue
         row = sa.block_nrec[b]
@@ -62,7 +64,8 @@ def _changed_bound(sa: ShardArrays, start: int, stop: int, since: int) -> tuple[
 
 @nb.njit(cache=True, nogil=True)
 def _keep(s: float, n: float, min_extinction: float) -> bool:
-    """``store._select_voxels``' test for ``min_extinction`` > 0 (n > 0 needed)."""
+    """``store._select_voxels``' test: ``n >= min_extinction * s``, and observed (with
+    ``min_extinction`` 0: every observed voxel)."""
     return (s > 0.0 and n >= min_extinction * s) or (s == 0.0 and n > 0.0)
 
 
@@ -80,14 +83,16 @@ def _changed_returns(
     t_out: NDArray[np.float64],
 ) -> int:
     """Fill the outputs (sized by ``_changed_bound``) with the changed blocks of
-    ``start..stop`` holding a return and their voxels with ``n >= min_extinction * s``;
-    returns the voxel count."""
+    ``start..stop`` holding a return and their voxels with ``n >= min_extinction * s``
+    (``min_extinction`` 0: every changed block and its observed voxels); returns the voxel
+    count."""
+    every_voxel = min_extinction == 0.0
     j = 0
     m = 0
     s_block = np.empty(BLOCK_VOXELS)
     n_block = np.empty(BLOCK_VOXELS)
     for b in range(start, stop):
-        if sa.block_scan[b] < since or not sa.block_hit[b]:
+        if sa.block_scan[b] < since or not (every_voxel or sa.block_hit[b]):
             continue
         x0, y0, z0 = block_origin(sa.block_ijk, b)
         blocks_out[m, 0] = sa.block_ijk[b, 0]
@@ -95,7 +100,7 @@ def _changed_returns(
         blocks_out[m, 2] = sa.block_ijk[b, 2]
         m += 1
         t = sa.block_t[b]
-        if sa.block_href[b] >= 0:  # flushed: float64 parts too, read the whole block
+        if every_voxel or sa.block_href[b] >= 0:  # the whole block (flushed: float64 too)
             block_values(sa, b, s_block, n_block)
             for i in range(BLOCK_VOXELS):
                 if _keep(s_block[i], n_block[i], min_extinction):
@@ -174,18 +179,20 @@ def changed_returns(
 ) -> tuple[ChangedArrays, BlockCursor | None]:
     """Over ``(arrays, used blocks)`` of each shard: the blocks holding a return that a scan
     numbered ``since`` or later opened (all of them: ``since`` -1), and their voxels with
-    ``n >= min_extinction * s`` (``min_extinction`` > 0), statistics as stored.
+    ``n >= min_extinction * s`` (``min_extinction`` > 0: only their ``n`` chunks are read);
+    with ``min_extinction`` 0 every changed block and its observed voxels (each block
+    decoded whole), statistics as stored.
 
     In slices: from ``cursor`` (None: a new read), at most ``max_blocks`` blocks of the
     store, changed or not (a bound on the time taken); also returns the cursor of the next
     slice, None when the read is complete (``BlockCursor``)."""
-    if not min_extinction > 0.0:
-        raise ValueError(f"min_extinction must be > 0, got {min_extinction}")
+    if not min_extinction >= 0.0:
+        raise ValueError(f"min_extinction must be >= 0, got {min_extinction}")
     ranges, after = block_ranges(shards, cursor, max_blocks)
     parts = []
     for shard, start, stop in ranges:
         sa = shards[shard][0]
-        blocks, bound = _changed_bound(sa, start, stop, since)
+        blocks, bound = _changed_bound(sa, start, stop, since, min_extinction == 0.0)
         out = (
             np.empty((blocks, 3), np.int32),
             np.empty((bound, 3), np.int32),

@@ -743,11 +743,12 @@ class Mapper:
     def changed_voxels(
         self, since: int, min_doo: float
     ) -> tuple[VoxelStats, NDArray[np.int32], int]:
-        """The voxels of most likely degree of occupancy >= ``min_doo`` (> 0) in the blocks
+        """The voxels of most likely degree of occupancy >= ``min_doo`` in the blocks
         scans changed since scan ``since`` (every block: -1), statistics as stored (as
-        ``voxels`` without ``stamp``); the index (voxel index >> 3, (B, 3)) of every such
-        block holding a return; and the ``since`` that asks for the changes after this
-        call. A cache of ``voxels`` per block stays exact while ``epoch`` stays the same
+        ``voxels`` without ``stamp``: with ``min_doo`` 0 every observed voxel); the index
+        (voxel index >> 3, (B, 3)) of every such block holding a return (``min_doo`` 0:
+        every such block); and the ``since`` that asks for the changes after this call. A
+        cache of ``voxels`` per block stays exact while ``epoch`` stays the same
         (``core.changed_blocks``; ``mapping.map_cloud``)."""
         voxels, blocks, next_since, _ = self.changed_voxels_from(since, min_doo)
         return voxels, blocks, next_since
@@ -764,8 +765,8 @@ class Mapper:
         slice (None: the read is complete). Read with the map lock let go between slices,
         every block the map had when the read began is read once, as it was at its slice,
         while ``epoch`` stays the same (``core.changed_blocks.BlockCursor``)."""
-        if not 0.0 < min_doo <= 1.0:
-            raise ValueError(f"min_doo must lie in (0, 1], got {min_doo}")
+        if not 0.0 <= min_doo <= 1.0:
+            raise ValueError(f"min_doo must lie in [0, 1], got {min_doo}")
         min_extinction = math.inf if min_doo >= 1.0 else -math.log1p(-min_doo)
         shards = [(sh.arrays(), sh.used) for sh in self._store.shards]
         (blocks, ijk, s, n, t), after = changed_returns(

@@ -236,18 +236,24 @@ class MapOutputs:
         """Publish the degree-of-occupancy and std clouds of the filtered voxels, and the
         reflectivity cloud of those holding returns (when the map keeps histograms): per
         voxel the mean intensity of its returns and its fullest intensity bin. With
-        ``publish_changed_blocks`` (and a ``min_degree_of_occupancy`` above 0) only the
-        blocks scans changed since the last publication are read under the map lock
-        (``mapping.map_cloud``); the clouds are the whole map's all the same."""
+        ``publish_changed_blocks`` only the blocks scans changed since the last
+        publication are read under the map lock (``mapping.map_cloud``; the clouds are the
+        whole map's all the same), without it every block; either in slices of about
+        ``MAP_SLICE_S``. Without ``publish_changed_blocks`` and with a ``publish_radius``,
+        the radius' window is exported in one go (its size bounds the hold)."""
         cfg, worker = self._settings(), self._worker
-        incremental = cfg.publish_changed_blocks and cfg.min_degree_of_occupancy > 0.0
         radius = cfg.publish_radius
         with self._timed_map_lock(lock_times):
             position = worker.robot_position
             robot = None if position is None else np.asarray(position, dtype=np.float64)
             near = radius > 0.0 and robot is not None
             stamp = worker.mapper.last_stamp
+            # by blocks, in slices: what changed, or the whole map; the window of a radius
+            # without changed blocks is exported in one go (bounded by the radius)
+            incremental = cfg.publish_changed_blocks or not near
             if incremental:
+                if not cfg.publish_changed_blocks:
+                    self._cloud.clear()  # the whole map, each time
                 changes = self._read_cloud_slice(cfg.min_degree_of_occupancy, cfg.min_evidence)
             else:
                 window = (robot - radius, robot + radius) if near and robot is not None else None
@@ -266,6 +272,9 @@ class MapOutputs:
         if incremental:
             rows = self._cloud.apply(changes, cfg.min_evidence)
             self.counters.blocks_read = self._cloud.last_changed_blocks
+            if not cfg.publish_changed_blocks:
+                self._cloud.clear()  # (not kept: the next one reads the whole map again)
+                self.counters.blocks_read = -1
         else:
             self._cloud.clear()
             rows = rows_of(vox, histograms)
