@@ -8,7 +8,9 @@ result is the cloud of the whole map, row for row (in another order): the clouds
 statistics at their last update, which only a scan opening the block changes; anything
 else that changes voxels (reset, clear_box, eviction by the memory bound) bumps
 ``Mapper.epoch`` and the next publication reads the whole map again, as does a change of
-the filters or of the prior.
+the filters or of the prior. The reading may be done in slices of blocks, the map lock let go
+in between (``MapCloud.read`` ``max_blocks``): each block is read once, whole, as it is at
+its slice.
 """
 
 from __future__ import annotations
@@ -73,7 +75,7 @@ class CloudChanges:
     voxels: list[VoxelStats]
     blocks: list[NDArray[np.int32]]
     bins: Any  # the histograms' bins (None: the map keeps none)
-    counts: list[NDArray[np.float64]]
+    counts: list[NDArray[np.float64] | None]  # a slice's (None: the map kept none then)
     cursor: BlockCursor | None = None
     restarts: int = 0
     started: bool = False
@@ -111,7 +113,7 @@ class MapCloud:
     ) -> CloudChanges:
         """The voxels of the blocks changed since the rows' scan (the whole map when the
         map, its epoch, the filters or the prior changed), with their histograms: the part
-        that needs the map lock (``min_doo`` > 0). With ``max_blocks``, one slice of at
+        that needs the map lock (``min_doo`` >= 0). With ``max_blocks``, one slice of at
         most that many of the store's blocks, going on from ``partial`` (the last slice's
         result) until ``complete``; the lock may be let go between slices (each block is
         read once, as it is at its slice; the rows' scan is the one the read began at, so
@@ -140,7 +142,7 @@ class MapCloud:
         histograms = mapper.reflectivity(voxels.centers)
         if histograms is not None:
             changes.bins = histograms[0]
-            changes.counts.append(histograms[1])
+        changes.counts.append(None if histograms is None else histograms[1])
         return changes
 
     def apply(self, changes: CloudChanges, min_evidence: float) -> CloudRows:
@@ -150,8 +152,13 @@ class MapCloud:
             raise ValueError("MapCloud.apply: the read is not complete")
         vox = _concatenate_stats(changes.voxels)
         histograms = None
-        if changes.bins is not None:
-            histograms = (changes.bins, np.concatenate(changes.counts))
+        if changes.bins is not None:  # (a slice read before the map kept any: no counts)
+            width = next(c.shape[1] for c in changes.counts if c is not None)
+            counts = [
+                np.zeros((len(v), width)) if c is None else c
+                for v, c in zip(changes.voxels, changes.counts, strict=True)
+            ]
+            histograms = (changes.bins, np.concatenate(counts))
         if min_evidence > 0.0:
             keep = vox.s >= min_evidence
             vox = vox.select(keep)

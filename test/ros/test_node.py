@@ -625,8 +625,13 @@ def test_a_cold_start_takes_every_cloud_it_receives(ros_domain: int, tmp_path: P
     node = NodeProcess(ros_domain, params, tmp_path / "node.log", name="mfp_cold", env=cold)
     f = Feeder(node_name="mfp_cold", feeder_name="cold_feeder")
     sent = 30
+
+    def subscribed() -> bool:  # this node's cloud subscription (another node may run)
+        subscriptions = f.node.get_subscriptions_info_by_topic("/cloud_in")
+        return any(info.node_name == "mfp_cold" for info in subscriptions)
+
     try:
-        assert f.wait_connected(300.0), node.log()[-3000:]
+        assert f.wait_connected(300.0) and f.wait(subscribed, 300.0), node.log()[-3000:]
         sim = Sim(f)
         for k in range(sent):  # a driver streaming, not waiting for the node
             start = T0 + 0.1 + 0.1 * k
