@@ -56,11 +56,11 @@ def makespan(times: Sequence[float], threads: int) -> float:
 def scan_parts(
     scene: str, resolution: float, threads: int
 ) -> tuple[float, float, float, float, float, list[float]]:
-    """Medians over the later scans (ms): the split, the sum and the slowest of the
-    shards' walks, the serial rest of ``integrate_rays`` (the rays' bounds, the shares,
-    the order of the shards), the critical path with ``threads`` threads (serial rest +
-    each phase's tasks dealt to the threads), and each thread's CPU time on that path
-    (both phases; the gap to the path is its idle time)."""
+    """Medians over the later scans (ms): the split (counting the stretches, then
+    splitting), the sum and the slowest of the shards' walks, the serial rest of
+    ``integrate_rays`` (the shares, the order of the shards), the critical path with
+    ``threads`` threads (serial rest + each phase's tasks dealt to the threads), and each
+    thread's CPU time on that path (every phase; the gap to the path is its idle time)."""
     scans = _scene(scene)
     placer = Mapper(resolution, max_range=100.0)  # places the rays (no origin: raw frame)
     store = BlockStore(shards=mapper_module.shard_count(threads))
@@ -82,11 +82,14 @@ def scan_parts(
         integrate_rays(store, rays, store.begin_scan(), float(k), math.inf, one_after_another)
         whole = time.thread_time() - cpu0
         store.finish_scan()
-        split = calls[0] if len(calls) > 1 else [0.0]
+        phases = calls[:-1]  # counting the stretches, splitting the rays
+        split = [t for phase in phases for t in phase] or [0.0]
         walks = calls[-1] if calls else [whole]
         serial = whole - sum(split) - (sum(walks) if calls else whole)
-        path = serial + makespan(split, threads) + makespan(walks, threads)
-        busy = [a + b for a, b in zip(deal(split, threads), deal(walks, threads), strict=True)]
+        path = serial + sum(makespan(p, threads) for p in phases) + makespan(walks, threads)
+        busy = list(deal(walks, threads))
+        for phase in phases:
+            busy = [a + b for a, b in zip(busy, deal(phase, threads), strict=True)]
         rows.append((sum(split), sum(walks), max(walks), serial, path, *sorted(busy)))
     medians = [1e3 * float(np.median(column)) for column in zip(*rows[1:], strict=True)]
     return (*medians[:5], medians[5:])  # type: ignore[return-value]

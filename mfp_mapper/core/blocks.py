@@ -40,15 +40,38 @@ N_BLOCK_CHUNKS = BLOCK_VOXELS // N_CHUNK_VOXELS
 FOREIGN_CHUNK = -(1 << 31)
 """Chunk-table entry of another shard's block (``shard.ShardArrays.block_chunks``)."""
 SHARD_TILE_BITS = 3
-"""Shards own tiles of ``2**SHARD_TILE_BITS`` blocks along each axis (64 voxels), in a 3-D
-checkerboard (``shard_of``): a thread walks a ray only through its own shard's tiles
-(``traversal.split_rays``), so tiles are large enough that a ray crosses few of them."""
-SHARD_TILE_Z_OFFSET = 4
-"""The tiles' z faces are this many blocks (half a tile) below multiples of a tile: a map's
-origin is its first sensor position, so a sensor near that height sits mid-tile, and the
-rays of a ground vehicle's lidar reach the ground without crossing a tile face there
-(with faces at the origin, 61k of OS1-128's 107k rays crossed one, a quarter of all the
-tile faces crossed at 0.2 m)."""
+"""Shards own tiles of ``2**tile_bits`` blocks along each axis, in a 3-D checkerboard
+(``shard_of``): a thread walks a ray only through its own shard's tiles
+(``traversal.split_rays``), so tiles are large enough that a ray crosses few of them. This
+is the size for stores of more than ``LARGE_TILE_SHARDS`` shards (threads beyond two), whose
+threads need the sensor's own tile small: it holds the most steps of a scan. A store of
+fewer shards has tiles twice as large (``tile_bits``)."""
+LARGE_TILE_SHARDS = 8
+"""Stores of at most this many shards (``mapper.shard_count``: two threads) have tiles of
+16 blocks (128 voxels) a side, not 8: a ray of OS1-128 at 0.2 m crosses 1.11 tile faces, not
+1.75, and the split and the stretches' set-up cost less, while the sensor's tile still holds
+less than half a scan. Critical path of two threads (``benchmarks/bench_threads.py``, CPU
+time, 2026-11-26): OS1-128 at 0.2 m 1.52-1.63x one thread's against 1.35-1.49x with tiles
+of 8; with four threads the sensor's tile is the path, and tiles of 8 keep 2.13-2.47x
+against 1.81-2.08x (docs/performance.md, "Two threads", third round)."""
+
+
+@nb.njit(inline="always", cache=True)
+def tile_bits(shard_mask: int) -> int:
+    """The tiles of a store of ``shard_mask + 1`` shards are ``2**tile_bits`` blocks a
+    side (``LARGE_TILE_SHARDS``)."""
+    return SHARD_TILE_BITS + 1 if shard_mask < LARGE_TILE_SHARDS else SHARD_TILE_BITS
+
+
+@nb.njit(inline="always", cache=True)
+def tile_z_offset(shard_mask: int) -> int:
+    """The tiles' z faces are this many blocks (half a tile) below multiples of a tile: a
+    map's origin is its first sensor position, so a sensor near that height sits mid-tile,
+    and the rays of a ground vehicle's lidar reach the ground without crossing a tile face
+    there (with faces at the origin, 61k of OS1-128's 107k rays crossed one, a quarter of
+    all the tile faces crossed at 0.2 m with tiles of 8 blocks)."""
+    return 1 << (tile_bits(shard_mask) - 1)
+
 
 IndexBox = tuple[int, int, int]
 """A corner of an inclusive voxel index range, as kernels take it: a tuple, not an array
@@ -82,11 +105,8 @@ def block_of_key(key: int) -> tuple[int, int, int]:
 def shard_of(bx: int, by: int, bz: int, shard_mask: int) -> int:
     """The shard of block ``(bx, by, bz)``: the sum of its tile's indices, masked (a
     tile's six neighbours are in other shards)."""
-    return (
-        (bx >> SHARD_TILE_BITS)
-        + (by >> SHARD_TILE_BITS)
-        + ((bz + SHARD_TILE_Z_OFFSET) >> SHARD_TILE_BITS)
-    ) & shard_mask
+    bits = tile_bits(shard_mask)
+    return ((bx >> bits) + (by >> bits) + ((bz + tile_z_offset(shard_mask)) >> bits)) & shard_mask
 
 
 @nb.njit(inline="always", cache=True)

@@ -49,8 +49,6 @@ from mfp_mapper.core.blocks import (
     MAX_VOXEL_INDEX,
     N_BLOCK_CHUNKS,
     N_CHUNK_VOXELS,
-    SHARD_TILE_BITS,
-    SHARD_TILE_Z_OFFSET,
     IndexBox,
     block_key,
     block_origin,
@@ -61,6 +59,8 @@ from mfp_mapper.core.blocks import (
     local_coords,
     local_index,
     shard_of,
+    tile_bits,
+    tile_z_offset,
     voxel_inside,
 )
 from mfp_mapper.core.layout import (  # noqa: F401 (numba-free, re-exported)
@@ -844,8 +844,9 @@ class BlockStore:
             s, n = s.astype(np.float32, copy=False), n.astype(np.float32, copy=False)
             words = mask_words(observed)
         if self.shard_mask:
-            tile_ijk = block_ijk.astype(np.int64) + np.array([0, 0, SHARD_TILE_Z_OFFSET])
-            tiles = (tile_ijk >> SHARD_TILE_BITS).sum(axis=1) & self.shard_mask  # shard_of
+            z_offset, bits = tile_z_offset(self.shard_mask), tile_bits(self.shard_mask)
+            tile_ijk = block_ijk.astype(np.int64) + np.array([0, 0, z_offset])
+            tiles = (tile_ijk >> bits).sum(axis=1) & self.shard_mask  # shard_of
         counts = np.zeros(1, dtype=np.int64)
         for sid, sh in enumerate(self.shards):
             if self.shard_mask:

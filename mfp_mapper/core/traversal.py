@@ -7,7 +7,8 @@ that ends in a return gives its end voxel ``n += 1`` (the chord from where it en
 voxel up to the return point is its last chord).
 
 Threads split the space: the store has shards (four a thread: ``mapper.shard_count``), a
-shard owns tiles of 8x8x8 blocks in a 3-D checkerboard (``blocks.shard_of``), and one
+shard owns tiles of blocks (16 a side for two threads, 8 for more: ``blocks.tile_bits``) in a
+3-D checkerboard (``blocks.shard_of``), and one
 thread at a time writes to a shard. The rays are first split into their stretches in each
 tile (``split_into``, parts of the rays a task), then the threads walk the shards'
 stretches, a shard at a time, the shards with the most steps first. A
@@ -43,13 +44,13 @@ from mfp_mapper.core.blocks import (
     N_BLOCK_CHUNKS,
     N_CHUNK_BITS,
     N_CHUNK_VOXELS,
-    SHARD_TILE_BITS,
-    SHARD_TILE_Z_OFFSET,
     block_key,
     block_of_key,
     find_block,
     local_index,
     shard_of,
+    tile_bits,
+    tile_z_offset,
 )
 from mfp_mapper.core.lockstep import (
     FLOAT_ROWS,
@@ -300,10 +301,25 @@ def integrate_rays(
         return _walk_whole(rays, store.shards[0], scan, share)
     threads = max(shards // SHARDS_PER_THREAD, 1)
     size = max(min(-(-len(rays) // threads), SPLIT_RAYS), 1)  # at least a part a thread
-    room, visits, part_at = split_bounds(rays.origins_vox, rays.ends_vox, size, store.shard_mask)
-    whole = RayArrays(rays.origins_vox, rays.ends_vox, rays.lengths, rays.has_return, room, visits)
-    pieces = _flat_pieces(store, int(part_at[-1]))
-    parts = len(part_at) - 1
+    parts = -(-len(rays) // size)
+    part_at = np.zeros(parts + 1, dtype=np.int64)
+    # two tasks, each counting the parts of its half of the rays
+    halves = (0, min((parts + 1) // 2 * size, len(rays)), len(rays))
+
+    def count_half(h: int) -> None:
+        piece_counts(
+            rays.origins_vox, rays.ends_vox, halves[h], halves[h + 1], size, store.shard_mask,
+            part_at,
+        )  # fmt: skip
+
+    run_parallel(count_half, range(2))
+    np.cumsum(part_at, out=part_at)
+    # the rays' bounds: only a cut (cut_to_blocks) reads them, and computes its own
+    unbounded = np.zeros(len(rays), dtype=np.int64)
+    whole = RayArrays(
+        rays.origins_vox, rays.ends_vox, rays.lengths, rays.has_return, unbounded, unbounded
+    )
+    pieces = _flat_pieces(store, int(part_at[-1]), len(rays))
     segments = np.zeros((parts, shards, 2), dtype=np.int64)  # each part's pieces per shard
     work = np.zeros((parts, 2, shards), dtype=np.int64)  # per part: work, room
 
@@ -364,7 +380,7 @@ percentile). With four shards a thread, the threads take the shards' walks most 
 (``integrate_rays``), and two threads share a scan within 0.51-0.52 (0.525 at the 90th
 percentile)."""
 SPLIT_RAYS = 8192
-"""Rays split in one task (``split_into``): a part's stretches (57 bytes each) are written
+"""Rays split in one task (``split_into``): a part's stretches (25 bytes each) are written
 to a scratch the thread keeps, then put in walk order. When each part allocated its
 pieces, parts of 53k rays (OS1-128, 2 threads) took twice as long a ray, faulting their
 fresh pages in, and parts of 32768 rays 1.6 times as long; with the scratch kept, parts
@@ -390,8 +406,20 @@ def ray_bounds(
     origins_vox: NDArray[np.float64], ends_vox: NDArray[np.float64]
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """``block_bounds`` and ``visit_bounds`` in one pass (ten numpy passes took 2 ms of a
-    50 ms scan at 0.2 m): ``split_bounds`` of the rays as one part."""
-    blocks, visits, _ = split_bounds(origins_vox, ends_vox, max(origins_vox.shape[0], 1), 0)
+    50 ms scan at 0.2 m)."""
+    count = origins_vox.shape[0]
+    blocks = np.empty(count, dtype=np.int64)
+    visits = np.empty(count, dtype=np.int64)
+    for r in range(count):
+        block_steps = 0
+        steps = 0
+        for axis in range(3):
+            lo = int(np.floor(origins_vox[r, axis]))
+            hi = int(np.floor(ends_vox[r, axis]))
+            steps += abs(hi - lo)
+            block_steps += abs((hi >> BLOCK_BITS) - (lo >> BLOCK_BITS))
+        blocks[r] = block_steps + 2
+        visits[r] = steps + 1
     return blocks, visits
 
 
@@ -500,7 +528,7 @@ def _walk_whole(rays: Rays, shard: Shard, scan: ScanStamp, share: int | None = N
     none = np.empty(0, dtype=np.int64)
     none32 = none.astype(np.int32)
     no_pieces = Pieces(
-        none32, none32.reshape(0, 4), none.reshape(0, 4), none32, none.astype(bool), none
+        none32, none32.reshape(0, 4), none32, none.astype(bool), none.reshape(0, 6), none
     )
     first, cut, cut_done = 0, 0, False
     cache = _walk_cache()
@@ -629,6 +657,44 @@ def _ray_start(origins_vox, ends_vox, r):  # type: ignore[no-untyped-def]
             t_delta_x, t_delta_y, t_delta_z, steps)  # fmt: skip
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _piece_start(origins_vox, ends_vox, faces, r, vx, vy, vz):  # type: ignore[no-untyped-def]
+    """Ray ``r``'s walk (``_ray_start``; ``faces``: its first faces and the t between
+    faces, ``Pieces.faces``) from voxel ``(vx, vy, vz)`` of it on: that voxel, the end
+    voxel, the steps, each axis' next face there and the t between its faces, and the t
+    where the walk entered the voxel. An axis has crossed ``|v - v0|`` faces there, the
+    j-th at ``t_first + j * t_delta`` exactly, so its next face is the one after, and the
+    walk entered at the last face it crossed, the latest of each axis' last: the state the
+    walk from the origin has there, bit for bit. (A piece once stored that state: 57 bytes
+    a piece, not 25 and 48 a ray; with the faces computed here, three divisions more a
+    piece, the walks took as much more time as the split saved.)"""
+    ex = int(np.floor(ends_vox[r, 0]))
+    ey = int(np.floor(ends_vox[r, 1]))
+    ez = int(np.floor(ends_vox[r, 2]))
+    v0x = int(np.floor(origins_vox[r, 0]))
+    v0y = int(np.floor(origins_vox[r, 1]))
+    v0z = int(np.floor(origins_vox[r, 2]))
+    step_x = 1 if ex > v0x else -1
+    step_y = 1 if ey > v0y else -1
+    step_z = 1 if ez > v0z else -1
+    crossed_x = (vx - v0x) * step_x
+    crossed_y = (vy - v0y) * step_y
+    crossed_z = (vz - v0z) * step_z
+    t_delta_x, t_delta_y, t_delta_z = faces[r, 3], faces[r, 4], faces[r, 5]
+    t_max_x = faces[r, 0] + crossed_x * t_delta_x if vx != ex else T_NEVER
+    t_max_y = faces[r, 1] + crossed_y * t_delta_y if vy != ey else T_NEVER
+    t_max_z = faces[r, 2] + crossed_z * t_delta_z if vz != ez else T_NEVER
+    t_entered = 0
+    if crossed_x > 0:
+        t_entered = max(t_entered, faces[r, 0] + (crossed_x - 1) * t_delta_x)
+    if crossed_y > 0:
+        t_entered = max(t_entered, faces[r, 1] + (crossed_y - 1) * t_delta_y)
+    if crossed_z > 0:
+        t_entered = max(t_entered, faces[r, 2] + (crossed_z - 1) * t_delta_z)
+    return (vx, vy, vz, ex, ey, ez, step_x, step_y, step_z, t_max_x, t_max_y, t_max_z,
+            t_delta_x, t_delta_y, t_delta_z, min(t_entered, T_ONE))  # fmt: skip
+
+
 class Pieces(NamedTuple):
     """The stretches of rays one shard walks (``split_rays``): each is walked from exactly
     the state the walk from the ray's origin has where it starts."""
@@ -637,17 +703,17 @@ class Pieces(NamedTuple):
     """The ray each piece is a stretch of."""
     voxel: NDArray[np.int32]
     """(P, 4): the piece's first voxel, and its steps (it ends in the voxel that many
-    steps further)."""
-    t_state: NDArray[np.int64]
-    """(P, 4): where the walk crosses each axis' next face there (``T_NEVER`` for an axis
-    at its end voxel), and t where it entered the first voxel (fixed point,
-    ``lockstep.T_ONE``); the t between faces is the ray's (``_ray_start``). 57 bytes a
-    piece: with 105 (int64 everywhere, the t between faces kept) the split and the walks
-    of OS1-128 moved twice the memory."""
+    steps further). The walk's state there follows from the ray (``_piece_start``): 25
+    bytes a piece (with the state, 57: the split wrote, copied and the walks read 2.3
+    times the bytes)."""
     room: NDArray[np.int32]
     """Upper bound of the blocks the piece can create."""
     has_return: NDArray[np.bool_]
     """The piece ends the ray, and the ray has a return."""
+    faces: NDArray[np.int64]
+    """(R, 6), by ray: where each axis' first face is crossed and the t between its faces
+    (``_ray_start``), written once a ray by the split, so that a piece's walk starts
+    without a division (``_piece_start``)."""
     order: NDArray[np.int64]
     """The pieces to walk, in the order to walk them (indices)."""
 
@@ -666,8 +732,13 @@ def _faces_before(faces, t_first, t_delta, t, strict):  # type: ignore[no-untype
 
 _TILE_BUCKET_BITS = 4
 """``split_rays`` orders a shard's pieces by tile, by the low 4 bits of each tile index."""
-_TILE_Z_OFFSET = SHARD_TILE_Z_OFFSET << BLOCK_BITS
-"""The tiles' z faces are this many voxels below multiples of a tile (``blocks``)."""
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _tile_geometry(shard_mask: int) -> tuple[int, int]:
+    """The voxel index bits of a tile side of a store of ``shard_mask + 1`` shards, and how
+    many voxels its z faces sit below multiples of a tile (``blocks.tile_bits``)."""
+    return BLOCK_BITS + tile_bits(shard_mask), tile_z_offset(shard_mask) << BLOCK_BITS
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -676,9 +747,9 @@ def _piece_bound(origins_vox, ends_vox, r, shard_mask):  # type: ignore[no-untyp
     tile face it crosses."""
     bound = 1
     if shard_mask:
-        tile_shift = BLOCK_BITS + SHARD_TILE_BITS
+        tile_shift, z_offset = _tile_geometry(shard_mask)
         for axis in range(3):
-            off = _TILE_Z_OFFSET if axis == 2 else 0
+            off = z_offset if axis == 2 else 0
             lo = (int(np.floor(origins_vox[r, axis])) + off) >> tile_shift
             hi = (int(np.floor(ends_vox[r, axis])) + off) >> tile_shift
             bound += abs(hi - lo)
@@ -714,12 +785,15 @@ def split_rays(
     bound = 0
     for r in range(first, stop):
         bound += _piece_bound(origins_vox, ends_vox, r, shard_mask)
-    pieces = _new_pieces(bound)
+    pieces = _new_pieces(bound, stop)
     owner = np.empty(bound, dtype=np.int64)
-    k = _split_write(origins_vox, ends_vox, has_return, first, stop, shard_mask, pieces, owner, 0)
+    k = _split_write(
+        origins_vox, ends_vox, has_return, first, stop, shard_mask, pieces, owner, 0,
+        pieces.faces,
+    )  # fmt: skip
     pieces = Pieces(
-        pieces.ray[:k], pieces.voxel[:k], pieces.t_state[:k], pieces.room[:k],
-        pieces.has_return[:k], np.arange(k),
+        pieces.ray[:k], pieces.voxel[:k], pieces.room[:k], pieces.has_return[:k],
+        pieces.faces, np.arange(k),
     )  # fmt: skip
     if shard_mask == 0:
         return pieces, np.array([0, k], dtype=np.int64)
@@ -731,17 +805,17 @@ def split_rays(
         order[starts[bucket[p]]] = p
         starts[bucket[p]] += 1
     return Pieces(
-        pieces.ray, pieces.voxel, pieces.t_state, pieces.room, pieces.has_return, order
+        pieces.ray, pieces.voxel, pieces.room, pieces.has_return, pieces.faces, order
     ), offsets
 
 
 @nb.njit(cache=True, nogil=True)
-def _new_pieces(count: int) -> Pieces:
-    """Room for ``count`` pieces (``order`` empty)."""
+def _new_pieces(count: int, rays: int) -> Pieces:
+    """Room for ``count`` pieces of ``rays`` rays (``order`` empty)."""
     return Pieces(
         np.empty(count, dtype=np.int32), np.empty((count, 4), dtype=np.int32),
-        np.empty((count, 4), dtype=np.int64), np.empty(count, dtype=np.int32),
-        np.empty(count, dtype=np.bool_), np.empty(0, dtype=np.int64),
+        np.empty(count, dtype=np.int32), np.empty(count, dtype=np.bool_),
+        np.empty((rays, 6), dtype=np.int64), np.empty(0, dtype=np.int64),
     )  # fmt: skip
 
 
@@ -758,18 +832,18 @@ def _split_scratch(count: int) -> tuple[Pieces, NDArray[np.int64]]:
     0.1 m 11 of 37 ms."""
     scratch: tuple[Pieces, NDArray[np.int64]] | None = getattr(_split_scratches, "room", None)
     if scratch is None or scratch[0].ray.shape[0] < count:
-        scratch = _new_pieces(max(count, 1024)), np.empty((2, max(count, 1024)), np.int64)
+        scratch = _new_pieces(max(count, 1024), 0), np.empty((2, max(count, 1024)), np.int64)
         _split_scratches.room = scratch
     return scratch
 
 
-def _flat_pieces(store: BlockStore, count: int) -> Pieces:
-    """Room for a whole scan's pieces (``split_into``; ``order`` empty), in memory kept
-    from scan to scan (fresh memory each scan: its pages faulted in by the split, 20-40%
-    more CPU time in the split of OS1-128 at 0.2 m)."""
+def _flat_pieces(store: BlockStore, count: int, rays: int) -> Pieces:
+    """Room for a whole scan's pieces, of ``rays`` rays (``split_into``; ``order`` empty),
+    in memory kept from scan to scan (fresh memory each scan: its pages faulted in by the
+    split, 20-40% more CPU time in the split of OS1-128 at 0.2 m)."""
     room = _split_room.get(store)
-    if room is None or room.ray.shape[0] < count:
-        room = _new_pieces(max(count, count + count // 4))
+    if room is None or room.ray.shape[0] < count or room.faces.shape[0] < rays:
+        room = _new_pieces(max(count, count + count // 4), max(rays, rays + rays // 4))
         _split_room[store] = room
     return room
 
@@ -779,13 +853,13 @@ def _bucket_starts(owner, voxel, k, shard_mask, bits, bucket):  # type: ignore[n
     """A stable counting sort's keys of pieces ``:k``: by shard, then by tile bucket (the
     low ``bits`` of each tile index), written to ``bucket``; where each key's pieces
     start."""
-    tile_shift = BLOCK_BITS + SHARD_TILE_BITS
+    tile_shift, z_offset = _tile_geometry(shard_mask)
     mask = (1 << bits) - 1
     starts = np.zeros(((shard_mask + 1) << (3 * bits)) + 1, dtype=np.int64)
     for p in range(k):
         key = owner[p]
         for b in range(3):
-            off = _TILE_Z_OFFSET if b == 2 else 0
+            off = z_offset if b == 2 else 0
             key = (key << bits) | (((voxel[p, b] + off) >> tile_shift) & mask)
         bucket[p] = key
         starts[key + 1] += 1
@@ -795,31 +869,20 @@ def _bucket_starts(owner, voxel, k, shard_mask, bits, bucket):  # type: ignore[n
 
 
 @nb.njit(cache=True, nogil=True)
-def split_bounds(
-    origins_vox: NDArray[np.float64], ends_vox: NDArray[np.float64], size: int, shard_mask: int
-) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
-    """``ray_bounds`` (the blocks each ray can create, the voxels it visits) and where the
-    pieces of each part of ``size`` rays start in a scan's split (``split_into``; the last
-    entry: their total), in one pass."""
-    count = origins_vox.shape[0]
-    blocks = np.empty(count, dtype=np.int64)
-    visits = np.empty(count, dtype=np.int64)
-    parts = -(-count // size)
-    part_at = np.zeros(parts + 1, dtype=np.int64)
-    for r in range(count):
-        block_steps = 0
-        steps = 0
-        for axis in range(3):
-            lo = int(np.floor(origins_vox[r, axis]))
-            hi = int(np.floor(ends_vox[r, axis]))
-            steps += abs(hi - lo)
-            block_steps += abs((hi >> BLOCK_BITS) - (lo >> BLOCK_BITS))
-        blocks[r] = block_steps + 2
-        visits[r] = steps + 1
+def piece_counts(
+    origins_vox: NDArray[np.float64],
+    ends_vox: NDArray[np.float64],
+    first: int,
+    stop: int,
+    size: int,
+    shard_mask: int,
+    part_at: NDArray[np.int64],
+) -> None:
+    """Adds to ``part_at[c + 1]`` how many pieces the rays of part ``c`` (rays ``c * size``
+    on) among rays ``first:stop`` can have (``_piece_bound``): where each part's start in a
+    scan's split (``split_into``), once summed."""
+    for r in range(first, stop):
         part_at[r // size + 1] += _piece_bound(origins_vox, ends_vox, r, shard_mask)
-    for c in range(parts):
-        part_at[c + 1] += part_at[c]
-    return blocks, visits, part_at
 
 
 @nb.njit(cache=True, nogil=True)
@@ -839,21 +902,23 @@ def split_into(
 ) -> int:
     """``split_rays`` of rays ``first:stop`` (by tile), written into ``out`` from piece
     ``at`` on through ``scratch`` and ``keys`` (2, n) (room for the part's pieces at least,
-    ``split_bounds``; ``_split_scratch``), in the order to walk
+    ``piece_counts``; ``_split_scratch``), in the order to walk
     them: shard k's are pieces ``segments[k, 0]:segments[k, 1]``, so that its walk reads
     them one after another (read through a shuffled ``order`` as ``split_rays`` gives
     them, the walks of OS1-128 at 0.2 m took 5-8% more CPU time, more than the copy
     costs the split); ``work[0, k]`` their steps plus ``PIECE_STEPS`` a stretch,
     ``work[1, k]`` the blocks they can create (``shard_work``). Returns how many pieces."""
     owner = keys[0]
-    k = _split_write(origins_vox, ends_vox, has_return, first, stop, shard_mask, scratch, owner, 0)
+    k = _split_write(
+        origins_vox, ends_vox, has_return, first, stop, shard_mask, scratch, owner, 0, out.faces
+    )
     bucket, starts = _bucket_starts(owner, scratch.voxel, k, shard_mask, _TILE_BUCKET_BITS, keys[1])
     shards = shard_mask + 1
     per_shard = starts.shape[0] // shards
     for s in range(shards):
         segments[s, 0] = at + starts[s * per_shard]
         segments[s, 1] = at + starts[(s + 1) * per_shard]
-    ray, voxel, t_state, room, returns = out.ray, out.voxel, out.t_state, out.room, out.has_return
+    ray, voxel, room, returns = out.ray, out.voxel, out.room, out.has_return
     steps = np.zeros(shards, dtype=np.int64)
     blocks = np.zeros(shards, dtype=np.int64)
     for p in range(k):
@@ -862,8 +927,6 @@ def split_into(
         ray[q] = scratch.ray[p]
         for c in range(4):
             voxel[q, c] = scratch.voxel[p, c]
-        for c in range(4):
-            t_state[q, c] = scratch.t_state[p, c]
         room[q] = scratch.room[p]
         returns[q] = scratch.has_return[p]
         s = owner[p]
@@ -907,20 +970,19 @@ def piece_room(
 
 
 @nb.njit(cache=True, nogil=True)
-def _split_write(origins_vox, ends_vox, has_return, first, stop, shard_mask, out, owner, k):  # type: ignore[no-untyped-def]
+def _split_write(origins_vox, ends_vox, has_return, first, stop, shard_mask, out, owner, k, faces):  # type: ignore[no-untyped-def]
     """The pieces of rays ``first:stop`` (``split_rays``), in ray order, written to ``out``
-    from piece ``k`` on, and their shards to ``owner`` (from 0); returns the piece after the
-    last."""
-    tile_shift = BLOCK_BITS + SHARD_TILE_BITS
+    from piece ``k`` on, their shards to ``owner`` (from 0), and the rays' faces to their
+    rows of ``faces`` (``Pieces.faces``); returns the piece after the last."""
+    tile_shift, z_offset = _tile_geometry(shard_mask)
     k_first = k
-    ray, voxel, t_state, room, returns = out.ray, out.voxel, out.t_state, out.room, out.has_return
+    ray, voxel, room, returns = out.ray, out.voxel, out.room, out.has_return
     v = np.empty(3, dtype=np.int64)
     v0 = np.empty(3, dtype=np.int64)
     end = np.empty(3, dtype=np.int64)
     step = np.empty(3, dtype=np.int64)
     t_first = np.empty(3, dtype=np.int64)
     t_delta = np.empty(3, dtype=np.int64)
-    t_max = np.empty(3, dtype=np.int64)
     tile = np.empty(3, dtype=np.int64)
     crossings = np.empty(3, dtype=np.int64)
     t_cross = np.empty(3, dtype=np.int64)
@@ -930,9 +992,10 @@ def _split_write(origins_vox, ends_vox, has_return, first, stop, shard_mask, out
          t_first[0], t_first[1], t_first[2], t_delta[0], t_delta[1], t_delta[2],
          steps) = _ray_start(origins_vox, ends_vox, r)  # fmt: skip
         for axis in range(3):
+            faces[r, axis] = t_first[axis]
+            faces[r, 3 + axis] = t_delta[axis]
             v[axis] = v0[axis]
-            t_max[axis] = t_first[axis]
-            off = _TILE_Z_OFFSET if axis == 2 else 0
+            off = z_offset if axis == 2 else 0
             tile[axis] = (v0[axis] + off) >> tile_shift
             crossings[axis] = (
                 abs(((end[axis] + off) >> tile_shift) - tile[axis]) if shard_mask else 0
@@ -943,7 +1006,6 @@ def _split_write(origins_vox, ends_vox, has_return, first, stop, shard_mask, out
                 j = (face - v0[axis] - (step[axis] > 0)) * step[axis]
                 t_cross[axis] = t_first[axis] + j * t_delta[axis]
         here = (tile[0] + tile[1] + tile[2]) & shard_mask
-        t_prev = 0
         start_steps = 0
         while True:
             # the next tile face the walk crosses: least t, x before y before z
@@ -964,24 +1026,17 @@ def _split_write(origins_vox, ends_vox, has_return, first, stop, shard_mask, out
                 crossings[a] -= 1
                 t_cross[a] = T_NEVER
                 if crossings[a] > 0:
-                    face = ((tile[a] + (step[a] > 0)) << tile_shift) - (
-                        _TILE_Z_OFFSET if a == 2 else 0
-                    )
+                    face = ((tile[a] + (step[a] > 0)) << tile_shift) - (z_offset if a == 2 else 0)
                     j = (face - v0[a] - (step[a] > 0)) * step[a]
                     t_cross[a] = t_first[a] + j * t_delta[a]
                 there = (tile[0] + tile[1] + tile[2]) & shard_mask
                 if there != here:
                     # the voxel the walk enters there, after how many steps
                     if step[a] > 0:
-                        count[a] = (
-                            (tile[a] << tile_shift) - (_TILE_Z_OFFSET if a == 2 else 0) - v0[a]
-                        )
+                        count[a] = (tile[a] << tile_shift) - (z_offset if a == 2 else 0) - v0[a]
                     else:
                         count[a] = (
-                            v0[a]
-                            - ((tile[a] + 1) << tile_shift)
-                            + (_TILE_Z_OFFSET if a == 2 else 0)
-                            + 1
+                            v0[a] - ((tile[a] + 1) << tile_shift) + (z_offset if a == 2 else 0) + 1
                         )
                     for b in range(3):
                         if b != a:
@@ -998,10 +1053,6 @@ def _split_write(origins_vox, ends_vox, has_return, first, stop, shard_mask, out
                 voxel[k, 1] = v[1]
                 voxel[k, 2] = v[2]
                 voxel[k, 3] = at - 1 - start_steps
-                t_state[k, 0] = t_max[0]
-                t_state[k, 1] = t_max[1]
-                t_state[k, 2] = t_max[2]
-                t_state[k, 3] = t_prev
                 blocks = 2
                 for b in range(3):
                     last = end[b] if a < 0 else v0[b] + step[b] * (count[b] - (b == a))
@@ -1011,11 +1062,9 @@ def _split_write(origins_vox, ends_vox, has_return, first, stop, shard_mask, out
                 k += 1
             if a < 0:
                 break
-            if there != here:  # the walk's state where it enters the next tile
+            if there != here:  # where the walk enters the next tile
                 for b in range(3):
                     v[b] = v0[b] + step[b] * count[b]
-                    t_max[b] = t_first[b] + count[b] * t_delta[b] if v[b] != end[b] else T_NEVER
-                t_prev = min(t_enter, T_ONE)
                 start_steps = at
             here = there
     return k
@@ -1069,7 +1118,7 @@ def _walk_rays(
     """
     origins_vox, ends_vox, lengths = rays.origins_vox, rays.ends_vox, rays.lengths
     has_return, ray_room, ray_visits = rays.has_return, rays.room_needed, rays.visits_needed
-    piece_ray, piece_voxel, piece_t, room_needed, piece_return, order = pieces
+    piece_ray, piece_voxel, room_needed, piece_return, ray_faces, order = pieces
     whole = shard_mask == 0
     scan_id, stamp, decay_time = scan
     sa = shard_arrays
@@ -1145,29 +1194,13 @@ def _walk_rays(
                  t_delta_x, t_delta_y, t_delta_z, piece_steps) = _ray_start(
                     origins_vox, ends_vox, r)  # fmt: skip
                 t_prev = 0
-            else:  # a piece: the ray's end and steps, the piece's state
+            else:  # a piece: the ray's walk from the piece's first voxel on
                 p = order[i]
                 r = piece_ray[p]
-                ex = int(np.floor(ends_vox[r, 0]))
-                ey = int(np.floor(ends_vox[r, 1]))
-                ez = int(np.floor(ends_vox[r, 2]))
-                ox, oy, oz = origins_vox[r, 0], origins_vox[r, 1], origins_vox[r, 2]
-                step_x = 1 if ex > int(np.floor(ox)) else -1
-                step_y = 1 if ey > int(np.floor(oy)) else -1
-                step_z = 1 if ez > int(np.floor(oz)) else -1
-                # the ray's t between faces, as _ray_start computes it
-                t_delta_x = (
-                    _fixed(abs(1.0 / (ends_vox[r, 0] - ox))) if ex != int(np.floor(ox)) else 0
-                )
-                t_delta_y = (
-                    _fixed(abs(1.0 / (ends_vox[r, 1] - oy))) if ey != int(np.floor(oy)) else 0
-                )
-                t_delta_z = (
-                    _fixed(abs(1.0 / (ends_vox[r, 2] - oz))) if ez != int(np.floor(oz)) else 0
-                )
-                vx, vy, vz = piece_voxel[p, 0], piece_voxel[p, 1], piece_voxel[p, 2]
-                t_max_x, t_max_y, t_max_z = piece_t[p, 0], piece_t[p, 1], piece_t[p, 2]
-                t_prev = piece_t[p, 3]
+                (vx, vy, vz, ex, ey, ez, step_x, step_y, step_z, t_max_x, t_max_y, t_max_z,
+                 t_delta_x, t_delta_y, t_delta_z, t_prev) = _piece_start(
+                    origins_vox, ends_vox, ray_faces, r, piece_voxel[p, 0], piece_voxel[p, 1],
+                    piece_voxel[p, 2])  # fmt: skip
                 piece_steps = piece_voxel[p, 3]
             lane_floats[0, lane] = lengths[r] / T_ONE
             lane_ints[0, lane] = vx

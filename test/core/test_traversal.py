@@ -256,13 +256,13 @@ def _fixed(t: float) -> int:
     return int(min(t, 2.0) * T_ONE)
 
 
-def _tile_rays(seed: int, count: int) -> tuple[np.ndarray, np.ndarray]:
-    """Rays in voxel units across many shard tiles, some along tile faces, edges and
-    through tile corners exactly."""
-    from mfp_mapper.core.blocks import BLOCK_BITS, SHARD_TILE_BITS, SHARD_TILE_Z_OFFSET
+def _tile_rays(seed: int, count: int, shards: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rays in voxel units across many tiles of a store of ``shards`` shards, some along
+    tile faces, edges and through tile corners exactly."""
+    from mfp_mapper.core.blocks import BLOCK_BITS, tile_bits, tile_z_offset
 
-    tile = float(1 << (BLOCK_BITS + SHARD_TILE_BITS))
-    face = np.array([0.0, 0.0, -float(SHARD_TILE_Z_OFFSET << BLOCK_BITS)])  # a tile corner
+    tile = float(1 << (BLOCK_BITS + tile_bits(shards - 1)))
+    face = np.array([0.0, 0.0, -float(tile_z_offset(shards - 1) << BLOCK_BITS)])  # a corner
     rng = np.random.default_rng(seed)
     origins = rng.uniform(-1.5 * tile, 1.5 * tile, (count, 3))
     ends = origins + rng.normal(0.0, 1.5 * tile, (count, 3))
@@ -280,9 +280,9 @@ def test_stretches_start_in_the_state_of_the_whole_walk(shards: int) -> None:
     """A thread walks only the stretches of rays in its shard's tiles (``split_rays``):
     each starts in exactly the state the walk from the ray's origin has there (voxel, every
     axis' next face, t at entry), and the stretches of a ray cover its walk once."""
-    from mfp_mapper.core.traversal import split_rays
+    from mfp_mapper.core.traversal import _piece_start, split_rays
 
-    origins, ends = _tile_rays(3, 300)
+    origins, ends = _tile_rays(3, 300, shards)
     has_return = np.ones(len(origins), dtype=np.bool_)
     pieces, offsets = split_rays(origins, ends, has_return, 0, len(origins), shards - 1, True)
     assert offsets[0] == 0 and offsets[-1] == len(pieces.ray) and np.all(np.diff(offsets) >= 0)
@@ -295,17 +295,37 @@ def test_stretches_start_in_the_state_of_the_whole_walk(shards: int) -> None:
         at = [k for k, (v, _) in enumerate(states) if v == voxel]
         assert len(at) == 1, (r, voxel)
         expected = states[at[0]][1]
-        assert tuple(pieces.t_state[p, :4].tolist()) == expected, (r, p)  # bit for bit
+        start = _piece_start(origins, ends, pieces.faces, r, *voxel)  # the state there
+        assert tuple(int(start[k]) for k in (9, 10, 11, 15)) == expected, (r, p)  # bit for bit
         covered.setdefault(r, []).extend(range(at[0], at[0] + steps + 1))
         assert pieces.has_return[p] == (at[0] + steps == len(states) - 1)
     for r in range(len(origins)):
         assert sorted(covered[r]) == list(range(len(_walk_states(origins[r], ends[r])))), r
 
 
+def test_the_walk_state_at_any_voxel_follows_from_the_ray() -> None:
+    """A stretch stores only its first voxel: the walk's state there (each axis' next face,
+    t at entry) is derived from the ray's faces the split wrote (``_piece_start``), and
+    equals the state the walk from the ray's origin has there at every voxel it visits,
+    bit for bit."""
+    from mfp_mapper.core.traversal import _piece_start, split_rays
+
+    origins, ends = _tile_rays(6, 200, 8)
+    has_return = np.ones(len(origins), dtype=np.bool_)
+    faces = split_rays(origins, ends, has_return, 0, len(origins), 7, True)[0].faces
+    for r in range(len(origins)):
+        for voxel, expected in _walk_states(origins[r], ends[r]):
+            start = _piece_start(origins, ends, faces, r, *voxel)
+            assert tuple(int(v) for v in start[:3]) == voxel
+            assert tuple(int(start[k]) for k in (9, 10, 11, 15)) == expected, (r, voxel)
+
+
 def test_one_two_four_and_eight_threads_give_the_same_store_bit_for_bit() -> None:
     """Rays across tiles, along tile faces and through tile corners: every thread count
     gives the voxels and float32 sums of one thread walking whole rays, over two scans."""
-    origins, ends = _tile_rays(4, 2_000)
+    # tiles of 16 blocks (two threads: 8 shards) and of 8 (four and eight threads)
+    large, small = _tile_rays(4, 1_000, 8), _tile_rays(4, 1_000, 16)
+    origins, ends = (np.concatenate([a, b]) for a, b in zip(large, small, strict=True))
     maps = [Mapper(1.0, max_range=1e4, threads=t) for t in (1, 2, 4, 8)]
     for scan in range(2):
         for mapper in maps:
@@ -338,7 +358,7 @@ def test_shards_are_walked_most_work_first_on_two_threads_bit_for_bit() -> None:
     )
 
     assert [shard_count(t) for t in (1, 2, 3, 4)] == [1, 8, 16, 16]
-    origins, ends = _tile_rays(5, 3_000)
+    origins, ends = _tile_rays(5, 3_000, 8)
     rays = Mapper(1.0, max_range=1e4).place_rays(ends, origins)[0]
     stores = [BlockStore(shards=1), BlockStore(shards=8)]
     walked: list[list[int]] = []
