@@ -1026,8 +1026,8 @@ def compile_kernels(resolution: float = 0.5, **settings: Any) -> float:
     clouds' changed blocks (``changed_voxels_from``) and the projected grids (whole,
     continued, windowed), so that numba compiles them, or loads them from its cache, before
     the first real scan or publication; returns the seconds it took. The scan's 256 rays
-    reach three tiles of shards (``traversal``) whatever the resolution: every shard of the
-    threaded walk gets some."""
+    reach three of the threaded walk's largest tiles (16 blocks: ``blocks.tile_bits``)
+    whatever the resolution, so its split and every shard get some."""
     t0 = time.perf_counter()
     mapper = Mapper(resolution, origin=np.zeros(3), **settings)
     try:
@@ -1037,7 +1037,7 @@ def compile_kernels(resolution: float = 0.5, **settings: Any) -> float:
         ring = np.sqrt(1.0 - z * z)
         directions = np.stack([ring * np.cos(azimuth), ring * np.sin(azimuth), z], axis=1)
         origin = np.full(3, 0.5 * mapper.resolution)  # a voxel's centre
-        points = origin + directions * (3 * 64 * mapper.resolution)
+        points = origin + directions * (3 * 16 * BLOCK_EDGE * mapper.resolution)
         bins = ReflectivityBins("warm-up", (2.0,))
         values = ScanReflectivity(np.ones(len(points)), bins)
         for reflectivity in (None, values):  # clouds without and with an intensity
