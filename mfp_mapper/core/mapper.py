@@ -1026,8 +1026,9 @@ def compile_kernels(resolution: float = 0.5, **settings: Any) -> float:
     clouds' changed blocks (``changed_voxels_from``) and the projected grids (whole,
     continued, windowed), so that numba compiles them, or loads them from its cache, before
     the first real scan or publication; returns the seconds it took. The scan's 256 rays
-    reach three of the threaded walk's largest tiles (16 blocks: ``blocks.tile_bits``)
-    whatever the resolution, so its split and every shard get some."""
+    start at a corner of eight of the threaded walk's tiles (voxel (0, 0, 0)'s centre), so
+    its split and every shard get some, and end with a return inside the sensor model's
+    range (up to three of the largest tiles, 16 blocks: ``blocks.tile_bits``)."""
     t0 = time.perf_counter()
     mapper = Mapper(resolution, origin=np.zeros(3), **settings)
     try:
@@ -1037,13 +1038,17 @@ def compile_kernels(resolution: float = 0.5, **settings: Any) -> float:
         ring = np.sqrt(1.0 - z * z)
         directions = np.stack([ring * np.cos(azimuth), ring * np.sin(azimuth), z], axis=1)
         origin = np.full(3, 0.5 * mapper.resolution)  # a voxel's centre
-        points = origin + directions * (3 * 16 * BLOCK_EDGE * mapper.resolution)
+        # returns inside the sensor model's range (beyond max_range a ray keeps none)
+        reach = min(3 * 16 * BLOCK_EDGE * mapper.resolution, 0.9 * mapper.max_range)
+        reach = max(reach, mapper.min_range + 2 * mapper.resolution)
+        points = origin + directions * reach
         bins = ReflectivityBins("warm-up", (2.0,))
         values = ScanReflectivity(np.ones(len(points)), bins)
         for reflectivity in (None, values):  # clouds without and with an intensity
             mapper.integrate(points, origin, 1.0, reflectivity=reflectivity)
             mapper.commit(mapper.stage(points, origin, 1.1, None, reflectivity))
-        nearer = origin + 0.5 * (points - origin)  # returns in new voxels: the table grows
+        nearer = origin + directions * max(0.5 * reach, mapper.min_range + mapper.resolution)
+        # (returns in new voxels: the histogram table grows)
         mapper.integrate(nearer, origin, 1.15, reflectivity=values)
         # every ray crosses half of the sensor's voxel: within these scans its block is
         # flushed to float64 (``FLUSH_EDGES``), as a live node's is in its first second
