@@ -197,7 +197,7 @@ class MapOutputs:
         t0 = time.perf_counter()
         lock_times = [0.0, 0.0, 0.0]  # seconds waited for the lock, held; holds
         if want_grid:
-            self._grid_pub.publish(self.grid(lock_times, projected=True))
+            self._grid_pub.publish(self.grid(lock_times, projected=True, in_slices=True))
         if want_clouds:
             self._publish_clouds(lock_times)
         for key in due:
@@ -310,10 +310,17 @@ class MapOutputs:
             size.took(time.perf_counter() - t0)
         return changes
 
-    def grid(self, lock_times: list[float] | None = None, projected: bool = False) -> OccupancyGrid:
+    def grid(
+        self,
+        lock_times: list[float] | None = None,
+        projected: bool = False,
+        in_slices: bool = False,
+    ) -> OccupancyGrid:
         """The 2D grid of the height band: hit-probability percent (``~/hit_probability_map``)
         or, with ``projected``, ``~/projected_map`` (trinary 100/0/-1 for Nav2 unless
-        ``projected_map.trinary`` is false); ``lock_times`` as in ``_timed_map_lock``."""
+        ``projected_map.trinary`` is false); ``lock_times`` as in ``_timed_map_lock``.
+        ``in_slices`` (a publication): read a slice at a time, the map lock let go between
+        slices; else in one hold, a grid of whole scans (GetMap's answer)."""
         cfg, worker = self._settings(), self._worker
         trinary = None
         if projected and cfg.projected_map_trinary:
@@ -362,7 +369,7 @@ class MapOutputs:
                         reading = mapper.start_grid(
                             *band, center=center, radius=radius, max_cells=limit, trinary=trinary
                         )
-                grid = self._read_grid_slice(reading, restarts > MAX_RESTARTS)
+                grid = self._read_grid_slice(reading, not in_slices or restarts > MAX_RESTARTS)
             if grid is not None:
                 break
             time.sleep(SLICE_PAUSE_S)  # a scan waiting for the map takes it
