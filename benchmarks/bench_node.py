@@ -383,7 +383,8 @@ def run_stream(
             feeder.odom_pub.publish(_odom(stamp, position, quaternion))
 
     try:
-        if not feeder.wait_connected(30.0):
+        # a node compiling its kernels into a cold cache (--cold-cache) subscribes after it
+        if not feeder.wait_connected(300.0):
             raise RuntimeError(f"node not discovered:\n{node.log()[-2000:]}")
         feeder.wait(lambda: feeder.status is not None, 10.0)
         if os.environ.get("BENCH_DEBUG"):
@@ -506,11 +507,52 @@ def _report(
         "publish_ms_mean": round(1000 * pub_s / pub_n, 1) if pub_n else None,
         "publish_map_locked_ms_mean": round(1000 * pub_locked / pub_n, 1) if pub_n else None,
         "published_voxels": after["published_voxels"],
+        # since the node started (the first publication of a loaded map included)
+        "publish_map_locked_max_ms": _ms(after.get("publish_locked_max_s")),
+        "map_wait_max_ms": _ms(after.get("map_wait_max_s")),
+        "last_publication_slices": after.get("publish_slices"),
+        "dropped_before_window": before["clouds_dropped"],
+        "integrated_before_window": before["clouds_integrated"],
         "voxels": after["voxels"],
         "memory_mb": round(after["memory_bytes"] / 1e6, 1),
     }
     print(json.dumps(result, indent=2), flush=True)
     return result
+
+
+def _ms(seconds: float | None) -> float | None:
+    return None if seconds is None else round(1000 * seconds, 1)
+
+
+def build_map(path: Path, resolution: float, scans: int, step: float) -> None:
+    """A map file of ``scans`` norlab scans, each ``step`` m further along x (a robot
+    driving through a growing map), integrated as the node does; ``--map-file``."""
+    from mfp_mapper import Mapper
+    from mfp_mapper.config.sections import PlacementSection, SensorModelSection
+    from mfp_mapper.mapio import save_map
+    from mfp_mapper.mapping.loop import ScanLoop
+    from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer
+    from mfp_mapper.sources.scan_files import CloudMessage, Header, Time
+
+    stream = make_stream("norlab", 14, resolution)
+    t0 = 1000.0
+    poses = PoseBuffer(max_age=1e9)
+    for rel in np.arange(0.0, (scans + 1) * SCAN_PERIOD + 1e-9, ODOM_PERIOD):
+        pos, q = stream.pose(float(rel))
+        poses.add(t0 + rel, pos + [step * rel / SCAN_PERIOD, 0.0, 0.0], q)
+    mapper = Mapper(resolution, max_range=100.0, threads=2, frame_id="odom")
+    loop = ScanLoop(mapper, PlacementSection(), SensorModelSection(max_range=100.0))
+    for k in range(scans):
+        c = stream.clouds[k % len(stream.clouds)]
+        sec = t0 + k * SCAN_PERIOD
+        header = Header(Time(int(sec), int(round((sec % 1) * 1e9))), "base_link")
+        msg = CloudMessage(header, c.height, c.width, c.fields, False, c.point_step,
+                           c.row_step, c.data)  # fmt: skip
+        placed = loop.place(loop.prepare(msg), poses, Extrinsic(translation=np.zeros(3)))
+        mapper.integrate(placed.points, placed.origins, placed.stamp, placed.no_return)
+    save_map(mapper, path)
+    print(f"built {path}: {scans} norlab scans {step} m apart, {mapper.num_voxels} voxels")
+    mapper.close()
 
 
 def core_times(
@@ -765,6 +807,19 @@ def main() -> int:
     )
     parser.add_argument("--default-dds", action="store_true", help="the same as --dds none")
     parser.add_argument("--json", type=Path, help="also write the results to this file")
+    parser.add_argument(
+        "--map-file",
+        type=Path,
+        help="start each node with this map (map_path, copied; not saved back); built when "
+        "missing from --map-scans norlab scans --map-step m apart at --resolution",
+    )
+    parser.add_argument("--map-scans", type=int, default=14, help="scans of a built --map-file")
+    parser.add_argument("--map-step", type=float, default=20.0, help="metres between them")
+    parser.add_argument(
+        "--cold-cache",
+        action="store_true",
+        help="each node compiles numba's kernels into an empty cache (NUMBA_CACHE_DIR)",
+    )
     args = parser.parse_args()
     if args.core_child:
         name, n_scans, threads, res = args.core_child
@@ -801,9 +856,16 @@ def main() -> int:
                 run_big_scan(int(args.big_scan), logs)
                 return 0
             extra = _params(args.param)
+            if args.map_file is not None:
+                if not args.map_file.exists():
+                    build_map(args.map_file, args.resolution or 0.2, args.map_scans, args.map_step)
+                copy = logs / ("start_map" + "".join(args.map_file.suffixes))
+                extra["map_path"] = str(copy)
             nodes: list[tuple[str, Path | None, dict[str, Any]]] = [("this", None, extra)]
             if args.baseline:
                 base_extra = _params(args.baseline_param) if args.baseline_param else extra
+                if "map_path" in extra:
+                    base_extra["map_path"] = extra["map_path"]
                 nodes.insert(0, (args.baseline, _export(args.baseline, logs), base_extra))
             for name in STREAMS if args.stream == "all" else [args.stream]:
                 core = args.core if args.core is not None else name == "ouster"
@@ -814,13 +876,21 @@ def main() -> int:
                 for rep in range(args.repeat):
                     for label, tree, params in nodes:
                         print(f"[{name}] run {rep + 1}/{args.repeat}: node of {label}", flush=True)
+                        env = dict(node_env)
+                        if args.cold_cache:
+                            cache = Path(tempfile.mkdtemp(prefix="numba_cold_", dir=logs))
+                            env["NUMBA_CACHE_DIR"] = str(cache)
+                        if args.map_file is not None:
+                            import shutil
+
+                            shutil.copyfile(args.map_file, extra["map_path"])
                         result = run_stream(
                             stream,
                             args.duration,
                             logs,
                             args.threads,
                             args.tf_poses,
-                            node_env,
+                            env,
                             args.queue_size,
                             params,
                             tree,
@@ -852,6 +922,13 @@ def main() -> int:
             f"{sum(r['clouds_dropped'].values()):>5}"
             f"  {r['publications']} ({r['publish_ms_mean']}, {r['publish_map_locked_ms_mean']}, "
             f"{r['published_voxels']})"
+        )
+        print(
+            f"{'':<10} since start: longest map-lock hold by a publication "
+            f"{r['publish_map_locked_max_ms']} ms (the last read in {r['last_publication_slices']} "
+            "slices), longest wait of a scan for the map "
+            f"{r['map_wait_max_ms']} ms; before the window {r['integrated_before_window']} "
+            f"integrated, dropped {r['dropped_before_window']}"
         )
     for r in results:
         if r["clouds_integrated"] and r["stage_ms_per_scan"]:

@@ -12,6 +12,9 @@ every block holding a return.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from dataclasses import dataclass
+
 import numba as nb
 import numpy as np
 from numpy.typing import NDArray
@@ -37,15 +40,18 @@ ChangedArrays = tuple[
 
 
 @nb.njit(cache=True, nogil=True)
-def _changed_bound(sa: ShardArrays, used: int, since: int) -> tuple[int, int]:
-    """How many changed blocks hold a return, and at most how many voxels they select."""
+def _changed_bound(
+    sa: ShardArrays, start: int, stop: int, since: int, every_voxel: bool
+) -> tuple[int, int]:
+    """How many changed blocks of ``start..stop`` hold a return (``every_voxel``: how many
+    changed blocks), and at most how many voxels they select."""
     blocks = 0
     bound = 0
-    for b in range(used):
-        if sa.block_scan[b] < since or not sa.block_hit[b]:
+    for b in range(start, stop):
+        if sa.block_scan[b] < since or not (every_voxel or sa.block_hit[b]):
             continue
         blocks += 1
-        if sa.block_href[b] >= 0:
+        if every_voxel or sa.block_href[b] >= 0:
             bound += BLOCK_VOXELS
             continue
         row = sa.block_nrec[b]
@@ -58,14 +64,16 @@ def _changed_bound(sa: ShardArrays, used: int, since: int) -> tuple[int, int]:
 
 @nb.njit(cache=True, nogil=True)
 def _keep(s: float, n: float, min_extinction: float) -> bool:
-    """``store._select_voxels``' test for ``min_extinction`` > 0 (n > 0 needed)."""
+    """``store._select_voxels``' test: ``n >= min_extinction * s``, and observed (with
+    ``min_extinction`` 0: every observed voxel)."""
     return (s > 0.0 and n >= min_extinction * s) or (s == 0.0 and n > 0.0)
 
 
 @nb.njit(cache=True, nogil=True)
 def _changed_returns(
     sa: ShardArrays,
-    used: int,
+    start: int,
+    stop: int,
     since: int,
     min_extinction: float,
     blocks_out: NDArray[np.int32],
@@ -74,14 +82,17 @@ def _changed_returns(
     n_out: NDArray[np.float64],
     t_out: NDArray[np.float64],
 ) -> int:
-    """Fill the outputs (sized by ``_changed_bound``) with the changed blocks holding a
-    return and their voxels with ``n >= min_extinction * s``; returns the voxel count."""
+    """Fill the outputs (sized by ``_changed_bound``) with the changed blocks of
+    ``start..stop`` holding a return and their voxels with ``n >= min_extinction * s``
+    (``min_extinction`` 0: every changed block and its observed voxels); returns the voxel
+    count."""
+    every_voxel = min_extinction == 0.0
     j = 0
     m = 0
     s_block = np.empty(BLOCK_VOXELS)
     n_block = np.empty(BLOCK_VOXELS)
-    for b in range(used):
-        if sa.block_scan[b] < since or not sa.block_hit[b]:
+    for b in range(start, stop):
+        if sa.block_scan[b] < since or not (every_voxel or sa.block_hit[b]):
             continue
         x0, y0, z0 = block_origin(sa.block_ijk, b)
         blocks_out[m, 0] = sa.block_ijk[b, 0]
@@ -89,7 +100,7 @@ def _changed_returns(
         blocks_out[m, 2] = sa.block_ijk[b, 2]
         m += 1
         t = sa.block_t[b]
-        if sa.block_href[b] >= 0:  # flushed: float64 parts too, read the whole block
+        if every_voxel or sa.block_href[b] >= 0:  # the whole block (flushed: float64 too)
             block_values(sa, b, s_block, n_block)
             for i in range(BLOCK_VOXELS):
                 if _keep(s_block[i], n_block[i], min_extinction):
@@ -122,17 +133,66 @@ def _changed_returns(
     return j
 
 
+@dataclass(frozen=True)
+class BlockCursor:
+    """Where a read of the store in slices of blocks goes on: block ``block`` of shard
+    ``shard``; ``ends``: each shard's block count when the read began. Blocks keep their
+    place while the map's epoch stays the same and new ones come after the others, so a
+    read that stops at ``ends`` reads each block of the map it began on once, and ends
+    however fast scans add blocks (those are the next read's: they changed after it began)."""
+
+    shard: int
+    block: int
+    ends: tuple[int, ...]
+
+
+def block_ranges(
+    shards: Sequence[tuple[object, int]], cursor: BlockCursor | None, max_blocks: int | None
+) -> tuple[list[tuple[int, int, int]], BlockCursor | None]:
+    """The (shard, start, stop) block ranges of the next slice of at most ``max_blocks``
+    blocks (None: to the end) from ``cursor`` (None: a new read, from the first block of
+    ``shards``, ``(arrays, used)`` each), and the cursor after them (None: read to the end)."""
+    if cursor is None:
+        cursor = BlockCursor(0, 0, tuple(used for _, used in shards))
+    ends = cursor.ends
+    left = sum(ends) if max_blocks is None else max(int(max_blocks), 1)
+    ranges = []
+    shard, block = cursor.shard, cursor.block
+    while shard < len(ends):
+        end = min(ends[shard], shards[shard][1])
+        stop = min(end, block + left)
+        if stop > block:
+            ranges.append((shard, block, stop))
+            left -= stop - block
+        if stop < end:
+            return ranges, BlockCursor(shard, stop, ends)
+        shard, block = shard + 1, 0
+    return ranges, None
+
+
 def changed_returns(
-    shards: list[tuple[ShardArrays, int]], since: int, min_extinction: float
-) -> ChangedArrays:
+    shards: list[tuple[ShardArrays, int]],
+    since: int,
+    min_extinction: float,
+    cursor: BlockCursor | None = None,
+    max_blocks: int | None = None,
+) -> tuple[ChangedArrays, BlockCursor | None]:
     """Over ``(arrays, used blocks)`` of each shard: the blocks holding a return that a scan
     numbered ``since`` or later opened (all of them: ``since`` -1), and their voxels with
-    ``n >= min_extinction * s`` (``min_extinction`` > 0), statistics as stored."""
-    if not min_extinction > 0.0:
-        raise ValueError(f"min_extinction must be > 0, got {min_extinction}")
+    ``n >= min_extinction * s`` (``min_extinction`` > 0: only their ``n`` chunks are read);
+    with ``min_extinction`` 0 every changed block and its observed voxels (each block
+    decoded whole), statistics as stored.
+
+    In slices: from ``cursor`` (None: a new read), at most ``max_blocks`` blocks of the
+    store, changed or not (a bound on the time taken); also returns the cursor of the next
+    slice, None when the read is complete (``BlockCursor``)."""
+    if not min_extinction >= 0.0:
+        raise ValueError(f"min_extinction must be >= 0, got {min_extinction}")
+    ranges, after = block_ranges(shards, cursor, max_blocks)
     parts = []
-    for sa, used in shards:
-        blocks, bound = _changed_bound(sa, used, since)
+    for shard, start, stop in ranges:
+        sa = shards[shard][0]
+        blocks, bound = _changed_bound(sa, start, stop, since, min_extinction == 0.0)
         out = (
             np.empty((blocks, 3), np.int32),
             np.empty((bound, 3), np.int32),
@@ -140,7 +200,10 @@ def changed_returns(
             np.empty(bound),
             np.empty(bound),
         )
-        count = _changed_returns(sa, used, since, min_extinction, *out)
+        count = _changed_returns(sa, start, stop, since, min_extinction, *out)
         parts.append((out[0], *(a[:count] for a in out[1:])))
+    if not parts:
+        empty = (np.empty((0, 3), np.int32), np.empty((0, 3), np.int32))
+        return (*empty, np.empty(0), np.empty(0), np.empty(0)), after
     blocks_out, ijk, s, n, t = (np.concatenate([p[k] for p in parts]) for k in range(5))
-    return blocks_out, ijk, s, n, t
+    return (blocks_out, ijk, s, n, t), after

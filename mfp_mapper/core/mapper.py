@@ -15,9 +15,16 @@ from numpy.typing import ArrayLike, NDArray
 
 from mfp_mapper.config.sections import MapSection, SensorModelSection
 from mfp_mapper.core import model, traversal
-from mfp_mapper.core.changed_blocks import changed_returns
+from mfp_mapper.core.changed_blocks import BlockCursor, changed_returns
 from mfp_mapper.core.errors import CoreError, ScanTooLargeError
-from mfp_mapper.core.gridmap import BandCells, HitGrid, band_grid
+from mfp_mapper.core.gridmap import (
+    BandCells,
+    GridReading,
+    HitGrid,
+    band_grid_result,
+    band_grid_step,
+    start_band_grid,
+)
 from mfp_mapper.core.memory_bound import (
     MemoryBound,
     fit_scan_budget,
@@ -736,18 +743,37 @@ class Mapper:
     def changed_voxels(
         self, since: int, min_doo: float
     ) -> tuple[VoxelStats, NDArray[np.int32], int]:
-        """The voxels of most likely degree of occupancy >= ``min_doo`` (> 0) in the blocks
+        """The voxels of most likely degree of occupancy >= ``min_doo`` in the blocks
         scans changed since scan ``since`` (every block: -1), statistics as stored (as
-        ``voxels`` without ``stamp``); the index (voxel index >> 3, (B, 3)) of every such
-        block holding a return; and the ``since`` that asks for the changes after this
-        call. A cache of ``voxels`` per block stays exact while ``epoch`` stays the same
+        ``voxels`` without ``stamp``: with ``min_doo`` 0 every observed voxel); the index
+        (voxel index >> 3, (B, 3)) of every such block holding a return (``min_doo`` 0:
+        every such block); and the ``since`` that asks for the changes after this call. A
+        cache of ``voxels`` per block stays exact while ``epoch`` stays the same
         (``core.changed_blocks``; ``mapping.map_cloud``)."""
-        if not 0.0 < min_doo <= 1.0:
-            raise ValueError(f"min_doo must lie in (0, 1], got {min_doo}")
+        voxels, blocks, next_since, _ = self.changed_voxels_from(since, min_doo)
+        return voxels, blocks, next_since
+
+    def changed_voxels_from(
+        self,
+        since: int,
+        min_doo: float,
+        cursor: BlockCursor | None = None,
+        max_blocks: int | None = None,
+    ) -> tuple[VoxelStats, NDArray[np.int32], int, BlockCursor | None]:
+        """``changed_voxels`` in slices: the blocks from ``cursor`` (None: a new read), at
+        most ``max_blocks`` of the store's, changed or not; also the cursor of the next
+        slice (None: the read is complete). Read with the map lock let go between slices,
+        every block the map had when the read began is read once, as it was at its slice,
+        while ``epoch`` stays the same (``core.changed_blocks.BlockCursor``)."""
+        if not 0.0 <= min_doo <= 1.0:
+            raise ValueError(f"min_doo must lie in [0, 1], got {min_doo}")
         min_extinction = math.inf if min_doo >= 1.0 else -math.log1p(-min_doo)
         shards = [(sh.arrays(), sh.used) for sh in self._store.shards]
-        blocks, ijk, s, n, t = changed_returns(shards, since, min_extinction)
-        return self._stats(VoxelArrays(ijk, s, n, t), None), blocks, self._store.next_scan
+        (blocks, ijk, s, n, t), after = changed_returns(
+            shards, since, min_extinction, cursor, max_blocks
+        )
+        voxels = self._stats(VoxelArrays(ijk, s, n, t), None)
+        return voxels, blocks, self._store.next_scan, after
 
     def _index_bounds(
         self, bounds: tuple[ArrayLike, ArrayLike]
@@ -784,6 +810,27 @@ class Mapper:
         the whole band with the same settings, from which only the columns scans changed
         since are computed again (``gridmap.band_grid``; the whole band when anything else
         changed the map: ``epoch``)."""
+        reading = self.start_grid(
+            z_min, z_max, center=center, radius=radius, max_cells=max_cells,
+            trinary=trinary, previous=previous,
+        )  # fmt: skip
+        grid = self.read_grid(reading)
+        assert grid is not None
+        return grid
+
+    def start_grid(
+        self,
+        z_min: float,
+        z_max: float,
+        *,
+        center: tuple[float, float] | None = None,
+        radius: float = 0.0,
+        max_cells: int | None = None,
+        trinary: tuple[float, float] | None = None,
+        previous: BandCells | None = None,
+    ) -> GridReading:
+        """``hit_probability_grid`` to be read in slices of blocks (``read_grid``): its
+        extent and the columns to compute, no block's values read yet."""
         lo_m, hi_m = [-math.inf, -math.inf, z_min], [math.inf, math.inf, z_max]
         if center is not None and radius > 0.0:  # only the blocks near the window are read
             margin = radius + self.resolution
@@ -792,7 +839,7 @@ class Mapper:
         lo, hi = self._index_bounds((lo_m, hi_m))
         shards = [(sh.arrays(), sh.used) for sh in self._store.shards]
         ox, oy, oz = (float(v) for v in self._offset)
-        grid = band_grid(
+        return start_band_grid(
             shards,
             self.resolution,
             z_min - oz,
@@ -808,6 +855,25 @@ class Mapper:
             since=self._store.next_scan,
             key=(id(self), self.epoch, z_min, z_max, trinary, self.prior, ox, oy, oz),
         )
+
+    def grid_still_valid(self, reading: GridReading) -> bool:
+        """Whether ``reading`` (``start_grid``) may go on: same map, same epoch (no block
+        moved: reset, clear_box and eviction move them), same prior."""
+        return reading.key[:2] == (id(self), self.epoch) and reading.key[5] == self.prior
+
+    def read_grid(self, reading: GridReading, max_blocks: int | None = None) -> HitGrid | None:
+        """Read ``reading``'s next blocks, at most ``max_blocks`` of the store's (all:
+        None); the grid once every block was read, else None (call again, the map lock
+        may be let go in between: ``gridmap.GridReading``). ``ValueError`` when
+        ``grid_still_valid`` is not."""
+        if not self.grid_still_valid(reading):
+            raise ValueError("read_grid: the map changed under the grid (start again)")
+        shards = [(sh.arrays(), sh.used) for sh in self._store.shards]
+        band_grid_step(reading, shards, max_blocks)
+        if reading.cursor is not None:
+            return None
+        grid = band_grid_result(reading, self.resolution)
+        ox, oy = float(reading.key[6]), float(reading.key[7])  # type: ignore[arg-type]
         if ox == 0.0 and oy == 0.0:
             return grid
         return dataclasses.replace(grid, origin=(grid.origin[0] + ox, grid.origin[1] + oy))
@@ -952,20 +1018,51 @@ def _mean_origin(rays: Rays) -> FloatArray:
     return total / len(rays)
 
 
-def compile_kernels(decay_time: float = math.inf) -> float:
-    """Run the compiled kernels of a live scan once on a few rays (``integrate``, ``stage``
-    and ``commit``, with reflectivity histograms, ``query``, ``voxels``, the projected
-    grids), so that numba compiles them, or loads them from its cache, before the first real
-    scan or publication (which would hold the map meanwhile); returns the seconds it took."""
+def compile_kernels(resolution: float = 0.5, **settings: Any) -> float:
+    """Run the compiled kernels of a live node once, on a throwaway ``Mapper(resolution,
+    **settings)`` (the node's settings: its ``threads`` walk other kernels than one
+    thread): a synthetic scan integrated directly and staged + committed, without and with
+    reflectivity histograms, then ``query``, ``query_segments``, ``reflectivity``, ``voxels``, the
+    clouds' changed blocks (``changed_voxels_from``) and the projected grids (whole,
+    continued, windowed), so that numba compiles them, or loads them from its cache, before
+    the first real scan or publication; returns the seconds it took. The scan's 256 rays
+    start at a corner of eight of the threaded walk's tiles (voxel (0, 0, 0)'s centre), so
+    its split and every shard get some, and end with a return inside the sensor model's
+    range (up to three of the largest tiles, 16 blocks: ``blocks.tile_bits``)."""
     t0 = time.perf_counter()
-    points = np.array([[2.0, 0.5, 0.3], [-1.0, 3.0, 0.8], [0.5, -2.5, -0.4]])
-    mapper = Mapper(0.5, decay_time=decay_time)
-    values = ScanReflectivity(np.ones(len(points)), ReflectivityBins("warm-up", (2.0,)))
-    mapper.integrate(points, np.zeros(3), 1.0, reflectivity=values)
-    mapper.commit(mapper.stage(points, np.zeros(3), 2.0, None, values))
-    mapper.query(points)
-    mapper.reflectivity(points, 2.0)
-    mapper.voxels(min_doo=0.1, bounds=(np.full(3, -5.0), np.full(3, 5.0)))
-    mapper.hit_probability_grid(-1.0, 1.0, trinary=(0.25, 0.01))
-    mapper.hit_probability_grid(-1.0, 1.0, center=(0.0, 0.0), radius=2.0)
+    mapper = Mapper(resolution, origin=np.zeros(3), **settings)
+    try:
+        at = np.arange(256) + 0.5  # a Fibonacci sphere of directions
+        z = 1.0 - 2.0 * at / 256
+        azimuth = np.pi * (1.0 + 5.0**0.5) * at
+        ring = np.sqrt(1.0 - z * z)
+        directions = np.stack([ring * np.cos(azimuth), ring * np.sin(azimuth), z], axis=1)
+        origin = np.full(3, 0.5 * mapper.resolution)  # a voxel's centre
+        # returns inside the sensor model's range (beyond max_range a ray keeps none)
+        reach = min(3 * 16 * BLOCK_EDGE * mapper.resolution, 0.9 * mapper.max_range)
+        reach = max(reach, mapper.min_range + 2 * mapper.resolution)
+        points = origin + directions * reach
+        bins = ReflectivityBins("warm-up", (2.0,))
+        values = ScanReflectivity(np.ones(len(points)), bins)
+        for reflectivity in (None, values):  # clouds without and with an intensity
+            mapper.integrate(points, origin, 1.0, reflectivity=reflectivity)
+            mapper.commit(mapper.stage(points, origin, 1.1, None, reflectivity))
+        nearer = origin + directions * max(0.5 * reach, mapper.min_range + mapper.resolution)
+        # (returns in new voxels: the histogram table grows)
+        mapper.integrate(nearer, origin, 1.15, reflectivity=values)
+        # every ray crosses half of the sensor's voxel: within these scans its block is
+        # flushed to float64 (``FLUSH_EDGES``), as a live node's is in its first second
+        for scan in range(8):
+            mapper.integrate(points, origin, 1.2 + 0.1 * scan)
+        mapper.query(points[:8])
+        mapper.query_segments(points[:4], points[4:8])
+        mapper.reflectivity(points[:8], 2.0)
+        mapper.voxels(min_doo=0.1, bounds=(np.full(3, -5.0), np.full(3, 5.0)))
+        mapper.changed_voxels_from(-1, 0.1, None, 64)
+        grid = mapper.hit_probability_grid(-1.0, 1.0, trinary=(0.25, 0.01))
+        mapper.integrate(points[:8], origin, 3.0)
+        mapper.hit_probability_grid(-1.0, 1.0, trinary=(0.25, 0.01), previous=grid.cells)
+        mapper.hit_probability_grid(-1.0, 1.0, center=(0.0, 0.0), radius=2.0)
+    finally:
+        mapper.close()
     return time.perf_counter() - t0

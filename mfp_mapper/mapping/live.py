@@ -27,13 +27,14 @@ counted under the pipeline's names (``pipeline.DROP_REASONS``).
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import functools
 import math
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -128,6 +129,7 @@ class LiveCounters(ScanCounts, PoseCounters):
     latency_last: float = float("nan")
     received_latency_sum: float = 0.0  # cloud received -> integrated (s)
     received_latency_max: float = 0.0
+    map_wait_max: float = 0.0  # the longest wait of a scan for the map lock (s)
     stage_seconds: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
     """Wall seconds of the integrated clouds by stage (``STAGES``), summed."""
 
@@ -210,11 +212,11 @@ class LiveIntegrator:
         ``DIRECT_MAX_S``, else staged and merged (module docstring)."""
         rays = len(placed.points)
         if 0.0 < self._seconds_per_ray * rays <= DIRECT_MAX_S:
-            with self.whole_map:
+            with self._map_for_scan():
                 summary = loop.integrate_scan(mapper, placed)
             cpu = summary.cpu_seconds
         else:
-            summary = loop.merge_scan(mapper, placed, self.whole_map, self._let_readers_in)
+            summary = loop.merge_scan(mapper, placed, self._map_for_scan(), self._let_readers_in)
             # the estimate is of a direct integration: the staged walk alone (at least as
             # long), not the merge that only staging pays, else a scan once staged kept the
             # next ones staged (norlab at 0.1 m: ~600 ms CPU a scan staged, ~250 direct)
@@ -224,6 +226,17 @@ class LiveIntegrator:
             per_ray, mean = cpu / rays, self._seconds_per_ray
             self._seconds_per_ray = per_ray if per_ray < mean else _average(mean, per_ray)
         return summary
+
+    @contextlib.contextmanager
+    def _map_for_scan(self) -> Iterator[None]:
+        """``whole_map`` for a scan, counting the longest wait for it (``map_wait_max``:
+        what a publication or a service holding the map cost the integration)."""
+        asked = time.perf_counter()
+        with self.whole_map:
+            waited = time.perf_counter() - asked
+            with self._cv:
+                self.counters.map_wait_max = max(self.counters.map_wait_max, waited)
+            yield
 
     def _let_readers_in(self) -> None:
         """Between two chunks of a merge: a reader waiting for ``map_lock`` takes it."""

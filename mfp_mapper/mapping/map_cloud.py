@@ -8,17 +8,20 @@ result is the cloud of the whole map, row for row (in another order): the clouds
 statistics at their last update, which only a scan opening the block changes; anything
 else that changes voxels (reset, clear_box, eviction by the memory bound) bumps
 ``Mapper.epoch`` and the next publication reads the whole map again, as does a change of
-the filters or of the prior.
+the filters or of the prior. The reading may be done in slices of blocks, the map lock let go
+in between (``MapCloud.read`` ``max_blocks``): each block is read once, whole, as it is at
+its slice.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from mfp_mapper.core.changed_blocks import BlockCursor
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.core.reflectivity import mean_value, most_likely_bin
 from mfp_mapper.core.voxel_stats import VoxelStats
@@ -53,16 +56,33 @@ class CloudRows:
         )  # fmt: skip
 
 
+MAX_RESTARTS = 2
+"""Slices of a read that the map's ``epoch`` changed under (reset, clear_box, eviction by the
+memory bound: blocks moved) are read again from the start; after this many restarts the
+read is done in one go (a map whose memory bound evicts at every scan is bounded in size)."""
+
+
 @dataclass
 class CloudChanges:
-    """What ``MapCloud.read`` took from the map under its lock."""
+    """What ``MapCloud.read`` took from the map under its lock: the slices read so far
+    (voxels, blocks holding a return, histogram counts) and where the next slice starts
+    (``cursor``; None: the read is complete)."""
 
     key: tuple[Any, ...]
     full: bool
-    voxels: VoxelStats
-    blocks: NDArray[np.int32]
-    histograms: tuple[Any, NDArray[np.float64]] | None
-    since: int
+    read_since: int  # the scan whose changes on are read (-1: every block)
+    since: int  # the next scan when the read began: the rows' scan once applied
+    voxels: list[VoxelStats]
+    blocks: list[NDArray[np.int32]]
+    bins: Any  # the histograms' bins (None: the map keeps none)
+    counts: list[NDArray[np.float64] | None]  # a slice's (None: the map kept none then)
+    cursor: BlockCursor | None = None
+    restarts: int = 0
+    started: bool = False
+
+    @property
+    def complete(self) -> bool:
+        return self.started and self.cursor is None
 
 
 def block_keys(block_ijk: NDArray[np.integer]) -> NDArray[np.int64]:
@@ -83,37 +103,74 @@ class MapCloud:
         self.last_changed_blocks = 0
         """Blocks read by the last ``read`` (every block holding a return when it was full)."""
 
-    def read(self, mapper: Mapper, min_doo: float, min_evidence: float) -> CloudChanges:
+    def read(
+        self,
+        mapper: Mapper,
+        min_doo: float,
+        min_evidence: float,
+        max_blocks: int | None = None,
+        partial: CloudChanges | None = None,
+    ) -> CloudChanges:
         """The voxels of the blocks changed since the rows' scan (the whole map when the
         map, its epoch, the filters or the prior changed), with their histograms: the part
-        that needs the map lock (``min_doo`` > 0)."""
+        that needs the map lock (``min_doo`` >= 0). With ``max_blocks``, one slice of at
+        most that many of the store's blocks, going on from ``partial`` (the last slice's
+        result) until ``complete``; the lock may be let go between slices (each block is
+        read once, as it is at its slice; the rows' scan is the one the read began at, so
+        the next read takes again every block scans changed meanwhile)."""
         key = (
             id(mapper), mapper.epoch, min_doo, min_evidence, mapper.prior,
             mapper.reflectivity_scale, mapper.resolution,
         )  # fmt: skip
-        full = key != self._key or self._rows is None
-        voxels, blocks, since = mapper.changed_voxels(-1 if full else self._since, min_doo)
+        if partial is not None and partial.key == key and not partial.complete:
+            changes = partial
+        else:  # a new read, or the map changed under the last slice: from the start
+            restarts = 0 if partial is None else partial.restarts + 1
+            full = key != self._key or self._rows is None
+            read_since = -1 if full else self._since
+            changes = CloudChanges(key, full, read_since, -1, [], [], None, [], None, restarts)
+        if changes.restarts > MAX_RESTARTS:
+            max_blocks = None
+        voxels, blocks, since, cursor = mapper.changed_voxels_from(
+            changes.read_since, min_doo, changes.cursor, max_blocks
+        )
+        if changes.since < 0:
+            changes.since = since
+        changes.cursor, changes.started = cursor, True
+        changes.voxels.append(voxels)
+        changes.blocks.append(blocks)
         histograms = mapper.reflectivity(voxels.centers)
-        return CloudChanges(key, full, voxels, blocks, histograms, since)
+        if histograms is not None:
+            changes.bins = histograms[0]
+        changes.counts.append(None if histograms is None else histograms[1])
+        return changes
 
     def apply(self, changes: CloudChanges, min_evidence: float) -> CloudRows:
-        """The rows after ``changes`` (the map's cloud as ``read`` saw it)."""
-        vox = changes.voxels
+        """The rows after ``changes`` (a complete read: the map's cloud as ``read`` saw
+        it, slice by slice)."""
+        if not changes.complete:
+            raise ValueError("MapCloud.apply: the read is not complete")
+        vox = _concatenate_stats(changes.voxels)
+        histograms = None
+        if changes.bins is not None:  # (a slice read before the map kept any: no counts)
+            width = next(c.shape[1] for c in changes.counts if c is not None)
+            counts = [
+                np.zeros((len(v), width)) if c is None else c
+                for v, c in zip(changes.voxels, changes.counts, strict=True)
+            ]
+            histograms = (changes.bins, np.concatenate(counts))
         if min_evidence > 0.0:
             keep = vox.s >= min_evidence
             vox = vox.select(keep)
-            histograms = changes.histograms
             if histograms is not None:
                 histograms = (histograms[0], histograms[1][keep])
-        else:
-            histograms = changes.histograms
         fresh = rows_of(vox, histograms)
         fresh_blocks = block_keys(vox.ijk >> 3)
         old = self._rows
         if changes.full or old is None:
             rows, row_blocks = fresh, fresh_blocks
         else:
-            changed = np.sort(block_keys(changes.blocks))
+            changed = np.sort(block_keys(np.concatenate(changes.blocks)))
             stale = np.zeros(len(self._row_blocks), dtype=np.bool_)
             if len(changed):  # (searchsorted: np.isin took 3x as long)
                 at = np.minimum(np.searchsorted(changed, self._row_blocks), len(changed) - 1)
@@ -123,7 +180,7 @@ class MapCloud:
             row_blocks = np.concatenate([self._row_blocks[~stale], fresh_blocks])
         self._rows, self._row_blocks = rows, row_blocks
         self._key, self._since = changes.key, changes.since
-        self.last_changed_blocks = len(changes.blocks)
+        self.last_changed_blocks = sum(len(b) for b in changes.blocks)
         return rows
 
     def clear(self) -> None:
@@ -145,6 +202,19 @@ def rows_of(vox: VoxelStats, histograms: tuple[Any, NDArray[np.float64]] | None)
         rows.reflectivity[held] = mean_value(counts[held], bins)
         rows.reflectivity_bin[held] = most_likely_bin(counts[held])
     return rows
+
+
+def _concatenate_stats(parts: list[VoxelStats]) -> VoxelStats:
+    """The voxels of the slices of a read, one after the other."""
+    if len(parts) == 1:
+        return parts[0]
+    first = parts[0]
+    arrays = {
+        f.name: np.concatenate([getattr(p, f.name) for p in parts])
+        for f in fields(first)
+        if f.name not in ("resolution", "prior")
+    }
+    return VoxelStats(**arrays, resolution=first.resolution, prior=first.prior)
 
 
 def _concatenate(a: CloudRows, b: CloudRows) -> CloudRows:

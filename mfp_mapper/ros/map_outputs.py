@@ -1,9 +1,14 @@
 """The node's map outputs: the degree-of-occupancy, std and reflectivity clouds and the
 projected grid.
 
-Selected from the Mapper under the map lock (only as long as the compiled export or grid
-takes), converted and published outside it, on the live worker's publishing thread
-(``LiveIntegrator.request_publish``): integration never waits for a message to be built.
+Selected from the Mapper under the map lock, converted and published outside it, on the
+live worker's publishing thread (``LiveIntegrator.request_publish``): integration never
+waits for a message to be built. The clouds' changed blocks and the grids are read in
+slices of about ``MAP_SLICE_S``, the lock let go between them: a large map's first
+publication does not stop integration for its whole read. A publication read in slices
+holds every scan integrated before its read began, and of the scans integrated during the
+read the blocks its later slices reached; its stamp and map version are those at the
+start, so the next publication reads again every block those scans changed.
 """
 
 from __future__ import annotations
@@ -22,9 +27,15 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from sensor_msgs.msg import PointCloud2
 
 from mfp_mapper.config.sections import OutputsSection
-from mfp_mapper.core.gridmap import BandCells, GridTooLarge, unobserved_hit_probability
+from mfp_mapper.core.gridmap import (
+    BandCells,
+    GridReading,
+    GridTooLarge,
+    HitGrid,
+    unobserved_hit_probability,
+)
 from mfp_mapper.mapping.live import LiveIntegrator
-from mfp_mapper.mapping.map_cloud import MapCloud, rows_of
+from mfp_mapper.mapping.map_cloud import MAX_RESTARTS, CloudChanges, MapCloud, rows_of
 from mfp_mapper.ros.messages import cloud_msg, grid_msg, stamp_msg
 from mfp_mapper.sensing.pointcloud import pack_cloud
 
@@ -35,6 +46,34 @@ after the last instead halved a 1 Hz rate whose publications held the lock 0.106
 at 0.1 m: the timer's next tick came 0.05 s too early, the one after was taken)."""
 LOCK_BUDGET_MAX_S = 0.5
 """The most map-lock time the bucket saves up while nothing is published."""
+MAP_SLICE_S = 0.025
+"""The time a slice of the map outputs' reading aims at: the clouds' changed blocks and the
+grids are read in slices of blocks sized to take about this long (``SliceSize``), the map
+lock let go between them so that a waiting scan is integrated meanwhile. Holds vary about
+2x around it with the blocks' contents and the load. The first publication of a 72 M-voxel
+map at 0.1 m held the lock 0.57 s in one go (the grid 0.45 s) on an idle machine, seconds
+under load (docs/performance.md)."""
+SLICE_PAUSE_S = 0.001
+"""How long the outputs let go of the map between two slices (a waiting scan takes it: a
+lock released and taken again at once would mostly be taken again by the same thread)."""
+
+
+class SliceSize:
+    """Blocks a slice of the map reads, following the time the last full slices took per
+    block so that a slice takes about ``MAP_SLICE_S``."""
+
+    FIRST = 16_384
+    LEAST = 1_024
+
+    def __init__(self) -> None:
+        self.blocks = self.FIRST
+
+    def took(self, seconds: float) -> None:
+        """A slice of ``self.blocks`` blocks (not the last of its read) took ``seconds``."""
+        if seconds > 0.0:
+            wanted = int(self.blocks * MAP_SLICE_S / seconds)
+            # at most doubled at a time: one quick slice of empty blocks is no promise
+            self.blocks = max(self.LEAST, min(wanted, 2 * self.blocks))
 
 
 class LockBudget:
@@ -83,6 +122,8 @@ counterpart."""
 class PublishCounters:
     seconds: float = 0.0  # building and sending, without waiting for the map lock
     locked_seconds: float = 0.0  # of which the map lock was held (integration waits)
+    locked_max_seconds: float = 0.0  # the longest single hold of the map lock
+    slices: int = 0  # map-lock holds of the last publication (its slices, clouds and grid)
     count: int = 0
     last_seconds: float = 0.0
     voxels: int = 0
@@ -125,6 +166,8 @@ class MapOutputs:
         self._cloud = MapCloud()  # the clouds' rows, rebuilt where scans changed the map
         self._grid_cells: BandCells | None = None  # the last ~/projected_map's, continued
         self._budget = LockBudget()
+        self._cloud_slice = SliceSize()
+        self._grid_slice = SliceSize()
 
     def invalidate(self) -> None:
         """Publish again at the next chance (e.g. the filters changed)."""
@@ -152,9 +195,9 @@ class MapOutputs:
             return
         want_grid, want_clouds = "grid" in due, "clouds" in due
         t0 = time.perf_counter()
-        lock_times = [0.0, 0.0]  # waited for, held
+        lock_times = [0.0, 0.0, 0.0]  # seconds waited for the lock, held; holds
         if want_grid:
-            self._grid_pub.publish(self.grid(lock_times, projected=True))
+            self._grid_pub.publish(self.grid(lock_times, projected=True, in_slices=True))
         if want_clouds:
             self._publish_clouds(lock_times)
         for key in due:
@@ -166,19 +209,25 @@ class MapOutputs:
         c.locked_seconds += lock_times[1]
         c.count += 1
         c.last_seconds = dt
+        c.slices = int(lock_times[2])
 
     @contextlib.contextmanager
     def _timed_map_lock(self, times: list[float] | None) -> Iterator[None]:
-        """The map lock; adds the seconds waited for it and held to ``times`` (if given)."""
+        """The map lock; adds the seconds waited for it and held, and one hold, to ``times``
+        (if given: [waited, held, holds]) and keeps the longest hold
+        (``PublishCounters.locked_max_seconds``)."""
         t0 = time.perf_counter()
         with self._worker.whole_map:
             t1 = time.perf_counter()
             try:
                 yield
             finally:
+                held = time.perf_counter() - t1
+                self.counters.locked_max_seconds = max(self.counters.locked_max_seconds, held)
                 if times is not None:
                     times[0] += t1 - t0
-                    times[1] += time.perf_counter() - t1
+                    times[1] += held
+                    times[2] += 1
 
     def _header_stamp(self, stamp: float | None) -> Any:
         return stamp_msg(stamp) if stamp is not None else self._node.get_clock().now().to_msg()
@@ -187,21 +236,25 @@ class MapOutputs:
         """Publish the degree-of-occupancy and std clouds of the filtered voxels, and the
         reflectivity cloud of those holding returns (when the map keeps histograms): per
         voxel the mean intensity of its returns and its fullest intensity bin. With
-        ``publish_changed_blocks`` (and a ``min_degree_of_occupancy`` above 0) only the
-        blocks scans changed since the last publication are read under the map lock
-        (``mapping.map_cloud``); the clouds are the whole map's all the same."""
+        ``publish_changed_blocks`` only the blocks scans changed since the last
+        publication are read under the map lock (``mapping.map_cloud``; the clouds are the
+        whole map's all the same), without it every block; either in slices of about
+        ``MAP_SLICE_S``. Without ``publish_changed_blocks`` and with a ``publish_radius``,
+        the radius' window is exported in one go (its size bounds the hold)."""
         cfg, worker = self._settings(), self._worker
-        incremental = cfg.publish_changed_blocks and cfg.min_degree_of_occupancy > 0.0
         radius = cfg.publish_radius
         with self._timed_map_lock(lock_times):
             position = worker.robot_position
             robot = None if position is None else np.asarray(position, dtype=np.float64)
             near = radius > 0.0 and robot is not None
             stamp = worker.mapper.last_stamp
+            # by blocks, in slices: what changed, or the whole map; the window of a radius
+            # without changed blocks is exported in one go (bounded by the radius)
+            incremental = cfg.publish_changed_blocks or not near
             if incremental:
-                changes = self._cloud.read(
-                    worker.mapper, cfg.min_degree_of_occupancy, cfg.min_evidence
-                )
+                if not cfg.publish_changed_blocks:
+                    self._cloud.clear()  # the whole map, each time
+                changes = self._read_cloud_slice(cfg.min_degree_of_occupancy, cfg.min_evidence)
             else:
                 window = (robot - radius, robot + radius) if near and robot is not None else None
                 vox = worker.mapper.voxels(
@@ -210,9 +263,18 @@ class MapOutputs:
                     bounds=window,
                 )
                 histograms = worker.mapper.reflectivity(vox.centers)
+        while incremental and not changes.complete:
+            time.sleep(SLICE_PAUSE_S)  # a scan waiting for the map takes it
+            with self._timed_map_lock(lock_times):
+                changes = self._read_cloud_slice(
+                    cfg.min_degree_of_occupancy, cfg.min_evidence, changes
+                )
         if incremental:
             rows = self._cloud.apply(changes, cfg.min_evidence)
             self.counters.blocks_read = self._cloud.last_changed_blocks
+            if not cfg.publish_changed_blocks:
+                self._cloud.clear()  # (not kept: the next one reads the whole map again)
+                self.counters.blocks_read = -1
         else:
             self._cloud.clear()
             rows = rows_of(vox, histograms)
@@ -236,10 +298,29 @@ class MapOutputs:
             self._reflectivity_pub.publish(cloud_msg(cloud, frame, header_stamp))
         self.counters.voxels = len(rows)
 
-    def grid(self, lock_times: list[float] | None = None, projected: bool = False) -> OccupancyGrid:
+    def _read_cloud_slice(
+        self, min_doo: float, min_evidence: float, partial: CloudChanges | None = None
+    ) -> CloudChanges:
+        """The next slice of the clouds' changed blocks (``MapCloud.read``), under the map
+        lock; its size follows the last slices' time (``SliceSize``)."""
+        size = self._cloud_slice
+        t0 = time.perf_counter()
+        changes = self._cloud.read(self._worker.mapper, min_doo, min_evidence, size.blocks, partial)
+        if not changes.complete:
+            size.took(time.perf_counter() - t0)
+        return changes
+
+    def grid(
+        self,
+        lock_times: list[float] | None = None,
+        projected: bool = False,
+        in_slices: bool = False,
+    ) -> OccupancyGrid:
         """The 2D grid of the height band: hit-probability percent (``~/hit_probability_map``)
         or, with ``projected``, ``~/projected_map`` (trinary 100/0/-1 for Nav2 unless
-        ``projected_map.trinary`` is false); ``lock_times`` as in ``_timed_map_lock``."""
+        ``projected_map.trinary`` is false); ``lock_times`` as in ``_timed_map_lock``.
+        ``in_slices`` (a publication): read a slice at a time, the map lock let go between
+        slices; else in one hold, a grid of whole scans (GetMap's answer)."""
         cfg, worker = self._settings(), self._worker
         trinary = None
         if projected and cfg.projected_map_trinary:
@@ -255,33 +336,43 @@ class MapOutputs:
         limit = cfg.hit_probability_map_max_cells
         # ~/projected_map: continued from the last one's cells (the columns scans changed)
         previous = self._grid_cells if projected and cfg.publish_changed_blocks else None
-        with self._timed_map_lock(lock_times):
-            resolution = worker.mapper.resolution
-            stamp = worker.mapper.last_stamp
-            band = (cfg.occupancy_min_z, cfg.occupancy_max_z)
-            try:
-                grid = worker.mapper.hit_probability_grid(
-                    *band,
-                    center=center,
-                    radius=radius,
-                    max_cells=limit,
-                    trinary=trinary,
-                    previous=previous,
-                )
-            except GridTooLarge as err:
-                if robot is None:
-                    raise
-                # the largest square around the robot that fits (the window adds a cell)
-                radius = 0.5 * (math.isqrt(limit) - 2) * resolution
-                center = (float(robot[0]), float(robot[1]))
-                self._warn(
-                    "grid_too_large",
-                    f"{err}: serving the {2 * radius:.0f} m square around the robot "
-                    "(hit_probability_map.max_cells, hit_probability_map.radius)",
-                )
-                grid = worker.mapper.hit_probability_grid(
-                    *band, center=center, radius=radius, max_cells=limit, trinary=trinary
-                )
+        band = (cfg.occupancy_min_z, cfg.occupancy_max_z)
+        reading: GridReading | None = None
+        restarts = 0
+        while True:
+            with self._timed_map_lock(lock_times):
+                mapper = worker.mapper
+                if reading is None or not mapper.grid_still_valid(reading):
+                    if reading is not None:  # reset, clear_box or eviction meanwhile
+                        restarts += 1
+                    resolution, stamp = mapper.resolution, mapper.last_stamp
+                    try:
+                        reading = mapper.start_grid(
+                            *band,
+                            center=center,
+                            radius=radius,
+                            max_cells=limit,
+                            trinary=trinary,
+                            previous=previous,
+                        )
+                    except GridTooLarge as err:
+                        if robot is None:
+                            raise
+                        # the largest square around the robot that fits (the window adds a cell)
+                        radius = 0.5 * (math.isqrt(limit) - 2) * resolution
+                        center = (float(robot[0]), float(robot[1]))
+                        self._warn(
+                            "grid_too_large",
+                            f"{err}: serving the {2 * radius:.0f} m square around the robot "
+                            "(hit_probability_map.max_cells, hit_probability_map.radius)",
+                        )
+                        reading = mapper.start_grid(
+                            *band, center=center, radius=radius, max_cells=limit, trinary=trinary
+                        )
+                grid = self._read_grid_slice(reading, not in_slices or restarts > MAX_RESTARTS)
+            if grid is not None:
+                break
+            time.sleep(SLICE_PAUSE_S)  # a scan waiting for the map takes it
         if projected:
             self._grid_cells = grid.cells
         now = self._node.get_clock().now().to_msg()
@@ -293,3 +384,13 @@ class MapOutputs:
             now,
             cfg.occupancy_min_z,
         )
+
+    def _read_grid_slice(self, reading: GridReading, whole: bool) -> HitGrid | None:
+        """The next slice of a grid's blocks (``Mapper.read_grid``; all of them when
+        ``whole``), under the map lock; the grid once every block was read."""
+        size = self._grid_slice
+        t0 = time.perf_counter()
+        grid = self._worker.mapper.read_grid(reading, None if whole else size.blocks)
+        if grid is None:
+            size.took(time.perf_counter() - t0)
+        return grid

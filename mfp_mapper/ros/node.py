@@ -29,7 +29,9 @@ from __future__ import annotations
 import json
 import os
 import sys
+import threading
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
@@ -126,8 +128,11 @@ class MfpMapperNode(GuardedLifecycleNode):
     construction, a plain node as before.
     """
 
-    def __init__(self, **kwargs: Any) -> None:
+    def __init__(self, stop_requested: Callable[[], bool] | None = None, **kwargs: Any) -> None:
+        """``stop_requested``: whether a stop signal came (``ros.shutdown``), so that
+        configure stops waiting for the kernels at once."""
         super().__init__(NODE_NAME, **kwargs)
+        self._stop_requested = stop_requested or (lambda: False)
         self.cfg: NodeConfig = declare_parameters(self)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._started = time.monotonic()
@@ -160,6 +165,8 @@ class MfpMapperNode(GuardedLifecycleNode):
         if self.cfg.node.autostart:
             steps = (("configure", self.trigger_configure), ("activate", self.trigger_activate))
             for step, trigger in steps:
+                if self._stop_requested():
+                    break  # stopped while configuring: not mapping, the node closes
                 if trigger() != TransitionCallbackReturn.SUCCESS:
                     raise StartError(f"the node could not {step} (see the log above)")
 
@@ -176,6 +183,9 @@ class MfpMapperNode(GuardedLifecycleNode):
         return TransitionCallbackReturn.SUCCESS
 
     def _configure(self) -> None:
+        self._kernels = "compiling"
+        compiling = threading.Thread(target=self._compile_kernels, name="mfp_compile", daemon=True)
+        compiling.start()  # meanwhile the map loads
         self._map_figures = (0, 0, 0)
         self._status_window = StatusWindow(time.monotonic())
         self._last_window = self._status_window
@@ -207,9 +217,8 @@ class MfpMapperNode(GuardedLifecycleNode):
         self._entities += self.outputs.publishers
         self._configured = self._configured_once = True
         self.reopen()
-        self._kernels = "compiling"
-        self.in_background(self._compile_kernels, "mfp_compile")
         self._create_services()
+        self._wait_for_kernels(compiling)
         self.get_logger().info(
             startup_text(self.cfg, self.resolve_topic_name, self.mapper, self.map_frame)
         )
@@ -420,20 +429,39 @@ class MfpMapperNode(GuardedLifecycleNode):
         )
 
     def _compile_kernels(self) -> None:
-        """Compile (or load from numba's cache) the kernels of a scan before the first
-        cloud: with a cold cache that takes tens of seconds, and the first clouds were
-        dropped waiting. ``~/status`` says ``kernels``: ``compiling``, then ``ready``."""
+        """Compile (or load from numba's cache) the kernels a scan and a publication run,
+        on a throwaway map of the node's settings (``core.mapper.compile_kernels``): with a
+        cold cache that takes tens of seconds, and clouds taken meanwhile waited for it
+        (a cold start dropped the first clouds). ``~/status`` ``kernels``: ``ready``."""
         try:
-            decay = mapper_kwargs(self.cfg.map, self.cfg.sensor_model)["decay_time"]
-            seconds = compile_kernels(decay)
+            cfg = self.cfg
+            seconds = compile_kernels(
+                cfg.map.resolution, **mapper_kwargs(cfg.map, cfg.sensor_model)
+            )
         except Exception as err:  # the first scan compiles them then
             self._kernels = "failed"
             self.get_logger().error(f"compiling the kernels ahead failed: {err!r}")
             return
         self._kernels = "ready"
-        self.get_logger().info(
-            f"kernels ready in {seconds:.1f} s (compiled ahead of the first cloud)"
-        )
+        self.get_logger().info(f"kernels ready in {seconds:.1f} s (before taking clouds)")
+
+    def _wait_for_kernels(self, compiling: threading.Thread) -> None:
+        """The end of configure: the kernels are compiled before activate takes clouds, as
+        a lifecycle node does its heavy setup (a cold numba cache: tens of seconds, said in
+        the log). A stop signal meanwhile ends the wait at once (the node then closes)."""
+        announce_at = time.monotonic() + 2.0  # a warm cache takes a fraction of a second
+        announced = False
+        while compiling.is_alive():
+            if self._stop_requested() or not rclpy.ok(context=self.context):
+                self.get_logger().info("stopping: not waiting for the kernels")
+                return
+            compiling.join(timeout=0.1)
+            if compiling.is_alive() and not announced and time.monotonic() > announce_at:
+                self.get_logger().info(
+                    "compiling the kernels before taking clouds (numba's cache is cold: "
+                    "up to a minute)"
+                )
+                announced = True
 
     @tracked
     def _check_clock(self) -> None:
@@ -758,7 +786,7 @@ def main(args: list[str] | None = None) -> int:
     # the handler stays until the process ends: a signal after the save is ignored (exit 0)
     with SpinUntilSignal(logger.info, keep_after_exit=True) as stopper:
         try:
-            node = MfpMapperNode()
+            node = MfpMapperNode(stop_requested=stopper.stop.is_set)
             executor = SingleThreadedExecutor()
             executor.add_node(node)
             stopper.spin(executor)

@@ -79,6 +79,9 @@ def status_report(
         "publish_last_s": round(publish.last_seconds, 5),
         "publish_total_s": round(publish.seconds, 4),
         "publish_locked_total_s": round(publish.locked_seconds, 4),
+        "publish_locked_max_s": round(publish.locked_max_seconds, 4),
+        "publish_slices": publish.slices,
+        "map_wait_max_s": round(c.map_wait_max, 4),
         "published_voxels": publish.voxels,
         "published_blocks_read": publish.blocks_read,
     }

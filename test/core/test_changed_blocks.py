@@ -20,11 +20,12 @@ def _sorted(ijk: np.ndarray, *columns: np.ndarray) -> list[np.ndarray]:
     return [ijk[order], *(c[order] for c in columns)]
 
 
-@pytest.mark.parametrize("min_doo", [0.05, 0.3, 0.9])
+@pytest.mark.parametrize("min_doo", [0.0, 0.05, 0.3, 0.9])
 @pytest.mark.parametrize("threads", [1, 2])
 def test_every_block_equals_voxels(min_doo: float, threads: int) -> None:
     """From scan -1 on: the voxels ``voxels(min_doo=...)`` exports, bit for bit, with
-    flushed (float64) blocks among them."""
+    flushed (float64) blocks among them (``min_doo`` 0: every observed voxel, free space
+    included)."""
     rng = np.random.default_rng(3)
     mapper = Mapper(0.25, threads=threads, decay_time=5.0)
     for k in range(6):
@@ -90,5 +91,5 @@ def test_epoch_moves_when_voxels_change_other_than_by_scans() -> None:
     epochs.append(mapper.epoch)
     assert epochs == sorted(set(epochs)), epochs
     with pytest.raises(ValueError):
-        mapper.changed_voxels(-1, 0.0)
+        mapper.changed_voxels(-1, -0.1)
     assert math.isfinite(mapper.epoch)

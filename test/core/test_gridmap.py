@@ -223,3 +223,47 @@ def test_grid_continued_from_the_last_equals_one_from_scratch(
     # a window is never continued
     window = mapper.hit_probability_grid(*band, center=(0.0, 0.0), radius=3.0, previous=previous)
     assert window.cells is None
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_grid_read_in_slices_equals_one_read_and_the_next_catches_up(threads: int) -> None:
+    """``Mapper.start_grid`` + ``read_grid`` a few blocks at a time (the node lets go of the
+    map lock between slices): with nothing integrated in between, the grid of one read;
+    with scans integrated between the slices, a grid continued from it equals the grid
+    from scratch (the scans' columns are computed again); a map whose epoch changed (a
+    clear_box) refuses the next slice."""
+    rng = np.random.default_rng(12)
+    mapper = Mapper(0.2, threads=threads)
+    band, trinary = (0.1, 2.0), (0.25, 0.02)
+
+    def scan(k: int) -> None:
+        origin = np.array([3.0 * k, 0.5 * k, 1.0])
+        mapper.integrate(origin + rng.normal(0.0, 4.0, (1500, 3)), origin, 10.0 + k)
+
+    for k in range(4):
+        scan(k)
+    reading = mapper.start_grid(*band, trinary=trinary)
+    slices = 1
+    while (grid := mapper.read_grid(reading, 40)) is None:
+        slices += 1
+    assert slices > 5 and mapper.num_blocks > 40 * 5
+    np.testing.assert_array_equal(
+        grid.data, mapper.hit_probability_grid(*band, trinary=trinary).data
+    )
+    reading = mapper.start_grid(*band, trinary=trinary, previous=grid.cells)
+    k = 4
+    while (grid := mapper.read_grid(reading, 40)) is None:
+        scan(k)  # between two slices, as the node's walker may (new blocks: the next read's)
+        k += 1
+    assert k > 6
+    assert grid.cells is not None
+    got = mapper.hit_probability_grid(*band, trinary=trinary, previous=grid.cells)
+    want = mapper.hit_probability_grid(*band, trinary=trinary)
+    assert got.origin == want.origin
+    np.testing.assert_array_equal(got.data, want.data)
+    reading = mapper.start_grid(*band, trinary=trinary)
+    assert mapper.read_grid(reading, 40) is None
+    mapper.clear_box([-1.0, -1.0, 0.0], [1.0, 1.0, 2.0])
+    assert not mapper.grid_still_valid(reading)
+    with pytest.raises(ValueError, match="changed under the grid"):
+        mapper.read_grid(reading, 40)

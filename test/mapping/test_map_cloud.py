@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -41,9 +42,9 @@ def _update(cloud: MapCloud, mapper: Mapper, min_doo: float, min_evidence: float
 
 
 @pytest.mark.parametrize("decay_time", [math.inf, 2.0])
-@pytest.mark.parametrize("min_evidence", [0.0, 0.3])
+@pytest.mark.parametrize(("min_doo", "min_evidence"), [(0.1, 0.0), (0.1, 0.3), (0.0, 0.0)])
 def test_rebuilt_from_changed_blocks_equals_the_whole_map(
-    decay_time: float, min_evidence: float
+    decay_time: float, min_doo: float, min_evidence: float
 ) -> None:
     """A robot driving along, 40 scans (two late), published every few scans: the rows
     equal a whole-map rebuild every time (decayed statistics included), and a publication
@@ -60,12 +61,14 @@ def test_rebuilt_from_changed_blocks_equals_the_whole_map(
         intensity = rng.uniform(0.0, 100.0, len(points))
         mapper.integrate(points, origin, stamp, reflectivity=ScanReflectivity(intensity, bins))
         if k % 3 == 0:
-            rows = _update(cloud, mapper, 0.1, min_evidence)
-            _assert_same(rows, _whole(mapper, 0.1, min_evidence))
+            rows = _update(cloud, mapper, min_doo, min_evidence)
+            _assert_same(rows, _whole(mapper, min_doo, min_evidence))
     assert rows.reflectivity is not None and np.isfinite(rows.reflectivity).any()
-    held = len(np.unique(mapper.voxels(min_doo=0.1).ijk >> 3, axis=0))
+    held = len(np.unique(mapper.voxels(min_doo=min_doo).ijk >> 3, axis=0))
     mapper.integrate(np.array([[60.0, 8.0, 1.0]]), np.array([58.5, 7.8, 1.0]), 20.0)
-    _assert_same(_update(cloud, mapper, 0.1, min_evidence), _whole(mapper, 0.1, min_evidence))
+    _assert_same(
+        _update(cloud, mapper, min_doo, min_evidence), _whole(mapper, min_doo, min_evidence)
+    )
     assert 0 < cloud.last_changed_blocks < held / 10
 
 
@@ -116,4 +119,56 @@ def test_a_publication_without_changed_blocks_keeps_the_rows() -> None:
     rows = _update(cloud, mapper, 0.1, 0.0)
     assert cloud.last_changed_blocks == 0
     _assert_same(rows, first)
+    _assert_same(rows, _whole(mapper, 0.1, 0.0))
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_a_read_in_slices_with_scans_between_then_the_next_equals_the_whole_map(
+    threads: int,
+) -> None:
+    """``MapCloud.read`` a few blocks at a time (the node lets go of the map lock between
+    slices): without scans in between, the rows of one read; with scans integrated between
+    the slices, the rows hold every voxel once and the next publication equals the whole
+    map (it reads again the blocks those scans changed), also when the map's first
+    histograms came between two slices; a clear_box between two slices starts the read
+    again."""
+    rng = np.random.default_rng(13)
+    mapper = Mapper(0.2, threads=threads, reflectivity_bins=8)
+    bins = bins_for("intensity", 8)
+
+    def scan(k: int) -> None:  # the first four without an intensity: no histograms yet
+        origin = np.array([2.0 * k, 0.3 * k, 1.0])
+        points = origin + rng.normal(0.0, 3.0, (1500, 3))
+        values = ScanReflectivity(rng.uniform(0.0, 100.0, len(points)), bins)
+        mapper.integrate(points, origin, 10.0 + k, reflectivity=values if k >= 4 else None)
+
+    def sliced(cloud: MapCloud, between: Callable[[], None] | None = None) -> CloudRows:
+        changes = cloud.read(mapper, 0.1, 0.0, 30)
+        count = 1
+        while not changes.complete:
+            if between is not None:
+                between()
+            changes = cloud.read(mapper, 0.1, 0.0, 30, changes)
+            count += 1
+        assert count > 3
+        return cloud.apply(changes, 0.0)
+
+    for k in range(4):
+        scan(k)
+    cloud = MapCloud()
+    _assert_same(sliced(cloud), _whole(mapper, 0.1, 0.0))
+    later = iter(range(4, 100))
+    rows = sliced(cloud, lambda: scan(next(later)))  # the histograms begin in between
+    assert next(later) > 6 and rows.reflectivity is not None
+    assert len(np.unique(rows.centers, axis=0)) == len(rows), "a voxel twice"
+    _assert_same(_update(cloud, mapper, 0.1, 0.0), _whole(mapper, 0.1, 0.0))
+    cleared = []
+    rows = sliced(
+        cloud,
+        lambda: (
+            cleared.append(mapper.clear_box([-1.0, -1.0, 0.0], [1.0, 1.0, 2.0]))
+            if not cleared
+            else None
+        ),
+    )
     _assert_same(rows, _whole(mapper, 0.1, 0.0))

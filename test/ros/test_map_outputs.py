@@ -20,8 +20,9 @@ import pytest
 from ros_helpers import Feeder, NodeProcess, Trajectory, clear_bbox, read_cloud, stamp_msg
 from test_node import NODE_PARAMS, RES, T0, Sim
 
+from mfp_mapper import Mapper
 from mfp_mapper.core.gridmap import DEFAULT_OCCUPIED_THRESHOLD, unobserved_hit_probability
-from mfp_mapper.mapio import load_map
+from mfp_mapper.mapio import load_map, save_map
 from mfp_mapper.ros.map_outputs import PUBLISH_DUTY, LockBudget
 
 pytestmark = pytest.mark.ros
@@ -251,3 +252,55 @@ def test_a_slow_publication_holds_the_next_back() -> None:
     budget.spend(4.3)
     assert not any(budget.allows(start + 0.1 + s) for s in range(1, 43))
     assert budget.allows(start + 0.1 + 43.5)
+
+
+def test_a_large_loaded_map_is_published_in_slices(ros_domain: int, tmp_path: Path) -> None:
+    """A node started with a saved map of 156k blocks (``map_path``): its first
+    publication reads every block (nothing published yet), in slices with the map lock let
+    go between them (``~/status`` ``publish_slices``; the first publication of a 72 M-voxel
+    map held the lock 0.57 s at once, seconds under load, and integration waited), and the
+    clouds and grid it publishes are still exactly the map's."""
+    rng = np.random.default_rng(3)
+    sensor = np.array([0.05, 0.05, 1.05])
+    rays = rng.normal(size=(20_000, 3))
+    rays /= np.linalg.norm(rays, axis=1)[:, None]
+    built = Mapper(0.1, frame_id="odom")
+    built.integrate(sensor + rays * rng.uniform(20.0, 30.0, (len(rays), 1)), sensor, 10.0)
+    assert built.num_blocks > 100_000
+    map_path = tmp_path / "large.npz"
+    save_map(built, map_path)
+    node = NodeProcess(ros_domain, {**NODE_PARAMS, "map_path": str(map_path)}, tmp_path / "n.log")
+    feeder = Feeder()
+    try:
+        assert feeder.wait_connected(60.0), f"node not discovered:\n{node.log()[-3000:]}"
+        published = feeder.wait(
+            lambda: feeder.doo is not None and feeder.projected is not None, 60.0
+        )
+        assert published, node.log()[-3000:]
+        doo, projected = read_cloud(feeder.doo), feeder.projected
+        status = feeder.wait_status(lambda st: st["published_voxels"] == len(doo["x"]), 10.0)
+    finally:
+        feeder.destroy()
+        node.stop()
+    assert status["published_voxels"] == len(doo["x"]), status
+    assert status["publish_slices"] >= 4, status  # the clouds' and the grid's, 2 or more each
+    saved = load_map(map_path)
+    want = saved.voxels(min_doo=NODE_PARAMS["min_degree_of_occupancy"])
+    assert len(want) > 10_000
+    xyz = np.stack([doo[a] for a in "xyz"], axis=1).astype(np.float64)
+    got_ijk = np.floor(xyz / 0.1).astype(np.int64)
+    want_ijk = np.floor(want.centers / 0.1).astype(np.int64)
+    got_order, want_order = np.lexsort(got_ijk.T), np.lexsort(want_ijk.T)
+    np.testing.assert_array_equal(got_ijk[got_order], want_ijk[want_order])
+    np.testing.assert_array_equal(
+        doo["degree_of_occupancy"][got_order],
+        want.most_likely_doo[want_order].astype(np.float32),
+    )
+    free = unobserved_hit_probability(0.1, saved.prior.shape, saved.prior.rate)
+    grid = saved.hit_probability_grid(
+        NODE_PARAMS["occupancy_min_z"],
+        NODE_PARAMS["occupancy_max_z"],
+        trinary=(DEFAULT_OCCUPIED_THRESHOLD, min(free, DEFAULT_OCCUPIED_THRESHOLD)),
+    )
+    assert (projected.info.width, projected.info.height) == (grid.width, grid.height)
+    np.testing.assert_array_equal(np.asarray(projected.data, dtype=np.int8), grid.data.ravel())

@@ -613,29 +613,44 @@ def test_a_params_file_that_is_not_yaml_gives_one_line(
     assert "Traceback" not in run.stderr
 
 
-def test_kernels_are_compiled_ahead_of_the_first_cloud(ros_domain: int, tmp_path: Path) -> None:
-    """With a cold numba cache the first cloud waited for the compiler (over 15 s under
-    load: the first clouds were dropped). The node compiles at start and says so in
-    ``~/status`` (``kernels``: ``compiling``, then ``ready``); then a cloud goes in at once."""
-    import time
-
+def test_a_cold_start_takes_every_cloud_it_receives(ros_domain: int, tmp_path: Path) -> None:
+    """With a cold numba cache the node compiled its kernels while it took clouds: the first
+    clouds waited for the compiler and were dropped (9 at 0.2 m on norlab, the first
+    integrated 5.5 s late). Configure now compiles them, on a throwaway map of the node's
+    settings, before activate subscribes (a lifecycle node's heavy setup). A lidar that
+    publishes at 10 Hz from the moment the node subscribes: every cloud the node receives
+    is integrated, none dropped, and the log says how long the kernels took."""
     cold = {"NUMBA_CACHE_DIR": str(tmp_path / "numba_cache")}
-    node = NodeProcess(
-        ros_domain, dict(NODE_PARAMS), tmp_path / "node.log", name="mfp_cold", env=cold
-    )
+    params = {**NODE_PARAMS, "cloud_queue_size": 5}
+    node = NodeProcess(ros_domain, params, tmp_path / "node.log", name="mfp_cold", env=cold)
     f = Feeder(node_name="mfp_cold", feeder_name="cold_feeder")
+    sent = 30
+
+    def subscribed() -> bool:  # this node's cloud subscription (another node may run)
+        subscriptions = f.node.get_subscriptions_info_by_topic("/cloud_in")
+        return any(info.node_name == "mfp_cold" for info in subscriptions)
+
     try:
-        assert f.wait_connected(60.0), node.log()[-3000:]
-        status = f.wait_status(lambda s: s.get("kernels") != "compiling", 300.0)
-        assert status is not None and status.get("kernels") == "ready", node.log()[-3000:]
-        assert "kernels ready in" in node.log()
+        assert f.wait_connected(300.0) and f.wait(subscribed, 300.0), node.log()[-3000:]
         sim = Sim(f)
-        sent = time.monotonic()
-        sim.send_scan(T0 + 0.1)
-        status = f.wait_status(lambda s: s["clouds_integrated"] >= 1, 60.0)
-        took = time.monotonic() - sent
-        assert status["clouds_integrated"] == 1, node.log()[-3000:]
-        assert took < 10.0, f"the first cloud took {took:.1f} s"
+        for k in range(sent):  # a driver streaming, not waiting for the node
+            start = T0 + 0.1 + 0.1 * k
+            sim.odom_to(start + 0.25)
+            f.cloud_pub.publish(sim.scan_msg(start))
+            f.spin(0.1)
+        sim.odom_to(T0 + 0.1 * sent + 1.0)
+
+        def settled(s: dict[str, Any]) -> bool:
+            handled = s["clouds_integrated"] + sum(s["clouds_dropped"].values())
+            return s["clouds_in"] > 0 and handled >= s["clouds_in"] and s["queued"] == 0
+
+        status = f.wait_status(settled, 60.0)
+        assert status is not None and settled(status), f"{status}\n{node.log()[-3000:]}"
     finally:
         f.destroy()
         node.stop()
+    assert status["clouds_in"] >= sent // 2, status  # best effort: a few may be lost
+    assert not any(status["clouds_dropped"].values()), status
+    assert status["clouds_integrated"] == status["clouds_in"], status
+    assert status["kernels"] == "ready", status
+    assert "kernels ready in" in node.log() and "before taking clouds" in node.log()

@@ -336,3 +336,29 @@ def test_a_transition_not_allowed_is_refused_at_every_state(
         code = node.stop()
     assert code == 0, node.log()[-3000:]
     assert "Traceback" not in node.log() and "RCLError" not in node.log()
+
+
+def test_a_stop_signal_while_configure_compiles_ends_the_node_at_once(
+    ros_domain: int, tmp_path: Path
+) -> None:
+    """Configure compiles the kernels before the node takes clouds (tens of seconds with a
+    cold numba cache): a SIGINT meanwhile ends the wait at once and the node exits 0,
+    never subscribed to clouds, well inside launch's 5 s before SIGTERM."""
+    import signal
+    import time
+
+    cold = {"NUMBA_CACHE_DIR": str(tmp_path / "numba_cache")}
+    node = NodeProcess(ros_domain, dict(NODE_PARAMS), tmp_path / "node.log", env=cold)
+    try:
+        deadline = time.monotonic() + 120.0
+        while "compiling the kernels" not in node.log() and time.monotonic() < deadline:
+            assert node.alive(), node.log()[-3000:]
+            time.sleep(0.1)
+        assert "compiling the kernels" in node.log(), node.log()[-3000:]
+        node.proc.send_signal(signal.SIGINT)
+        code = node.proc.wait(timeout=5.0)
+    finally:
+        node.stop()
+    log = node.log()
+    assert code == 0, log[-3000:]
+    assert "not waiting for the kernels" in log and "kernels ready" not in log, log[-3000:]
