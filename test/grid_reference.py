@@ -1,6 +1,6 @@
 """The reference projection of voxels onto the 2D hit-probability grid (tests only).
 
-Plain numpy over voxel arrays; the package's ``gridmap.band_grid`` (behind
+Plain numpy over voxel arrays; the package's ``gridmap.start_band_grid`` (behind
 ``Mapper.hit_probability_grid``) reads the blocks in compiled code and is checked against it.
 """
 
@@ -40,8 +40,8 @@ def hit_probability_grid(
     ``radius`` around ``center`` (fixed size, whatever is mapped); otherwise it spans the
     (x, y) extent of all observed voxels given (0 x 0 when there are none).
 
-    The reference ``Mapper.hit_probability_grid`` (the compiled ``gridmap.band_grid``, which
-    reads the blocks) must match exactly: written with plain numpy over ``Mapper.voxels()``.
+    The reference ``Mapper.hit_probability_grid`` (the compiled ``gridmap.start_band_grid``,
+    which reads the blocks) must match exactly: written with plain numpy over ``Mapper.voxels()``.
     """
     _check_band(resolution, z_min, z_max)
     use_trinary, occupied, free = check_trinary(trinary)

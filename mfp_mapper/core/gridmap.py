@@ -53,7 +53,7 @@ scans at 0.1 m reaches 0.32-0.38, in 40 scans 0.98; see docs/node.md)."""
 
 
 WHOLE_BAND_SHARE = 0.5
-"""A grid continued from a previous one (``band_grid`` ``previous``) whose changed block
+"""A grid continued from a previous one (``start_band_grid`` ``previous``) whose changed block
 columns exceed this share of the grid is computed whole: checking each block against the
 columns cost ~10% more than reading them all when nearly all changed (a parked lidar that
 reaches the whole map, benchmarks/bench_map_cloud.py)."""
@@ -129,7 +129,7 @@ class HitGrid:
     origin: tuple[float, float]
     """Map-frame (x, y) of the corner of cell (0, 0)."""
     cells: BandCells | None = None
-    """What a later ``band_grid`` continues from (``previous``); None for a window."""
+    """What a later ``start_band_grid`` continues from (``previous``); None for a window."""
 
     @property
     def width(self) -> int:
@@ -205,47 +205,6 @@ class GridReading:
     started: bool = False
 
 
-def band_grid(
-    shards: Sequence[BlockArrays],
-    resolution: float,
-    z_min: float,
-    z_max: float,
-    lo: IndexBox,
-    hi: IndexBox,
-    *,
-    center: tuple[float, float] | None = None,
-    radius: float = 0.0,
-    max_cells: int | None = None,
-    trinary: tuple[float, float] | None = None,
-    prior: tuple[float, float] = (1.0, 1.0),
-    previous: BandCells | None = None,
-    since: int = -1,
-    key: tuple[object, ...] = (),
-) -> HitGrid:
-    """The hit-probability grid of the observed voxels with index in ``[lo, hi]``, computed
-    in one compiled pass over the store's blocks (no per-voxel arrays of the map).
-
-    ``previous`` (the ``cells`` of an earlier whole-band grid with the same ``key``): only
-    the columns of blocks that scans numbered ``previous.since`` or later opened are
-    computed again, the grid grown where they widened the extent; the same grid as from
-    scratch, since a cell only depends on the voxels of its column. ``since``: the next
-    scan's number, kept in the result's ``cells`` for the next call.
-
-    The grid spans the window around ``center`` (``radius > 0``), else the (x, y) extent of
-    the observed voxels in ``[lo, hi]``; cells take the voxels whose centre is in the band.
-    ``GridTooLarge`` before anything is allocated when it would exceed ``max_cells``.
-    ``trinary=(occupied, free)``: cells 100 / 0 / -1 instead of percentages (module doc).
-    ``prior``: (shape, rate) of the map's Gamma prior on the extinction.
-    """
-    reading = start_band_grid(
-        shards, resolution, z_min, z_max, lo, hi, center=center, radius=radius,
-        max_cells=max_cells, trinary=trinary, prior=prior, previous=previous, since=since,
-        key=key,
-    )  # fmt: skip
-    band_grid_step(reading, shards)
-    return band_grid_result(reading, resolution)
-
-
 def start_band_grid(
     shards: Sequence[BlockArrays],
     resolution: float,
@@ -263,8 +222,23 @@ def start_band_grid(
     since: int = -1,
     key: tuple[object, ...] = (),
 ) -> GridReading:
-    """``band_grid``'s extent, cells (those of ``previous`` kept) and the columns to compute,
-    before any block's values are read (a pass over the blocks' indices)."""
+    """The reading of the hit-probability grid of the observed voxels with index in ``[lo,
+    hi]``: its extent, cells (those of ``previous`` kept) and the columns to compute,
+    before any block's values are read (a pass over the blocks' indices); then
+    ``band_grid_step`` reads the blocks, in compiled passes over block ranges (no
+    per-voxel arrays of the map), and ``band_grid_result`` gives the grid.
+
+    ``previous`` (the ``cells`` of an earlier whole-band grid with the same ``key``): only
+    the columns of blocks that scans numbered ``previous.since`` or later opened are
+    computed again, the grid grown where they widened the extent; the same grid as from
+    scratch, since a cell only depends on the voxels of its column. ``since``: the next
+    scan's number, kept in the result's ``cells`` for the next call.
+
+    The grid spans the window around ``center`` (``radius > 0``), else the (x, y) extent of
+    the observed voxels in ``[lo, hi]``; cells take the voxels whose centre is in the band.
+    ``GridTooLarge`` before anything is allocated when it would exceed ``max_cells``.
+    ``trinary=(occupied, free)``: cells 100 / 0 / -1 instead of percentages (module doc).
+    ``prior``: (shape, rate) of the map's Gamma prior on the extinction."""
     _check_band(resolution, z_min, z_max)
     use_trinary, occupied, free = check_trinary(trinary)
     windowed = center is not None and radius > 0.0

@@ -808,7 +808,7 @@ class Mapper:
         ``max_cells``. ``trinary=(occupied, free)``: cells 100 / 0 / -1 by those
         hit-probability thresholds (Nav2). ``previous``: the ``cells`` of an earlier grid of
         the whole band with the same settings, from which only the columns scans changed
-        since are computed again (``gridmap.band_grid``; the whole band when anything else
+        since are computed again (``gridmap.start_band_grid``; the whole band when anything else
         changed the map: ``epoch``)."""
         reading = self.start_grid(
             z_min, z_max, center=center, radius=radius, max_cells=max_cells,
