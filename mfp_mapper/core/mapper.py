@@ -525,10 +525,6 @@ class Mapper:
         if self._origin is None and set_origin:
             self._origin = self._origin_from(org)
         offset = self._origin if self._origin is not None else at
-        if offset is not None and offset.any():
-            pts_rel, org = pts - offset, org - offset
-        else:
-            pts_rel = pts
         reach = min(self.max_range, MAX_RAY_VOXELS * self.resolution)
         flags = None if no_return is None else np.asarray(no_return, dtype=np.bool_)
         if flags is not None and flags.shape != (pts.shape[0],):
@@ -537,7 +533,7 @@ class Mapper:
         if later is not None and later.shape != (pts.shape[0],):
             raise ValueError(f"continued must have shape ({pts.shape[0]},), got {later.shape}")
         rays, dropped = prepare_rays(
-            pts_rel, org, self.resolution, self.min_range, reach, flags, later
+            pts, org, self.resolution, self.min_range, reach, flags, later, offset
         )
         return rays, pts, dropped
 
@@ -1007,8 +1003,10 @@ def _check_settings(
 
 def _mean_origin(rays: Rays) -> FloatArray:
     """The rays' mean sensor position in voxel units (the origins of rays that continue a
-    shot past an echo left out; einsum: 0.3 ms for 107 k rays, where
-    ``mean(axis=0)`` takes 1.6 ms)."""
+    shot past an echo left out): as ``prepare_rays`` summed it while placing them (a pass
+    over the origins after took 0.4 ms of an OS1-128 scan)."""
+    if rays.mean_origin is not None:
+        return rays.mean_origin
     total = np.einsum("ij->j", rays.origins_vox)
     if rays.continued is not None:
         later = np.flatnonzero(rays.continued)
