@@ -60,6 +60,10 @@ class ScanCounts:
     rays_in: int = 0
     rays_used: int = 0
     rays_truncated: int = 0
+    rays_cut_by_budget: int = 0
+    """Rays walked only part of their way, so that a scan stayed within its block bound
+    (``IntegrationSummary.rays_cut_by_budget``): none, unless a scan reaches far into new
+    space (or ``max_voxels`` is small)."""
     rays_no_return: int = 0
     """Recovered firings with no return that were integrated (``no_return_range``)."""
     no_return_note: str = ""
@@ -86,6 +90,7 @@ class ScanCounts:
         self.rays_in += summary.rays_in
         self.rays_used += summary.rays_used
         self.rays_truncated += summary.rays_truncated
+        self.rays_cut_by_budget += summary.rays_cut_by_budget
         self.rays_no_return += summary.rays_no_return
         self.count_points(summary.dropped)
 

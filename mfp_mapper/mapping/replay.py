@@ -70,6 +70,8 @@ class ReplaySummary:
     points_in: int = 0
     rays_used: int = 0
     rays_truncated: int = 0
+    rays_cut_by_budget: int = 0
+    """Rays walked part of their way to keep a scan within its block bound (``loop.ScanCounts``)."""
     rays_no_return: int = 0
     """Recovered firings with no return that were integrated (``--no-return-range``)."""
     no_return_note: str = ""
@@ -130,6 +132,11 @@ class ReplaySummary:
             + (f"; dropped {n_dropped}: {_counts(self.clouds_dropped)}" if n_dropped else ""),
             f"rays         {self.rays_used:,} used of {self.points_in:,} points"
             + (f"; {self.rays_truncated:,} cut at max range" if self.rays_truncated else "")
+            + (
+                f"; {self.rays_cut_by_budget:,} cut by a scan's block bound"
+                if self.rays_cut_by_budget
+                else ""
+            )
             + (f"; {self.rays_no_return:,} with no return" if self.rays_no_return else ""),
             *([f"2nd returns  {_counts(self.second_return)}"] if self.second_return else []),
             *([f"2nd returns  {self.second_return_note}"] if self.second_return_note else []),
@@ -351,6 +358,7 @@ def _fill(summary: ReplaySummary, counts: ScanCounts, mapper: Mapper) -> None:
     summary.points_in = counts.points_in
     summary.rays_used = counts.rays_used
     summary.rays_truncated = counts.rays_truncated
+    summary.rays_cut_by_budget = counts.rays_cut_by_budget
     summary.rays_no_return = counts.rays_no_return
     summary.no_return_note = counts.no_return_note
     summary.points_dropped = dict(counts.points_dropped)

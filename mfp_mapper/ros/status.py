@@ -57,6 +57,7 @@ def status_report(
         "rays_in": c.rays_in,
         "rays_used": c.rays_used,
         "rays_truncated": c.rays_truncated,
+        "rays_cut_by_budget": c.rays_cut_by_budget,
         "rays_no_return": c.rays_no_return,
         "rays_per_s": round((c.rays_used - window.rays_used) / span, 1),
         "integration_cpu_share": round((c.integration_cpu - window.cpu) / span, 4),

@@ -357,3 +357,27 @@ def test_scans_expected_to_hold_the_map_long_are_staged(monkeypatch: Any) -> Non
     got, want = worker.mapper.stored_voxels(), reference.stored_voxels()
     for field in ("ijk", "s", "n", "t_last"):
         assert np.array_equal(getattr(got, field), getattr(want, field)), field
+
+
+def test_rays_cut_by_the_scan_block_bound_are_counted(monkeypatch: Any) -> None:
+    """A scan that would add more blocks than its bound walks its later rays part of their
+    way: the counters (``~/status`` ``rays_cut_by_budget``, the replay's summary) say how
+    many, where before nothing did."""
+    from mfp_mapper.core import memory_bound
+
+    monkeypatch.setattr(memory_bound, "SCAN_NEW_BLOCKS", 20)
+    direction = np.random.default_rng(1).normal(size=(200, 3))
+    xyz = (40.0 * direction / np.linalg.norm(direction, axis=1, keepdims=True)).astype(np.float32)
+    cloud = cloud_message_from_columns({a: xyz[:, k] for k, a in enumerate("xyz")}, T0, "base_link")
+    for threads in (1, 2):
+        worker = LiveIntegrator(
+            Mapper(0.2, threads=threads), _settings(), PoseBuffer(max_age=10.0, max_gap=0.5),
+            log=lambda key, text, error: None, now=lambda: T0 + 1.0,
+        )  # fmt: skip
+        worker.add_odometry(odom_sample(T0 - 0.1))
+        worker.add_odometry(odom_sample(T0 + 0.1))
+        worker.submit(cloud)
+        drain(worker)
+        c = worker.counters
+        assert c.clouds_integrated == 1 and 0 < c.rays_cut_by_budget <= c.rays_used == 200
+        worker.mapper.close()

@@ -199,6 +199,7 @@ def test_map_clouds_published_in_the_odometry_frame(sim: Sim, feeder: Feeder) ->
     status = sim.status()
     assert status["map_frame"] == "odom"
     assert status["rays_no_return"] == 0  # sensor_model.no_return_range is off by default
+    assert status["rays_cut_by_budget"] == 0  # every ray walked whole
     for msg, name in ((feeder.doo, "degree_of_occupancy"), (feeder.std, "std")):
         assert msg.header.frame_id == "odom"
         assert [f.name for f in msg.fields] == ["x", "y", "z", name]
