@@ -9,20 +9,24 @@ import pytest
 
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.mapio.mapfile import map_arrays
+from mfp_mapper.sensing.poses import quaternion_to_matrix
+from mfp_mapper.sources.pose_files import read_kitti_poses
+from mfp_mapper.sources.scan_files import read_kitti_bin
 
 
 def _ouster_scans(root: Path) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The OS1-128 street scans (KITTI-style binaries and poses), in the map frame."""
+    """The OS1-128 street scans (KITTI binaries and poses, read as ``mfp-mapper replay``
+    reads a scan folder), in the map frame."""
     folder = root / "ouster_street"
     if not (folder / "poses.txt").is_file():
         pytest.skip(f"no OS1-128 street scans in {folder}")
-    poses = np.loadtxt(folder / "poses.txt").reshape(-1, 3, 4)
+    positions, quaternions = read_kitti_poses(folder / "poses.txt")
     scans = []
-    for k, pose in enumerate(poses):
-        xyz = np.fromfile(folder / "scans" / f"{k:06d}.bin", dtype=np.float32)
-        xyz = xyz.reshape(-1, 4)[:, :3].astype(np.float64)
+    for k, (position, quaternion) in enumerate(zip(positions, quaternions, strict=True)):
+        cols = read_kitti_bin(folder / "scans" / f"{k:06d}.bin")
+        xyz = np.stack([cols["x"], cols["y"], cols["z"]], axis=1).astype(np.float64)
         xyz = xyz[np.linalg.norm(xyz, axis=1) > 0.3]
-        scans.append((xyz @ pose[:, :3].T + pose[:, 3], pose[:, 3].copy()))
+        scans.append((xyz @ quaternion_to_matrix(quaternion).T + position, position))
     return scans
 
 
