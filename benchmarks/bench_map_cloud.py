@@ -46,7 +46,7 @@ from mfp_mapper.core.gridmap import unobserved_hit_probability  # noqa: E402
 from mfp_mapper.mapping.loop import ScanLoop  # noqa: E402
 from mfp_mapper.mapping.map_cloud import MapCloud, rows_of  # noqa: E402
 from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer  # noqa: E402
-from mfp_mapper.sources.scan_files import CloudMessage, Header, Time  # noqa: E402
+from mfp_mapper.sources.scan_files import packed_cloud_message  # noqa: E402
 
 MIN_DOO = 0.1
 
@@ -85,10 +85,7 @@ def main() -> int:
     previous = None
     for k in range(args.scans):
         c = stream.clouds[k % len(stream.clouds)]
-        sec = t0 + k * SCAN_PERIOD
-        header = Header(Time(int(sec), int(round((sec % 1) * 1e9))), "base_link")
-        msg = CloudMessage(header, c.height, c.width, c.fields, False, c.point_step,
-                           c.row_step, c.data)  # fmt: skip
+        msg = packed_cloud_message(c, t0 + k * SCAN_PERIOD, "base_link")
         placed = loop.place(loop.prepare(msg), poses, Extrinsic(translation=np.zeros(3)))
         t_scan = time.perf_counter()
         mapper.integrate(placed.points, placed.origins, placed.stamp, placed.no_return)

@@ -532,7 +532,7 @@ def build_map(path: Path, resolution: float, scans: int, step: float) -> None:
     from mfp_mapper.mapio import save_map
     from mfp_mapper.mapping.loop import ScanLoop
     from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer
-    from mfp_mapper.sources.scan_files import CloudMessage, Header, Time
+    from mfp_mapper.sources.scan_files import packed_cloud_message
 
     stream = make_stream("norlab", 14, resolution)
     t0 = 1000.0
@@ -544,10 +544,7 @@ def build_map(path: Path, resolution: float, scans: int, step: float) -> None:
     loop = ScanLoop(mapper, PlacementSection(), SensorModelSection(max_range=100.0))
     for k in range(scans):
         c = stream.clouds[k % len(stream.clouds)]
-        sec = t0 + k * SCAN_PERIOD
-        header = Header(Time(int(sec), int(round((sec % 1) * 1e9))), "base_link")
-        msg = CloudMessage(header, c.height, c.width, c.fields, False, c.point_step,
-                           c.row_step, c.data)  # fmt: skip
+        msg = packed_cloud_message(c, t0 + k * SCAN_PERIOD, "base_link")
         placed = loop.place(loop.prepare(msg), poses, Extrinsic(translation=np.zeros(3)))
         mapper.integrate(placed.points, placed.origins, placed.stamp, placed.no_return)
     save_map(mapper, path)
@@ -566,7 +563,7 @@ def core_times(
     from mfp_mapper.config.sections import MapSection, PlacementSection, SensorModelSection
     from mfp_mapper.mapping.loop import ScanLoop
     from mfp_mapper.sensing.poses import Extrinsic, PoseBuffer
-    from mfp_mapper.sources.scan_files import CloudMessage, Header, Time
+    from mfp_mapper.sources.scan_files import packed_cloud_message
 
     threads = threads or MapSection().core("threads")  # 0: the node's default, automatic
     stream = make_stream(name, n_scans, resolution)
@@ -581,10 +578,7 @@ def core_times(
     times: dict[str, list[float]] = {k: [] for k in ("parse", "place", "core", "walk", "merge")}
     for k in range(count):
         c = stream.clouds[k % len(stream.clouds)]
-        sec = t0 + k * SCAN_PERIOD
-        header = Header(Time(int(sec), int(round((sec % 1) * 1e9))), "lidar")
-        msg = CloudMessage(header, c.height, c.width, c.fields, False, c.point_step,
-                           c.row_step, c.data)  # fmt: skip
+        msg = packed_cloud_message(c, t0 + k * SCAN_PERIOD, "lidar")
         clock = time.perf_counter()
         prepared = loop.prepare(msg)
         t_parse = time.perf_counter()

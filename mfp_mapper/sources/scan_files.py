@@ -267,17 +267,19 @@ def cloud_message(
 ) -> CloudMessage:
     """A PointCloud2-like message holding structured ``records`` ((N,) or (height, width))
     byte for byte (``sensing.pointcloud.pack_records``)."""
-    return _message(pack_records(records), stamp, frame_id)
+    return packed_cloud_message(pack_records(records), stamp, frame_id)
 
 
 def cloud_message_from_columns(
     columns: Mapping[str, NDArray[np.generic]], stamp: float = 0.0, frame_id: str = "sensor"
 ) -> CloudMessage:
     """A message with ``columns`` packed in order, keeping their dtypes (e.g. a PCD frame)."""
-    return _message(pack_columns(columns), stamp, frame_id)
+    return packed_cloud_message(pack_columns(columns), stamp, frame_id)
 
 
-def _message(packed: PackedCloud, stamp: float, frame_id: str) -> CloudMessage:
+def packed_cloud_message(packed: PackedCloud, stamp: float, frame_id: str) -> CloudMessage:
+    """A message of an already packed cloud (``sensing.pointcloud.PackedCloud``), stamped
+    ``stamp`` seconds, in ``frame_id``."""
     sec = int(np.floor(stamp))
     header = Header(Time(sec, round((stamp - sec) * 1e9)), frame_id)
     return CloudMessage(header=header, fields=packed.fields, data=packed.data, **packed.layout())
