@@ -1003,17 +1003,11 @@ def _check_settings(
 
 def _mean_origin(rays: Rays) -> FloatArray:
     """The rays' mean sensor position in voxel units (the origins of rays that continue a
-    shot past an echo left out): as ``prepare_rays`` summed it while placing them (a pass
+    shot past an echo left out), as ``prepare_rays`` summed it while placing them (a pass
     over the origins after took 0.4 ms of an OS1-128 scan)."""
-    if rays.mean_origin is not None:
-        return rays.mean_origin
-    total = np.einsum("ij->j", rays.origins_vox)
-    if rays.continued is not None:
-        later = np.flatnonzero(rays.continued)
-        if 0 < later.size < len(rays):  # (a few: their sum is taken out)
-            total -= np.einsum("ij->j", rays.origins_vox[later])
-            return total / (len(rays) - later.size)
-    return total / len(rays)
+    if rays.mean_origin is None:
+        raise ValueError("rays not placed by prepare_rays: no mean origin")
+    return rays.mean_origin
 
 
 def compile_kernels(resolution: float = 0.5, **settings: Any) -> float:
