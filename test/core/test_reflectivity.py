@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from mfp_mapper.core import reflectivity
 from mfp_mapper.core.mapper import Mapper
 from mfp_mapper.core.merge import MergeError, merge_map_arrays
 from mfp_mapper.core.reflectivity import (
@@ -106,6 +107,69 @@ def test_decay_over_many_decay_times_and_far_apart_voxels_keep_the_sums() -> Non
     np.testing.assert_array_equal(table.lookup(np.array([[1 << 24, 0, 0]])), [-1])
     with pytest.raises(ValueError, match="decay time"):
         table.add(keys[:1], np.array([0]), 98.0, 2.0)
+
+
+def _float32_reference(
+    scans: list[tuple[np.ndarray, np.ndarray, float]], decay: float
+) -> tuple[dict[tuple[int, int, int], np.ndarray], float]:
+    """The table's arithmetic, one voxel at a time: float32 counts, every count scaled by
+    float32(exp(-dt / T)) when a later stamp comes, a return adding its weight (float64)
+    rounded to float32; the counts and the time they refer to."""
+    rows: dict[tuple[int, int, int], np.ndarray] = {}
+    time = -math.inf
+    for ijk, bins, stamp in scans:
+        if not rows:
+            time = stamp
+        elif stamp > time:
+            if math.isfinite(decay):
+                factor = np.float32(math.exp(-(stamp - time) / decay))
+                for counts in rows.values():
+                    counts *= factor
+            time = stamp
+        w = 1.0 if math.isinf(decay) else 1.0 / math.exp(-(stamp - time) / decay)
+        for voxel, b in zip(map(tuple, ijk.tolist()), bins.tolist(), strict=True):
+            if b >= 0:
+                counts = rows.setdefault(voxel, np.zeros(BINS.count, dtype=np.float32))
+                counts[b] = np.float32(np.float64(counts[b]) + w)
+    return rows, time
+
+
+@pytest.mark.parametrize("decay", [math.inf, 4.0])
+@pytest.mark.parametrize("fresh_rows", [1, 10**9], ids=["merged_often", "never_merged"])
+def test_a_scan_copies_its_new_rows_not_the_table(
+    decay: float, fresh_rows: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """New voxels go into a small table of fresh rows, merged into the settled rows when
+    they outgrow ``FRESH_ROWS_MIN``'s bound (every scan copied the whole table: 25 ms a
+    scan at 1 M rows). Whether the fresh rows are merged after every scan or never, reads
+    between the scans (which do not merge them) and the export at the end hold the same
+    float32 counts, bit for bit, as the table's arithmetic done one voxel at a time; late
+    scans and repeats included."""
+    monkeypatch.setattr(reflectivity, "FRESH_ROWS_MIN", fresh_rows)
+    rng = np.random.default_rng(11)
+    scans = []
+    for k, stamp in enumerate([0.0, 1.0, 2.0, 1.5, 3.0, 2.5, 4.0, 5.0, 6.0, 5.5]):
+        grown = 4 + 3 * k  # each scan reaches a little further: new voxels every scan
+        ijk = rng.integers(-grown, grown, size=(300, 3))
+        scans.append((ijk, rng.integers(-1, BINS.count, 300), stamp))
+    table = ReflectivityTable(BINS)
+    for k, (ijk, bins, stamp) in enumerate(scans):
+        table.add(ijk, bins, stamp, decay)
+        expected, time = _float32_reference(scans[: k + 1], decay)
+        voxels = np.array(sorted(expected))
+        counts, _ = table.histograms(voxels, time, decay)  # at the table's time: as held
+        want = np.array([expected[tuple(v)] for v in voxels.tolist()], dtype=np.float64)
+        np.testing.assert_array_equal(counts, want)
+        assert len(table) == len(expected)
+    held = table.export()
+    expected, time = _float32_reference(scans, decay)
+    order = np.lexsort(held.ijk.T[::-1])
+    voxels = held.ijk[order].astype(np.int64)
+    assert sorted(map(tuple, voxels.tolist())) == sorted(expected)
+    want = np.array([expected[tuple(v)] for v in voxels.tolist()], dtype=np.float64)
+    np.testing.assert_array_equal(held.counts[order], want)
+    assert np.all(held.t_last == time)
+    np.testing.assert_array_equal(table.lookup(held.ijk), np.arange(len(table)))
 
 
 @pytest.mark.parametrize("decay", [math.inf, 3.0])
