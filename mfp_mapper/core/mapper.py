@@ -1014,9 +1014,10 @@ def compile_kernels(resolution: float = 0.5, **settings: Any) -> float:
     """Run the compiled kernels of a live node once, on a throwaway ``Mapper(resolution,
     **settings)`` (the node's settings: its ``threads`` walk other kernels than one
     thread): a synthetic scan integrated directly and staged + committed, without and with
-    reflectivity histograms, then ``query``, ``query_segments``, ``reflectivity``, ``voxels``, the
-    clouds' changed blocks (``changed_voxels_from``) and the projected grids (whole,
-    continued, windowed), so that numba compiles them, or loads them from its cache, before
+    reflectivity histograms, then ``query``, ``query_segments``, ``reflectivity``, the
+    histograms' fresh rows merged (``stored_reflectivity``; a long run merges them),
+    ``voxels``, the clouds' changed blocks (``changed_voxels_from``) and the projected grids
+    (whole, continued, windowed), so that numba compiles them, or loads them from its cache, before
     the first real scan or publication; returns the seconds it took. The scan's 256 rays
     start at a corner of eight of the threaded walk's tiles (voxel (0, 0, 0)'s centre), so
     its split and every shard get some, and end with a return inside the sensor model's
@@ -1049,6 +1050,7 @@ def compile_kernels(resolution: float = 0.5, **settings: Any) -> float:
         mapper.query(points[:8])
         mapper.query_segments(points[:4], points[4:8])
         mapper.reflectivity(points[:8], 2.0)
+        mapper.stored_reflectivity()  # the histograms' fresh rows merged into the settled
         mapper.voxels(min_doo=0.1, bounds=(np.full(3, -5.0), np.full(3, 5.0)))
         mapper.changed_voxels_from(-1, 0.1, None, 64)
         grid = mapper.hit_probability_grid(-1.0, 1.0, trinary=(0.25, 0.01))
