@@ -5,33 +5,17 @@ held the map for seconds and the node dropped clouds ``queue_full``)."""
 
 from __future__ import annotations
 
-import json
-import os
-import subprocess
-import sys
-from pathlib import Path
-
 import pytest
+from kernel_signatures import run_fresh
 
 _STREAM = r"""
 import json, sys
-import numba
 import numpy as np
 from box_world import anchors_scene
+from kernel_signatures import new_signatures, signatures
 from mfp_mapper.core.mapper import Mapper, compile_kernels
 from mfp_mapper.core.reflectivity import ScanReflectivity
 from mfp_mapper.sensing.reflectivity import bins_for
-
-
-def signatures():
-    found = {}
-    for name, module in list(sys.modules.items()):
-        if name.startswith("mfp_mapper"):
-            for value in vars(module).values():
-                if isinstance(value, numba.core.registry.CPUDispatcher):
-                    key = value.py_func.__module__ + "." + value.py_func.__name__
-                    found[key] = {str(s) for s in value.signatures}
-    return found
 
 
 threads = int(sys.argv[1])
@@ -50,8 +34,7 @@ for k, (points, origin) in enumerate(anchors_scene(n_scans=8)):
 mapper.query(points[:64])
 mapper.voxels(min_doo=0.1)
 stored = mapper.stored_reflectivity()
-after = signatures()
-new = {k: sorted(v - before.get(k, set())) for k, v in after.items() if v - before.get(k, set())}
+new = new_signatures(before, signatures())
 print(json.dumps({"new": new, "rows": len(stored.ijk)}))
 """
 
@@ -62,15 +45,6 @@ def test_a_stream_compiles_nothing_after_the_warm_up(threads: int) -> None:
     box-world scans with intensities (thousands of histogram rows a scan: the fresh rows
     are merged into the settled ones on the way), the map's reads and its stored
     histograms. No kernel of the package compiles (or loads) after the warm-up."""
-    test_dir = Path(__file__).resolve().parents[1]
-    run = subprocess.run(
-        [sys.executable, "-c", _STREAM, str(threads)],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        env={**os.environ, "PYTHONPATH": os.pathsep.join([str(test_dir), *sys.path])},
-    )
-    assert run.returncode == 0, run.stderr[-3000:]
-    result = json.loads(run.stdout.strip().splitlines()[-1])
+    result = run_fresh(_STREAM, str(threads))
     assert result["rows"] > 4096, result  # more than the fresh rows hold before a merge
     assert result["new"] == {}, result["new"]

@@ -4,15 +4,11 @@ correction map <- odom; against known truth in the simulated hall and corridor."
 
 from __future__ import annotations
 
-import json
-import os
-import subprocess
-import sys
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+from kernel_signatures import run_fresh
 from localization_scenes import Pose, localization_scene, pose_at, static_scan
 from scipy.spatial.transform import Rotation
 
@@ -411,8 +407,8 @@ def test_a_forced_build_during_a_build_builds_again_after_it() -> None:
 
 _FIRST_ALIGNMENTS = r"""
 import json, sys, threading
-import numba
 import numpy as np
+from kernel_signatures import new_signatures, signatures
 from localization_scenes import localization_scene, pose_at, static_scan
 from scipy.spatial.transform import Rotation
 from mfp_mapper.config.sections import LocalizationSection
@@ -421,17 +417,6 @@ from mfp_mapper.mapping.live_localization import (
     LiveLocalizer, compile_alignment_kernels, pose_matrix,
 )
 from mfp_mapper.sensing.pipeline import PlacedScan
-
-
-def signatures():
-    found = {}
-    for name, module in list(sys.modules.items()):
-        if name.startswith("mfp_mapper"):
-            for value in vars(module).values():
-                if isinstance(value, numba.core.registry.CPUDispatcher):
-                    key = value.py_func.__module__ + "." + value.py_func.__name__
-                    found[key] = {str(s) for s in value.signatures}
-    return found
 
 
 settings = LocalizationSection()
@@ -460,8 +445,7 @@ for k, (index, deskewed) in enumerate(((1, False), (3, False), (5, True), (7, Tr
     points = static_scan(scene, pose, np.random.default_rng(k)) @ odom[:3, :3].T + odom[:3, 3]
     origins = np.tile(odom[:3, 3], (len(points), 1)) if deskewed else odom[:3, 3]
     localizer.localize(PlacedScan(1.0 + k, points, origins, deskewed), lambda stamp: odom)
-after = signatures()
-new = {k: sorted(v - before.get(k, set())) for k, v in after.items() if v - before.get(k, set())}
+new = new_signatures(before, signatures())
 print(json.dumps({"new": new, "aligned": localizer.report()["aligned"], "states": states}))
 """
 
@@ -473,16 +457,7 @@ def test_alignment_kernels_compile_before_the_first_cloud(warm: bool) -> None:
     localization enabled) runs them ahead; in a fresh process, wide searches and tracking
     of clouds with one origin and deskewed ones then compile (or load) no kernel of the
     package. Without it they do: the check sees the kernels it is meant to."""
-    test_dir = Path(__file__).resolve().parents[1]
-    run = subprocess.run(
-        [sys.executable, "-c", _FIRST_ALIGNMENTS, "warm" if warm else "cold"],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        env={**os.environ, "PYTHONPATH": os.pathsep.join([str(test_dir), *sys.path])},
-    )
-    assert run.returncode == 0, run.stderr[-3000:]
-    result = json.loads(run.stdout.strip().splitlines()[-1])
+    result = run_fresh(_FIRST_ALIGNMENTS, "warm" if warm else "cold")
     # wide, tracking, tracking of a deskewed cloud, wide again after an /initialpose
     assert result["aligned"] == 4, result
     assert result["states"] == ["initializing", "localized", "localized", "initializing"], result
