@@ -440,8 +440,9 @@ FRESH_ROWS_MIN = 4096
 than this, and more than ``sqrt(2 * settled * new)`` (``new``: the rows a scan has added,
 on average): the size at which a scan's copying of the fresh rows and the merges' copying
 of the settled ones, spread over the scans between merges, are equal (each about that many
-rows a scan). Before, every scan that added a voxel copied the whole table: 25 ms a scan
-at 1 M rows, 86 ms at 4 M (2,000 new voxels of 40,000 returns)."""
+rows a scan). Before, every scan that added a voxel copied the whole table: 31.7 ms a scan
+at 1.2 M rows, 92.2 at 4.2 M, now 7.2 and 10.6 (2,000 new voxels of 40,000 returns;
+``benchmarks/bench_reflectivity_table.py``, docs/performance.md)."""
 
 
 class ReflectivityTable:
@@ -455,7 +456,7 @@ class ReflectivityTable:
     keys (``blocks.find_block``), a place in its block by bisection. Arrays are sized to
     the rows. A scan's new voxels are sorted and merged into the fresh rows, a small
     table of their own, which go into the settled rows when they outgrow
-    ``FRESH_ROWS_MIN``'s bound (a copy of the settled rows a few scans, not a scan): the
+    ``FRESH_ROWS_MIN``'s bound (a copy of the settled rows every few dozen scans): the
     same counts, bit for bit, as one table. Not thread-safe (the Mapper's lock).
 
     Measured against the open-addressing hash of voxel index to a row with its time that

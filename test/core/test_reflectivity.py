@@ -140,8 +140,8 @@ def test_a_scan_copies_its_new_rows_not_the_table(
     decay: float, fresh_rows: int, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """New voxels go into a small table of fresh rows, merged into the settled rows when
-    they outgrow ``FRESH_ROWS_MIN``'s bound (every scan copied the whole table: 25 ms a
-    scan at 1 M rows). Whether the fresh rows are merged after every scan or never, reads
+    they outgrow ``FRESH_ROWS_MIN``'s bound (every scan copied the whole table: 31.7
+    ms a scan at 1.2 M rows). Whether the fresh rows are merged after every scan or never, reads
     between the scans (which do not merge them) and the export at the end hold the same
     float32 counts, bit for bit, as the table's arithmetic done one voxel at a time; late
     scans and repeats included."""
