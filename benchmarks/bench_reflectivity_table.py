@@ -10,6 +10,7 @@ every scan that added a voxel copied the whole table.)
 
     python benchmarks/bench_reflectivity_table.py
     python benchmarks/bench_reflectivity_table.py --rows 100000 1000000 --scans 200
+    python benchmarks/bench_reflectivity_table.py --decay-time 10   # decay: scans 0.1 s apart
 """
 
 from __future__ import annotations
@@ -25,14 +26,14 @@ from mfp_mapper.sensing.reflectivity import bins_for
 OLD_RETURNS, NEW_RETURNS = 38_000, 2_000
 
 
-def run(rows: int, scans: int, rng: np.random.Generator) -> None:
+def run(rows: int, scans: int, rng: np.random.Generator, decay_time: float) -> None:
     bins = bins_for("intensity", 8)
     assert bins is not None
     table = ReflectivityTable(bins)
     side = int(np.ceil(np.sqrt(rows)))
     xs, ys = np.meshgrid(np.arange(side), np.arange(side))
     plane = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size, dtype=np.int64)], axis=1)[:rows]
-    table.add(plane, np.zeros(rows, dtype=np.int64), 0.0, np.inf)
+    table.add(plane, np.zeros(rows, dtype=np.int64), 0.0, decay_time)
     times = []
     for k in range(scans):
         seen = plane[rng.integers(0, rows, OLD_RETURNS)]
@@ -47,14 +48,14 @@ def run(rows: int, scans: int, rng: np.random.Generator) -> None:
         ijk = np.concatenate([seen, new])
         values = rng.integers(0, bins.count, len(ijk))
         t0 = time.perf_counter()
-        table.add(ijk, values, 1.0 + k, np.inf)
+        table.add(ijk, values, 0.1 * (1 + k), decay_time)
         times.append(1e3 * (time.perf_counter() - t0))
     known = []  # the same number of returns, all in voxels the table holds
     for k in range(max(scans // 5, 5)):
         ijk = plane[rng.integers(0, rows, OLD_RETURNS + NEW_RETURNS)]
         values = rng.integers(0, bins.count, len(ijk))
         t0 = time.perf_counter()
-        table.add(ijk, values, 1.0 + scans + k, np.inf)
+        table.add(ijk, values, 0.1 * (1 + scans + k), decay_time)
         known.append(1e3 * (time.perf_counter() - t0))
     scan, base = np.array(times[1:]), float(np.median(known))
     print(
@@ -68,11 +69,17 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--rows", type=int, nargs="+", default=[100_000, 1_000_000, 4_000_000])
     parser.add_argument("--scans", type=int, default=100)
+    parser.add_argument(
+        "--decay-time", type=float, default=np.inf, help="s (default: none); scans 0.1 s apart"
+    )
     args = parser.parse_args()
     rng = np.random.default_rng(0)
-    print(f"{args.scans} scans of {OLD_RETURNS + NEW_RETURNS:,} returns, {NEW_RETURNS:,} new")
+    print(
+        f"{args.scans} scans of {OLD_RETURNS + NEW_RETURNS:,} returns, {NEW_RETURNS:,} new, "
+        f"0.1 s apart, decay time {args.decay_time} s"
+    )
     for rows in args.rows:
-        run(rows, args.scans, rng)
+        run(rows, args.scans, rng, args.decay_time)
 
 
 if __name__ == "__main__":
