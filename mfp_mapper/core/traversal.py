@@ -319,11 +319,11 @@ def integrate_rays(
     max_new_blocks: int | None = None,
 ) -> int:
     """Add every ray's chords and returns to the store (scan ``scan_id`` at ``stamp``): the
-    rays are split into their stretches in each shard's tiles (``split_into``, parts of
-    ``SPLIT_RAYS`` rays a task, into one buffer of the scan's stretches kept from scan to
-    scan, each shard's in the order it walks them), then the shards' stretches are walked,
-    a shard a task (one compiled call each), the shards with the most work first, so that
-    the threads end together.
+    rays are split into their stretches in each shard's tiles (``split_into``, parts of at
+    most ``SPLIT_RAYS`` rays a task, as many for each thread, into one buffer of the scan's
+    stretches kept from scan to scan, each shard's in the order it walks them), then the
+    shards' stretches are walked, a shard a task (one compiled call each), the shards with
+    the most work first, so that the threads end together.
     ``run_parallel(fn, items)`` calls ``fn`` on every item, in parallel, taking the items
     in order.
 
@@ -337,7 +337,11 @@ def integrate_rays(
         share = None if max_new_blocks is None else int(max_new_blocks)
         return _walk_whole(rays, store.shards[0], scan, share)
     threads = max(shards // SHARDS_PER_THREAD, 1)
-    size = max(min(-(-len(rays) // threads), SPLIT_RAYS), 1)  # at least a part a thread
+    # parts of at most SPLIT_RAYS rays, as many for each thread, of equal size (4 parts of
+    # 7,200 rays for 28,800, not 3 of 8,192 and one of 4,224: the split's round ends when
+    # its longer thread does)
+    parts = -(-max(-(-len(rays) // SPLIT_RAYS), 1) // threads) * threads
+    size = max(-(-len(rays) // parts), 1)
     parts = -(-len(rays) // size)
     part_at = np.zeros(parts + 1, dtype=np.int64)
     # two tasks, each counting the parts of its half of the rays
@@ -458,7 +462,8 @@ percentile). With four shards a thread, the threads take the shards' walks most 
 (``integrate_rays``), and two threads share a scan within 0.51-0.52 (0.525 at the 90th
 percentile)."""
 SPLIT_RAYS = 8192
-"""Rays split in one task (``split_into``): a part's stretches (25 bytes each) are written
+"""At most the rays split in one task (``split_into``; the parts are of equal size, as many
+for each thread): a part's stretches (25 bytes each) are written
 to a scratch the thread keeps, then put in walk order. When each part allocated its
 pieces, parts of 53k rays (OS1-128, 2 threads) took twice as long a ray, faulting their
 fresh pages in, and parts of 32768 rays 1.6 times as long; with the scratch kept, parts
