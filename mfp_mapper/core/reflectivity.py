@@ -542,9 +542,7 @@ class ReflectivityTable:
         if not len(self):
             self._time = self._latest = stamp
         self._latest = max(self._latest, stamp)
-        if not math.isfinite(decay):
-            self._time = self._latest  # (weights 1)
-        elif stamp - self._time > REFERENCE_DECAY_TIMES * decay:
+        if math.isfinite(decay) and stamp - self._time > REFERENCE_DECAY_TIMES * decay:
             factor = np.float32(self._decayed(stamp))
             self._settled.counts *= factor
             self._fresh.counts *= factor
