@@ -94,6 +94,19 @@ class Sim:
         self.layout += 1
         return cloud_from_columns(cols, "lidar", start)
 
+    def odom_until_counted(self, timeout: float) -> bool:
+        """Publish odometry a step at a time until the node's status counts some: odometry is
+        best effort, so what is sent before the node's reader has matched our writer is lost
+        (a cloud from before the first pose the node holds is then dropped ``too_old``)."""
+        for _ in range(max(1, round(timeout / ODOM_DT))):
+            self.odom_to(self.odom_until + ODOM_DT)
+            if self.feeder.wait(
+                lambda: self.feeder.status is not None and self.feeder.status["odom_in"] > 0,
+                ODOM_DT,
+            ):
+                return True
+        return False
+
     def send_scan(self, start: float, odom_after: float = 0.15) -> None:
         self.odom_to(start + 0.1 + odom_after)
         self.send_cloud(self.scan_msg(start))
@@ -627,19 +640,25 @@ def test_a_cold_start_takes_every_cloud_it_receives(ros_domain: int, tmp_path: P
     f = Feeder(node_name="mfp_cold", feeder_name="cold_feeder")
     sent = 30
 
-    def subscribed() -> bool:  # this node's cloud subscription (another node may run)
-        subscriptions = f.node.get_subscriptions_info_by_topic("/cloud_in")
-        return any(info.node_name == "mfp_cold" for info in subscriptions)
+    def subscribed() -> bool:  # this node's subscriptions (the module's node also has them)
+        return all(
+            any(info.node_name == "mfp_cold" for info in f.node.get_subscriptions_info_by_topic(t))
+            for t in ("/cloud_in", "/odom")
+        )
 
     try:
         assert f.wait_connected(300.0) and f.wait(subscribed, 300.0), node.log()[-3000:]
         sim = Sim(f)
+        # the node's subscriptions in the graph do not mean its readers have matched our
+        # writers yet: the first odometry could be lost, and the first clouds dropped too_old
+        assert sim.odom_until_counted(30.0), node.log()[-3000:]
+        first = sim.odom_until + ODOM_DT
         for k in range(sent):  # a driver streaming, not waiting for the node
-            start = T0 + 0.1 + 0.1 * k
+            start = first + 0.1 * k
             sim.odom_to(start + 0.25)
             f.cloud_pub.publish(sim.scan_msg(start))
             f.spin(0.1)
-        sim.odom_to(T0 + 0.1 * sent + 1.0)
+        sim.odom_to(first + 0.1 * sent + 1.0)
 
         def settled(s: dict[str, Any]) -> bool:
             handled = s["clouds_integrated"] + sum(s["clouds_dropped"].values())
