@@ -340,8 +340,8 @@ def integrate_rays(
     # parts of at most SPLIT_RAYS rays, as many for each thread, of equal size (4 parts of
     # 7,200 rays for 28,800, not 3 of 8,192 and one of 4,224: the split's round ends when
     # its longer thread does)
-    parts = -(-max(-(-len(rays) // SPLIT_RAYS), 1) // threads) * threads
-    size = max(-(-len(rays) // parts), 1)
+    per_thread = max(-(-len(rays) // (SPLIT_RAYS * threads)), 1)
+    size = max(-(-len(rays) // (per_thread * threads)), 1)
     parts = -(-len(rays) // size)
     part_at = np.zeros(parts + 1, dtype=np.int64)
     # two tasks, each counting the parts of its half of the rays
